@@ -1,0 +1,172 @@
+"""Assembly of the global energy, forces and stiffness from the generated element kernels.
+
+Sign convention (the assignment's): with ``V(q) = sum_e vol_e psi(F_e(q))``,
+
+* ``assemble_forces(model, q)    = -dV/dq``       (generalized internal forces),
+* ``assemble_stiffness(model, q) = -d2V/dq2``     (the *negative* Hessian, symmetric negative
+  semi-definite near rest), so the linearly-implicit system reads ``M - dt^2 K``;
+* ``assemble_hessian(model, q)   = +d2V/dq2``     (what Newton's method uses).
+
+Every derivative comes from the generated kernels (``model.mat.gradient`` /
+``model.mat.hessian``); this module only scatters element arrays into global ones, each with
+one ``np.bincount`` over the maps precomputed in :class:`fem3d.model.Model`.
+
+Positions ``q`` may be given as ``(n, 3)`` or flattened vertex-major ``(3n,)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.model import Model
+
+__all__ = [
+    "element_positions",
+    "element_energies",
+    "potential_energy",
+    "assemble_gradient",
+    "assemble_forces",
+    "hessian_data",
+    "assemble_hessian",
+    "assemble_stiffness",
+    "mass_matrix_mesh",
+    "kinetic_energy",
+    "deformed_volumes",
+    "count_inverted",
+]
+
+
+def element_positions(model: Model, q: np.ndarray) -> np.ndarray:
+    """Deformed corner positions of every tet.
+
+    Parameters
+    ----------
+    model : Model
+    q : (n, 3) or (3n,) float64
+
+    Returns
+    -------
+    x_e : (m, 4, 3) float64
+        ``q[T]``.
+    """
+    return np.asarray(q, dtype=np.float64).reshape(-1, 3)[model.T]
+
+
+def element_energies(model: Model, q: np.ndarray) -> np.ndarray:
+    """Strain energy of each tet, ``vol_e psi(F_e)``.
+
+    Returns
+    -------
+    (m,) float64
+    """
+    return model.mat.energy(element_positions(model, q), model.dphi_dX, model.vol, model.params)
+
+
+def potential_energy(model: Model, q: np.ndarray) -> float:
+    """Total strain energy ``V(q)`` (non-finite when a tet is inverted for log/power laws)."""
+    return float(element_energies(model, q).sum())
+
+
+def assemble_gradient(model: Model, q: np.ndarray) -> np.ndarray:
+    """``dV/dq``.
+
+    Returns
+    -------
+    (3n,) float64
+    """
+    g = model.mat.gradient(element_positions(model, q), model.dphi_dX, model.vol, model.params)
+    return model.assemble_vectors(g)
+
+
+def assemble_forces(model: Model, q: np.ndarray) -> np.ndarray:
+    """Internal elastic forces ``f = -dV/dq``.
+
+    Parameters
+    ----------
+    model : Model
+    q : (n, 3) or (3n,) float64
+
+    Returns
+    -------
+    (3n,) float64
+        Vertex-major.
+    """
+    return -assemble_gradient(model, q)
+
+
+def hessian_data(model: Model, q: np.ndarray) -> np.ndarray:
+    """CSR ``data`` of ``d2V/dq2`` on ``model.pattern`` (no matrix object built).
+
+    Returns
+    -------
+    (nnz,) float64
+    """
+    H = model.mat.hessian(element_positions(model, q), model.dphi_dX, model.vol, model.params)
+    return model.assemble_blocks(H)
+
+
+def assemble_hessian(model: Model, q: np.ndarray) -> sp.csr_matrix:
+    """``H = d2V/dq2`` (positive convention, used by Newton's method).
+
+    Returns
+    -------
+    (3n, 3n) scipy.sparse.csr_matrix
+        On ``model.pattern``'s sparsity.
+    """
+    return model.csr(hessian_data(model, q))
+
+
+def assemble_stiffness(model: Model, q: np.ndarray) -> sp.csr_matrix:
+    """Stiffness matrix ``K = -d2V/dq2`` (the assignment's sign convention).
+
+    Parameters
+    ----------
+    model : Model
+    q : (n, 3) or (3n,) float64
+
+    Returns
+    -------
+    (3n, 3n) scipy.sparse.csr_matrix
+        Symmetric; on ``model.pattern``'s sparsity.
+    """
+    return model.csr(-hessian_data(model, q))
+
+
+def mass_matrix_mesh(model: Model) -> sp.csr_matrix:
+    """The assembled consistent mass matrix ``M`` (precomputed in the model).
+
+    Returns
+    -------
+    (3n, 3n) scipy.sparse.csr_matrix
+        Symmetric positive definite; ``sum`` over the x-DOFs of one row-block equals
+        ``rho * total volume``.
+    """
+    return model.mass
+
+
+def kinetic_energy(model: Model, v: np.ndarray) -> float:
+    """``1/2 v^T M v`` for ``v`` of shape ``(n, 3)`` or ``(3n,)``."""
+    v = np.asarray(v, dtype=np.float64).reshape(-1)
+    return 0.5 * float(v @ (model.mass @ v))
+
+
+def deformed_volumes(model: Model, q: np.ndarray) -> np.ndarray:
+    """Signed volumes of the deformed tets (``vol_e det F_e``).
+
+    Returns
+    -------
+    (m,) float64
+        ``det([x1-x0, x2-x0, x3-x0]) / 6``; ``<= 0`` means the tet is inverted or flat.
+    """
+    x = element_positions(model, q)
+    e1 = x[:, 1] - x[:, 0]
+    e2 = x[:, 2] - x[:, 0]
+    e3 = x[:, 3] - x[:, 0]
+    return np.einsum("ij,ij->i", np.cross(e1, e2), e3) / 6.0
+
+
+def count_inverted(model: Model, q: np.ndarray) -> int:
+    """Number of tets with ``det F <= 0`` (or a non-finite corner) at ``q``."""
+    dv = deformed_volumes(model, q)
+    return int(np.count_nonzero(~(dv > 0)))
