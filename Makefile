@@ -1,0 +1,35 @@
+# fem3d — common tasks. `make run` and `make test` set everything up on a fresh machine.
+PYTHON ?= python3
+PIP_STAMP := .venv-stamp
+
+.PHONY: install codegen check-generated build test lint run bench clean
+
+install: $(PIP_STAMP)
+$(PIP_STAMP): pyproject.toml setup.py generated/c/*.c
+	$(PYTHON) -m pip install -q -e '.[dev]'
+	@touch $(PIP_STAMP)
+
+codegen:  ## regenerate generated/ from codegen/ and templates/, then rebuild the C extension
+	$(PYTHON) -m codegen
+	$(PYTHON) setup.py -q build_ext --inplace
+
+check-generated:  ## fail with a diff when the committed generated/ is stale
+	$(PYTHON) -m codegen --check
+
+build:  ## rebuild the C extension in place after editing generated/c
+	$(PYTHON) setup.py -q build_ext --inplace
+
+lint:
+	$(PYTHON) -m ruff check .
+
+test: install  ## the test suite (what CI runs)
+	$(PYTHON) -m pytest -q
+
+run: install  ## the main job on the built-in bunny scene
+	$(PYTHON) -m fem3d run bunny --out runs/bunny
+
+bench: install
+	$(PYTHON) -m bench
+
+clean:
+	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache

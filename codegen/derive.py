@@ -1,0 +1,231 @@
+"""Stage 1 and 2: derive exact expressions with SymPy and freeze them into kernel specs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+from types import ModuleType
+
+import sympy as sp
+
+from codegen import tet
+from codegen.conventions import deformation_gradient, flatten, symbol_matrix, symbol_vector
+from codegen.materials import MATERIALS
+from codegen.spec import Argument, KernelSpec, ModuleSpec, make_kernel
+
+
+@dataclass(frozen=True)
+class MaterialDerivation:
+    """Exact, un-CSE'd expressions of one material in the symbols ``F_i_j`` and its params."""
+
+    F: sp.Matrix
+    params: dict[str, sp.Symbol]
+    psi: sp.Expr
+    P: sp.Matrix
+    dP_dF: sp.Matrix
+
+
+@cache
+def derive_material(name: str) -> MaterialDerivation:
+    """``psi``, ``P = dpsi/dF`` (3x3) and ``dP/dF`` (9x9, row-major flattening of F)."""
+    material = MATERIALS[name]
+    F = symbol_matrix("F", 3, 3)
+    params = {p: sp.Symbol(p, real=True) for p in material.PARAM_NAMES}
+    psi = material.psi(F, params)
+    P = sp.Matrix(3, 3, lambda i, j: sp.diff(psi, F[i, j]))
+    F_flat = flatten(F)
+    P_flat = flatten(P)
+    dP_dF = sp.Matrix(9, 9, lambda a, b: sp.diff(P_flat[a], F_flat[b]))
+    return MaterialDerivation(F, params, psi, P, dP_dF)
+
+
+def _param_args(names: tuple[str, ...], symbols: dict[str, sp.Symbol]) -> tuple[Argument, ...]:
+    return tuple(Argument(n, (), (symbols[n],), per_element=False) for n in names)
+
+
+def _matrix_arg(name: str, matrix: sp.Matrix, doc: str) -> Argument:
+    shape = (matrix.rows, matrix.cols) if matrix.cols > 1 else (matrix.rows,)
+    return Argument(name, shape, tuple(flatten(matrix)), doc=doc)
+
+
+def _element_symbols() -> tuple[sp.Matrix, sp.Matrix, sp.Symbol]:
+    return symbol_matrix("x", 4, 3), symbol_matrix("dphi", 4, 3), sp.Symbol("vol", real=True)
+
+
+def _cse_prelude(exprs: list[sp.Expr], names: list[sp.Symbol], prefix: str):
+    """CSE ``exprs`` and name each result, so later expressions can reference ``names``."""
+    replacements, reduced = sp.cse(
+        exprs, symbols=sp.numbered_symbols(prefix), order="canonical"
+    )
+    return list(replacements) + list(zip(names, reduced, strict=True))
+
+
+def material_module(name: str) -> ModuleSpec:
+    """All kernels of one material: pointwise ``psi``, ``P``, ``dP/dF`` and per-element energy,
+    gradient and Hessian of ``vol * psi(F(x))`` by the chain rule through ``F``."""
+    material: ModuleType = MATERIALS[name]
+    d = derive_material(name)
+    params = _param_args(material.PARAM_NAMES, d.params)
+    F_arg = _matrix_arg("F", d.F, "deformation gradients")
+    kernels: list[KernelSpec] = [
+        make_kernel(name, "psi", "Strain energy density psi(F).", [F_arg], params,
+                    [("psi", (), [d.psi], False, "")]),
+        make_kernel(name, "dpsi_dF", "First Piola-Kirchhoff stress P = dpsi/dF.", [F_arg], params,
+                    [("P", (3, 3), flatten(d.P), False, "")]),
+        make_kernel(name, "d2psi_dF2", "dP/dF, 9x9 in the row-major flattening of F.", [F_arg],
+                    params, [("dP_dF", (9, 9), flatten(d.dP_dF), True, "")]),
+    ]
+
+    x, D, vol = _element_symbols()
+    element_inputs = [
+        _matrix_arg("x_e", x, "deformed vertex positions of each tet"),
+        _matrix_arg("dphi_dX", D, "rest-shape gradients of the shape functions"),
+        Argument("vol", (), (vol,), doc="rest volumes"),
+    ]
+    F_def = deformation_gradient(x, D)
+    prelude_F = list(zip(flatten(d.F), flatten(F_def), strict=True))
+
+    energy_prelude = prelude_F + _cse_prelude([d.psi], [sp.Symbol("psi")], "e")
+    kernels.append(make_kernel(
+        name, "energy", "Element potential energy vol * psi(F(x_e)).", element_inputs, params,
+        [("energy", (), [vol * sp.Symbol("psi")], False, "")], energy_prelude))
+
+    P_sym = symbol_matrix("P", 3, 3)
+    grad_prelude = prelude_F + _cse_prelude(flatten(d.P), flatten(P_sym), "s")
+    gradient = [vol * sum(P_sym[c, j] * D[v, j] for j in range(3))
+                for v in range(4) for c in range(3)]
+    kernels.append(make_kernel(
+        name, "gradient", "Element gradient d(vol psi)/dx_e, vertex-major (12).", element_inputs,
+        params, [("gradient", (12,), gradient, False, "")], grad_prelude))
+
+    # dP/dF is symmetric: compute the upper triangle once and reference it from both sides.
+    A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
+    upper = [(a, b) for a in range(9) for b in range(a, 9)]
+    hess_prelude = prelude_F + _cse_prelude(
+        [d.dP_dF[a, b] for a, b in upper], [A_sym[a, b] for a, b in upper], "h")
+    # Contract dF/dx (sparse, linear) on both sides: first over l, then over j.
+    T_sym = sp.Matrix(9, 12, lambda a, q: sp.Symbol(f"T_{a}_{q}"))
+    for c in range(3):
+        for j in range(3):
+            for w in range(4):
+                for dd in range(3):
+                    value = sum(A_sym[3 * c + j, 3 * dd + ll] * D[w, ll] for ll in range(3))
+                    hess_prelude.append((T_sym[3 * c + j, 3 * w + dd], value))
+    hessian = sp.Matrix(12, 12, lambda r, s: vol * sum(
+        D[r // 3, j] * T_sym[3 * (r % 3) + j, s] for j in range(3)))
+    kernels.append(make_kernel(
+        name, "hessian", "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).",
+        element_inputs, params, [("hessian", (12, 12), flatten(hessian), True, "")], hess_prelude))
+
+    return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
+                      param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels))
+
+
+def _tet_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:
+    """Exact expressions of the tet kernels: name -> (inputs, params, outputs)."""
+    X = tet.rest_symbols()
+    X_arg = _matrix_arg("X_e", X, "rest vertex positions of each tet")
+    p = symbol_vector("p", 3)
+    rho, vol = sp.Symbol("rho", real=True), sp.Symbol("vol", real=True)
+    x, D, _ = _element_symbols()
+    return {
+        "rest_shape": (
+            [X_arg], [],
+            [("dphi_dX", (4, 3), flatten(tet.shape_gradients(X)), False, ""),
+             ("volume", (), [tet.signed_volume(X)], False, "")]),
+        "phi": (
+            [X_arg, _matrix_arg("p", p, "points")], [],
+            [("phi", (4,), list(tet.barycentric(X, p)), False, "")]),
+        "mass_matrix": (
+            [Argument("vol", (), (vol,), doc="rest volumes")],
+            [Argument("rho", (), (rho,), per_element=False)],
+            [("mass", (12, 12), flatten(tet.mass_matrix(rho, vol)), True, "")]),
+        "deformation_gradient": (
+            [_matrix_arg("x_e", x, "deformed vertex positions"),
+             _matrix_arg("dphi_dX", D, "shape-function gradients")], [],
+            [("F", (3, 3), flatten(deformation_gradient(x, D)), False, "")]),
+    }
+
+
+_TET_DOCS = {
+    "rest_shape": "Shape-function gradients dphi/dX and signed volume of rest tets.",
+    "phi": "Shape functions (barycentric coordinates) of each tet at a point p.",
+    "mass_matrix": "Exact consistent mass matrix rho * integral N^T N dV (12x12).",
+    "deformation_gradient": "Deformation gradient F = sum_v x_v dphi_v/dX^T.",
+}
+
+
+def _spring_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:
+    """Exact expressions of the zero-rest-length spring ``1/2 k |x_a - x_b|^2``."""
+    xa, xb = symbol_vector("xa", 3), symbol_vector("xb", 3)
+    k = sp.Symbol("k", real=True)
+    energy = k / 2 * ((xa - xb).T * (xa - xb))[0, 0]
+    dofs = list(xa) + list(xb)
+    gradient = [sp.diff(energy, s) for s in dofs]
+    hessian = [sp.diff(g, s) for g in gradient for s in dofs]
+    inputs = [_matrix_arg("x_a", xa, "first end points"),
+              _matrix_arg("x_b", xb, "second end points")]
+    params = [Argument("k", (), (k,), per_element=False)]
+    return {
+        "energy": (inputs, params, [("energy", (), [energy], False, "")]),
+        "gradient": (inputs, params, [("gradient", (6,), gradient, False, "")]),
+        "hessian": (inputs, params, [("hessian", (6, 6), hessian, True, "")]),
+    }
+
+
+_SPRING_DOCS = {
+    "energy": "Spring energy 1/2 k |x_a - x_b|^2.",
+    "gradient": "Spring gradient (d/dx_a, d/dx_b), length 6.",
+    "hessian": "Spring Hessian (6x6).",
+}
+
+
+def tet_module() -> ModuleSpec:
+    """Material-independent kernels of the linear tetrahedron."""
+    kernels = tuple(make_kernel("tet", name, _TET_DOCS[name], inputs, params, outputs)
+                    for name, (inputs, params, outputs) in _tet_raw().items())
+    return ModuleSpec(name="tet", doc="linear tetrahedron geometry", source=tet.__name__,
+                      param_names=(), kernels=kernels)
+
+
+def spring_module() -> ModuleSpec:
+    """Zero-rest-length spring ``1/2 k |x_a - x_b|^2`` (the user's pull spring)."""
+    kernels = tuple(make_kernel("spring", name, _SPRING_DOCS[name], inputs, params, outputs)
+                    for name, (inputs, params, outputs) in _spring_raw().items())
+    return ModuleSpec(name="spring", doc="zero-rest-length spring", source=__name__,
+                      param_names=("k",), kernels=kernels)
+
+
+def all_modules() -> list[ModuleSpec]:
+    """Every module the generator emits, in a fixed order."""
+    return [tet_module(), spring_module(), *(material_module(n) for n in sorted(MATERIALS))]
+
+
+def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[list[sp.Expr]]]:
+    """Un-CSE'd expressions of a kernel's outputs, straight from SymPy, for the diff tests.
+
+    Element kernels are differentiated directly with respect to the 12 DOFs, not through the
+    chain rule the generated code uses. Returns ``(input symbols, [flat exprs per output])``
+    with the input symbols in the kernel's argument order (inputs, then parameters).
+    """
+    if module in MATERIALS:
+        d = derive_material(module)
+        params = [d.params[n] for n in MATERIALS[module].PARAM_NAMES]
+        if kernel in ("psi", "dpsi_dF", "d2psi_dF2"):
+            out = {"psi": [d.psi], "dpsi_dF": flatten(d.P), "d2psi_dF2": flatten(d.dP_dF)}[kernel]
+            return flatten(d.F) + params, [out]
+        x, D, vol = _element_symbols()
+        F_of_x = dict(zip(flatten(d.F), flatten(deformation_gradient(x, D)), strict=True))
+        energy = vol * d.psi.xreplace(F_of_x)
+        dofs = flatten(x)
+        symbols = dofs + flatten(D) + [vol] + params
+        if kernel == "energy":
+            return symbols, [[energy]]
+        gradient = [sp.diff(energy, s) for s in dofs]
+        if kernel == "gradient":
+            return symbols, [gradient]
+        return symbols, [[sp.diff(g, s) for g in gradient for s in dofs]]
+    raw = {"tet": _tet_raw, "spring": _spring_raw}[module]()
+    inputs, params, outputs = raw[kernel]
+    symbols = [s for a in (*inputs, *params) for s in a.symbols]
+    return symbols, [list(exprs) for _, _, exprs, _, _ in outputs]

@@ -1,0 +1,184 @@
+"""Stage 3: render :class:`~codegen.spec.ModuleSpec` objects through Jinja2 templates.
+
+Each back end is a template folder plus an expression printer; both render the same spec.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import jinja2
+import sympy as sp
+from sympy.printing.c import C99CodePrinter
+from sympy.printing.numpy import NumPyPrinter
+
+from codegen.materials import MATERIALS
+from codegen.spec import Argument, KernelSpec, ModuleSpec
+
+ROOT = Path(__file__).resolve().parent.parent
+TEMPLATES = ROOT / "templates"
+
+
+class _PowerMixin:
+    """Integer powers as products, halves as sqrt, thirds as cbrt: faster than pow().
+
+    ``x**(p/q)`` is printed as ``x**whole * root(x)**part`` with ``whole, part = divmod(p, q)``.
+    Compound bases go through :meth:`_integer_power` so they are evaluated once.
+    """
+
+    _sqrt = "sqrt"
+    _cbrt = "cbrt"
+
+    def _integer_power(self, base: str, n: int, atomic: bool) -> str:
+        return "*".join([base] * n)
+
+    def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:  # noqa: ARG002
+        base, exp = expr.as_base_exp()
+        if not (exp.is_Rational and exp.q in (1, 2, 3) and abs(exp.p) <= 4 * exp.q):
+            return super()._print_Pow(expr)
+        atomic = base.is_Atom
+        b = self.parenthesize(base, 100) if atomic else f"({self._print(base)})"
+        whole, part = divmod(int(exp.p), int(exp.q))
+        factors = []
+        if part:
+            root = f"{self._sqrt if exp.q == 2 else self._cbrt}({self._print(base)})"
+            factors.append(self._integer_power(root, part, True))
+        if whole > 0:
+            factors.append(self._integer_power(b, whole, atomic))
+        text = "*".join(factors) if factors else "1.0"
+        if whole < 0:
+            text = f"{text}/({self._integer_power(b, -whole, atomic)})"
+        return f"({text})"
+
+
+class NumPyExpressionPrinter(_PowerMixin, NumPyPrinter):
+    """Vectorized NumPy expressions; symbols are arrays of shape ``(m,)``."""
+
+    _sqrt = "numpy.sqrt"
+    _cbrt = "numpy.cbrt"
+
+    def _integer_power(self, base: str, n: int, atomic: bool) -> str:
+        if atomic or n == 1:
+            return "*".join([base] * n)
+        return f"{base}**{n}"
+
+
+class CExpressionPrinter(_PowerMixin, C99CodePrinter):
+    """C99 expressions over doubles; compound bases use the inline ``fem3d_powi``."""
+
+    def _integer_power(self, base: str, n: int, atomic: bool) -> str:
+        if atomic or n == 1:
+            return "*".join([base] * n)
+        return f"fem3d_powi({base}, {n})"
+
+
+@dataclass(frozen=True)
+class Backend:
+    """A template folder, its module template, the printer and the output file suffix."""
+
+    name: str
+    template: str
+    printer: type
+    suffix: str
+
+
+BACKENDS = {
+    "numpy": Backend("numpy", "numpy/module.py.jinja", NumPyExpressionPrinter, ".py"),
+    "c": Backend("c", "c/module.c.jinja", CExpressionPrinter, ".c"),
+}
+
+
+def _environment() -> jinja2.Environment:
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES),
+        undefined=jinja2.StrictUndefined,
+        keep_trailing_newline=True,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+
+
+def _arg_view(arg: Argument, used: set[sp.Symbol]) -> dict:
+    return {
+        "name": arg.name,
+        "shape": arg.shape,
+        "size": arg.size,
+        "symbols": [str(s) for s in arg.symbols],
+        # (position, name) of the entries the kernel reads; unused ones are not unpacked
+        "used": [(i, str(s)) for i, s in enumerate(arg.symbols) if s in used],
+        "doc": arg.doc,
+        "per_element": arg.per_element,
+    }
+
+
+def kernel_view(kernel: KernelSpec, printer) -> dict:
+    """Everything a template needs about one kernel, with expressions already printed."""
+    used: set[sp.Symbol] = set()
+    for _, e in kernel.intermediates:
+        used |= e.free_symbols
+    for out in kernel.outputs:
+        for _, e, _ in out.entries():
+            used |= e.free_symbols
+    return {
+        "name": kernel.name,
+        "qualified_name": kernel.qualified_name,
+        "doc": kernel.doc,
+        "inputs": [_arg_view(a, used) for a in kernel.inputs],
+        "params": [_arg_view(a, used) for a in kernel.params],
+        "param_symbols": ", ".join(str(a.symbols[0]) for a in kernel.params),
+        "param_names": tuple(a.name for a in kernel.params),
+        "intermediates": [(str(s), printer.doprint(e)) for s, e in kernel.intermediates],
+        "outputs": [
+            {
+                "name": out.name,
+                "shape": out.shape,
+                "size": out.size,
+                "symmetric": out.symmetric,
+                "entries": [(k, printer.doprint(e), list(m)) for k, e, m in out.entries()],
+            }
+            for out in kernel.outputs
+        ],
+        "op_count": kernel.op_count,
+    }
+
+
+def render_module(module: ModuleSpec, backend: str) -> str:
+    """Source text of one module for one back end."""
+    spec = BACKENDS[backend]
+    printer = spec.printer({"strict": False}) if backend == "numpy" else spec.printer()
+    template = _environment().get_template(spec.template)
+    return template.render(
+        module=module,
+        kernels=[kernel_view(k, printer) for k in module.kernels],
+        template_name=f"templates/{spec.template}",
+        sympy_version=sp.__version__,
+    )
+
+
+def render_extension(modules: list[ModuleSpec]) -> str:
+    """The C extension's entry file: includes every module and lists its kernels."""
+    template = _environment().get_template("c/extension.c.jinja")
+    return template.render(
+        modules=[{"name": m.name, "kernels": [
+            {"qualified_name": k.qualified_name, "doc": k.doc, "n_inputs": len(k.inputs),
+             "n_outputs": len(k.outputs)} for k in m.kernels]} for m in modules],
+        template_name="templates/c/extension.c.jinja",
+        sympy_version=sp.__version__,
+    )
+
+
+def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
+    """Relative path under ``generated/`` -> file text, for every module and back end."""
+    files = {}
+    for module in modules:
+        for name, backend in BACKENDS.items():
+            files[f"{name}/{module.name}{backend.suffix}"] = render_module(module, name)
+    files["numpy/__init__.py"] = _environment().get_template("numpy/package.py.jinja").render(
+        modules=tuple(m.name for m in modules),
+        materials=tuple(m.name for m in modules if m.name in MATERIALS),
+        template_name="templates/numpy/package.py.jinja",
+        sympy_version=sp.__version__,
+    )
+    files["c/_ckernels.c"] = render_extension(modules)
+    return files

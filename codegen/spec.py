@@ -1,0 +1,152 @@
+"""Frozen, back-end independent description of generated kernels (stage 2 of the pipeline)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import sympy as sp
+
+
+@dataclass(frozen=True)
+class Argument:
+    """A kernel input.
+
+    ``per_element`` inputs have shape ``(m, *shape)``; parameters (``per_element=False``) are
+    scalars shared by all elements of a call. ``symbols`` lists the entries in row-major order.
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    symbols: tuple[sp.Symbol, ...]
+    per_element: bool = True
+    doc: str = ""
+
+    @property
+    def size(self) -> int:
+        return math.prod(self.shape)
+
+
+@dataclass(frozen=True)
+class Output:
+    """A kernel output of shape ``(m, *shape)``; ``exprs`` row-major, over the CSE'd symbols.
+
+    ``symmetric`` outputs are square matrices whose upper triangle is computed and mirrored.
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    exprs: tuple[sp.Expr, ...]
+    symmetric: bool = False
+    doc: str = ""
+
+    @property
+    def size(self) -> int:
+        return math.prod(self.shape)
+
+    def entries(self) -> list[tuple[int, sp.Expr, tuple[int, ...]]]:
+        """``(flat index, expression, mirrored flat indices)`` of the entries to compute."""
+        if not self.symmetric:
+            return [(k, e, ()) for k, e in enumerate(self.exprs)]
+        n = self.shape[0]
+        rows = []
+        for i in range(n):
+            for j in range(i, n):
+                mirror = () if i == j else (j * n + i,)
+                rows.append((i * n + j, self.exprs[i * n + j], mirror))
+        return rows
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """One kernel: inputs, parameters, CSE'd intermediates and outputs."""
+
+    module: str
+    name: str
+    doc: str
+    inputs: tuple[Argument, ...]
+    params: tuple[Argument, ...]
+    intermediates: tuple[tuple[sp.Symbol, sp.Expr], ...]
+    outputs: tuple[Output, ...]
+
+    @property
+    def op_count(self) -> int:
+        """Arithmetic operations per element, as counted by ``sympy.count_ops``."""
+        exprs = [e for _, e in self.intermediates]
+        exprs += [e for out in self.outputs for _, e, _ in out.entries()]
+        return int(sum(sp.count_ops(e) for e in exprs))
+
+    @property
+    def qualified_name(self) -> str:
+        return f"{self.module}_{self.name}"
+
+
+@dataclass(frozen=True)
+class ModuleSpec:
+    """A group of kernels rendered into one file per back end (a material, or the tet)."""
+
+    name: str
+    doc: str
+    source: str
+    param_names: tuple[str, ...]
+    kernels: tuple[KernelSpec, ...]
+
+
+def make_kernel(
+    module: str,
+    name: str,
+    doc: str,
+    inputs: Sequence[Argument],
+    params: Sequence[Argument],
+    outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], bool, str]],
+    prelude: Sequence[tuple[sp.Symbol, sp.Expr]] = (),
+) -> KernelSpec:
+    """Run common-subexpression elimination over all outputs and freeze a :class:`KernelSpec`.
+
+    ``prelude`` holds named assignments computed before the CSE'd block (for example ``F``
+    from the element DOFs), which the output expressions may reference by symbol.
+    Only the entries a symmetric output actually computes take part in the CSE.
+    """
+    pending = []
+    for out_name, shape, exprs, symmetric, out_doc in outputs:
+        probe = Output(out_name, shape, tuple(exprs), symmetric, out_doc)
+        pending.append((probe, [e for _, e, _ in probe.entries()]))
+    flat = [e for _, exprs in pending for e in exprs]
+    replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("t"), order="canonical")
+    outs = []
+    position = 0
+    for probe, exprs in pending:
+        computed = reduced[position : position + len(exprs)]
+        position += len(exprs)
+        full = list(probe.exprs)
+        for (k, _, mirror), value in zip(probe.entries(), computed, strict=True):
+            full[k] = value
+            for k2 in mirror:
+                full[k2] = value
+        outs.append(Output(probe.name, probe.shape, tuple(full), probe.symmetric, probe.doc))
+    return KernelSpec(
+        module=module,
+        name=name,
+        doc=doc,
+        inputs=tuple(inputs),
+        params=tuple(params),
+        intermediates=_live(list(prelude) + list(replacements), outs),
+        outputs=tuple(outs),
+    )
+
+
+def _live(
+    assignments: list[tuple[sp.Symbol, sp.Expr]], outputs: list[Output]
+) -> tuple[tuple[sp.Symbol, sp.Expr], ...]:
+    """Drop assignments no output depends on (e.g. the lower half of a symmetric contraction)."""
+    needed: set[sp.Symbol] = set()
+    for out in outputs:
+        for _, e, _ in out.entries():
+            needed |= e.free_symbols
+    kept = []
+    for symbol, value in reversed(assignments):
+        if symbol in needed:
+            kept.append((symbol, value))
+            needed |= value.free_symbols
+    return tuple(reversed(kept))

@@ -1,0 +1,157 @@
+"""Dispatch to the generated kernels: the C extension when built, NumPy otherwise.
+
+Both back ends are rendered from the same kernel specs (see ``codegen``); this module only
+chooses one, validates arguments and allocates outputs. Choose explicitly with the
+``backend`` argument or the ``FEM3D_KERNELS`` environment variable (``numpy`` or ``c``).
+
+Examples
+--------
+>>> nh = material_kernels("neo_hookean")
+>>> H = nh.hessian(q[T], model.dphi_dX, model.vol, (C, D))    # (m, 12, 12)
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from collections.abc import Callable, Sequence
+from functools import cache
+from types import ModuleType
+
+import numpy as np
+
+from fem3d._generated import MATERIALS, MODULES
+
+BACKENDS = ("numpy", "c")
+
+
+def c_extension() -> ModuleType | None:
+    """The compiled extension ``fem3d._ckernels``, or ``None`` when it is not built."""
+    try:
+        return importlib.import_module("fem3d._ckernels")
+    except ImportError:
+        return None
+
+
+def resolve_backend(backend: str | None = None) -> str:
+    """``backend``, else ``$FEM3D_KERNELS``, else ``"c"`` when built, else ``"numpy"``."""
+    choice = backend or os.environ.get("FEM3D_KERNELS") or None
+    if choice is None:
+        return "c" if c_extension() is not None else "numpy"
+    if choice not in BACKENDS:
+        raise ValueError(f"unknown kernel back end {choice!r}; choose one of {BACKENDS}")
+    if choice == "c" and c_extension() is None:
+        raise ImportError(
+            "the C kernels (fem3d._ckernels) are not built; run `pip install -e .` with a C "
+            "compiler, or use FEM3D_KERNELS=numpy"
+        )
+    return choice
+
+
+class KernelModule:
+    """The kernels of one generated module (a material, ``tet`` or ``spring``) on one back end.
+
+    Every kernel is an attribute taking the per-element inputs, then (if the kernel has any)
+    the parameter sequence, and returning its outputs with a leading element axis.
+    """
+
+    def __init__(self, name: str, backend: str) -> None:
+        if name not in MODULES:
+            raise ValueError(f"unknown kernel module {name!r}; available: {MODULES}")
+        self.name = name
+        self.backend = backend
+        self._numpy = importlib.import_module(f"fem3d._generated.{name}")
+        self.PARAM_NAMES: tuple[str, ...] = self._numpy.PARAM_NAMES
+        self.SIGNATURES: dict = self._numpy.SIGNATURES
+        for kernel in self.SIGNATURES:
+            if backend == "numpy":
+                function = getattr(self._numpy, kernel)
+            else:
+                function = _c_wrapper(name, kernel, self.SIGNATURES[kernel])
+            setattr(self, kernel, function)
+
+    def __repr__(self) -> str:
+        return f"KernelModule({self.name!r}, backend={self.backend!r})"
+
+
+def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., object]:
+    """Wrap one C kernel: validate and lay out inputs, allocate outputs, call, reshape."""
+    ext = c_extension()
+    function = getattr(ext, f"{module}_{kernel}")
+    inputs = signature["inputs"]
+    outputs = signature["outputs"]
+    n_params = len(signature["params"])
+    qualified = f"{module}.{kernel}"
+
+    def call(*args: object) -> np.ndarray | tuple[np.ndarray, ...]:
+        expected = len(inputs) + (1 if n_params else 0)
+        if len(args) != expected:
+            raise TypeError(f"{qualified} takes {expected} arguments, got {len(args)}")
+        arrays = []
+        m = None
+        for value, (name, shape) in zip(args, inputs, strict=False):
+            a = np.ascontiguousarray(value, dtype=np.float64)
+            size = int(np.prod(shape, dtype=np.int64))
+            if a.ndim < 1 or a.ndim > 1 + len(shape) or (len(a) and a[0].size != size):
+                raise ValueError(f"{qualified}: {name} must have shape (m, "
+                                 f"{', '.join(map(str, shape))}), got {a.shape}")
+            if m is None:
+                m = a.shape[0]
+            elif a.shape[0] != m:
+                raise ValueError(f"{qualified}: {name} has {a.shape[0]} elements, expected {m}")
+            arrays.append(a)
+        params = np.ascontiguousarray(args[len(inputs)] if n_params else (), dtype=np.float64)
+        if params.shape != (n_params,):
+            raise ValueError(f"{qualified}: expected {n_params} parameters "
+                             f"{signature['params']}, got shape {params.shape}")
+        results = [np.empty((m, *shape)) for _, shape in outputs]
+        function(*arrays, params, *results)
+        return results[0] if len(results) == 1 else tuple(results)
+
+    call.__name__ = kernel
+    call.__qualname__ = qualified
+    call.__doc__ = f"C kernel {qualified}; same arguments and results as the NumPy kernel."
+    return call
+
+
+@cache
+def kernel_module(name: str, backend: str | None = None) -> KernelModule:
+    """Kernels of generated module ``name`` on ``backend`` (see :func:`resolve_backend`)."""
+    return KernelModule(name, resolve_backend(backend))
+
+
+def material_kernels(name: str = "neo_hookean", backend: str | None = None) -> KernelModule:
+    """Kernels of a material: ``psi``, ``dpsi_dF``, ``d2psi_dF2``, ``energy``, ``gradient``,
+    ``hessian``. ``name`` is one of :data:`MATERIALS`."""
+    if name not in MATERIALS:
+        raise ValueError(f"unknown material {name!r}; available: {', '.join(MATERIALS)}")
+    return kernel_module(name, resolve_backend(backend))
+
+
+def geometry_kernels(backend: str | None = None) -> KernelModule:
+    """Linear-tet kernels: ``rest_shape``, ``phi``, ``mass_matrix``, ``deformation_gradient``."""
+    return kernel_module("tet", resolve_backend(backend))
+
+
+def spring_kernels(backend: str | None = None) -> KernelModule:
+    """Zero-rest-length spring kernels: ``energy``, ``gradient``, ``hessian``."""
+    return kernel_module("spring", resolve_backend(backend))
+
+
+def available_materials() -> Sequence[str]:
+    """Names of the generated materials."""
+    return MATERIALS
+
+
+__all__ = [
+    "BACKENDS",
+    "MATERIALS",
+    "KernelModule",
+    "available_materials",
+    "c_extension",
+    "geometry_kernels",
+    "kernel_module",
+    "material_kernels",
+    "resolve_backend",
+    "spring_kernels",
+]
