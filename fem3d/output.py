@@ -460,12 +460,14 @@ def render_preview(
     azim: float = 30.0,
     color: tuple[float, float, float] = (0.78, 0.72, 0.62),
     margin: float = 0.15,
+    view_bounds: str = "first",
     first_frame_png: PathLike | None = None,
 ) -> Path:
     """Render a shaded animation of a triangle mesh offscreen and save it as a GIF.
 
     Orthographic camera from ``elev`` / ``azim`` (degrees, ``y`` up), fixed for the whole
-    clip, with the view box from the first frame (plus ``margin``) and equal aspect.
+    clip, with the view box from the first frame (or all frames, ``view_bounds``) plus
+    ``margin``, and equal aspect.
     Faces are depth-sorted (painter's algorithm) and drawn as a 2-D matplotlib
     ``PolyCollection`` on an Agg canvas, shaded per face with two-sided Lambert lighting
     from the face normals (light from the upper left of the camera).
@@ -490,7 +492,10 @@ def render_preview(
     color : (3,) float
         Base RGB colour.
     margin : float
-        Relative padding around the first frame's projected bounding box.
+        Relative padding around the projected bounding box.
+    view_bounds : {"first", "all"}
+        Fit the (fixed) view to the first frame, or to every drawn frame (nothing leaves
+        the picture, e.g. a pulled arm).
     first_frame_png : str or PathLike, optional
         Also save the first rendered frame as a PNG (to look at).
 
@@ -531,7 +536,9 @@ def render_preview(
     light /= np.linalg.norm(light)
     base = np.asarray(color, dtype=np.float64)
 
-    P0 = seq[0] @ proj
+    if view_bounds not in ("first", "all"):
+        raise ValueError(f"view_bounds must be 'first' or 'all', got {view_bounds!r}")
+    P0 = seq[0] @ proj if view_bounds == "first" else np.vstack(seq) @ proj
     umin, vmin = P0[:, 0].min(), P0[:, 1].min()
     umax, vmax = P0[:, 0].max(), P0[:, 1].max()
     half = 0.5 * max(umax - umin, vmax - vmin, 1e-300) * (1.0 + 2.0 * margin)

@@ -300,3 +300,17 @@ def test_checkpoint_errors(tmp_path):
     np.savez(tmp_path / "plain.npz", a=np.zeros(3))
     with pytest.raises(InputError):
         load_checkpoint(tmp_path / "plain.npz")
+
+
+def test_render_preview_view_bounds_all_keeps_every_frame_inside(tmp_path):
+    frames, F = _deforming_torus(6)
+    for bounds, clipped in (("first", True), ("all", False)):
+        gif = tmp_path / f"{bounds}.gif"
+        render_preview(frames, F, gif, size=120, view_bounds=bounds, margin=0.02)
+        with Image.open(gif) as im:
+            im.seek(im.n_frames - 1)
+            a = np.asarray(im.convert("RGB")).astype(int)
+        top_row_has_mesh = (a[0].sum(axis=1) < 3 * 250).any()
+        assert top_row_has_mesh == clipped
+    with pytest.raises(ValueError):
+        render_preview(frames, F, tmp_path / "x.gif", view_bounds="middle")
