@@ -1,0 +1,306 @@
+"""The generated kernels against SymPy's own evaluation and against independent arithmetic."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from codegen.derive import all_modules, reference_outputs
+from codegen.materials import MATERIALS
+from fem3d.kernels import c_extension, kernel_module, material_kernels
+
+ROOT = Path(__file__).resolve().parent.parent
+BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(
+    c_extension() is None, reason="C extension not built"))]
+PARAMS = {"neo_hookean": (0.7, 3.1), "stvk": (0.9, 2.3)}
+REST_TET = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def random_rotations(rng: np.random.Generator, m: int) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(m, 3, 3)))
+    q *= np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return q
+
+
+def deformation_gradients(rng: np.random.Generator, m: int = 48) -> np.ndarray:
+    """Rotations, stretches, compressions and near-singular F (J down to 0.05)."""
+    U, V = random_rotations(rng, m), random_rotations(rng, m)
+    s = rng.uniform(0.4, 1.8, size=(m, 3))
+    s[: m // 4] = 1.0  # pure rotations
+    s[m // 4 : m // 2, 0] = rng.uniform(2.0, 3.0, size=m // 4)  # strong stretch
+    s[m // 2 : 3 * m // 4] = rng.uniform(0.3, 0.6, size=(m // 4, 3))  # compression
+    s[-4:] = [[0.2, 0.5, 0.5], [0.05, 1.0, 1.0], [0.1, 0.8, 0.9], [1.5, 0.1, 0.4]]  # J 0.05..0.06
+    return U @ (s[:, :, None] * V)
+
+
+def random_elements(rng: np.random.Generator, m: int = 48):
+    """Random rest tets, deformed by the gradients above plus noise."""
+    X = REST_TET + 0.2 * rng.normal(size=(m, 4, 3))
+    X[np.linalg.det(X[:, 1:] - X[:, :1]) < 0, :2] = X[np.linalg.det(X[:, 1:] - X[:, :1]) < 0, 1::-1]
+    dphi, vol = kernel_module("tet", "numpy").rest_shape(X)
+    F = deformation_gradients(rng, m)
+    x = np.einsum("mij,mvj->mvi", F, X) + rng.normal(size=(m, 1, 3))
+    return X, x, dphi, vol
+
+
+@cache
+def sympy_reference(module: str, kernel: str):
+    symbols, outputs = reference_outputs(module, kernel)
+    return [sp.lambdify(symbols, exprs, "numpy") for exprs in outputs]
+
+
+def evaluate_reference(module: str, kernel: str, columns: list[np.ndarray], m: int):
+    results = []
+    for function in sympy_reference(module, kernel):
+        values = function(*columns)
+        results.append(np.stack([np.broadcast_to(np.asarray(v, float), (m,)) for v in values], 1))
+    return results
+
+
+def assert_close(generated: np.ndarray, reference: np.ndarray, rtol: float = 1e-10) -> None:
+    """Per-element relative error; elements whose exact value is ~0 (psi of a pure rotation)
+    are measured against the typical magnitude of the batch instead."""
+    generated = generated.reshape(len(generated), -1)
+    magnitude = np.abs(reference).max(axis=1)
+    scale = np.maximum(magnitude, 1e-3 * magnitude.max() + 1e-300)
+    error = np.abs(generated - reference).max(axis=1) / scale
+    assert error.max() <= rtol, f"max relative error {error.max():.3e} (element {error.argmax()})"
+
+
+def kernel_cases():
+    for module in all_modules():
+        for kernel in module.kernels:
+            yield module.name, kernel.name
+
+
+def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
+    """Arguments for the generated kernel and flat columns for the SymPy reference."""
+    X, x, dphi, vol = random_elements(rng, m)
+    if module in MATERIALS:
+        params = PARAMS[module]
+        if kernel in ("psi", "dpsi_dF", "d2psi_dF2"):
+            F = deformation_gradients(rng, m)
+            return (F, params), [*F.reshape(m, 9).T, *params]
+        return (x, dphi, vol, params), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T, vol, *params]
+    if module == "spring":
+        a, b = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
+        return (a, b, (123.0,)), [*a.T, *b.T, 123.0]
+    if kernel == "rest_shape":
+        return (X,), [*X.reshape(m, 12).T]
+    if kernel == "phi":
+        p = rng.normal(size=(m, 3))
+        return (X, p), [*X.reshape(m, 12).T, *p.T]
+    if kernel == "mass_matrix":
+        return (vol, (0.1,)), [vol, 0.1]
+    return (x, dphi), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("module", "kernel"), list(kernel_cases()))
+def test_generated_kernel_matches_sympy(module: str, kernel: str, backend: str) -> None:
+    rng = np.random.default_rng(7)
+    m = 48
+    args, columns = kernel_inputs(module, kernel, rng, m)
+    result = getattr(kernel_module(module, backend), kernel)(*args)
+    results = result if isinstance(result, tuple) else (result,)
+    for generated, reference in zip(results, evaluate_reference(module, kernel, columns, m),
+                                    strict=True):
+        assert generated.shape[0] == m
+        assert_close(generated, reference)
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+@pytest.mark.parametrize(("module", "kernel"), list(kernel_cases()))
+def test_numpy_and_c_agree_on_many_elements(module: str, kernel: str) -> None:
+    rng = np.random.default_rng(11)
+    args, _ = kernel_inputs(module, kernel, rng, 10_000)
+    a = getattr(kernel_module(module, "numpy"), kernel)(*args)
+    b = getattr(kernel_module(module, "c"), kernel)(*args)
+    for x, y in zip(a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,),
+                    strict=True):
+        assert x.shape == y.shape
+        assert_close(y, x.reshape(len(x), -1), rtol=1e-11)
+
+
+# ---- independent checks that do not trust SymPy ------------------------------------------
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_stress_is_finite_difference_of_energy(material: str, backend: str) -> None:
+    k = material_kernels(material, backend)
+    F = deformation_gradients(np.random.default_rng(1), 16)[:12]
+    p, h = PARAMS[material], 1e-6
+    P = k.dpsi_dF(F, p).reshape(-1, 9)
+    fd = np.empty_like(P)
+    for a in range(9):
+        dF = np.zeros(9)
+        dF[a] = h
+        fd[:, a] = (k.psi(F + dF.reshape(3, 3), p) - k.psi(F - dF.reshape(3, 3), p)) / (2 * h)
+    np.testing.assert_allclose(P, fd, rtol=1e-5, atol=1e-6 * np.abs(P).max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_stress_derivative_is_finite_difference_of_stress(material: str, backend: str) -> None:
+    k = material_kernels(material, backend)
+    F = deformation_gradients(np.random.default_rng(2), 16)[:12]
+    p, h = PARAMS[material], 1e-6
+    A = k.d2psi_dF2(F, p)
+    fd = np.empty_like(A)
+    for b in range(9):
+        dF = np.zeros(9)
+        dF[b] = h
+        plus = k.dpsi_dF(F + dF.reshape(3, 3), p).reshape(-1, 9)
+        minus = k.dpsi_dF(F - dF.reshape(3, 3), p).reshape(-1, 9)
+        fd[:, :, b] = (plus - minus) / (2 * h)
+    np.testing.assert_allclose(A, fd, rtol=1e-4, atol=1e-6 * np.abs(A).max())
+    np.testing.assert_allclose(A, A.transpose(0, 2, 1), rtol=0, atol=1e-12 * np.abs(A).max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_rest_state_and_rotation_invariance(material: str, backend: str) -> None:
+    k = material_kernels(material, backend)
+    p = PARAMS[material]
+    identity = np.broadcast_to(np.eye(3), (5, 3, 3))
+    np.testing.assert_allclose(k.psi(identity, p), 0.0, atol=1e-14)
+    np.testing.assert_allclose(k.dpsi_dF(identity, p), 0.0, atol=1e-14)
+    rng = np.random.default_rng(3)
+    F = deformation_gradients(rng, 32)
+    RF = random_rotations(rng, 32) @ F
+    np.testing.assert_allclose(k.psi(RF, p), k.psi(F, p), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_element_gradient_and_hessian_by_finite_differences(material: str, backend: str) -> None:
+    k = material_kernels(material, backend)
+    p, h = PARAMS[material], 1e-6
+    _, x, dphi, vol = random_elements(np.random.default_rng(4), 12)
+    g = k.gradient(x, dphi, vol, p)
+    H = k.hessian(x, dphi, vol, p)
+    fd_g, fd_H = np.empty_like(g), np.empty_like(H)
+    for a in range(12):
+        dx = np.zeros(12)
+        dx[a] = h
+        dx = dx.reshape(4, 3)
+        fd_g[:, a] = (k.energy(x + dx, dphi, vol, p) - k.energy(x - dx, dphi, vol, p)) / (2 * h)
+        fd_H[:, :, a] = (k.gradient(x + dx, dphi, vol, p) - k.gradient(x - dx, dphi, vol, p)) / (2 * h)
+    np.testing.assert_allclose(g, fd_g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+    np.testing.assert_allclose(H, fd_H, rtol=1e-4, atol=1e-6 * np.abs(H).max())
+    np.testing.assert_allclose(H, H.transpose(0, 2, 1), atol=1e-12 * np.abs(H).max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_mass_matrix_closed_form(backend: str) -> None:
+    rho, vol = 0.37, np.array([0.5, 2.0, 1e-3])
+    M = kernel_module("tet", backend).mass_matrix(vol, (rho,))
+    expected = (rho * vol / 20)[:, None, None] * np.kron(np.eye(4) + 1.0, np.eye(3))
+    np.testing.assert_allclose(M, expected, rtol=1e-15)
+    np.testing.assert_allclose(M.sum(axis=(1, 2)), 3 * rho * vol, rtol=1e-14)
+    assert np.all(np.linalg.eigvalsh(M) > 0)
+
+
+def test_mass_matrix_is_symbolically_exact() -> None:
+    from codegen import tet
+
+    coefficients = tet.reference_mass_coefficients()
+    assert coefficients == (sp.ones(4, 4) + sp.eye(4)) / 20
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_shape_functions_interpolate_vertices(backend: str) -> None:
+    geo = kernel_module("tet", backend)
+    X, _, _, _ = random_elements(np.random.default_rng(5), 8)
+    for v in range(4):
+        np.testing.assert_allclose(geo.phi(X, X[:, v]), np.eye(4)[v][None].repeat(8, 0),
+                                   atol=1e-12)
+    dphi, vol = geo.rest_shape(X)
+    np.testing.assert_allclose(dphi.sum(axis=1), 0.0, atol=1e-12)
+    # F of the rest pose is the identity; an affine map A gives F = A.
+    np.testing.assert_allclose(geo.deformation_gradient(X, dphi), np.eye(3)[None].repeat(8, 0),
+                               atol=1e-12)
+    np.testing.assert_allclose(vol, np.linalg.det(X[:, 1:] - X[:, :1]) / 6, rtol=1e-12)
+
+
+# ---- C wrapper validation, registry, drift -----------------------------------------------
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+def test_c_extension_rejects_bad_buffers() -> None:
+    ext = c_extension()
+    F = np.zeros((4, 9))
+    out = np.empty(4)
+    params = np.array([1.0, 2.0])
+    with pytest.raises(ValueError, match="float64"):
+        ext.neo_hookean_psi(F.astype(np.float32), params, out)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        ext.neo_hookean_psi(np.zeros((9, 4)).T, params, out)
+    with pytest.raises(ValueError, match="parameters"):
+        ext.neo_hookean_psi(F, params[:1], out)
+    with pytest.raises(ValueError, match="output"):
+        ext.neo_hookean_psi(F, params, np.empty(3))
+    with pytest.raises(ValueError, match="m \\* 9"):
+        ext.neo_hookean_psi(np.zeros(10), params, out)
+    with pytest.raises(TypeError):
+        ext.neo_hookean_psi(F, params)
+    with pytest.raises(ValueError, match="writable"):
+        ext.neo_hookean_psi(F, params, np.frombuffer(b"\0" * 32))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_kernel_wrappers_reject_bad_shapes(backend: str) -> None:
+    nh = material_kernels("neo_hookean", backend)
+    with pytest.raises(ValueError):
+        nh.psi(np.zeros((4, 2, 2)), (1.0, 1.0))
+    with pytest.raises(ValueError):
+        nh.psi(np.zeros((4, 3, 3)), (1.0,))
+    with pytest.raises(ValueError):
+        nh.energy(np.zeros((4, 4, 3)), np.zeros((3, 4, 3)), np.ones(4), (1.0, 1.0))
+
+
+def test_every_registered_material_is_generated() -> None:
+    from fem3d._generated import MATERIALS as generated
+
+    assert tuple(sorted(MATERIALS)) == tuple(sorted(generated))
+
+
+def test_backend_can_be_forced_by_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from fem3d.kernels import resolve_backend
+
+    monkeypatch.setenv("FEM3D_KERNELS", "numpy")
+    assert resolve_backend() == "numpy"
+    monkeypatch.setenv("FEM3D_KERNELS", "fortran")
+    with pytest.raises(ValueError, match="fortran"):
+        resolve_backend()
+
+
+def test_generated_files_are_up_to_date_and_deterministic(tmp_path: Path) -> None:
+    env = dict(os.environ, PYTHONHASHSEED="123")  # the generator pins its own seed
+    check = subprocess.run([sys.executable, "-m", "codegen", "--check"], cwd=ROOT, env=env,
+                           capture_output=True, text=True)
+    assert check.returncode == 0, check.stdout[-4000:] + check.stderr[-2000:]
+    subprocess.run([sys.executable, "-m", "codegen", "--out", str(tmp_path)], cwd=ROOT,
+                   env=env, check=True, capture_output=True)
+    for path in (ROOT / "generated").rglob("*"):
+        if path.suffix in (".py", ".c"):
+            rel = path.relative_to(ROOT / "generated")
+            assert (tmp_path / rel).read_text() == path.read_text(), rel
+            assert "do not edit" in path.read_text().splitlines()[0]
+
+
+def test_show_prints_one_kernel() -> None:
+    result = subprocess.run([sys.executable, "-m", "codegen", "show", "neo_hookean.hessian",
+                             "--backend", "c"], cwd=ROOT, capture_output=True, text=True,
+                            check=True)
+    assert "static void neo_hookean_hessian(" in result.stdout
+    assert "neo_hookean_gradient(" not in result.stdout
