@@ -177,6 +177,9 @@ class FrameWriter:
         plain Wavefront OBJ, 1-based faces (Blender's "import OBJ as sequence").
     digits : int
         Zero padding of the frame number (``frame_00042``).
+    compression : {"zlib", "lzma", None}
+        Compression of the ``vtu`` data arrays. For the 26002-vertex armadillo skin a
+        frame takes about 100 ms and 1.3 MB with ``"zlib"``, 20 ms and 3.6 MB with ``None``.
 
     Attributes
     ----------
@@ -185,7 +188,13 @@ class FrameWriter:
     """
 
     def __init__(
-        self, out_dir: PathLike, faces: np.ndarray, fmt: str = "vtu", *, digits: int = 5
+        self,
+        out_dir: PathLike,
+        faces: np.ndarray,
+        fmt: str = "vtu",
+        *,
+        digits: int = 5,
+        compression: str | None = "zlib",
     ) -> None:
         if fmt not in ("vtu", "obj"):
             raise ValueError(f"unknown frame format {fmt!r}; expected 'vtu' or 'obj'")
@@ -195,6 +204,7 @@ class FrameWriter:
         self.faces = _check_faces(faces)
         self.fmt = fmt
         self.digits = int(digits)
+        self.compression = compression
         self.frames: dict[int, tuple[float, str]] = {}
         self.pvd_path = self.out_dir / "frames.pvd" if fmt == "vtu" else None
         if fmt == "obj":
@@ -246,7 +256,7 @@ class FrameWriter:
             import meshio
 
             mesh = meshio.Mesh(V, [("triangle", self.faces)], point_data=dict(point_data or {}))
-            atomic_write(path, lambda p: meshio.write(p, mesh, file_format="vtu"))
+            atomic_write(path, lambda p: meshio.vtu.write(p, mesh, compression=self.compression))
         else:
             buf = io.BytesIO()
             np.savetxt(buf, V, fmt="v %.9g %.9g %.9g")

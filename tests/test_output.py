@@ -96,11 +96,12 @@ def test_atomic_write_rejects_other_types(tmp_path):
 # ----------------------------------------------------------------------------- frames
 
 
-def test_frame_writer_vtu_and_pvd(tmp_path):
+@pytest.mark.parametrize("compression", ["zlib", None])
+def test_frame_writer_vtu_and_pvd(tmp_path, compression):
     import meshio
 
     V, F = torus()
-    fw = FrameWriter(tmp_path / "run", F)
+    fw = FrameWriter(tmp_path / "run", F, compression=compression)
     times = [0.0, 0.01, 0.02, 0.03]
     for k, t in enumerate(times):
         fw.write(k, t, V * (1 + k))
