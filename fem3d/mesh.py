@@ -33,6 +33,8 @@ have no rest shape at all.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import itertools
 import warnings
 from collections.abc import Sequence
@@ -298,12 +300,15 @@ def validate_tet_mesh(
     keys = _face_keys(faces)
     fax = None if keys.ndim == 1 else 0
     _, finv, fcounts = np.unique(keys, axis=fax, return_inverse=True, return_counts=True)
-    over = np.flatnonzero(fcounts[finv.reshape(-1)] > 2)
+    finv = finv.reshape(-1)
+    over = np.flatnonzero(fcounts[finv] > 2)
     if over.size:
-        j = int(over[0] // 4)
+        sharing = np.flatnonzero(finv == finv[over[0]])
+        j = int(sharing[-1] // 4)
+        others = ", ".join(str(int(i // 4)) for i in sharing[:-1])
         raise InputError(
-            f"tet {j} has face {(faces[over[0]] + index_base).tolist()} shared by "
-            f"{int(fcounts[finv.reshape(-1)[over[0]]])} tets (overlapping / non-conforming mesh)",
+            f"tet {j} has face {(faces[sharing[-1]] + index_base).tolist()} that tets {others} "
+            "already share (overlapping / non-conforming mesh)",
             path=path, line=_where(tet_lines, j), element=j,
         )
 
@@ -468,6 +473,14 @@ class _Tokens:
         b = a + count * width
         if b > len(self.tok):
             have = (len(self.tok) - a) // width if width else 0
+            kw = next((i for i in range(a, len(self.tok))
+                       if self.tok[i].lower() in _MEDIT_KEYWORDS), None)
+            if kw is not None:
+                raise InputError(
+                    f"{what} section declares {count} entries but keyword {self.tok[kw]!r} "
+                    f"comes after {(kw - a) // width} (wrong count or missing data)",
+                    path=self.path, line=self.lineno(kw),
+                )
             raise InputError(
                 f"file ends early (truncated?): {what} section declares {count} entries of "
                 f"{width} numbers, only {have} complete entries follow",
@@ -746,9 +759,10 @@ def _meshio_read(path: Path):  # -> meshio.Mesh
     if size == 0 or (size <= len(head) and not head.strip()):
         raise InputError("empty file", path=path)
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+                contextlib.redirect_stderr(io.StringIO()):
             warnings.simplefilter("ignore")
-            mesh = meshio.read(path)
+            mesh = _meshio_read_quietly(meshio, path)
         points = np.asarray(mesh.points, dtype=np.float64)
     except InputError:
         raise
@@ -764,6 +778,24 @@ def _meshio_read(path: Path):  # -> meshio.Mesh
     if points.shape[1] == 2:
         raise InputError("only 3-D meshes are supported, file has 2-D points", path=path)
     return mesh, points
+
+
+def _meshio_read_quietly(meshio, path: Path):  # -> meshio.Mesh
+    """meshio.read without its ``print`` + ``sys.exit(1)`` on a ReadError (meshio 5.3)."""
+    try:
+        from meshio._helpers import _filetypes_from_path, reader_map
+    except ImportError:  # pragma: no cover - meshio layout changed
+        try:
+            return meshio.read(path)
+        except SystemExit:
+            raise ValueError("meshio could not read the file") from None
+    last: Exception | None = None
+    for fmt in _filetypes_from_path(path):
+        try:
+            return reader_map[fmt](str(path))
+        except Exception as exc:  # noqa: BLE001 - try the next format, report the last
+            last = exc
+    raise last if last is not None else ValueError("no meshio reader for this extension")
 
 
 def _meshio_cells(mesh, names: Sequence[str]) -> dict[str, np.ndarray]:

@@ -101,11 +101,12 @@ def test_shipped_surface_meshes(name: str, n: int, f: int) -> None:
 
 def test_armadillo_obj_is_fast() -> None:
     read_surface_mesh(DATA / "armadillo.obj")  # warm up
-    t0 = time.perf_counter()
+    # CPU time, not wall time: the test machine may be busy with other work
+    t0 = time.process_time()
     V, F = read_surface_mesh(DATA / "armadillo.obj")
-    elapsed = time.perf_counter() - t0
+    elapsed = time.process_time() - t0
     assert V.shape == (26002, 3)
-    assert elapsed < 1.0, f"reading armadillo.obj took {elapsed:.2f} s"
+    assert elapsed < 1.0, f"reading armadillo.obj took {elapsed:.2f} s of CPU time"
 
 
 def test_obj_first_values(bunny: TetMesh) -> None:
