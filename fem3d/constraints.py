@@ -93,7 +93,7 @@ class Constraints:
     fixed_vertices: np.ndarray
     x0: np.ndarray
     _new_index: np.ndarray = field(repr=False)
-    _cache: dict = field(default_factory=dict, repr=False)
+    _cache: list = field(default_factory=list, repr=False)
 
     @classmethod
     def from_fixed_vertices(cls, X: np.ndarray, fixed_vertices: np.ndarray) -> Constraints:
@@ -183,9 +183,10 @@ class Constraints:
         """``P @ A @ P.T``: the free rows and columns of a ``(3 n, 3 n)`` sparse matrix.
 
         The entry mask and the reduced sparsity are computed from ``A``'s pattern once and
-        cached: a matrix with the same ``indptr`` / ``indices`` as the previous call (the
-        usual case, a Hessian re-assembled on a fixed pattern) costs one gather of
-        ``A.data``. Works on non-canonical CSR (unsorted or duplicate entries kept as is).
+        cached (the last 4 patterns): a matrix with the same ``indptr`` / ``indices`` as an
+        earlier call (the usual case, a Hessian re-assembled on a fixed pattern, or the mass
+        matrix) costs a pattern comparison and one gather of ``A.data``. Works on
+        non-canonical CSR (unsorted or duplicate entries kept as is).
 
         Parameters
         ----------
@@ -200,31 +201,7 @@ class Constraints:
         N = self.n_dofs
         if A.shape != (N, N):
             raise ValueError(f"expected a ({N}, {N}) matrix, got {A.shape}")
-        c = self._cache
-        hit = (
-            "indptr" in c
-            and c["indptr"].size == A.indptr.size
-            and c["indices"].size == A.indices.size
-            and np.array_equal(c["indptr"], A.indptr)
-            and np.array_equal(c["indices"], A.indices)
-        )
-        if not hit:
-            new = self._new_index
-            row = np.repeat(np.arange(N), np.diff(A.indptr))
-            new_col = new[A.indices]
-            keep = (new[row] >= 0) & (new_col >= 0)
-            counts = np.bincount(new[row[keep]], minlength=self.n_free)
-            indptr = np.zeros(self.n_free + 1, dtype=np.int64)
-            np.cumsum(counts, out=indptr[1:])
-            c.clear()
-            c.update(
-                indptr=A.indptr.copy(),
-                indices=A.indices.copy(),
-                keep=np.flatnonzero(keep),
-                new_indices=new_col[keep],
-                new_indptr=indptr,
-                sorted=bool(A.has_sorted_indices),
-            )
+        c = self._lookup_pattern(A)
         R = sp.csr_matrix(
             (A.data[c["keep"]], c["new_indices"].copy(), c["new_indptr"].copy()),
             shape=(self.n_free, self.n_free),
@@ -232,6 +209,40 @@ class Constraints:
         # column relabelling is monotone, so sorted input stays sorted
         R.has_sorted_indices = c["sorted"]
         return R
+
+    #: Sparsity patterns remembered by :meth:`reduce_matrix` (mass, Hessian, ...).
+    _MAX_PATTERNS = 4
+
+    def _lookup_pattern(self, A: sp.csr_matrix) -> dict:
+        """Cached reduction maps of ``A``'s pattern, computed on a miss (O(nnz) either way)."""
+        for i, c in enumerate(self._cache):
+            if (
+                c["indptr"].size == A.indptr.size
+                and c["indices"].size == A.indices.size
+                and np.array_equal(c["indptr"], A.indptr)
+                and np.array_equal(c["indices"], A.indices)
+            ):
+                if i:
+                    self._cache.insert(0, self._cache.pop(i))
+                return c
+        N, new = self.n_dofs, self._new_index
+        row = np.repeat(np.arange(N), np.diff(A.indptr))
+        new_col = new[A.indices]
+        keep = (new[row] >= 0) & (new_col >= 0)
+        counts = np.bincount(new[row[keep]], minlength=self.n_free)
+        indptr = np.zeros(self.n_free + 1, dtype=np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        c = {
+            "indptr": A.indptr.copy(),
+            "indices": A.indices.copy(),
+            "keep": np.flatnonzero(keep),
+            "new_indices": new_col[keep],
+            "new_indptr": indptr,
+            "sorted": bool(A.has_sorted_indices),
+        }
+        self._cache.insert(0, c)
+        del self._cache[self._MAX_PATTERNS :]
+        return c
 
 
 def fixed_vertices_lowest_y(X: np.ndarray, tol: float) -> np.ndarray:

@@ -167,3 +167,14 @@ def test_pick_nearest_vertices():
 def test_pick_bad_parameters(radius, point):
     with pytest.raises(ParameterError):
         pick_nearest_vertices(np.zeros((3, 3)), np.array(point, dtype=float), radius)
+
+
+def test_reduce_matrix_alternating_patterns_stay_cached():
+    rng = np.random.default_rng(11)
+    n = 30
+    C = Constraints.from_fixed_vertices(rng.normal(size=(n, 3)), [0, 1])
+    mats = [_random_spd(3 * n, rng, density=d) for d in (0.02, 0.05, 0.1)]
+    for _ in range(3):
+        for A in mats:
+            np.testing.assert_array_equal(C.reduce_matrix(A).toarray(), (C.P @ A @ C.P.T).toarray())
+    assert len(C._cache) == 3  # every pattern computed once and kept
