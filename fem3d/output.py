@@ -516,10 +516,13 @@ def render_preview(
 
     Notes
     -----
-    Cost is dominated by Agg drawing, about 6 microseconds per face per frame on one core:
-    the 52k-face armadillo skin is decimated to ``max_faces`` (12k by default), which makes
-    60 frames take about 4-6 s; the sim surface (a few hundred faces) renders at well over
-    20 frames per second.
+    Cost is dominated by Agg drawing, about 6-8 microseconds per face per frame on one core
+    (the full 52k-face armadillo skin: 0.4 s a frame, 24 s for 60 frames). Meshes above
+    ``max_faces`` (12k by default) are therefore decimated: the armadillo skin then takes
+    about 4 s for 60 frames at 400 px; the sim surface (a few hundred faces) renders at
+    well over 20 frames per second. Pillow merges consecutive identical frames (summing
+    their durations), so a GIF of a still shape has fewer frames than were drawn.
+    The armadillo faces ``-z``: pass ``azim=210`` to see its front.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PolyCollection

@@ -110,7 +110,7 @@ def test_inside_vertices_get_their_containing_tet():
 
 def test_outside_vertices_extrapolate_from_best_tet():
     rng = np.random.default_rng(3)
-    X, T = cube_mesh(3)
+    X, T = cube_mesh(5)  # 750 tets: more than the largest candidate round
     # points just outside the faces of the cube
     skin = rng.uniform(0.05, 0.95, (300, 3))
     axis = rng.integers(0, 3, 300)
