@@ -3,8 +3,8 @@
 Every file is written atomically: into a temporary file in the target's folder, flushed and
 fsync'ed, then moved over the target with :func:`os.replace`. A reader (ParaView polling the
 ``.pvd``, a plot script reading ``energy.csv``) therefore sees either the previous complete
-file or the new complete file, never a truncated one, and a crash leaves no temporary file
-behind (the temporary file is removed when the writer raises).
+file or the new complete file, never a truncated one. A writer that raises leaves no
+temporary file behind; only a killed process can leave a hidden ``.<name>.tmp*`` file.
 
 Contents
 --------
