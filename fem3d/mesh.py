@@ -283,17 +283,36 @@ def validate_tet_mesh(
             path=path, line=_where(tet_lines, j), element=j,
         )
 
-    e = X[T]
-    edges = e[:, [1, 2, 3, 2, 3, 3]] - e[:, [0, 0, 0, 1, 1, 2]]
-    h = np.sqrt(np.einsum("mij,mij->mi", edges, edges).max(axis=1))
-    det = np.einsum("ij,ij->i", edges[:, 0], np.cross(edges[:, 1], edges[:, 2]))
+    # the degeneracy test is scale-invariant: evaluate it on each tet translated to its
+    # first vertex and divided by its largest edge-vector component (no overflow or
+    # underflow for any finite coordinates); report sizes in the file's units
+    with np.errstate(all="ignore"):
+        e = X[T]
+        rel = e[:, [1, 2, 3, 2, 3, 3]] - e[:, [0, 0, 0, 1, 1, 2]]
+        scale = np.abs(rel).max(axis=(1, 2))
+        edges = rel / np.where(scale > 0, scale, 1.0)[:, None, None]
+        h = np.sqrt(np.einsum("mij,mij->mi", edges, edges).max(axis=1))
+        det = np.einsum("ij,ij->i", edges[:, 0], np.cross(edges[:, 1], edges[:, 2]))
     degen = np.flatnonzero(~(np.abs(det) > rtol * h**3))
     if degen.size:
         j = int(degen[0])
+        with np.errstate(all="ignore"):
+            vol_j = det[j] / 6 * scale[j] ** 3 if det[j] != 0 else 0.0
+            h_j = h[j] * scale[j]
         raise InputError(
             f"tet {j} (vertices {(T[j] + index_base).tolist()}) is degenerate: volume "
-            f"{det[j] / 6:.3g} for longest edge {h[j]:.3g}{_more(degen.size)}",
+            f"{vol_j:.3g} for longest edge {h_j:.3g}{_more(degen.size)}",
             path=path, line=_where(tet_lines, j), element=j,
+        )
+    with np.errstate(all="ignore"):
+        vol = det / 6 * scale**3
+    badsize = np.flatnonzero(~((np.abs(vol) > 1e-250) & (np.abs(vol) < 1e250)))
+    if badsize.size:
+        j = int(badsize[0])
+        raise InputError(
+            f"tet {j} (vertices {(T[j] + index_base).tolist()}) has volume {vol[j]:.3g}, "
+            "which double precision cannot work with: rescale the mesh"
+            f"{_more(badsize.size)}", path=path, line=_where(tet_lines, j), element=j,
         )
 
     faces = T[:, TET_FACES].reshape(-1, 3)
@@ -518,11 +537,10 @@ def _read_text(path: Path) -> str:
     if not data.strip():
         raise InputError("empty file", path=path)
     try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise InputError(f"not a text file (undecodable byte at offset {exc.start})",
-                         path=path, line=line) from None
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        # e.g. Latin-1 comments or names: decode anyway, numbers are ASCII in any case
+        text = data.decode("latin-1")
     if "\x00" in text:
         raise InputError("not a text file (contains NUL bytes)", path=path,
                          line=text.count("\n", 0, text.index("\x00")) + 1)

@@ -205,6 +205,27 @@ def test_non_numeric_tokens(tmp_path: Path) -> None:
     raises_at(read_surface_mesh, p, r"non-numeric coordinate 'O.0'", line=2, element=1)
 
 
+def test_coordinates_too_large_or_small(tmp_path: Path) -> None:
+    for scale in (1e90, 1e-90):
+        p = write(tmp_path / "scale.mesh", medit_text(X2 * scale, T2))
+        raises_at(read_tet_mesh, p, r"double precision cannot work with", line=12, element=0)
+    # finite, but the sliver it makes is degenerate
+    X = X2.copy()
+    X[4] = [1e200, 1.0, 1.0]
+    p = write(tmp_path / "far.mesh", medit_text(X, T2))
+    raises_at(read_tet_mesh, p, r"degenerate", line=13, element=1)
+
+
+def test_latin1_and_bom_are_tolerated(tmp_path: Path) -> None:
+    p = tmp_path / "latin.obj"
+    p.write_bytes(b"# cr\xe9\xe9 par moi\n" + obj_text(X2, F2).encode())
+    V, F = read_surface_mesh(p)
+    assert F.shape == (4, 3)
+    p = tmp_path / "bom.mesh"
+    p.write_bytes(b"\xef\xbb\xbf" + medit_text(X2, T2).encode())
+    assert read_tet_mesh(p).n_tets == 2
+
+
 def test_binary_garbage(tmp_path: Path) -> None:
     p = tmp_path / "bin.mesh"
     p.write_bytes(b"MeshVersionFormatted 1\n\xff\xfe\x00garbage")
