@@ -452,7 +452,10 @@ def _camera(elev_deg: float, azim_deg: float) -> tuple[np.ndarray, np.ndarray, n
     e, a = np.radians(elev_deg), np.radians(azim_deg)
     toward = np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
     right = np.cross([0.0, 1.0, 0.0], toward)
-    right /= np.linalg.norm(right)
+    norm = np.linalg.norm(right)
+    if norm < 1e-9:  # looking straight down or up: any horizontal axis will do
+        right, norm = np.array([np.cos(a), 0.0, -np.sin(a)]), 1.0
+    right /= norm
     up = np.cross(toward, right)
     return right, up, toward
 

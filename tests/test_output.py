@@ -315,3 +315,12 @@ def test_render_preview_view_bounds_all_keeps_every_frame_inside(tmp_path):
         assert top_row_has_mesh == clipped
     with pytest.raises(ValueError):
         render_preview(frames, F, tmp_path / "x.gif", view_bounds="middle")
+
+
+@pytest.mark.parametrize("elev", [90.0, -90.0, 0.0])
+def test_render_preview_any_elevation(tmp_path, elev):
+    frames, F = _deforming_torus(2)
+    png = tmp_path / "f.png"
+    render_preview(frames, F, tmp_path / "a.gif", size=64, elev=elev, first_frame_png=png)
+    with Image.open(png) as im:
+        assert (np.asarray(im.convert("L")) < 250).any()
