@@ -68,11 +68,18 @@ def check(files: dict[str, str], target: Path) -> int:
 
 def show(kernel: str, backend: str) -> int:
     """Print the source of one kernel (``module.kernel``) for one back end."""
-    from codegen.derive import all_modules
+    from codegen.derive import all_modules, material_module, spring_module, tet_module
+    from codegen.materials import MATERIALS
     from codegen.render import BACKENDS
 
     module_name, _, kernel_name = kernel.partition(".")
-    modules = all_modules()
+    builders = {"tet": tet_module, "spring": spring_module}
+    if module_name in MATERIALS:
+        modules = [material_module(module_name)]
+    elif module_name in builders:
+        modules = [builders[module_name]()]
+    else:
+        modules = all_modules()
     for module in modules:
         spec = next((k for k in module.kernels if k.name == kernel_name), None)
         if module.name != module_name or spec is None:
