@@ -1,0 +1,1119 @@
+"""Interactive browser viewer (``fem3d view``), built on viser.
+
+The viewer runs a :class:`fem3d.simulation.Simulation` in a background thread and shows it
+in a web page (three.js through viser). Drag the mesh with the left mouse button to pull
+it with a zero-rest-length spring; the panel has buttons, hotkeys, material sliders, a
+status line and a live energy plot.
+
+Threads and ownership
+---------------------
+* **Simulation thread** (:meth:`Viewer._run`): the only thread that touches the
+  :class:`~fem3d.simulation.Simulation` object and the only one that writes scene nodes
+  and panel elements. It applies queued commands between steps, steps the simulation
+  paced to wall time, and pushes display updates at up to ``push_hz``.
+* **viser's event loop / thread pool**: GUI and drag callbacks. They never block on a
+  simulation step: they take :attr:`Viewer._lock` for a few microseconds to record a
+  pull request or queue a command, and wake the simulation thread.
+
+Because only the simulation thread adds, removes and writes scene nodes, a mesh handle
+that was replaced (mesh mode or scene switch) is never written after its removal.
+
+Tests read the viewer's state with :meth:`Viewer.snapshot` (a JSON-serialisable dict) and
+drive it with the same methods the GUI calls (:meth:`Viewer.toggle_mesh_mode`,
+:meth:`Viewer.begin_pull`, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import math
+import threading
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from fem3d.errors import Fem3dError, InputError, ParameterError, SimulationError
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    import viser
+
+__all__ = [
+    "EnergyHistory",
+    "PullState",
+    "RealtimePacer",
+    "Viewer",
+    "add_view_subcommand",
+    "camera_for_points",
+    "format_status",
+    "serve",
+    "spring_segments",
+]
+
+INTEGRATOR_LABELS = {"linear": "linearly-implicit Euler", "implicit": "backward Euler"}
+MESH_MODE_LABELS = {"skin": "skinned display mesh", "sim": "simulation mesh"}
+
+SKIN_COLOR = (236, 196, 150)
+SIM_COLOR = (90, 160, 230)
+SPRING_COLOR = (220, 40, 40)
+
+
+# --------------------------------------------------------------------------------------
+# Runtime access (late imports: the runtime and viser are imported only when needed)
+# --------------------------------------------------------------------------------------
+
+
+def _load_scene(name: str | Path) -> Any:
+    from fem3d.scenes import load_scene
+
+    return load_scene(str(name))
+
+
+def _make_simulation(scene: Any, integrator: str | None, backend: str | None) -> Any:
+    from fem3d.simulation import Simulation
+
+    return Simulation(scene, integrator=integrator, backend=backend)
+
+
+def _builtin_scene_names() -> list[str]:
+    try:
+        from fem3d.scenes import SCENES
+    except ImportError:  # pragma: no cover - runtime missing
+        return ["bunny", "arma"]
+    return [str(name) for name in SCENES]
+
+
+def _pick(positions: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray:
+    from fem3d.constraints import pick_nearest_vertices
+
+    return pick_nearest_vertices(positions, point, radius, nearest_if_empty=True)
+
+
+def _import_viser() -> Any:
+    try:
+        import viser
+    except ImportError as exc:
+        raise InputError(
+            "the viewer needs viser: pip install 'fem3d[view]' (viser==1.1.1)"
+        ) from exc
+    return viser
+
+
+# --------------------------------------------------------------------------------------
+# Small pieces of logic, free of viser (unit-tested)
+# --------------------------------------------------------------------------------------
+
+
+class RealtimePacer:
+    """Keep simulated time advancing about as fast as wall time.
+
+    Parameters
+    ----------
+    max_lag : float
+        When the simulation falls behind wall time by more than this (seconds), the
+        pacer re-anchors instead of letting it race to catch up.
+    enabled : bool
+        When False, :meth:`delay` is always 0 (run as fast as possible).
+    """
+
+    def __init__(self, max_lag: float = 0.1, *, enabled: bool = True) -> None:
+        self.max_lag = float(max_lag)
+        self.enabled = enabled
+        self._anchor: tuple[float, float] | None = None
+
+    def reset(self) -> None:
+        """Forget the anchor (after a pause, a reset or a scene switch)."""
+        self._anchor = None
+
+    def delay(self, t_sim: float, now: float) -> float:
+        """Seconds to wait before the next step.
+
+        Parameters
+        ----------
+        t_sim : float
+            Current simulated time (s).
+        now : float
+            Current wall-clock time (s, monotonic).
+        """
+        if not self.enabled:
+            return 0.0
+        if self._anchor is None:
+            self._anchor = (t_sim, now)
+            return 0.0
+        t0, w0 = self._anchor
+        d = (w0 + (t_sim - t0)) - now
+        if d < -self.max_lag:
+            self._anchor = (t_sim, now)
+            return 0.0
+        return max(d, 0.0)
+
+
+class EnergyHistory:
+    """Rolling history of (t, kinetic, potential, total) for the energy plot.
+
+    Parameters
+    ----------
+    maxlen : int
+        Number of samples kept.
+    """
+
+    def __init__(self, maxlen: int = 4000) -> None:
+        self._rows: collections.deque[tuple[float, float, float, float]] = collections.deque(
+            maxlen=maxlen
+        )
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def clear(self) -> None:
+        self._rows.clear()
+
+    def append(self, t: float, kinetic: float, potential: float, total: float) -> None:
+        self._rows.append((float(t), float(kinetic), float(potential), float(total)))
+
+    def window(self, seconds: float | None = None) -> tuple[np.ndarray, ...]:
+        """The samples of the last ``seconds`` of simulated time.
+
+        Returns
+        -------
+        (t, kinetic, potential, total) : four (n,) float64 arrays
+            ``n >= 1``: an empty history gives one sample of zeros, so the plot always has
+            data.
+        """
+        if not self._rows:
+            return tuple(np.zeros(1) for _ in range(4))
+        a = np.asarray(self._rows, dtype=np.float64)
+        if seconds is not None:
+            a = a[a[:, 0] >= a[-1, 0] - seconds]
+        return tuple(np.ascontiguousarray(a[:, i]) for i in range(4))
+
+    def rows(self) -> list[tuple[float, float, float, float]]:
+        return list(self._rows)
+
+
+@dataclasses.dataclass
+class PullState:
+    """An active mouse pull.
+
+    Attributes
+    ----------
+    ids : (n_picked,) int64
+        Picked simulation vertices.
+    grab_point : (3,) float64
+        World-space point where the mesh was grabbed.
+    target : (3,) float64
+        World-space pointer position the vertices are pulled toward.
+    start_positions : (n_picked, 3) float64
+        Positions of the picked vertices when they were picked.
+    generation : int
+        Scene generation the pick belongs to (a scene switch invalidates it).
+    """
+
+    ids: np.ndarray
+    grab_point: np.ndarray
+    target: np.ndarray
+    start_positions: np.ndarray
+    generation: int
+
+
+def spring_segments(positions: np.ndarray, ids: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Line segments from each picked vertex to the pull target.
+
+    Parameters
+    ----------
+    positions : (n_vertices, 3) float64
+    ids : (n_picked,) int
+    target : (3,) float64
+
+    Returns
+    -------
+    (n_picked, 2, 3) float32
+    """
+    p = np.asarray(positions, dtype=np.float64)[np.asarray(ids, dtype=np.int64)]
+    seg = np.empty((p.shape[0], 2, 3), dtype=np.float32)
+    seg[:, 0] = p
+    seg[:, 1] = np.asarray(target, dtype=np.float64).reshape(3)
+    return seg
+
+
+def camera_for_points(
+    points: np.ndarray, fov: float = 75.0 * math.pi / 180.0
+) -> dict[str, Any]:
+    """A camera that frames a point set from the +z side, y up.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+    fov : float
+        Vertical field of view (radians).
+
+    Returns
+    -------
+    dict
+        ``position`` (3,), ``look_at`` (3,), ``near``, ``far``, ``radius`` (bounding-sphere
+        radius about the box centre).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    center = 0.5 * (lo + hi)
+    radius = float(max(np.linalg.norm(hi - lo) * 0.5, 1e-9))
+    dist = 1.15 * radius / math.sin(0.5 * fov)
+    direction = np.array([0.0, 0.25, 1.0])
+    direction /= np.linalg.norm(direction)
+    return {
+        "position": center + dist * direction,
+        "look_at": center,
+        "near": dist * 1e-3,
+        "far": dist * 100.0,
+        "radius": radius,
+    }
+
+
+def format_status(
+    *,
+    scene: str,
+    integrator: str,
+    mesh_mode: str,
+    paused: bool,
+    error: str | None,
+    t: float,
+    ms_per_step: float,
+    newton_per_step: float,
+    steps_per_second: float,
+    E: float,
+    nu: float,
+    rho: float,
+) -> str:
+    """The panel's markdown status line."""
+    if error is not None:
+        state = "**stopped: simulation error** (R resets)"
+    else:
+        state = "paused" if paused else "running"
+    return (
+        f"**{scene}** · {INTEGRATOR_LABELS.get(integrator, integrator)} · "
+        f"{MESH_MODE_LABELS.get(mesh_mode, mesh_mode)} · {state}  \n"
+        f"t = {t:.2f} s · {ms_per_step:.1f} ms/step · "
+        f"{newton_per_step:.2f} Newton it/step · {steps_per_second:.0f} steps/s  \n"
+        f"E = {E:.3g} · ν = {nu:.3g} · ρ = {rho:.3g}"
+    )
+
+
+def _surface_faces(sim: Any) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(sim.surface_faces, dtype=np.uint32))
+
+
+# --------------------------------------------------------------------------------------
+# The viewer
+# --------------------------------------------------------------------------------------
+
+
+class Viewer:
+    """A viser server showing a running simulation.
+
+    Parameters
+    ----------
+    scene : str or Path
+        Built-in scene name (``"bunny"``, ``"arma"``) or a tet-mesh path.
+    host, port : str, int
+        Where viser listens (``port=0``: any free port).
+    integrator : {"linear", "implicit"}, optional
+        Overrides the scene's integrator.
+    backend : {"numpy", "c"}, optional
+        Kernel back end passed to :class:`~fem3d.simulation.Simulation`.
+    realtime : bool
+        Pace simulated time to wall time (False: step as fast as possible).
+    push_hz : float
+        Maximum rate of mesh updates sent to the browser.
+    plot_hz : float
+        Maximum rate of status/plot updates.
+    plot_window : float
+        Seconds of simulated time shown in the energy plot.
+    mesh_mode : {"skin", "sim"}
+        Mesh shown first: the skinned display mesh or the simulation mesh's surface.
+    """
+
+    def __init__(
+        self,
+        scene: str | Path = "bunny",
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        integrator: str | None = None,
+        backend: str | None = None,
+        realtime: bool = True,
+        push_hz: float = 30.0,
+        plot_hz: float = 10.0,
+        plot_window: float = 10.0,
+        mesh_mode: str = "skin",
+    ) -> None:
+        if mesh_mode not in MESH_MODE_LABELS:
+            raise ParameterError(
+                f"mesh_mode must be one of {sorted(MESH_MODE_LABELS)}, got {mesh_mode!r}"
+            )
+        if integrator is not None and integrator not in INTEGRATOR_LABELS:
+            raise ParameterError(
+                f"integrator must be one of {sorted(INTEGRATOR_LABELS)}, got {integrator!r}"
+            )
+        if not 0 <= int(port) <= 65535:
+            raise ParameterError(f"port must be in [0, 65535], got {port}")
+        if push_hz <= 0 or plot_hz <= 0:
+            raise ParameterError("push_hz and plot_hz must be positive")
+        self.host = host
+        self.port = int(port)
+        self.backend = backend
+        self.push_hz = float(push_hz)
+        self.plot_hz = float(plot_hz)
+        self.plot_window = float(plot_window)
+        self._pacer = RealtimePacer(enabled=realtime)
+
+        # Loaded now so that bad input fails before a server starts.
+        self._scene = _load_scene(scene)
+        self._scene_label = str(scene)
+        self._sim = _make_simulation(self._scene, integrator, backend)
+
+        # Shared state (guarded by _lock; never held across a step or a viser write).
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._commands: collections.deque[Callable[[], None]] = collections.deque()
+        self._generation = 0
+        self._pull: PullState | None = None
+        self._pull_version = 0
+        self._q_view = np.array(self._sim.q, dtype=np.float64, copy=True)
+        self._paused = False
+        self._error: str | None = None
+        self._errors: list[str] = []
+        self._mesh_mode = mesh_mode
+        self._history = EnergyHistory()
+        self._recent: collections.deque[tuple[float, float, int]] = collections.deque(maxlen=30)
+        self._steps = 0
+        self._pushes = 0
+        self._t = 0.0
+        self._material = self._scene_material()
+        self._drag_events = 0
+
+        # Simulation-thread-only state.
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+        self._mesh_handle: Any = None
+        self._mesh_handle_mode: str | None = None
+        self._spring_handle: Any = None
+        self._spring_key: tuple[int, ...] | None = None
+        self._gui: dict[str, Any] = {}
+        self._notifications: list[Any] = []
+        self._applied_pull_version = -1
+        self._applied_generation = -1
+        self._last_push = 0.0
+        self._last_plot = 0.0
+        self._gui_dirty = True
+        self._camera: dict[str, Any] = camera_for_points(self._sim.q)
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def server(self) -> viser.ViserServer:
+        """The viser server (after :meth:`start`)."""
+        return self._server
+
+    @property
+    def url(self) -> str:
+        host = "localhost" if self.host in ("0.0.0.0", "::") else self.host
+        return f"http://{host}:{self._server.get_port()}"
+
+    @property
+    def camera(self) -> dict[str, Any]:
+        """The camera the viewer sets for the current scene (``camera_for_points``)."""
+        with self._lock:
+            return dict(self._camera)
+
+    def _scene_material(self) -> dict[str, float]:
+        s = self._scene
+        return {"E": float(s.E), "nu": float(s.nu), "rho": float(s.rho)}
+
+    # ---------------------------------------------------------------- life cycle
+    def start(self) -> str:
+        """Start the viser server and the simulation thread; return the URL."""
+        viser = _import_viser()
+        self._server = viser.ViserServer(host=self.host, port=self.port, verbose=False)
+        self._server.scene.set_up_direction("+y")
+        self._build_gui()
+        self._apply_camera(initial=True)
+        self._rebuild_mesh()
+        self._server.on_client_connect(self._on_client_connect)
+        self._thread = threading.Thread(target=self._run, name="fem3d-view-sim", daemon=True)
+        self._thread.start()
+        return self.url
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the simulation thread and the server (idempotent)."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=timeout)
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+
+    def wait(self) -> None:
+        """Block until :meth:`stop` (KeyboardInterrupt propagates)."""
+        while not self._stop.wait(0.25):
+            pass
+
+    def __enter__(self) -> Viewer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- public actions
+    def _post(self, command: Callable[[], None]) -> None:
+        with self._lock:
+            self._commands.append(command)
+        self._wake.set()
+
+    def toggle_mesh_mode(self) -> None:
+        """Switch between the skinned display mesh and the simulation mesh (``S``)."""
+        self._post(self._do_toggle_mesh_mode)
+
+    def toggle_integrator(self) -> None:
+        """Switch linearly-implicit / backward Euler (``N``)."""
+        self._post(self._do_toggle_integrator)
+
+    def toggle_pause(self) -> None:
+        """Pause or resume (space)."""
+        self._post(self._do_toggle_pause)
+
+    def set_paused(self, paused: bool) -> None:
+        self._post(lambda: self._do_set_paused(paused))
+
+    def reset(self) -> None:
+        """Back to rest, t = 0; clears an error (``R``)."""
+        self._post(self._do_reset)
+
+    def switch_scene(self, name: str) -> None:
+        """Load another scene (runs on the simulation thread)."""
+        self._post(lambda: self._do_switch_scene(name))
+
+    def set_material(
+        self, E: float | None = None, nu: float | None = None, rho: float | None = None
+    ) -> None:
+        """Change material parameters live."""
+        self._post(lambda: self._do_set_material(E, nu, rho))
+
+    def begin_pull(
+        self, grab_point: Sequence[float], target: Sequence[float] | None = None
+    ) -> None:
+        """Pick the vertices within the scene's picking radius of ``grab_point``.
+
+        Parameters
+        ----------
+        grab_point : (3,) float
+            World-space point on the displayed mesh.
+        target : (3,) float, optional
+            Initial pull target (default: the grab point).
+        """
+        grab = np.asarray(grab_point, dtype=np.float64).reshape(3)
+        tgt = grab.copy() if target is None else np.asarray(target, dtype=np.float64).reshape(3)
+        if not (np.isfinite(grab).all() and np.isfinite(tgt).all()):
+            return
+        with self._lock:
+            q = self._q_view
+            ids = _pick(q, grab, float(self._scene.pick_radius))
+            self._pull = PullState(
+                ids=ids,
+                grab_point=grab,
+                target=tgt,
+                start_positions=q[ids].copy(),
+                generation=self._generation,
+            )
+            self._pull_version += 1
+            self._drag_events += 1
+        self._wake.set()
+
+    def move_pull(self, target: Sequence[float]) -> None:
+        """Move the pull target (world space)."""
+        tgt = np.asarray(target, dtype=np.float64).reshape(3)
+        if not np.isfinite(tgt).all():
+            return
+        with self._lock:
+            if self._pull is None:
+                return
+            self._pull.target = tgt
+            self._pull_version += 1
+            self._drag_events += 1
+        self._wake.set()
+
+    def end_pull(self) -> None:
+        """Release the pull."""
+        with self._lock:
+            if self._pull is None:
+                return
+            self._pull = None
+            self._pull_version += 1
+            self._drag_events += 1
+        self._wake.set()
+
+    # ---------------------------------------------------------------- state for tests
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-serialisable copy of the viewer's state.
+
+        Keys: ``scene``, ``integrator``, ``mesh_mode``, ``paused``, ``error``, ``errors``,
+        ``t``, ``steps``, ``pushes``, ``ms_per_step``, ``newton_per_step``,
+        ``steps_per_second``, ``material``, ``pull`` (None or ``ids``, ``grab_point``,
+        ``target``, ``start_positions``, ``positions``), ``energy`` (list of
+        ``[t, T, V, T+V]``), ``drag_events``, ``generation``.
+        """
+        with self._lock:
+            pull = None
+            if self._pull is not None:
+                p = self._pull
+                pull = {
+                    "ids": p.ids.tolist(),
+                    "grab_point": p.grab_point.tolist(),
+                    "target": p.target.tolist(),
+                    "start_positions": p.start_positions.tolist(),
+                    "positions": self._q_view[p.ids].tolist(),
+                }
+            stats = self._stats_locked()
+            return {
+                "scene": self._scene.name,
+                "integrator": str(self._sim_integrator),
+                "mesh_mode": self._mesh_mode,
+                "paused": self._paused,
+                "error": self._error,
+                "errors": list(self._errors),
+                "t": self._t,
+                "steps": self._steps,
+                "pushes": self._pushes,
+                **stats,
+                "material": dict(self._material),
+                "pull": pull,
+                "energy": [list(r) for r in self._history.rows()],
+                "drag_events": self._drag_events,
+                "generation": self._generation,
+            }
+
+    def positions(self) -> np.ndarray:
+        """(n_vertices, 3) float64: the latest simulation positions (a copy)."""
+        with self._lock:
+            return self._q_view.copy()
+
+    @property
+    def _sim_integrator(self) -> str:
+        return str(self._sim.integrator)
+
+    def _stats_locked(self) -> dict[str, float]:
+        if not self._recent:
+            return {"ms_per_step": 0.0, "newton_per_step": 0.0, "steps_per_second": 0.0}
+        r = np.asarray(self._recent, dtype=np.float64)
+        span = r[-1, 0] - r[0, 0]
+        rate = (len(r) - 1) / span if len(r) > 1 and span > 0 else 0.0
+        return {
+            "ms_per_step": float(1e3 * r[:, 1].mean()),
+            "newton_per_step": float(r[:, 2].mean()),
+            "steps_per_second": float(rate),
+        }
+
+    # ---------------------------------------------------------------- GUI
+    def _build_gui(self) -> None:
+        gui = self._server.gui
+        g: dict[str, Any] = {}
+        g["status"] = gui.add_markdown("starting…")
+        g["mesh"] = gui.add_button("Mesh: skinned ⇄ simulation (S)")
+        g["integrator"] = gui.add_button("Integrator: linear ⇄ backward Euler (N)")
+        g["pause"] = gui.add_button("Pause / resume (space)")
+        g["reset"] = gui.add_button("Reset (R)")
+        names = _builtin_scene_names()
+        if self._scene_label not in names:
+            names.append(self._scene_label)
+        g["scene"] = gui.add_dropdown("Scene", tuple(names), initial_value=self._scene_label)
+        E, nu, rho = self._material["E"], self._material["nu"], self._material["rho"]
+        lE = math.log10(E)
+        g["E"] = gui.add_slider(
+            "log10 Young's modulus", min=lE - 2.0, max=lE + 2.0, step=0.05, initial_value=lE
+        )
+        g["nu"] = gui.add_slider("Poisson's ratio", min=0.0, max=0.49, step=0.01, initial_value=nu)
+        g["rho"] = gui.add_slider(
+            "Density", min=rho / 10.0, max=rho * 10.0, step=rho / 10.0, initial_value=rho
+        )
+        t, T, V, tot = self._history.window(self.plot_window)
+        g["plot"] = gui.add_uplot(
+            data=(t, T, V, tot),
+            series=(
+                {"label": "t (s)"},
+                {"label": "T", "stroke": "#1f77b4", "width": 2},
+                {"label": "V", "stroke": "#ff7f0e", "width": 2},
+                {"label": "T+V", "stroke": "#2ca02c", "width": 2},
+            ),
+            scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
+            title="Energy",
+            aspect=1.4,
+        )
+        g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
+        g["integrator"].on_click(lambda _e: self.toggle_integrator())
+        g["pause"].on_click(lambda _e: self.toggle_pause())
+        g["reset"].on_click(lambda _e: self.reset())
+
+        def _on_scene(event: Any) -> None:
+            if event.client is not None:
+                self.switch_scene(str(event.target.value))
+
+        def _on_E(event: Any) -> None:
+            if event.client is not None:
+                self.set_material(E=10.0 ** float(event.target.value))
+
+        def _on_nu(event: Any) -> None:
+            if event.client is not None:
+                self.set_material(nu=float(event.target.value))
+
+        def _on_rho(event: Any) -> None:
+            if event.client is not None:
+                self.set_material(rho=float(event.target.value))
+
+        g["scene"].on_update(_on_scene)
+        g["E"].on_update(_on_E)
+        g["nu"].on_update(_on_nu)
+        g["rho"].on_update(_on_rho)
+
+        for label, key, action in (
+            ("Toggle skinned / simulation mesh", "S", self.toggle_mesh_mode),
+            ("Toggle linearly-implicit / backward Euler", "N", self.toggle_integrator),
+            ("Pause / resume", "space", self.toggle_pause),
+            ("Reset", "R", self.reset),
+        ):
+            cmd = gui.add_command(label, hotkey=key)
+            cmd.on_trigger(lambda _e, a=action: a())
+        self._gui = g
+
+    def _on_client_connect(self, client: Any) -> None:
+        with self._lock:
+            cam = dict(self._camera)
+            error = self._error
+        self._set_client_camera(client, cam)
+        if error is not None:
+            self._notify_client(client, error)
+
+    @staticmethod
+    def _set_client_camera(client: Any, cam: dict[str, Any]) -> None:
+        client.camera.near = float(cam["near"])
+        client.camera.far = float(cam["far"])
+        client.camera.position = tuple(cam["position"])
+        client.camera.look_at = tuple(cam["look_at"])
+
+    def _apply_camera(self, *, initial: bool = False) -> None:
+        cam = camera_for_points(self._sim.q)
+        with self._lock:
+            self._camera = cam
+        ic = self._server.initial_camera
+        ic.near = float(cam["near"])
+        ic.far = float(cam["far"])
+        ic.position = tuple(cam["position"])
+        ic.look_at = tuple(cam["look_at"])
+        if not initial:
+            for client in self._server.get_clients().values():
+                self._set_client_camera(client, cam)
+
+    def _error_text(self, error: str) -> str:
+        hint = ""
+        if self._sim_integrator == "linear":
+            hint = (
+                " (the linearly-implicit integrator is unstable here:"
+                " press N for backward Euler)"
+            )
+        return (
+            f"{error}. The viewer paused at the last good step; press R (Reset) to restart"
+            f"{hint}."
+        )
+
+    def _notify_client(self, client: Any, error: str) -> None:
+        try:
+            h = client.add_notification(
+                "Simulation stopped", self._error_text(error), color="red"
+            )
+        except Exception:  # noqa: BLE001 - a closing client must not kill the sim thread
+            return
+        self._notifications.append(h)
+
+    def _notify_all(self, title: str, body: str, color: str = "blue", seconds: float = 6.0) -> None:
+        for client in self._server.get_clients().values():
+            try:
+                client.add_notification(title, body, color=color, auto_close_seconds=seconds)
+            except Exception:  # noqa: BLE001
+                pass
+
+    def _clear_notifications(self) -> None:
+        for h in self._notifications:
+            try:
+                h.remove()
+            except Exception:  # noqa: BLE001
+                pass
+        self._notifications.clear()
+
+    # ---------------------------------------------------------------- scene graph
+    def _display_positions(self) -> np.ndarray:
+        if self._mesh_handle_mode == "skin":
+            return np.asarray(self._sim.skin_positions(), dtype=np.float64)
+        return np.asarray(self._sim.q, dtype=np.float64)
+
+    def _has_skin(self) -> bool:
+        return getattr(self._scene, "skin_F", None) is not None
+
+    def _rebuild_mesh(self) -> None:
+        """Replace the displayed mesh node (simulation thread only)."""
+        mode = self._mesh_mode if self._has_skin() else "sim"
+        if self._mesh_handle is not None:
+            old, self._mesh_handle = self._mesh_handle, None
+            old.remove()
+        self._mesh_handle_mode = mode
+        if mode == "skin":
+            verts = np.asarray(self._sim.skin_positions(), dtype=np.float64)
+            faces = np.asarray(self._scene.skin_F, dtype=np.uint32)
+            handle = self._server.scene.add_mesh_simple(
+                "/fem3d/skin", verts, faces, color=SKIN_COLOR, flat_shading=False,
+                cast_shadow=False, receive_shadow=False,
+            )
+        else:
+            verts = np.asarray(self._sim.q, dtype=np.float64)
+            handle = self._server.scene.add_mesh_simple(
+                "/fem3d/sim", verts, _surface_faces(self._sim), color=SIM_COLOR, flat_shading=True,
+                cast_shadow=False, receive_shadow=False,
+            )
+
+        async def _on_drag(event: Any) -> None:
+            if event.phase == "start":
+                self.begin_pull(event.start_position, event.end_position)
+            elif event.phase == "update":
+                self.move_pull(event.end_position)
+            else:
+                self.end_pull()
+
+        handle.on_drag("left")(_on_drag)
+        self._mesh_handle = handle
+
+    def _update_spring(self, pull: PullState | None, q: np.ndarray) -> None:
+        if pull is None or pull.generation != self._generation or pull.ids.size == 0:
+            if self._spring_handle is not None:
+                self._spring_handle.remove()
+                self._spring_handle = None
+                self._spring_key = None
+            return
+        seg = spring_segments(q, pull.ids, pull.target)
+        key = tuple(pull.ids.tolist())
+        if self._spring_handle is None or self._spring_key != key:
+            if self._spring_handle is not None:
+                self._spring_handle.remove()
+            self._spring_handle = self._server.scene.add_line_segments(
+                "/fem3d/spring", seg, SPRING_COLOR, thickness=3.0, thickness_units="screen"
+            )
+            self._spring_key = key
+        else:
+            self._spring_handle.points = seg
+
+    # ---------------------------------------------------------------- commands (sim thread)
+    def _do_toggle_mesh_mode(self) -> None:
+        with self._lock:
+            self._mesh_mode = "sim" if self._mesh_mode == "skin" else "skin"
+        self._rebuild_mesh()
+        self._gui_dirty = True
+
+    def _do_toggle_integrator(self) -> None:
+        new = "implicit" if self._sim_integrator == "linear" else "linear"
+        self._sim.integrator = new
+        self._gui_dirty = True
+        self._notify_all("Integrator", INTEGRATOR_LABELS[new], seconds=3.0)
+
+    def _do_set_paused(self, paused: bool) -> None:
+        with self._lock:
+            self._paused = paused
+        self._pacer.reset()
+        self._gui_dirty = True
+
+    def _do_toggle_pause(self) -> None:
+        with self._lock:
+            self._paused = not self._paused
+            if not self._paused:
+                self._error = None
+        self._pacer.reset()
+        self._gui_dirty = True
+
+    def _do_reset(self) -> None:
+        self._sim.reset()
+        self._applied_pull_version = -1  # re-apply an active pull after the reset
+        with self._lock:
+            self._error = None
+            self._paused = False
+            self._history.clear()
+            self._recent.clear()
+            self._t = 0.0
+            self._q_view = np.array(self._sim.q, dtype=np.float64, copy=True)
+        self._clear_notifications()
+        self._pacer.reset()
+        self._gui_dirty = True
+
+    def _do_set_material(self, E: float | None, nu: float | None, rho: float | None) -> None:
+        try:
+            self._sim.set_material(E=E, nu=nu, rho=rho)
+        except Fem3dError as exc:
+            self._notify_all("Material not changed", str(exc), color="yellow")
+            return
+        with self._lock:
+            for k, v in (("E", E), ("nu", nu), ("rho", rho)):
+                if v is not None:
+                    self._material[k] = float(v)
+        self._gui_dirty = True
+
+    def _do_switch_scene(self, name: str) -> None:
+        if name == self._scene_label:
+            return
+        try:
+            scene = _load_scene(name)
+            sim = _make_simulation(scene, None, self.backend)
+        except Fem3dError as exc:
+            self._notify_all("Could not load scene", str(exc), color="red", seconds=10.0)
+            self._gui["scene"].value = self._scene_label
+            return
+        self._clear_notifications()
+        with self._lock:
+            self._scene, self._sim, self._scene_label = scene, sim, name
+            self._generation += 1
+            self._pull = None
+            self._pull_version += 1
+            self._error = None
+            self._paused = False
+            self._history.clear()
+            self._recent.clear()
+            self._t = 0.0
+            self._q_view = np.array(sim.q, dtype=np.float64, copy=True)
+            self._material = self._scene_material()
+        self._applied_pull_version = -1
+        self._rebuild_mesh()
+        self._update_spring(None, sim.q)
+        self._apply_camera()
+        g = self._gui
+        lE = math.log10(self._material["E"])
+        rho = self._material["rho"]
+        g["E"].min, g["E"].max = lE - 2.0, lE + 2.0
+        g["E"].value = lE
+        g["nu"].value = self._material["nu"]
+        g["rho"].min, g["rho"].max, g["rho"].step = rho / 10.0, rho * 10.0, rho / 10.0
+        g["rho"].value = rho
+        self._pacer.reset()
+        self._gui_dirty = True
+
+    # ---------------------------------------------------------------- main loop
+    def _sync_pull(self) -> PullState | None:
+        with self._lock:
+            pull, version = self._pull, self._pull_version
+        if version != self._applied_pull_version:
+            if pull is not None and pull.generation == self._generation and pull.ids.size:
+                self._sim.set_pull(pull.ids, pull.target)
+            else:
+                self._sim.clear_pull()
+            self._applied_pull_version = version
+        return pull
+
+    def _step_once(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            info = self._sim.step()
+            q = np.asarray(self._sim.q, dtype=np.float64)
+            if not np.isfinite(q).all() or not math.isfinite(float(info.total)):
+                raise SimulationError("non-finite positions or energy")
+        except SimulationError as exc:
+            self._fail(str(exc))
+            return
+        except Exception as exc:  # noqa: BLE001 - keep the viewer alive, show the error
+            traceback.print_exc()
+            self._fail(f"{type(exc).__name__}: {exc}")
+            return
+        now = time.perf_counter()
+        seconds = float(getattr(info, "seconds", now - t0))
+        with self._lock:
+            self._steps += 1
+            self._t = float(info.t)
+            self._q_view = np.array(q, dtype=np.float64, copy=True)
+            self._history.append(info.t, info.kinetic, info.potential, info.total)
+            self._recent.append((now, seconds, int(info.newton_iterations)))
+
+    def _fail(self, message: str) -> None:
+        with self._lock:
+            self._paused = True
+            self._error = message
+            self._errors.append(message)
+        self._pacer.reset()
+        self._gui_dirty = True
+        for client in self._server.get_clients().values():
+            self._notify_client(client, message)
+
+    def _push(self, pull: PullState | None, *, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not force and now - self._last_push < 1.0 / self.push_hz:
+            return
+        self._last_push = now
+        verts = self._display_positions()
+        q = np.asarray(self._sim.q, dtype=np.float64)
+        if np.isfinite(verts).all():
+            with self._server.atomic():
+                self._mesh_handle.vertices = verts.astype(np.float32)
+                self._update_spring(pull, q)
+        with self._lock:
+            self._pushes += 1
+        if force or self._gui_dirty or now - self._last_plot >= 1.0 / self.plot_hz:
+            self._last_plot = now
+            self._gui_dirty = False
+            self._push_gui()
+
+    def _push_gui(self) -> None:
+        with self._lock:
+            stats = self._stats_locked()
+            text = format_status(
+                scene=self._scene_label,
+                integrator=self._sim_integrator,
+                mesh_mode=self._mesh_handle_mode or self._mesh_mode,
+                paused=self._paused,
+                error=self._error,
+                t=self._t,
+                E=self._material["E"],
+                nu=self._material["nu"],
+                rho=self._material["rho"],
+                **stats,
+            )
+            data = self._history.window(self.plot_window)
+        self._gui["status"].content = text
+        self._gui["plot"].data = data
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            while True:
+                with self._lock:
+                    if not self._commands:
+                        break
+                    command = self._commands.popleft()
+                try:
+                    command()
+                except Exception as exc:  # noqa: BLE001 - a bad command must not stop the loop
+                    traceback.print_exc()
+                    self._fail(f"{type(exc).__name__}: {exc}")
+            try:
+                pull = self._sync_pull()
+            except Exception as exc:  # noqa: BLE001 - e.g. a rejected pull
+                traceback.print_exc()
+                self._fail(f"{type(exc).__name__}: {exc}")
+                with self._lock:
+                    self._pull = None
+                    pull = None
+            with self._lock:
+                running = not self._paused
+            wait = 1.0 / self.push_hz
+            if running:
+                with self._lock:
+                    t_sim = self._t
+                delay = self._pacer.delay(t_sim, time.perf_counter())
+                if delay <= 0.0:
+                    self._step_once()
+                    wait = 0.0
+                else:
+                    wait = delay
+            try:
+                self._push(pull)
+            except Exception:  # noqa: BLE001 - e.g. the server is stopping
+                if self._stop.is_set():
+                    break
+                traceback.print_exc()
+            if wait > 0.0:
+                due = self._last_push + 1.0 / self.push_hz - time.perf_counter()
+                self._wake.wait(max(0.0, min(wait, due)))
+
+
+# --------------------------------------------------------------------------------------
+# Entry points
+# --------------------------------------------------------------------------------------
+
+
+def serve(
+    scene_name_or_path: str | Path = "bunny",
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    integrator: str | None = None,
+    backend: str | None = None,
+    *,
+    realtime: bool = True,
+) -> None:
+    """Run the viewer until Ctrl-C.
+
+    Parameters
+    ----------
+    scene_name_or_path : str or Path
+        ``"bunny"``, ``"arma"`` or a tet-mesh path.
+    host, port : str, int
+        Where to listen.
+    integrator : {"linear", "implicit"}, optional
+        Overrides the scene's integrator.
+    backend : {"numpy", "c"}, optional
+        Kernel back end.
+    realtime : bool
+        Pace simulated time to wall time.
+    """
+    _import_viser()
+    viewer = Viewer(
+        scene_name_or_path,
+        host=host,
+        port=port,
+        integrator=integrator,
+        backend=backend,
+        realtime=realtime,
+    )
+    url = viewer.start()
+    print(f"fem3d view: {url}  (drag the mesh; S mesh, N integrator, space pause, R reset;"
+          " Ctrl-C stops)", flush=True)
+    try:
+        viewer.wait()
+    except KeyboardInterrupt:
+        print("fem3d view: stopping", flush=True)
+    finally:
+        viewer.stop()
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    serve(
+        args.scene,
+        host=args.host,
+        port=args.port,
+        integrator=args.integrator,
+        backend=args.backend,
+        realtime=not args.no_realtime,
+    )
+    return 0
+
+
+def add_view_subcommand(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``fem3d view`` on an ``argparse`` sub-parser collection.
+
+    The sub-command stores its handler in ``func`` (``args.func(args) -> int``). viser is
+    imported only when the command runs.
+    """
+    p = subparsers.add_parser(
+        "view",
+        help="interactive browser viewer (needs fem3d[view])",
+        description="Run a scene in a browser viewer (viser): drag the mesh to pull it; "
+        "S toggles skinned/simulation mesh, N the integrator, space pauses, R resets.",
+    )
+    p.add_argument("scene", nargs="?", default="bunny", help="bunny | arma | path to a tet mesh")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
+    p.add_argument(
+        "--integrator", choices=sorted(INTEGRATOR_LABELS), default=None,
+        help="override the scene's integrator",
+    )
+    p.add_argument("--backend", choices=("numpy", "c"), default=None, help="kernel back end")
+    p.add_argument(
+        "--no-realtime", action="store_true", help="step as fast as possible (no wall-time pacing)"
+    )
+    p.set_defaults(func=_run_view)
+    return p

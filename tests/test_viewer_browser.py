@@ -1,0 +1,283 @@
+"""Real-browser test of ``fem3d view``: Debian chromium driven by Playwright (sync API).
+
+The viewer runs in-process (a thread) on a free port; the test loads the page in headless
+chromium (WebGL in software through SwiftShader), drags the bunny with the mouse, presses
+hotkeys, and checks the viewer's server-side state (:meth:`fem3d.viewer.Viewer.snapshot`)
+with polling waits. Screenshots are checked to be non-blank and to change.
+
+Needs ``/usr/bin/chromium`` (``bash scripts/install_chromium.sh``; override the path with
+``FEM3D_CHROMIUM``), ``playwright`` and ``viser``; skipped with the reason otherwise. A
+browser is never downloaded.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = os.environ.get("FEM3D_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-gl=angle",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
+VIEWPORT = {"width": 800, "height": 600}
+
+
+def _missing() -> str | None:
+    if not (os.path.isfile(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
+        return f"no chromium at {CHROMIUM} (run: bash scripts/install_chromium.sh)"
+    for mod, hint in (
+        ("playwright", "pip install playwright (no browser download needed)"),
+        ("viser", "pip install 'fem3d[view]'"),
+        ("fem3d.simulation", "the fem3d runtime is not installed"),
+    ):
+        try:
+            found = importlib.util.find_spec(mod) is not None
+        except ModuleNotFoundError:
+            found = False
+        if not found:
+            return f"{mod} is not importable ({hint})"
+    return None
+
+
+_REASON = _missing()
+if _REASON is not None:
+    pytestmark = [pytest.mark.browser, pytest.mark.skip(reason=_REASON)]
+
+
+def wait_for(
+    predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.05
+) -> Any:
+    """Poll ``predicate`` until it returns a result; fail with ``what`` on timeout.
+
+    ``None``, ``False`` and strings mean "not yet" (a string says why, for the failure
+    message); anything else is returned.
+    """
+    deadline = time.monotonic() + timeout
+    last: Any = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last is not None and last is not False and not isinstance(last, str):
+            return last
+        time.sleep(interval)
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})")
+
+
+def project(points: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray]:
+    """World points -> (canvas pixel coordinates (n, 2), depth (n,)) for a viser camera."""
+    pos = np.asarray(camera.position, dtype=np.float64)
+    fwd = np.asarray(camera.look_at, dtype=np.float64) - pos
+    fwd /= np.linalg.norm(fwd)
+    up = np.asarray(camera.up_direction, dtype=np.float64)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, fwd)
+    d = np.asarray(points, dtype=np.float64) - pos
+    x, y, z = d @ right, d @ true_up, d @ fwd
+    w, h = camera.image_width, camera.image_height
+    f = 0.5 * h / math.tan(0.5 * camera.fov)
+    return np.stack([0.5 * w + f * x / z, 0.5 * h - f * y / z], axis=1), z
+
+
+def _image(png: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+
+
+def _mesh_mask(img: np.ndarray) -> np.ndarray:
+    """Pixels of the 3-D scene that are not background (white), GUI panel excluded."""
+    mask = np.abs(img - img[-1, VIEWPORT["width"] // 2]).sum(axis=2) > 60
+    mask[:, int(0.62 * img.shape[1]) :] = False  # control panel
+    mask[:170, :330] = False  # notifications
+    mask[-80:, :80] = False  # axes gizmo
+    return mask
+
+
+@pytest.fixture
+def viewer():
+    from fem3d.viewer import Viewer
+
+    # Start on the small simulation mesh and push at 10 Hz: WebGL runs in software.
+    # Backward Euler: the linearly-implicit integrator may (legitimately) blow up under a
+    # strong pull, which is tested separately (tests/test_viewer_unit.py).
+    v = Viewer(
+        "bunny", port=0, integrator="implicit", mesh_mode="sim", push_hz=10.0, plot_hz=4.0
+    )
+    v.start()
+    try:
+        yield v
+    finally:
+        v.stop()
+
+
+def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    t_start = time.monotonic()
+
+    def log(msg: str) -> None:
+        print(f"[{time.monotonic() - t_start:6.1f} s] {msg}", flush=True)
+
+    profile = tmp_path / "chromium-profile"
+    with sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(
+            str(profile),
+            executable_path=CHROMIUM,
+            headless=True,
+            args=CHROMIUM_FLAGS,
+            viewport=VIEWPORT,
+        )
+        try:
+            page = ctx.pages[0] if ctx.pages else ctx.new_page()
+            page.goto(viewer.url)
+            page.wait_for_selector("canvas", timeout=30_000)
+
+            # The client connected and reports the camera the viewer set.
+            want = np.asarray(viewer.camera["position"])
+
+            def client_camera() -> Any:
+                for client in viewer.server.get_clients().values():
+                    cam = client.camera
+                    if cam.update_timestamp and np.allclose(cam.position, want, rtol=1e-3):
+                        return cam
+                return None
+
+            cam = wait_for(client_camera, 30, "the browser to report the viewer's camera")
+            log("page loaded, camera reported")
+            wait_for(lambda: viewer.snapshot()["steps"] > 5, 30, "the simulation to run")
+            wait_for(lambda: viewer.snapshot()["pushes"] > 5, 10, "mesh updates to be pushed")
+
+            # Wait until the mesh is drawn, then find a grab point on it.
+            shot0 = wait_for(
+                lambda: (lambda im: im if _mesh_mask(im).mean() > 0.01 else None)(
+                    _image(page.screenshot(timeout=60_000))
+                ),
+                30,
+                "the mesh to appear in a screenshot",
+                interval=0.3,
+            )
+            log("mesh visible")
+            mask = _mesh_mask(shot0)
+            q = viewer.positions()
+            uv, depth = project(q, cam)
+            y = q[:, 1]
+            upper = y > y.min() + 0.45 * (y.max() - y.min())
+            inside = (
+                (uv[:, 0] > 0) & (uv[:, 0] < mask.shape[1]) & (uv[:, 1] > 0)
+                & (uv[:, 1] < mask.shape[0]) & (depth > 0)
+            )
+            cand = np.flatnonzero(upper & inside)
+            assert cand.size, "no vertex of the upper bunny projects into the canvas"
+            u, v = uv[cand[np.argmin(depth[cand])]]
+            # Snap to the nearest mesh pixel of the screenshot (skin vs sim surface).
+            rows, cols = np.nonzero(mask)
+            k = np.argmin((cols - u) ** 2 + (rows - v) ** 2)
+            assert (cols[k] - u) ** 2 + (rows[k] - v) ** 2 < 40**2, "projection misses the mesh"
+            x0, y0 = float(cols[k]), float(rows[k])
+            # Move a few pixels inside the silhouette so the press surely hits the mesh.
+            ys, xs = np.nonzero(mask[int(y0) - 6 : int(y0) + 7, int(x0) - 6 : int(x0) + 7])
+            x0, y0 = x0 - 6 + xs.mean(), y0 - 6 + ys.mean()
+
+            before = viewer.snapshot()
+            e_before = max((row[3] for row in before["energy"][-20:]), default=0.0)
+            dx = -80.0 if x0 > 250 else 80.0
+            page.mouse.move(x0, y0)
+            page.mouse.down()
+            for i in range(1, 13):
+                page.mouse.move(x0 + dx * i / 12, y0 - 20.0 * i / 12)
+                time.sleep(0.06)  # drag updates are throttled to ~20 Hz
+
+            log("dragged")
+            snap = wait_for(
+                lambda: (lambda s: s if s["pull"] and s["pull"]["ids"] else None)(
+                    viewer.snapshot()
+                ),
+                10,
+                "vertices to be picked by the drag",
+            )
+            pull = snap["pull"]
+            target = np.asarray(pull["target"])
+            assert np.linalg.norm(target - np.asarray(pull["grab_point"])) > 0.0
+
+            def moved_toward_target() -> Any:
+                p = viewer.snapshot()["pull"]
+                if not p:
+                    return "released"
+                tg = np.asarray(p["target"])
+                d0 = np.linalg.norm(np.asarray(p["start_positions"]) - tg, axis=1).mean()
+                d1 = np.linalg.norm(np.asarray(p["positions"]) - tg, axis=1).mean()
+                return (d1 < 0.97 * d0) or f"mean distance to target {d0:.4g} -> {d1:.4g}"
+
+            wait_for(moved_toward_target, 20, "the picked vertices to move toward the target")
+            wait_for(
+                lambda: max(r[3] for r in viewer.snapshot()["energy"]) > e_before + 1e-12,
+                10,
+                "the energy to rise",
+            )
+            # The spring is drawn while pulling.
+            log(f"pull verified: {len(pull['ids'])} vertices picked")
+            shot1 = _image(page.screenshot(timeout=60_000))
+            page.mouse.up()
+            wait_for(lambda: viewer.snapshot()["pull"] is None, 10, "the pull to be released")
+
+            # Hotkeys: S toggles the mesh, N the integrator.
+            mode0 = viewer.snapshot()["mesh_mode"]
+            integ0 = viewer.snapshot()["integrator"]
+            page.keyboard.press("s")
+            wait_for(lambda: viewer.snapshot()["mesh_mode"] != mode0, 10, "S to switch the mesh")
+            page.keyboard.press("n")
+            wait_for(
+                lambda: viewer.snapshot()["integrator"] != integ0, 10, "N to switch the integrator"
+            )
+            page.keyboard.press("n")
+            wait_for(
+                lambda: viewer.snapshot()["integrator"] == integ0, 10, "N to switch it back"
+            )
+            shot2 = wait_for(
+                lambda: (lambda im: im if np.abs(im - shot1).mean() > 0.2 else None)(
+                    _image(page.screenshot(timeout=60_000))
+                ),
+                10,
+                "the picture to change after S",
+                interval=0.3,
+            )
+            log("hotkeys verified")
+            for name, img in (("shot0", shot0), ("shot1", shot1), ("shot2", shot2)):
+                m = _mesh_mask(img)
+                assert img.std() > 5.0, f"{name} is blank"
+                assert m.mean() > 0.01, f"{name} shows no mesh"
+            assert np.abs(shot1 - shot0).mean() > 0.2, "the drag did not change the picture"
+
+            snap = viewer.snapshot()
+            assert snap["error"] is None, snap["error"]
+            assert np.isfinite(np.asarray(snap["energy"])).all()
+            artifacts = os.environ.get("FEM3D_VIEWER_ARTIFACTS")
+            if artifacts:  # optional: keep the screenshots (CI artefacts, docs)
+                Path(artifacts).mkdir(parents=True, exist_ok=True)
+                page.screenshot(path=str(Path(artifacts) / "viewer.png"))
+        finally:
+            ctx.close()
+    shutil.rmtree(profile, ignore_errors=True)
+    assert time.monotonic() - t_start < 90.0
