@@ -53,6 +53,7 @@ __all__ = [
     "check_skin_inside",
     "read_surface_mesh",
     "read_tet_mesh",
+    "skin_outside_distance",
     "tet_signed_volumes",
     "validate_surface_mesh",
     "validate_tet_mesh",
@@ -1016,9 +1017,8 @@ def read_surface_mesh(path: PathArg) -> tuple[np.ndarray, np.ndarray]:
             parts.append(q[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3))
         F = np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
         if F.shape[0] == 0 and "tetrahedra" in sec and sec["tetrahedra"][0].shape[0]:
-            F = boundary_faces(_medit_tet_mesh(p).T)
-            V = _medit_tet_mesh(p).X
-            vlines = None
+            tm = _medit_tet_mesh(p)
+            V, F, vlines = np.asarray(tm.X), boundary_faces(tm.T), None
         return validate_surface_mesh(V[:, :3], F, path=p, vertex_lines=vlines, index_base=1)
     if suffix in _meshio_extensions() and suffix not in (".node", ".ele"):
         mesh, points = _meshio_read(p)

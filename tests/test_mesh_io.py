@@ -305,3 +305,18 @@ def test_obj_text_helper_round_trip(tmp_path: Path) -> None:
     V, F2 = read_surface_mesh(p)
     np.testing.assert_array_equal(V, X2)
     np.testing.assert_array_equal(F2, F)
+
+
+def test_medit_as_display_mesh(tmp_path: Path) -> None:
+    # tets only: the boundary surface
+    p = tmp_path / "tets.mesh"
+    p.write_text(medit_text(X2, T2))
+    V, F = read_surface_mesh(p)
+    assert V.shape == (5, 3) and F.shape == (6, 3)
+    # explicit Triangles and Quadrilaterals (quads split in two)
+    text = medit_text(X2, T2).replace(
+        "Tetrahedra", "Triangles\n1\n1 2 3 7\nQuadrilaterals\n1\n1 2 5 3 0\nTetrahedra", 1
+    )
+    p.write_text(text)
+    V, F = read_surface_mesh(p)
+    np.testing.assert_array_equal(F, [[0, 1, 2], [0, 1, 4], [0, 4, 2]])
