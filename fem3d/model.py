@@ -386,7 +386,7 @@ def build_model(
 
     dofs = element_dofs(T)
     pattern, scatter = block_pattern(dofs, 3 * X.shape[0])
-    mass_blocks = geo.mass_matrix(vol, rho)
+    mass_blocks = geo.mass_matrix(vol, (rho,))
     mass_data = np.bincount(scatter, weights=mass_blocks.reshape(-1), minlength=pattern.nnz)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True

@@ -1,0 +1,641 @@
+"""Time integrators: linearly-implicit Euler and backward (implicit) Euler with Newton's method.
+
+Both work on the free DOFs ``q_free = P q`` (fixed vertices removed with the selection
+matrix of :class:`fem3d.constraints.Constraints`); fixed DOFs keep their rest position and a
+zero velocity. A state is immutable (:class:`State`); an integrator is
+``step(system, state, dt, pull) -> (State, StepStats)``, where :class:`System` caches what
+does not change between steps (model, constraints, reduced sparsity, the sparse solver with
+its symbolic analysis done once).
+
+Notation: ``M`` mass matrix, ``V(q)`` strain energy, ``H = d2V/dq2``, ``K = -H`` the
+stiffness of the assignment, ``f = -dV/dq``.
+
+* :func:`linearly_implicit_euler`: ``(M - dt^2 K) v+ = M v + dt f(q)``, ``q+ = q + dt v+``.
+* :func:`implicit_euler`: ``v+ = argmin_v 1/2 (v - v_t)^T M (v - v_t) + V(q_t + dt v)
+  (+ V_pull(q_t + dt v))``, ``q+ = q_t + dt v+``, minimised by :func:`newtons_method`
+  (Hessian ``M + dt^2 H``, backtracking line search).
+
+A pull (:class:`Pull`) is a set of zero-rest-length springs ``1/2 k |x_i - target_i|^2``
+(generated ``spring_kernels``). In backward Euler its energy is part of the minimised
+objective (and its Hessian of Newton's); in the linearly-implicit scheme its force is in
+``f`` and its stiffness in ``K`` (the whole force is linearised). The assignment's main
+program linearises only the elastic force and adds the spring force explicitly; with the
+scenes' spring stiffness (``k dt^2`` far above a vertex mass) that explicit term alone makes
+the scheme explode on the first step of a scripted pull, on either mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.assembly import (
+    assemble_gradient,
+    count_inverted,
+    hessian_data,
+    kinetic_energy,
+    potential_energy,
+)
+from fem3d.constraints import Constraints
+from fem3d.errors import SimulationError
+from fem3d.linsolve import NotPositiveDefinite, SparseSPDSolver
+from fem3d.model import Model, validate_dt
+
+__all__ = [
+    "State",
+    "Pull",
+    "StepStats",
+    "NewtonResult",
+    "System",
+    "NotPositiveDefinite",
+    "linearly_implicit_euler",
+    "implicit_euler",
+    "newtons_method",
+    "INTEGRATORS",
+]
+
+
+
+# ---------------------------------------------------------------------------------------------
+# state, pull springs, statistics
+
+
+@dataclass(frozen=True, eq=False)
+class State:
+    """Positions and velocities at one instant.
+
+    Attributes
+    ----------
+    q : (n, 3) float64
+        Positions.
+    v : (n, 3) float64
+        Velocities.
+    t : float
+        Time.
+    step : int
+        Number of steps taken to get here.
+    """
+
+    q: np.ndarray
+    v: np.ndarray
+    t: float = 0.0
+    step: int = 0
+
+    @classmethod
+    def at_rest(cls, model: Model) -> State:
+        """Rest positions, zero velocity, ``t = 0``."""
+        return cls(q=model.X.copy(), v=np.zeros_like(model.X), t=0.0, step=0)
+
+
+@dataclass(frozen=True, eq=False)
+class Pull:
+    """Zero-rest-length springs pulling vertices toward targets.
+
+    Attributes
+    ----------
+    vertices : (k,) int64
+        Pulled vertices (unique).
+    targets : (k, 3) float64
+        Target point of each spring.
+    k : float
+        Spring stiffness (> 0).
+    """
+
+    vertices: np.ndarray
+    targets: np.ndarray
+    k: float
+
+    @classmethod
+    def make(cls, vertices, targets, k: float, n_vertices: int) -> Pull:
+        """Validated pull; ``targets`` may be one point ``(3,)`` shared by all vertices.
+
+        Raises
+        ------
+        ParameterError
+            Bad vertex ids, target shape or stiffness.
+        """
+        from fem3d.errors import ParameterError
+
+        idx = np.unique(np.asarray(vertices, dtype=np.int64).reshape(-1))
+        if idx.size and (idx[0] < 0 or idx[-1] >= n_vertices):
+            raise ParameterError(f"pulled vertex out of range [0, {n_vertices})")
+        tgt = np.asarray(targets, dtype=np.float64)
+        if tgt.shape == (3,):
+            tgt = np.broadcast_to(tgt, (idx.size, 3)).copy()
+        elif tgt.shape != (idx.size, 3):
+            raise ParameterError(f"pull target must be (3,) or ({idx.size}, 3), got {tgt.shape}")
+        if not np.isfinite(tgt).all():
+            raise ParameterError("pull target is not finite")
+        k = float(k)
+        if not math.isfinite(k) or k <= 0:
+            raise ParameterError(f"spring stiffness must be a finite number > 0, got {k}")
+        return cls(vertices=idx, targets=tgt, k=k)
+
+    def energy(self, spring, q: np.ndarray) -> float:
+        """Spring energy at positions ``q (n, 3)``."""
+        if self.vertices.size == 0:
+            return 0.0
+        return float(spring.energy(q[self.vertices], self.targets, (self.k,)).sum())
+
+    def gradient(self, spring, q: np.ndarray) -> np.ndarray:
+        """``d V_pull / d q`` as a full ``(3n,)`` vector."""
+        g = np.zeros(q.size)
+        if self.vertices.size:
+            ge = spring.gradient(q[self.vertices], self.targets, (self.k,))[:, :3]
+            g.reshape(-1, 3)[self.vertices] += ge
+        return g
+
+    def hessian_blocks(self, spring, q: np.ndarray) -> np.ndarray:
+        """``(k, 3, 3)`` Hessian blocks of each pulled vertex (the target is not a DOF)."""
+        return spring.hessian(q[self.vertices], self.targets, (self.k,))[:, :3, :3]
+
+
+@dataclass
+class StepStats:
+    """What one step did.
+
+    Attributes
+    ----------
+    newton_iterations : int
+        Newton iterations (1 for the linearly-implicit scheme: one linear solve).
+    gradient_norms : list of float
+        Norm of the objective's gradient at each Newton iterate (implicit Euler).
+    line_search_halvings : int
+        Total step halvings in the line searches.
+    shifted_factorizations : int
+        Factorizations that needed a diagonal shift (indefinite Hessian).
+    converged : bool
+        Newton stopped on its tolerance (or at round-off), not on the iteration cap.
+    """
+
+    newton_iterations: int = 0
+    gradient_norms: list[float] = field(default_factory=list)
+    line_search_halvings: int = 0
+    shifted_factorizations: int = 0
+    converged: bool = True
+
+
+@dataclass
+class NewtonResult:
+    """Result of :func:`newtons_method`.
+
+    Attributes
+    ----------
+    x : (N,) float64
+        Final iterate.
+    iterations : int
+        Newton steps taken.
+    gradient_norms : list of float
+        ``||g||`` at each iterate visited, including the last.
+    converged : bool
+        Stopped because ``||g|| <= tol`` or the line search stalled at round-off.
+    line_search_halvings : int
+        Total halvings.
+    """
+
+    x: np.ndarray
+    iterations: int
+    gradient_norms: list[float]
+    converged: bool
+    line_search_halvings: int
+
+
+# ---------------------------------------------------------------------------------------------
+# sparse SPD solves on the fixed reduced pattern
+
+
+class System:
+    """What the integrators reuse between steps for one model and constraint set.
+
+    Parameters
+    ----------
+    model : Model
+    constraints : Constraints
+        Fixed vertices.
+    solver_backend : str, optional
+        Passed to :class:`fem3d.linsolve.SparseSPDSolver` (default ``"auto"``).
+
+    Attributes
+    ----------
+    pattern_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        Sparsity of the reduced system ``P A P^T`` (fixed for the whole run: one symbolic
+        analysis).
+    mass_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        ``P M P^T``.
+    """
+
+    def __init__(self, model: Model, constraints: Constraints, solver_backend: str = "auto"):
+        if constraints.n_dofs != model.n_dofs:
+            raise ValueError("constraints and model have different DOF counts")
+        self.model = model
+        self.constraints = constraints
+        self.free = constraints.free_dofs
+        self.solver_backend = solver_backend
+        self.mass_free = constraints.reduce_matrix(model.mass)
+        self.pattern_free = constraints.reduce_matrix(model.pattern)
+        self._solver = SparseSPDSolver(self.pattern_free, backend=solver_backend)
+        from fem3d.kernels import spring_kernels
+
+        self.spring = spring_kernels(backend=model.backend)
+        self._keys: np.ndarray | None = None
+
+    def with_model(self, model: Model) -> System:
+        """Same constraints and solver (the pattern is shared), new material values."""
+        new = object.__new__(System)
+        new.__dict__.update(self.__dict__)
+        new.model = model
+        new.mass_free = self.constraints.reduce_matrix(model.mass)
+        return new
+
+    # -- helpers ------------------------------------------------------------------------------
+    def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Positions in ``model.pattern.data`` of entries ``(rows, cols)`` (must exist)."""
+        pat = self.model.pattern
+        if self._keys is None:
+            r = np.repeat(np.arange(pat.shape[0], dtype=np.int64), np.diff(pat.indptr))
+            self._keys = r * pat.shape[1] + pat.indices
+        want = np.asarray(rows, np.int64) * pat.shape[1] + np.asarray(cols, np.int64)
+        pos = np.searchsorted(self._keys, want)
+        found = self._keys[np.minimum(pos, self._keys.size - 1)] == want
+        if not np.all(found & (pos < self._keys.size)):
+            raise ValueError("entry not in the sparsity pattern")
+        return pos
+
+    def add_pull_hessian(self, data: np.ndarray, pull: Pull | None, q: np.ndarray) -> None:
+        """Add the pull springs' Hessian blocks into full-pattern ``data`` in place."""
+        if pull is None or pull.vertices.size == 0:
+            return
+        d = 3 * pull.vertices[:, None] + np.arange(3)
+        rows = np.broadcast_to(d[:, :, None], (d.shape[0], 3, 3))
+        cols = np.broadcast_to(d[:, None, :], (d.shape[0], 3, 3))
+        pos = self.data_positions(rows.reshape(-1), cols.reshape(-1))
+        data[pos] += pull.hessian_blocks(self.spring, q).reshape(-1)
+
+    def reduced(self, data: np.ndarray) -> sp.csr_matrix:
+        """``P A P^T`` of the full-pattern matrix with ``data``."""
+        return self.constraints.reduce_matrix(self.model.csr(data))
+
+    def factorize(self, A_free: sp.csr_matrix) -> bool:
+        """Factorize an SPD reduced matrix; shift it when it is not positive definite.
+
+        Strategy for an indefinite Newton Hessian: try ``A``; on
+        :class:`NotPositiveDefinite` factorize ``A + mu M`` (``M`` the reduced consistent mass
+        matrix, ``mu = 1e-4, 1e-3, ...``; :meth:`SparseSPDSolver.factorize_shifted`), a
+        Levenberg-Marquardt shift toward the mass-scaled gradient-descent direction, which is
+        always a descent direction. Returns True when a shift was needed.
+
+        Raises
+        ------
+        SimulationError
+            No shift up to ``mu = 1e8`` works (e.g. a non-finite matrix).
+        """
+        try:
+            mu = self._solver.factorize_shifted(
+                A_free, self.mass_free, mu0=1e-4, growth=10.0, max_tries=13
+            )
+        except NotPositiveDefinite as exc:
+            raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
+        return mu > 0
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the last factorization."""
+        return np.asarray(self._solver.solve(b)).reshape(-1)
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def _check_finite(q: np.ndarray, v: np.ndarray, step: int, what: str) -> None:
+    if not (np.isfinite(q).all() and np.isfinite(v).all()):
+        raise SimulationError(
+            f"{what} exploded: the new state has non-finite positions or velocities "
+            "(state left at the last good step)",
+            step=step,
+        )
+
+
+def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> State:
+    v = system.constraints.expand_zero(v_free).reshape(-1, 3)
+    q = state.q + dt * v
+    if system.constraints.fixed_vertices.size:  # fixed vertices stay exactly at rest
+        fv = system.constraints.fixed_vertices
+        q[fv] = system.constraints.x0.reshape(-1, 3)[fv]
+    return State(q=q, v=v, t=state.t + dt, step=state.step + 1)
+
+
+# ---------------------------------------------------------------------------------------------
+# linearly-implicit Euler
+
+
+def linearly_implicit_euler(
+    system: System,
+    state: State,
+    dt: float,
+    pull: Pull | None = None,
+    *,
+    energy_bound: float | None = None,
+    linearize_pull: bool = True,
+) -> tuple[State, StepStats]:
+    """One linearly-implicit Euler step.
+
+    Solves ``(M - dt^2 K(q_t)) v+ = M v_t + dt f(q_t)`` on the free DOFs (``K = -H``) and sets
+    ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their stiffness part
+    of ``K``.
+
+    Parameters
+    ----------
+    system : System
+    state : State
+        ``q, v`` of shape ``(n, 3)``.
+    dt : float
+        Time step (> 0).
+    pull : Pull, optional
+        Active pull springs.
+    energy_bound : float, optional
+        Runaway threshold: if the new total energy (kinetic + strain + pull) exceeds it, raise.
+
+    Returns
+    -------
+    (State, StepStats)
+
+    Raises
+    ------
+    SimulationError
+        ``"... exploded ..."``: non-finite state, inverted tets (non-finite energy) or energy
+        above ``energy_bound``. The input ``state`` is untouched.
+    """
+    dt = validate_dt(dt)
+    model, c = system.model, system.constraints
+    qf, vf = state.q.reshape(-1), state.v.reshape(-1)
+    f = -assemble_gradient(model, qf)
+    if pull is not None:
+        f -= pull.gradient(system.spring, state.q)
+    H = hessian_data(model, qf)
+    if linearize_pull:
+        system.add_pull_hessian(H, pull, state.q)
+    A = model.mass.data + dt * dt * H
+    rhs = model.mass @ vf + dt * f
+    stats = StepStats(newton_iterations=1)
+    if not (np.isfinite(A).all() and np.isfinite(rhs).all()):
+        raise SimulationError(
+            "linearly-implicit Euler exploded: non-finite forces or stiffness", step=state.step
+        )
+    try:
+        stats.shifted_factorizations = int(system.factorize(system.reduced(A)))
+    except SimulationError as exc:
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
+        ) from exc
+    v_free = system.solve(c.restrict(rhs))
+    new = _new_state(system, state, v_free, dt)
+    _check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
+    total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
+    if pull is not None:
+        total += pull.energy(system.spring, new.q)
+    if not math.isfinite(total):
+        n_inv = count_inverted(model, new.q)
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: the energy is not finite ({n_inv} of "
+            f"{model.n_tets} tets inverted); try --integrator implicit or a smaller dt",
+            step=state.step,
+        )
+    if energy_bound is not None and total > energy_bound:
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: total energy {total:.3g} exceeds "
+            f"{energy_bound:.3g} (1000 x the energy put in); try --integrator implicit "
+            "or a smaller dt",
+            step=state.step,
+        )
+    return new, stats
+
+
+# ---------------------------------------------------------------------------------------------
+# Newton's method
+
+
+def newtons_method(
+    x0: np.ndarray,
+    energy: Callable[[np.ndarray], float],
+    gradient: Callable[[np.ndarray], np.ndarray],
+    newton_direction: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    *,
+    max_iterations: int | None = 5,
+    rtol: float = 1e-10,
+    atol: float = 0.0,
+    alpha: float = 1.0,
+    p: float = 0.5,
+    c: float = 1e-8,
+    max_halvings: int = 30,
+    decrement_rtol: float = 1e-14,
+    on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
+) -> NewtonResult:
+    """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
+
+    Parameters
+    ----------
+    x0 : (N,) float64
+        Start; ``energy(x0)`` must be finite.
+    energy : callable ``(N,) -> float``
+        Objective; ``+inf`` marks an inadmissible point (e.g. an inverted tet).
+    gradient : callable ``(N,) -> (N,)``
+    newton_direction : callable ``(x, g) -> d``
+        Solves ``H(x) d = -g`` with an SPD (possibly shifted) Hessian.
+    max_iterations : int or None, optional
+        Cap on Newton steps (default 5, the assignment's); None: no cap (stops at tolerance
+        or round-off).
+    rtol, atol : float, optional
+        Stop when ``||g|| <= max(atol, rtol ||g(x0)||)``.
+    alpha, p, c : float, optional
+        Initial step, shrink factor and Armijo constant: accept ``x + a d`` when
+        ``E(x + a d) <= E(x) + c a g.d``; otherwise ``a *= p``.
+    max_halvings : int, optional
+        Line-search trials before giving up.
+    decrement_rtol : float, optional
+        Also stop when the Newton decrement ``-g.d`` is below ``decrement_rtol |E(x)|``: the
+        decrease left is at the objective's round-off, where Armijo tests are noise.
+    on_no_step : callable ``(x, d)``, optional
+        Called when every trial point was inadmissible (``+inf``); expected to raise. When it
+        is None or returns, Newton stops at the current ``x``.
+
+    Returns
+    -------
+    NewtonResult
+        A line search that finds only finite, non-decreasing trial points means round-off
+        has been reached: Newton stops there and reports ``converged=True``.
+    """
+    x = np.array(x0, dtype=np.float64)
+    fx = energy(x)
+    g = gradient(x)
+    gn = float(np.linalg.norm(g))
+    norms = [gn]
+    tol = max(atol, rtol * gn)
+    halvings = 0
+    it = 0
+    while max_iterations is None or it < max_iterations:
+        if gn <= tol:
+            return NewtonResult(x, it, norms, True, halvings)
+        d = newton_direction(x, g)
+        slope = float(g @ d)
+        if not (slope < 0 and np.isfinite(d).all()):  # not a descent direction: fall back
+            d = -g
+            slope = -gn * gn
+        if -slope <= decrement_rtol * abs(fx):
+            # the predicted decrease is at the round-off of the objective: nothing to gain
+            return NewtonResult(x, it, norms, True, halvings)
+        a = alpha
+        accepted = False
+        any_finite = False
+        for _ in range(max_halvings):
+            xt = x + a * d
+            ft = energy(xt)
+            if math.isfinite(ft):
+                any_finite = True
+                if ft <= fx + c * a * slope:
+                    accepted = True
+                    break
+            a *= p
+            halvings += 1
+        if not accepted:
+            if not any_finite and on_no_step is not None:
+                on_no_step(x, d)
+            return NewtonResult(x, it, norms, any_finite, halvings)
+        x, fx = xt, ft
+        g = gradient(x)
+        gn = float(np.linalg.norm(g))
+        norms.append(gn)
+        it += 1
+    return NewtonResult(x, it, norms, gn <= tol, halvings)
+
+
+# ---------------------------------------------------------------------------------------------
+# backward Euler
+
+
+def implicit_euler(
+    system: System,
+    state: State,
+    dt: float,
+    pull: Pull | None = None,
+    *,
+    max_iterations: int | None = 5,
+    rtol: float = 1e-10,
+    atol_factor: float = 1e-12,
+) -> tuple[State, StepStats]:
+    """One backward (implicit) Euler step as an energy minimisation.
+
+    ``v+ = argmin_v E(v)``, ``E(v) = 1/2 (v - v_t)^T M (v - v_t) + V(q_t + dt v)
+    + V_pull(q_t + dt v)`` over the free DOFs, by :func:`newtons_method` with gradient
+    ``M (v - v_t) + dt dV/dq`` and Hessian ``M + dt^2 H`` (pull springs included).
+
+    Indefinite Hessian (compressed Neo-Hookean tets): the factorization is tried as is and,
+    when it is not positive definite, retried with a diagonal shift ``tau diag(M)`` of
+    increasing ``tau`` (see :meth:`System.factorize`), which always gives a descent
+    direction. Any trial point with an inverted tet (``det F <= 0``) or a non-finite energy
+    counts as ``+inf`` in the line search, so accepted states never invert.
+
+    Parameters
+    ----------
+    system : System
+    state : State
+    dt : float
+    pull : Pull, optional
+    max_iterations : int or None, optional
+        Newton iterations per step (default 5; None: until converged).
+    rtol : float, optional
+        Relative gradient tolerance for stopping early.
+    atol_factor : float, optional
+        Absolute gradient tolerance as a fraction of the scale ``dt E L^2`` (``L`` the
+        diagonal of the rest bounding box; ``E L^2`` a force): gradients below it are
+        round-off.
+
+    Returns
+    -------
+    (State, StepStats)
+
+    Raises
+    ------
+    SimulationError
+        No acceptable Newton step (every line-search trial inverts tets; the message says
+        how many at the full step), or a non-finite state.
+    """
+    dt = validate_dt(dt)
+    model, c, spring = system.model, system.constraints, system.spring
+    free = c.free_dofs
+    q_t = state.q.reshape(-1)
+    v_t = state.v.reshape(-1)
+    M = model.mass
+    vt_free = v_t[free]
+    stats = StepStats()
+
+    def positions(v_free: np.ndarray) -> np.ndarray:
+        return q_t + dt * c.expand_zero(v_free)
+
+    def energy(v_free: np.ndarray) -> float:
+        q = positions(v_free)
+        if count_inverted(model, q):
+            return math.inf
+        dv = c.expand_zero(v_free - vt_free)
+        e = 0.5 * float(dv @ (M @ dv)) + potential_energy(model, q)
+        if pull is not None:
+            e += pull.energy(spring, q.reshape(-1, 3))
+        return e if math.isfinite(e) else math.inf
+
+    def gradient(v_free: np.ndarray) -> np.ndarray:
+        q = positions(v_free)
+        gq = assemble_gradient(model, q)
+        if pull is not None:
+            gq += pull.gradient(spring, q.reshape(-1, 3))
+        return system.mass_free @ (v_free - vt_free) + dt * gq[free]
+
+    def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        q = positions(v_free)
+        H = hessian_data(model, q)
+        system.add_pull_hessian(H, pull, q.reshape(-1, 3))
+        A = M.data + dt * dt * H
+        if not np.isfinite(A).all():
+            return np.full_like(g, np.nan)  # newtons_method falls back to -g
+        stats.shifted_factorizations += int(system.factorize(system.reduced(A)))
+        return -system.solve(g)
+
+    def no_step(v_free: np.ndarray, d: np.ndarray) -> None:
+        n_inv = count_inverted(model, positions(v_free + d))
+        raise SimulationError(
+            f"backward Euler found no acceptable Newton step: the full step inverts {n_inv} "
+            f"of {model.n_tets} tets and every shorter trial also inverts tets or is not "
+            "finite (try a smaller dt or softer pull)",
+            step=state.step,
+        )
+
+    # start from v_t; if that position is inadmissible, from v = 0 (q_t itself, admissible)
+    x0 = vt_free.copy()
+    if not math.isfinite(energy(x0)):
+        x0 = np.zeros_like(vt_free)
+        if not math.isfinite(energy(x0)):
+            raise SimulationError(
+                f"the current state is inadmissible ({count_inverted(model, q_t)} inverted "
+                "tets or a non-finite energy)", step=state.step,
+            )
+    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
+    res = newtons_method(
+        x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
+        atol=atol_factor * dt * model.E * L * L, on_no_step=no_step,
+    )
+    stats.newton_iterations = res.iterations
+    stats.gradient_norms = res.gradient_norms
+    stats.line_search_halvings = res.line_search_halvings
+    stats.converged = res.converged
+    new = _new_state(system, state, res.x, dt)
+    _check_finite(new.q, new.v, state.step, "backward Euler")
+    return new, stats
+
+
+#: Integrator names accepted by :class:`fem3d.simulation.Simulation` and the CLI.
+INTEGRATORS: dict[str, Callable[..., tuple[State, StepStats]]] = {
+    "linear": linearly_implicit_euler,
+    "implicit": implicit_euler,
+}
