@@ -454,7 +454,7 @@ def corrupt(data: bytes, ops: list[tuple[str, float, int]]) -> bytes:
 OUTCOMES: dict[str, int] = {}
 
 
-@settings(max_examples=1000, deadline=None,
+@settings(max_examples=2000, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(name=st.sampled_from(["coarser_bunny.mesh", "arma_6.node", "arma_6.ele",
                              "armadillo2.obj", "coarser_bunny.obj", "arma.msh", "arma.vtu"]),
@@ -471,7 +471,7 @@ def test_corrupted_shipped_meshes(tmp_path: Path, name: str,
     OUTCOMES[outcome] = OUTCOMES.get(outcome, 0) + 1
 
 
-@settings(max_examples=400, deadline=None,
+@settings(max_examples=600, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.binary(max_size=512), suffix=st.sampled_from(sorted(READERS)))
 def test_random_bytes(tmp_path: Path, data: bytes, suffix: str) -> None:
@@ -483,7 +483,7 @@ def test_random_bytes(tmp_path: Path, data: bytes, suffix: str) -> None:
     _check_reader(path, READERS[suffix])
 
 
-@settings(max_examples=400, deadline=None,
+@settings(max_examples=600, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(text=st.text(alphabet=st.sampled_from(list("0123456789 .-e\nnaifvVTtrx/#")), max_size=300),
        head=st.sampled_from(["MeshVersionFormatted 1\nDimension 3\nVertices\n", "4 3 0 0\n",
