@@ -11,7 +11,7 @@ import sympy as sp
 from codegen import tet
 from codegen.conventions import deformation_gradient, flatten, symbol_matrix, symbol_vector
 from codegen.materials import MATERIALS
-from codegen.spec import Argument, KernelSpec, ModuleSpec, make_kernel
+from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection, make_kernel
 
 
 @dataclass(frozen=True)
@@ -101,24 +101,38 @@ def material_module(name: str) -> ModuleSpec:
     # dP/dF is symmetric: compute the upper triangle once and reference it from both sides.
     A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
     upper = [(a, b) for a in range(9) for b in range(a, 9)]
-    hess_prelude = prelude_F + _cse_prelude(
+    stress_derivative = prelude_F + _cse_prelude(
         [d.dP_dF[a, b] for a, b in upper], [A_sym[a, b] for a, b in upper], "h")
-    # Contract dF/dx (sparse, linear) on both sides: first over l, then over j.
-    T_sym = sp.Matrix(9, 12, lambda a, q: sp.Symbol(f"T_{a}_{q}"))
+    hess_doc = "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."
+    kernels.append(make_kernel(
+        name, "hessian", hess_doc, element_inputs, params,
+        *_hessian_contraction(A_sym, D, vol, stress_derivative)))
+    # Projecting dP/dF (not the 12x12) keeps B^T A B positive semi-definite at a 9x9 cost.
+    A_psd = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"Ap_{a}_{b}"))
+    projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)))
+    kernels.append(make_kernel(
+        name, "hessian_psd", hess_doc[:-1] + " with dP/dF projected to positive semi-definite.",
+        element_inputs, params,
+        *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
+
+    return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
+                      param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels))
+
+
+def _hessian_contraction(A: sp.Matrix, D: sp.Matrix, vol: sp.Symbol, prelude: list):
+    """``H = vol B^T A B`` with ``B = dF/dx`` applied implicitly (it is sparse and linear):
+    contract over ``l`` into ``T`` (9x12), then over ``j``. Returns (outputs, prelude)."""
+    steps = list(prelude)
+    T = sp.Matrix(9, 12, lambda a, q: sp.Symbol(f"T_{a}_{q}"))
     for c in range(3):
         for j in range(3):
             for w in range(4):
                 for dd in range(3):
-                    value = sum(A_sym[3 * c + j, 3 * dd + ll] * D[w, ll] for ll in range(3))
-                    hess_prelude.append((T_sym[3 * c + j, 3 * w + dd], value))
+                    value = sum(A[3 * c + j, 3 * dd + ll] * D[w, ll] for ll in range(3))
+                    steps.append((T[3 * c + j, 3 * w + dd], value))
     hessian = sp.Matrix(12, 12, lambda r, s: vol * sum(
-        D[r // 3, j] * T_sym[3 * (r % 3) + j, s] for j in range(3)))
-    kernels.append(make_kernel(
-        name, "hessian", "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).",
-        element_inputs, params, [("hessian", (12, 12), flatten(hessian), True, "")], hess_prelude))
-
-    return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
-                      param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels))
+        D[r // 3, j] * T[3 * (r % 3) + j, s] for j in range(3)))
+    return [("hessian", (12, 12), flatten(hessian), True, "")], steps
 
 
 def _tet_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:

@@ -14,7 +14,7 @@ from sympy.printing.c import C99CodePrinter
 from sympy.printing.numpy import NumPyPrinter
 
 from codegen.materials import MATERIALS
-from codegen.spec import Argument, KernelSpec, ModuleSpec
+from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection
 
 ROOT = Path(__file__).resolve().parent.parent
 TEMPLATES = ROOT / "templates"
@@ -115,8 +115,16 @@ def _arg_view(arg: Argument, used: set[sp.Symbol]) -> dict:
 def kernel_view(kernel: KernelSpec, printer) -> dict:
     """Everything a template needs about one kernel, with expressions already printed."""
     used: set[sp.Symbol] = set()
-    for _, e in kernel.intermediates:
-        used |= e.free_symbols
+    steps = []
+    for step in kernel.intermediates:
+        if isinstance(step, Projection):
+            used |= set(step.inputs)
+            steps.append({"kind": "project", "n": step.n, "inputs": [str(s) for s in step.inputs],
+                          "outputs": [str(s) for s in step.outputs]})
+        else:
+            used |= step[1].free_symbols
+            steps.append({"kind": "assign", "name": str(step[0]),
+                          "code": printer.doprint(step[1])})
     for out in kernel.outputs:
         for _, e, _ in out.entries():
             used |= e.free_symbols
@@ -128,7 +136,7 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
         "params": [_arg_view(a, used) for a in kernel.params],
         "param_symbols": ", ".join(str(a.symbols[0]) for a in kernel.params),
         "param_names": tuple(a.name for a in kernel.params),
-        "intermediates": [(str(s), printer.doprint(e)) for s, e in kernel.intermediates],
+        "intermediates": steps,
         "outputs": [
             {
                 "name": out.name,

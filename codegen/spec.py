@@ -59,6 +59,20 @@ class Output:
 
 
 @dataclass(frozen=True)
+class Projection:
+    """Project a symmetric ``n x n`` matrix to positive semi-definite: eigenvalues below zero
+    are clamped to zero. An intermediate step between assignments; ``inputs`` and ``outputs``
+    are the row-major entries before and after."""
+
+    n: int
+    inputs: tuple[sp.Symbol, ...]
+    outputs: tuple[sp.Symbol, ...]
+
+
+Step = tuple[sp.Symbol, sp.Expr] | Projection
+
+
+@dataclass(frozen=True)
 class KernelSpec:
     """One kernel: inputs, parameters, CSE'd intermediates and outputs."""
 
@@ -67,13 +81,14 @@ class KernelSpec:
     doc: str
     inputs: tuple[Argument, ...]
     params: tuple[Argument, ...]
-    intermediates: tuple[tuple[sp.Symbol, sp.Expr], ...]
+    intermediates: tuple[Step, ...]
     outputs: tuple[Output, ...]
 
     @property
     def op_count(self) -> int:
-        """Arithmetic operations per element, as counted by ``sympy.count_ops``."""
-        exprs = [e for _, e in self.intermediates]
+        """Arithmetic operations per element, as counted by ``sympy.count_ops``
+        (a :class:`Projection` counts as zero: it is an eigen-solve, not an expression)."""
+        exprs = [s[1] for s in self.intermediates if not isinstance(s, Projection)]
         exprs += [e for out in self.outputs for _, e, _ in out.entries()]
         return int(sum(sp.count_ops(e) for e in exprs))
 
@@ -100,12 +115,12 @@ def make_kernel(
     inputs: Sequence[Argument],
     params: Sequence[Argument],
     outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], bool, str]],
-    prelude: Sequence[tuple[sp.Symbol, sp.Expr]] = (),
+    prelude: Sequence[Step] = (),
 ) -> KernelSpec:
     """Run common-subexpression elimination over all outputs and freeze a :class:`KernelSpec`.
 
-    ``prelude`` holds named assignments computed before the CSE'd block (for example ``F``
-    from the element DOFs), which the output expressions may reference by symbol.
+    ``prelude`` holds named assignments (and projections) computed before the CSE'd block
+    (for example ``F`` from the element DOFs), which the outputs may reference by symbol.
     Only the entries a symmetric output actually computes take part in the CSE.
     """
     pending = []
@@ -136,17 +151,19 @@ def make_kernel(
     )
 
 
-def _live(
-    assignments: list[tuple[sp.Symbol, sp.Expr]], outputs: list[Output]
-) -> tuple[tuple[sp.Symbol, sp.Expr], ...]:
+def _live(steps: list[Step], outputs: list[Output]) -> tuple[Step, ...]:
     """Drop assignments no output depends on (e.g. the lower half of a symmetric contraction)."""
     needed: set[sp.Symbol] = set()
     for out in outputs:
         for _, e, _ in out.entries():
             needed |= e.free_symbols
-    kept = []
-    for symbol, value in reversed(assignments):
-        if symbol in needed:
-            kept.append((symbol, value))
-            needed |= value.free_symbols
+    kept: list[Step] = []
+    for step in reversed(steps):
+        if isinstance(step, Projection):
+            if needed & set(step.outputs):
+                kept.append(step)
+                needed |= set(step.inputs)
+        elif step[0] in needed:
+            kept.append(step)
+            needed |= step[1].free_symbols
     return tuple(reversed(kept))

@@ -28,6 +28,65 @@ static inline double fem3d_powi(double x, int n)
     return r;
 }
 
+// Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
+// zero, in place: cyclic Jacobi rotations, then a = V max(L, 0) V^T (unchanged if PSD).
+static void fem3d_project_psd(int n, double *a)
+{
+    double v[144], original[144];
+    double scale = 0.0;
+    for (int i = 0; i < n * n; ++i) scale += a[i] * a[i];
+    memcpy(original, a, sizeof(double) * n * n);
+    if (scale == 0.0) return;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < n; ++j) v[i * n + j] = (i == j);
+    for (int sweep = 0; sweep < 30; ++sweep) {
+        double off = 0.0;
+        for (int p = 0; p < n; ++p)
+            for (int q = p + 1; q < n; ++q) off += a[p * n + q] * a[p * n + q];
+        if (off <= 1e-30 * scale) break;
+        for (int p = 0; p < n; ++p) {
+            for (int q = p + 1; q < n; ++q) {
+                const double apq = a[p * n + q];
+                if (fabs(apq) <= 1e-300) continue;
+                const double theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
+                const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
+                for (int k = 0; k < n; ++k) {  // columns p, q
+                    const double akp = a[k * n + p], akq = a[k * n + q];
+                    a[k * n + p] = c * akp - s * akq;
+                    a[k * n + q] = s * akp + c * akq;
+                }
+                for (int k = 0; k < n; ++k) {  // rows p, q
+                    const double apk = a[p * n + k], aqk = a[q * n + k];
+                    a[p * n + k] = c * apk - s * aqk;
+                    a[q * n + k] = s * apk + c * aqk;
+                }
+                for (int k = 0; k < n; ++k) {
+                    const double vkp = v[k * n + p], vkq = v[k * n + q];
+                    v[k * n + p] = c * vkp - s * vkq;
+                    v[k * n + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    double lambda[12];
+    int negative = 0;
+    for (int i = 0; i < n; ++i) {
+        lambda[i] = a[i * n + i] > 0.0 ? a[i * n + i] : 0.0;
+        negative |= a[i * n + i] < 0.0;
+    }
+    if (!negative) {  // already positive semi-definite: keep the input exactly
+        memcpy(a, original, sizeof(double) * n * n);
+        return;
+    }
+    for (int i = 0; i < n; ++i)
+        for (int j = i; j < n; ++j) {
+            double sum = 0.0;
+            for (int k = 0; k < n; ++k) sum += v[i * n + k] * lambda[k] * v[j * n + k];
+            a[i * n + j] = a[j * n + i] = sum;
+        }
+}
+
 typedef void (*kernel_fn)(Py_ssize_t, const double *const *, const double *, double *const *);
 
 static int is_float64(const Py_buffer *view)
@@ -135,12 +194,14 @@ static PyMethodDef methods[] = {
     {"neo_hookean_energy", py_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"neo_hookean_gradient", py_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"neo_hookean_hessian", py_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"stvk_energy", py_stvk_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"stvk_gradient", py_stvk_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"stvk_hessian", py_stvk_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"max_threads", py_max_threads, METH_NOARGS, "OpenMP threads the kernels use (1 without OpenMP)."},
     {NULL, NULL, 0, NULL},
 };

@@ -46,6 +46,12 @@ SIGNATURES = {
         "outputs": (("hessian", (12, 12)), ),
         "op_count": 1704,
     },
+    "hessian_psd": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("C", "D", ),
+        "outputs": (("hessian", (12, 12)), ),
+        "op_count": 1704,
+    },
 }
 
 
@@ -74,6 +80,19 @@ def _params(params, names):
     if len(values) != len(names):
         raise ValueError(f"expected {len(names)} parameters {names}, got {len(values)}")
     return values
+
+
+def _project_psd(m, n, entries):
+    """Clamp negative eigenvalues of the symmetric (m, n, n) matrices given row-major to 0."""
+    matrices = numpy.empty((m, n * n))
+    for index, entry in enumerate(entries):
+        matrices[:, index] = entry
+    matrices = matrices.reshape(m, n, n)
+    values, vectors = numpy.linalg.eigh(matrices)
+    projected = (vectors * numpy.maximum(values, 0.0)[:, None, :]) @ vectors.transpose(0, 2, 1)
+    indefinite = (values < 0.0).any(axis=1)  # already PSD: keep the input exactly
+    projected[~indefinite] = matrices[~indefinite]
+    return tuple(numpy.ascontiguousarray(projected.reshape(m, n * n).T))
 
 
 def _finish(out, m, shape):
@@ -900,6 +919,474 @@ def hessian(x_e, dphi_dX, vol, params):
     T_8_9 = A_0_8*dphi_3_0 + A_1_8*dphi_3_1 + A_2_8*dphi_3_2
     T_8_10 = A_3_8*dphi_3_0 + A_4_8*dphi_3_1 + A_5_8*dphi_3_2
     T_8_11 = A_6_8*dphi_3_0 + A_7_8*dphi_3_1 + A_8_8*dphi_3_2
+    # outputs
+    _out_hessian = numpy.empty((144, m))
+    _out_hessian[0] = vol*(T_0_0*dphi_0_0 + T_1_0*dphi_0_1 + T_2_0*dphi_0_2)
+    _out_hessian[1] = vol*(T_0_1*dphi_0_0 + T_1_1*dphi_0_1 + T_2_1*dphi_0_2)
+    _out_hessian[12] = _out_hessian[1]
+    _out_hessian[2] = vol*(T_0_2*dphi_0_0 + T_1_2*dphi_0_1 + T_2_2*dphi_0_2)
+    _out_hessian[24] = _out_hessian[2]
+    _out_hessian[3] = vol*(T_0_3*dphi_0_0 + T_1_3*dphi_0_1 + T_2_3*dphi_0_2)
+    _out_hessian[36] = _out_hessian[3]
+    _out_hessian[4] = vol*(T_0_4*dphi_0_0 + T_1_4*dphi_0_1 + T_2_4*dphi_0_2)
+    _out_hessian[48] = _out_hessian[4]
+    _out_hessian[5] = vol*(T_0_5*dphi_0_0 + T_1_5*dphi_0_1 + T_2_5*dphi_0_2)
+    _out_hessian[60] = _out_hessian[5]
+    _out_hessian[6] = vol*(T_0_6*dphi_0_0 + T_1_6*dphi_0_1 + T_2_6*dphi_0_2)
+    _out_hessian[72] = _out_hessian[6]
+    _out_hessian[7] = vol*(T_0_7*dphi_0_0 + T_1_7*dphi_0_1 + T_2_7*dphi_0_2)
+    _out_hessian[84] = _out_hessian[7]
+    _out_hessian[8] = vol*(T_0_8*dphi_0_0 + T_1_8*dphi_0_1 + T_2_8*dphi_0_2)
+    _out_hessian[96] = _out_hessian[8]
+    _out_hessian[9] = vol*(T_0_9*dphi_0_0 + T_1_9*dphi_0_1 + T_2_9*dphi_0_2)
+    _out_hessian[108] = _out_hessian[9]
+    _out_hessian[10] = vol*(T_0_10*dphi_0_0 + T_1_10*dphi_0_1 + T_2_10*dphi_0_2)
+    _out_hessian[120] = _out_hessian[10]
+    _out_hessian[11] = vol*(T_0_11*dphi_0_0 + T_1_11*dphi_0_1 + T_2_11*dphi_0_2)
+    _out_hessian[132] = _out_hessian[11]
+    _out_hessian[13] = vol*(T_3_1*dphi_0_0 + T_4_1*dphi_0_1 + T_5_1*dphi_0_2)
+    _out_hessian[14] = vol*(T_3_2*dphi_0_0 + T_4_2*dphi_0_1 + T_5_2*dphi_0_2)
+    _out_hessian[25] = _out_hessian[14]
+    _out_hessian[15] = vol*(T_3_3*dphi_0_0 + T_4_3*dphi_0_1 + T_5_3*dphi_0_2)
+    _out_hessian[37] = _out_hessian[15]
+    _out_hessian[16] = vol*(T_3_4*dphi_0_0 + T_4_4*dphi_0_1 + T_5_4*dphi_0_2)
+    _out_hessian[49] = _out_hessian[16]
+    _out_hessian[17] = vol*(T_3_5*dphi_0_0 + T_4_5*dphi_0_1 + T_5_5*dphi_0_2)
+    _out_hessian[61] = _out_hessian[17]
+    _out_hessian[18] = vol*(T_3_6*dphi_0_0 + T_4_6*dphi_0_1 + T_5_6*dphi_0_2)
+    _out_hessian[73] = _out_hessian[18]
+    _out_hessian[19] = vol*(T_3_7*dphi_0_0 + T_4_7*dphi_0_1 + T_5_7*dphi_0_2)
+    _out_hessian[85] = _out_hessian[19]
+    _out_hessian[20] = vol*(T_3_8*dphi_0_0 + T_4_8*dphi_0_1 + T_5_8*dphi_0_2)
+    _out_hessian[97] = _out_hessian[20]
+    _out_hessian[21] = vol*(T_3_9*dphi_0_0 + T_4_9*dphi_0_1 + T_5_9*dphi_0_2)
+    _out_hessian[109] = _out_hessian[21]
+    _out_hessian[22] = vol*(T_3_10*dphi_0_0 + T_4_10*dphi_0_1 + T_5_10*dphi_0_2)
+    _out_hessian[121] = _out_hessian[22]
+    _out_hessian[23] = vol*(T_3_11*dphi_0_0 + T_4_11*dphi_0_1 + T_5_11*dphi_0_2)
+    _out_hessian[133] = _out_hessian[23]
+    _out_hessian[26] = vol*(T_6_2*dphi_0_0 + T_7_2*dphi_0_1 + T_8_2*dphi_0_2)
+    _out_hessian[27] = vol*(T_6_3*dphi_0_0 + T_7_3*dphi_0_1 + T_8_3*dphi_0_2)
+    _out_hessian[38] = _out_hessian[27]
+    _out_hessian[28] = vol*(T_6_4*dphi_0_0 + T_7_4*dphi_0_1 + T_8_4*dphi_0_2)
+    _out_hessian[50] = _out_hessian[28]
+    _out_hessian[29] = vol*(T_6_5*dphi_0_0 + T_7_5*dphi_0_1 + T_8_5*dphi_0_2)
+    _out_hessian[62] = _out_hessian[29]
+    _out_hessian[30] = vol*(T_6_6*dphi_0_0 + T_7_6*dphi_0_1 + T_8_6*dphi_0_2)
+    _out_hessian[74] = _out_hessian[30]
+    _out_hessian[31] = vol*(T_6_7*dphi_0_0 + T_7_7*dphi_0_1 + T_8_7*dphi_0_2)
+    _out_hessian[86] = _out_hessian[31]
+    _out_hessian[32] = vol*(T_6_8*dphi_0_0 + T_7_8*dphi_0_1 + T_8_8*dphi_0_2)
+    _out_hessian[98] = _out_hessian[32]
+    _out_hessian[33] = vol*(T_6_9*dphi_0_0 + T_7_9*dphi_0_1 + T_8_9*dphi_0_2)
+    _out_hessian[110] = _out_hessian[33]
+    _out_hessian[34] = vol*(T_6_10*dphi_0_0 + T_7_10*dphi_0_1 + T_8_10*dphi_0_2)
+    _out_hessian[122] = _out_hessian[34]
+    _out_hessian[35] = vol*(T_6_11*dphi_0_0 + T_7_11*dphi_0_1 + T_8_11*dphi_0_2)
+    _out_hessian[134] = _out_hessian[35]
+    _out_hessian[39] = vol*(T_0_3*dphi_1_0 + T_1_3*dphi_1_1 + T_2_3*dphi_1_2)
+    _out_hessian[40] = vol*(T_0_4*dphi_1_0 + T_1_4*dphi_1_1 + T_2_4*dphi_1_2)
+    _out_hessian[51] = _out_hessian[40]
+    _out_hessian[41] = vol*(T_0_5*dphi_1_0 + T_1_5*dphi_1_1 + T_2_5*dphi_1_2)
+    _out_hessian[63] = _out_hessian[41]
+    _out_hessian[42] = vol*(T_0_6*dphi_1_0 + T_1_6*dphi_1_1 + T_2_6*dphi_1_2)
+    _out_hessian[75] = _out_hessian[42]
+    _out_hessian[43] = vol*(T_0_7*dphi_1_0 + T_1_7*dphi_1_1 + T_2_7*dphi_1_2)
+    _out_hessian[87] = _out_hessian[43]
+    _out_hessian[44] = vol*(T_0_8*dphi_1_0 + T_1_8*dphi_1_1 + T_2_8*dphi_1_2)
+    _out_hessian[99] = _out_hessian[44]
+    _out_hessian[45] = vol*(T_0_9*dphi_1_0 + T_1_9*dphi_1_1 + T_2_9*dphi_1_2)
+    _out_hessian[111] = _out_hessian[45]
+    _out_hessian[46] = vol*(T_0_10*dphi_1_0 + T_1_10*dphi_1_1 + T_2_10*dphi_1_2)
+    _out_hessian[123] = _out_hessian[46]
+    _out_hessian[47] = vol*(T_0_11*dphi_1_0 + T_1_11*dphi_1_1 + T_2_11*dphi_1_2)
+    _out_hessian[135] = _out_hessian[47]
+    _out_hessian[52] = vol*(T_3_4*dphi_1_0 + T_4_4*dphi_1_1 + T_5_4*dphi_1_2)
+    _out_hessian[53] = vol*(T_3_5*dphi_1_0 + T_4_5*dphi_1_1 + T_5_5*dphi_1_2)
+    _out_hessian[64] = _out_hessian[53]
+    _out_hessian[54] = vol*(T_3_6*dphi_1_0 + T_4_6*dphi_1_1 + T_5_6*dphi_1_2)
+    _out_hessian[76] = _out_hessian[54]
+    _out_hessian[55] = vol*(T_3_7*dphi_1_0 + T_4_7*dphi_1_1 + T_5_7*dphi_1_2)
+    _out_hessian[88] = _out_hessian[55]
+    _out_hessian[56] = vol*(T_3_8*dphi_1_0 + T_4_8*dphi_1_1 + T_5_8*dphi_1_2)
+    _out_hessian[100] = _out_hessian[56]
+    _out_hessian[57] = vol*(T_3_9*dphi_1_0 + T_4_9*dphi_1_1 + T_5_9*dphi_1_2)
+    _out_hessian[112] = _out_hessian[57]
+    _out_hessian[58] = vol*(T_3_10*dphi_1_0 + T_4_10*dphi_1_1 + T_5_10*dphi_1_2)
+    _out_hessian[124] = _out_hessian[58]
+    _out_hessian[59] = vol*(T_3_11*dphi_1_0 + T_4_11*dphi_1_1 + T_5_11*dphi_1_2)
+    _out_hessian[136] = _out_hessian[59]
+    _out_hessian[65] = vol*(T_6_5*dphi_1_0 + T_7_5*dphi_1_1 + T_8_5*dphi_1_2)
+    _out_hessian[66] = vol*(T_6_6*dphi_1_0 + T_7_6*dphi_1_1 + T_8_6*dphi_1_2)
+    _out_hessian[77] = _out_hessian[66]
+    _out_hessian[67] = vol*(T_6_7*dphi_1_0 + T_7_7*dphi_1_1 + T_8_7*dphi_1_2)
+    _out_hessian[89] = _out_hessian[67]
+    _out_hessian[68] = vol*(T_6_8*dphi_1_0 + T_7_8*dphi_1_1 + T_8_8*dphi_1_2)
+    _out_hessian[101] = _out_hessian[68]
+    _out_hessian[69] = vol*(T_6_9*dphi_1_0 + T_7_9*dphi_1_1 + T_8_9*dphi_1_2)
+    _out_hessian[113] = _out_hessian[69]
+    _out_hessian[70] = vol*(T_6_10*dphi_1_0 + T_7_10*dphi_1_1 + T_8_10*dphi_1_2)
+    _out_hessian[125] = _out_hessian[70]
+    _out_hessian[71] = vol*(T_6_11*dphi_1_0 + T_7_11*dphi_1_1 + T_8_11*dphi_1_2)
+    _out_hessian[137] = _out_hessian[71]
+    _out_hessian[78] = vol*(T_0_6*dphi_2_0 + T_1_6*dphi_2_1 + T_2_6*dphi_2_2)
+    _out_hessian[79] = vol*(T_0_7*dphi_2_0 + T_1_7*dphi_2_1 + T_2_7*dphi_2_2)
+    _out_hessian[90] = _out_hessian[79]
+    _out_hessian[80] = vol*(T_0_8*dphi_2_0 + T_1_8*dphi_2_1 + T_2_8*dphi_2_2)
+    _out_hessian[102] = _out_hessian[80]
+    _out_hessian[81] = vol*(T_0_9*dphi_2_0 + T_1_9*dphi_2_1 + T_2_9*dphi_2_2)
+    _out_hessian[114] = _out_hessian[81]
+    _out_hessian[82] = vol*(T_0_10*dphi_2_0 + T_1_10*dphi_2_1 + T_2_10*dphi_2_2)
+    _out_hessian[126] = _out_hessian[82]
+    _out_hessian[83] = vol*(T_0_11*dphi_2_0 + T_1_11*dphi_2_1 + T_2_11*dphi_2_2)
+    _out_hessian[138] = _out_hessian[83]
+    _out_hessian[91] = vol*(T_3_7*dphi_2_0 + T_4_7*dphi_2_1 + T_5_7*dphi_2_2)
+    _out_hessian[92] = vol*(T_3_8*dphi_2_0 + T_4_8*dphi_2_1 + T_5_8*dphi_2_2)
+    _out_hessian[103] = _out_hessian[92]
+    _out_hessian[93] = vol*(T_3_9*dphi_2_0 + T_4_9*dphi_2_1 + T_5_9*dphi_2_2)
+    _out_hessian[115] = _out_hessian[93]
+    _out_hessian[94] = vol*(T_3_10*dphi_2_0 + T_4_10*dphi_2_1 + T_5_10*dphi_2_2)
+    _out_hessian[127] = _out_hessian[94]
+    _out_hessian[95] = vol*(T_3_11*dphi_2_0 + T_4_11*dphi_2_1 + T_5_11*dphi_2_2)
+    _out_hessian[139] = _out_hessian[95]
+    _out_hessian[104] = vol*(T_6_8*dphi_2_0 + T_7_8*dphi_2_1 + T_8_8*dphi_2_2)
+    _out_hessian[105] = vol*(T_6_9*dphi_2_0 + T_7_9*dphi_2_1 + T_8_9*dphi_2_2)
+    _out_hessian[116] = _out_hessian[105]
+    _out_hessian[106] = vol*(T_6_10*dphi_2_0 + T_7_10*dphi_2_1 + T_8_10*dphi_2_2)
+    _out_hessian[128] = _out_hessian[106]
+    _out_hessian[107] = vol*(T_6_11*dphi_2_0 + T_7_11*dphi_2_1 + T_8_11*dphi_2_2)
+    _out_hessian[140] = _out_hessian[107]
+    _out_hessian[117] = vol*(T_0_9*dphi_3_0 + T_1_9*dphi_3_1 + T_2_9*dphi_3_2)
+    _out_hessian[118] = vol*(T_0_10*dphi_3_0 + T_1_10*dphi_3_1 + T_2_10*dphi_3_2)
+    _out_hessian[129] = _out_hessian[118]
+    _out_hessian[119] = vol*(T_0_11*dphi_3_0 + T_1_11*dphi_3_1 + T_2_11*dphi_3_2)
+    _out_hessian[141] = _out_hessian[119]
+    _out_hessian[130] = vol*(T_3_10*dphi_3_0 + T_4_10*dphi_3_1 + T_5_10*dphi_3_2)
+    _out_hessian[131] = vol*(T_3_11*dphi_3_0 + T_4_11*dphi_3_1 + T_5_11*dphi_3_2)
+    _out_hessian[142] = _out_hessian[131]
+    _out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2)
+    return _finish(_out_hessian, m, (12, 12))
+
+
+def hessian_psd(x_e, dphi_dX, vol, params):
+    """Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    params : sequence of float
+        (C, D).
+
+    Returns
+    -------
+    hessian : (m, 12, 12) float64
+
+    Operation count per element: 1704.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
+    C, D, = _params(params, ('C', 'D'))
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    # intermediates (270)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    h0 = F_1_1*F_2_2
+    h1 = F_1_2*F_2_1
+    h2 = D*(2*h0 - 2*h1)
+    h3 = F_1_2*F_2_0
+    h4 = F_1_0*F_2_1
+    h5 = F_0_0*h1
+    h6 = F_1_0*F_2_2
+    h7 = F_0_1*h6
+    h8 = F_1_1*F_2_0
+    h9 = F_0_2*h8
+    h10 = F_0_0*h0 + F_0_1*h3 + F_0_2*h4 - h5 - h7 - h9
+    h11 = 2/(numpy.cbrt(h10)*numpy.cbrt(h10))
+    h12 = (2/3)*F_1_2*F_2_1 - 2/3*h0
+    h13 = (numpy.cbrt(h10)/(h10*h10))
+    h14 = F_0_0*h13
+    h15 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    h16 = h15/(numpy.cbrt(h10)*numpy.cbrt(h10)*h10*h10)
+    h17 = h12*h16
+    h18 = F_1_2*F_2_0 - h6
+    h19 = -2/3*h3 + (2/3)*h6
+    h20 = 2*h14
+    h21 = F_0_1*h13
+    h22 = 2*h12
+    h23 = -5/3*h3 + (5/3)*h6
+    h24 = h4 - h8
+    h25 = (2/3)*F_1_1*F_2_0 - 2/3*h4
+    h26 = h13*h22
+    h27 = (5/3)*F_1_1*F_2_0 - 5/3*h4
+    h28 = F_0_1*F_2_2
+    h29 = F_0_2*F_2_1 - h28
+    h30 = F_0_2*F_2_1
+    h31 = (2/3)*h28 - 2/3*h30
+    h32 = (5/3)*h28 - 5/3*h30
+    h33 = F_0_0*F_2_2
+    h34 = F_0_2*F_2_0
+    h35 = h33 - h34
+    h36 = 2*D*(F_0_0*F_1_1*F_2_2 + F_0_1*F_1_2*F_2_0 + F_0_2*F_1_0*F_2_1 - h5 - h7 - h9 - 1)
+    h37 = F_2_2*h36
+    h38 = (2/3)*F_0_2*F_2_0 - 2/3*h33
+    h39 = F_2_2*h13
+    h40 = (2/3)*h15
+    h41 = h39*h40
+    h42 = (5/3)*F_0_2*F_2_0 - 5/3*h33
+    h43 = F_0_0*F_2_1
+    h44 = F_0_1*F_2_0 - h43
+    h45 = F_2_1*h36
+    h46 = F_0_1*F_2_0
+    h47 = (2/3)*h43 - 2/3*h46
+    h48 = h13*h40
+    h49 = F_2_1*h48
+    h50 = (5/3)*h43 - 5/3*h46
+    h51 = F_0_1*F_1_2
+    h52 = F_0_2*F_1_1
+    h53 = h51 - h52
+    h54 = (2/3)*F_0_2*F_1_1 - 2/3*h51
+    h55 = (5/3)*F_0_2*F_1_1 - 5/3*h51
+    h56 = F_0_0*F_1_2
+    h57 = F_0_2*F_1_0 - h56
+    h58 = F_1_2*h36
+    h59 = F_0_2*F_1_0
+    h60 = (2/3)*h56 - 2/3*h59
+    h61 = F_1_2*h48
+    h62 = (5/3)*h56 - 5/3*h59
+    h63 = F_0_0*F_1_1
+    h64 = F_0_1*F_1_0
+    h65 = h63 - h64
+    h66 = F_1_1*h36
+    h67 = (2/3)*F_0_1*F_1_0 - 2/3*h63
+    h68 = F_1_1*h48
+    h69 = (5/3)*F_0_1*F_1_0 - 5/3*h63
+    h70 = D*(2*F_1_2*F_2_0 - 2*h6)
+    h71 = h16*h19
+    h72 = 2*h21
+    h73 = 2*h19
+    h74 = F_0_2*h13
+    h75 = h13*h73
+    h76 = F_2_0*h36
+    h77 = F_2_0*h48
+    h78 = F_1_0*h36
+    h79 = F_1_0*h48
+    h80 = D*(2*h4 - 2*h8)
+    h81 = h16*h25
+    h82 = 2*h74
+    h83 = 2*h25
+    h84 = F_1_0*h13
+    h85 = h13*h83
+    h86 = D*(2*F_0_2*F_2_1 - 2*h28)
+    h87 = h16*h31
+    h88 = 2*h84
+    h89 = 2*h31
+    h90 = F_1_1*h13
+    h91 = h13*h89
+    h92 = F_0_2*h36
+    h93 = F_0_2*h48
+    h94 = F_0_1*h36
+    h95 = h21*h40
+    h96 = D*(2*h33 - 2*h34)
+    h97 = h16*h38
+    h98 = 2*h90
+    h99 = 2*h38
+    h100 = F_1_2*h13
+    h101 = h13*h99
+    h102 = F_0_0*h36
+    h103 = h14*h40
+    h104 = D*(2*F_0_1*F_2_0 - 2*h43)
+    h105 = h16*h47
+    h106 = 2*h100
+    h107 = 2*h47
+    h108 = F_2_0*h13
+    h109 = F_2_1*h13
+    h110 = D*(2*h51 - 2*h52)
+    h111 = h16*h54
+    h112 = 2*h108
+    h113 = 2*h54
+    h114 = D*(2*F_0_2*F_1_0 - 2*h56)
+    h115 = h16*h60
+    A_0_0 = C*(h11 + 4*h12*h14 + h17*((5/3)*F_1_2*F_2_1 - 5/3*h0)) + h2*(h0 - h1)
+    A_0_1 = C*(h17*h23 + h19*h20 + h21*h22) + h18*h2
+    A_0_2 = C*(F_0_2*h26 + h17*h27 + h20*h25) + h2*h24
+    A_0_3 = C*(F_1_0*h26 + h17*h32 + h20*h31) + h2*h29
+    A_0_4 = C*(F_1_1*h26 + h17*h42 + h20*h38 - h41) + h2*h35 + h37
+    A_0_5 = C*(F_1_2*h26 + h17*h50 + h20*h47 + h49) + h2*h44 - h45
+    A_0_6 = C*(F_2_0*h26 + h17*h55 + h20*h54) + h2*h53
+    A_0_7 = C*(F_2_1*h26 + h17*h62 + h20*h60 + h61) + h2*h57 - h58
+    A_0_8 = C*(F_2_2*h26 + h17*h69 + h20*h67 - h68) + h2*h65 + h66
+    A_1_1 = C*(h11 + 4*h19*h21 + h23*h71) + h18*h70
+    A_1_2 = C*(h25*h72 + h27*h71 + h73*h74) + h24*h70
+    A_1_3 = C*(F_1_0*h75 + h31*h72 + h32*h71 + h41) + h29*h70 - h37
+    A_1_4 = C*(F_1_1*h75 + h38*h72 + h42*h71) + h35*h70
+    A_1_5 = C*(F_1_2*h75 + h47*h72 + h50*h71 - h77) + h44*h70 + h76
+    A_1_6 = C*(F_2_0*h75 + h54*h72 + h55*h71 - h61) + h53*h70 + h58
+    A_1_7 = C*(F_2_1*h75 + h60*h72 + h62*h71) + h57*h70
+    A_1_8 = C*(h39*h73 + h67*h72 + h69*h71 + h79) + h65*h70 - h78
+    A_2_2 = C*(h11 + 4*h25*h74 + h27*h81) + h24*h80
+    A_2_3 = C*(h31*h82 + h32*h81 - h49 + h83*h84) + h29*h80 + h45
+    A_2_4 = C*(F_1_1*h85 + h38*h82 + h42*h81 + h77) + h35*h80 - h76
+    A_2_5 = C*(F_1_2*h85 + h47*h82 + h50*h81) + h44*h80
+    A_2_6 = C*(F_2_0*h85 + h54*h82 + h55*h81 + h68) + h53*h80 - h66
+    A_2_7 = C*(F_2_1*h85 + h60*h82 + h62*h81 - h79) + h57*h80 + h78
+    A_2_8 = C*(h39*h83 + h67*h82 + h69*h81) + h65*h80
+    A_3_3 = C*(h11 + 4*h31*h84 + h32*h87) + h29*h86
+    A_3_4 = C*(h38*h88 + h42*h87 + h89*h90) + h35*h86
+    A_3_5 = C*(F_1_2*h91 + h47*h88 + h50*h87) + h44*h86
+    A_3_6 = C*(F_2_0*h91 + h54*h88 + h55*h87) + h53*h86
+    A_3_7 = C*(F_2_1*h91 + h60*h88 + h62*h87 - h93) + h57*h86 + h92
+    A_3_8 = C*(h39*h89 + h67*h88 + h69*h87 + h95) + h65*h86 - h94
+    A_4_4 = C*(h11 + 4*h38*h90 + h42*h97) + h35*h96
+    A_4_5 = C*(h100*h99 + h47*h98 + h50*h97) + h44*h96
+    A_4_6 = C*(F_2_0*h101 + h54*h98 + h55*h97 + h93) + h53*h96 - h92
+    A_4_7 = C*(F_2_1*h101 + h60*h98 + h62*h97) + h57*h96
+    A_4_8 = C*(-h103 + h39*h99 + h67*h98 + h69*h97) + h102 + h65*h96
+    A_5_5 = C*(4*h100*h47 + h105*h50 + h11) + h104*h44
+    A_5_6 = C*(h105*h55 + h106*h54 + h107*h108 - h95) + h104*h53 + h94
+    A_5_7 = C*(h103 + h105*h62 + h106*h60 + h107*h109) - h102 + h104*h57
+    A_5_8 = C*(h105*h69 + h106*h67 + h107*h39) + h104*h65
+    A_6_6 = C*(4*h108*h54 + h11 + h111*h55) + h110*h53
+    A_6_7 = C*(h109*h113 + h111*h62 + h112*h60) + h110*h57
+    A_6_8 = C*(h111*h69 + h112*h67 + h113*h39) + h110*h65
+    A_7_7 = C*(4*h109*h60 + h11 + h115*h62) + h114*h57
+    A_7_8 = C*(2*h109*h67 + h115*h69 + 2*h39*h60) + h114*h65
+    A_8_8 = C*(h11 + h16*h67*h69 + 4*h39*h67) + D*h65*(2*h63 - 2*h64)
+    Ap_0_0, Ap_0_1, Ap_0_2, Ap_0_3, Ap_0_4, Ap_0_5, Ap_0_6, Ap_0_7, Ap_0_8, Ap_1_0, Ap_1_1, Ap_1_2, Ap_1_3, Ap_1_4, Ap_1_5, Ap_1_6, Ap_1_7, Ap_1_8, Ap_2_0, Ap_2_1, Ap_2_2, Ap_2_3, Ap_2_4, Ap_2_5, Ap_2_6, Ap_2_7, Ap_2_8, Ap_3_0, Ap_3_1, Ap_3_2, Ap_3_3, Ap_3_4, Ap_3_5, Ap_3_6, Ap_3_7, Ap_3_8, Ap_4_0, Ap_4_1, Ap_4_2, Ap_4_3, Ap_4_4, Ap_4_5, Ap_4_6, Ap_4_7, Ap_4_8, Ap_5_0, Ap_5_1, Ap_5_2, Ap_5_3, Ap_5_4, Ap_5_5, Ap_5_6, Ap_5_7, Ap_5_8, Ap_6_0, Ap_6_1, Ap_6_2, Ap_6_3, Ap_6_4, Ap_6_5, Ap_6_6, Ap_6_7, Ap_6_8, Ap_7_0, Ap_7_1, Ap_7_2, Ap_7_3, Ap_7_4, Ap_7_5, Ap_7_6, Ap_7_7, Ap_7_8, Ap_8_0, Ap_8_1, Ap_8_2, Ap_8_3, Ap_8_4, Ap_8_5, Ap_8_6, Ap_8_7, Ap_8_8, = _project_psd(m, 9, (A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8, ))
+    T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2
+    T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2
+    T_0_2 = Ap_0_6*dphi_0_0 + Ap_0_7*dphi_0_1 + Ap_0_8*dphi_0_2
+    T_0_3 = Ap_0_0*dphi_1_0 + Ap_0_1*dphi_1_1 + Ap_0_2*dphi_1_2
+    T_0_4 = Ap_0_3*dphi_1_0 + Ap_0_4*dphi_1_1 + Ap_0_5*dphi_1_2
+    T_0_5 = Ap_0_6*dphi_1_0 + Ap_0_7*dphi_1_1 + Ap_0_8*dphi_1_2
+    T_0_6 = Ap_0_0*dphi_2_0 + Ap_0_1*dphi_2_1 + Ap_0_2*dphi_2_2
+    T_0_7 = Ap_0_3*dphi_2_0 + Ap_0_4*dphi_2_1 + Ap_0_5*dphi_2_2
+    T_0_8 = Ap_0_6*dphi_2_0 + Ap_0_7*dphi_2_1 + Ap_0_8*dphi_2_2
+    T_0_9 = Ap_0_0*dphi_3_0 + Ap_0_1*dphi_3_1 + Ap_0_2*dphi_3_2
+    T_0_10 = Ap_0_3*dphi_3_0 + Ap_0_4*dphi_3_1 + Ap_0_5*dphi_3_2
+    T_0_11 = Ap_0_6*dphi_3_0 + Ap_0_7*dphi_3_1 + Ap_0_8*dphi_3_2
+    T_1_0 = Ap_1_0*dphi_0_0 + Ap_1_1*dphi_0_1 + Ap_1_2*dphi_0_2
+    T_1_1 = Ap_1_3*dphi_0_0 + Ap_1_4*dphi_0_1 + Ap_1_5*dphi_0_2
+    T_1_2 = Ap_1_6*dphi_0_0 + Ap_1_7*dphi_0_1 + Ap_1_8*dphi_0_2
+    T_1_3 = Ap_1_0*dphi_1_0 + Ap_1_1*dphi_1_1 + Ap_1_2*dphi_1_2
+    T_1_4 = Ap_1_3*dphi_1_0 + Ap_1_4*dphi_1_1 + Ap_1_5*dphi_1_2
+    T_1_5 = Ap_1_6*dphi_1_0 + Ap_1_7*dphi_1_1 + Ap_1_8*dphi_1_2
+    T_1_6 = Ap_1_0*dphi_2_0 + Ap_1_1*dphi_2_1 + Ap_1_2*dphi_2_2
+    T_1_7 = Ap_1_3*dphi_2_0 + Ap_1_4*dphi_2_1 + Ap_1_5*dphi_2_2
+    T_1_8 = Ap_1_6*dphi_2_0 + Ap_1_7*dphi_2_1 + Ap_1_8*dphi_2_2
+    T_1_9 = Ap_1_0*dphi_3_0 + Ap_1_1*dphi_3_1 + Ap_1_2*dphi_3_2
+    T_1_10 = Ap_1_3*dphi_3_0 + Ap_1_4*dphi_3_1 + Ap_1_5*dphi_3_2
+    T_1_11 = Ap_1_6*dphi_3_0 + Ap_1_7*dphi_3_1 + Ap_1_8*dphi_3_2
+    T_2_0 = Ap_2_0*dphi_0_0 + Ap_2_1*dphi_0_1 + Ap_2_2*dphi_0_2
+    T_2_1 = Ap_2_3*dphi_0_0 + Ap_2_4*dphi_0_1 + Ap_2_5*dphi_0_2
+    T_2_2 = Ap_2_6*dphi_0_0 + Ap_2_7*dphi_0_1 + Ap_2_8*dphi_0_2
+    T_2_3 = Ap_2_0*dphi_1_0 + Ap_2_1*dphi_1_1 + Ap_2_2*dphi_1_2
+    T_2_4 = Ap_2_3*dphi_1_0 + Ap_2_4*dphi_1_1 + Ap_2_5*dphi_1_2
+    T_2_5 = Ap_2_6*dphi_1_0 + Ap_2_7*dphi_1_1 + Ap_2_8*dphi_1_2
+    T_2_6 = Ap_2_0*dphi_2_0 + Ap_2_1*dphi_2_1 + Ap_2_2*dphi_2_2
+    T_2_7 = Ap_2_3*dphi_2_0 + Ap_2_4*dphi_2_1 + Ap_2_5*dphi_2_2
+    T_2_8 = Ap_2_6*dphi_2_0 + Ap_2_7*dphi_2_1 + Ap_2_8*dphi_2_2
+    T_2_9 = Ap_2_0*dphi_3_0 + Ap_2_1*dphi_3_1 + Ap_2_2*dphi_3_2
+    T_2_10 = Ap_2_3*dphi_3_0 + Ap_2_4*dphi_3_1 + Ap_2_5*dphi_3_2
+    T_2_11 = Ap_2_6*dphi_3_0 + Ap_2_7*dphi_3_1 + Ap_2_8*dphi_3_2
+    T_3_1 = Ap_3_3*dphi_0_0 + Ap_3_4*dphi_0_1 + Ap_3_5*dphi_0_2
+    T_3_2 = Ap_3_6*dphi_0_0 + Ap_3_7*dphi_0_1 + Ap_3_8*dphi_0_2
+    T_3_3 = Ap_3_0*dphi_1_0 + Ap_3_1*dphi_1_1 + Ap_3_2*dphi_1_2
+    T_3_4 = Ap_3_3*dphi_1_0 + Ap_3_4*dphi_1_1 + Ap_3_5*dphi_1_2
+    T_3_5 = Ap_3_6*dphi_1_0 + Ap_3_7*dphi_1_1 + Ap_3_8*dphi_1_2
+    T_3_6 = Ap_3_0*dphi_2_0 + Ap_3_1*dphi_2_1 + Ap_3_2*dphi_2_2
+    T_3_7 = Ap_3_3*dphi_2_0 + Ap_3_4*dphi_2_1 + Ap_3_5*dphi_2_2
+    T_3_8 = Ap_3_6*dphi_2_0 + Ap_3_7*dphi_2_1 + Ap_3_8*dphi_2_2
+    T_3_9 = Ap_3_0*dphi_3_0 + Ap_3_1*dphi_3_1 + Ap_3_2*dphi_3_2
+    T_3_10 = Ap_3_3*dphi_3_0 + Ap_3_4*dphi_3_1 + Ap_3_5*dphi_3_2
+    T_3_11 = Ap_3_6*dphi_3_0 + Ap_3_7*dphi_3_1 + Ap_3_8*dphi_3_2
+    T_4_1 = Ap_4_3*dphi_0_0 + Ap_4_4*dphi_0_1 + Ap_4_5*dphi_0_2
+    T_4_2 = Ap_4_6*dphi_0_0 + Ap_4_7*dphi_0_1 + Ap_4_8*dphi_0_2
+    T_4_3 = Ap_4_0*dphi_1_0 + Ap_4_1*dphi_1_1 + Ap_4_2*dphi_1_2
+    T_4_4 = Ap_4_3*dphi_1_0 + Ap_4_4*dphi_1_1 + Ap_4_5*dphi_1_2
+    T_4_5 = Ap_4_6*dphi_1_0 + Ap_4_7*dphi_1_1 + Ap_4_8*dphi_1_2
+    T_4_6 = Ap_4_0*dphi_2_0 + Ap_4_1*dphi_2_1 + Ap_4_2*dphi_2_2
+    T_4_7 = Ap_4_3*dphi_2_0 + Ap_4_4*dphi_2_1 + Ap_4_5*dphi_2_2
+    T_4_8 = Ap_4_6*dphi_2_0 + Ap_4_7*dphi_2_1 + Ap_4_8*dphi_2_2
+    T_4_9 = Ap_4_0*dphi_3_0 + Ap_4_1*dphi_3_1 + Ap_4_2*dphi_3_2
+    T_4_10 = Ap_4_3*dphi_3_0 + Ap_4_4*dphi_3_1 + Ap_4_5*dphi_3_2
+    T_4_11 = Ap_4_6*dphi_3_0 + Ap_4_7*dphi_3_1 + Ap_4_8*dphi_3_2
+    T_5_1 = Ap_5_3*dphi_0_0 + Ap_5_4*dphi_0_1 + Ap_5_5*dphi_0_2
+    T_5_2 = Ap_5_6*dphi_0_0 + Ap_5_7*dphi_0_1 + Ap_5_8*dphi_0_2
+    T_5_3 = Ap_5_0*dphi_1_0 + Ap_5_1*dphi_1_1 + Ap_5_2*dphi_1_2
+    T_5_4 = Ap_5_3*dphi_1_0 + Ap_5_4*dphi_1_1 + Ap_5_5*dphi_1_2
+    T_5_5 = Ap_5_6*dphi_1_0 + Ap_5_7*dphi_1_1 + Ap_5_8*dphi_1_2
+    T_5_6 = Ap_5_0*dphi_2_0 + Ap_5_1*dphi_2_1 + Ap_5_2*dphi_2_2
+    T_5_7 = Ap_5_3*dphi_2_0 + Ap_5_4*dphi_2_1 + Ap_5_5*dphi_2_2
+    T_5_8 = Ap_5_6*dphi_2_0 + Ap_5_7*dphi_2_1 + Ap_5_8*dphi_2_2
+    T_5_9 = Ap_5_0*dphi_3_0 + Ap_5_1*dphi_3_1 + Ap_5_2*dphi_3_2
+    T_5_10 = Ap_5_3*dphi_3_0 + Ap_5_4*dphi_3_1 + Ap_5_5*dphi_3_2
+    T_5_11 = Ap_5_6*dphi_3_0 + Ap_5_7*dphi_3_1 + Ap_5_8*dphi_3_2
+    T_6_2 = Ap_6_6*dphi_0_0 + Ap_6_7*dphi_0_1 + Ap_6_8*dphi_0_2
+    T_6_3 = Ap_6_0*dphi_1_0 + Ap_6_1*dphi_1_1 + Ap_6_2*dphi_1_2
+    T_6_4 = Ap_6_3*dphi_1_0 + Ap_6_4*dphi_1_1 + Ap_6_5*dphi_1_2
+    T_6_5 = Ap_6_6*dphi_1_0 + Ap_6_7*dphi_1_1 + Ap_6_8*dphi_1_2
+    T_6_6 = Ap_6_0*dphi_2_0 + Ap_6_1*dphi_2_1 + Ap_6_2*dphi_2_2
+    T_6_7 = Ap_6_3*dphi_2_0 + Ap_6_4*dphi_2_1 + Ap_6_5*dphi_2_2
+    T_6_8 = Ap_6_6*dphi_2_0 + Ap_6_7*dphi_2_1 + Ap_6_8*dphi_2_2
+    T_6_9 = Ap_6_0*dphi_3_0 + Ap_6_1*dphi_3_1 + Ap_6_2*dphi_3_2
+    T_6_10 = Ap_6_3*dphi_3_0 + Ap_6_4*dphi_3_1 + Ap_6_5*dphi_3_2
+    T_6_11 = Ap_6_6*dphi_3_0 + Ap_6_7*dphi_3_1 + Ap_6_8*dphi_3_2
+    T_7_2 = Ap_7_6*dphi_0_0 + Ap_7_7*dphi_0_1 + Ap_7_8*dphi_0_2
+    T_7_3 = Ap_7_0*dphi_1_0 + Ap_7_1*dphi_1_1 + Ap_7_2*dphi_1_2
+    T_7_4 = Ap_7_3*dphi_1_0 + Ap_7_4*dphi_1_1 + Ap_7_5*dphi_1_2
+    T_7_5 = Ap_7_6*dphi_1_0 + Ap_7_7*dphi_1_1 + Ap_7_8*dphi_1_2
+    T_7_6 = Ap_7_0*dphi_2_0 + Ap_7_1*dphi_2_1 + Ap_7_2*dphi_2_2
+    T_7_7 = Ap_7_3*dphi_2_0 + Ap_7_4*dphi_2_1 + Ap_7_5*dphi_2_2
+    T_7_8 = Ap_7_6*dphi_2_0 + Ap_7_7*dphi_2_1 + Ap_7_8*dphi_2_2
+    T_7_9 = Ap_7_0*dphi_3_0 + Ap_7_1*dphi_3_1 + Ap_7_2*dphi_3_2
+    T_7_10 = Ap_7_3*dphi_3_0 + Ap_7_4*dphi_3_1 + Ap_7_5*dphi_3_2
+    T_7_11 = Ap_7_6*dphi_3_0 + Ap_7_7*dphi_3_1 + Ap_7_8*dphi_3_2
+    T_8_2 = Ap_8_6*dphi_0_0 + Ap_8_7*dphi_0_1 + Ap_8_8*dphi_0_2
+    T_8_3 = Ap_8_0*dphi_1_0 + Ap_8_1*dphi_1_1 + Ap_8_2*dphi_1_2
+    T_8_4 = Ap_8_3*dphi_1_0 + Ap_8_4*dphi_1_1 + Ap_8_5*dphi_1_2
+    T_8_5 = Ap_8_6*dphi_1_0 + Ap_8_7*dphi_1_1 + Ap_8_8*dphi_1_2
+    T_8_6 = Ap_8_0*dphi_2_0 + Ap_8_1*dphi_2_1 + Ap_8_2*dphi_2_2
+    T_8_7 = Ap_8_3*dphi_2_0 + Ap_8_4*dphi_2_1 + Ap_8_5*dphi_2_2
+    T_8_8 = Ap_8_6*dphi_2_0 + Ap_8_7*dphi_2_1 + Ap_8_8*dphi_2_2
+    T_8_9 = Ap_8_0*dphi_3_0 + Ap_8_1*dphi_3_1 + Ap_8_2*dphi_3_2
+    T_8_10 = Ap_8_3*dphi_3_0 + Ap_8_4*dphi_3_1 + Ap_8_5*dphi_3_2
+    T_8_11 = Ap_8_6*dphi_3_0 + Ap_8_7*dphi_3_1 + Ap_8_8*dphi_3_2
     # outputs
     _out_hessian = numpy.empty((144, m))
     _out_hessian[0] = vol*(T_0_0*dphi_0_0 + T_1_0*dphi_0_1 + T_2_0*dphi_0_2)

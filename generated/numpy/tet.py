@@ -64,6 +64,19 @@ def _params(params, names):
     return values
 
 
+def _project_psd(m, n, entries):
+    """Clamp negative eigenvalues of the symmetric (m, n, n) matrices given row-major to 0."""
+    matrices = numpy.empty((m, n * n))
+    for index, entry in enumerate(entries):
+        matrices[:, index] = entry
+    matrices = matrices.reshape(m, n, n)
+    values, vectors = numpy.linalg.eigh(matrices)
+    projected = (vectors * numpy.maximum(values, 0.0)[:, None, :]) @ vectors.transpose(0, 2, 1)
+    indefinite = (values < 0.0).any(axis=1)  # already PSD: keep the input exactly
+    projected[~indefinite] = matrices[~indefinite]
+    return tuple(numpy.ascontiguousarray(projected.reshape(m, n * n).T))
+
+
 def _finish(out, m, shape):
     return numpy.ascontiguousarray(out.T).reshape((m, *shape))
 
