@@ -1,0 +1,7 @@
+"""``python -m fem3d``: the same as the ``fem3d`` script."""
+
+import sys
+
+from fem3d.cli import main
+
+sys.exit(main())
