@@ -32,22 +32,39 @@ static inline double fem3d_powi(double x, int n)
 // zero, in place: cyclic Jacobi rotations, then a = V max(L, 0) V^T (unchanged if PSD).
 static void fem3d_project_psd(int n, double *a)
 {
-    double v[144], original[144];
+    double v[144], original[144], ldl[144], pivot[12];
     double scale = 0.0;
     for (int i = 0; i < n * n; ++i) scale += a[i] * a[i];
-    memcpy(original, a, sizeof(double) * n * n);
     if (scale == 0.0) return;
+    // Fast path: an LDL^T without pivoting whose pivots are all >= -tol proves a is PSD
+    // (near rest most elements are), so the eigen-solve is skipped.
+    const double tol = 1e-12 * sqrt(scale);
+    int psd = 1;
+    for (int k = 0; k < n && psd; ++k) {
+        double d = a[k * n + k];
+        for (int j = 0; j < k; ++j) d -= ldl[k * n + j] * ldl[k * n + j] * pivot[j];
+        if (d < -tol) psd = 0;
+        pivot[k] = d;
+        for (int i = k + 1; i < n; ++i) {
+            double sum = a[i * n + k];
+            for (int j = 0; j < k; ++j) sum -= ldl[i * n + j] * ldl[k * n + j] * pivot[j];
+            ldl[i * n + k] = d > tol ? sum / d : 0.0;
+            if (d <= tol && fabs(sum) > tol) psd = 0;  // zero pivot with coupling: indefinite
+        }
+    }
+    if (psd) return;
+    memcpy(original, a, sizeof(double) * n * n);
     for (int i = 0; i < n; ++i)
         for (int j = 0; j < n; ++j) v[i * n + j] = (i == j);
     for (int sweep = 0; sweep < 30; ++sweep) {
         double off = 0.0;
         for (int p = 0; p < n; ++p)
             for (int q = p + 1; q < n; ++q) off += a[p * n + q] * a[p * n + q];
-        if (off <= 1e-30 * scale) break;
+        if (off <= 1e-26 * scale) break;
         for (int p = 0; p < n; ++p) {
             for (int q = p + 1; q < n; ++q) {
                 const double apq = a[p * n + q];
-                if (fabs(apq) <= 1e-300) continue;
+                if (fabs(apq) <= 1e-18 * sqrt(scale)) continue;
                 const double theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
                 const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
                 const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
