@@ -33,6 +33,7 @@ refactorizes.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from dataclasses import dataclass
@@ -73,14 +74,36 @@ class NotPositiveDefinite(Fem3dError, np.linalg.LinAlgError):
         super().__init__(f"{backend}: {message}")
 
 
+_MKL_RT: str | None = None
+
+
+def _pardiso_solver():
+    """A new ``pypardiso.PyPardisoSolver`` (real SPD), finding libmkl_rt only once.
+
+    pypardiso searches ``sys.prefix`` for ``mkl_rt`` on every construction (seconds); the path
+    found the first time is handed to later ones through ``PYPARDISO_MKL_RT``.
+    """
+    global _MKL_RT
+    import pypardiso
+
+    if _MKL_RT is None or "PYPARDISO_MKL_RT" in os.environ:
+        solver = pypardiso.PyPardisoSolver(mtype=2)
+        _MKL_RT = solver.libmkl._name
+        return solver
+    os.environ["PYPARDISO_MKL_RT"] = _MKL_RT
+    try:
+        return pypardiso.PyPardisoSolver(mtype=2)
+    finally:
+        del os.environ["PYPARDISO_MKL_RT"]
+
+
+@functools.cache
 def _backend_importable(name: str) -> bool:
     try:
         if name == "cholmod":
             import sksparse.cholmod  # noqa: F401
         elif name == "pardiso":
-            import pypardiso
-
-            pypardiso.PyPardisoSolver()  # raises ImportError when mkl_rt is missing
+            _pardiso_solver()  # raises ImportError when mkl_rt is missing
         elif name != "superlu":
             return False
     except (ImportError, OSError):
@@ -353,37 +376,69 @@ class SparseSPDSolver:
 
     # ------------------------------------------------------------------ PARDISO
     def _analyze_pardiso(self) -> None:
-        import pypardiso
         from pypardiso.pardiso_wrapper import PyPardisoError
 
         self._pardiso_error = PyPardisoError
-        solver = pypardiso.PyPardisoSolver(mtype=2)  # real SPD: upper triangle in CSR
+        solver = _pardiso_solver()  # holds the MKL handle (pt) and iparm
+        iparm = solver.iparm
+        iparm[:] = 0
+        iparm[0] = 1  # iparm given here, not defaults
+        iparm[1] = 2  # METIS nested dissection ordering
+        iparm[9] = 8  # pivot perturbation 1e-8 (only used by the indefinite types)
+        iparm[17] = -1  # report nnz(L) in iparm[17]
+        iparm[34] = 1  # zero-based ia/ja: no index conversion per call
         upper = self._indices >= self._rows
         self._upper = np.flatnonzero(upper)
         counts = np.bincount(self._rows[upper], minlength=self.n)
-        self._u_indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._u_indices = self._indices[upper]
+        self._ia = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+        self._ja = self._indices[upper].astype(np.int32)
         self._pardiso = solver
-        solver.set_phase(11)
-        solver._call_pardiso(self._upper_matrix(np.ones(len(self._upper))), np.zeros((self.n, 1)))
+        self._a_upper = np.ones(len(self._ja))
+        self._pardiso_call(11, np.zeros((self.n, 1)))
 
-    def _upper_matrix(self, data_u: np.ndarray) -> sp.csr_matrix:
-        return sp.csr_matrix((data_u, self._u_indices, self._u_indptr), shape=(self.n, self.n))
+    def _pardiso_call(self, phase: int, b: np.ndarray) -> np.ndarray:
+        """One MKL ``pardiso`` call on the stored upper triangle (real SPD, ``mtype = 2``)."""
+        import ctypes
+
+        s = self._pardiso
+        i32 = ctypes.c_int32
+        i32p = ctypes.POINTER(i32)
+        f64p = ctypes.POINTER(ctypes.c_double)
+        b = np.asfortranarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        err = i32(0)
+        s._mkl_pardiso(
+            s.pt.ctypes.data_as(ctypes.POINTER(s._pt_type[0])),
+            ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),
+            ctypes.byref(i32(phase)), ctypes.byref(i32(self.n)),
+            self._a_upper.ctypes.data_as(f64p), self._ia.ctypes.data_as(i32p),
+            self._ja.ctypes.data_as(i32p), s.perm.ctypes.data_as(i32p),
+            ctypes.byref(i32(b.shape[1])), s.iparm.ctypes.data_as(i32p), ctypes.byref(i32(0)),
+            b.ctypes.data_as(f64p), x.ctypes.data_as(f64p), ctypes.byref(err),
+        )
+        if err.value != 0:
+            # -4: zero pivot (for mtype 2: the matrix is not positive definite)
+            if phase == 22 and err.value == -4:
+                raise NotPositiveDefinite("PARDISO error -4 (zero or negative pivot)",
+                                          backend="pardiso")
+            raise RuntimeError(f"PARDISO phase {phase} failed with error {err.value}")
+        return x
 
     def _factor_pardiso(self, data: np.ndarray) -> None:
-        self._pardiso.set_phase(22)
-        self._U = self._upper_matrix(np.ascontiguousarray(data[self._upper]))
-        try:
-            self._pardiso._call_pardiso(self._U, np.zeros((self.n, 1)))
-        except self._pardiso_error as err:
-            # -4: zero or negative pivot for mtype=2
-            raise NotPositiveDefinite(f"PARDISO error {err}", backend="pardiso") from err
+        self._a_upper = np.ascontiguousarray(data[self._upper])
+        self._pardiso_call(22, np.zeros((self.n, 1)))
 
     def _solve_pardiso(self, b: np.ndarray) -> np.ndarray:
-        self._pardiso.set_phase(33)
-        B = np.asfortranarray(b.reshape(self.n, -1))
-        x = self._pardiso._call_pardiso(self._U, B)
-        return x.reshape(b.shape)
+        x = self._pardiso_call(33, b.reshape(self.n, -1))
+        return np.ascontiguousarray(x).reshape(b.shape)
+
+    def __del__(self) -> None:
+        # release PARDISO's internal memory (phase -1)
+        if getattr(self, "_pardiso", None) is not None:
+            try:
+                self._pardiso_call(-1, np.zeros((self.n, 1)))
+            except Exception:  # noqa: BLE001 - interpreter shutdown
+                pass
 
     # ------------------------------------------------------------------ SuperLU
     def _analyze_superlu(self) -> None:
@@ -396,9 +451,10 @@ class SparseSPDSolver:
             diag_pivot_thresh=0.0,
             options={"SymmetricMode": True},
         )
-        perm = np.asarray(lu.perm_c)
+        # SuperLU moves column j to position perm_c[j]: the new order lists argsort(perm_c).
+        perm = np.argsort(np.asarray(lu.perm_c))
         self._perm = perm
-        self._iperm = np.argsort(perm)
+        self._iperm = np.asarray(lu.perm_c)
         # Position map: data of P A P^T (CSC, canonical) = data[self._pmap]
         nnz = len(self._indices)
         tagged = self._matrix(np.arange(1, nnz + 1, dtype=np.float64))
