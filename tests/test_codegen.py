@@ -344,3 +344,23 @@ def test_show_prints_one_kernel() -> None:
                             check=True)
     assert "static void neo_hookean_hessian(" in result.stdout
     assert "neo_hookean_gradient(" not in result.stdout
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+def test_segment_sum_matches_bincount_and_validates() -> None:
+    ext = c_extension()
+    rng = np.random.default_rng(9)
+    scatter = np.concatenate([np.arange(50), rng.integers(0, 50, 2000)])
+    values = rng.normal(size=scatter.size)
+    order = np.argsort(scatter, kind="stable").astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(scatter, minlength=50))]).astype(np.int64)
+    out = np.empty(50)
+    ext.segment_sum(values, order, offsets, out)
+    np.testing.assert_allclose(out, np.bincount(scatter, weights=values, minlength=50),
+                               rtol=1e-13, atol=1e-13)
+    with pytest.raises(ValueError, match="out of range"):
+        ext.segment_sum(values, order + 5000, offsets, out)
+    with pytest.raises(ValueError, match="offsets"):
+        ext.segment_sum(values, order, offsets[:-1], out)
+    with pytest.raises(ValueError, match="int64"):
+        ext.segment_sum(values, order.astype(np.int32), offsets, out)

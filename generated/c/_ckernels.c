@@ -186,6 +186,75 @@ done:
 #include "neo_hookean.c"
 #include "stvk.c"
 
+// Assembly helper (not derived): out[k] = sum of values[order[i]] for offsets[k] <= i < offsets[k+1].
+// With order = a stable argsort of the element-to-CSR scatter map this sums every element
+// block into CSR data without atomics, in parallel, and in a fixed (reproducible) order.
+static int is_int64(const Py_buffer *view)
+{
+    const char *f = view->format;
+    if (view->itemsize != 8 || f == NULL) return 0;
+    if (f[0] == '<' || f[0] == '=' || f[0] == '@') ++f;
+    return strcmp(f, "q") == 0 || strcmp(f, "l") == 0;
+}
+
+static PyObject *py_segment_sum(PyObject *self, PyObject *args)
+{
+    PyObject *objects[4];
+    Py_buffer views[4];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOO:segment_sum", &objects[0], &objects[1], &objects[2],
+                          &objects[3]))
+        return NULL;
+    for (int i = 0; i < 4; ++i) {
+        const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i == 3 ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(objects[i], &views[i], flags) != 0) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_ValueError, "segment_sum: argument %d must be a C-contiguous%s array",
+                         i, i == 3 ? " writable" : "");
+            goto done;
+        }
+        ++n_views;
+        if ((i == 0 || i == 3) ? !is_float64(&views[i]) : !is_int64(&views[i])) {
+            PyErr_Format(PyExc_ValueError, "segment_sum: argument %d must have dtype %s", i,
+                         (i == 0 || i == 3) ? "float64" : "int64");
+            goto done;
+        }
+    }
+    {
+        const double *values = (const double *)views[0].buf;
+        const long long *order = (const long long *)views[1].buf;
+        const long long *offsets = (const long long *)views[2].buf;
+        double *out = (double *)views[3].buf;
+        const Py_ssize_t n_values = views[0].len / 8, n_order = views[1].len / 8;
+        const Py_ssize_t m = views[3].len / 8;
+        if (views[2].len / 8 != m + 1 || (m >= 0 && offsets[m] != n_order) || offsets[0] != 0) {
+            PyErr_SetString(PyExc_ValueError, "segment_sum: offsets must have len(out) + 1 "
+                            "entries, from 0 to len(order)");
+            goto done;
+        }
+        for (Py_ssize_t i = 0; i < n_order; ++i) {
+            if (order[i] < 0 || order[i] >= n_values) {
+                PyErr_Format(PyExc_ValueError, "segment_sum: order[%zd] out of range", i);
+                goto done;
+            }
+        }
+        Py_BEGIN_ALLOW_THREADS
+        FEM3D_PARALLEL_FOR
+        for (Py_ssize_t e = 0; e < m; ++e) {
+            double sum = 0.0;
+            for (long long i = offsets[e]; i < offsets[e + 1]; ++i) sum += values[order[i]];
+            out[e] = sum;
+        }
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
 static PyObject *py_max_threads(PyObject *self, PyObject *unused)
 {
     (void)self;
@@ -219,6 +288,8 @@ static PyMethodDef methods[] = {
     {"stvk_gradient", py_stvk_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"stvk_hessian", py_stvk_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"segment_sum", py_segment_sum, METH_VARARGS,
+     "segment_sum(values, order, offsets, out): out[k] = sum(values[order[offsets[k]:offsets[k+1]]])."},
     {"max_threads", py_max_threads, METH_NOARGS, "OpenMP threads the kernels use (1 without OpenMP)."},
     {NULL, NULL, 0, NULL},
 };
