@@ -456,8 +456,10 @@ def newtons_method(
     max_halvings : int, optional
         Line-search trials before giving up.
     decrement_rtol : float, optional
-        Also stop when the Newton decrement ``-g.d`` is below ``decrement_rtol |E(x)|``: the
-        decrease left is at the objective's round-off, where Armijo tests are noise.
+        When the Newton decrement ``-g.d`` is below ``decrement_rtol |E(x)|`` the decrease
+        left is at the objective's round-off, where Armijo tests are noise: the full step is
+        then taken if it is admissible and reduces ``||g||``; otherwise Newton stops
+        (converged at round-off).
     on_no_step : callable ``(x, d)``, optional
         Called when every trial point was inadmissible (``+inf``); expected to raise. When it
         is None or returns, Newton stops at the current ``x``.
@@ -485,8 +487,17 @@ def newtons_method(
             d = -g
             slope = -gn * gn
         if -slope <= decrement_rtol * abs(fx):
-            # the predicted decrease is at the round-off of the objective: nothing to gain
-            return NewtonResult(x, it, norms, True, halvings)
+            # The predicted decrease is below the objective's round-off, so Armijo tests are
+            # noise: take the full step while it is admissible and shrinks the gradient.
+            xt = x + d
+            gt = gradient(xt) if math.isfinite(energy(xt)) else None
+            gtn = math.inf if gt is None else float(np.linalg.norm(gt))
+            if not gtn < gn:
+                return NewtonResult(x, it, norms, True, halvings)
+            x, fx, g, gn = xt, energy(xt), gt, gtn
+            norms.append(gn)
+            it += 1
+            continue
         a = alpha
         accepted = False
         any_finite = False
