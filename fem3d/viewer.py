@@ -119,11 +119,16 @@ class RealtimePacer:
         pacer re-anchors instead of letting it race to catch up.
     enabled : bool
         When False, :meth:`delay` is always 0 (run as fast as possible).
+    rate : float
+        Simulated seconds per wall-clock second (``< 1``: slow motion).
     """
 
-    def __init__(self, max_lag: float = 0.1, *, enabled: bool = True) -> None:
+    def __init__(self, max_lag: float = 0.1, *, enabled: bool = True, rate: float = 1.0) -> None:
+        if not rate > 0:
+            raise ParameterError(f"time scale must be positive, got {rate}")
         self.max_lag = float(max_lag)
         self.enabled = enabled
+        self.rate = float(rate)
         self._anchor: tuple[float, float] | None = None
 
     def reset(self) -> None:
@@ -146,7 +151,7 @@ class RealtimePacer:
             self._anchor = (t_sim, now)
             return 0.0
         t0, w0 = self._anchor
-        d = (w0 + (t_sim - t0)) - now
+        d = (w0 + (t_sim - t0) / self.rate) - now
         if d < -self.max_lag:
             self._anchor = (t_sim, now)
             return 0.0
@@ -191,6 +196,24 @@ class EnergyHistory:
         if seconds is not None:
             a = a[a[:, 0] >= a[-1, 0] - seconds]
         return tuple(np.ascontiguousarray(a[:, i]) for i in range(4))
+
+    def resampled(self, seconds: float, n: int = 200) -> tuple[np.ndarray, ...]:
+        """The last ``seconds`` on a fixed grid of times relative to the newest sample.
+
+        A fixed x grid keeps the plot's x axis still (uPlot does not have to rescale it on
+        every update); values before the first sample repeat the first sample.
+
+        Returns
+        -------
+        (x, kinetic, potential, total) : four (n,) float64 arrays
+            ``x = linspace(-seconds, 0, n)`` (seconds before the newest sample).
+        """
+        x = np.linspace(-float(seconds), 0.0, int(n))
+        if not self._rows:
+            return (x, *(np.zeros(int(n)) for _ in range(3)))
+        t, T, V, tot = self.window(seconds)
+        xt = t - t[-1]
+        return (x, *(np.interp(x, xt, a) for a in (T, V, tot)))
 
     def rows(self) -> list[tuple[float, float, float, float]]:
         return list(self._rows)
@@ -335,6 +358,8 @@ class Viewer:
         Seconds of simulated time shown in the energy plot.
     mesh_mode : {"skin", "sim"}
         Mesh shown first: the skinned display mesh or the simulation mesh's surface.
+    time_scale : float
+        Simulated seconds per wall-clock second when ``realtime`` (``< 1``: slow motion).
     """
 
     def __init__(
@@ -350,6 +375,7 @@ class Viewer:
         plot_hz: float = 10.0,
         plot_window: float = 10.0,
         mesh_mode: str = "skin",
+        time_scale: float = 1.0,
     ) -> None:
         if mesh_mode not in MESH_MODE_LABELS:
             raise ParameterError(
@@ -369,7 +395,7 @@ class Viewer:
         self.push_hz = float(push_hz)
         self.plot_hz = float(plot_hz)
         self.plot_window = float(plot_window)
-        self._pacer = RealtimePacer(enabled=realtime)
+        self._pacer = RealtimePacer(enabled=realtime, rate=time_scale)
 
         # Loaded now so that bad input fails before a server starts.
         self._scene = _load_scene(scene)
@@ -641,17 +667,17 @@ class Viewer:
         g["rho"] = gui.add_slider(
             "Density", min=rho / 10.0, max=rho * 10.0, step=rho / 10.0, initial_value=rho
         )
-        t, T, V, tot = self._history.window(self.plot_window)
+        t, T, V, tot = self._history.resampled(self.plot_window)
         g["plot"] = gui.add_uplot(
             data=(t, T, V, tot),
             series=(
-                {"label": "t (s)"},
+                {"label": "t - now (s)"},
                 {"label": "T", "stroke": "#1f77b4", "width": 2},
                 {"label": "V", "stroke": "#ff7f0e", "width": 2},
                 {"label": "T+V", "stroke": "#2ca02c", "width": 2},
             ),
             scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
-            title="Energy",
+            title=f"Energy (last {self.plot_window:g} s)",
             aspect=1.4,
         )
         g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
@@ -983,7 +1009,7 @@ class Viewer:
                 rho=self._material["rho"],
                 **stats,
             )
-            data = self._history.window(self.plot_window)
+            data = self._history.resampled(self.plot_window)
         self._gui["status"].content = text
         self._gui["plot"].data = data
 
@@ -1044,6 +1070,7 @@ def serve(
     backend: str | None = None,
     *,
     realtime: bool = True,
+    time_scale: float = 1.0,
 ) -> None:
     """Run the viewer until Ctrl-C.
 
@@ -1059,6 +1086,8 @@ def serve(
         Kernel back end.
     realtime : bool
         Pace simulated time to wall time.
+    time_scale : float
+        Simulated seconds per wall second (``< 1``: slow motion).
     """
     _import_viser()
     viewer = Viewer(
@@ -1068,6 +1097,7 @@ def serve(
         integrator=integrator,
         backend=backend,
         realtime=realtime,
+        time_scale=time_scale,
     )
     url = viewer.start()
     print(f"fem3d view: {url}  (drag the mesh; S mesh, N integrator, space pause, R reset;"
@@ -1088,6 +1118,7 @@ def _run_view(args: argparse.Namespace) -> int:
         integrator=args.integrator,
         backend=args.backend,
         realtime=not args.no_realtime,
+        time_scale=args.time_scale,
     )
     return 0
 
@@ -1114,6 +1145,10 @@ def add_view_subcommand(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=("numpy", "c"), default=None, help="kernel back end")
     p.add_argument(
         "--no-realtime", action="store_true", help="step as fast as possible (no wall-time pacing)"
+    )
+    p.add_argument(
+        "--time-scale", type=float, default=1.0,
+        help="simulated seconds per wall second (default 1; 0.25 = slow motion)",
     )
     p.set_defaults(func=_run_view)
     return p
