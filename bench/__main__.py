@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -53,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of timed calls per case before cutting repeats (default 30)")
     p.add_argument("--timeout", type=float, default=900.0,
                    help="seconds before a worker is killed (recorded as timeout)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="OMP/OpenBLAS/MKL threads of the workers (default: the libraries' own)")
     p.add_argument("--quick", action="store_true",
                    help="sizes 1e3,1e4, 3 repeats, 5 s budget (unless given)")
     p.add_argument("--out", type=Path, default=Path("docs"),
@@ -87,9 +90,13 @@ def _run_worker(case, size: float, args: argparse.Namespace) -> dict:
     cmd = [sys.executable, "-m", "bench.worker", case.name, repr(size), str(args.repeats),
            str(args.budget)]
     base = {"case": case.name, "group": case.group, "library": case.library, "size": size}
+    env = dict(os.environ)
+    if args.threads:
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[var] = str(args.threads)
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout,
-                              cwd=Path(__file__).resolve().parent.parent)
+                              cwd=Path(__file__).resolve().parent.parent, env=env)
     except subprocess.TimeoutExpired:
         return {**base, "status": "timeout", "reason": f"killed after {args.timeout:.0f} s"}
     for line in reversed(proc.stdout.splitlines()):
@@ -140,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                     t0 = time.perf_counter()
                     rec = _run_worker(case, size, args)
                     rec["wall_s"] = time.perf_counter() - t0
-                rec.update(command=command, date=date)
+                rec.update(command=command, date=date, threads=args.threads)
                 new.append(rec)
                 if rec["status"] == "ok":
                     print(f"[ok]   {case.name} @ {size:g} ({rec['n_tets']} tets): median "

@@ -159,6 +159,13 @@ def render_markdown(records: list[dict], meta: dict) -> str:
     cmds = sorted({r.get("command", "") for r in records if r.get("command")})
     for c in cmds:
         lines.append(f"- command: `{c}`")
+    loads = [r["loadavg_1m"] for r in ok if "loadavg_1m" in r]
+    if loads:
+        cores = mi.get("cores_available") or mi.get("cores") or 1
+        warn = (" **(above the core count: other processes competed for the CPU; "
+                "treat small differences as noise)**" if max(loads) > cores else "")
+        lines.append(f"- 1-minute load average at the end of each case: "
+                     f"{min(loads):.1f} .. {max(loads):.1f}{warn}")
     dates = sorted({r.get("date", "") for r in records if r.get("date")})
     if dates:
         lines.append(f"- measured: {dates[0]} .. {dates[-1]}" if len(dates) > 1
@@ -180,7 +187,9 @@ def render_markdown(records: list[dict], meta: dict) -> str:
         if not rows:
             continue
         ref = _reference_library(group, rows, default_solver)
-        lines += [f"## {group}", "", caption, ""]
+        threads = sorted({str(r.get("threads") or "default") for lib in rows
+                          for r in rows[lib].values()})
+        lines += [f"## {group}", "", f"{caption}. Threads: {', '.join(threads)}.", ""]
         hdr = "| library | " + " | ".join(f"{_size_label(s)} ({tets.get(s, 0):,} tets)"
                                            for s in sizes) + " |"
         lines += [hdr, "| --- |" + " ---: |" * len(sizes)]

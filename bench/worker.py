@@ -15,6 +15,7 @@ Timing: ``setup`` (untimed, reported), one warm-up call (JIT compilation, caches
 from __future__ import annotations
 
 import json
+import os
 import resource
 import statistics
 import sys
@@ -92,6 +93,7 @@ def run_case(name: str, size: float, repeats: int, budget_s: float) -> dict:
     except Exception as err:  # noqa: BLE001 - recorded, the suite goes on
         rec.update(status="error", reason=f"{type(err).__name__}: {err}",
                    traceback=traceback.format_exc(limit=6))
+    rec["loadavg_1m"] = os.getloadavg()[0]  # other processes competing for the cores
     rec["peak_rss_mb"] = _maxrss_mb()
     rec["base_rss_mb"] = base_rss
     # extra peak memory of setup + calls over what the mesh alone had needed (a lower bound
