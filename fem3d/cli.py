@@ -230,7 +230,7 @@ def _run_command(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``fem3d`` script; returns the exit status.
 
-    ``InputError`` (and other ``Fem3dError`` raised outside a step) -> one line on stderr,
+    ``InputError`` or ``OSError`` (e.g. an unwritable output folder) -> one line on stderr,
     status 2; ``SimulationError`` -> message, status 1.
     """
     parser = build_parser()
@@ -250,6 +250,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         print(f"fem3d {args.command}: simulation failed: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:  # e.g. an output folder that cannot be written
+        if args.debug:
+            traceback.print_exc()
+        print(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"fem3d {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -210,3 +210,36 @@ def test_with_material_shares_pattern_and_scales_mass(model):
     assert np.allclose(assemble_forces(m2, q), 2.0 * assemble_forces(model, q))
     with pytest.raises(ParameterError):
         model.with_material(nu=0.7)
+
+
+def test_assignment_wrappers_match_kernels(model):
+    from fem3d import assignment as a
+
+    X_e = model.X[model.T]
+    assert np.allclose(a.dphi_linear_tetrahedron_dX(X_e), model.dphi_dX)
+    centroid = X_e.mean(axis=1)
+    assert np.allclose(a.phi_linear_tetrahedron(X_e, centroid), 0.25)
+    q = deformed(model, 0.05)
+    C, D = model.params
+    x_e = q[model.T]
+    V = a.V_linear_tetrahedron(x_e, model.dphi_dX, model.vol, C, D)
+    assert a.quadrature_single_point(lambda: np.ones(model.n_tets), model.vol) == pytest.approx(
+        model.vol)
+    assert V.sum() == pytest.approx(potential_energy(model, q), rel=1e-12)
+    dV = a.dV_linear_tetrahedron_dq(x_e, model.dphi_dX, model.vol, C, D)
+    assert np.allclose(model.assemble_vectors(dV), -a.assemble_forces(model, q))
+    K = a.assemble_stiffness(model, q)
+    H_e = a.d2V_linear_tetrahedron_dq2(x_e, model.dphi_dX, model.vol, C, D)
+    assert np.allclose(model.assemble_blocks(H_e), -K.data)
+    v = np.random.default_rng(0).standard_normal(q.shape)
+    kin = a.T_linear_tetrahedron(v[model.T], model.vol, model.rho).sum()
+    assert kin == pytest.approx(0.5 * v.reshape(-1) @ (a.mass_matrix_mesh(model) @ v.reshape(-1)))
+    F = np.eye(3)[None] * 1.1
+    assert a.psi_neo_hookean(F, C, D).shape == (1,)
+    assert a.dpsi_neo_hookean_dF(F, C, D).shape == (1, 3, 3)
+    assert a.d2psi_neo_hookean_dF2(F, C, D).shape == (1, 9, 9)
+    g = a.dV_spring_particle_particle_dq(np.zeros(3), np.ones(3), 0.0, 2.0)
+    assert np.allclose(g, [[-2, -2, -2, 2, 2, 2]])
+    assert a.V_spring_particle_particle(np.zeros(3), np.ones(3), 0.0, 2.0)[0] == pytest.approx(3)
+    with pytest.raises(ValueError):
+        a.V_spring_particle_particle(np.zeros(3), np.ones(3), 1.0, 2.0)

@@ -162,3 +162,11 @@ def test_example_pull_bunny():
     d = mod.max_ear_displacement(40)
     print("max ear displacement:", d)
     assert d == pytest.approx(24.169835, rel=1e-5)
+
+
+def test_cli_unwritable_output_exits_2(tmp_path, capsys):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("not a folder")
+    status = main(["run", "arma", "--steps", "1", "--out", str(blocker / "out"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and "Traceback" not in err and len(err.splitlines()) == 1
