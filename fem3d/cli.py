@@ -145,6 +145,8 @@ def run_scene(args: argparse.Namespace) -> int:
         backend = resolve_backend(args.kernels)
     except (ImportError, ValueError) as exc:
         raise InputError(f"--kernels {args.kernels}: {exc}") from None
+    if args.out:  # fail on an unusable output folder before any expensive setup
+        Path(args.out).mkdir(parents=True, exist_ok=True)
     scene = load_scene(args.scene, skin=args.skin, dt=args.dt)
     sim = Simulation(
         scene, args.integrator, backend, scripted=not args.no_pull,
