@@ -358,6 +358,10 @@ def linearly_implicit_euler(
         Active pull springs.
     energy_bound : float, optional
         Runaway threshold: if the new total energy (kinetic + strain + pull) exceeds it, raise.
+        :class:`fem3d.simulation.Simulation` passes 1000 x the energy put in so far.
+    linearize_pull : bool, optional
+        Include the pull springs' stiffness in the matrix (default True). False gives the
+        assignment's variant (spring force explicit), which explodes for the scenes' pulls.
 
     Returns
     -------
@@ -406,9 +410,8 @@ def linearly_implicit_euler(
         )
     if energy_bound is not None and total > energy_bound:
         raise SimulationError(
-            f"linearly-implicit Euler exploded: total energy {total:.3g} exceeds "
-            f"{energy_bound:.3g} (1000 x the energy put in); try --integrator implicit "
-            "or a smaller dt",
+            f"linearly-implicit Euler exploded: total energy {total:.3g} exceeds the runaway "
+            f"bound {energy_bound:.3g}; try --integrator implicit or a smaller dt",
             step=state.step,
         )
     return new, stats
