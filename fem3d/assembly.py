@@ -95,14 +95,23 @@ def assemble_forces(model: Model, q: np.ndarray) -> np.ndarray:
     return -assemble_gradient(model, q)
 
 
-def hessian_data(model: Model, q: np.ndarray) -> np.ndarray:
+def hessian_data(model: Model, q: np.ndarray, *, psd: bool = False) -> np.ndarray:
     """CSR ``data`` of ``d2V/dq2`` on ``model.pattern`` (no matrix object built).
+
+    Parameters
+    ----------
+    model : Model
+    q : (n, 3) or (3n,) float64
+    psd : bool, optional
+        Use the generated ``hessian_psd`` kernel (``dP/dF`` projected to positive
+        semi-definite per element) instead of the exact Hessian.
 
     Returns
     -------
     (nnz,) float64
     """
-    H = model.mat.hessian(element_positions(model, q), model.dphi_dX, model.vol, model.params)
+    kernel = model.mat.hessian_psd if psd else model.mat.hessian
+    H = kernel(element_positions(model, q), model.dphi_dX, model.vol, model.params)
     return model.assemble_blocks(H)
 
 

@@ -78,6 +78,10 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
         "--newton-iterations", type=int, default=5,
         help="Newton iterations per backward-Euler step (default 5)",
     )
+    p.add_argument(
+        "--hessian", choices=("exact", "psd"), default="exact",
+        help="Newton Hessian of backward Euler: exact (default) or per-element PSD-projected",
+    )
     p.add_argument("--no-preview", action="store_true", help="skip preview.gif")
     p.add_argument("--no-pull", action="store_true", help="do not apply the scripted pull")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -150,7 +154,7 @@ def run_scene(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, skin=args.skin, dt=args.dt)
     sim = Simulation(
         scene, args.integrator, backend, scripted=not args.no_pull,
-        max_newton_iterations=args.newton_iterations,
+        max_newton_iterations=args.newton_iterations, newton_hessian=args.hessian,
     )
     out = Path(args.out) if args.out else Path("out") / scene.name
     out.mkdir(parents=True, exist_ok=True)

@@ -539,6 +539,7 @@ def implicit_euler(
     max_iterations: int | None = 5,
     rtol: float = 1e-10,
     atol_factor: float = 1e-12,
+    hessian: str = "exact",
 ) -> tuple[State, StepStats]:
     """One backward (implicit) Euler step as an energy minimisation.
 
@@ -566,6 +567,10 @@ def implicit_euler(
         Absolute gradient tolerance as a fraction of the scale ``dt E L^2`` (``L`` the
         diagonal of the rest bounding box; ``E L^2`` a force): gradients below it are
         round-off.
+    hessian : {"exact", "psd"}, optional
+        ``"exact"`` (default): the true Hessian, quadratic convergence, shifted when
+        indefinite. ``"psd"``: per-element ``dP/dF`` projected to positive semi-definite
+        (generated ``hessian_psd`` kernel), always SPD, linear convergence near the solution.
 
     Returns
     -------
@@ -578,6 +583,9 @@ def implicit_euler(
         how many at the full step), or a non-finite state.
     """
     dt = validate_dt(dt)
+    if hessian not in ("exact", "psd"):
+        raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
+    psd = hessian == "psd"
     model, c, spring = system.model, system.constraints, system.spring
     free = c.free_dofs
     q_t = state.q.reshape(-1)
@@ -608,7 +616,7 @@ def implicit_euler(
 
     def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
         q = positions(v_free)
-        H = hessian_data(model, q)
+        H = hessian_data(model, q, psd=psd)
         system.add_pull_hessian(H, pull, q.reshape(-1, 3))
         A = M.data + dt * dt * H
         if not np.isfinite(A).all():

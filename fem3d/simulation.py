@@ -87,6 +87,8 @@ class Simulation:
         Sparse solver back end (``fem3d.linsolve``; default ``"auto"``).
     max_newton_iterations : int or None, optional
         Newton iterations per backward-Euler step (default 5; None: until converged).
+    newton_hessian : {"exact", "psd"}, optional
+        Newton's Hessian in backward Euler (see :func:`fem3d.integrators.implicit_euler`).
 
     Attributes
     ----------
@@ -110,6 +112,7 @@ class Simulation:
         scripted: bool = False,
         solver_backend: str = "auto",
         max_newton_iterations: int | None = 5,
+        newton_hessian: str = "exact",
     ) -> None:
         self.scene = scene
         self.model: Model = build_model(
@@ -125,6 +128,9 @@ class Simulation:
         self.integrator = integrator or scene.integrator
         self.scripted = scripted
         self.max_newton_iterations = max_newton_iterations
+        if newton_hessian not in ("exact", "psd"):
+            raise ParameterError(f"newton_hessian must be 'exact' or 'psd', got {newton_hessian!r}")
+        self.newton_hessian = newton_hessian
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
@@ -334,7 +340,7 @@ class Simulation:
         else:
             new, stats = INTEGRATORS["implicit"](
                 self.system, self._state, self._dt, self._pull,
-                max_iterations=self.max_newton_iterations,
+                max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)

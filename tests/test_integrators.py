@@ -219,3 +219,20 @@ def test_indefinite_hessian_uses_shifted_factorization():
     assert stats.shifted_factorizations >= 1
     assert stats.converged and stats.gradient_norms[-1] < 1e-8 * stats.gradient_norms[0]
     assert count_inverted(sim.model, new.q) == 0
+
+
+def test_psd_projected_hessian_needs_no_shift():
+    sim = Simulation(box_scene(rho=1.0, dt=0.1))
+    X = sim.model.X
+    q = X.copy()
+    q[:, 1] *= 0.5
+    q[:, 0] += 0.3 * np.sin(3.0 * X[:, 1])
+    q[sim.fixed_vertices] = X[sim.fixed_vertices]
+    state = State(q=q, v=np.zeros_like(X))
+    exact, _ = implicit_euler(sim.system, state, 0.1, max_iterations=None)
+    new, stats = implicit_euler(sim.system, state, 0.1, max_iterations=100, hessian="psd")
+    print("psd iterations:", stats.newton_iterations, "norms:", stats.gradient_norms[-3:])
+    assert stats.shifted_factorizations == 0 and stats.converged
+    assert np.abs(new.q - exact.q).max() < 1e-6 * np.abs(exact.q - q).max()
+    with pytest.raises(ValueError):
+        implicit_euler(sim.system, state, 0.1, hessian="bfgs")
