@@ -51,6 +51,8 @@ __all__ = [
     "add_view_subcommand",
     "camera_for_points",
     "format_status",
+    "plot_title",
+    "scale_energies",
     "serve",
     "spring_segments",
 ]
@@ -326,6 +328,35 @@ def format_status(
     )
 
 
+def scale_energies(data: tuple[np.ndarray, ...]) -> tuple[int, tuple[np.ndarray, ...]]:
+    """Scale the energy series by a power of 1000 so the plot's tick labels stay short.
+
+    Parameters
+    ----------
+    data : (x, kinetic, potential, total), four (n,) float64 arrays
+
+    Returns
+    -------
+    exponent : int
+        A multiple of 3; the plotted values are energies / 10**exponent.
+    scaled : four (n,) float64 arrays
+        ``x`` unchanged, the energies divided by ``10**exponent``.
+    """
+    x, *ys = data
+    m = max((float(np.abs(y).max()) for y in ys if y.size), default=0.0)
+    exponent = 0 if not (m > 0 and math.isfinite(m)) else 3 * math.floor(math.log10(m) / 3)
+    if exponent == 0:
+        return 0, (x, *ys)
+    f = 10.0**-exponent
+    return exponent, (x, *(y * f for y in ys))
+
+
+def plot_title(window: float, exponent: int) -> str:
+    """Title of the energy plot: the window and the unit scale."""
+    unit = "" if exponent == 0 else f" ×1e{exponent}"
+    return f"Energy{unit} (last {window:g} s)"
+
+
 def _surface_faces(sim: Any) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(sim.surface_faces, dtype=np.uint32))
 
@@ -437,6 +468,7 @@ class Viewer:
         self._last_push = 0.0
         self._last_plot = 0.0
         self._gui_dirty = True
+        self._plot_exponent = 0
         self._camera: dict[str, Any] = camera_for_points(self._sim.q)
 
     # ---------------------------------------------------------------- properties
@@ -677,7 +709,7 @@ class Viewer:
                 {"label": "T+V", "stroke": "#2ca02c", "width": 2},
             ),
             scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
-            title=f"Energy (last {self.plot_window:g} s)",
+            title=plot_title(self.plot_window, 0),
             aspect=1.4,
         )
         g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
@@ -1010,8 +1042,12 @@ class Viewer:
                 **stats,
             )
             data = self._history.resampled(self.plot_window)
+        exponent, scaled = scale_energies(data)
+        if exponent != self._plot_exponent:  # the title carries the unit; rarely changes
+            self._plot_exponent = exponent
+            self._gui["plot"].title = plot_title(self.plot_window, exponent)
         self._gui["status"].content = text
-        self._gui["plot"].data = data
+        self._gui["plot"].data = scaled
 
     def _run(self) -> None:
         while not self._stop.is_set():

@@ -27,6 +27,8 @@ from fem3d.viewer import (
     add_view_subcommand,
     camera_for_points,
     format_status,
+    plot_title,
+    scale_energies,
     spring_segments,
 )
 
@@ -130,6 +132,18 @@ def test_camera_frames_all_points(scale: float) -> None:
     assert (z > cam["near"]).all() and (z < cam["far"]).all()
     assert (np.abs(d @ up / z) < math.tan(fov / 2)).all()
     assert (np.abs(d @ right / z) < math.tan(fov / 2)).all()
+
+
+def test_scale_energies_and_title() -> None:
+    x = np.linspace(-1, 0, 3)
+    e, (x2, T, V, tot) = scale_energies((x, np.array([0, 1e9, 2e10]), np.zeros(3), np.ones(3)))
+    assert e == 9 and x2 is x
+    np.testing.assert_allclose(T, [0, 1, 20])
+    assert plot_title(10, e) == "Energy ×1e9 (last 10 s)"
+    assert scale_energies((x, np.full(3, 5.0), np.zeros(3), np.zeros(3)))[0] == 0
+    assert scale_energies((x, np.full(3, 2e-4), np.zeros(3), np.zeros(3)))[0] == -6
+    assert scale_energies((x, np.zeros(3), np.zeros(3), np.zeros(3)))[0] == 0
+    assert plot_title(10, 0) == "Energy (last 10 s)"
 
 
 def test_format_status() -> None:
@@ -325,6 +339,8 @@ def test_real_blow_up_is_caught(viewer: Any) -> None:
 @needs_viser
 def test_concurrent_drags_and_mesh_swaps(viewer: Any) -> None:
     """GUI-thread drags racing with mesh replacement never break the simulation thread."""
+    viewer.toggle_integrator()  # backward Euler: random pulls must not blow the bunny up
+    wait_for(lambda: viewer.snapshot()["integrator"] == "implicit", 10, "backward Euler")
     wait_for(lambda: viewer.snapshot()["steps"] > 3, 30, "steps")
     q = viewer.positions()
     stop = threading.Event()
@@ -353,7 +369,13 @@ def test_concurrent_drags_and_mesh_swaps(viewer: Any) -> None:
         t.join(10)
     assert not failures, failures
     n = viewer.snapshot()["steps"]
-    wait_for(lambda: viewer.snapshot()["steps"] > n, 10, "the loop to keep stepping")
+    wait_for(
+        lambda: (lambda s: s["steps"] > n or f"paused={s['paused']} error={s['error']}")(
+            viewer.snapshot()
+        ),
+        10,
+        "the loop to keep stepping",
+    )
     snap = viewer.snapshot()
     assert snap["error"] is None, snap["error"]
     assert snap["mesh_mode"] == "skin"  # six toggles
