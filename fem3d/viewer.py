@@ -51,7 +51,7 @@ __all__ = [
     "add_view_subcommand",
     "camera_for_points",
     "format_status",
-    "plot_title",
+    "plot_unit_line",
     "scale_energies",
     "serve",
     "spring_segments",
@@ -351,10 +351,10 @@ def scale_energies(data: tuple[np.ndarray, ...]) -> tuple[int, tuple[np.ndarray,
     return exponent, (x, *(y * f for y in ys))
 
 
-def plot_title(window: float, exponent: int) -> str:
-    """Title of the energy plot: the window and the unit scale."""
-    unit = "" if exponent == 0 else f" ×1e{exponent}"
-    return f"Energy{unit} (last {window:g} s)"
+def plot_unit_line(exponent: int) -> str:
+    """The status-text line that gives the energy plot's unit (markdown)."""
+    unit = "1" if exponent == 0 else f"1e{exponent}"
+    return f"  \nenergy plot unit: {unit}"
 
 
 def _surface_faces(sim: Any) -> np.ndarray:
@@ -468,7 +468,6 @@ class Viewer:
         self._last_push = 0.0
         self._last_plot = 0.0
         self._gui_dirty = True
-        self._plot_exponent = 0
         self._camera: dict[str, Any] = camera_for_points(self._sim.q)
 
     # ---------------------------------------------------------------- properties
@@ -709,7 +708,7 @@ class Viewer:
                 {"label": "T+V", "stroke": "#2ca02c", "width": 2},
             ),
             scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
-            title=plot_title(self.plot_window, 0),
+            title=f"Energy T, V, T+V (last {self.plot_window:g} s)",
             aspect=1.4,
         )
         g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
@@ -1042,11 +1041,10 @@ class Viewer:
                 **stats,
             )
             data = self._history.resampled(self.plot_window)
+        # The unit goes in the status text: changing the plot's title or labels would make
+        # the client rebuild the chart, which loses its x range.
         exponent, scaled = scale_energies(data)
-        if exponent != self._plot_exponent:  # the title carries the unit; rarely changes
-            self._plot_exponent = exponent
-            self._gui["plot"].title = plot_title(self.plot_window, exponent)
-        self._gui["status"].content = text
+        self._gui["status"].content = text + plot_unit_line(exponent)
         self._gui["plot"].data = scaled
 
     def _run(self) -> None:

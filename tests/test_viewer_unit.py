@@ -27,7 +27,7 @@ from fem3d.viewer import (
     add_view_subcommand,
     camera_for_points,
     format_status,
-    plot_title,
+    plot_unit_line,
     scale_energies,
     spring_segments,
 )
@@ -139,11 +139,11 @@ def test_scale_energies_and_title() -> None:
     e, (x2, T, V, tot) = scale_energies((x, np.array([0, 1e9, 2e10]), np.zeros(3), np.ones(3)))
     assert e == 9 and x2 is x
     np.testing.assert_allclose(T, [0, 1, 20])
-    assert plot_title(10, e) == "Energy ×1e9 (last 10 s)"
+    assert plot_unit_line(e).endswith("energy plot unit: 1e9")
     assert scale_energies((x, np.full(3, 5.0), np.zeros(3), np.zeros(3)))[0] == 0
     assert scale_energies((x, np.full(3, 2e-4), np.zeros(3), np.zeros(3)))[0] == -6
     assert scale_energies((x, np.zeros(3), np.zeros(3), np.zeros(3)))[0] == 0
-    assert plot_title(10, 0) == "Energy (last 10 s)"
+    assert plot_unit_line(0).endswith("unit: 1")
 
 
 def test_format_status() -> None:
