@@ -170,6 +170,9 @@ def render_markdown(records: list[dict], meta: dict) -> str:
     if dates:
         lines.append(f"- measured: {dates[0]} .. {dates[-1]}" if len(dates) > 1
                      else f"- measured: {dates[0]}")
+    summary = Path(__file__).with_name("summary.md")
+    if summary.exists():  # hand-written reading of the numbers, kept beside the code
+        lines += ["", summary.read_text().strip()]
     lines += ["", "Mesh sizes: a unit box, n x n x n cubes of 6 tets each:", ""]
     lines.append("| size | tets | free DOFs of the solver system |")
     lines.append("| --- | ---: | ---: |")
@@ -276,6 +279,11 @@ def render_plot(records: list[dict], path: Path) -> None:
         return
     ncol = min(4, len(groups))
     nrow = math.ceil(len(groups) / ncol)
+    from matplotlib.ticker import NullFormatter
+
+    all_libs = sorted({r["library"] for r in ok})
+    cmap = plt.get_cmap("tab20" if len(all_libs) > 10 else "tab10")
+    color = {lib: cmap(i % cmap.N) for i, lib in enumerate(all_libs)}  # same colour everywhere
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.6 * nrow), squeeze=False)
     for ax, g in zip(axes.ravel(), groups, strict=False):
         libs = sorted({r["library"] for r in ok if r["group"] == g})
@@ -283,7 +291,9 @@ def render_plot(records: list[dict], path: Path) -> None:
             pts = sorted((r["n_tets"], r["median_s"]) for r in ok
                          if r["group"] == g and r["library"] == lib)
             x, y = zip(*pts, strict=True)
-            ax.loglog(x, y, "-o" if lib.startswith("fem3d") else "--s", label=lib, ms=4)
+            ax.loglog(x, y, "-o" if lib.startswith("fem3d") else "--s", label=lib, ms=4,
+                      color=color[lib])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_title(g)
         ax.set_xlabel("tets")
         ax.set_ylabel("seconds")

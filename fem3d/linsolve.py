@@ -14,9 +14,11 @@ Back ends (``backend=``, or the ``FEM3D_SOLVER`` environment variable, which win
     Intel MKL PARDISO through pypardiso, real SPD matrix type (``mtype=2``), analysis phase 11
     once, numeric phase 22 per ``factorize``, solve phase 33.
 ``"superlu"``
-    ``scipy.sparse.linalg.splu``: the fill-reducing column ordering (``MMD_AT_PLUS_A``) is
-    computed once, then every factorization runs on the symmetrically pre-permuted matrix with
-    ``permc_spec="NATURAL"`` and diagonal pivoting. Needs only SciPy; much slower on large meshes.
+    ``scipy.sparse.linalg.splu`` with diagonal pivoting (``SymmetricMode``): the first
+    factorization computes the fill-reducing ordering (``MMD_AT_PLUS_A``, SuperLU has no
+    separate analysis), later ones run on the symmetrically pre-permuted matrix with
+    ``permc_spec="NATURAL"``. Needs only SciPy; several times slower than CHOLMOD or PARDISO
+    on large meshes (no supernodal BLAS-3 Cholesky, LU stores both triangles).
 ``"auto"``
     The first of cholmod, pardiso, superlu that imports.
 
@@ -442,19 +444,16 @@ class SparseSPDSolver:
 
     # ------------------------------------------------------------------ SuperLU
     def _analyze_superlu(self) -> None:
-        # Ordering once: let SuperLU compute MMD on A^T + A for a pattern-only SPD stand-in
-        # (diagonally dominant values), and keep its column permutation.
-        data = np.where(self._rows == self._indices, float(self.n), -1e-3)
-        lu = spla.splu(
-            self._matrix(data).tocsc(),
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
-        )
+        # SuperLU cannot order without factorizing: the first factorization orders (MMD on
+        # A^T + A, pattern only) and records the permutation; later ones reuse it.
+        self._perm = None
+        self._lu_permuted = False
+
+    def _set_superlu_ordering(self, perm_c: np.ndarray) -> None:
         # SuperLU moves column j to position perm_c[j]: the new order lists argsort(perm_c).
-        perm = np.argsort(np.asarray(lu.perm_c))
+        perm = np.argsort(np.asarray(perm_c))
         self._perm = perm
-        self._iperm = np.asarray(lu.perm_c)
+        self._iperm = np.asarray(perm_c)
         # Position map: data of P A P^T (CSC, canonical) = data[self._pmap]
         nnz = len(self._indices)
         tagged = self._matrix(np.arange(1, nnz + 1, dtype=np.float64))
@@ -464,18 +463,24 @@ class SparseSPDSolver:
         self._pmap = PAPt.data.astype(np.int64) - 1
 
     def _factor_superlu(self, data: np.ndarray) -> None:
-        Ap = sp.csc_matrix(
-            (data[self._pmap], self._p_indices, self._p_indptr), shape=(self.n, self.n)
-        )
+        first = self._perm is None
+        if first:
+            Ap = self._csc_view(data)  # symmetric: CSR arrays are the CSC arrays
+        else:
+            Ap = sp.csc_matrix(
+                (data[self._pmap], self._p_indices, self._p_indptr), shape=(self.n, self.n)
+            )
         try:
             lu = spla.splu(
                 Ap,
-                permc_spec="NATURAL",
+                permc_spec="MMD_AT_PLUS_A" if first else "NATURAL",
                 diag_pivot_thresh=0.0,
                 options={"SymmetricMode": True},
             )
         except RuntimeError as err:  # "Factor is exactly singular"
             raise NotPositiveDefinite(str(err), backend="superlu") from err
+        if first:
+            self._set_superlu_ordering(lu.perm_c)  # depends on the pattern only
         # With diagonal pivoting the pivots are the D of A = L D L^T: SPD <=> all > 0.
         d = lu.U.diagonal()
         if not np.array_equal(lu.perm_r, lu.perm_c) or not np.all(d > 0):
@@ -483,10 +488,12 @@ class SparseSPDSolver:
                 f"{int(np.sum(d <= 0))} non-positive pivot(s)", backend="superlu"
             )
         self._lu = lu
+        self._lu_permuted = not first
 
     def _solve_superlu(self, b: np.ndarray) -> np.ndarray:
-        bp = b[self._perm]
-        return self._lu.solve(bp)[self._iperm]
+        if not self._lu_permuted:
+            return self._lu.solve(b)
+        return self._lu.solve(b[self._perm])[self._iperm]
 
 
 @dataclass(frozen=True)
