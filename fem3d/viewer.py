@@ -1176,7 +1176,10 @@ def add_view_subcommand(subparsers: Any) -> argparse.ArgumentParser:
         "--integrator", choices=sorted(INTEGRATOR_LABELS), default=None,
         help="override the scene's integrator",
     )
-    p.add_argument("--backend", choices=("numpy", "c"), default=None, help="kernel back end")
+    p.add_argument(
+        "--kernels", "--backend", dest="backend", choices=("numpy", "c"), default=None,
+        help="kernel back end (default: C if built)",
+    )
     p.add_argument(
         "--no-realtime", action="store_true", help="step as fast as possible (no wall-time pacing)"
     )

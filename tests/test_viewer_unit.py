@@ -177,8 +177,45 @@ def test_cli_subcommand_parses() -> None:
     assert (args.scene, args.port, args.integrator, args.no_realtime, args.time_scale) == (
         "arma", 0, "linear", True, 0.5
     )
+    assert parser.parse_args(["view", "--kernels", "numpy"]).backend == "numpy"
     with pytest.raises(SystemExit):
         parser.parse_args(["view", "--integrator", "rk4"])
+
+
+@needs_viser
+def test_cli_view_serves_and_stops_on_ctrl_c() -> None:
+    """``fem3d view`` prints its URL, serves the page, and exits 0 on SIGINT."""
+    import signal
+    import urllib.request
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fem3d", "view", "bunny", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        url = None
+        lines = []
+        deadline = time.monotonic() + 60
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("fem3d view: http"):
+                url = line.split()[2]
+        assert url, "no URL printed:\n" + "".join(lines)
+        with urllib.request.urlopen(url, timeout=20) as r:  # the viser client page
+            assert r.status == 200 and b"<html" in r.read().lower()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0, out
+        assert "stopping" in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def test_cli_registration_does_not_import_viser() -> None:
