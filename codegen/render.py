@@ -188,5 +188,7 @@ def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
         template_name="templates/numpy/package.py.jinja",
         sympy_version=sp.__version__,
     )
+    files["numpy/_support.py"] = _environment().get_template("numpy/support.py.jinja").render(
+        template_name="templates/numpy/support.py.jinja", sympy_version=sp.__version__)
     files["c/_ckernels.c"] = render_extension(modules)
     return files

@@ -100,7 +100,7 @@ def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., objec
             elif a.shape[0] != m:
                 raise ValueError(f"{qualified}: {name} has {a.shape[0]} elements, expected {m}")
             arrays.append(a)
-        params = np.ascontiguousarray(args[len(inputs)] if n_params else (), dtype=np.float64)
+        params = np.atleast_1d(np.asarray(args[len(inputs)] if n_params else (), dtype=np.float64))
         if params.shape != (n_params,):
             raise ValueError(f"{qualified}: expected {n_params} parameters "
                              f"{signature['params']}, got shape {params.shape}")

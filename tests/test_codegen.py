@@ -305,6 +305,10 @@ def test_kernel_wrappers_reject_bad_shapes(backend: str) -> None:
         nh.psi(np.zeros((4, 3, 3)), (1.0,))
     with pytest.raises(ValueError):
         nh.energy(np.zeros((4, 4, 3)), np.zeros((3, 4, 3)), np.ones(4), (1.0, 1.0))
+    # a single parameter may be given bare
+    spring = kernel_module("spring", backend)
+    a, b = np.zeros((2, 3)), np.ones((2, 3))
+    np.testing.assert_array_equal(spring.energy(a, b, 2.0), spring.energy(a, b, (2.0,)))
 
 
 def test_every_registered_material_is_generated() -> None:

@@ -8,6 +8,8 @@ call, given in ``PARAM_NAMES`` order. Flattening conventions: see ``codegen.conv
 
 import numpy
 
+from ._support import _elements, _finish, _params, _project_psd  # noqa: F401
+
 PARAM_NAMES = ('C', 'D')
 SIGNATURES = {
     "psi": {
@@ -55,48 +57,6 @@ SIGNATURES = {
 }
 
 
-def _elements(*arrays):
-    """Validate per-element inputs; return ``m`` and each input transposed to ``(size, m)``."""
-    m = None
-    columns = []
-    for array, name, shape in arrays:
-        a = numpy.asarray(array, dtype=numpy.float64)
-        size = 1
-        for s in shape:
-            size *= s
-        if a.ndim < 1 or a.ndim > 1 + len(shape) or (len(a) and a[0].size != size):
-            raise ValueError(f"{name} must have shape (m, {', '.join(map(str, shape))}), "
-                             f"got {a.shape}")
-        if m is None:
-            m = a.shape[0]
-        elif a.shape[0] != m:
-            raise ValueError(f"{name} has {a.shape[0]} elements, expected {m}")
-        columns.append(numpy.ascontiguousarray(a.reshape(m, size).T))
-    return m, columns
-
-
-def _params(params, names):
-    values = tuple(float(p) for p in params)
-    if len(values) != len(names):
-        raise ValueError(f"expected {len(names)} parameters {names}, got {len(values)}")
-    return values
-
-
-def _project_psd(m, n, entries):
-    """Clamp negative eigenvalues of the symmetric (m, n, n) matrices given row-major to 0."""
-    matrices = numpy.empty((m, n * n))
-    for index, entry in enumerate(entries):
-        matrices[:, index] = entry
-    matrices = matrices.reshape(m, n, n)
-    values, vectors = numpy.linalg.eigh(matrices)
-    projected = (vectors * numpy.maximum(values, 0.0)[:, None, :]) @ vectors.transpose(0, 2, 1)
-    indefinite = (values < 0.0).any(axis=1)  # already PSD: keep the input exactly
-    projected[~indefinite] = matrices[~indefinite]
-    return tuple(numpy.ascontiguousarray(projected.reshape(m, n * n).T))
-
-
-def _finish(out, m, shape):
-    return numpy.ascontiguousarray(out.T).reshape((m, *shape))
 
 
 def psi(F, params):
