@@ -238,6 +238,12 @@ class System:
         self.mass_free = constraints.reduce_matrix(model.mass)
         self.pattern_free = constraints.reduce_matrix(model.pattern)
         self._solver = SparseSPDSolver(self.pattern_free, backend=solver_backend)
+        if self._solver.backend == "superlu" and self.mass_free.shape[0]:
+            # SuperLU orders on its first factorization and takes another code path (explicit
+            # permutation, natural order) afterwards. Factorizing once here makes every step
+            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
+            # bit for bit what a long-lived one does.
+            self._solver.factorize(self.mass_free)
         from fem3d.kernels import spring_kernels
 
         self.spring = spring_kernels(backend=model.backend)

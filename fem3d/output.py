@@ -308,6 +308,14 @@ class EnergyLog:
     def __len__(self) -> int:
         return len(self._rows)
 
+    @classmethod
+    def from_array(cls, rows: np.ndarray, path: PathLike | None = None) -> EnergyLog:
+        """A log holding ``rows`` ``(n_rows, 4)`` (e.g. from a checkpoint), values exact."""
+        a = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
+        log = cls(path)
+        log._rows = [tuple(float(x) for x in row) for row in a]
+        return log
+
     def as_array(self) -> np.ndarray:
         """Rows ``(t, kinetic, potential, total)`` as an ``(n_rows, 4)`` float64 array."""
         return np.array(self._rows, dtype=np.float64).reshape(-1, 4)

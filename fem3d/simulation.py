@@ -89,6 +89,15 @@ class Simulation:
         Newton iterations per backward-Euler step (default 5; None: until converged).
     newton_hessian : {"exact", "psd"}, optional
         Newton's Hessian in backward Euler (see :func:`fem3d.integrators.implicit_euler`).
+    fixed_vertices : (n_fixed,) int, optional
+        Explicit fixed vertices instead of the scene's lowest-y rule; must not be empty
+        (every run is anchored: a free body would only drift with the pull).
+
+    Raises
+    ------
+    ParameterError
+        An empty fixed-vertex set, or (``scripted``) a picking radius that selects no vertex
+        around the scripted pull's point.
 
     Attributes
     ----------
@@ -113,13 +122,21 @@ class Simulation:
         solver_backend: str = "auto",
         max_newton_iterations: int | None = 5,
         newton_hessian: str = "exact",
+        fixed_vertices: np.ndarray | None = None,
     ) -> None:
         self.scene = scene
         self.model: Model = build_model(
             scene.X, scene.T, E=scene.E, nu=scene.nu, rho=scene.rho,
             material=scene.material, backend=backend, path=scene.mesh_path,
         )
-        fixed = fixed_vertices_lowest_y(scene.X, scene.fixed_tol)
+        if fixed_vertices is None:
+            fixed = fixed_vertices_lowest_y(scene.X, scene.fixed_tol)
+        else:
+            fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64).reshape(-1))
+            if fixed.size == 0:
+                raise ParameterError(
+                    "the fixed-vertex set is empty: a run needs at least one fixed vertex"
+                )
         self.constraints = Constraints.from_fixed_vertices(scene.X, fixed)
         self.system = System(self.model, self.constraints, solver_backend)
         self.surface_faces = boundary_faces(scene.T)
@@ -127,6 +144,9 @@ class Simulation:
         self._integrator = ""
         self.integrator = integrator or scene.integrator
         self.scripted = scripted
+        self._script_ids: np.ndarray | None = None
+        if scripted and scene.pull is not None:
+            self._script_ids = self._pick_script_vertices()
         self.max_newton_iterations = max_newton_iterations
         if newton_hessian not in ("exact", "psd"):
             raise ParameterError(f"newton_hessian must be 'exact' or 'psd', got {newton_hessian!r}")
@@ -241,6 +261,54 @@ class Simulation:
         self._set_state(State(q=q, v=v, t=float(t), step=int(step)))
         self._injected = max(self._injected, self._energy_with_pull())
 
+    def snapshot(self) -> dict:
+        """Everything that determines the next steps, for a bit-exact :meth:`restore`.
+
+        Returns
+        -------
+        dict
+            ``q, v`` (n, 3) float64, ``t`` float, ``step`` int, ``injected`` float (energy
+            put in so far: the linearly-implicit runaway bound), ``script_on`` bool (the
+            scripted pull is attached), ``pull_vertices`` (k,) int64, ``pull_targets``
+            (k, 3) float64 and ``pull_k`` float (``k = 0`` and empty arrays: no pull).
+            Arrays are the simulation's own read-only arrays, not copies.
+        """
+        pull = self._pull
+        return {
+            "q": self._state.q, "v": self._state.v, "t": float(self._state.t),
+            "step": int(self._state.step), "injected": float(self._injected),
+            "script_on": bool(self._script_on),
+            "pull_vertices": (np.zeros(0, np.int64) if pull is None else pull.vertices),
+            "pull_targets": (np.zeros((0, 3)) if pull is None else pull.targets),
+            "pull_k": 0.0 if pull is None else float(pull.k),
+        }
+
+    def restore(self, snap: dict) -> None:
+        """Set the state saved by :meth:`snapshot` (also one read back from a checkpoint).
+
+        Raises
+        ------
+        ParameterError
+            Wrong shapes or non-finite values.
+        """
+        q = np.array(snap["q"], dtype=np.float64)
+        v = np.array(snap["v"], dtype=np.float64)
+        if q.shape != self.model.X.shape or v.shape != self.model.X.shape:
+            raise ParameterError(
+                f"state has shape {q.shape} / {v.shape}, the mesh {self.model.X.shape}"
+            )
+        if not (np.isfinite(q).all() and np.isfinite(v).all()):
+            raise ParameterError("state has non-finite positions or velocities")
+        verts = np.asarray(snap["pull_vertices"], dtype=np.int64).reshape(-1)
+        pull = None
+        if verts.size:
+            pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
+                             float(snap["pull_k"]), self.model.n_vertices)
+        self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"])))
+        self._pull = pull
+        self._script_on = bool(snap["script_on"])
+        self._injected = float(snap["injected"])
+
     def pick(self, point: np.ndarray, radius: float | None = None) -> np.ndarray:
         """Vertices within ``radius`` (default the scene's) of ``point`` in the current shape.
 
@@ -302,15 +370,29 @@ class Simulation:
         return RUNAWAY_FACTOR * max(self._injected, floor)
 
     # ------------------------------------------------------------------ stepping
+    def _pick_script_vertices(self) -> np.ndarray:
+        """Rest-shape vertices within ``pick_radius`` of the scripted pull's point."""
+        script = self.scene.pull
+        r = self.scene.pick_radius
+        ids = pick_nearest_vertices(self.model.X, script.point, r)
+        if ids.size == 0:
+            d = float(np.sqrt(((self.model.X - script.point) ** 2).sum(axis=1).min()))
+            p = ", ".join(f"{c:.6g}" for c in script.point)
+            raise ParameterError(
+                f"picking radius {r:g} selects no vertex around the pull point ({p}); "
+                f"the nearest vertex is {d:.4g} away"
+            )
+        return ids
+
     def _apply_script(self) -> None:
         script = self.scene.pull
         if not self.scripted or script is None:
             return
         active = script.active(self.t, self.dt)
         if active and not self._script_on:
-            ids = pick_nearest_vertices(
-                self.model.X, script.point, self.scene.pick_radius, nearest_if_empty=True
-            )
+            if self._script_ids is None:
+                self._script_ids = self._pick_script_vertices()
+            ids = self._script_ids
             self.set_pull(ids, self.model.X[ids] + script.offset)
             self._script_on = True
         elif not active and self._script_on:

@@ -1,0 +1,149 @@
+"""Run checkpoints of ``fem3d run`` / ``fem3d resume``: everything needed to continue a run.
+
+A checkpoint is one ``.npz`` written atomically by :func:`fem3d.output.save_checkpoint`
+(``DIR/checkpoint.npz``). It holds
+
+* the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
+  velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pull's state (attached
+  or not, its springs) and the energy put in so far (the linearly-implicit runaway bound);
+* ``settings``: every option needed to rebuild the same run (scene name or absolute mesh
+  path, resolved material values, ``dt``, integrator, kernel and sparse-solver back ends,
+  Newton settings, pull script, frame settings, the target step count);
+* the output bookkeeping: the energy rows so far ``(n_rows, 4)`` (the exact values written
+  to ``energy.csv``), the frames written (step, time, relative path) and the frame counter;
+* a SHA-256 digest of the rest mesh, so a resume refuses a mesh file changed in between.
+
+Floats are stored exactly (arrays bit for bit, scalars through JSON, whose ``repr`` round
+trip is exact), so a resumed run computes bit for bit what an uninterrupted one computes
+(same kernels, same solver back end).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fem3d.errors import InputError
+from fem3d.output import PathLike, load_checkpoint, save_checkpoint
+
+__all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_checkpoint",
+           "mesh_digest"]
+
+#: File name of the checkpoint in a run's output folder.
+CHECKPOINT_NAME = "checkpoint.npz"
+
+_KIND = "fem3d-run"
+_SNAPSHOT_SCALARS = ("t", "step", "injected", "script_on", "pull_k")
+_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets")
+
+
+def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:
+    """SHA-256 of the rest positions ``X (n, 3) float64`` and tets ``T (m, 4) int64``."""
+    h = hashlib.sha256()
+    for a, dtype in ((X, np.float64), (T, np.int64)):
+        a = np.ascontiguousarray(a, dtype=dtype)
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+@dataclass
+class RunCheckpoint:
+    """What ``fem3d resume`` needs.
+
+    Attributes
+    ----------
+    settings : dict
+        JSON-able options of the run (see :mod:`fem3d.cli`).
+    snapshot : dict
+        :meth:`fem3d.simulation.Simulation.snapshot`.
+    energy : (n_rows, 4) float64
+        Rows ``t, kinetic, potential, total`` logged so far.
+    frames : dict[int, tuple[float, str]]
+        Step index -> (time, path relative to the output folder) of each frame written.
+    frame_count : int
+        Frames written so far.
+    mesh_digest : str
+        :func:`mesh_digest` of the rest mesh.
+    """
+
+    settings: dict[str, Any]
+    snapshot: dict[str, Any]
+    energy: np.ndarray
+    frames: dict[int, tuple[float, str]] = field(default_factory=dict)
+    frame_count: int = 0
+    mesh_digest: str = ""
+
+    @property
+    def step(self) -> int:
+        """Step index of the saved state."""
+        return int(self.snapshot["step"])
+
+
+def save_run_checkpoint(path: PathLike, ckpt: RunCheckpoint) -> Path:
+    """Write ``ckpt`` atomically to ``path`` (a ``.npz``)."""
+    snap = ckpt.snapshot
+    steps = sorted(ckpt.frames)
+    arrays = {f"state_{k}": np.asarray(snap[k]) for k in _SNAPSHOT_ARRAYS}
+    scalars = {k: snap[k] for k in _SNAPSHOT_SCALARS}
+    return save_checkpoint(
+        path,
+        kind=_KIND,
+        settings=ckpt.settings,
+        state=scalars,
+        energy=np.asarray(ckpt.energy, dtype=np.float64).reshape(-1, 4),
+        frame_steps=np.asarray(steps, dtype=np.int64),
+        frame_times=np.asarray([ckpt.frames[s][0] for s in steps], dtype=np.float64),
+        frame_paths=[ckpt.frames[s][1] for s in steps],
+        frame_count=int(ckpt.frame_count),
+        mesh_digest=ckpt.mesh_digest,
+        **arrays,
+    )
+
+
+def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
+    """Read a checkpoint written by :func:`save_run_checkpoint`.
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable, not a run checkpoint, or inconsistent (naming the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no checkpoint here (run with --checkpoint-every N, or interrupt "
+                         "a run with Ctrl-C, to get one)", path=path)
+    d = load_checkpoint(path)
+    if d.get("kind") != _KIND:
+        raise InputError("not a fem3d run checkpoint", path=path)
+    try:
+        snap: dict[str, Any] = dict(d["state"])
+        for k in _SNAPSHOT_ARRAYS:
+            snap[k] = np.array(d[f"state_{k}"])
+        energy = np.asarray(d["energy"], dtype=np.float64)
+        steps = [int(s) for s in np.asarray(d["frame_steps"]).reshape(-1)]
+        times = [float(t) for t in np.asarray(d["frame_times"]).reshape(-1)]
+        paths = [str(p) for p in d["frame_paths"]]
+        settings = dict(d["settings"])
+        ckpt = RunCheckpoint(
+            settings=settings, snapshot=snap, energy=energy,
+            frames={s: (t, p) for s, t, p in zip(steps, times, paths, strict=True)},
+            frame_count=int(d["frame_count"]), mesh_digest=str(d["mesh_digest"]),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"incomplete run checkpoint ({type(exc).__name__}: {exc})",
+                         path=path) from None
+    q = snap["q"]
+    if q.ndim != 2 or q.shape[1] != 3 or snap["v"].shape != q.shape:
+        raise InputError(f"checkpoint state has bad shapes {q.shape}, {snap['v'].shape}",
+                         path=path)
+    if not (np.isfinite(q).all() and np.isfinite(snap["v"]).all() and np.isfinite(energy).all()):
+        raise InputError("checkpoint holds non-finite values", path=path)
+    if energy.ndim != 2 or energy.shape[1] != 4 or energy.shape[0] != ckpt.step + 1:
+        raise InputError(f"checkpoint energy history has shape {energy.shape}, expected "
+                         f"({ckpt.step + 1}, 4)", path=path)
+    return ckpt
