@@ -79,6 +79,9 @@ class Case:
         Larger sizes are skipped (too slow or too much memory on 2 cores / 24 GiB).
     note : str
         Shown under the table.
+    warmup_required : bool
+        The first call does extra one-off work (JIT, ordering), so it is never used as a
+        sample, even when it is slower than the time budget.
     """
 
     name: str
@@ -88,6 +91,7 @@ class Case:
     requires: tuple[str, ...] = ()
     max_tets: float = float("inf")
     note: str = ""
+    warmup_required: bool = False
 
     @property
     def is_fem3d(self) -> bool:
@@ -109,6 +113,7 @@ def register(
     requires: tuple[str, ...] = (),
     max_tets: float = float("inf"),
     note: str = "",
+    warmup_required: bool = False,
 ) -> Callable[[Callable[[BenchMesh], Callable[[], object]]], Callable]:
     """Decorator registering ``setup`` as a :class:`Case`."""
     if group not in GROUPS:
@@ -117,7 +122,8 @@ def register(
     def deco(setup: Callable[[BenchMesh], Callable[[], object]]) -> Callable:
         if name in CASES:
             raise ValueError(f"benchmark case {name!r} registered twice")
-        CASES[name] = Case(name, group, library, setup, requires, max_tets, note)
+        CASES[name] = Case(name, group, library, setup, requires, max_tets, note,
+                           warmup_required)
         return setup
 
     return deco

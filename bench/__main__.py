@@ -63,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cases", default="",
                    help="only cases whose name contains one of these comma-separated strings")
     p.add_argument("--groups", default="", help=f"only these groups ({', '.join(GROUPS)})")
+    p.add_argument("--stat", choices=("median", "min"), default="median",
+                   help="statistic of the timed calls shown in the report (default median; "
+                        "min is the robust choice on a machine shared with other work)")
     p.add_argument("--fresh", action="store_true",
                    help="discard earlier records in OUT/benchmarks.jsonl (default: merge)")
     p.add_argument("--report-only", action="store_true", help="only re-render the report")
@@ -166,8 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         solver = None
     meta = {"machine": machine_info(), "versions": versions(), "default_solver": solver}
     md = args.out / "benchmarks.md"
-    md.write_text(render_markdown(records, meta))
-    render_plot(records, args.out / "benchmarks.png")
+    md.write_text(render_markdown(records, meta, args.stat))
+    render_plot(records, args.out / "benchmarks.png", args.stat)
     print(f"wrote {md}, {args.out / 'benchmarks.png'}, {jsonl}")
     return 0
 

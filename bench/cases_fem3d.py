@@ -109,7 +109,7 @@ def _register_solver_rows(backend: str) -> None:
         _, A = solver(mesh)
         return lambda: ls.SparseSPDSolver(A, backend=backend)
 
-    @register(f"factor/{lib}", group="factor", **kw)
+    @register(f"factor/{lib}", group="factor", warmup_required=backend == "superlu", **kw)
     def _factor(mesh: BenchMesh):
         s, A = solver(mesh)
         return lambda: s.factorize(A)

@@ -9,7 +9,13 @@ the JSON record; anything else on stdout/stderr is the case's own chatter.
 
 Timing: ``setup`` (untimed, reported), one warm-up call (JIT compilation, caches; reported as
 ``first_s``), then up to ``REPEATS`` timed calls, fewer when they would exceed ``BUDGET_S``
-(at least one). Reported: median and min of the timed calls.
+(at least one). A warm-up call longer than ``BUDGET_S`` is itself the one sample unless the
+case says ``warmup_required``. Reported: median and min of the timed calls.
+
+Memory: ``peak_rss_mb`` is the process peak (``ru_maxrss``: interpreter, libraries, mesh,
+setup, calls); ``call_extra_mb`` is the peak during the calls above the RSS after setup
+(``VmHWM`` reset through ``/proc/self/clear_refs``), i.e. what the timed work itself
+allocates (a factorization's fill, a Hessian's arrays).
 """
 
 from __future__ import annotations
@@ -39,6 +45,28 @@ def _rss_mb() -> float:
 
 def _maxrss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def _status_mb(field: str) -> float | None:
+    """``VmHWM`` (peak) or ``VmRSS`` of this process from /proc/self/status, MiB."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak() -> bool:
+    """Reset ``VmHWM`` to the current RSS (Linux >= 4.0: write 5 to clear_refs)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
 
 
 def _check_value(result: object) -> float | None:
@@ -75,17 +103,30 @@ def run_case(name: str, size: float, repeats: int, budget_s: float) -> dict:
         if case.group in ("factor", "solve", "analyze"):
             rec["n_dofs"] = int(mesh.system.A.shape[0])
             rec["nnz"] = int(mesh.system.A.nnz)
+        # memory of the timed work alone: peak over the calls minus the RSS after setup
+        rec["setup_peak_mb"] = _status_mb("VmHWM")
+        rec["rss_after_setup_mb"] = _status_mb("VmRSS")
+        can_reset = _reset_peak()
         t0 = time.perf_counter()
         out = fn()
         first = time.perf_counter() - t0
         rec["first_s"] = first
         rec["check"] = _check_value(out)
-        n = max(1, min(repeats, int(budget_s / max(first, 1e-9))))
-        times = []
-        for _ in range(n):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
+        del out
+        if first > budget_s and not case.warmup_required:
+            times = [first]  # too slow to repeat; nothing to warm up (no JIT)
+        else:
+            n = max(1, min(repeats, int(budget_s / max(first, 1e-9))))
+            times = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                fn()
+                times.append(time.perf_counter() - t0)
+        n = len(times)
+        if can_reset:
+            peak = _status_mb("VmHWM")
+            rec["call_peak_mb"] = peak
+            rec["call_extra_mb"] = max(0.0, peak - (rec["rss_after_setup_mb"] or 0.0))
         rec.update(status="ok", median_s=statistics.median(times), min_s=min(times),
                    repeats=n, times_s=times)
     except Skip as err:
