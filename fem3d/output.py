@@ -25,6 +25,7 @@ import io
 import json
 import os
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -698,7 +699,7 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
             out: dict[str, Any] = {k: z[k] for k in z.files if k != _META_KEY}
     except InputError:
         raise
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"cannot read checkpoint: {exc}", path=path) from None
     if not isinstance(doc, dict) or doc.get("format") != _FORMAT:
         raise InputError("not a fem3d checkpoint (bad metadata)", path=path)
