@@ -218,6 +218,9 @@ class SparseSPDSolver:
         diag_pos = np.flatnonzero(rows == P.indices)
         if len(diag_pos) != n:
             raise ValueError("pattern must contain every diagonal entry")
+        ones = sp.csr_matrix((np.ones(len(P.indices)), P.indices, P.indptr), shape=P.shape)
+        if (ones != ones.T).nnz:
+            raise ValueError("pattern must be structurally symmetric")
         self._rows = rows
         self._keys: np.ndarray | None = None
         self._diag_pos = diag_pos

@@ -177,5 +177,7 @@ def test_bad_pattern_input() -> None:
         SparseSPDSolver(sp.csr_matrix(np.ones((2, 3))), "superlu")
     with pytest.raises(ValueError, match="diagonal"):
         SparseSPDSolver(sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]])), "superlu")
+    with pytest.raises(ValueError, match="symmetric"):
+        SparseSPDSolver(sp.csr_matrix(np.array([[1.0, 1.0], [0.0, 1.0]])), "superlu")
     with pytest.raises(TypeError):
         SparseSPDSolver(np.eye(3), "superlu")  # type: ignore[arg-type]
