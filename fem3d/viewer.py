@@ -882,7 +882,6 @@ class Viewer:
         new = "implicit" if self._sim_integrator == "linear" else "linear"
         self._sim.integrator = new
         self._gui_dirty = True
-        self._notify_all("Integrator", INTEGRATOR_LABELS[new], seconds=3.0)
 
     def _do_set_paused(self, paused: bool) -> None:
         with self._lock:

@@ -110,9 +110,49 @@ def _mesh_mask(img: np.ndarray) -> np.ndarray:
     """Pixels of the 3-D scene that are not background (white), GUI panel excluded."""
     mask = np.abs(img - img[-1, VIEWPORT["width"] // 2]).sum(axis=2) > 60
     mask[:, int(0.62 * img.shape[1]) :] = False  # control panel
-    mask[:170, :330] = False  # notifications
+    mask[:260, :330] = False  # notifications
     mask[-80:, :80] = False  # axes gizmo
     return mask
+
+
+def _grab_pixel(mask: np.ndarray, q: np.ndarray, camera: Any) -> tuple[float, float]:
+    """A pixel on the drawn mesh near the front-most vertex of the upper half of ``q``."""
+    uv, depth = project(q, camera)
+    y = q[:, 1]
+    upper = y > y.min() + 0.45 * (y.max() - y.min())
+    inside = (
+        (uv[:, 0] > 0) & (uv[:, 0] < mask.shape[1]) & (uv[:, 1] > 0)
+        & (uv[:, 1] < mask.shape[0]) & (depth > 0)
+    )
+    cand = np.flatnonzero(upper & inside)
+    assert cand.size, "no vertex of the upper mesh projects into the canvas"
+    u, v = uv[cand[np.argmin(depth[cand])]]
+    # Snap to the nearest mesh pixel of the screenshot (skin vs sim surface).
+    rows, cols = np.nonzero(mask)
+    k = np.argmin((cols - u) ** 2 + (rows - v) ** 2)
+    assert (cols[k] - u) ** 2 + (rows[k] - v) ** 2 < 40**2, "projection misses the mesh"
+    x0, y0 = int(cols[k]), int(rows[k])
+    # Move to the centre of the mesh pixels around it so the press surely hits the mesh.
+    ys, xs = np.nonzero(mask[y0 - 6 : y0 + 7, x0 - 6 : x0 + 7])
+    return x0 - 6 + float(xs.mean()), y0 - 6 + float(ys.mean())
+
+
+def _central_pixel(mask: np.ndarray) -> tuple[float, float]:
+    """The mesh pixel nearest the centroid of the mesh pixels, moved into the mesh."""
+    rows, cols = np.nonzero(mask)
+    k = np.argmin((cols - cols.mean()) ** 2 + (rows - rows.mean()) ** 2)
+    x0, y0 = int(cols[k]), int(rows[k])
+    ys, xs = np.nonzero(mask[y0 - 6 : y0 + 7, x0 - 6 : x0 + 7])
+    return x0 - 6 + float(xs.mean()), y0 - 6 + float(ys.mean())
+
+
+def _drag(page: Any, x0: float, y0: float, dx: float) -> None:
+    """Press on (x0, y0) and move by (dx, -dx/4) in steps; the button stays down."""
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    for i in range(1, 13):
+        page.mouse.move(x0 + dx * i / 12, y0 - 0.25 * dx * i / 12)
+        time.sleep(0.06)  # drag updates are throttled to ~20 Hz
 
 
 @pytest.fixture
@@ -179,36 +219,10 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 interval=0.3,
             )
             log("mesh visible")
-            mask = _mesh_mask(shot0)
-            q = viewer.positions()
-            uv, depth = project(q, cam)
-            y = q[:, 1]
-            upper = y > y.min() + 0.45 * (y.max() - y.min())
-            inside = (
-                (uv[:, 0] > 0) & (uv[:, 0] < mask.shape[1]) & (uv[:, 1] > 0)
-                & (uv[:, 1] < mask.shape[0]) & (depth > 0)
-            )
-            cand = np.flatnonzero(upper & inside)
-            assert cand.size, "no vertex of the upper bunny projects into the canvas"
-            u, v = uv[cand[np.argmin(depth[cand])]]
-            # Snap to the nearest mesh pixel of the screenshot (skin vs sim surface).
-            rows, cols = np.nonzero(mask)
-            k = np.argmin((cols - u) ** 2 + (rows - v) ** 2)
-            assert (cols[k] - u) ** 2 + (rows[k] - v) ** 2 < 40**2, "projection misses the mesh"
-            x0, y0 = float(cols[k]), float(rows[k])
-            # Move a few pixels inside the silhouette so the press surely hits the mesh.
-            ys, xs = np.nonzero(mask[int(y0) - 6 : int(y0) + 7, int(x0) - 6 : int(x0) + 7])
-            x0, y0 = x0 - 6 + xs.mean(), y0 - 6 + ys.mean()
-
+            x0, y0 = _grab_pixel(_mesh_mask(shot0), viewer.positions(), cam)
             before = viewer.snapshot()
             e_before = max((row[3] for row in before["energy"][-20:]), default=0.0)
-            dx = -80.0 if x0 > 250 else 80.0
-            page.mouse.move(x0, y0)
-            page.mouse.down()
-            for i in range(1, 13):
-                page.mouse.move(x0 + dx * i / 12, y0 - 20.0 * i / 12)
-                time.sleep(0.06)  # drag updates are throttled to ~20 Hz
-
+            _drag(page, x0, y0, -80.0 if x0 > 250 else 80.0)
             log("dragged")
             snap = wait_for(
                 lambda: (lambda s: s if s["pull"] and s["pull"]["ids"] else None)(
@@ -264,6 +278,22 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 interval=0.3,
             )
             log("hotkeys verified")
+
+            # Drag again, now on the skinned mesh (a replaced scene node).
+            assert viewer.snapshot()["mesh_mode"] == "skin"
+            n_events = viewer.snapshot()["drag_events"]
+            # The mesh may still swing after the first pull: aim at the middle of its pixels.
+            x1, y1 = _central_pixel(_mesh_mask(shot2))
+            _drag(page, x1, y1, -60.0 if x1 > 250 else 60.0)
+            wait_for(
+                lambda: (lambda s: bool(s["pull"] and s["pull"]["ids"])
+                         and s["drag_events"] > n_events)(viewer.snapshot()),
+                10,
+                "the skinned mesh to be picked",
+            )
+            page.mouse.up()
+            wait_for(lambda: viewer.snapshot()["pull"] is None, 10, "the second release")
+            log("drag on the skinned mesh verified")
             for name, img in (("shot0", shot0), ("shot1", shot1), ("shot2", shot2)):
                 m = _mesh_mask(img)
                 assert img.std() > 5.0, f"{name} is blank"
