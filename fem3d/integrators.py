@@ -325,6 +325,20 @@ def _check_finite(q: np.ndarray, v: np.ndarray, step: int, what: str) -> None:
         )
 
 
+def _gradient_norm(g: np.ndarray) -> float:
+    """``||g||`` without overflow for finite ``g``; raises on a non-finite gradient."""
+    if not np.isfinite(g).all():
+        raise SimulationError(
+            "Newton's method: the gradient is not finite (forces overflow: parameters or "
+            "state out of range)"
+        )
+    s = float(np.abs(g).max()) if g.size else 0.0
+    n = s * float(np.linalg.norm(g / s)) if s > 0 else 0.0
+    if not math.isfinite(n):
+        raise SimulationError("Newton's method: the gradient norm overflows")
+    return n
+
+
 def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> State:
     v = system.constraints.expand_zero(v_free).reshape(-1, 3)
     q = state.q + dt * v
@@ -482,7 +496,7 @@ def newtons_method(
     x = np.array(x0, dtype=np.float64)
     fx = energy(x)
     g = gradient(x)
-    gn = float(np.linalg.norm(g))
+    gn = _gradient_norm(g)
     norms = [gn]
     tol = max(atol, rtol * gn)
     halvings = 0
@@ -500,7 +514,7 @@ def newtons_method(
             # noise: take the full step while it is admissible and shrinks the gradient.
             xt = x + d
             gt = gradient(xt) if math.isfinite(energy(xt)) else None
-            gtn = math.inf if gt is None else float(np.linalg.norm(gt))
+            gtn = math.inf if gt is None or not np.isfinite(gt).all() else _gradient_norm(gt)
             if not gtn < gn:
                 return NewtonResult(x, it, norms, True, halvings)
             x, fx, g, gn = xt, energy(xt), gt, gtn
@@ -526,7 +540,7 @@ def newtons_method(
             return NewtonResult(x, it, norms, any_finite, halvings)
         x, fx = xt, ft
         g = gradient(x)
-        gn = float(np.linalg.norm(g))
+        gn = _gradient_norm(g)
         norms.append(gn)
         it += 1
     return NewtonResult(x, it, norms, gn <= tol, halvings)
@@ -649,10 +663,15 @@ def implicit_euler(
                 "tets or a non-finite energy)", step=state.step,
             )
     L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
-    res = newtons_method(
-        x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
-        atol=atol_factor * dt * model.E * L * L, on_no_step=no_step,
-    )
+    try:
+        res = newtons_method(
+            x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
+            atol=atol_factor * dt * model.E * L * L, on_no_step=no_step,
+        )
+    except SimulationError as exc:
+        if exc.step is not None:
+            raise
+        raise SimulationError(f"backward Euler: {exc.reason}", step=state.step) from exc
     stats.newton_iterations = res.iterations
     stats.gradient_norms = res.gradient_norms
     stats.line_search_halvings = res.line_search_halvings

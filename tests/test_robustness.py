@@ -366,3 +366,18 @@ def test_api_parameter_errors():
             load_scene(ARMA, **bad)
     with pytest.raises(InputError):
         Simulation(scene).restore({**Simulation(scene).snapshot(), "q": np.zeros((3, 3))})
+
+
+def test_newton_refuses_a_non_finite_gradient_and_survives_a_huge_one():
+    from fem3d.integrators import newtons_method
+
+    def energy(x):
+        return float(x @ x)
+
+    with pytest.raises(SimulationError, match="gradient is not finite"):
+        newtons_method(np.ones(2), energy, lambda x: np.array([math.inf, 0.0]),
+                       lambda x, g: -g)
+    # finite components whose plain 2-norm overflows: still a proper (finite) norm
+    res = newtons_method(np.full(2, 1e300), lambda x: 1.0, lambda x: x, lambda x, g: -g,
+                         max_iterations=0)
+    assert res.gradient_norms[0] == pytest.approx(math.sqrt(2) * 1e300)
