@@ -381,3 +381,32 @@ def test_newton_refuses_a_non_finite_gradient_and_survives_a_huge_one():
     res = newtons_method(np.full(2, 1e300), lambda x: 1.0, lambda x: x, lambda x, g: -g,
                          max_iterations=0)
     assert res.gradient_norms[0] == pytest.approx(math.sqrt(2) * 1e300)
+
+
+@pytest.mark.parametrize("n_signals, saved_step", [(1, 6), (2, 5)],
+                         ids=["finish-step", "abandon-step"])
+def test_in_process_signal_finishes_or_abandons_the_step(tmp_path, capsys, monkeypatch,
+                                                          n_signals, saved_step):
+    """One SIGINT during step 6 lets it finish; a second one abandons it (state of step 5)."""
+    real_step = Simulation.step
+
+    def step(self):
+        if self.step_index == 5:
+            for _ in range(n_signals):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.01)  # let the handler run
+        return real_step(self)
+
+    monkeypatch.setattr(Simulation, "step", step)
+    out = tmp_path / "int"
+    status = main(["run", ARMA, "--steps", "50", "--frame-every", "2", "--out", str(out),
+                   "--quiet", "--no-preview"])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    assert f"interrupted by SIGINT at step {saved_step}" in err
+    ckpt = load_run_checkpoint(out / CHECKPOINT_NAME)
+    assert ckpt.step == saved_step
+    assert len(read_energy_csv(out / "energy.csv")["t"]) == saved_step + 1
+    assert max(ckpt.frames) == saved_step - saved_step % 2
+    assert not _leftovers(out)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
