@@ -266,36 +266,55 @@ def spring_segments(positions: np.ndarray, ids: np.ndarray, target: np.ndarray) 
     return seg
 
 
+#: Viewing direction (from the object toward the camera) per built-in scene; y is up.
+VIEW_DIRECTIONS = {"arma": (0.0, 0.25, -1.0)}  # the armadillo faces -z
+DEFAULT_VIEW_DIRECTION = (0.0, 0.25, 1.0)
+
+
 def camera_for_points(
-    points: np.ndarray, fov: float = 75.0 * math.pi / 180.0
+    points: np.ndarray,
+    fov: float = 75.0 * math.pi / 180.0,
+    *,
+    direction: Sequence[float] = DEFAULT_VIEW_DIRECTION,
+    shift: float = 0.3,
 ) -> dict[str, Any]:
-    """A camera that frames a point set from the +z side, y up.
+    """A camera that frames a point set, y up.
 
     Parameters
     ----------
     points : (n, 3) float64
     fov : float
         Vertical field of view (radians).
+    direction : (3,) float
+        From the box centre toward the camera (need not be unit length).
+    shift : float
+        Sideways offset of the camera (and its target) in bounding-sphere radii, so the
+        object sits left of the centre, clear of the control panel on the right.
 
     Returns
     -------
     dict
         ``position`` (3,), ``look_at`` (3,), ``near``, ``far``, ``radius`` (bounding-sphere
-        radius about the box centre).
+        radius about the box centre), ``center`` (3,).
     """
     p = np.asarray(points, dtype=np.float64)
     lo, hi = p.min(axis=0), p.max(axis=0)
     center = 0.5 * (lo + hi)
     radius = float(max(np.linalg.norm(hi - lo) * 0.5, 1e-9))
     dist = 1.15 * radius / math.sin(0.5 * fov)
-    direction = np.array([0.0, 0.25, 1.0])
-    direction /= np.linalg.norm(direction)
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    right = np.cross(-d, [0.0, 1.0, 0.0])  # camera's right for a y-up view along -d
+    n = np.linalg.norm(right)
+    right = right / n if n > 1e-12 else np.array([1.0, 0.0, 0.0])
+    look_at = center + shift * radius * right
     return {
-        "position": center + dist * direction,
-        "look_at": center,
+        "position": look_at + dist * d,
+        "look_at": look_at,
         "near": dist * 1e-3,
         "far": dist * 100.0,
         "radius": radius,
+        "center": center,
     }
 
 
@@ -468,7 +487,7 @@ class Viewer:
         self._last_push = 0.0
         self._last_plot = 0.0
         self._gui_dirty = True
-        self._camera: dict[str, Any] = camera_for_points(self._sim.q)
+        self._camera: dict[str, Any] = self._scene_camera()
 
     # ---------------------------------------------------------------- properties
     @property
@@ -762,8 +781,12 @@ class Viewer:
         client.camera.position = tuple(cam["position"])
         client.camera.look_at = tuple(cam["look_at"])
 
+    def _scene_camera(self) -> dict[str, Any]:
+        direction = VIEW_DIRECTIONS.get(str(self._scene.name), DEFAULT_VIEW_DIRECTION)
+        return camera_for_points(self._sim.q, direction=direction)
+
     def _apply_camera(self, *, initial: bool = False) -> None:
-        cam = camera_for_points(self._sim.q)
+        cam = self._scene_camera()
         with self._lock:
             self._camera = cam
         ic = self._server.initial_camera
@@ -794,7 +817,8 @@ class Viewer:
             )
         except Exception:  # noqa: BLE001 - a closing client must not kill the sim thread
             return
-        self._notifications.append(h)
+        with self._lock:  # also called from viser's thread (client connect)
+            self._notifications.append(h)
 
     def _notify_all(self, title: str, body: str, color: str = "blue", seconds: float = 6.0) -> None:
         for client in self._server.get_clients().values():
@@ -804,12 +828,13 @@ class Viewer:
                 pass
 
     def _clear_notifications(self) -> None:
-        for h in self._notifications:
+        with self._lock:
+            handles, self._notifications = self._notifications, []
+        for h in handles:
             try:
                 h.remove()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - the client may be gone
                 pass
-        self._notifications.clear()
 
     # ---------------------------------------------------------------- scene graph
     def _display_positions(self) -> np.ndarray:
@@ -875,6 +900,8 @@ class Viewer:
     def _do_toggle_mesh_mode(self) -> None:
         with self._lock:
             self._mesh_mode = "sim" if self._mesh_mode == "skin" else "skin"
+        if not self._has_skin():
+            self._notify_all("No skinned mesh", "This scene has only its simulation mesh.")
         self._rebuild_mesh()
         self._gui_dirty = True
 

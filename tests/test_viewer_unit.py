@@ -113,14 +113,21 @@ def test_spring_segments() -> None:
     assert spring_segments(q, np.zeros(0, dtype=np.int64), np.zeros(3)).shape == (0, 2, 3)
 
 
-@pytest.mark.parametrize("scale", [1.0, 165.0])
-def test_camera_frames_all_points(scale: float) -> None:
+@pytest.mark.parametrize(
+    ("scale", "direction"), [(1.0, (0.0, 0.25, 1.0)), (165.0, (0.0, 0.25, -1.0))]
+)
+def test_camera_frames_all_points(scale: float, direction: tuple[float, ...]) -> None:
     rng = np.random.default_rng(0)
     pts = scale * rng.normal(size=(200, 3)) + np.array([3.0, -2.0, 1.0]) * scale
     fov = 75.0 * math.pi / 180.0
-    cam = camera_for_points(pts, fov)
+    cam = camera_for_points(pts, fov, direction=direction)
     lo, hi = pts.min(0), pts.max(0)
-    np.testing.assert_allclose(cam["look_at"], 0.5 * (lo + hi))
+    np.testing.assert_allclose(cam["center"], 0.5 * (lo + hi))
+    # The camera looks along -direction; the object sits left of the view centre.
+    view = cam["look_at"] - cam["position"]
+    np.testing.assert_allclose(
+        -view / np.linalg.norm(view), np.asarray(direction) / np.linalg.norm(direction)
+    )
     # Every point lies inside the vertical and (square-aspect) horizontal field of view.
     fwd = cam["look_at"] - cam["position"]
     fwd /= np.linalg.norm(fwd)
@@ -132,6 +139,8 @@ def test_camera_frames_all_points(scale: float) -> None:
     assert (z > cam["near"]).all() and (z < cam["far"]).all()
     assert (np.abs(d @ up / z) < math.tan(fov / 2)).all()
     assert (np.abs(d @ right / z) < math.tan(fov / 2)).all()
+    c = cam["center"] - cam["position"]
+    assert c @ right < 0  # the centre projects left of the middle
 
 
 def test_scale_energies_and_title() -> None:
