@@ -357,11 +357,13 @@ def test_simulation_error_pauses_and_reset_recovers(viewer: Any, monkeypatch) ->
 @needs_viser
 def test_real_blow_up_is_caught(viewer: Any) -> None:
     """A huge pull on the bunny's back with the linearly-implicit integrator blows up."""
-    wait_for(lambda: viewer.snapshot()["steps"] > 3, 30, "steps")
-    q = viewer.positions()
+    viewer.set_paused(True)
+    wait_for(lambda: viewer.snapshot()["paused"], 30, "pause")
+    q = viewer._sim.scene.X
     v = int(np.argmin(np.linalg.norm(q - [-68.96, 131.42, 55.16], axis=1)))  # vertex 47
     viewer.begin_pull(q[v], q[v] + np.array([-100.0, 20.0, 0.0]))
-    n0 = viewer.snapshot()["steps"]
+    viewer.reset()  # from rest, with the pull from step 0 (reset re-applies the pull)
+    n0 = 0
     snap = wait_for(
         lambda: (lambda s: s if s["error"] or s["steps"] > n0 + 300 else None)(viewer.snapshot()),
         40,
