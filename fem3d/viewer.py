@@ -486,6 +486,8 @@ class Viewer:
         self._applied_generation = -1
         self._last_push = 0.0
         self._last_plot = 0.0
+        self._shown: tuple[Any, Any] | None = None  # (mesh handle, pull) last sent
+        self._shown_q = np.zeros((0, 3))
         self._gui_dirty = True
         self._camera: dict[str, Any] = self._scene_camera()
 
@@ -1038,14 +1040,20 @@ class Viewer:
         if not force and now - self._last_push < 1.0 / self.push_hz:
             return
         self._last_push = now
-        verts = self._display_positions()
         q = np.asarray(self._sim.q, dtype=np.float64)
-        if np.isfinite(verts).all():
-            with self._server.atomic():
-                self._mesh_handle.vertices = verts.astype(np.float32)
-                self._update_spring(pull, q)
-        with self._lock:
-            self._pushes += 1
+        pull_key = None if pull is None else (pull.ids.tobytes(), pull.target.tobytes())
+        shown = (self._mesh_handle, pull_key)
+        if not (force or shown != self._shown or not np.array_equal(q, self._shown_q)):
+            pass  # nothing moved (paused, or at rest): send nothing
+        else:
+            verts = self._display_positions()
+            if np.isfinite(verts).all():
+                with self._server.atomic():
+                    self._mesh_handle.vertices = verts.astype(np.float32)
+                    self._update_spring(pull, q)
+                self._shown, self._shown_q = shown, q.copy()
+                with self._lock:
+                    self._pushes += 1
         if force or self._gui_dirty or now - self._last_plot >= 1.0 / self.plot_hz:
             self._last_plot = now
             self._gui_dirty = False

@@ -207,7 +207,7 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             cam = wait_for(client_camera, 30, "the browser to report the viewer's camera")
             log("page loaded, camera reported")
             wait_for(lambda: viewer.snapshot()["steps"] > 5, 30, "the simulation to run")
-            wait_for(lambda: viewer.snapshot()["pushes"] > 5, 10, "mesh updates to be pushed")
+            wait_for(lambda: viewer.snapshot()["pushes"] >= 1, 10, "a mesh update to be pushed")
 
             # Wait until the mesh is drawn, then find a grab point on it.
             shot0 = wait_for(

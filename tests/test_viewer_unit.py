@@ -304,9 +304,10 @@ def test_toggles_pause_reset_material(viewer: Any) -> None:
     viewer.toggle_pause()
     wait_for(lambda: viewer.snapshot()["paused"], 10, "pause")
     time.sleep(0.1)
-    n = viewer.snapshot()["steps"]
+    n, pushes = viewer.snapshot()["steps"], viewer.snapshot()["pushes"]
     time.sleep(0.3)
     assert viewer.snapshot()["steps"] == n, "stepped while paused"
+    assert viewer.snapshot()["pushes"] == pushes, "re-sent an unchanged mesh while paused"
     viewer.toggle_pause()
     wait_for(lambda: viewer.snapshot()["steps"] > n, 10, "resume")
     wait_for(lambda: viewer.snapshot()["t"] > 0.05, 30, "time to advance")
