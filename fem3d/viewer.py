@@ -472,6 +472,7 @@ class Viewer:
         self._t = 0.0
         self._material = self._scene_material()
         self._drag_events = 0
+        self._last_gui_pause = -1e9
 
         # Simulation-thread-only state.
         self._server: Any = None
@@ -734,7 +735,7 @@ class Viewer:
         )
         g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
         g["integrator"].on_click(lambda _e: self.toggle_integrator())
-        g["pause"].on_click(lambda _e: self.toggle_pause())
+        g["pause"].on_click(lambda _e: self._gui_toggle_pause())
         g["reset"].on_click(lambda _e: self.reset())
 
         def _on_scene(event: Any) -> None:
@@ -761,12 +762,22 @@ class Viewer:
         for label, key, action in (
             ("Toggle skinned / simulation mesh", "S", self.toggle_mesh_mode),
             ("Toggle linearly-implicit / backward Euler", "N", self.toggle_integrator),
-            ("Pause / resume", "space", self.toggle_pause),
+            ("Pause / resume", "space", self._gui_toggle_pause),
             ("Reset", "R", self.reset),
         ):
             cmd = gui.add_command(label, hotkey=key)
             cmd.on_trigger(lambda _e, a=action: a())
         self._gui = g
+
+    def _gui_toggle_pause(self) -> None:
+        """Pause/resume from the panel: a focused button receives space as a click too, so
+        the hotkey and the click of one key press count once."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last_gui_pause < 0.3:
+                return
+            self._last_gui_pause = now
+        self.toggle_pause()
 
     def _on_client_connect(self, client: Any) -> None:
         with self._lock:

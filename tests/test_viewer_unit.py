@@ -308,7 +308,8 @@ def test_toggles_pause_reset_material(viewer: Any) -> None:
     time.sleep(0.3)
     assert viewer.snapshot()["steps"] == n, "stepped while paused"
     assert viewer.snapshot()["pushes"] == pushes, "re-sent an unchanged mesh while paused"
-    viewer.toggle_pause()
+    viewer._gui_toggle_pause()  # space on a focused button: hotkey + click = one toggle
+    viewer._gui_toggle_pause()
     wait_for(lambda: viewer.snapshot()["steps"] > n, 10, "resume")
     wait_for(lambda: viewer.snapshot()["t"] > 0.05, 30, "time to advance")
     t_before = viewer.snapshot()["t"]
