@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP_STAMP := .venv-stamp
 
-.PHONY: install codegen check-generated build test lint run bench clean
+.PHONY: install browser codegen check-generated build test lint run view bench clean
 
 install: $(PIP_STAMP)
 $(PIP_STAMP): pyproject.toml setup.py generated/c/*.c
@@ -22,11 +22,17 @@ build:  ## rebuild the C extension in place after editing generated/c
 lint:
 	$(PYTHON) -m ruff check .
 
-test: install  ## the test suite (what CI runs)
+browser:  ## Debian chromium for the browser test (skipped with a reason if this fails)
+	-@bash scripts/install_chromium.sh
+
+test: install browser  ## the test suite (what CI runs)
 	$(PYTHON) -m pytest -q
 
 run: install  ## the main job on the built-in bunny scene
 	$(PYTHON) -m fem3d run bunny --out runs/bunny
+
+view: install  ## the interactive viewer on the bunny: open http://127.0.0.1:8080
+	$(PYTHON) -m fem3d view bunny
 
 bench: install
 	$(PYTHON) -m bench

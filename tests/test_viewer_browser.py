@@ -62,6 +62,9 @@ def _missing() -> str | None:
 
 
 _REASON = _missing()
+if _REASON is not None and os.environ.get("FEM3D_REQUIRE_BROWSER") == "1":
+    # CI sets this: there a missing browser is a failure, not a skip.
+    raise RuntimeError(f"FEM3D_REQUIRE_BROWSER=1 but the browser test cannot run: {_REASON}")
 if _REASON is not None:
     pytestmark = [pytest.mark.browser, pytest.mark.skip(reason=_REASON)]
 
