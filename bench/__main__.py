@@ -5,7 +5,7 @@ Examples
 python -m bench --quick                          # 1e3 and 1e4 tets, a few minutes
 python -m bench --sizes 1e3,1e4,1e5 --repeats 5  # the documented run
 python -m bench --sizes 1e6 --groups factor,solve,analyze   # add rows (merged into the JSONL)
-python -m bench --report-only                    # re-render from docs/benchmarks.jsonl
+python -m bench --report-only                    # re-render from bench/results/benchmarks.jsonl
 python -m bench --list
 """
 
@@ -59,7 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true",
                    help="sizes 1e3,1e4, 3 repeats, 5 s budget (unless given)")
     p.add_argument("--out", type=Path, default=Path("docs"),
-                   help="folder for benchmarks.md, benchmarks.png, benchmarks.jsonl")
+                   help="folder for benchmarks.md and benchmarks.png (default docs/)")
+    p.add_argument("--jsonl", type=Path, default=Path("bench/results/benchmarks.jsonl"),
+                   help="the records (merged across runs; default bench/results/benchmarks.jsonl)")
     p.add_argument("--cases", default="",
                    help="only cases whose name contains one of these comma-separated strings")
     p.add_argument("--groups", default="", help=f"only these groups ({', '.join(GROUPS)})")
@@ -127,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{c.name:45s} {c.group:17s} {c.library}{extra}")
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
-    jsonl = args.out / "benchmarks.jsonl"
+    jsonl = args.jsonl
+    jsonl.parent.mkdir(parents=True, exist_ok=True)
     records = [] if args.fresh else read_jsonl(jsonl)
     command = "python -m bench " + " ".join(shlex.quote(a) for a in
                                             (sys.argv[1:] if argv is None else argv))
