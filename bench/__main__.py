@@ -137,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.report_only:
         selected = _select(cases, args)
         date = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+        commit = versions().get("git")
         new = []
         for size in args.sizes:
             for case in selected:
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
                     t0 = time.perf_counter()
                     rec = _run_worker(case, size, args)
                     rec["wall_s"] = time.perf_counter() - t0
-                rec.update(command=command, date=date, threads=args.threads)
+                rec.update(command=command, date=date, threads=args.threads, git=commit)
                 new.append(rec)
                 if rec["status"] == "ok":
                     print(f"[ok]   {case.name} @ {size:g} ({rec['n_tets']} tets): median "

@@ -150,11 +150,15 @@ def render_markdown(records: list[dict], meta: dict, stat: str = "median") -> st
                  f"({mi.get('cores_available', '?')} available), {mi.get('memory_gib')} GiB")
     lines.append(f"- OS: {mi.get('platform')}, Python {mi.get('python')}")
     for b in mi.get("blas", []):
-        lines.append(f"- NumPy/SciPy BLAS: {b}")
+        lines.append(f"- BLAS loaded by the runner (NumPy, SciPy, MKL via pypardiso): {b}")
     if mi.get("system_libblas"):
         lines.append(f"- system libblas.so.3 (CHOLMOD's BLAS): `{mi['system_libblas']}`")
     vers = meta.get("versions", {})
-    lines.append("- versions: " + ", ".join(f"{k} {v}" for k, v in vers.items() if v))
+    lines.append("- versions: " + ", ".join(f"{k} {v}" for k, v in vers.items()
+                                         if v and k != "git"))
+    commits = sorted({r["git"] for r in records if r.get("git")})
+    if commits:
+        lines.append(f"- measured at commit(s): {', '.join(commits)}")
     if default_solver:
         lines.append(f"- fem3d.linsolve default (`auto`) back end here: **{default_solver}**")
     cmds = sorted({r.get("command", "") for r in records if r.get("command")})
