@@ -34,8 +34,10 @@ run: install  ## the main job on the built-in bunny scene
 view: install  ## the interactive viewer on the bunny: open http://127.0.0.1:8080
 	$(PYTHON) -m fem3d view bunny
 
-bench: install
-	$(PYTHON) -m bench
+bench: install  ## benchmarks vs peers -> docs/benchmarks.md (pip install -e .[bench] for the peers)
+	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --threads 1 --groups energy,gradient,hessian_elements,hessian_csr,step
+	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --groups analyze,factor,solve
+	$(PYTHON) -m bench.kernel_throughput
 
 clean:
 	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache
