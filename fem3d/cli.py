@@ -110,6 +110,11 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
         "--hessian", choices=("exact", "psd"), default="exact",
         help="Newton Hessian of backward Euler: exact (default) or per-element PSD-projected",
     )
+    p.add_argument(
+        "--newton-solver", choices=("direct", "reuse"), default="direct",
+        help="Newton linear solves: refactorize each iteration (default) or reuse the step's "
+             "first factorization as a CG preconditioner",
+    )
     p.add_argument("--E", type=float, default=None, help="Young's modulus (default: the scene's)")
     p.add_argument("--nu", type=float, default=None,
                    help="Poisson's ratio, -1 < nu < 0.5 (default: the scene's)")
@@ -207,7 +212,8 @@ def _settings_from_args(args: argparse.Namespace, backend: str) -> dict[str, Any
         "dt": args.dt, "kernels": backend, "solver": None, "frame_every": int(args.frame_every),
         "checkpoint_every": int(args.checkpoint_every), "format": args.format,
         "newton_iterations": int(args.newton_iterations), "hessian": args.hessian,
-        "E": args.E, "nu": args.nu, "rho": args.rho, "pick_radius": args.pick_radius,
+        "newton_solver": args.newton_solver, "E": args.E, "nu": args.nu, "rho": args.rho,
+        "pick_radius": args.pick_radius,
         "pull_point": None if args.pull_point is None else [float(c) for c in args.pull_point],
         "fix_below": args.fix_below, "no_pull": bool(args.no_pull),
         "no_preview": bool(args.no_preview),
@@ -252,7 +258,7 @@ def _build(settings: dict[str, Any]):
         scene, settings["integrator"], settings["kernels"], scripted=not settings["no_pull"],
         solver_backend=settings["solver"] or "auto",
         max_newton_iterations=settings["newton_iterations"], newton_hessian=settings["hessian"],
-        fixed_vertices=fixed,
+        newton_solver=settings.get("newton_solver", "direct"), fixed_vertices=fixed,
     )
     settings.update(
         integrator=sim.integrator, dt=sim.dt, E=scene.E, nu=scene.nu, rho=scene.rho,

@@ -42,7 +42,7 @@ from fem3d.assembly import (
 )
 from fem3d.constraints import Constraints
 from fem3d.errors import SimulationError
-from fem3d.linsolve import NotPositiveDefinite, SparseSPDSolver
+from fem3d.linsolve import NotPositiveDefinite, PreconditionedCG, SparseSPDSolver
 from fem3d.model import Model, validate_dt
 
 __all__ = [
@@ -166,6 +166,8 @@ class StepStats:
         Norm of the objective's gradient at each Newton iterate (implicit Euler).
     line_search_halvings : int
         Total step halvings in the line searches.
+    factorizations, cg_iterations : int
+        Numeric factorizations and preconditioned-CG iterations of the step's linear solves.
     shifted_factorizations : int
         Factorizations that needed a diagonal shift (indefinite Hessian).
     converged : bool
@@ -177,6 +179,8 @@ class StepStats:
     line_search_halvings: int = 0
     shifted_factorizations: int = 0
     converged: bool = True
+    factorizations: int = 0
+    cg_iterations: int = 0
 
 
 @dataclass
@@ -306,6 +310,11 @@ class System:
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
         return mu > 0
+
+    @property
+    def solver(self) -> SparseSPDSolver:
+        """The sparse solver holding the last factorization (shared pattern)."""
+        return self._solver
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve with the last factorization."""
@@ -560,6 +569,8 @@ def implicit_euler(
     rtol: float = 1e-10,
     atol_factor: float = 1e-12,
     hessian: str = "exact",
+    linear_solver: str = "direct",
+    cg_rtol: float = 1e-6,
 ) -> tuple[State, StepStats]:
     """One backward (implicit) Euler step as an energy minimisation.
 
@@ -591,6 +602,16 @@ def implicit_euler(
         ``"exact"`` (default): the true Hessian, quadratic convergence, shifted when
         indefinite. ``"psd"``: per-element ``dP/dF`` projected to positive semi-definite
         (generated ``hessian_psd`` kernel), always SPD, linear convergence near the solution.
+    linear_solver : {"direct", "reuse"}, optional
+        ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
+        ``"reuse"``: factorize at the step's first iteration only; later iterations solve by
+        conjugate gradients preconditioned with that factorization
+        (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``) and
+        refactorize only when CG stalls or meets negative curvature. An inexact Newton: it
+        converges to the same gradient tolerance. The factorization is not carried across
+        steps, so a run resumed from a checkpoint stays bit for bit identical.
+    cg_rtol : float, optional
+        Relative residual of the CG solves with ``"reuse"``.
 
     Returns
     -------
@@ -606,6 +627,12 @@ def implicit_euler(
     if hessian not in ("exact", "psd"):
         raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
     psd = hessian == "psd"
+    if linear_solver not in ("direct", "reuse"):
+        raise ValueError(f"linear_solver must be 'direct' or 'reuse', got {linear_solver!r}")
+    pcg = None
+    if linear_solver == "reuse":
+        pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=40,
+                               refactorize_on_stall=False)
     model, c, spring = system.model, system.constraints, system.spring
     free = c.free_dofs
     q_t = state.q.reshape(-1)
@@ -641,7 +668,14 @@ def implicit_euler(
         A = M.data + dt * dt * H
         if not np.isfinite(A).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
-        stats.shifted_factorizations += int(system.factorize(system.reduced(A)))
+        A_free = system.reduced(A)
+        if pcg is not None and stats.factorizations:
+            result = pcg.solve(A_free, -g)
+            stats.cg_iterations += result.iterations
+            if result.converged:
+                return result.x
+        stats.shifted_factorizations += int(system.factorize(A_free))
+        stats.factorizations += 1
         return -system.solve(g)
 
     def no_step(v_free: np.ndarray, d: np.ndarray) -> None:

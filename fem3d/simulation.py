@@ -89,6 +89,9 @@ class Simulation:
         Newton iterations per backward-Euler step (default 5; None: until converged).
     newton_hessian : {"exact", "psd"}, optional
         Newton's Hessian in backward Euler (see :func:`fem3d.integrators.implicit_euler`).
+    newton_solver : {"direct", "reuse"}, optional
+        Newton's linear solves: refactorize every iteration, or reuse the step's first
+        factorization as a CG preconditioner (see :func:`fem3d.integrators.implicit_euler`).
     fixed_vertices : (n_fixed,) int, optional
         Explicit fixed vertices instead of the scene's lowest-y rule; must not be empty
         (every run is anchored: a free body would only drift with the pull).
@@ -123,6 +126,7 @@ class Simulation:
         max_newton_iterations: int | None = 5,
         newton_hessian: str = "exact",
         fixed_vertices: np.ndarray | None = None,
+        newton_solver: str = "direct",
     ) -> None:
         self.scene = scene
         self.model: Model = build_model(
@@ -151,6 +155,11 @@ class Simulation:
         if newton_hessian not in ("exact", "psd"):
             raise ParameterError(f"newton_hessian must be 'exact' or 'psd', got {newton_hessian!r}")
         self.newton_hessian = newton_hessian
+        if newton_solver not in ("direct", "reuse"):
+            raise ParameterError(
+                f"newton_solver must be 'direct' or 'reuse', got {newton_solver!r}"
+            )
+        self.newton_solver = newton_solver
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
@@ -423,6 +432,7 @@ class Simulation:
             new, stats = INTEGRATORS["implicit"](
                 self.system, self._state, self._dt, self._pull,
                 max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
+                linear_solver=self.newton_solver,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)

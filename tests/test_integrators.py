@@ -236,3 +236,23 @@ def test_psd_projected_hessian_needs_no_shift():
     assert np.abs(new.q - exact.q).max() < 1e-6 * np.abs(exact.q - q).max()
     with pytest.raises(ValueError):
         implicit_euler(sim.system, state, 0.1, hessian="bfgs")
+
+
+def test_reused_factorization_reaches_the_same_answer_with_fewer_factorizations():
+    """linear_solver="reuse" (CG preconditioned by the step's first factorization) converges
+    to the same minimiser as refactorizing at every Newton iteration."""
+    results = {}
+    for mode in ("direct", "reuse"):
+        sim = Simulation(box_scene())
+        state = swinging_state(sim.model.X)
+        new, stats = implicit_euler(sim.system, state, 0.05, max_iterations=None, rtol=1e-12,
+                                    atol_factor=0.0, linear_solver=mode, cg_rtol=1e-6)
+        assert stats.converged
+        results[mode] = (new, stats)
+    direct, reuse = results["direct"], results["reuse"]
+    assert reuse[1].factorizations == 1 < direct[1].factorizations
+    assert reuse[1].cg_iterations > 0
+    scale = np.abs(direct[0].v).max()
+    np.testing.assert_allclose(reuse[0].v, direct[0].v, rtol=0, atol=1e-9 * scale)
+    with pytest.raises(ValueError, match="linear_solver"):
+        implicit_euler(Simulation(box_scene()).system, state, 0.05, linear_solver="magic")
