@@ -38,7 +38,7 @@ CHECKPOINT_NAME = "checkpoint.npz"
 
 _KIND = "fem3d-run"
 _SNAPSHOT_SCALARS = ("t", "step", "injected", "script_on", "pull_k")
-_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets")
+_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "preconditioner")
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:
@@ -123,6 +123,8 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
     try:
         snap: dict[str, Any] = dict(d["state"])
         for k in _SNAPSHOT_ARRAYS:
+            if k == "preconditioner" and f"state_{k}" not in d:
+                continue  # checkpoints written before factorization reuse existed
             snap[k] = np.array(d[f"state_{k}"])
         energy = np.asarray(d["energy"], dtype=np.float64)
         steps = [int(s) for s in np.asarray(d["frame_steps"]).reshape(-1)]

@@ -252,6 +252,7 @@ class System:
 
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
+        self.factorized_data: np.ndarray | None = None
 
     def with_model(self, model: Model) -> System:
         """Same constraints and solver (the pattern is shared), new material values."""
@@ -309,7 +310,20 @@ class System:
             )
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
+        self.factorized_data = np.array(A_free.data)
         return mu > 0
+
+    def refactorize_saved(self, data: np.ndarray) -> None:
+        """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
+        checkpoint's preconditioner): the same matrix gives the same factor, so a resumed
+        run that reuses factorizations across steps stays bit for bit identical."""
+        data = np.asarray(data, dtype=np.float64)
+        if data.shape != (self.pattern_free.nnz,):
+            raise ValueError(f"saved factorization data has shape {data.shape}, the reduced "
+                             f"pattern {self.pattern_free.nnz} entries")
+        A = sp.csr_matrix((data.copy(), self.pattern_free.indices, self.pattern_free.indptr),
+                          shape=self.pattern_free.shape)
+        self.factorize(A)
 
     @property
     def solver(self) -> SparseSPDSolver:
@@ -604,12 +618,12 @@ def implicit_euler(
         (generated ``hessian_psd`` kernel), always SPD, linear convergence near the solution.
     linear_solver : {"direct", "reuse"}, optional
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
-        ``"reuse"``: factorize at the step's first iteration only; later iterations solve by
-        conjugate gradients preconditioned with that factorization
-        (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``) and
-        refactorize only when CG stalls or meets negative curvature. An inexact Newton: it
-        converges to the same gradient tolerance. The factorization is not carried across
-        steps, so a run resumed from a checkpoint stays bit for bit identical.
+        ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
+        (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
+        across iterations and steps, and refactorize only when CG stalls or meets negative
+        curvature (or no factorization exists yet). An inexact Newton: it converges to the
+        same gradient tolerance. :attr:`System.factorized_data` records the factorized
+        matrix so that a checkpoint can rebuild the same preconditioner.
     cg_rtol : float, optional
         Relative residual of the CG solves with ``"reuse"``.
 
@@ -669,7 +683,7 @@ def implicit_euler(
         if not np.isfinite(A).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
         A_free = system.reduced(A)
-        if pcg is not None and stats.factorizations:
+        if pcg is not None and system.factorized_data is not None:
             result = pcg.solve(A_free, -g)
             stats.cg_iterations += result.iterations
             if result.converged:

@@ -279,11 +279,15 @@ class Simulation:
             ``q, v`` (n, 3) float64, ``t`` float, ``step`` int, ``injected`` float (energy
             put in so far: the linearly-implicit runaway bound), ``script_on`` bool (the
             scripted pull is attached), ``pull_vertices`` (k,) int64, ``pull_targets``
-            (k, 3) float64 and ``pull_k`` float (``k = 0`` and empty arrays: no pull).
+            (k, 3) float64 and ``pull_k`` float (``k = 0`` and empty arrays: no pull),
+            ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` the reduced
+            matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
         """
         pull = self._pull
+        kept = self.system.factorized_data if self.newton_solver == "reuse" else None
         return {
+            "preconditioner": np.zeros(0) if kept is None else kept,
             "q": self._state.q, "v": self._state.v, "t": float(self._state.t),
             "step": int(self._state.step), "injected": float(self._injected),
             "script_on": bool(self._script_on),
@@ -317,6 +321,9 @@ class Simulation:
         self._pull = pull
         self._script_on = bool(snap["script_on"])
         self._injected = float(snap["injected"])
+        saved = np.asarray(snap.get("preconditioner", np.zeros(0)), dtype=np.float64)
+        if self.newton_solver == "reuse" and saved.size:
+            self.system.refactorize_saved(saved)
 
     def pick(self, point: np.ndarray, radius: float | None = None) -> np.ndarray:
         """Vertices within ``radius`` (default the scene's) of ``point`` in the current shape.

@@ -256,3 +256,20 @@ def test_reused_factorization_reaches_the_same_answer_with_fewer_factorizations(
     np.testing.assert_allclose(reuse[0].v, direct[0].v, rtol=0, atol=1e-9 * scale)
     with pytest.raises(ValueError, match="linear_solver"):
         implicit_euler(Simulation(box_scene()).system, state, 0.05, linear_solver="magic")
+
+
+def test_reuse_across_steps_factorizes_rarely_and_tracks_direct():
+    """On the armadillo (about one Newton iteration per step) reuse keeps one factorization
+    for many steps and stays on the trajectory of refactorizing every iteration."""
+    runs = {}
+    for mode in ("direct", "reuse"):
+        sim = Simulation(load_scene("arma"), scripted=True, newton_solver=mode)
+        factorizations = 0
+        for _ in range(40):
+            sim.step()
+            factorizations += sim.last_stats.factorizations
+        runs[mode] = (sim.q.copy(), factorizations)
+    (q_direct, f_direct), (q_reuse, f_reuse) = runs["direct"], runs["reuse"]
+    assert f_reuse < f_direct / 4
+    size = np.ptp(q_direct, axis=0).max()
+    assert np.abs(q_reuse - q_direct).max() < 1e-6 * size

@@ -98,8 +98,10 @@ def _compare_runs(a: Path, b: Path) -> None:
         # NumPy kernels, PSD Newton Hessian, split after the release
         ([ARMA, "--kernels", "numpy", "--hessian", "psd", "--newton-iterations", "3"], 34, 31,
          None),
+        # factorizations reused across steps: the checkpoint rebuilds the same preconditioner
+        ([ARMA, "--newton-solver", "reuse"], 30, 11, None),
     ],
-    ids=["arma-implicit", "bunny-linear-superlu", "arma-numpy-psd"],
+    ids=["arma-implicit", "bunny-linear-superlu", "arma-numpy-psd", "arma-reuse"],
 )
 def test_resume_is_bit_exact(tmp_path, capsys, monkeypatch, argv, n, k, solver):
     if solver:
