@@ -148,7 +148,14 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
             for out in kernel.outputs
         ],
         "op_count": kernel.op_count,
+        "assemble": kernel_view_assemble(kernel),
     }
+
+
+def kernel_view_assemble(kernel: KernelSpec) -> bool:
+    """Whether the C back end adds a fused ``*_assemble`` entry point for this kernel."""
+    return (kernel.module in MATERIALS and bool(kernel.inputs) and kernel.inputs[0].name == "x_e"
+            and kernel.inputs[0].shape == (4, 3) and len(kernel.outputs) == 1)
 
 
 def render_module(module: ModuleSpec, backend: str) -> str:
@@ -170,7 +177,8 @@ def render_extension(modules: list[ModuleSpec]) -> str:
     return template.render(
         modules=[{"name": m.name, "kernels": [
             {"qualified_name": k.qualified_name, "doc": k.doc, "n_inputs": len(k.inputs),
-             "n_outputs": len(k.outputs)} for k in m.kernels]} for m in modules],
+             "n_outputs": len(k.outputs), "assemble": kernel_view_assemble(k)}
+            for k in m.kernels]} for m in modules],
         template_name="templates/c/extension.c.jinja",
         sympy_version=sp.__version__,
     )

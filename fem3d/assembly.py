@@ -65,6 +65,11 @@ def element_energies(model: Model, q: np.ndarray) -> np.ndarray:
 
 def potential_energy(model: Model, q: np.ndarray) -> float:
     """Total strain energy ``V(q)`` (non-finite when a tet is inverted for log/power laws)."""
+    if model.mat.has_assemble("energy"):  # C: gather, evaluate and sum in one pass
+        total = np.zeros(1)
+        model.mat.energy_assemble(q, model.T, model.dphi_dX, model.vol, model.params,
+                                  model.energy_slots, total)
+        return float(total[0])
     return float(element_energies(model, q).sum())
 
 
@@ -75,6 +80,10 @@ def assemble_gradient(model: Model, q: np.ndarray) -> np.ndarray:
     -------
     (3n,) float64
     """
+    if model.mat.has_assemble("gradient"):  # C: gather, evaluate and scatter in one pass
+        out = np.zeros(model.n_dofs)
+        return model.mat.gradient_assemble(q, model.T, model.dphi_dX, model.vol, model.params,
+                                           model.elem_dofs, out)
     g = model.mat.gradient(element_positions(model, q), model.dphi_dX, model.vol, model.params)
     return model.assemble_vectors(g)
 
@@ -110,8 +119,13 @@ def hessian_data(model: Model, q: np.ndarray, *, psd: bool = False) -> np.ndarra
     -------
     (nnz,) float64
     """
-    kernel = model.mat.hessian_psd if psd else model.mat.hessian
-    H = kernel(element_positions(model, q), model.dphi_dX, model.vol, model.params)
+    name = "hessian_psd" if psd else "hessian"
+    if model.mat.has_assemble(name):  # C: no (m, 12, 12) intermediate, one pass
+        out = np.zeros(model.nnz)
+        return getattr(model.mat, f"{name}_assemble")(
+            q, model.T, model.dphi_dX, model.vol, model.params, model.scatter, out)
+    H = getattr(model.mat, name)(element_positions(model, q), model.dphi_dX, model.vol,
+                                 model.params)
     return model.assemble_blocks(H)
 
 

@@ -68,7 +68,14 @@ class KernelModule:
                 function = getattr(self._numpy, kernel)
             else:
                 function = _c_wrapper(name, kernel, self.SIGNATURES[kernel])
+                fused = getattr(c_extension(), f"{name}_{kernel}_assemble", None)
+                if fused is not None:
+                    setattr(self, f"{kernel}_assemble", _assemble_wrapper(fused))
             setattr(self, kernel, function)
+
+    def has_assemble(self, kernel: str) -> bool:
+        """Whether ``<kernel>_assemble`` (fused gather-compute-scatter, C only) exists."""
+        return hasattr(self, f"{kernel}_assemble")
 
     def __repr__(self) -> str:
         return f"KernelModule({self.name!r}, backend={self.backend!r})"
@@ -111,6 +118,38 @@ def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., objec
     call.__name__ = kernel
     call.__qualname__ = qualified
     call.__doc__ = f"C kernel {qualified}; same arguments and results as the NumPy kernel."
+    return call
+
+
+def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
+    """``kernel_assemble(q, T, *inputs, params, index, out)``: adds every element's output into
+    ``out[index[e]]``, gathering ``x_e = q[T[e]]`` itself (one pass, one thread, fixed order).
+
+    Parameters
+    ----------
+    q : (n, 3) float64
+    T : (m, 4) int64
+    *inputs : the kernel's other per-element inputs (``dphi_dX (m, 4, 3)``, ``vol (m,)``)
+    params : sequence of float
+    index : (m, size) int64
+        Destination of each output entry in ``out`` (e.g. the CSR scatter map).
+    out : (N,) float64
+        Accumulated into (not cleared) and returned.
+    """
+
+    def call(q, T, *rest):
+        *inputs, params, index, out = rest
+        fused(
+            np.ascontiguousarray(q, dtype=np.float64),
+            np.ascontiguousarray(T, dtype=np.int64),
+            *(np.ascontiguousarray(a, dtype=np.float64) for a in inputs),
+            np.atleast_1d(np.asarray(params, dtype=np.float64)),
+            np.ascontiguousarray(index, dtype=np.int64),
+            out,
+        )
+        return out
+
+    call.__doc__ = _assemble_wrapper.__doc__
     return call
 
 

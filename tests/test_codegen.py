@@ -351,20 +351,38 @@ def test_show_prints_one_kernel() -> None:
 
 
 @pytest.mark.skipif(c_extension() is None, reason="C extension not built")
-def test_segment_sum_matches_bincount_and_validates() -> None:
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+@pytest.mark.parametrize("kernel", ["energy", "gradient", "hessian", "hessian_psd"])
+def test_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str) -> None:
+    rng = np.random.default_rng(12)
+    n, m = 30, 80
+    T = np.array([rng.choice(n, 4, replace=False) for _ in range(m)], dtype=np.int64)
+    _, x, dphi, vol = random_elements(rng, m)
+    q = rng.normal(size=(n, 3))
+    x = q[T]
+    k = material_kernels(material, "c")
+    values = getattr(k, kernel)(x, dphi, vol, PARAMS[material]).reshape(m, -1)
+    index = rng.integers(0, 50, size=values.shape).astype(np.int64)
+    expected = np.bincount(index.ravel(), weights=values.ravel(), minlength=50)
+    out = np.full(50, 1.0)  # accumulates
+    getattr(k, f"{kernel}_assemble")(q, T, dphi, vol, PARAMS[material], index, out)
+    np.testing.assert_allclose(out - 1.0, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+def test_fused_assemble_validates_indices_and_types() -> None:
     ext = c_extension()
-    rng = np.random.default_rng(9)
-    scatter = np.concatenate([np.arange(50), rng.integers(0, 50, 2000)])
-    values = rng.normal(size=scatter.size)
-    order = np.argsort(scatter, kind="stable").astype(np.int64)
-    offsets = np.concatenate([[0], np.cumsum(np.bincount(scatter, minlength=50))]).astype(np.int64)
-    out = np.empty(50)
-    ext.segment_sum(values, order, offsets, out)
-    np.testing.assert_allclose(out, np.bincount(scatter, weights=values, minlength=50),
-                               rtol=1e-13, atol=1e-13)
-    with pytest.raises(ValueError, match="out of range"):
-        ext.segment_sum(values, order + 5000, offsets, out)
-    with pytest.raises(ValueError, match="offsets"):
-        ext.segment_sum(values, order, offsets[:-1], out)
+    q, dphi, vol = np.zeros((5, 3)), np.zeros((2, 4, 3)), np.ones(2)
+    T = np.array([[0, 1, 2, 3], [1, 2, 3, 4]], dtype=np.int64)
+    params, index, out = np.array([1.0, 1.0]), np.zeros((2, 12), dtype=np.int64), np.zeros(3)
+    ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index, out)
+    with pytest.raises(ValueError, match="vertex index"):
+        ext.neo_hookean_gradient_assemble(q, T + 1, dphi, vol, params, index, out)
+    with pytest.raises(ValueError, match="outside"):
+        ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index + 3, out)
     with pytest.raises(ValueError, match="int64"):
-        ext.segment_sum(values, order.astype(np.int32), offsets, out)
+        ext.neo_hookean_gradient_assemble(q, T.astype(np.int32), dphi, vol, params, index, out)
+    with pytest.raises(ValueError, match="m \\* 12"):
+        ext.neo_hookean_gradient_assemble(q, T, dphi[:1], vol, params, index, out)
+    with pytest.raises(TypeError):
+        ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index)

@@ -183,14 +183,6 @@ done:
     return result;
 }
 
-#include "tet.c"
-#include "spring.c"
-#include "neo_hookean.c"
-#include "stvk.c"
-
-// Assembly helper (not derived): out[k] = sum of values[order[i]] for offsets[k] <= i < offsets[k+1].
-// With order = a stable argsort of the element-to-CSR scatter map this sums every element
-// block into CSR data without atomics, in parallel, and in a fixed (reproducible) order.
 static int is_int64(const Py_buffer *view)
 {
     const char *f = view->format;
@@ -199,56 +191,90 @@ static int is_int64(const Py_buffer *view)
     return strcmp(f, "q") == 0 || strcmp(f, "l") == 0;
 }
 
-static PyObject *py_segment_sum(PyObject *self, PyObject *args)
+typedef void (*assemble_fn)(Py_ssize_t, const double *, const long long *, const double *const *,
+                            const double *, const long long *, double *);
+
+// Arguments of every fused element kernel: (q, T, rest inputs..., params, index, out) with
+// q (n*3) float64, T (m*4) int64 in [0, n), each rest input m*size float64, index (m*out_size)
+// int64 in [0, len(out)), out float64 (added to, not overwritten).
+static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, int n_rest,
+                              const Py_ssize_t *rest_sizes, int n_params, Py_ssize_t out_size)
 {
-    PyObject *objects[4];
-    Py_buffer views[4];
+    Py_buffer views[FEM3D_MAX_ARGS];
+    const double *rest[FEM3D_MAX_ARGS];
+    const int n_args = n_rest + 5;
     int n_views = 0;
     PyObject *result = NULL;
-    (void)self;
-    if (!PyArg_ParseTuple(args, "OOOO:segment_sum", &objects[0], &objects[1], &objects[2],
-                          &objects[3]))
+    if (PyTuple_GET_SIZE(args) != n_args) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments (q, T, %d inputs, params, index, out)"
+                     ", got %zd", name, n_args, n_rest, PyTuple_GET_SIZE(args));
         return NULL;
-    for (int i = 0; i < 4; ++i) {
-        const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i == 3 ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(objects[i], &views[i], flags) != 0) {
+    }
+    for (int i = 0; i < n_args; ++i) {
+        const int is_out = i == n_args - 1;
+        const int integer = i == 1 || i == n_args - 2;
+        const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (is_out ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(args, i), &views[i], flags) != 0) {
             PyErr_Clear();
-            PyErr_Format(PyExc_ValueError, "segment_sum: argument %d must be a C-contiguous%s array",
-                         i, i == 3 ? " writable" : "");
+            PyErr_Format(PyExc_ValueError, "%s: argument %d must be a C-contiguous%s array", name,
+                         i, is_out ? " writable" : "");
             goto done;
         }
         ++n_views;
-        if ((i == 0 || i == 3) ? !is_float64(&views[i]) : !is_int64(&views[i])) {
-            PyErr_Format(PyExc_ValueError, "segment_sum: argument %d must have dtype %s", i,
-                         (i == 0 || i == 3) ? "float64" : "int64");
+        if (integer ? !is_int64(&views[i]) : !is_float64(&views[i])) {
+            PyErr_Format(PyExc_ValueError, "%s: argument %d must have dtype %s", name, i,
+                         integer ? "int64" : "float64");
             goto done;
         }
     }
     {
-        const double *values = (const double *)views[0].buf;
-        const long long *order = (const long long *)views[1].buf;
-        const long long *offsets = (const long long *)views[2].buf;
-        double *out = (double *)views[3].buf;
-        const Py_ssize_t n_values = views[0].len / 8, n_order = views[1].len / 8;
-        const Py_ssize_t m = views[3].len / 8;
-        if (views[2].len / 8 != m + 1 || (m >= 0 && offsets[m] != n_order) || offsets[0] != 0) {
-            PyErr_SetString(PyExc_ValueError, "segment_sum: offsets must have len(out) + 1 "
-                            "entries, from 0 to len(order)");
+        const Py_ssize_t n = views[0].len / 8, m = views[1].len / 32;
+        const Py_ssize_t n_out = views[n_args - 1].len / 8;
+        const long long *T = (const long long *)views[1].buf;
+        const long long *index = (const long long *)views[n_args - 2].buf;
+        if (n % 3 != 0 || views[1].len % 32 != 0) {
+            PyErr_Format(PyExc_ValueError, "%s: q must hold n*3 and T m*4 values", name);
             goto done;
         }
-        for (Py_ssize_t i = 0; i < n_order; ++i) {
-            if (order[i] < 0 || order[i] >= n_values) {
-                PyErr_Format(PyExc_ValueError, "segment_sum: order[%zd] out of range", i);
+        for (int r = 0; r < n_rest; ++r) {
+            if (views[2 + r].len / 8 != m * rest_sizes[r]) {
+                PyErr_Format(PyExc_ValueError, "%s: input %d must have m * %zd values", name,
+                             2 + r, rest_sizes[r]);
                 goto done;
             }
+            rest[r] = (const double *)views[2 + r].buf;
         }
+        if (views[2 + n_rest].len / 8 != n_params) {
+            PyErr_Format(PyExc_ValueError, "%s: expected %d parameters", name, n_params);
+            goto done;
+        }
+        if (views[n_args - 2].len / 8 != m * out_size) {
+            PyErr_Format(PyExc_ValueError, "%s: index must have m * %zd entries", name, out_size);
+            goto done;
+        }
+        long long lo = 0, hi = -1;
+        for (Py_ssize_t i = 0; i < 4 * m; ++i) {
+            lo = T[i] < lo ? T[i] : lo;
+            hi = T[i] > hi ? T[i] : hi;
+        }
+        if (lo < 0 || hi >= n / 3) {
+            PyErr_Format(PyExc_ValueError, "%s: T has a vertex index outside [0, %zd)", name, n / 3);
+            goto done;
+        }
+        lo = 0, hi = -1;
+        for (Py_ssize_t i = 0; i < m * out_size; ++i) {
+            lo = index[i] < lo ? index[i] : lo;
+            hi = index[i] > hi ? index[i] : hi;
+        }
+        if (lo < 0 || hi >= n_out) {
+            PyErr_Format(PyExc_ValueError, "%s: index has an entry outside [0, %zd)", name, n_out);
+            goto done;
+        }
+        const double *q = (const double *)views[0].buf;
+        const double *params = (const double *)views[2 + n_rest].buf;
+        double *out = (double *)views[n_args - 1].buf;
         Py_BEGIN_ALLOW_THREADS
-        FEM3D_PARALLEL_FOR
-        for (Py_ssize_t e = 0; e < m; ++e) {
-            double sum = 0.0;
-            for (long long i = offsets[e]; i < offsets[e + 1]; ++i) sum += values[order[i]];
-            out[e] = sum;
-        }
+        fn(m, q, T, rest, params, index, out);
         Py_END_ALLOW_THREADS
     }
     result = Py_NewRef(Py_None);
@@ -256,6 +282,11 @@ done:
     for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
     return result;
 }
+
+#include "tet.c"
+#include "spring.c"
+#include "neo_hookean.c"
+#include "stvk.c"
 
 static PyObject *py_max_threads(PyObject *self, PyObject *unused)
 {
@@ -280,18 +311,32 @@ static PyMethodDef methods[] = {
     {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"neo_hookean_energy", py_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"neo_hookean_energy_assemble", py_neo_hookean_energy_assemble, METH_VARARGS,
+     "neo_hookean_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_gradient", py_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"neo_hookean_gradient_assemble", py_neo_hookean_gradient_assemble, METH_VARARGS,
+     "neo_hookean_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_hessian", py_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"neo_hookean_hessian_assemble", py_neo_hookean_hessian_assemble, METH_VARARGS,
+     "neo_hookean_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"neo_hookean_hessian_psd_assemble", py_neo_hookean_hessian_psd_assemble, METH_VARARGS,
+     "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"stvk_energy", py_stvk_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"stvk_energy_assemble", py_stvk_energy_assemble, METH_VARARGS,
+     "stvk_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"stvk_gradient", py_stvk_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"stvk_gradient_assemble", py_stvk_gradient_assemble, METH_VARARGS,
+     "stvk_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"stvk_hessian", py_stvk_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"stvk_hessian_assemble", py_stvk_hessian_assemble, METH_VARARGS,
+     "stvk_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"segment_sum", py_segment_sum, METH_VARARGS,
-     "segment_sum(values, order, offsets, out): out[k] = sum(values[order[offsets[k]:offsets[k+1]]])."},
+    {"stvk_hessian_psd_assemble", py_stvk_hessian_psd_assemble, METH_VARARGS,
+     "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"max_threads", py_max_threads, METH_NOARGS, "OpenMP threads the kernels use (1 without OpenMP)."},
     {NULL, NULL, 0, NULL},
 };
