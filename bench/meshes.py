@@ -7,7 +7,6 @@ Functions
 ---------
 box_mesh(n_tets)                -> X (n_vertices, 3), T (n_tets, 4)
 rest_shape(X, T)                -> dphi_dX (m, 4, 3), vol (m,)
-element_dofs(T)                 -> (m, 12) global DOF indices, vertex-major
 assemble_csr(T, K_e, n)         -> (3 n, 3 n) CSR from per-element (m, 12, 12) blocks
 linear_elastic_system(X, T)     -> A = M + dt^2 K restricted to free DOFs (SPD), and friends
 """
@@ -18,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+
+from fem3d.model import element_dofs  # the one definition of the DOF layout
 
 # The six tets of the Kuhn (Freudenthal) subdivision of the unit cube: each follows a monotone
 # path 000 -> 111 along the axes in the order of one permutation. Corner index = x + 2 y + 4 z.
@@ -111,11 +112,6 @@ def rest_shape(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     dphi[:, 1:] = Dinv
     dphi[:, 0] = -Dinv.sum(axis=1)
     return dphi, vol
-
-
-def element_dofs(T: np.ndarray) -> np.ndarray:
-    """Global DOF indices (m, 12) of each element, vertex-major (x0 y0 z0 x1 ...)."""
-    return (3 * T[:, :, None] + np.arange(3)).reshape(len(T), 12)
 
 
 def assemble_csr(T: np.ndarray, K_e: np.ndarray, n_vertices: int) -> sp.csr_matrix:

@@ -69,11 +69,11 @@ def material_module(name: str) -> ModuleSpec:
     F_arg = _matrix_arg("F", d.F, "deformation gradients")
     kernels: list[KernelSpec] = [
         make_kernel(name, "psi", "Strain energy density psi(F).", [F_arg], params,
-                    [("psi", (), [d.psi], False, "")]),
+                    [("psi", (), [d.psi], False)]),
         make_kernel(name, "dpsi_dF", "First Piola-Kirchhoff stress P = dpsi/dF.", [F_arg], params,
-                    [("P", (3, 3), flatten(d.P), False, "")]),
+                    [("P", (3, 3), flatten(d.P), False)]),
         make_kernel(name, "d2psi_dF2", "dP/dF, 9x9 in the row-major flattening of F.", [F_arg],
-                    params, [("dP_dF", (9, 9), flatten(d.dP_dF), True, "")]),
+                    params, [("dP_dF", (9, 9), flatten(d.dP_dF), True)]),
     ]
 
     x, D, vol = _element_symbols()
@@ -88,7 +88,7 @@ def material_module(name: str) -> ModuleSpec:
     energy_prelude = prelude_F + _cse_prelude([d.psi], [sp.Symbol("psi")], "e")
     kernels.append(make_kernel(
         name, "energy", "Element potential energy vol * psi(F(x_e)).", element_inputs, params,
-        [("energy", (), [vol * sp.Symbol("psi")], False, "")], energy_prelude))
+        [("energy", (), [vol * sp.Symbol("psi")], False)], energy_prelude))
 
     P_sym = symbol_matrix("P", 3, 3)
     grad_prelude = prelude_F + _cse_prelude(flatten(d.P), flatten(P_sym), "s")
@@ -96,7 +96,7 @@ def material_module(name: str) -> ModuleSpec:
                 for v in range(4) for c in range(3)]
     kernels.append(make_kernel(
         name, "gradient", "Element gradient d(vol psi)/dx_e, vertex-major (12).", element_inputs,
-        params, [("gradient", (12,), gradient, False, "")], grad_prelude))
+        params, [("gradient", (12,), gradient, False)], grad_prelude))
 
     # dP/dF is symmetric: compute the upper triangle once and reference it from both sides.
     A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
@@ -132,7 +132,7 @@ def _hessian_contraction(A: sp.Matrix, D: sp.Matrix, vol: sp.Symbol, prelude: li
                     steps.append((T[3 * c + j, 3 * w + dd], value))
     hessian = sp.Matrix(12, 12, lambda r, s: vol * sum(
         D[r // 3, j] * T[3 * (r % 3) + j, s] for j in range(3)))
-    return [("hessian", (12, 12), flatten(hessian), True, "")], steps
+    return [("hessian", (12, 12), flatten(hessian), True)], steps
 
 
 def _tet_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:
@@ -145,19 +145,19 @@ def _tet_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:
     return {
         "rest_shape": (
             [X_arg], [],
-            [("dphi_dX", (4, 3), flatten(tet.shape_gradients(X)), False, ""),
-             ("volume", (), [tet.signed_volume(X)], False, "")]),
+            [("dphi_dX", (4, 3), flatten(tet.shape_gradients(X)), False),
+             ("volume", (), [tet.signed_volume(X)], False)]),
         "phi": (
             [X_arg, _matrix_arg("p", p, "points")], [],
-            [("phi", (4,), list(tet.barycentric(X, p)), False, "")]),
+            [("phi", (4,), list(tet.barycentric(X, p)), False)]),
         "mass_matrix": (
             [Argument("vol", (), (vol,), doc="rest volumes")],
             [Argument("rho", (), (rho,), per_element=False)],
-            [("mass", (12, 12), flatten(tet.mass_matrix(rho, vol)), True, "")]),
+            [("mass", (12, 12), flatten(tet.mass_matrix(rho, vol)), True)]),
         "deformation_gradient": (
             [_matrix_arg("x_e", x, "deformed vertex positions"),
              _matrix_arg("dphi_dX", D, "shape-function gradients")], [],
-            [("F", (3, 3), flatten(deformation_gradient(x, D)), False, "")]),
+            [("F", (3, 3), flatten(deformation_gradient(x, D)), False)]),
     }
 
 
@@ -181,9 +181,9 @@ def _spring_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]
               _matrix_arg("x_b", xb, "second end points")]
     params = [Argument("k", (), (k,), per_element=False)]
     return {
-        "energy": (inputs, params, [("energy", (), [energy], False, "")]),
-        "gradient": (inputs, params, [("gradient", (6,), gradient, False, "")]),
-        "hessian": (inputs, params, [("hessian", (6, 6), hessian, True, "")]),
+        "energy": (inputs, params, [("energy", (), [energy], False)]),
+        "gradient": (inputs, params, [("gradient", (6,), gradient, False)]),
+        "hessian": (inputs, params, [("hessian", (6, 6), hessian, True)]),
     }
 
 
@@ -242,4 +242,4 @@ def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[l
     raw = {"tet": _tet_raw, "spring": _spring_raw}[module]()
     inputs, params, outputs = raw[kernel]
     symbols = [s for a in (*inputs, *params) for s in a.symbols]
-    return symbols, [list(exprs) for _, _, exprs, _, _ in outputs]
+    return symbols, [list(exprs) for _, _, exprs, _ in outputs]

@@ -176,8 +176,8 @@ def render_extension(modules: list[ModuleSpec]) -> str:
     template = _environment().get_template("c/extension.c.jinja")
     return template.render(
         modules=[{"name": m.name, "kernels": [
-            {"qualified_name": k.qualified_name, "doc": k.doc, "n_inputs": len(k.inputs),
-             "n_outputs": len(k.outputs), "assemble": kernel_view_assemble(k)}
+            {"qualified_name": k.qualified_name, "doc": k.doc,
+             "assemble": kernel_view_assemble(k)}
             for k in m.kernels]} for m in modules],
         template_name="templates/c/extension.c.jinja",
         sympy_version=sp.__version__,

@@ -39,7 +39,6 @@ class Output:
     shape: tuple[int, ...]
     exprs: tuple[sp.Expr, ...]
     symmetric: bool = False
-    doc: str = ""
 
     @property
     def size(self) -> int:
@@ -114,7 +113,7 @@ def make_kernel(
     doc: str,
     inputs: Sequence[Argument],
     params: Sequence[Argument],
-    outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], bool, str]],
+    outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], bool]],
     prelude: Sequence[Step] = (),
 ) -> KernelSpec:
     """Run common-subexpression elimination over all outputs and freeze a :class:`KernelSpec`.
@@ -124,8 +123,8 @@ def make_kernel(
     Only the entries a symmetric output actually computes take part in the CSE.
     """
     pending = []
-    for out_name, shape, exprs, symmetric, out_doc in outputs:
-        probe = Output(out_name, shape, tuple(exprs), symmetric, out_doc)
+    for out_name, shape, exprs, symmetric in outputs:
+        probe = Output(out_name, shape, tuple(exprs), symmetric)
         pending.append((probe, [e for _, e, _ in probe.entries()]))
     flat = [e for _, exprs in pending for e in exprs]
     replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("t"), order="canonical")
@@ -139,7 +138,7 @@ def make_kernel(
             full[k] = value
             for k2 in mirror:
                 full[k2] = value
-        outs.append(Output(probe.name, probe.shape, tuple(full), probe.symmetric, probe.doc))
+        outs.append(Output(probe.name, probe.shape, tuple(full), probe.symmetric))
     return KernelSpec(
         module=module,
         name=name,

@@ -357,7 +357,7 @@ def test_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str) -
     rng = np.random.default_rng(12)
     n, m = 30, 80
     T = np.array([rng.choice(n, 4, replace=False) for _ in range(m)], dtype=np.int64)
-    _, x, dphi, vol = random_elements(rng, m)
+    _, _, dphi, vol = random_elements(rng, m)
     q = rng.normal(size=(n, 3))
     x = q[T]
     k = material_kernels(material, "c")
