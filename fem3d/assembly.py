@@ -83,7 +83,7 @@ def assemble_gradient(model: Model, q: np.ndarray) -> np.ndarray:
     if model.mat.has_assemble("gradient"):  # C: gather, evaluate and scatter in one pass
         out = np.zeros(model.n_dofs)
         return model.mat.gradient_assemble(q, model.T, model.dphi_dX, model.vol, model.params,
-                                           model.elem_dofs, out)
+                                           model.dof_slots, out)
     g = model.mat.gradient(element_positions(model, q), model.dphi_dX, model.vol, model.params)
     return model.assemble_vectors(g)
 

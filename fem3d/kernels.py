@@ -52,7 +52,10 @@ class KernelModule:
     """The kernels of one generated module (a material, ``tet`` or ``spring``) on one back end.
 
     Every kernel is an attribute taking the per-element inputs, then (if the kernel has any)
-    the parameter sequence, and returning its outputs with a leading element axis.
+    the parameter sequence, and returning its outputs with a leading element axis. The keyword
+    ``out`` (an array, or a tuple of arrays for several outputs, of the result's shapes and
+    float64) receives the results instead of new arrays: repeated calls on large meshes then
+    skip the allocation and its page faults (the C back end writes straight into ``out``).
     """
 
     def __init__(self, name: str, backend: str) -> None:
@@ -65,7 +68,7 @@ class KernelModule:
         self.SIGNATURES: dict = self._numpy.SIGNATURES
         for kernel in self.SIGNATURES:
             if backend == "numpy":
-                function = getattr(self._numpy, kernel)
+                function = _numpy_wrapper(getattr(self._numpy, kernel), name, kernel)
             else:
                 function = _c_wrapper(name, kernel, self.SIGNATURES[kernel])
                 fused = getattr(c_extension(), f"{name}_{kernel}_assemble", None)
@@ -90,7 +93,7 @@ def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., objec
     n_params = len(signature["params"])
     qualified = f"{module}.{kernel}"
 
-    def call(*args: object) -> np.ndarray | tuple[np.ndarray, ...]:
+    def call(*args: object, out=None) -> np.ndarray | tuple[np.ndarray, ...]:
         expected = len(inputs) + (1 if n_params else 0)
         if len(args) != expected:
             raise TypeError(f"{qualified} takes {expected} arguments, got {len(args)}")
@@ -111,13 +114,52 @@ def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., objec
         if params.shape != (n_params,):
             raise ValueError(f"{qualified}: expected {n_params} parameters "
                              f"{signature['params']}, got shape {params.shape}")
-        results = [np.empty((m, *shape)) for _, shape in outputs]
+        shapes = [(m, *shape) for _, shape in outputs]
+        if out is None:
+            results = [np.empty(shape) for shape in shapes]
+        else:
+            results = _check_out(qualified, out, shapes)
         function(*arrays, params, *results)
         return results[0] if len(results) == 1 else tuple(results)
 
     call.__name__ = kernel
     call.__qualname__ = qualified
     call.__doc__ = f"C kernel {qualified}; same arguments and results as the NumPy kernel."
+    return call
+
+
+def _check_out(qualified: str, out, shapes: list[tuple[int, ...]]) -> list[np.ndarray]:
+    """The ``out=`` arrays of a kernel call, checked against the result ``shapes``."""
+    arrays = list(out) if isinstance(out, tuple | list) else [out]
+    if len(arrays) != len(shapes):
+        raise ValueError(f"{qualified}: out must hold {len(shapes)} arrays, got {len(arrays)}")
+    for a, shape in zip(arrays, shapes, strict=True):
+        if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == shape
+                and a.flags.c_contiguous and a.flags.writeable):
+            got = f"{a.dtype} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+            raise ValueError(f"{qualified}: out must be a writable C-contiguous float64 array "
+                             f"of shape {shape}, got {got}")
+    return arrays
+
+
+def _numpy_wrapper(function: Callable[..., object], module: str, kernel: str):
+    """A generated NumPy kernel with the ``out=`` keyword of the C wrappers."""
+    qualified = f"{module}.{kernel}"
+
+    def call(*args: object, out=None):
+        results = function(*args)
+        if out is None:
+            return results
+        many = isinstance(results, tuple)
+        values = list(results) if many else [results]
+        arrays = _check_out(qualified, out, [v.shape for v in values])
+        for a, v in zip(arrays, values, strict=True):
+            a[...] = v
+        return tuple(arrays) if many else arrays[0]
+
+    call.__name__ = kernel
+    call.__qualname__ = qualified
+    call.__doc__ = function.__doc__
     return call
 
 
@@ -131,8 +173,9 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     T : (m, 4) int64
     *inputs : the kernel's other per-element inputs (``dphi_dX (m, 4, 3)``, ``vol (m,)``)
     params : sequence of float
-    index : (m, size) int64
-        Destination of each output entry in ``out`` (e.g. the CSR scatter map).
+    index : (m, size) int32
+        Destination of each output entry in ``out`` (e.g. the CSR scatter map); other integer
+        types are converted (ValueError when a value does not fit in int32).
     out : (N,) float64
         Accumulated into (not cleared) and returned.
     """
@@ -144,13 +187,25 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
             np.ascontiguousarray(T, dtype=np.int64),
             *(np.ascontiguousarray(a, dtype=np.float64) for a in inputs),
             np.atleast_1d(np.asarray(params, dtype=np.float64)),
-            np.ascontiguousarray(index, dtype=np.int64),
+            _as_index32(index),
             out,
         )
         return out
 
     call.__doc__ = _assemble_wrapper.__doc__
     return call
+
+
+def _as_index32(index: np.ndarray) -> np.ndarray:
+    """``index`` as C-contiguous int32 (the fused kernels' index type), range-checked."""
+    index = np.asarray(index)
+    if index.dtype == np.int32:
+        return np.ascontiguousarray(index)
+    if not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(f"index must hold integers, got dtype {index.dtype}")
+    if index.size and (index.min() < 0 or index.max() > np.iinfo(np.int32).max):
+        raise ValueError("index has an entry outside [0, 2**31)")
+    return np.ascontiguousarray(index, dtype=np.int32)
 
 
 @cache

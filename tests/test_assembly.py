@@ -192,7 +192,7 @@ def test_scatter_matches_coo_assembly(model):
     assert H.indices is model.pattern.indices or np.array_equal(H.indices, model.pattern.indices)
     assert np.array_equal(model.mass.indptr, model.pattern.indptr)
     assert model.scatter.shape == (model.n_tets * 144,)
-    assert model.scatter.dtype == np.int64
+    assert model.scatter.dtype == np.int32
 
 
 def test_count_inverted(model):

@@ -311,6 +311,27 @@ def test_kernel_wrappers_reject_bad_shapes(backend: str) -> None:
     np.testing.assert_array_equal(spring.energy(a, b, 2.0), spring.energy(a, b, (2.0,)))
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_out_keyword_fills_the_given_arrays(backend: str) -> None:
+    rng = np.random.default_rng(3)
+    args, _ = kernel_inputs("neo_hookean", "hessian", rng, 20)
+    nh = material_kernels("neo_hookean", backend)
+    out = np.full((20, 12, 12), np.nan)
+    result = nh.hessian(*args, out=out)
+    assert result is out
+    np.testing.assert_array_equal(out, nh.hessian(*args))
+    (X,), _ = kernel_inputs("tet", "rest_shape", rng, 20)
+    geo = kernel_module("tet", backend)
+    outs = (np.empty((20, 4, 3)), np.empty(20))
+    dphi, vol = geo.rest_shape(X, out=outs)
+    assert dphi is outs[0] and vol is outs[1]
+    np.testing.assert_array_equal(vol, geo.rest_shape(X)[1])
+    for bad in (np.empty((20, 12, 11)), np.empty((20, 12, 12), np.float32),
+                np.empty((20, 12, 24))[:, :, ::2], (out, out)):
+        with pytest.raises(ValueError, match="out must"):
+            nh.hessian(*args, out=bad)
+
+
 def test_every_registered_material_is_generated() -> None:
     from fem3d._generated import MATERIALS as generated
 
@@ -374,14 +395,19 @@ def test_fused_assemble_validates_indices_and_types() -> None:
     ext = c_extension()
     q, dphi, vol = np.zeros((5, 3)), np.zeros((2, 4, 3)), np.ones(2)
     T = np.array([[0, 1, 2, 3], [1, 2, 3, 4]], dtype=np.int64)
-    params, index, out = np.array([1.0, 1.0]), np.zeros((2, 12), dtype=np.int64), np.zeros(3)
+    params, index, out = np.array([1.0, 1.0]), np.zeros((2, 12), dtype=np.int32), np.zeros(3)
     ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index, out)
     with pytest.raises(ValueError, match="vertex index"):
         ext.neo_hookean_gradient_assemble(q, T + 1, dphi, vol, params, index, out)
     with pytest.raises(ValueError, match="outside"):
         ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index + 3, out)
+    with pytest.raises(ValueError, match="element 1"):  # the first bad element is named
+        ext.neo_hookean_gradient_assemble(q, np.array([[0, 1, 2, 3], [1, 2, 3, 5]]), dphi, vol,
+                                          params, index, out)
     with pytest.raises(ValueError, match="int64"):
         ext.neo_hookean_gradient_assemble(q, T.astype(np.int32), dphi, vol, params, index, out)
+    with pytest.raises(ValueError, match="int32"):
+        ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index.astype(np.int64), out)
     with pytest.raises(ValueError, match="m \\* 12"):
         ext.neo_hookean_gradient_assemble(q, T, dphi[:1], vol, params, index, out)
     with pytest.raises(TypeError):

@@ -191,12 +191,24 @@ static int is_int64(const Py_buffer *view)
     return strcmp(f, "q") == 0 || strcmp(f, "l") == 0;
 }
 
-typedef void (*assemble_fn)(Py_ssize_t, const double *, const long long *, const double *const *,
-                            const double *, const long long *, double *);
+static int is_int32(const Py_buffer *view)
+{
+    const char *f = view->format;
+    if (view->itemsize != 4 || f == NULL) return 0;
+    if (f[0] == '<' || f[0] == '=' || f[0] == '@') ++f;
+    return strcmp(f, "i") == 0;
+}
+
+// A fused kernel returns 0, or the first bad element e as -(e + 1) for a vertex index outside
+// [0, n) and as e + 1 for a destination outside [0, len(out)). The bounds are checked in the
+// element loop itself: a separate validation pass would read T and index once more per call.
+typedef Py_ssize_t (*assemble_fn)(Py_ssize_t, Py_ssize_t, const double *, const long long *,
+                                  const double *const *, const double *, const int *, Py_ssize_t,
+                                  double *);
 
 // Arguments of every fused element kernel: (q, T, rest inputs..., params, index, out) with
 // q (n*3) float64, T (m*4) int64 in [0, n), each rest input m*size float64, index (m*out_size)
-// int64 in [0, len(out)), out float64 (added to, not overwritten).
+// int32 in [0, len(out)), out float64 (added to, not overwritten).
 static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, int n_rest,
                               const Py_ssize_t *rest_sizes, int n_params, Py_ssize_t out_size)
 {
@@ -212,7 +224,7 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
     }
     for (int i = 0; i < n_args; ++i) {
         const int is_out = i == n_args - 1;
-        const int integer = i == 1 || i == n_args - 2;
+        const int is_T = i == 1, is_index = i == n_args - 2;
         const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (is_out ? PyBUF_WRITABLE : 0);
         if (PyObject_GetBuffer(PyTuple_GET_ITEM(args, i), &views[i], flags) != 0) {
             PyErr_Clear();
@@ -221,17 +233,17 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
             goto done;
         }
         ++n_views;
-        if (integer ? !is_int64(&views[i]) : !is_float64(&views[i])) {
+        const int ok = is_T ? is_int64(&views[i]) : is_index ? is_int32(&views[i])
+                                                             : is_float64(&views[i]);
+        if (!ok) {
             PyErr_Format(PyExc_ValueError, "%s: argument %d must have dtype %s", name, i,
-                         integer ? "int64" : "float64");
+                         is_T ? "int64" : is_index ? "int32" : "float64");
             goto done;
         }
     }
     {
         const Py_ssize_t n = views[0].len / 8, m = views[1].len / 32;
         const Py_ssize_t n_out = views[n_args - 1].len / 8;
-        const long long *T = (const long long *)views[1].buf;
-        const long long *index = (const long long *)views[n_args - 2].buf;
         if (n % 3 != 0 || views[1].len % 32 != 0) {
             PyErr_Format(PyExc_ValueError, "%s: q must hold n*3 and T m*4 values", name);
             goto done;
@@ -248,34 +260,29 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
             PyErr_Format(PyExc_ValueError, "%s: expected %d parameters", name, n_params);
             goto done;
         }
-        if (views[n_args - 2].len / 8 != m * out_size) {
+        if (views[n_args - 2].len / 4 != m * out_size) {
             PyErr_Format(PyExc_ValueError, "%s: index must have m * %zd entries", name, out_size);
             goto done;
         }
-        long long lo = 0, hi = -1;
-        for (Py_ssize_t i = 0; i < 4 * m; ++i) {
-            lo = T[i] < lo ? T[i] : lo;
-            hi = T[i] > hi ? T[i] : hi;
-        }
-        if (lo < 0 || hi >= n / 3) {
-            PyErr_Format(PyExc_ValueError, "%s: T has a vertex index outside [0, %zd)", name, n / 3);
-            goto done;
-        }
-        lo = 0, hi = -1;
-        for (Py_ssize_t i = 0; i < m * out_size; ++i) {
-            lo = index[i] < lo ? index[i] : lo;
-            hi = index[i] > hi ? index[i] : hi;
-        }
-        if (lo < 0 || hi >= n_out) {
-            PyErr_Format(PyExc_ValueError, "%s: index has an entry outside [0, %zd)", name, n_out);
-            goto done;
-        }
         const double *q = (const double *)views[0].buf;
+        const long long *T = (const long long *)views[1].buf;
         const double *params = (const double *)views[2 + n_rest].buf;
+        const int *index = (const int *)views[n_args - 2].buf;
         double *out = (double *)views[n_args - 1].buf;
+        Py_ssize_t bad;
         Py_BEGIN_ALLOW_THREADS
-        fn(m, q, T, rest, params, index, out);
+        bad = fn(m, n / 3, q, T, rest, params, index, n_out, out);
         Py_END_ALLOW_THREADS
+        if (bad < 0) {
+            PyErr_Format(PyExc_ValueError, "%s: T has a vertex index outside [0, %zd) in element "
+                         "%zd (out is partly updated)", name, n / 3, -bad - 1);
+            goto done;
+        }
+        if (bad > 0) {
+            PyErr_Format(PyExc_ValueError, "%s: index has an entry outside [0, %zd) in element "
+                         "%zd (out is partly updated)", name, n_out, bad - 1);
+            goto done;
+        }
     }
     result = Py_NewRef(Py_None);
 done:

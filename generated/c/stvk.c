@@ -354,22 +354,31 @@ static PyObject *py_stvk_energy(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order).
-static void stvk_energy_assemble(Py_ssize_t m, const double *q, const long long *T,
-    const double *const *rest, const double *params, const long long *index, double *out)
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t stvk_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[1];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
     for (Py_ssize_t e = 0; e < m; ++e) {
-        for (int v = 0; v < 4; ++v)
-            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * T[4 * e + v] + c];
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
         stvk_energy_element(in, params, result);
-        const long long *slot = index + 1 * e;
-        for (int i = 0; i < 1; ++i) out[slot[i]] += local[i];
+        const int *slot = index + 1 * e;
+        for (int i = 0; i < 1; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
     }
+    return 0;
 }
 
 static PyObject *py_stvk_energy_assemble(PyObject *self, PyObject *args)
@@ -498,22 +507,31 @@ static PyObject *py_stvk_gradient(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order).
-static void stvk_gradient_assemble(Py_ssize_t m, const double *q, const long long *T,
-    const double *const *rest, const double *params, const long long *index, double *out)
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t stvk_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[12];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
     for (Py_ssize_t e = 0; e < m; ++e) {
-        for (int v = 0; v < 4; ++v)
-            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * T[4 * e + v] + c];
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
         stvk_gradient_element(in, params, result);
-        const long long *slot = index + 12 * e;
-        for (int i = 0; i < 12; ++i) out[slot[i]] += local[i];
+        const int *slot = index + 12 * e;
+        for (int i = 0; i < 12; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
     }
+    return 0;
 }
 
 static PyObject *py_stvk_gradient_assemble(PyObject *self, PyObject *args)
@@ -868,22 +886,31 @@ static PyObject *py_stvk_hessian(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order).
-static void stvk_hessian_assemble(Py_ssize_t m, const double *q, const long long *T,
-    const double *const *rest, const double *params, const long long *index, double *out)
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t stvk_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
     for (Py_ssize_t e = 0; e < m; ++e) {
-        for (int v = 0; v < 4; ++v)
-            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * T[4 * e + v] + c];
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
         stvk_hessian_element(in, params, result);
-        const long long *slot = index + 144 * e;
-        for (int i = 0; i < 144; ++i) out[slot[i]] += local[i];
+        const int *slot = index + 144 * e;
+        for (int i = 0; i < 144; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
     }
+    return 0;
 }
 
 static PyObject *py_stvk_hessian_assemble(PyObject *self, PyObject *args)
@@ -1321,22 +1348,31 @@ static PyObject *py_stvk_hessian_psd(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order).
-static void stvk_hessian_psd_assemble(Py_ssize_t m, const double *q, const long long *T,
-    const double *const *rest, const double *params, const long long *index, double *out)
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t stvk_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
     for (Py_ssize_t e = 0; e < m; ++e) {
-        for (int v = 0; v < 4; ++v)
-            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * T[4 * e + v] + c];
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
         stvk_hessian_psd_element(in, params, result);
-        const long long *slot = index + 144 * e;
-        for (int i = 0; i < 144; ++i) out[slot[i]] += local[i];
+        const int *slot = index + 144 * e;
+        for (int i = 0; i < 144; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
     }
+    return 0;
 }
 
 static PyObject *py_stvk_hessian_psd_assemble(PyObject *self, PyObject *args)
