@@ -158,6 +158,9 @@ def _tet_raw() -> dict[str, tuple[list[Argument], list[Argument], list[tuple]]]:
             [_matrix_arg("x_e", x, "deformed vertex positions"),
              _matrix_arg("dphi_dX", D, "shape-function gradients")], [],
             [("F", (3, 3), flatten(deformation_gradient(x, D)), False)]),
+        "deformed_volume": (
+            [_matrix_arg("x_e", x, "deformed vertex positions")], [],
+            [("volume", (), [tet.signed_volume(x)], False)]),
     }
 
 
@@ -166,6 +169,7 @@ _TET_DOCS = {
     "phi": "Shape functions (barycentric coordinates) of each tet at a point p.",
     "mass_matrix": "Exact consistent mass matrix rho * integral N^T N dV (12x12).",
     "deformation_gradient": "Deformation gradient F = sum_v x_v dphi_v/dX^T.",
+    "deformed_volume": "Signed volume of deformed tets (<= 0: inverted or flat).",
 }
 
 

@@ -153,8 +153,10 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
 
 
 def kernel_view_assemble(kernel: KernelSpec) -> bool:
-    """Whether the C back end adds a fused ``*_assemble`` entry point for this kernel."""
-    return (kernel.module in MATERIALS and bool(kernel.inputs) and kernel.inputs[0].name == "x_e"
+    """Whether the C back end adds a fused ``*_assemble`` entry point for this kernel: element
+    kernels of deformed positions ``x_e`` with one output (materials and tet geometry)."""
+    return (kernel.module in (*MATERIALS, "tet") and bool(kernel.inputs)
+            and kernel.inputs[0].name == "x_e"
             and kernel.inputs[0].shape == (4, 3) and len(kernel.outputs) == 1)
 
 

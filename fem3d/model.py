@@ -269,6 +269,13 @@ class Model:
         return np.zeros(self.n_tets, dtype=np.int32)
 
     @cached_property
+    def element_slots(self) -> np.ndarray:
+        """``(m,) int32`` ``0, 1, ..., m - 1``: a fused kernel's map for one value per element."""
+        slots = np.arange(self.n_tets, dtype=np.int32)
+        slots.setflags(write=False)
+        return slots
+
+    @cached_property
     def dof_slots(self) -> np.ndarray:
         """``(m, 12) int32`` copy of :attr:`elem_dofs`: the fused gradient's scatter map."""
         slots = self.elem_dofs.astype(np.int32)

@@ -102,6 +102,8 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
         return (X, p), [*X.reshape(m, 12).T, *p.T]
     if kernel == "mass_matrix":
         return (vol, (0.1,)), [vol, 0.1]
+    if kernel == "deformed_volume":
+        return (x,), [*x.reshape(m, 12).T]
     return (x, dphi), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T]
 
 
@@ -388,6 +390,22 @@ def test_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str) -
     out = np.full(50, 1.0)  # accumulates
     getattr(k, f"{kernel}_assemble")(q, T, dphi, vol, PARAMS[material], index, out)
     np.testing.assert_allclose(out - 1.0, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+@pytest.mark.parametrize("kernel", ["deformed_volume", "deformation_gradient"])
+def test_fused_geometry_kernels_equal_kernel_then_scatter(kernel: str) -> None:
+    rng = np.random.default_rng(5)
+    n, m = 20, 60
+    T = np.array([rng.choice(n, 4, replace=False) for _ in range(m)], dtype=np.int64)
+    q = rng.normal(size=(n, 3))
+    _, _, dphi, _ = random_elements(rng, m)
+    geo = kernel_module("tet", "c")
+    rest = () if kernel == "deformed_volume" else (dphi,)
+    values = getattr(geo, kernel)(q[T], *rest).reshape(m, -1)
+    index = np.arange(values.size, dtype=np.int32).reshape(values.shape)
+    out = getattr(geo, f"{kernel}_assemble")(q, T, *rest, (), index, np.zeros(values.size))
+    np.testing.assert_allclose(out, values.ravel(), rtol=1e-14, atol=1e-15)
 
 
 @pytest.mark.skipif(c_extension() is None, reason="C extension not built")

@@ -376,3 +376,125 @@ static PyObject *py_tet_deformation_gradient(PyObject *self, PyObject *args)
                       2, input_sizes, 0,
                       1, output_sizes);
 }
+
+// Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t tet_deformation_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
+{
+    double x[12], local[9];
+    const double *in[] = { x, NULL, };
+    double *result[] = { local };
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
+        in[1] = rest[0] + 12 * e;
+        tet_deformation_gradient_element(in, params, result);
+        const int *slot = index + 9 * e;
+        for (int i = 0; i < 9; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_tet_deformation_gradient_assemble(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t rest_sizes[] = { 12, };
+    (void)self;
+    return run_assemble(args, "tet_deformation_gradient_assemble", tet_deformation_gradient_assemble,
+                        1, rest_sizes, 0,
+                        9);
+}
+
+// Signed volume of deformed tets (<= 0: inverted or flat).
+// inputs: x_e (m, 4, 3); params: ()
+// outputs: volume (m); operation count per element: 89
+static inline void tet_deformed_volume_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    (void)params;
+    // inputs
+    const double *restrict in_x_e = in[0];
+    const double x_0_0 = in_x_e[0];
+    const double x_0_1 = in_x_e[1];
+    const double x_0_2 = in_x_e[2];
+    const double x_1_0 = in_x_e[3];
+    const double x_1_1 = in_x_e[4];
+    const double x_1_2 = in_x_e[5];
+    const double x_2_0 = in_x_e[6];
+    const double x_2_1 = in_x_e[7];
+    const double x_2_2 = in_x_e[8];
+    const double x_3_0 = in_x_e[9];
+    const double x_3_1 = in_x_e[10];
+    const double x_3_2 = in_x_e[11];
+    // intermediates (3)
+    const double t0 = (1.0/6.0)*x_0_0;
+    const double t1 = (1.0/6.0)*x_0_1;
+    const double t2 = (1.0/6.0)*x_0_2;
+    // outputs
+    double *restrict out_volume = out[0];
+    out_volume[0] = -t0*x_1_1*x_2_2 - t0*x_1_2*x_3_1 - t0*x_2_1*x_3_2 - t1*x_1_0*x_3_2 - t1*x_1_2*x_2_0 - t1*x_2_2*x_3_0 - t2*x_1_0*x_2_1 - t2*x_1_1*x_3_0 - t2*x_2_0*x_3_1 + (1.0/6.0)*x_0_0*x_1_1*x_3_2 + (1.0/6.0)*x_0_0*x_1_2*x_2_1 + (1.0/6.0)*x_0_0*x_2_2*x_3_1 + (1.0/6.0)*x_0_1*x_1_0*x_2_2 + (1.0/6.0)*x_0_1*x_1_2*x_3_0 + (1.0/6.0)*x_0_1*x_2_0*x_3_2 + (1.0/6.0)*x_0_2*x_1_0*x_3_1 + (1.0/6.0)*x_0_2*x_1_1*x_2_0 + (1.0/6.0)*x_0_2*x_2_1*x_3_0 + (1.0/6.0)*x_1_0*x_2_1*x_3_2 - 1.0/6.0*x_1_0*x_2_2*x_3_1 - 1.0/6.0*x_1_1*x_2_0*x_3_2 + (1.0/6.0)*x_1_1*x_2_2*x_3_0 + (1.0/6.0)*x_1_2*x_2_0*x_3_1 - 1.0/6.0*x_1_2*x_2_1*x_3_0;
+}
+
+static void tet_deformed_volume(Py_ssize_t m, const double *const *inputs, const double *params,
+    double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 12 * e, };
+        double *out[] = { outputs[0] + 1 * e, };
+        tet_deformed_volume_element(in, params, out);
+    }
+}
+
+static PyObject *py_tet_deformed_volume(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 12, };
+    static const Py_ssize_t output_sizes[] = { 1, };
+    (void)self;
+    return run_kernel(args, "tet_deformed_volume", tet_deformed_volume,
+                      1, input_sizes, 0,
+                      1, output_sizes);
+}
+
+// Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
+// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
+// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+static Py_ssize_t tet_deformed_volume_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
+    const double *q, const long long *T, const double *const *rest, const double *params,
+    const int *index, Py_ssize_t n_out, double *out)
+{
+    double x[12], local[1];
+    const double *in[] = { x, };
+    double *result[] = { local };
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
+        tet_deformed_volume_element(in, params, result);
+        const int *slot = index + 1 * e;
+        for (int i = 0; i < 1; ++i) {
+            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
+            out[slot[i]] += local[i];
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_tet_deformed_volume_assemble(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t rest_sizes[] = { };
+    (void)self;
+    return run_assemble(args, "tet_deformed_volume_assemble", tet_deformed_volume_assemble,
+                        0, rest_sizes, 0,
+                        1);
+}

@@ -36,6 +36,12 @@ SIGNATURES = {
         "outputs": (("F", (3, 3)), ),
         "op_count": 63,
     },
+    "deformed_volume": {
+        "inputs": (("x_e", (4, 3)), ),
+        "params": (),
+        "outputs": (("volume", ()), ),
+        "op_count": 89,
+    },
 }
 
 
@@ -431,3 +437,41 @@ def deformation_gradient(x_e, dphi_dX, ):
     _out_F[7] = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     _out_F[8] = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
     return _finish(_out_F, m, (3, 3))
+
+
+def deformed_volume(x_e, ):
+    """Signed volume of deformed tets (<= 0: inverted or flat).
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions.
+
+    Returns
+    -------
+    volume : (m) float64
+
+    Operation count per element: 89.
+    """
+    m, (_in_x_e, ) = _elements((x_e, "x_e", (4, 3)), )
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    # intermediates (3)
+    t0 = (1/6)*x_0_0
+    t1 = (1/6)*x_0_1
+    t2 = (1/6)*x_0_2
+    # outputs
+    _out_volume = numpy.empty((1, m))
+    _out_volume[0] = -t0*x_1_1*x_2_2 - t0*x_1_2*x_3_1 - t0*x_2_1*x_3_2 - t1*x_1_0*x_3_2 - t1*x_1_2*x_2_0 - t1*x_2_2*x_3_0 - t2*x_1_0*x_2_1 - t2*x_1_1*x_3_0 - t2*x_2_0*x_3_1 + (1/6)*x_0_0*x_1_1*x_3_2 + (1/6)*x_0_0*x_1_2*x_2_1 + (1/6)*x_0_0*x_2_2*x_3_1 + (1/6)*x_0_1*x_1_0*x_2_2 + (1/6)*x_0_1*x_1_2*x_3_0 + (1/6)*x_0_1*x_2_0*x_3_2 + (1/6)*x_0_2*x_1_0*x_3_1 + (1/6)*x_0_2*x_1_1*x_2_0 + (1/6)*x_0_2*x_2_1*x_3_0 + (1/6)*x_1_0*x_2_1*x_3_2 - 1/6*x_1_0*x_2_2*x_3_1 - 1/6*x_1_1*x_2_0*x_3_2 + (1/6)*x_1_1*x_2_2*x_3_0 + (1/6)*x_1_2*x_2_0*x_3_1 - 1/6*x_1_2*x_2_1*x_3_0
+    return _finish(_out_volume, m, ())
