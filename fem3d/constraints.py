@@ -210,6 +210,22 @@ class Constraints:
         R.has_sorted_indices = c["sorted"]
         return R
 
+    def kept_entries(self, A: sp.csr_matrix) -> np.ndarray:
+        """Positions in ``A.data`` of the entries :meth:`reduce_matrix` keeps, in the reduced
+        matrix's ``data`` order (free rows and columns).
+
+        Parameters
+        ----------
+        A : (3 n, 3 n) scipy.sparse.csr_matrix
+
+        Returns
+        -------
+        (nnz_free,) int64
+        """
+        if getattr(A, "format", None) != "csr" or A.shape != (self.n_dofs, self.n_dofs):
+            raise ValueError(f"expected a ({self.n_dofs}, {self.n_dofs}) CSR matrix")
+        return self._lookup_pattern(A)["keep"]
+
     #: Sparsity patterns remembered by :meth:`reduce_matrix` (mass, Hessian, ...).
     _MAX_PATTERNS = 4
 

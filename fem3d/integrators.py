@@ -36,7 +36,6 @@ import scipy.sparse as sp
 from fem3d.assembly import (
     assemble_gradient,
     count_inverted,
-    hessian_data,
     kinetic_energy,
     potential_energy,
 )
@@ -230,6 +229,13 @@ class System:
         analysis).
     mass_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
         ``P M P^T``.
+
+    Notes
+    -----
+    :meth:`newton_matrix` assembles ``P (M + dt^2 H) P^T`` directly on the reduced pattern:
+    each element Hessian entry goes straight to its reduced CSR slot (entries on fixed DOFs
+    to a discarded sink slot), with ``dt^2`` folded into the element volumes, so no full
+    ``3n x 3n`` matrix is built and reduced per Newton iteration.
     """
 
     def __init__(self, model: Model, constraints: Constraints, solver_backend: str = "auto"):
@@ -241,6 +247,16 @@ class System:
         self.solver_backend = solver_backend
         self.mass_free = constraints.reduce_matrix(model.mass)
         self.pattern_free = constraints.reduce_matrix(model.pattern)
+        self.pattern_free.data.setflags(write=False)
+        # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
+        nnz_free = self.pattern_free.nnz
+        kept = constraints.kept_entries(model.pattern)
+        self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
+        self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
+        self._free_scatter = self._free_slot[model.scatter]
+        for a in (self._free_slot, self._free_scatter):
+            a.setflags(write=False)
+        self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._solver = SparseSPDSolver(self.pattern_free, backend=solver_backend)
         if self._solver.backend == "superlu" and self.mass_free.shape[0]:
             # SuperLU orders on its first factorization and takes another code path (explicit
@@ -276,19 +292,71 @@ class System:
             raise ValueError("entry not in the sparsity pattern")
         return pos
 
-    def add_pull_hessian(self, data: np.ndarray, pull: Pull | None, q: np.ndarray) -> None:
-        """Add the pull springs' Hessian blocks into full-pattern ``data`` in place."""
-        if pull is None or pull.vertices.size == 0:
-            return
+    def _pull_positions(self, pull: Pull) -> np.ndarray:
+        """Full-pattern ``data`` positions of the pulled vertices' 3x3 diagonal blocks."""
         d = 3 * pull.vertices[:, None] + np.arange(3)
         rows = np.broadcast_to(d[:, :, None], (d.shape[0], 3, 3))
         cols = np.broadcast_to(d[:, None, :], (d.shape[0], 3, 3))
-        pos = self.data_positions(rows.reshape(-1), cols.reshape(-1))
-        data[pos] += pull.hessian_blocks(self.spring, q).reshape(-1)
+        return self.data_positions(rows.reshape(-1), cols.reshape(-1))
 
     def reduced(self, data: np.ndarray) -> sp.csr_matrix:
         """``P A P^T`` of the full-pattern matrix with ``data``."""
         return self.constraints.reduce_matrix(self.model.csr(data))
+
+    def _volumes_times(self, scale: float) -> np.ndarray:
+        """``model.vol * scale`` (cached for the last ``scale``: it is ``dt^2``, fixed)."""
+        cached = self._scaled_volumes
+        if cached is None or cached[0] != scale or cached[1].shape != self.model.vol.shape:
+            cached = (scale, self.model.vol * scale)
+            cached[1].setflags(write=False)
+            self._scaled_volumes = cached
+        return cached[1]
+
+    def newton_matrix(
+        self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False
+    ) -> sp.csr_matrix:
+        """``P (M + dt^2 (H(q) + H_pull(q))) P^T`` on :attr:`pattern_free`, assembled directly.
+
+        Parameters
+        ----------
+        q : (3n,) or (n, 3) float64
+            Positions where the Hessian ``H = d2V/dq2`` is evaluated.
+        dt : float
+            Time step.
+        pull : Pull, optional
+            Pull springs whose Hessian is added (the target is not a DOF).
+        psd : bool, optional
+            Use the generated ``hessian_psd`` kernel (``dP/dF`` projected per element).
+
+        Returns
+        -------
+        (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+            A new matrix (its data is not reused by later calls); may hold non-finite values
+            when ``q`` is out of range.
+        """
+        model = self.model
+        nnz_free = self.pattern_free.nnz
+        kernel = "hessian_psd" if psd else "hessian"
+        vol = self._volumes_times(dt * dt)
+        data = np.empty(nnz_free + 1)  # the last slot is the sink of fixed-DOF entries
+        data[:nnz_free] = self.mass_free.data
+        data[nnz_free] = 0.0
+        if model.mat.has_assemble(kernel):
+            getattr(model.mat, f"{kernel}_assemble")(
+                q, model.T, model.dphi_dX, vol, model.params, self._free_scatter, data)
+        else:
+            x_e = np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), model.T, axis=0)
+            H = getattr(model.mat, kernel)(x_e, model.dphi_dX, vol, model.params)
+            data += np.bincount(self._free_scatter, weights=H.reshape(-1),
+                                minlength=nnz_free + 1)
+        if pull is not None and pull.vertices.size:
+            q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+            slots = self._free_slot[self._pull_positions(pull)]
+            np.add.at(data, slots, (dt * dt) * pull.hessian_blocks(self.spring, q3).reshape(-1))
+        A = sp.csr_matrix((data[:nnz_free], self.pattern_free.indices, self.pattern_free.indptr),
+                          shape=self.pattern_free.shape, copy=False)
+        A.has_sorted_indices = True
+        return A
 
     def factorize(self, A_free: sp.csr_matrix) -> bool:
         """Factorize an SPD reduced matrix; shift it when it is not positive definite.
@@ -422,18 +490,15 @@ def linearly_implicit_euler(
     f = -assemble_gradient(model, qf)
     if pull is not None:
         f -= pull.gradient(system.spring, state.q)
-    H = hessian_data(model, qf)
-    if linearize_pull:
-        system.add_pull_hessian(H, pull, state.q)
-    A = model.mass.data + dt * dt * H
+    A = system.newton_matrix(qf, dt, pull if linearize_pull else None)
     rhs = model.mass @ vf + dt * f
     stats = StepStats(newton_iterations=1)
-    if not (np.isfinite(A).all() and np.isfinite(rhs).all()):
+    if not (np.isfinite(A.data).all() and np.isfinite(rhs).all()):
         raise SimulationError(
             "linearly-implicit Euler exploded: non-finite forces or stiffness", step=state.step
         )
     try:
-        stats.shifted_factorizations = int(system.factorize(system.reduced(A)))
+        stats.shifted_factorizations = int(system.factorize(A))
     except SimulationError as exc:
         raise SimulationError(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
@@ -651,7 +716,7 @@ def implicit_euler(
     free = c.free_dofs
     q_t = state.q.reshape(-1)
     v_t = state.v.reshape(-1)
-    M = model.mass
+    mass_free = system.mass_free
     vt_free = v_t[free]
     stats = StepStats()
 
@@ -662,8 +727,8 @@ def implicit_euler(
         q = positions(v_free)
         if count_inverted(model, q):
             return math.inf
-        dv = c.expand_zero(v_free - vt_free)
-        e = 0.5 * float(dv @ (M @ dv)) + potential_energy(model, q)
+        dv = v_free - vt_free
+        e = 0.5 * float(dv @ (mass_free @ dv)) + potential_energy(model, q)
         if pull is not None:
             e += pull.energy(spring, q.reshape(-1, 3))
         return e if math.isfinite(e) else math.inf
@@ -673,16 +738,12 @@ def implicit_euler(
         gq = assemble_gradient(model, q)
         if pull is not None:
             gq += pull.gradient(spring, q.reshape(-1, 3))
-        return system.mass_free @ (v_free - vt_free) + dt * gq[free]
+        return mass_free @ (v_free - vt_free) + dt * gq[free]
 
     def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
-        q = positions(v_free)
-        H = hessian_data(model, q, psd=psd)
-        system.add_pull_hessian(H, pull, q.reshape(-1, 3))
-        A = M.data + dt * dt * H
-        if not np.isfinite(A).all():
+        A_free = system.newton_matrix(positions(v_free), dt, pull, psd=psd)
+        if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
-        A_free = system.reduced(A)
         if pcg is not None and system.factorized_data is not None:
             result = pcg.solve(A_free, -g)
             stats.cg_iterations += result.iterations

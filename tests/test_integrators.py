@@ -273,3 +273,37 @@ def test_reuse_across_steps_factorizes_rarely_and_tracks_direct():
     assert f_reuse < f_direct / 4
     size = np.ptp(q_direct, axis=0).max()
     assert np.abs(q_reuse - q_direct).max() < 1e-6 * size
+
+
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+@pytest.mark.parametrize("psd", [False, True])
+def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
+    from fem3d.assembly import hessian_data
+    from fem3d.integrators import Pull
+    from fem3d.kernels import c_extension
+
+    if backend == "c" and c_extension() is None:
+        pytest.skip("C extension not built")
+    sim = Simulation(box_scene(), backend=backend)
+    system, model = sim.system, sim.model
+    rng = np.random.default_rng(4)
+    q = model.X + 0.05 * rng.normal(size=model.X.shape)
+    # one free and one fixed vertex pulled: the fixed one's block must be dropped
+    pulled = np.array([int(np.argmax(model.X[:, 1])), int(sim.fixed_vertices[0])])
+    pull = Pull.make(pulled, model.X[pulled] + 0.3, 1e4, model.n_vertices)
+    dt = 0.02
+    H = hessian_data(model, q.reshape(-1), psd=psd)
+    blocks = pull.hessian_blocks(system.spring, q)
+    for v, block in zip(pulled, blocks, strict=True):
+        d = 3 * v + np.arange(3)
+        H[system.data_positions(np.repeat(d, 3), np.tile(d, 3))] += block.reshape(-1)
+    expected = system.reduced(model.mass.data + dt * dt * H)
+    A = system.newton_matrix(q, dt, pull, psd=psd)
+    assert A.shape == expected.shape and A.nnz == expected.nnz
+    np.testing.assert_array_equal(A.indices, expected.indices)
+    np.testing.assert_allclose(A.data, expected.data, rtol=1e-12,
+                               atol=1e-13 * np.abs(expected.data).max())
+    # a later call does not reuse the earlier matrix's data
+    before = A.data.copy()
+    system.newton_matrix(model.X, dt)
+    np.testing.assert_array_equal(A.data, before)

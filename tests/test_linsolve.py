@@ -19,12 +19,24 @@ from fem3d.linsolve import (
 AVAILABLE = available_backends()
 
 
-@pytest.fixture(params=BACKENDS)
+# CHOLMOD runs in both of its modes: "auto" picks simplicial for small cheap factors
+VARIANTS = ["cholmod:supernodal", "cholmod:simplicial", *BACKENDS[1:]]
+
+
+@pytest.fixture(params=VARIANTS)
 def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     monkeypatch.delenv("FEM3D_SOLVER", raising=False)
-    if request.param not in AVAILABLE:
+    if request.param.partition(":")[0] not in AVAILABLE:
         pytest.skip(f"sparse solver back end {request.param!r} not installed")
     return request.param
+
+
+def make_solver(A: sp.spmatrix, variant: str) -> SparseSPDSolver:
+    """``SparseSPDSolver`` for ``"backend"`` or ``"cholmod:<mode>"``."""
+    backend, _, mode = variant.partition(":")
+    solver = SparseSPDSolver(A, backend, cholmod_mode=mode or "auto")
+    assert solver.backend == backend and (not mode or solver.cholmod_mode == mode)
+    return solver
 
 
 def grid_laplacian(n: int = 7) -> sp.csr_matrix:
@@ -43,8 +55,7 @@ def test_matches_spsolve(backend: str) -> None:
     A = grid_laplacian()
     rng = np.random.default_rng(1)
     b = rng.standard_normal((A.shape[0], 2))
-    solver = SparseSPDSolver(A, backend)
-    assert solver.backend == backend
+    solver = make_solver(A, backend)
     solver.factorize(A)
     ref = spla.spsolve(A.tocsc(), b)
     np.testing.assert_allclose(solver.solve(b), ref, rtol=1e-9, atol=1e-12)
@@ -59,7 +70,7 @@ def test_matches_spsolve(backend: str) -> None:
 
 def test_subset_pattern_and_bad_pattern(backend: str) -> None:
     A = grid_laplacian(4)
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     # a matrix whose pattern is a subset (the diagonal only) is embedded into the analysed one
     D = sp.diags(A.diagonal()).tocsr()
     solver.factorize(D)
@@ -77,7 +88,7 @@ def test_indefinite_raises_and_shift_recovers(backend: str) -> None:
     lam_min = spla.eigsh(A, k=1, sigma=0, which="LM", return_eigenvectors=False)[0]
     # shift just past the smallest eigenvalue: one slightly negative direction
     Aind = (A - 1.5 * lam_min * sp.identity(A.shape[0])).tocsr()
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     with pytest.raises(NotPositiveDefinite) as info:
         solver.factorize(Aind)
     assert isinstance(info.value, Fem3dError)
@@ -101,14 +112,14 @@ def test_indefinite_raises_and_shift_recovers(backend: str) -> None:
 
 def test_shift_gives_up(backend: str) -> None:
     A = grid_laplacian(3)
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     with pytest.raises(NotPositiveDefinite, match="still not positive definite"):
         solver.factorize_shifted(-A, max_tries=2)
 
 
 def test_nonfinite_matrix_is_not_positive_definite(backend: str) -> None:
     A = grid_laplacian(3)
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     B = A.copy()
     B.data[0] = np.nan
     with pytest.raises(NotPositiveDefinite, match="non-finite"):
@@ -118,7 +129,7 @@ def test_nonfinite_matrix_is_not_positive_definite(backend: str) -> None:
 def test_cg_with_old_factorization(backend: str) -> None:
     A = grid_laplacian()
     rng = np.random.default_rng(2)
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     solver.factorize(A)
     # a nearby matrix of the same pattern (values perturbed symmetrically by ~5 %)
     P = A.copy()
@@ -135,7 +146,7 @@ def test_cg_with_old_factorization(backend: str) -> None:
 
 def test_cg_stalls_and_refactorizes(backend: str) -> None:
     A = grid_laplacian()
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     solver.factorize(A)
     A_far = (A + 50.0 * sp.diags(np.linspace(0.0, 1.0, A.shape[0]) ** 4)).tocsr()
     b = np.ones(A.shape[0])
@@ -153,7 +164,7 @@ def test_cg_stalls_and_refactorizes(backend: str) -> None:
 
 def test_cg_detects_indefinite(backend: str) -> None:
     A = grid_laplacian(4)
-    solver = SparseSPDSolver(A, backend)
+    solver = make_solver(A, backend)
     solver.factorize(A)
     b = np.ones(A.shape[0])
     res = PreconditionedCG(solver, refactorize_on_stall=False).solve(-A, b)
@@ -181,3 +192,20 @@ def test_bad_pattern_input() -> None:
         SparseSPDSolver(sp.csr_matrix(np.array([[1.0, 1.0], [0.0, 1.0]])), "superlu")
     with pytest.raises(TypeError):
         SparseSPDSolver(np.eye(3), "superlu")  # type: ignore[arg-type]
+
+
+@pytest.mark.skipif("cholmod" not in AVAILABLE, reason="CHOLMOD not installed")
+def test_cholmod_auto_mode_follows_the_factor_cost() -> None:
+    from fem3d import linsolve
+
+    small = grid_laplacian(4)  # 192 rows, short columns of L
+    assert SparseSPDSolver(small, "cholmod").cholmod_mode == "simplicial"
+    dense_block = sp.csr_matrix(np.eye(60) + np.ones((60, 60)))  # L is a full triangle
+    assert SparseSPDSolver(dense_block, "cholmod").cholmod_mode == "simplicial"
+    cost = SparseSPDSolver(dense_block, "cholmod")._factor_cost_per_entry()
+    assert cost == pytest.approx((2 * 60 + 1) / 3)  # sum c^2 / sum c for c = 1..60
+    bigger = sp.csr_matrix(np.eye(400) + np.ones((400, 400)))  # ~267 flops per entry
+    assert SparseSPDSolver(bigger, "cholmod").cholmod_mode == "supernodal"
+    assert linsolve.SIMPLICIAL_MAX_N >= 400
+    with pytest.raises(ValueError, match="cholmod_mode"):
+        SparseSPDSolver(small, "cholmod", cholmod_mode="fast")
