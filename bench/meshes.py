@@ -197,3 +197,55 @@ def linear_elastic_system(
     for Z in (Kf, Mf, A):
         Z.sort_indices()
     return LinearSystem(A=A, M=Mf, K=Kf, free=free)
+
+
+# The octahedron left inside a tet by cutting its four corners is split along one of its three
+# diagonals (pairs of opposite edge midpoints); around each diagonal the other four midpoints
+# form a cycle. Local edge order: 01, 02, 03, 12, 13, 23.
+_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+_DIAGONALS = (((0, 5), (1, 2, 4, 3)), ((1, 4), (0, 2, 5, 3)), ((2, 3), (0, 1, 5, 4)))
+
+
+def refine_tets(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Red (1:8) refinement: every tet split into 8 by its edge midpoints.
+
+    The four corner tets are similar to the parent; the inner octahedron is cut along its
+    shortest diagonal. The shape (and so the scene: fixed feet, picked hand) is unchanged.
+
+    Parameters
+    ----------
+    X : (n, 3) float64
+    T : (m, 4) int64
+
+    Returns
+    -------
+    X : (n + n_edges, 3) float64
+        The old vertices first (their indices are kept), then the edge midpoints.
+    T : (8 m, 4) int64
+        Positively oriented.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    T = np.asarray(T, dtype=np.int64)
+    m = len(T)
+    pairs = np.sort(T[:, np.array(_EDGES)], axis=2).reshape(-1, 2)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    mid = len(X) + inverse.reshape(m, 6)
+    X_new = np.vstack([X, 0.5 * (X[edges[:, 0]] + X[edges[:, 1]])])
+    v, e = T.T, mid.T
+    tets = [np.stack([v[0], e[0], e[1], e[2]], 1), np.stack([e[0], v[1], e[3], e[4]], 1),
+            np.stack([e[1], e[3], v[2], e[5]], 1), np.stack([e[2], e[4], e[5], v[3]], 1)]
+    lengths = np.stack([np.linalg.norm(X_new[mid[:, a]] - X_new[mid[:, b]], axis=1)
+                        for (a, b), _ in _DIAGONALS], axis=1)
+    choice = np.argmin(lengths, axis=1)
+    for k in range(4):
+        inner = np.zeros((m, 4), dtype=np.int64)
+        for d, ((a, b), ring) in enumerate(_DIAGONALS):
+            sel = choice == d
+            c0, c1 = ring[k], ring[(k + 1) % 4]
+            inner[sel] = mid[sel][:, [a, b, c0, c1]]
+        tets.append(inner)
+    T_new = np.concatenate(tets, axis=0)
+    edges_new = X_new[T_new[:, 1:]] - X_new[T_new[:, :1]]
+    negative = np.linalg.det(edges_new) < 0
+    T_new[negative] = T_new[negative][:, [0, 2, 1, 3]]
+    return X_new, T_new

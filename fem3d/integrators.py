@@ -169,6 +169,9 @@ class StepStats:
         Numeric factorizations and preconditioned-CG iterations of the step's linear solves.
     shifted_factorizations : int
         Factorizations that needed a diagonal shift (indefinite Hessian).
+    psd_fallbacks : int
+        Newton iterations whose exact Hessian no shift made positive definite, solved with
+        the PSD-projected Hessian instead.
     converged : bool
         Newton stopped on its tolerance (or at round-off), not on the iteration cap.
     """
@@ -180,6 +183,7 @@ class StepStats:
     converged: bool = True
     factorizations: int = 0
     cg_iterations: int = 0
+    psd_fallbacks: int = 0
 
 
 @dataclass
@@ -269,6 +273,8 @@ class System:
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
         self.factorized_data: np.ndarray | None = None
+        #: Shifted attempts of :meth:`factorize` (``mu = 1e-4 ... 1e8``) before giving up.
+        self.max_shift_tries = 13
 
     def with_model(self, model: Model) -> System:
         """Same constraints and solver (the pattern is shared), new material values."""
@@ -370,11 +376,12 @@ class System:
         Raises
         ------
         SimulationError
-            No shift up to ``mu = 1e8`` works (e.g. a non-finite matrix).
+            No shift up to ``mu = 1e8`` (:attr:`max_shift_tries`) works (e.g. a non-finite
+            matrix, or tets close to inversion).
         """
         try:
             mu = self._solver.factorize_shifted(
-                A_free, self.mass_free, mu0=1e-4, growth=10.0, max_tries=13
+                A_free, self.mass_free, mu0=1e-4, growth=10.0, max_tries=self.max_shift_tries
             )
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
@@ -650,6 +657,7 @@ def implicit_euler(
     hessian: str = "exact",
     linear_solver: str = "direct",
     cg_rtol: float = 1e-6,
+    cg_maxiter: int = 16,
 ) -> tuple[State, StepStats]:
     """One backward (implicit) Euler step as an energy minimisation.
 
@@ -660,8 +668,10 @@ def implicit_euler(
     Indefinite Hessian (compressed Neo-Hookean tets): the factorization is tried as is and,
     when it is not positive definite, retried with a diagonal shift ``tau diag(M)`` of
     increasing ``tau`` (see :meth:`System.factorize`), which always gives a descent
-    direction. Any trial point with an inverted tet (``det F <= 0``) or a non-finite energy
-    counts as ``+inf`` in the line search, so accepted states never invert.
+    direction; if no shift of the ladder works (tets close to inversion), the iteration uses
+    the PSD-projected Hessian (``hessian_psd``), which is always positive definite. Any trial
+    point with an inverted tet (``det F <= 0``) or a non-finite energy counts as ``+inf`` in
+    the line search, so accepted states never invert.
 
     Parameters
     ----------
@@ -685,12 +695,19 @@ def implicit_euler(
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
         (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
-        across iterations and steps, and refactorize only when CG stalls or meets negative
-        curvature (or no factorization exists yet). An inexact Newton: it converges to the
-        same gradient tolerance. :attr:`System.factorized_data` records the factorized
-        matrix so that a checkpoint can rebuild the same preconditioner.
+        across iterations and steps, and refactorize when CG does not converge within
+        ``cg_maxiter`` iterations, meets negative curvature or returns a non-descent
+        direction, when the step's previous solve needed more than ``cg_maxiter / 2``
+        iterations (the preconditioner has aged), or when no factorization exists yet. An
+        inexact Newton: it converges to the same gradient tolerance.
+        :attr:`System.factorized_data` records the factorized matrix so that a checkpoint
+        can rebuild the same preconditioner.
     cg_rtol : float, optional
         Relative residual of the CG solves with ``"reuse"``.
+    cg_maxiter : int, optional
+        CG iterations per solve before refactorizing (default 16: about the cost of one
+        factorization on armadillo-class meshes of 1e3 to 1e5 tets, where a factorization
+        costs 10 to 40 CG iterations; ``python -m bench.newton_step``).
 
     Returns
     -------
@@ -710,8 +727,9 @@ def implicit_euler(
         raise ValueError(f"linear_solver must be 'direct' or 'reuse', got {linear_solver!r}")
     pcg = None
     if linear_solver == "reuse":
-        pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=40,
+        pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=cg_maxiter,
                                refactorize_on_stall=False)
+    last_cg = [0]  # CG iterations of this step's last solve (0 after a factorization)
     model, c, spring = system.model, system.constraints, system.spring
     free = c.free_dofs
     q_t = state.q.reshape(-1)
@@ -741,16 +759,33 @@ def implicit_euler(
         return mass_free @ (v_free - vt_free) + dt * gq[free]
 
     def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
-        A_free = system.newton_matrix(positions(v_free), dt, pull, psd=psd)
+        q = positions(v_free)
+        A_free = system.newton_matrix(q, dt, pull, psd=psd)
         if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
-        if pcg is not None and system.factorized_data is not None:
+        # an aged preconditioner (the last solve needed over half the budget) is replaced now
+        # rather than after another long CG run
+        if pcg is not None and system.factorized_data is not None and \
+                last_cg[0] <= cg_maxiter // 2:
             result = pcg.solve(A_free, -g)
             stats.cg_iterations += result.iterations
-            if result.converged:
+            last_cg[0] = result.iterations
+            # CG can converge on an indefinite A to a direction that is not a descent one;
+            # the (shifted) factorization below always gives one
+            if result.converged and float(g @ result.x) < 0.0:
                 return result.x
-        stats.shifted_factorizations += int(system.factorize(A_free))
+        try:
+            shifted = system.factorize(A_free)
+        except SimulationError:
+            if psd:
+                raise
+            # no shift up to the ladder's end makes the exact Hessian positive definite (tets
+            # close to inversion); the PSD-projected one always is
+            shifted = system.factorize(system.newton_matrix(q, dt, pull, psd=True))
+            stats.psd_fallbacks += 1
+        stats.shifted_factorizations += int(shifted)
         stats.factorizations += 1
+        last_cg[0] = 0
         return -system.solve(g)
 
     def no_step(v_free: np.ndarray, d: np.ndarray) -> None:

@@ -221,6 +221,48 @@ def test_indefinite_hessian_uses_shifted_factorization():
     assert count_inverted(sim.model, new.q) == 0
 
 
+def compressed_box_state(sim: Simulation) -> State:
+    """Half-height, sheared box at rest: ``M + dt^2 H`` is indefinite at dt = 0.1."""
+    X = sim.model.X
+    q = X.copy()
+    q[:, 1] *= 0.5
+    q[:, 0] += 0.3 * np.sin(3.0 * X[:, 1])
+    q[sim.fixed_vertices] = X[sim.fixed_vertices]
+    return State(q=q, v=np.zeros_like(X))
+
+
+def test_exhausted_shift_ladder_falls_back_to_the_psd_hessian():
+    sim = Simulation(box_scene(rho=1.0, dt=0.1))
+    state = compressed_box_state(sim)
+    reference, _ = implicit_euler(sim.system, state, 0.1, max_iterations=None)
+    sim.system.max_shift_tries = 0  # no shift: every indefinite Hessian exhausts the ladder
+    new, stats = implicit_euler(sim.system, state, 0.1, max_iterations=None)
+    print("fallbacks:", stats.psd_fallbacks, "norms:", stats.gradient_norms)
+    assert stats.psd_fallbacks >= 1 and stats.shifted_factorizations == 0
+    assert stats.converged
+    assert np.abs(new.q - reference.q).max() < 1e-6 * np.abs(reference.q - state.q).max()
+
+
+def test_reuse_on_an_indefinite_hessian_reaches_the_direct_answer():
+    """CG on indefinite Newton matrices (negative curvature, non-descent results) hands over to
+    the shifted factorization: reuse ends where direct does."""
+    finals = {}
+    for mode, budget in (("direct", 16), ("reuse", 16), ("reuse", 2)):
+        sim = Simulation(box_scene(rho=1.0, dt=0.1))
+        state = compressed_box_state(sim)
+        new, stats = implicit_euler(sim.system, state, 0.1, max_iterations=None,
+                                    linear_solver=mode, cg_maxiter=budget)
+        assert stats.converged
+        finals[mode, budget] = (new.q, stats)
+    q_ref = finals["direct", 16][0]
+    for key in (("reuse", 16), ("reuse", 2)):
+        q, stats = finals[key]
+        print(key, "factorizations", stats.factorizations, "cg", stats.cg_iterations)
+        assert np.abs(q - q_ref).max() < 1e-6 * np.abs(q_ref - sim.model.X).max()
+    # a smaller CG budget refactorizes at least as often
+    assert finals["reuse", 2][1].factorizations >= finals["reuse", 16][1].factorizations
+
+
 def test_psd_projected_hessian_needs_no_shift():
     sim = Simulation(box_scene(rho=1.0, dt=0.1))
     X = sim.model.X
