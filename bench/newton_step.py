@@ -1,79 +1,204 @@
-"""One backward-Euler step of a clamped box: Newton iteration cost, factorization reuse, memory.
+"""Backward-Euler steps: Newton iteration cost, factorization reuse vs refactorization, memory.
 
-    python -m bench.newton_step --tets 2e4 --steps 6            # direct vs reuse, per-step medians
-    python -m bench.newton_step --tets 1e6 --steps 1 --modes direct   # the 1e6-tet step
+    python -m bench.newton_step --mesh arma --refine 0,1,2 --steps 80   # armadillo-class drag
+    python -m bench.newton_step --mesh box --tets 2e4 --steps 6         # swinging box
+    python -m bench.newton_step --mesh box --tets 1e6 --steps 1 --modes direct   # the 1e6 step
 
-The box (``bench.meshes.box_mesh``) is clamped at its lowest z and starts at rest with a
-swinging velocity ``v = (a z^2, -b x z, 0)``. Prints the pieces of one Newton iteration
-(assembly + reduction, factorization, solve), then per mode the median step time, Newton
-iterations, factorizations, CG iterations, final gradient norm and peak RSS.
+``--mesh arma``: the armadillo scene (``arma_6``, 627 tets) and its 1:8 refinements
+(``bench.meshes.refine_tets``: 5,016 and 40,128 tets, same shape, feet fixed as in the scene).
+The scene's picked hand vertices are dragged like a viewer user would: out by 20 % of the
+height over 0.3 s, then round a circle, then released for the last 20 steps.
+``--mesh box``: the box (``bench.meshes.box_mesh``) clamped at its lowest z, starting at rest
+with a swinging velocity ``v = (a z^2, -b x z, 0)``.
+
+Each mode runs every step's Newton iteration to the same gradient tolerance (no iteration
+cap: equal accuracy; a few steps of either mode stop earlier, where the line search meets the
+energy's round-off, and are counted), from a fresh :class:`fem3d.integrators.System`; the best of
+``--repeats`` runs is reported (the machine is shared). Printed per mode: time per step,
+Newton iterations, factorizations, CG iterations, the largest final gradient norm, the
+largest deviation of the trajectory from the first mode's (relative to the mesh size), the
+speed-up over the first mode, and peak RSS; first, the pieces of one Newton iteration
+(assembly into the reduced pattern, factorization, solve).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from bench.meshes import box_mesh
+from bench.meshes import box_mesh, refine_tets
 from fem3d import integrators as integ
-from fem3d.assembly import hessian_data
-from fem3d.constraints import Constraints
-from fem3d.model import build_model
+from fem3d.constraints import Constraints, pick_nearest_vertices
+from fem3d.model import Model, build_model
+
+
+@dataclass
+class Workload:
+    """A mesh, its constraint set and the per-step pulls of one benchmark run."""
+
+    name: str
+    model: Model
+    constraints: Constraints
+    start: integ.State
+    dt: float
+    pulls: list[integ.Pull | None]
+
+    @property
+    def size(self) -> float:
+        return float(np.ptp(self.model.X, axis=0).max())
+
+
+def armadillo(level: int, steps: int) -> Workload:
+    """The armadillo scene refined ``level`` times, its hand dragged for ``steps - 20`` steps."""
+    from fem3d.constraints import fixed_vertices_lowest_y
+    from fem3d.scenes import load_scene
+
+    scene = load_scene("arma")
+    X, T = scene.X, scene.T
+    for _ in range(level):
+        X, T = refine_tets(X, T)  # old vertices keep their indices: same feet, same hand
+    model = build_model(X, T, E=scene.E, nu=scene.nu, rho=scene.rho)
+    constraints = Constraints.from_fixed_vertices(X, fixed_vertices_lowest_y(X, scene.fixed_tol))
+    hand = X[scene.pull.vertex]
+    picked = pick_nearest_vertices(X, hand, scene.pick_radius, nearest_if_empty=True)
+    h = float(np.ptp(X[:, 1]))
+    pulls: list[integ.Pull | None] = []
+    for i in range(steps):
+        out, angle = min(1.0, i / 30), 0.1 * max(0, i - 30)
+        target = hand + h * np.array([0.1 * np.sin(angle), 0.05 * (1 - np.cos(angle)), 0.2 * out])
+        pulls.append(integ.Pull.make(picked, target, scene.spring_k, model.n_vertices)
+                     if i < steps - 20 else None)
+    return Workload(f"armadillo x{8 ** level} ({len(T)} tets)", model, constraints,
+                    integ.State.at_rest(model), scene.dt, pulls)
+
+
+def swinging_box(n_tets: float, steps: int, swing: float) -> Workload:
+    """The clamped box with the swinging initial velocity, no pull."""
+    X, T = box_mesh(n_tets)
+    model = build_model(X, T, E=6e5, nu=0.4, rho=0.1)
+    fixed = np.flatnonzero(X[:, 2] <= X[:, 2].min() + 1e-12)
+    v0 = np.zeros_like(X)
+    v0[:, 0] = swing * X[:, 2] ** 2
+    v0[:, 1] = -0.75 * swing * X[:, 2] * X[:, 0]
+    v0[fixed] = 0.0
+    return Workload(f"box ({len(T)} tets)", model, Constraints.from_fixed_vertices(X, fixed),
+                    integ.State(q=X.copy(), v=v0), 0.01, [None] * steps)
+
+
+def _best_seconds(call, repeats: int) -> float:
+    seconds = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        call()
+        seconds.append(time.perf_counter() - t)
+    return min(seconds)
+
+
+def iteration_pieces(work: Workload) -> dict:
+    """Seconds of the pieces of one Newton iteration at a deformed state (best of a few after
+    a warm-up; one of each on large meshes)."""
+    system = integ.System(work.model, work.constraints)
+    q = work.start.q + work.dt * work.start.v
+    A = system.newton_matrix(q, work.dt)
+    system.factorize(A)
+    b = np.ones(A.shape[0])
+    system.solve(b)
+    repeats = 5 if A.shape[0] < 1e5 else 1
+    return {
+        "assembly": _best_seconds(lambda: system.newton_matrix(q, work.dt), repeats),
+        "factorize": _best_seconds(lambda: system.factorize(A), repeats),
+        "solve": _best_seconds(lambda: system.solve(b), repeats),
+        "matvec": _best_seconds(lambda: A @ b, repeats),
+        "cholmod_mode": system.solver.cholmod_mode,
+    }
+
+
+def run_mode(work: Workload, mode: str, cg_maxiter: int) -> dict:
+    """All steps of ``work`` with one linear-solver mode; totals and the trajectory."""
+    system = integ.System(work.model, work.constraints)
+    state = work.start
+    seconds, trajectory = 0.0, []
+    totals = dict(newton=0, factorizations=0, cg=0, psd_fallbacks=0, final_gradient=0.0,
+                  stopped_at_round_off=0)
+    L = float(np.linalg.norm(np.ptp(work.model.X, axis=0)))
+    atol = 1e-12 * work.dt * work.model.E * L * L  # implicit_euler's default tolerances
+    for pull in work.pulls:
+        t = time.perf_counter()
+        state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
+                                            linear_solver=mode, cg_maxiter=cg_maxiter)
+        seconds += time.perf_counter() - t
+        totals["newton"] += stats.newton_iterations
+        totals["factorizations"] += stats.factorizations
+        totals["cg"] += stats.cg_iterations
+        totals["psd_fallbacks"] += stats.psd_fallbacks
+        norms = stats.gradient_norms
+        totals["final_gradient"] = max(totals["final_gradient"], norms[-1])
+        # Newton also stops where the line search finds no decrease left (energy round-off)
+        totals["stopped_at_round_off"] += norms[-1] > max(atol, 1e-10 * norms[0])
+        trajectory.append(state.q)
+    return dict(totals, seconds_per_step=seconds / len(work.pulls), trajectory=trajectory)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tets", type=float, default=2e4)
-    parser.add_argument("--steps", type=int, default=6)
-    parser.add_argument("--swing", type=float, default=40.0, help="velocity scale a (b = 0.75 a)")
+    parser.add_argument("--mesh", choices=("arma", "box"), default="arma")
+    parser.add_argument("--refine", default="0,1", help="armadillo refinement levels")
+    parser.add_argument("--tets", type=float, default=2e4, help="box size")
+    parser.add_argument("--steps", type=int, default=80)
+    parser.add_argument("--swing", type=float, default=40.0, help="box velocity scale a")
     parser.add_argument("--modes", default="direct,reuse")
+    parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
+    parser.add_argument("--repeats", type=int, default=3, help="runs per mode (best shown)")
+    parser.add_argument("--jsonl", type=Path, help="append one JSON record per mode here")
     args = parser.parse_args(argv)
-    start = time.perf_counter()
-    X, T = box_mesh(args.tets)
-    model = build_model(X, T, E=6e5, nu=0.4, rho=0.1)
-    fixed = np.flatnonzero(X[:, 2] <= X[:, 2].min() + 1e-12)
-    constraints = Constraints.from_fixed_vertices(X, fixed)
-    system = integ.System(model, constraints)
-    print(f"{len(T)} tets, {constraints.free_dofs.size} free DOFs, "
-          f"setup {time.perf_counter() - start:.1f} s", flush=True)
-    v0 = np.zeros_like(X)
-    v0[:, 0] = args.swing * X[:, 2] ** 2
-    v0[:, 1] = -0.75 * args.swing * X[:, 2] * X[:, 0]
-    v0[fixed] = 0.0
-
-    q = X + 0.01 * v0
-    system.reduced(model.mass.data + hessian_data(model, q))  # warm-up: one-time scatter order
-    t = time.perf_counter()
-    A_free = system.reduced(model.mass.data + 1e-4 * hessian_data(model, q))
-    t_assembly = time.perf_counter() - t
-    t = time.perf_counter()
-    system.factorize(A_free)
-    t_factor = time.perf_counter() - t
-    t = time.perf_counter()
-    system.solve(np.ones(A_free.shape[0]))
-    t_solve = time.perf_counter() - t
-    total = t_assembly + t_factor + t_solve
-    print(f"one Newton iteration: assembly+reduce {t_assembly:.3f} s, factorize {t_factor:.3f} s,"
-          f" solve {t_solve:.3f} s = {total / t_factor:.2f}x the factorization", flush=True)
-
-    for mode in args.modes.split(","):
-        state = integ.State(q=X.copy(), v=v0.copy())
-        fresh = integ.System(model, constraints)
-        times, iterations, factorizations, cg = [], 0, 0, 0
-        for _ in range(args.steps):
-            t = time.perf_counter()
-            state, stats = integ.implicit_euler(fresh, state, 0.01, linear_solver=mode)
-            times.append(time.perf_counter() - t)
-            iterations += stats.newton_iterations
-            factorizations += stats.factorizations
-            cg += stats.cg_iterations
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-        print(f"{mode:6s}: median step {np.median(times):.3f} s over {args.steps}, Newton "
-              f"iterations {iterations}, factorizations {factorizations}, CG iterations {cg}, "
-              f"final |g| {stats.gradient_norms[-1]:.2e}, peak RSS {rss:.2f} GiB", flush=True)
+    modes = args.modes.split(",")
+    if args.mesh == "arma":
+        workloads = (lambda level=int(lv): armadillo(level, args.steps)
+                     for lv in args.refine.split(","))
+    else:
+        workloads = (lambda: swinging_box(args.tets, args.steps, args.swing),)
+    for make in workloads:
+        start = time.perf_counter()
+        work = make()
+        print(f"{work.name}: {work.constraints.n_free} free DOFs, {len(work.pulls)} steps, "
+              f"setup {time.perf_counter() - start:.1f} s", flush=True)
+        p = iteration_pieces(work)
+        total = p["assembly"] + p["factorize"] + p["solve"]
+        print(f"  one Newton iteration: assembly {p['assembly'] * 1e3:.2f} ms, factorize "
+              f"{p['factorize'] * 1e3:.2f} ms (CHOLMOD {p['cholmod_mode']}), solve "
+              f"{p['solve'] * 1e3:.2f} ms = {total / p['factorize']:.2f}x the factorization; "
+              f"a factorization costs {p['factorize'] / (p['solve'] + p['matvec']):.0f} "
+              "CG iterations", flush=True)
+        reference = None
+        for mode in modes:
+            best = min((run_mode(work, mode, args.cg_maxiter) for _ in range(args.repeats)),
+                       key=lambda r: r["seconds_per_step"])
+            if reference is None:
+                reference = best
+            deviation = max(float(np.abs(a - b).max()) for a, b in
+                            zip(best["trajectory"], reference["trajectory"], strict=True))
+            speedup = reference["seconds_per_step"] / best["seconds_per_step"]
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+            print(f"  {mode:6s}: {best['seconds_per_step'] * 1e3:9.2f} ms/step, Newton "
+                  f"{best['newton']}, factorizations {best['factorizations']}, CG "
+                  f"{best['cg']}, PSD fallbacks {best['psd_fallbacks']}, max final |g| "
+                  f"{best['final_gradient']:.1e} ({best['stopped_at_round_off']} steps "
+                  f"stopped at round-off), max |q - q_{modes[0]}| / size "
+                  f"{deviation / work.size:.1e}, {speedup:.2f}x {modes[0]}, peak RSS "
+                  f"{rss:.2f} GiB", flush=True)
+            if args.jsonl:
+                record = {k: v for k, v in best.items() if k != "trajectory"}
+                record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,
+                               speedup=speedup, deviation=deviation / work.size,
+                               free_dofs=work.constraints.n_free, pieces=p)
+                with args.jsonl.open("a") as f:
+                    f.write(json.dumps(record) + "\n")
 
 
 if __name__ == "__main__":

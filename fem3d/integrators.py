@@ -214,6 +214,10 @@ class NewtonResult:
 # ---------------------------------------------------------------------------------------------
 # sparse SPD solves on the fixed reduced pattern
 
+#: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
+SHIFT_LADDER_START = 1e-4
+SHIFT_LADDER_GROWTH = 10.0
+
 
 class System:
     """What the integrators reuse between steps for one model and constraint set.
@@ -364,14 +368,26 @@ class System:
         A.has_sorted_indices = True
         return A
 
-    def factorize(self, A_free: sp.csr_matrix) -> bool:
+    def factorize(self, A_free: sp.csr_matrix, *, shift_hint: float = 0.0) -> float:
         """Factorize an SPD reduced matrix; shift it when it is not positive definite.
 
         Strategy for an indefinite Newton Hessian: try ``A``; on
         :class:`NotPositiveDefinite` factorize ``A + mu M`` (``M`` the reduced consistent mass
         matrix, ``mu = 1e-4, 1e-3, ...``; :meth:`SparseSPDSolver.factorize_shifted`), a
         Levenberg-Marquardt shift toward the mass-scaled gradient-descent direction, which is
-        always a descent direction. Returns True when a shift was needed.
+        always a descent direction.
+
+        Parameters
+        ----------
+        A_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        shift_hint : float, optional
+            ``> 0``: ``A`` is expected to be indefinite; start the ladder at this ``mu``
+            instead of trying ``A`` itself (each failed attempt is a whole factorization).
+
+        Returns
+        -------
+        float
+            The shift ``mu`` used (0.0: ``A`` itself).
 
         Raises
         ------
@@ -379,14 +395,22 @@ class System:
             No shift up to ``mu = 1e8`` (:attr:`max_shift_tries`) works (e.g. a non-finite
             matrix, or tets close to inversion).
         """
+        mu0, tries = SHIFT_LADDER_START, self.max_shift_tries
+        mu_max = mu0 * SHIFT_LADDER_GROWTH ** (tries - 1)
+        if 0 < shift_hint <= mu_max:  # the rungs of the ladder from the hint up
+            tries = 1 + math.floor(math.log(mu_max / shift_hint, SHIFT_LADDER_GROWTH) + 1e-9)
+            mu0 = shift_hint
         try:
             mu = self._solver.factorize_shifted(
-                A_free, self.mass_free, mu0=1e-4, growth=10.0, max_tries=self.max_shift_tries
+                A_free, self.mass_free, mu0=mu0, growth=SHIFT_LADDER_GROWTH, max_tries=tries,
+                try_unshifted=mu0 == SHIFT_LADDER_START and shift_hint <= 0,
             )
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
-        self.factorized_data = np.array(A_free.data)
-        return mu > 0
+        # the matrix actually factorized: a checkpoint rebuilds exactly this factor
+        self.factorized_data = A_free.data + mu * self.mass_free.data if mu else \
+            np.array(A_free.data)
+        return mu
 
     def refactorize_saved(self, data: np.ndarray) -> None:
         """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
@@ -505,7 +529,7 @@ def linearly_implicit_euler(
             "linearly-implicit Euler exploded: non-finite forces or stiffness", step=state.step
         )
     try:
-        stats.shifted_factorizations = int(system.factorize(A))
+        stats.shifted_factorizations = int(system.factorize(A) > 0)
     except SimulationError as exc:
         raise SimulationError(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
@@ -730,6 +754,7 @@ def implicit_euler(
         pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=cg_maxiter,
                                refactorize_on_stall=False)
     last_cg = [0]  # CG iterations of this step's last solve (0 after a factorization)
+    shift_hint = [0.0]  # where this step's next shift ladder starts (0: unshifted first)
     model, c, spring = system.model, system.constraints, system.spring
     free = c.free_dofs
     q_t = state.q.reshape(-1)
@@ -774,16 +799,22 @@ def implicit_euler(
             # the (shifted) factorization below always gives one
             if result.converged and float(g @ result.x) < 0.0:
                 return result.x
+            if result.negative_curvature:  # A is indefinite: do not try it unshifted
+                shift_hint[0] = max(shift_hint[0], SHIFT_LADDER_START)
         try:
-            shifted = system.factorize(A_free)
+            mu = system.factorize(A_free, shift_hint=shift_hint[0])
         except SimulationError:
             if psd:
                 raise
             # no shift up to the ladder's end makes the exact Hessian positive definite (tets
             # close to inversion); the PSD-projected one always is
-            shifted = system.factorize(system.newton_matrix(q, dt, pull, psd=True))
+            mu = system.factorize(system.newton_matrix(q, dt, pull, psd=True))
             stats.psd_fallbacks += 1
-        stats.shifted_factorizations += int(shifted)
+        # Levenberg-Marquardt memory: the next iteration starts one rung lower, back to the
+        # exact Hessian once below the ladder (a failed attempt costs a whole factorization)
+        lower = mu / SHIFT_LADDER_GROWTH
+        shift_hint[0] = lower if lower >= SHIFT_LADDER_START * (1 - 1e-9) else 0.0
+        stats.shifted_factorizations += int(mu > 0)
         stats.factorizations += 1
         last_cg[0] = 0
         return -system.solve(g)

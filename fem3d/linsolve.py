@@ -319,6 +319,7 @@ class SparseSPDSolver:
         mu0: float = 1e-4,
         growth: float = 10.0,
         max_tries: int = 10,
+        try_unshifted: bool = True,
     ) -> float:
         """Factorize ``A``, or ``A + mu S`` with the smallest ``mu`` in a geometric ladder.
 
@@ -339,6 +340,9 @@ class SparseSPDSolver:
             Factor between successive shifts.
         max_tries : int
             Number of shifted attempts after the unshifted one.
+        try_unshifted : bool
+            Try ``mu = 0`` first (default). False when ``A`` is known to be indefinite (a
+            failed attempt costs a whole factorization).
 
         Returns
         -------
@@ -367,7 +371,7 @@ class SparseSPDSolver:
             s_data = np.zeros_like(data)
             s_data[self._diag_pos] = s
         last: NotPositiveDefinite | None = None
-        mus = [0.0] + [mu0 * growth**k for k in range(max_tries)]
+        mus = [0.0] * try_unshifted + [mu0 * growth**k for k in range(max_tries)]
         for mu in mus:
             try:
                 self._factorize_data(data + mu * s_data if mu else data)
@@ -591,6 +595,8 @@ class CGResult:
     stalled : bool
         CG failed: not converged within ``maxiter``, too slow a residual decrease, or a
         non-positive curvature ``p^T A p`` (``A`` indefinite). The caller should refactorize.
+    negative_curvature : bool
+        CG stopped on ``p^T A p <= 0``: ``A`` is not positive definite.
     refactorized : bool
         The solver refactorized ``A`` and solved directly (``refactorize_on_stall=True``).
     """
@@ -601,6 +607,7 @@ class CGResult:
     converged: bool
     stalled: bool
     refactorized: bool
+    negative_curvature: bool = False
 
 
 class PreconditionedCG:
@@ -683,7 +690,7 @@ class PreconditionedCG:
         rz = float(r @ z)
         history = [float(np.linalg.norm(r)) / bnorm]
         it = 0
-        stalled = False
+        stalled = negative = False
         while history[-1] > self.rtol:
             if it >= self.maxiter:
                 stalled = True
@@ -691,7 +698,7 @@ class PreconditionedCG:
             Ap = A @ p
             curv = float(p @ Ap)
             if not curv > 0.0:  # indefinite A (or NaN)
-                stalled = True
+                stalled = negative = True
                 break
             alpha = rz / curv
             x += alpha * p
@@ -710,5 +717,5 @@ class PreconditionedCG:
             self.refactorize(A)
             x = self.solver.solve(b)
             res = float(np.linalg.norm(b - A @ x)) / bnorm
-            return CGResult(x, it, res, True, True, True)
-        return CGResult(x, it, history[-1], not stalled, stalled, False)
+            return CGResult(x, it, res, True, True, True, negative)
+        return CGResult(x, it, history[-1], not stalled, stalled, False, negative)

@@ -108,6 +108,8 @@ def test_indefinite_raises_and_shift_recovers(backend: str) -> None:
     assert mu_m > 0.0
     # SPD input needs no shift
     assert solver.factorize_shifted(A) == 0.0
+    # known indefinite: the ladder starts shifted
+    assert solver.factorize_shifted(Aind, mu0=mu, try_unshifted=False) == mu
 
 
 def test_shift_gives_up(backend: str) -> None:
@@ -168,7 +170,10 @@ def test_cg_detects_indefinite(backend: str) -> None:
     solver.factorize(A)
     b = np.ones(A.shape[0])
     res = PreconditionedCG(solver, refactorize_on_stall=False).solve(-A, b)
-    assert res.stalled
+    assert res.stalled and res.negative_curvature
+    slow = PreconditionedCG(solver, maxiter=1, refactorize_on_stall=False).solve(
+        (A + 50.0 * sp.diags(np.linspace(0.0, 1.0, A.shape[0]) ** 4)).tocsr(), b)
+    assert slow.stalled and not slow.negative_curvature
 
 
 def test_env_override(monkeypatch: pytest.MonkeyPatch) -> None:
