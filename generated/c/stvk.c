@@ -6,7 +6,7 @@
 
 // Strain energy density psi(F).
 // inputs: F (m, 3, 3); params: (mu, lam)
-// outputs: psi (m); operation count per element: 74
+// outputs: psi (m); operation count per element: 56
 static inline void stvk_psi_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -24,16 +24,13 @@ static inline void stvk_psi_element(const double *const *in, const double *param
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (6)
-    const double t0 = (1.0/2.0)*(F_0_0*F_0_0) + (1.0/2.0)*(F_1_0*F_1_0) + (1.0/2.0)*(F_2_0*F_2_0);
-    const double t1 = (1.0/2.0)*(F_0_1*F_0_1) + (1.0/2.0)*(F_1_1*F_1_1) + (1.0/2.0)*(F_2_1*F_2_1);
-    const double t2 = (1.0/2.0)*(F_0_2*F_0_2) + (1.0/2.0)*(F_1_2*F_1_2) + (1.0/2.0)*(F_2_2*F_2_2);
-    const double t3 = (1.0/2.0)*F_0_0;
-    const double t4 = (1.0/2.0)*F_1_0;
-    const double t5 = (1.0/2.0)*F_2_0;
+    // intermediates (3)
+    const double t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
     // outputs
     double *restrict out_psi = out[0];
-    out_psi[0] = (1.0/2.0)*lam*(fem3d_powi((t0 + t1 + t2 - 3.0/2.0), 2)) + mu*((fem3d_powi((t0 - 1.0/2.0), 2)) + (fem3d_powi((t1 - 1.0/2.0), 2)) + (fem3d_powi((t2 - 1.0/2.0), 2)) + 2*(fem3d_powi(((1.0/2.0)*F_0_1*F_0_2 + (1.0/2.0)*F_1_1*F_1_2 + (1.0/2.0)*F_2_1*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*t3 + F_1_1*t4 + F_2_1*t5), 2)) + 2*(fem3d_powi((F_0_2*t3 + F_1_2*t4 + F_2_2*t5), 2)));
+    out_psi[0] = (1.0/8.0)*lam*(fem3d_powi((t0 + t1 + t2 - 3), 2)) + (1.0/4.0)*mu*((fem3d_powi((t0 - 1), 2)) + (fem3d_powi((t1 - 1), 2)) + (fem3d_powi((t2 - 1), 2)) + 2*(fem3d_powi((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1), 2)) + 2*(fem3d_powi((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2), 2)));
 }
 
 static void stvk_psi(Py_ssize_t m, const double *const *inputs, const double *params,
@@ -59,7 +56,7 @@ static PyObject *py_stvk_psi(PyObject *self, PyObject *args)
 
 // First Piola-Kirchhoff stress P = dpsi/dF.
 // inputs: F (m, 3, 3); params: (mu, lam)
-// outputs: P (m, 3, 3); operation count per element: 137
+// outputs: P (m, 3, 3); operation count per element: 110
 static inline void stvk_dpsi_dF_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -77,40 +74,28 @@ static inline void stvk_dpsi_dF_element(const double *const *in, const double *p
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (22)
-    const double t0 = (1.0/2.0)*(F_0_0*F_0_0) + (1.0/2.0)*(F_1_0*F_1_0) + (1.0/2.0)*(F_2_0*F_2_0);
-    const double t1 = (1.0/2.0)*(F_0_1*F_0_1) + (1.0/2.0)*(F_1_1*F_1_1) + (1.0/2.0)*(F_2_1*F_2_1);
-    const double t2 = (1.0/2.0)*(F_0_2*F_0_2) + (1.0/2.0)*(F_1_2*F_1_2) + (1.0/2.0)*(F_2_2*F_2_2);
-    const double t3 = lam*(t0 + t1 + t2 - 3.0/2.0);
-    const double t4 = (1.0/2.0)*F_0_0;
-    const double t5 = (1.0/2.0)*F_1_0;
-    const double t6 = (1.0/2.0)*F_2_0;
-    const double t7 = F_0_1*t4 + F_1_1*t5 + F_2_1*t6;
-    const double t8 = 2*F_0_1;
-    const double t9 = F_0_2*t4 + F_1_2*t5 + F_2_2*t6;
-    const double t10 = 2*F_0_2;
-    const double t11 = t0 - 1.0/2.0;
-    const double t12 = 2*F_0_0;
-    const double t13 = (1.0/2.0)*F_0_1*F_0_2 + (1.0/2.0)*F_1_1*F_1_2 + (1.0/2.0)*F_2_1*F_2_2;
-    const double t14 = t1 - 1.0/2.0;
-    const double t15 = t2 - 1.0/2.0;
-    const double t16 = 2*F_1_1;
-    const double t17 = 2*F_1_2;
-    const double t18 = 2*F_1_0;
-    const double t19 = 2*F_2_1;
-    const double t20 = 2*F_2_2;
-    const double t21 = 2*F_2_0;
+    // intermediates (10)
+    const double t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    const double t3 = (1.0/2.0)*lam*(t0 + t1 + t2 - 3);
+    const double t4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1;
+    const double t5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2;
+    const double t6 = t0 - 1;
+    const double t7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2;
+    const double t8 = t1 - 1;
+    const double t9 = t2 - 1;
     // outputs
     double *restrict out_P = out[0];
-    out_P[0] = F_0_0*t3 + mu*(t10*t9 + t11*t12 + t7*t8);
-    out_P[1] = F_0_1*t3 + mu*(t10*t13 + t12*t7 + t14*t8);
-    out_P[2] = F_0_2*t3 + mu*(t10*t15 + t12*t9 + t13*t8);
-    out_P[3] = F_1_0*t3 + mu*(t11*t18 + t16*t7 + t17*t9);
-    out_P[4] = F_1_1*t3 + mu*(t13*t17 + t14*t16 + t18*t7);
-    out_P[5] = F_1_2*t3 + mu*(t13*t16 + t15*t17 + t18*t9);
-    out_P[6] = F_2_0*t3 + mu*(t11*t21 + t19*t7 + t20*t9);
-    out_P[7] = F_2_1*t3 + mu*(t13*t20 + t14*t19 + t21*t7);
-    out_P[8] = F_2_2*t3 + mu*(t13*t19 + t15*t20 + t21*t9);
+    out_P[0] = F_0_0*t3 + mu*(F_0_0*t6 + F_0_1*t4 + F_0_2*t5);
+    out_P[1] = F_0_1*t3 + mu*(F_0_0*t4 + F_0_1*t8 + F_0_2*t7);
+    out_P[2] = F_0_2*t3 + mu*(F_0_0*t5 + F_0_1*t7 + F_0_2*t9);
+    out_P[3] = F_1_0*t3 + mu*(F_1_0*t6 + F_1_1*t4 + F_1_2*t5);
+    out_P[4] = F_1_1*t3 + mu*(F_1_0*t4 + F_1_1*t8 + F_1_2*t7);
+    out_P[5] = F_1_2*t3 + mu*(F_1_0*t5 + F_1_1*t7 + F_1_2*t9);
+    out_P[6] = F_2_0*t3 + mu*(F_2_0*t6 + F_2_1*t4 + F_2_2*t5);
+    out_P[7] = F_2_1*t3 + mu*(F_2_0*t4 + F_2_1*t8 + F_2_2*t7);
+    out_P[8] = F_2_2*t3 + mu*(F_2_0*t5 + F_2_1*t7 + F_2_2*t9);
 }
 
 static void stvk_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
@@ -136,7 +121,7 @@ static PyObject *py_stvk_dpsi_dF(PyObject *self, PyObject *args)
 
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam)
-// outputs: dP_dF (m, 9, 9); operation count per element: 301
+// outputs: dP_dF (m, 9, 9); operation count per element: 289
 static inline void stvk_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -154,7 +139,7 @@ static inline void stvk_d2psi_dF2_element(const double *const *in, const double 
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (47)
+    // intermediates (48)
     const double t0 = (F_0_0*F_0_0);
     const double t1 = (F_0_1*F_0_1);
     const double t2 = (F_1_0*F_1_0);
@@ -163,92 +148,93 @@ static inline void stvk_d2psi_dF2_element(const double *const *in, const double 
     const double t5 = (F_0_2*F_0_2);
     const double t6 = t5 - 1;
     const double t7 = t4 + t6;
-    const double t8 = (F_1_1*F_1_1);
-    const double t9 = (F_1_2*F_1_2);
+    const double t8 = (F_1_2*F_1_2);
+    const double t9 = (F_2_2*F_2_2);
     const double t10 = (F_2_1*F_2_1);
-    const double t11 = (F_2_2*F_2_2);
-    const double t12 = lam*((1.0/2.0)*t0 + (1.0/2.0)*t1 + (1.0/2.0)*t10 + (1.0/2.0)*t11 + (1.0/2.0)*t2 + (1.0/2.0)*t4 + (1.0/2.0)*t5 + (1.0/2.0)*t8 + (1.0/2.0)*t9 - 3.0/2.0);
-    const double t13 = F_0_0*F_0_1;
-    const double t14 = F_1_0*F_1_1;
-    const double t15 = F_2_0*F_2_1;
-    const double t16 = F_0_0*F_0_2;
-    const double t17 = F_1_0*F_1_2;
-    const double t18 = F_2_0*F_2_2;
-    const double t19 = F_0_0*F_1_0;
-    const double t20 = F_0_1*F_1_1;
-    const double t21 = F_0_2*F_1_2;
-    const double t22 = F_0_0*lam;
-    const double t23 = F_1_0*mu;
-    const double t24 = F_0_0*F_2_0;
-    const double t25 = F_0_1*F_2_1;
-    const double t26 = F_0_2*F_2_2;
-    const double t27 = F_2_0*mu;
-    const double t28 = t0 + t8;
-    const double t29 = F_0_1*F_0_2;
-    const double t30 = F_1_1*F_1_2;
-    const double t31 = F_2_1*F_2_2;
-    const double t32 = F_1_1*mu;
-    const double t33 = F_0_1*lam;
-    const double t34 = F_2_1*mu;
-    const double t35 = t9 - 1;
-    const double t36 = t0 + t11;
-    const double t37 = F_1_2*mu;
-    const double t38 = F_0_2*lam;
-    const double t39 = F_2_2*mu;
-    const double t40 = F_1_0*F_2_0;
-    const double t41 = F_1_1*F_2_1;
-    const double t42 = F_1_2*F_2_2;
-    const double t43 = F_1_0*lam;
-    const double t44 = F_1_1*lam;
-    const double t45 = t11 + t8;
-    const double t46 = F_1_2*lam;
+    const double t11 = (F_1_1*F_1_1);
+    const double t12 = t0 + t11;
+    const double t13 = t10 + t12;
+    const double t14 = (1.0/2.0)*lam*(t13 + t3 + t4 + t5 + t8 + t9 - 3);
+    const double t15 = F_0_0*F_0_1;
+    const double t16 = F_1_0*F_1_1;
+    const double t17 = F_2_0*F_2_1;
+    const double t18 = F_0_0*F_0_2;
+    const double t19 = F_1_0*F_1_2;
+    const double t20 = F_2_0*F_2_2;
+    const double t21 = F_0_0*F_1_0;
+    const double t22 = F_0_1*F_1_1;
+    const double t23 = F_0_2*F_1_2;
+    const double t24 = F_0_0*lam;
+    const double t25 = F_1_0*mu;
+    const double t26 = F_0_0*F_2_0;
+    const double t27 = F_0_1*F_2_1;
+    const double t28 = F_0_2*F_2_2;
+    const double t29 = F_2_0*mu;
+    const double t30 = F_0_1*F_0_2;
+    const double t31 = F_1_1*F_1_2;
+    const double t32 = F_2_1*F_2_2;
+    const double t33 = F_1_1*mu;
+    const double t34 = F_0_1*lam;
+    const double t35 = F_2_1*mu;
+    const double t36 = t8 - 1;
+    const double t37 = t0 + t9;
+    const double t38 = F_1_2*mu;
+    const double t39 = F_0_2*lam;
+    const double t40 = F_2_2*mu;
+    const double t41 = F_1_0*F_2_0;
+    const double t42 = F_1_1*F_2_1;
+    const double t43 = F_1_2*F_2_2;
+    const double t44 = F_1_0*lam;
+    const double t45 = F_1_1*lam;
+    const double t46 = t11 + t9;
+    const double t47 = F_1_2*lam;
     // outputs
     double *restrict out_dP_dF = out[0];
-    out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t12;
-    out_dP_dF[1] = out_dP_dF[9] = lam*t13 + mu*(2*t13 + t14 + t15);
-    out_dP_dF[2] = out_dP_dF[18] = lam*t16 + mu*(2*t16 + t17 + t18);
-    out_dP_dF[3] = out_dP_dF[27] = lam*t19 + mu*(2*t19 + t20 + t21);
-    out_dP_dF[4] = out_dP_dF[36] = F_0_1*t23 + F_1_1*t22;
-    out_dP_dF[5] = out_dP_dF[45] = F_0_2*t23 + F_1_2*t22;
-    out_dP_dF[6] = out_dP_dF[54] = lam*t24 + mu*(2*t24 + t25 + t26);
-    out_dP_dF[7] = out_dP_dF[63] = F_0_1*t27 + F_2_1*t22;
-    out_dP_dF[8] = out_dP_dF[72] = F_0_2*t27 + F_2_2*t22;
-    out_dP_dF[10] = lam*t1 + mu*(3*t1 + t10 + t28 + t6) + t12;
-    out_dP_dF[11] = out_dP_dF[19] = lam*t29 + mu*(2*t29 + t30 + t31);
-    out_dP_dF[12] = out_dP_dF[28] = F_0_0*t32 + F_1_0*t33;
-    out_dP_dF[13] = out_dP_dF[37] = lam*t20 + mu*(t19 + 2*t20 + t21);
-    out_dP_dF[14] = out_dP_dF[46] = F_0_2*t32 + F_1_2*t33;
-    out_dP_dF[15] = out_dP_dF[55] = F_0_0*t34 + F_2_0*t33;
-    out_dP_dF[16] = out_dP_dF[64] = lam*t25 + mu*(t24 + 2*t25 + t26);
-    out_dP_dF[17] = out_dP_dF[73] = F_0_2*t34 + F_2_2*t33;
-    out_dP_dF[20] = lam*t5 + mu*(t1 + t35 + t36 + 3*t5) + t12;
-    out_dP_dF[21] = out_dP_dF[29] = F_0_0*t37 + F_1_0*t38;
-    out_dP_dF[22] = out_dP_dF[38] = F_0_1*t37 + F_1_1*t38;
-    out_dP_dF[23] = out_dP_dF[47] = lam*t21 + mu*(t19 + t20 + 2*t21);
-    out_dP_dF[24] = out_dP_dF[56] = F_0_0*t39 + F_2_0*t38;
-    out_dP_dF[25] = out_dP_dF[65] = F_0_1*t39 + F_2_1*t38;
-    out_dP_dF[26] = out_dP_dF[74] = lam*t26 + mu*(t24 + t25 + 2*t26);
-    out_dP_dF[30] = lam*t2 + mu*(3*t2 + t28 + t35 + t4) + t12;
-    out_dP_dF[31] = out_dP_dF[39] = lam*t14 + mu*(t13 + 2*t14 + t15);
-    out_dP_dF[32] = out_dP_dF[48] = lam*t17 + mu*(t16 + 2*t17 + t18);
-    out_dP_dF[33] = out_dP_dF[57] = lam*t40 + mu*(2*t40 + t41 + t42);
-    out_dP_dF[34] = out_dP_dF[66] = F_1_1*t27 + F_2_1*t43;
-    out_dP_dF[35] = out_dP_dF[75] = F_1_2*t27 + F_2_2*t43;
-    out_dP_dF[40] = lam*t8 + mu*(t10 + t3 + t35 + 3*t8) + t12;
-    out_dP_dF[41] = out_dP_dF[49] = lam*t30 + mu*(t29 + 2*t30 + t31);
-    out_dP_dF[42] = out_dP_dF[58] = F_2_0*t44 + F_2_1*t23;
-    out_dP_dF[43] = out_dP_dF[67] = lam*t41 + mu*(t40 + 2*t41 + t42);
-    out_dP_dF[44] = out_dP_dF[76] = F_1_2*t34 + F_2_2*t44;
-    out_dP_dF[50] = lam*t9 + mu*(t2 + t45 + t6 + 3*t9) + t12;
-    out_dP_dF[51] = out_dP_dF[59] = F_2_0*t46 + F_2_2*t23;
-    out_dP_dF[52] = out_dP_dF[68] = F_2_1*t46 + F_2_2*t32;
-    out_dP_dF[53] = out_dP_dF[77] = lam*t42 + mu*(t40 + t41 + 2*t42);
-    out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t36 + 3*t4 - 1) + t12;
-    out_dP_dF[61] = out_dP_dF[69] = lam*t15 + mu*(t13 + t14 + 2*t15);
-    out_dP_dF[62] = out_dP_dF[78] = lam*t18 + mu*(t16 + t17 + 2*t18);
-    out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t45 - 1) + t12;
-    out_dP_dF[71] = out_dP_dF[79] = lam*t31 + mu*(t29 + t30 + 2*t31);
-    out_dP_dF[80] = lam*t11 + mu*(t10 + 3*t11 + t7 + t9) + t12;
+    out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t14;
+    out_dP_dF[1] = out_dP_dF[9] = lam*t15 + mu*(2*t15 + t16 + t17);
+    out_dP_dF[2] = out_dP_dF[18] = lam*t18 + mu*(2*t18 + t19 + t20);
+    out_dP_dF[3] = out_dP_dF[27] = lam*t21 + mu*(2*t21 + t22 + t23);
+    out_dP_dF[4] = out_dP_dF[36] = F_0_1*t25 + F_1_1*t24;
+    out_dP_dF[5] = out_dP_dF[45] = F_0_2*t25 + F_1_2*t24;
+    out_dP_dF[6] = out_dP_dF[54] = lam*t26 + mu*(2*t26 + t27 + t28);
+    out_dP_dF[7] = out_dP_dF[63] = F_0_1*t29 + F_2_1*t24;
+    out_dP_dF[8] = out_dP_dF[72] = F_0_2*t29 + F_2_2*t24;
+    out_dP_dF[10] = lam*t1 + mu*(3*t1 + t13 + t6) + t14;
+    out_dP_dF[11] = out_dP_dF[19] = lam*t30 + mu*(2*t30 + t31 + t32);
+    out_dP_dF[12] = out_dP_dF[28] = F_0_0*t33 + F_1_0*t34;
+    out_dP_dF[13] = out_dP_dF[37] = lam*t22 + mu*(t21 + 2*t22 + t23);
+    out_dP_dF[14] = out_dP_dF[46] = F_0_2*t33 + F_1_2*t34;
+    out_dP_dF[15] = out_dP_dF[55] = F_0_0*t35 + F_2_0*t34;
+    out_dP_dF[16] = out_dP_dF[64] = lam*t27 + mu*(t26 + 2*t27 + t28);
+    out_dP_dF[17] = out_dP_dF[73] = F_0_2*t35 + F_2_2*t34;
+    out_dP_dF[20] = lam*t5 + mu*(t1 + t36 + t37 + 3*t5) + t14;
+    out_dP_dF[21] = out_dP_dF[29] = F_0_0*t38 + F_1_0*t39;
+    out_dP_dF[22] = out_dP_dF[38] = F_0_1*t38 + F_1_1*t39;
+    out_dP_dF[23] = out_dP_dF[47] = lam*t23 + mu*(t21 + t22 + 2*t23);
+    out_dP_dF[24] = out_dP_dF[56] = F_0_0*t40 + F_2_0*t39;
+    out_dP_dF[25] = out_dP_dF[65] = F_0_1*t40 + F_2_1*t39;
+    out_dP_dF[26] = out_dP_dF[74] = lam*t28 + mu*(t26 + t27 + 2*t28);
+    out_dP_dF[30] = lam*t2 + mu*(t12 + 3*t2 + t36 + t4) + t14;
+    out_dP_dF[31] = out_dP_dF[39] = lam*t16 + mu*(t15 + 2*t16 + t17);
+    out_dP_dF[32] = out_dP_dF[48] = lam*t19 + mu*(t18 + 2*t19 + t20);
+    out_dP_dF[33] = out_dP_dF[57] = lam*t41 + mu*(2*t41 + t42 + t43);
+    out_dP_dF[34] = out_dP_dF[66] = F_1_1*t29 + F_2_1*t44;
+    out_dP_dF[35] = out_dP_dF[75] = F_1_2*t29 + F_2_2*t44;
+    out_dP_dF[40] = lam*t11 + mu*(t10 + 3*t11 + t3 + t36) + t14;
+    out_dP_dF[41] = out_dP_dF[49] = lam*t31 + mu*(t30 + 2*t31 + t32);
+    out_dP_dF[42] = out_dP_dF[58] = F_2_0*t45 + F_2_1*t25;
+    out_dP_dF[43] = out_dP_dF[67] = lam*t42 + mu*(t41 + 2*t42 + t43);
+    out_dP_dF[44] = out_dP_dF[76] = F_1_2*t35 + F_2_2*t45;
+    out_dP_dF[50] = lam*t8 + mu*(t2 + t46 + t6 + 3*t8) + t14;
+    out_dP_dF[51] = out_dP_dF[59] = F_2_0*t47 + F_2_2*t25;
+    out_dP_dF[52] = out_dP_dF[68] = F_2_1*t47 + F_2_2*t33;
+    out_dP_dF[53] = out_dP_dF[77] = lam*t43 + mu*(t41 + t42 + 2*t43);
+    out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t37 + 3*t4 - 1) + t14;
+    out_dP_dF[61] = out_dP_dF[69] = lam*t17 + mu*(t15 + t16 + 2*t17);
+    out_dP_dF[62] = out_dP_dF[78] = lam*t20 + mu*(t18 + t19 + 2*t20);
+    out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t46 - 1) + t14;
+    out_dP_dF[71] = out_dP_dF[79] = lam*t32 + mu*(t30 + t31 + 2*t32);
+    out_dP_dF[80] = lam*t9 + mu*(t10 + t7 + t8 + 3*t9) + t14;
 }
 
 static void stvk_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
@@ -274,7 +260,7 @@ static PyObject *py_stvk_d2psi_dF2(PyObject *self, PyObject *args)
 
 // Element potential energy vol * psi(F(x_e)).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
-// outputs: energy (m); operation count per element: 138
+// outputs: energy (m); operation count per element: 120
 static inline void stvk_energy_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -310,7 +296,7 @@ static inline void stvk_energy_element(const double *const *in, const double *pa
     const double dphi_3_2 = in_dphi_dX[11];
     const double *restrict in_vol = in[2];
     const double vol = in_vol[0];
-    // intermediates (16)
+    // intermediates (13)
     const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
     const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
     const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
@@ -320,13 +306,10 @@ static inline void stvk_energy_element(const double *const *in, const double *pa
     const double F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2;
     const double F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2;
     const double F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
-    const double e0 = (1.0/2.0)*(F_0_0*F_0_0) + (1.0/2.0)*(F_1_0*F_1_0) + (1.0/2.0)*(F_2_0*F_2_0);
-    const double e1 = (1.0/2.0)*(F_0_1*F_0_1) + (1.0/2.0)*(F_1_1*F_1_1) + (1.0/2.0)*(F_2_1*F_2_1);
-    const double e2 = (1.0/2.0)*(F_0_2*F_0_2) + (1.0/2.0)*(F_1_2*F_1_2) + (1.0/2.0)*(F_2_2*F_2_2);
-    const double e3 = (1.0/2.0)*F_0_0;
-    const double e4 = (1.0/2.0)*F_1_0;
-    const double e5 = (1.0/2.0)*F_2_0;
-    const double psi = (1.0/2.0)*lam*(fem3d_powi((e0 + e1 + e2 - 3.0/2.0), 2)) + mu*((fem3d_powi((e0 - 1.0/2.0), 2)) + (fem3d_powi((e1 - 1.0/2.0), 2)) + (fem3d_powi((e2 - 1.0/2.0), 2)) + 2*(fem3d_powi(((1.0/2.0)*F_0_1*F_0_2 + (1.0/2.0)*F_1_1*F_1_2 + (1.0/2.0)*F_2_1*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*e3 + F_1_1*e4 + F_2_1*e5), 2)) + 2*(fem3d_powi((F_0_2*e3 + F_1_2*e4 + F_2_2*e5), 2)));
+    const double e0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double e1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double e2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    const double psi = (1.0/8.0)*lam*(fem3d_powi((e0 + e1 + e2 - 3), 2)) + (1.0/4.0)*mu*((fem3d_powi((e0 - 1), 2)) + (fem3d_powi((e1 - 1), 2)) + (fem3d_powi((e2 - 1), 2)) + 2*(fem3d_powi((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1), 2)) + 2*(fem3d_powi((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2), 2)));
     // outputs
     double *restrict out_energy = out[0];
     out_energy[0] = psi*vol;
@@ -392,7 +375,7 @@ static PyObject *py_stvk_energy_assemble(PyObject *self, PyObject *args)
 
 // Element gradient d(vol psi)/dx_e, vertex-major (12).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
-// outputs: gradient (m, 12); operation count per element: 272
+// outputs: gradient (m, 12); operation count per element: 245
 static inline void stvk_gradient_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -428,7 +411,7 @@ static inline void stvk_gradient_element(const double *const *in, const double *
     const double dphi_3_2 = in_dphi_dX[11];
     const double *restrict in_vol = in[2];
     const double vol = in_vol[0];
-    // intermediates (40)
+    // intermediates (28)
     const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
     const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
     const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
@@ -438,37 +421,25 @@ static inline void stvk_gradient_element(const double *const *in, const double *
     const double F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2;
     const double F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2;
     const double F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
-    const double s0 = (1.0/2.0)*(F_0_0*F_0_0) + (1.0/2.0)*(F_1_0*F_1_0) + (1.0/2.0)*(F_2_0*F_2_0);
-    const double s1 = (1.0/2.0)*(F_0_1*F_0_1) + (1.0/2.0)*(F_1_1*F_1_1) + (1.0/2.0)*(F_2_1*F_2_1);
-    const double s2 = (1.0/2.0)*(F_0_2*F_0_2) + (1.0/2.0)*(F_1_2*F_1_2) + (1.0/2.0)*(F_2_2*F_2_2);
-    const double s3 = lam*(s0 + s1 + s2 - 3.0/2.0);
-    const double s4 = (1.0/2.0)*F_0_0;
-    const double s5 = (1.0/2.0)*F_1_0;
-    const double s6 = (1.0/2.0)*F_2_0;
-    const double s7 = F_0_1*s4 + F_1_1*s5 + F_2_1*s6;
-    const double s8 = 2*F_0_1;
-    const double s9 = F_0_2*s4 + F_1_2*s5 + F_2_2*s6;
-    const double s10 = 2*F_0_2;
-    const double s11 = s0 - 1.0/2.0;
-    const double s12 = 2*F_0_0;
-    const double s13 = (1.0/2.0)*F_0_1*F_0_2 + (1.0/2.0)*F_1_1*F_1_2 + (1.0/2.0)*F_2_1*F_2_2;
-    const double s14 = s1 - 1.0/2.0;
-    const double s15 = s2 - 1.0/2.0;
-    const double s16 = 2*F_1_1;
-    const double s17 = 2*F_1_2;
-    const double s18 = 2*F_1_0;
-    const double s19 = 2*F_2_1;
-    const double s20 = 2*F_2_2;
-    const double s21 = 2*F_2_0;
-    const double P_0_0 = F_0_0*s3 + mu*(s10*s9 + s11*s12 + s7*s8);
-    const double P_0_1 = F_0_1*s3 + mu*(s10*s13 + s12*s7 + s14*s8);
-    const double P_0_2 = F_0_2*s3 + mu*(s10*s15 + s12*s9 + s13*s8);
-    const double P_1_0 = F_1_0*s3 + mu*(s11*s18 + s16*s7 + s17*s9);
-    const double P_1_1 = F_1_1*s3 + mu*(s13*s17 + s14*s16 + s18*s7);
-    const double P_1_2 = F_1_2*s3 + mu*(s13*s16 + s15*s17 + s18*s9);
-    const double P_2_0 = F_2_0*s3 + mu*(s11*s21 + s19*s7 + s20*s9);
-    const double P_2_1 = F_2_1*s3 + mu*(s13*s20 + s14*s19 + s21*s7);
-    const double P_2_2 = F_2_2*s3 + mu*(s13*s19 + s15*s20 + s21*s9);
+    const double s0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double s1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double s2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    const double s3 = (1.0/2.0)*lam*(s0 + s1 + s2 - 3);
+    const double s4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1;
+    const double s5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2;
+    const double s6 = s0 - 1;
+    const double s7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2;
+    const double s8 = s1 - 1;
+    const double s9 = s2 - 1;
+    const double P_0_0 = F_0_0*s3 + mu*(F_0_0*s6 + F_0_1*s4 + F_0_2*s5);
+    const double P_0_1 = F_0_1*s3 + mu*(F_0_0*s4 + F_0_1*s8 + F_0_2*s7);
+    const double P_0_2 = F_0_2*s3 + mu*(F_0_0*s5 + F_0_1*s7 + F_0_2*s9);
+    const double P_1_0 = F_1_0*s3 + mu*(F_1_0*s6 + F_1_1*s4 + F_1_2*s5);
+    const double P_1_1 = F_1_1*s3 + mu*(F_1_0*s4 + F_1_1*s8 + F_1_2*s7);
+    const double P_1_2 = F_1_2*s3 + mu*(F_1_0*s5 + F_1_1*s7 + F_1_2*s9);
+    const double P_2_0 = F_2_0*s3 + mu*(F_2_0*s6 + F_2_1*s4 + F_2_2*s5);
+    const double P_2_1 = F_2_1*s3 + mu*(F_2_0*s4 + F_2_1*s8 + F_2_2*s7);
+    const double P_2_2 = F_2_2*s3 + mu*(F_2_0*s5 + F_2_1*s7 + F_2_2*s9);
     // outputs
     double *restrict out_gradient = out[0];
     out_gradient[0] = vol*(P_0_0*dphi_0_0 + P_0_1*dphi_0_1 + P_0_2*dphi_0_2);
@@ -545,7 +516,7 @@ static PyObject *py_stvk_gradient_assemble(PyObject *self, PyObject *args)
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
-// outputs: hessian (m, 12, 12); operation count per element: 1327
+// outputs: hessian (m, 12, 12); operation count per element: 1315
 static inline void stvk_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -581,7 +552,7 @@ static inline void stvk_hessian_element(const double *const *in, const double *p
     const double dphi_3_2 = in_dphi_dX[11];
     const double *restrict in_vol = in[2];
     const double vol = in_vol[0];
-    // intermediates (200)
+    // intermediates (201)
     const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
     const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
     const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
@@ -599,90 +570,91 @@ static inline void stvk_hessian_element(const double *const *in, const double *p
     const double h5 = (F_0_2*F_0_2);
     const double h6 = h5 - 1;
     const double h7 = h4 + h6;
-    const double h8 = (F_1_1*F_1_1);
-    const double h9 = (F_1_2*F_1_2);
+    const double h8 = (F_1_2*F_1_2);
+    const double h9 = (F_2_2*F_2_2);
     const double h10 = (F_2_1*F_2_1);
-    const double h11 = (F_2_2*F_2_2);
-    const double h12 = lam*((1.0/2.0)*h0 + (1.0/2.0)*h1 + (1.0/2.0)*h10 + (1.0/2.0)*h11 + (1.0/2.0)*h2 + (1.0/2.0)*h4 + (1.0/2.0)*h5 + (1.0/2.0)*h8 + (1.0/2.0)*h9 - 3.0/2.0);
-    const double h13 = F_0_0*F_0_1;
-    const double h14 = F_1_0*F_1_1;
-    const double h15 = F_2_0*F_2_1;
-    const double h16 = F_0_0*F_0_2;
-    const double h17 = F_1_0*F_1_2;
-    const double h18 = F_2_0*F_2_2;
-    const double h19 = F_0_0*F_1_0;
-    const double h20 = F_0_1*F_1_1;
-    const double h21 = F_0_2*F_1_2;
-    const double h22 = F_0_0*lam;
-    const double h23 = F_1_0*mu;
-    const double h24 = F_0_0*F_2_0;
-    const double h25 = F_0_1*F_2_1;
-    const double h26 = F_0_2*F_2_2;
-    const double h27 = F_2_0*mu;
-    const double h28 = h0 + h8;
-    const double h29 = F_0_1*F_0_2;
-    const double h30 = F_1_1*F_1_2;
-    const double h31 = F_2_1*F_2_2;
-    const double h32 = F_1_1*mu;
-    const double h33 = F_0_1*lam;
-    const double h34 = F_2_1*mu;
-    const double h35 = h9 - 1;
-    const double h36 = h0 + h11;
-    const double h37 = F_1_2*mu;
-    const double h38 = F_0_2*lam;
-    const double h39 = F_2_2*mu;
-    const double h40 = F_1_0*F_2_0;
-    const double h41 = F_1_1*F_2_1;
-    const double h42 = F_1_2*F_2_2;
-    const double h43 = F_1_0*lam;
-    const double h44 = F_1_1*lam;
-    const double h45 = h11 + h8;
-    const double h46 = F_1_2*lam;
-    const double A_0_0 = h0*lam + h12 + mu*(3*h0 + h3 + h7);
-    const double A_0_1 = h13*lam + mu*(2*h13 + h14 + h15);
-    const double A_0_2 = h16*lam + mu*(2*h16 + h17 + h18);
-    const double A_0_3 = h19*lam + mu*(2*h19 + h20 + h21);
-    const double A_0_4 = F_0_1*h23 + F_1_1*h22;
-    const double A_0_5 = F_0_2*h23 + F_1_2*h22;
-    const double A_0_6 = h24*lam + mu*(2*h24 + h25 + h26);
-    const double A_0_7 = F_0_1*h27 + F_2_1*h22;
-    const double A_0_8 = F_0_2*h27 + F_2_2*h22;
-    const double A_1_1 = h1*lam + h12 + mu*(3*h1 + h10 + h28 + h6);
-    const double A_1_2 = h29*lam + mu*(2*h29 + h30 + h31);
-    const double A_1_3 = F_0_0*h32 + F_1_0*h33;
-    const double A_1_4 = h20*lam + mu*(h19 + 2*h20 + h21);
-    const double A_1_5 = F_0_2*h32 + F_1_2*h33;
-    const double A_1_6 = F_0_0*h34 + F_2_0*h33;
-    const double A_1_7 = h25*lam + mu*(h24 + 2*h25 + h26);
-    const double A_1_8 = F_0_2*h34 + F_2_2*h33;
-    const double A_2_2 = h12 + h5*lam + mu*(h1 + h35 + h36 + 3*h5);
-    const double A_2_3 = F_0_0*h37 + F_1_0*h38;
-    const double A_2_4 = F_0_1*h37 + F_1_1*h38;
-    const double A_2_5 = h21*lam + mu*(h19 + h20 + 2*h21);
-    const double A_2_6 = F_0_0*h39 + F_2_0*h38;
-    const double A_2_7 = F_0_1*h39 + F_2_1*h38;
-    const double A_2_8 = h26*lam + mu*(h24 + h25 + 2*h26);
-    const double A_3_3 = h12 + h2*lam + mu*(3*h2 + h28 + h35 + h4);
-    const double A_3_4 = h14*lam + mu*(h13 + 2*h14 + h15);
-    const double A_3_5 = h17*lam + mu*(h16 + 2*h17 + h18);
-    const double A_3_6 = h40*lam + mu*(2*h40 + h41 + h42);
-    const double A_3_7 = F_1_1*h27 + F_2_1*h43;
-    const double A_3_8 = F_1_2*h27 + F_2_2*h43;
-    const double A_4_4 = h12 + h8*lam + mu*(h10 + h3 + h35 + 3*h8);
-    const double A_4_5 = h30*lam + mu*(h29 + 2*h30 + h31);
-    const double A_4_6 = F_2_0*h44 + F_2_1*h23;
-    const double A_4_7 = h41*lam + mu*(h40 + 2*h41 + h42);
-    const double A_4_8 = F_1_2*h34 + F_2_2*h44;
-    const double A_5_5 = h12 + h9*lam + mu*(h2 + h45 + h6 + 3*h9);
-    const double A_5_6 = F_2_0*h46 + F_2_2*h23;
-    const double A_5_7 = F_2_1*h46 + F_2_2*h32;
-    const double A_5_8 = h42*lam + mu*(h40 + h41 + 2*h42);
-    const double A_6_6 = h12 + h4*lam + mu*(h10 + h2 + h36 + 3*h4 - 1);
-    const double A_6_7 = h15*lam + mu*(h13 + h14 + 2*h15);
-    const double A_6_8 = h18*lam + mu*(h16 + h17 + 2*h18);
-    const double A_7_7 = h10*lam + h12 + mu*(h1 + 3*h10 + h4 + h45 - 1);
-    const double A_7_8 = h31*lam + mu*(h29 + h30 + 2*h31);
-    const double A_8_8 = h11*lam + h12 + mu*(h10 + 3*h11 + h7 + h9);
+    const double h11 = (F_1_1*F_1_1);
+    const double h12 = h0 + h11;
+    const double h13 = h10 + h12;
+    const double h14 = (1.0/2.0)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3);
+    const double h15 = F_0_0*F_0_1;
+    const double h16 = F_1_0*F_1_1;
+    const double h17 = F_2_0*F_2_1;
+    const double h18 = F_0_0*F_0_2;
+    const double h19 = F_1_0*F_1_2;
+    const double h20 = F_2_0*F_2_2;
+    const double h21 = F_0_0*F_1_0;
+    const double h22 = F_0_1*F_1_1;
+    const double h23 = F_0_2*F_1_2;
+    const double h24 = F_0_0*lam;
+    const double h25 = F_1_0*mu;
+    const double h26 = F_0_0*F_2_0;
+    const double h27 = F_0_1*F_2_1;
+    const double h28 = F_0_2*F_2_2;
+    const double h29 = F_2_0*mu;
+    const double h30 = F_0_1*F_0_2;
+    const double h31 = F_1_1*F_1_2;
+    const double h32 = F_2_1*F_2_2;
+    const double h33 = F_1_1*mu;
+    const double h34 = F_0_1*lam;
+    const double h35 = F_2_1*mu;
+    const double h36 = h8 - 1;
+    const double h37 = h0 + h9;
+    const double h38 = F_1_2*mu;
+    const double h39 = F_0_2*lam;
+    const double h40 = F_2_2*mu;
+    const double h41 = F_1_0*F_2_0;
+    const double h42 = F_1_1*F_2_1;
+    const double h43 = F_1_2*F_2_2;
+    const double h44 = F_1_0*lam;
+    const double h45 = F_1_1*lam;
+    const double h46 = h11 + h9;
+    const double h47 = F_1_2*lam;
+    const double A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7);
+    const double A_0_1 = h15*lam + mu*(2*h15 + h16 + h17);
+    const double A_0_2 = h18*lam + mu*(2*h18 + h19 + h20);
+    const double A_0_3 = h21*lam + mu*(2*h21 + h22 + h23);
+    const double A_0_4 = F_0_1*h25 + F_1_1*h24;
+    const double A_0_5 = F_0_2*h25 + F_1_2*h24;
+    const double A_0_6 = h26*lam + mu*(2*h26 + h27 + h28);
+    const double A_0_7 = F_0_1*h29 + F_2_1*h24;
+    const double A_0_8 = F_0_2*h29 + F_2_2*h24;
+    const double A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6);
+    const double A_1_2 = h30*lam + mu*(2*h30 + h31 + h32);
+    const double A_1_3 = F_0_0*h33 + F_1_0*h34;
+    const double A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23);
+    const double A_1_5 = F_0_2*h33 + F_1_2*h34;
+    const double A_1_6 = F_0_0*h35 + F_2_0*h34;
+    const double A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28);
+    const double A_1_8 = F_0_2*h35 + F_2_2*h34;
+    const double A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5);
+    const double A_2_3 = F_0_0*h38 + F_1_0*h39;
+    const double A_2_4 = F_0_1*h38 + F_1_1*h39;
+    const double A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23);
+    const double A_2_6 = F_0_0*h40 + F_2_0*h39;
+    const double A_2_7 = F_0_1*h40 + F_2_1*h39;
+    const double A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28);
+    const double A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4);
+    const double A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17);
+    const double A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20);
+    const double A_3_6 = h41*lam + mu*(2*h41 + h42 + h43);
+    const double A_3_7 = F_1_1*h29 + F_2_1*h44;
+    const double A_3_8 = F_1_2*h29 + F_2_2*h44;
+    const double A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36);
+    const double A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32);
+    const double A_4_6 = F_2_0*h45 + F_2_1*h25;
+    const double A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43);
+    const double A_4_8 = F_1_2*h35 + F_2_2*h45;
+    const double A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8);
+    const double A_5_6 = F_2_0*h47 + F_2_2*h25;
+    const double A_5_7 = F_2_1*h47 + F_2_2*h33;
+    const double A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43);
+    const double A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1);
+    const double A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17);
+    const double A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20);
+    const double A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1);
+    const double A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32);
+    const double A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9);
     const double T_0_0 = A_0_0*dphi_0_0 + A_0_1*dphi_0_1 + A_0_2*dphi_0_2;
     const double T_0_1 = A_0_3*dphi_0_0 + A_0_4*dphi_0_1 + A_0_5*dphi_0_2;
     const double T_0_2 = A_0_6*dphi_0_0 + A_0_7*dphi_0_1 + A_0_8*dphi_0_2;
@@ -924,7 +896,7 @@ static PyObject *py_stvk_hessian_assemble(PyObject *self, PyObject *args)
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
-// outputs: hessian (m, 12, 12); operation count per element: 1327
+// outputs: hessian (m, 12, 12); operation count per element: 1315
 static inline void stvk_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -960,7 +932,7 @@ static inline void stvk_hessian_psd_element(const double *const *in, const doubl
     const double dphi_3_2 = in_dphi_dX[11];
     const double *restrict in_vol = in[2];
     const double vol = in_vol[0];
-    // intermediates (201)
+    // intermediates (202)
     const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
     const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
     const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
@@ -978,173 +950,174 @@ static inline void stvk_hessian_psd_element(const double *const *in, const doubl
     const double h5 = (F_0_2*F_0_2);
     const double h6 = h5 - 1;
     const double h7 = h4 + h6;
-    const double h8 = (F_1_1*F_1_1);
-    const double h9 = (F_1_2*F_1_2);
+    const double h8 = (F_1_2*F_1_2);
+    const double h9 = (F_2_2*F_2_2);
     const double h10 = (F_2_1*F_2_1);
-    const double h11 = (F_2_2*F_2_2);
-    const double h12 = lam*((1.0/2.0)*h0 + (1.0/2.0)*h1 + (1.0/2.0)*h10 + (1.0/2.0)*h11 + (1.0/2.0)*h2 + (1.0/2.0)*h4 + (1.0/2.0)*h5 + (1.0/2.0)*h8 + (1.0/2.0)*h9 - 3.0/2.0);
-    const double h13 = F_0_0*F_0_1;
-    const double h14 = F_1_0*F_1_1;
-    const double h15 = F_2_0*F_2_1;
-    const double h16 = F_0_0*F_0_2;
-    const double h17 = F_1_0*F_1_2;
-    const double h18 = F_2_0*F_2_2;
-    const double h19 = F_0_0*F_1_0;
-    const double h20 = F_0_1*F_1_1;
-    const double h21 = F_0_2*F_1_2;
-    const double h22 = F_0_0*lam;
-    const double h23 = F_1_0*mu;
-    const double h24 = F_0_0*F_2_0;
-    const double h25 = F_0_1*F_2_1;
-    const double h26 = F_0_2*F_2_2;
-    const double h27 = F_2_0*mu;
-    const double h28 = h0 + h8;
-    const double h29 = F_0_1*F_0_2;
-    const double h30 = F_1_1*F_1_2;
-    const double h31 = F_2_1*F_2_2;
-    const double h32 = F_1_1*mu;
-    const double h33 = F_0_1*lam;
-    const double h34 = F_2_1*mu;
-    const double h35 = h9 - 1;
-    const double h36 = h0 + h11;
-    const double h37 = F_1_2*mu;
-    const double h38 = F_0_2*lam;
-    const double h39 = F_2_2*mu;
-    const double h40 = F_1_0*F_2_0;
-    const double h41 = F_1_1*F_2_1;
-    const double h42 = F_1_2*F_2_2;
-    const double h43 = F_1_0*lam;
-    const double h44 = F_1_1*lam;
-    const double h45 = h11 + h8;
-    const double h46 = F_1_2*lam;
-    const double A_0_0 = h0*lam + h12 + mu*(3*h0 + h3 + h7);
-    const double A_0_1 = h13*lam + mu*(2*h13 + h14 + h15);
-    const double A_0_2 = h16*lam + mu*(2*h16 + h17 + h18);
-    const double A_0_3 = h19*lam + mu*(2*h19 + h20 + h21);
-    const double A_0_4 = F_0_1*h23 + F_1_1*h22;
-    const double A_0_5 = F_0_2*h23 + F_1_2*h22;
-    const double A_0_6 = h24*lam + mu*(2*h24 + h25 + h26);
-    const double A_0_7 = F_0_1*h27 + F_2_1*h22;
-    const double A_0_8 = F_0_2*h27 + F_2_2*h22;
-    const double A_1_1 = h1*lam + h12 + mu*(3*h1 + h10 + h28 + h6);
-    const double A_1_2 = h29*lam + mu*(2*h29 + h30 + h31);
-    const double A_1_3 = F_0_0*h32 + F_1_0*h33;
-    const double A_1_4 = h20*lam + mu*(h19 + 2*h20 + h21);
-    const double A_1_5 = F_0_2*h32 + F_1_2*h33;
-    const double A_1_6 = F_0_0*h34 + F_2_0*h33;
-    const double A_1_7 = h25*lam + mu*(h24 + 2*h25 + h26);
-    const double A_1_8 = F_0_2*h34 + F_2_2*h33;
-    const double A_2_2 = h12 + h5*lam + mu*(h1 + h35 + h36 + 3*h5);
-    const double A_2_3 = F_0_0*h37 + F_1_0*h38;
-    const double A_2_4 = F_0_1*h37 + F_1_1*h38;
-    const double A_2_5 = h21*lam + mu*(h19 + h20 + 2*h21);
-    const double A_2_6 = F_0_0*h39 + F_2_0*h38;
-    const double A_2_7 = F_0_1*h39 + F_2_1*h38;
-    const double A_2_8 = h26*lam + mu*(h24 + h25 + 2*h26);
-    const double A_3_3 = h12 + h2*lam + mu*(3*h2 + h28 + h35 + h4);
-    const double A_3_4 = h14*lam + mu*(h13 + 2*h14 + h15);
-    const double A_3_5 = h17*lam + mu*(h16 + 2*h17 + h18);
-    const double A_3_6 = h40*lam + mu*(2*h40 + h41 + h42);
-    const double A_3_7 = F_1_1*h27 + F_2_1*h43;
-    const double A_3_8 = F_1_2*h27 + F_2_2*h43;
-    const double A_4_4 = h12 + h8*lam + mu*(h10 + h3 + h35 + 3*h8);
-    const double A_4_5 = h30*lam + mu*(h29 + 2*h30 + h31);
-    const double A_4_6 = F_2_0*h44 + F_2_1*h23;
-    const double A_4_7 = h41*lam + mu*(h40 + 2*h41 + h42);
-    const double A_4_8 = F_1_2*h34 + F_2_2*h44;
-    const double A_5_5 = h12 + h9*lam + mu*(h2 + h45 + h6 + 3*h9);
-    const double A_5_6 = F_2_0*h46 + F_2_2*h23;
-    const double A_5_7 = F_2_1*h46 + F_2_2*h32;
-    const double A_5_8 = h42*lam + mu*(h40 + h41 + 2*h42);
-    const double A_6_6 = h12 + h4*lam + mu*(h10 + h2 + h36 + 3*h4 - 1);
-    const double A_6_7 = h15*lam + mu*(h13 + h14 + 2*h15);
-    const double A_6_8 = h18*lam + mu*(h16 + h17 + 2*h18);
-    const double A_7_7 = h10*lam + h12 + mu*(h1 + 3*h10 + h4 + h45 - 1);
-    const double A_7_8 = h31*lam + mu*(h29 + h30 + 2*h31);
-    const double A_8_8 = h11*lam + h12 + mu*(h10 + 3*h11 + h7 + h9);
-    double projected_101[81] = { A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8 };
-    fem3d_project_psd(9, projected_101);
-    const double Ap_0_0 = projected_101[0];
-    const double Ap_0_1 = projected_101[1];
-    const double Ap_0_2 = projected_101[2];
-    const double Ap_0_3 = projected_101[3];
-    const double Ap_0_4 = projected_101[4];
-    const double Ap_0_5 = projected_101[5];
-    const double Ap_0_6 = projected_101[6];
-    const double Ap_0_7 = projected_101[7];
-    const double Ap_0_8 = projected_101[8];
-    const double Ap_1_0 = projected_101[9];
-    const double Ap_1_1 = projected_101[10];
-    const double Ap_1_2 = projected_101[11];
-    const double Ap_1_3 = projected_101[12];
-    const double Ap_1_4 = projected_101[13];
-    const double Ap_1_5 = projected_101[14];
-    const double Ap_1_6 = projected_101[15];
-    const double Ap_1_7 = projected_101[16];
-    const double Ap_1_8 = projected_101[17];
-    const double Ap_2_0 = projected_101[18];
-    const double Ap_2_1 = projected_101[19];
-    const double Ap_2_2 = projected_101[20];
-    const double Ap_2_3 = projected_101[21];
-    const double Ap_2_4 = projected_101[22];
-    const double Ap_2_5 = projected_101[23];
-    const double Ap_2_6 = projected_101[24];
-    const double Ap_2_7 = projected_101[25];
-    const double Ap_2_8 = projected_101[26];
-    const double Ap_3_0 = projected_101[27];
-    const double Ap_3_1 = projected_101[28];
-    const double Ap_3_2 = projected_101[29];
-    const double Ap_3_3 = projected_101[30];
-    const double Ap_3_4 = projected_101[31];
-    const double Ap_3_5 = projected_101[32];
-    const double Ap_3_6 = projected_101[33];
-    const double Ap_3_7 = projected_101[34];
-    const double Ap_3_8 = projected_101[35];
-    const double Ap_4_0 = projected_101[36];
-    const double Ap_4_1 = projected_101[37];
-    const double Ap_4_2 = projected_101[38];
-    const double Ap_4_3 = projected_101[39];
-    const double Ap_4_4 = projected_101[40];
-    const double Ap_4_5 = projected_101[41];
-    const double Ap_4_6 = projected_101[42];
-    const double Ap_4_7 = projected_101[43];
-    const double Ap_4_8 = projected_101[44];
-    const double Ap_5_0 = projected_101[45];
-    const double Ap_5_1 = projected_101[46];
-    const double Ap_5_2 = projected_101[47];
-    const double Ap_5_3 = projected_101[48];
-    const double Ap_5_4 = projected_101[49];
-    const double Ap_5_5 = projected_101[50];
-    const double Ap_5_6 = projected_101[51];
-    const double Ap_5_7 = projected_101[52];
-    const double Ap_5_8 = projected_101[53];
-    const double Ap_6_0 = projected_101[54];
-    const double Ap_6_1 = projected_101[55];
-    const double Ap_6_2 = projected_101[56];
-    const double Ap_6_3 = projected_101[57];
-    const double Ap_6_4 = projected_101[58];
-    const double Ap_6_5 = projected_101[59];
-    const double Ap_6_6 = projected_101[60];
-    const double Ap_6_7 = projected_101[61];
-    const double Ap_6_8 = projected_101[62];
-    const double Ap_7_0 = projected_101[63];
-    const double Ap_7_1 = projected_101[64];
-    const double Ap_7_2 = projected_101[65];
-    const double Ap_7_3 = projected_101[66];
-    const double Ap_7_4 = projected_101[67];
-    const double Ap_7_5 = projected_101[68];
-    const double Ap_7_6 = projected_101[69];
-    const double Ap_7_7 = projected_101[70];
-    const double Ap_7_8 = projected_101[71];
-    const double Ap_8_0 = projected_101[72];
-    const double Ap_8_1 = projected_101[73];
-    const double Ap_8_2 = projected_101[74];
-    const double Ap_8_3 = projected_101[75];
-    const double Ap_8_4 = projected_101[76];
-    const double Ap_8_5 = projected_101[77];
-    const double Ap_8_6 = projected_101[78];
-    const double Ap_8_7 = projected_101[79];
-    const double Ap_8_8 = projected_101[80];
+    const double h11 = (F_1_1*F_1_1);
+    const double h12 = h0 + h11;
+    const double h13 = h10 + h12;
+    const double h14 = (1.0/2.0)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3);
+    const double h15 = F_0_0*F_0_1;
+    const double h16 = F_1_0*F_1_1;
+    const double h17 = F_2_0*F_2_1;
+    const double h18 = F_0_0*F_0_2;
+    const double h19 = F_1_0*F_1_2;
+    const double h20 = F_2_0*F_2_2;
+    const double h21 = F_0_0*F_1_0;
+    const double h22 = F_0_1*F_1_1;
+    const double h23 = F_0_2*F_1_2;
+    const double h24 = F_0_0*lam;
+    const double h25 = F_1_0*mu;
+    const double h26 = F_0_0*F_2_0;
+    const double h27 = F_0_1*F_2_1;
+    const double h28 = F_0_2*F_2_2;
+    const double h29 = F_2_0*mu;
+    const double h30 = F_0_1*F_0_2;
+    const double h31 = F_1_1*F_1_2;
+    const double h32 = F_2_1*F_2_2;
+    const double h33 = F_1_1*mu;
+    const double h34 = F_0_1*lam;
+    const double h35 = F_2_1*mu;
+    const double h36 = h8 - 1;
+    const double h37 = h0 + h9;
+    const double h38 = F_1_2*mu;
+    const double h39 = F_0_2*lam;
+    const double h40 = F_2_2*mu;
+    const double h41 = F_1_0*F_2_0;
+    const double h42 = F_1_1*F_2_1;
+    const double h43 = F_1_2*F_2_2;
+    const double h44 = F_1_0*lam;
+    const double h45 = F_1_1*lam;
+    const double h46 = h11 + h9;
+    const double h47 = F_1_2*lam;
+    const double A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7);
+    const double A_0_1 = h15*lam + mu*(2*h15 + h16 + h17);
+    const double A_0_2 = h18*lam + mu*(2*h18 + h19 + h20);
+    const double A_0_3 = h21*lam + mu*(2*h21 + h22 + h23);
+    const double A_0_4 = F_0_1*h25 + F_1_1*h24;
+    const double A_0_5 = F_0_2*h25 + F_1_2*h24;
+    const double A_0_6 = h26*lam + mu*(2*h26 + h27 + h28);
+    const double A_0_7 = F_0_1*h29 + F_2_1*h24;
+    const double A_0_8 = F_0_2*h29 + F_2_2*h24;
+    const double A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6);
+    const double A_1_2 = h30*lam + mu*(2*h30 + h31 + h32);
+    const double A_1_3 = F_0_0*h33 + F_1_0*h34;
+    const double A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23);
+    const double A_1_5 = F_0_2*h33 + F_1_2*h34;
+    const double A_1_6 = F_0_0*h35 + F_2_0*h34;
+    const double A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28);
+    const double A_1_8 = F_0_2*h35 + F_2_2*h34;
+    const double A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5);
+    const double A_2_3 = F_0_0*h38 + F_1_0*h39;
+    const double A_2_4 = F_0_1*h38 + F_1_1*h39;
+    const double A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23);
+    const double A_2_6 = F_0_0*h40 + F_2_0*h39;
+    const double A_2_7 = F_0_1*h40 + F_2_1*h39;
+    const double A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28);
+    const double A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4);
+    const double A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17);
+    const double A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20);
+    const double A_3_6 = h41*lam + mu*(2*h41 + h42 + h43);
+    const double A_3_7 = F_1_1*h29 + F_2_1*h44;
+    const double A_3_8 = F_1_2*h29 + F_2_2*h44;
+    const double A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36);
+    const double A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32);
+    const double A_4_6 = F_2_0*h45 + F_2_1*h25;
+    const double A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43);
+    const double A_4_8 = F_1_2*h35 + F_2_2*h45;
+    const double A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8);
+    const double A_5_6 = F_2_0*h47 + F_2_2*h25;
+    const double A_5_7 = F_2_1*h47 + F_2_2*h33;
+    const double A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43);
+    const double A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1);
+    const double A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17);
+    const double A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20);
+    const double A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1);
+    const double A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32);
+    const double A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9);
+    double projected_102[81] = { A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8 };
+    fem3d_project_psd(9, projected_102);
+    const double Ap_0_0 = projected_102[0];
+    const double Ap_0_1 = projected_102[1];
+    const double Ap_0_2 = projected_102[2];
+    const double Ap_0_3 = projected_102[3];
+    const double Ap_0_4 = projected_102[4];
+    const double Ap_0_5 = projected_102[5];
+    const double Ap_0_6 = projected_102[6];
+    const double Ap_0_7 = projected_102[7];
+    const double Ap_0_8 = projected_102[8];
+    const double Ap_1_0 = projected_102[9];
+    const double Ap_1_1 = projected_102[10];
+    const double Ap_1_2 = projected_102[11];
+    const double Ap_1_3 = projected_102[12];
+    const double Ap_1_4 = projected_102[13];
+    const double Ap_1_5 = projected_102[14];
+    const double Ap_1_6 = projected_102[15];
+    const double Ap_1_7 = projected_102[16];
+    const double Ap_1_8 = projected_102[17];
+    const double Ap_2_0 = projected_102[18];
+    const double Ap_2_1 = projected_102[19];
+    const double Ap_2_2 = projected_102[20];
+    const double Ap_2_3 = projected_102[21];
+    const double Ap_2_4 = projected_102[22];
+    const double Ap_2_5 = projected_102[23];
+    const double Ap_2_6 = projected_102[24];
+    const double Ap_2_7 = projected_102[25];
+    const double Ap_2_8 = projected_102[26];
+    const double Ap_3_0 = projected_102[27];
+    const double Ap_3_1 = projected_102[28];
+    const double Ap_3_2 = projected_102[29];
+    const double Ap_3_3 = projected_102[30];
+    const double Ap_3_4 = projected_102[31];
+    const double Ap_3_5 = projected_102[32];
+    const double Ap_3_6 = projected_102[33];
+    const double Ap_3_7 = projected_102[34];
+    const double Ap_3_8 = projected_102[35];
+    const double Ap_4_0 = projected_102[36];
+    const double Ap_4_1 = projected_102[37];
+    const double Ap_4_2 = projected_102[38];
+    const double Ap_4_3 = projected_102[39];
+    const double Ap_4_4 = projected_102[40];
+    const double Ap_4_5 = projected_102[41];
+    const double Ap_4_6 = projected_102[42];
+    const double Ap_4_7 = projected_102[43];
+    const double Ap_4_8 = projected_102[44];
+    const double Ap_5_0 = projected_102[45];
+    const double Ap_5_1 = projected_102[46];
+    const double Ap_5_2 = projected_102[47];
+    const double Ap_5_3 = projected_102[48];
+    const double Ap_5_4 = projected_102[49];
+    const double Ap_5_5 = projected_102[50];
+    const double Ap_5_6 = projected_102[51];
+    const double Ap_5_7 = projected_102[52];
+    const double Ap_5_8 = projected_102[53];
+    const double Ap_6_0 = projected_102[54];
+    const double Ap_6_1 = projected_102[55];
+    const double Ap_6_2 = projected_102[56];
+    const double Ap_6_3 = projected_102[57];
+    const double Ap_6_4 = projected_102[58];
+    const double Ap_6_5 = projected_102[59];
+    const double Ap_6_6 = projected_102[60];
+    const double Ap_6_7 = projected_102[61];
+    const double Ap_6_8 = projected_102[62];
+    const double Ap_7_0 = projected_102[63];
+    const double Ap_7_1 = projected_102[64];
+    const double Ap_7_2 = projected_102[65];
+    const double Ap_7_3 = projected_102[66];
+    const double Ap_7_4 = projected_102[67];
+    const double Ap_7_5 = projected_102[68];
+    const double Ap_7_6 = projected_102[69];
+    const double Ap_7_7 = projected_102[70];
+    const double Ap_7_8 = projected_102[71];
+    const double Ap_8_0 = projected_102[72];
+    const double Ap_8_1 = projected_102[73];
+    const double Ap_8_2 = projected_102[74];
+    const double Ap_8_3 = projected_102[75];
+    const double Ap_8_4 = projected_102[76];
+    const double Ap_8_5 = projected_102[77];
+    const double Ap_8_6 = projected_102[78];
+    const double Ap_8_7 = projected_102[79];
+    const double Ap_8_8 = projected_102[80];
     const double T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2;
     const double T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2;
     const double T_0_2 = Ap_0_6*dphi_0_0 + Ap_0_7*dphi_0_1 + Ap_0_8*dphi_0_2;

@@ -6,7 +6,7 @@
 
 // Shape-function gradients dphi/dX and signed volume of rest tets.
 // inputs: X_e (m, 4, 3); params: ()
-// outputs: dphi_dX (m, 4, 3), volume (m); operation count per element: 225
+// outputs: dphi_dX (m, 4, 3), volume (m); operation count per element: 152
 static inline void tet_rest_shape_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -25,66 +25,61 @@ static inline void tet_rest_shape_element(const double *const *in, const double 
     const double X_3_0 = in_X_e[9];
     const double X_3_1 = in_X_e[10];
     const double X_3_2 = in_X_e[11];
-    // intermediates (43)
-    const double t0 = X_1_1*X_3_2;
-    const double t1 = X_0_1*X_1_2;
-    const double t2 = X_0_2*X_1_1;
-    const double t3 = t1 - t2;
-    const double t4 = X_0_2*X_3_1;
-    const double t5 = X_0_1*X_3_2;
-    const double t6 = t4 - t5;
-    const double t7 = X_1_1*X_2_2;
-    const double t8 = X_0_0*t7;
-    const double t9 = X_0_0*X_1_2*X_3_1;
-    const double t10 = X_2_1*X_3_2;
-    const double t11 = X_0_0*t10;
-    const double t12 = X_1_0*t5;
-    const double t13 = X_2_0*t1;
-    const double t14 = X_0_1*X_2_2;
-    const double t15 = X_3_0*t14;
-    const double t16 = X_0_2*X_2_1;
-    const double t17 = X_1_0*t16;
-    const double t18 = X_3_0*t2;
-    const double t19 = X_2_0*t4;
-    const double t20 = X_2_2*X_3_1;
-    const double t21 = X_1_0*t20;
-    const double t22 = X_2_0*t0;
-    const double t23 = X_1_2*X_2_1;
-    const double t24 = X_3_0*t23;
-    const double t25 = (1.0/((X_0_0*X_1_1*X_3_2 + X_0_0*X_1_2*X_2_1 + X_0_0*X_2_2*X_3_1 + X_0_1*X_1_0*X_2_2 + X_0_1*X_1_2*X_3_0 + X_0_1*X_2_0*X_3_2 + X_0_2*X_1_0*X_3_1 + X_0_2*X_1_1*X_2_0 + X_0_2*X_2_1*X_3_0 + X_1_0*X_2_1*X_3_2 + X_1_1*X_2_2*X_3_0 + X_1_2*X_2_0*X_3_1 - t11 - t12 - t13 - t15 - t17 - t18 - t19 - t21 - t22 - t24 - t8 - t9)));
-    const double t26 = t25*(X_1_2*X_3_1 - t0 - t3 - t6);
-    const double t27 = t25*(-t14 + t16 - t23 + t3 + t7);
-    const double t28 = t25*(t10 + t14 - t16 - t20 + t6);
-    const double t29 = X_0_2*X_2_0;
-    const double t30 = X_0_0*X_2_2;
-    const double t31 = X_0_0*X_1_2 - X_0_2*X_1_0;
-    const double t32 = t25*(-X_1_0*X_2_2 + X_1_2*X_2_0 - t29 + t30 - t31);
-    const double t33 = -X_0_0*X_3_2 + X_0_2*X_3_0;
-    const double t34 = t25*(X_1_0*X_3_2 - X_1_2*X_3_0 + t31 + t33);
-    const double t35 = t25*(-X_2_0*X_3_2 + X_2_2*X_3_0 + t29 - t30 - t33);
-    const double t36 = X_0_0*X_1_1 - X_0_1*X_1_0;
-    const double t37 = -X_0_0*X_3_1 + X_0_1*X_3_0;
-    const double t38 = t25*(-X_1_0*X_3_1 + X_1_1*X_3_0 - t36 - t37);
-    const double t39 = X_0_1*X_2_0;
-    const double t40 = X_0_0*X_2_1;
-    const double t41 = t25*(X_1_0*X_2_1 - X_1_1*X_2_0 + t36 + t39 - t40);
-    const double t42 = t25*(X_2_0*X_3_1 - X_2_1*X_3_0 + t37 - t39 + t40);
+    // intermediates (38)
+    const double t0 = X_1_2*X_3_1;
+    const double t1 = X_1_1*X_3_2;
+    const double t2 = X_2_1*X_3_2;
+    const double t3 = X_2_2*X_3_1;
+    const double t4 = t2 - t3;
+    const double t5 = X_1_1*X_2_2;
+    const double t6 = X_1_2*X_2_1;
+    const double t7 = t5 - t6;
+    const double t8 = X_1_0*X_3_2;
+    const double t9 = X_1_2*X_2_0;
+    const double t10 = X_2_2*X_3_0;
+    const double t11 = X_1_0*X_2_1;
+    const double t12 = X_1_1*X_3_0;
+    const double t13 = X_2_0*X_3_1;
+    const double t14 = X_1_0*X_2_2;
+    const double t15 = X_1_2*X_3_0;
+    const double t16 = X_2_0*X_3_2;
+    const double t17 = X_1_0*X_3_1;
+    const double t18 = X_1_1*X_2_0;
+    const double t19 = X_2_1*X_3_0;
+    const double t20 = X_0_0*t0 - X_0_0*t1 + X_0_0*t2 - X_0_0*t3 + X_0_0*t5 - X_0_0*t6 + X_0_1*t10 - X_0_1*t14 - X_0_1*t15 - X_0_1*t16 + X_0_1*t8 + X_0_1*t9 + X_0_2*t11 + X_0_2*t12 + X_0_2*t13 - X_0_2*t17 - X_0_2*t18 - X_0_2*t19 - X_1_0*t2 + X_1_0*t3 - X_2_0*t0 + X_2_0*t1 - X_3_0*t5 + X_3_0*t6;
+    const double t21 = (1.0/(t20));
+    const double t22 = -t10 + t16;
+    const double t23 = t14 - t9;
+    const double t24 = t13 - t19;
+    const double t25 = t11 - t18;
+    const double t26 = X_0_1*X_2_2;
+    const double t27 = X_0_2*X_2_1;
+    const double t28 = -X_0_1*X_3_2 + X_0_2*X_3_1;
+    const double t29 = X_0_0*X_2_2;
+    const double t30 = X_0_2*X_2_0;
+    const double t31 = -X_0_0*X_3_2 + X_0_2*X_3_0;
+    const double t32 = X_0_0*X_2_1;
+    const double t33 = X_0_1*X_2_0;
+    const double t34 = -X_0_0*X_3_1 + X_0_1*X_3_0;
+    const double t35 = X_0_1*X_1_2 - X_0_2*X_1_1;
+    const double t36 = X_0_0*X_1_2 - X_0_2*X_1_0;
+    const double t37 = X_0_0*X_1_1 - X_0_1*X_1_0;
     // outputs
     double *restrict out_dphi_dX = out[0];
-    out_dphi_dX[0] = -t26 - t27 - t28;
-    out_dphi_dX[1] = -t32 - t34 - t35;
-    out_dphi_dX[2] = -t38 - t41 - t42;
-    out_dphi_dX[3] = t28;
-    out_dphi_dX[4] = t35;
-    out_dphi_dX[5] = t42;
-    out_dphi_dX[6] = t26;
-    out_dphi_dX[7] = t34;
-    out_dphi_dX[8] = t38;
-    out_dphi_dX[9] = t27;
-    out_dphi_dX[10] = t32;
-    out_dphi_dX[11] = t41;
+    out_dphi_dX[0] = t21*(t0 - t1 + t4 + t7);
+    out_dphi_dX[1] = t21*(X_1_0*X_3_2 - t15 - t22 - t23);
+    out_dphi_dX[2] = t21*(t12 - t17 + t24 + t25);
+    out_dphi_dX[3] = -t21*(t26 - t27 + t28 + t4);
+    out_dphi_dX[4] = t21*(t22 + t29 - t30 + t31);
+    out_dphi_dX[5] = -t21*(t24 + t32 - t33 + t34);
+    out_dphi_dX[6] = t21*(-t0 + t1 + t28 + t35);
+    out_dphi_dX[7] = -t21*(-t15 + t31 + t36 + t8);
+    out_dphi_dX[8] = t21*(-t12 + t17 + t34 + t37);
+    out_dphi_dX[9] = -t21*(-t26 + t27 + t35 + t7);
+    out_dphi_dX[10] = t21*(t23 - t29 + t30 + t36);
+    out_dphi_dX[11] = -t21*(t25 - t32 + t33 + t37);
     double *restrict out_volume = out[1];
-    out_volume[0] = (1.0/6.0)*X_0_0*X_1_1*X_3_2 + (1.0/6.0)*X_0_0*X_1_2*X_2_1 + (1.0/6.0)*X_0_0*X_2_2*X_3_1 + (1.0/6.0)*X_0_1*X_1_0*X_2_2 + (1.0/6.0)*X_0_1*X_1_2*X_3_0 + (1.0/6.0)*X_0_1*X_2_0*X_3_2 + (1.0/6.0)*X_0_2*X_1_0*X_3_1 + (1.0/6.0)*X_0_2*X_1_1*X_2_0 + (1.0/6.0)*X_0_2*X_2_1*X_3_0 + (1.0/6.0)*X_1_0*X_2_1*X_3_2 + (1.0/6.0)*X_1_1*X_2_2*X_3_0 + (1.0/6.0)*X_1_2*X_2_0*X_3_1 - 1.0/6.0*t11 - 1.0/6.0*t12 - 1.0/6.0*t13 - 1.0/6.0*t15 - 1.0/6.0*t17 - 1.0/6.0*t18 - 1.0/6.0*t19 - 1.0/6.0*t21 - 1.0/6.0*t22 - 1.0/6.0*t24 - 1.0/6.0*t8 - 1.0/6.0*t9;
+    out_volume[0] = -1.0/6.0*t20;
 }
 
 static void tet_rest_shape(Py_ssize_t m, const double *const *inputs, const double *params,
@@ -110,7 +105,7 @@ static PyObject *py_tet_rest_shape(PyObject *self, PyObject *args)
 
 // Shape functions (barycentric coordinates) of each tet at a point p.
 // inputs: X_e (m, 4, 3), p (m, 3); params: ()
-// outputs: phi (m, 4); operation count per element: 159
+// outputs: phi (m, 4); operation count per element: 150
 static inline void tet_phi_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -133,40 +128,50 @@ static inline void tet_phi_element(const double *const *in, const double *params
     const double p_0 = in_p[0];
     const double p_1 = in_p[1];
     const double p_2 = in_p[2];
-    // intermediates (27)
-    const double t0 = -X_0_0 + p_0;
-    const double t1 = X_0_1*X_1_2;
-    const double t2 = X_0_2*X_1_1;
-    const double t3 = t1 - t2;
-    const double t4 = -X_0_1*X_3_2 + X_0_2*X_3_1;
-    const double t5 = -X_0_1 + p_1;
-    const double t6 = X_0_0*X_1_2;
-    const double t7 = -X_0_2*X_1_0 + t6;
-    const double t8 = -X_0_0*X_3_2 + X_0_2*X_3_0;
-    const double t9 = -X_0_2 + p_2;
-    const double t10 = X_0_1*X_1_0;
-    const double t11 = X_0_0*X_1_1 - t10;
-    const double t12 = -X_0_0*X_3_1 + X_0_1*X_3_0;
-    const double t13 = X_1_1*X_2_2;
-    const double t14 = X_0_0*X_2_1;
-    const double t15 = X_0_1*X_2_2;
-    const double t16 = X_0_2*X_2_1;
-    const double t17 = X_0_2*X_2_0;
-    const double t18 = X_1_0*X_2_2;
-    const double t19 = X_1_1*X_2_0;
-    const double t20 = X_1_2*X_2_1;
-    const double t21 = (1.0/((X_0_0*X_1_1*X_3_2 + X_0_0*X_1_2*X_2_1 + X_0_0*X_2_2*X_3_1 - X_0_0*t13 + X_0_1*X_1_0*X_2_2 + X_0_1*X_1_2*X_3_0 + X_0_1*X_2_0*X_3_2 + X_0_2*X_1_0*X_3_1 + X_0_2*X_1_1*X_2_0 + X_0_2*X_2_1*X_3_0 + X_1_0*X_2_1*X_3_2 - X_1_0*t16 + X_1_1*X_2_2*X_3_0 + X_1_2*X_2_0*X_3_1 - X_2_0*t1 - X_3_0*t15 - X_3_0*t2 - X_3_0*t20 - X_3_1*t17 - X_3_1*t18 - X_3_1*t6 - X_3_2*t10 - X_3_2*t14 - X_3_2*t19)));
-    const double t22 = t21*(t0*(-X_1_1*X_3_2 + X_1_2*X_3_1 - t3 - t4) + t5*(X_1_0*X_3_2 - X_1_2*X_3_0 + t7 + t8) + t9*(-X_1_0*X_3_1 + X_1_1*X_3_0 - t11 - t12));
-    const double t23 = X_0_0*X_2_2;
-    const double t24 = X_0_1*X_2_0;
-    const double t25 = t21*(t0*(t13 - t15 + t16 - t20 + t3) + t5*(X_1_2*X_2_0 - t17 - t18 + t23 - t7) + t9*(X_1_0*X_2_1 + t11 - t14 - t19 + t24));
-    const double t26 = t21*(t0*(X_2_1*X_3_2 - X_2_2*X_3_1 + t15 - t16 + t4) + t5*(-X_2_0*X_3_2 + X_2_2*X_3_0 + t17 - t23 - t8) + t9*(X_2_0*X_3_1 - X_2_1*X_3_0 + t12 + t14 - t24));
+    // intermediates (37)
+    const double t0 = X_0_0 - p_0;
+    const double t1 = X_1_1*X_3_2;
+    const double t2 = X_1_2*X_3_1;
+    const double t3 = X_0_1*X_1_2;
+    const double t4 = X_0_2*X_1_1;
+    const double t5 = t3 - t4;
+    const double t6 = X_0_2*X_3_1;
+    const double t7 = X_0_1*X_3_2;
+    const double t8 = t6 - t7;
+    const double t9 = X_0_2 - p_2;
+    const double t10 = X_1_0*X_3_1;
+    const double t11 = X_1_1*X_3_0;
+    const double t12 = X_0_0*X_1_1;
+    const double t13 = X_0_1*X_1_0;
+    const double t14 = t12 - t13;
+    const double t15 = X_0_1*X_3_0;
+    const double t16 = X_0_0*X_3_1;
+    const double t17 = t15 - t16;
+    const double t18 = X_0_1 - p_1;
+    const double t19 = X_1_0*X_3_2;
+    const double t20 = X_1_2*X_3_0;
+    const double t21 = X_0_0*X_1_2;
+    const double t22 = X_0_2*X_1_0;
+    const double t23 = t21 - t22;
+    const double t24 = X_0_2*X_3_0;
+    const double t25 = X_0_0*X_3_2;
+    const double t26 = t24 - t25;
+    const double t27 = (1.0/((-X_0_0*t1 + X_0_0*t2 - X_1_0*t6 + X_1_0*t7 + X_2_0*t1 - X_2_0*t2 + X_2_0*t3 - X_2_0*t4 + X_2_0*t6 - X_2_0*t7 - X_2_1*t19 + X_2_1*t20 - X_2_1*t21 + X_2_1*t22 - X_2_1*t24 + X_2_1*t25 + X_2_2*t10 - X_2_2*t11 + X_2_2*t12 - X_2_2*t13 + X_2_2*t15 - X_2_2*t16 - X_3_0*t3 + X_3_0*t4)));
+    const double t28 = t27*(t0*(t1 - t2 + t5 + t8) - t18*(t19 - t20 + t23 + t26) + t9*(t10 - t11 + t14 + t17));
+    const double t29 = X_0_2*X_2_1;
+    const double t30 = X_0_1*X_2_2;
+    const double t31 = X_0_1*X_2_0;
+    const double t32 = X_0_0*X_2_1;
+    const double t33 = X_0_2*X_2_0;
+    const double t34 = X_0_0*X_2_2;
+    const double t35 = t0*(X_1_1*X_2_2 - X_1_2*X_2_1 + t29 - t30 + t5) - t18*(X_1_0*X_2_2 - X_1_2*X_2_0 + t23 + t33 - t34) + t9*(X_1_0*X_2_1 - X_1_1*X_2_0 + t14 + t31 - t32);
+    const double t36 = t0*(X_2_1*X_3_2 - X_2_2*X_3_1 - t29 + t30 + t8) - t18*(X_2_0*X_3_2 - X_2_2*X_3_0 + t26 - t33 + t34) + t9*(X_2_0*X_3_1 - X_2_1*X_3_0 + t17 - t31 + t32);
     // outputs
     double *restrict out_phi = out[0];
-    out_phi[0] = -t22 - t25 - t26 + 1;
-    out_phi[1] = t26;
-    out_phi[2] = t22;
-    out_phi[3] = t25;
+    out_phi[0] = -t27*t35 - t27*t36 + t28 + 1;
+    out_phi[1] = t27*t36;
+    out_phi[2] = -t28;
+    out_phi[3] = t27*t35;
 }
 
 static void tet_phi(Py_ssize_t m, const double *const *inputs, const double *params,
@@ -415,7 +420,7 @@ static PyObject *py_tet_deformation_gradient_assemble(PyObject *self, PyObject *
 
 // Signed volume of deformed tets (<= 0: inverted or flat).
 // inputs: x_e (m, 4, 3); params: ()
-// outputs: volume (m); operation count per element: 89
+// outputs: volume (m); operation count per element: 72
 static inline void tet_deformed_volume_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -434,13 +439,10 @@ static inline void tet_deformed_volume_element(const double *const *in, const do
     const double x_3_0 = in_x_e[9];
     const double x_3_1 = in_x_e[10];
     const double x_3_2 = in_x_e[11];
-    // intermediates (3)
-    const double t0 = (1.0/6.0)*x_0_0;
-    const double t1 = (1.0/6.0)*x_0_1;
-    const double t2 = (1.0/6.0)*x_0_2;
+    // intermediates (0)
     // outputs
     double *restrict out_volume = out[0];
-    out_volume[0] = -t0*x_1_1*x_2_2 - t0*x_1_2*x_3_1 - t0*x_2_1*x_3_2 - t1*x_1_0*x_3_2 - t1*x_1_2*x_2_0 - t1*x_2_2*x_3_0 - t2*x_1_0*x_2_1 - t2*x_1_1*x_3_0 - t2*x_2_0*x_3_1 + (1.0/6.0)*x_0_0*x_1_1*x_3_2 + (1.0/6.0)*x_0_0*x_1_2*x_2_1 + (1.0/6.0)*x_0_0*x_2_2*x_3_1 + (1.0/6.0)*x_0_1*x_1_0*x_2_2 + (1.0/6.0)*x_0_1*x_1_2*x_3_0 + (1.0/6.0)*x_0_1*x_2_0*x_3_2 + (1.0/6.0)*x_0_2*x_1_0*x_3_1 + (1.0/6.0)*x_0_2*x_1_1*x_2_0 + (1.0/6.0)*x_0_2*x_2_1*x_3_0 + (1.0/6.0)*x_1_0*x_2_1*x_3_2 - 1.0/6.0*x_1_0*x_2_2*x_3_1 - 1.0/6.0*x_1_1*x_2_0*x_3_2 + (1.0/6.0)*x_1_1*x_2_2*x_3_0 + (1.0/6.0)*x_1_2*x_2_0*x_3_1 - 1.0/6.0*x_1_2*x_2_1*x_3_0;
+    out_volume[0] = (1.0/6.0)*(-x_0_0*x_1_1*x_2_2 + x_0_0*x_1_1*x_3_2 + x_0_0*x_1_2*x_2_1 - x_0_0*x_1_2*x_3_1 - x_0_0*x_2_1*x_3_2 + x_0_0*x_2_2*x_3_1 + x_0_1*x_1_0*x_2_2 - x_0_1*x_1_0*x_3_2 - x_0_1*x_1_2*x_2_0 + x_0_1*x_1_2*x_3_0 + x_0_1*x_2_0*x_3_2 - x_0_1*x_2_2*x_3_0 - x_0_2*x_1_0*x_2_1 + x_0_2*x_1_0*x_3_1 + x_0_2*x_1_1*x_2_0 - x_0_2*x_1_1*x_3_0 - x_0_2*x_2_0*x_3_1 + x_0_2*x_2_1*x_3_0 + x_1_0*x_2_1*x_3_2 - x_1_0*x_2_2*x_3_1 - x_1_1*x_2_0*x_3_2 + x_1_1*x_2_2*x_3_0 + x_1_2*x_2_0*x_3_1 - x_1_2*x_2_1*x_3_0);
 }
 
 static void tet_deformed_volume(Py_ssize_t m, const double *const *inputs, const double *params,

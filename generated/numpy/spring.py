@@ -22,7 +22,7 @@ SIGNATURES = {
         "inputs": (("x_a", (3,)), ("x_b", (3,)), ),
         "params": ("k", ),
         "outputs": (("gradient", (6,)), ),
-        "op_count": 19,
+        "op_count": 9,
     },
     "hessian": {
         "inputs": (("x_a", (3,)), ("x_b", (3,)), ),
@@ -85,7 +85,7 @@ def gradient(x_a, x_b, params):
     -------
     gradient : (m, 6) float64
 
-    Operation count per element: 19.
+    Operation count per element: 9.
     """
     m, (_in_x_a, _in_x_b, ) = _elements((x_a, "x_a", (3,)), (x_b, "x_b", (3,)), )
     k, = _params(params, ('k',))
@@ -96,19 +96,18 @@ def gradient(x_a, x_b, params):
     xb_0 = _in_x_b[0]
     xb_1 = _in_x_b[1]
     xb_2 = _in_x_b[2]
-    # intermediates (4)
-    t0 = 2*xa_0 - 2*xb_0
-    t1 = (1/2)*k
-    t2 = 2*xa_1 - 2*xb_1
-    t3 = 2*xa_2 - 2*xb_2
+    # intermediates (3)
+    t0 = k*(xa_0 - xb_0)
+    t1 = k*(xa_1 - xb_1)
+    t2 = k*(xa_2 - xb_2)
     # outputs
     _out_gradient = numpy.empty((6, m))
-    _out_gradient[0] = t0*t1
-    _out_gradient[1] = t1*t2
-    _out_gradient[2] = t1*t3
-    _out_gradient[3] = -t0*t1
-    _out_gradient[4] = -t1*t2
-    _out_gradient[5] = -t1*t3
+    _out_gradient[0] = t0
+    _out_gradient[1] = t1
+    _out_gradient[2] = t2
+    _out_gradient[3] = -t0
+    _out_gradient[4] = -t1
+    _out_gradient[5] = -t2
     return _finish(_out_gradient, m, (6,))
 
 

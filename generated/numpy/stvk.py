@@ -16,43 +16,43 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("psi", ()), ),
-        "op_count": 74,
+        "op_count": 56,
     },
     "dpsi_dF": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("P", (3, 3)), ),
-        "op_count": 137,
+        "op_count": 110,
     },
     "d2psi_dF2": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("dP_dF", (9, 9)), ),
-        "op_count": 301,
+        "op_count": 289,
     },
     "energy": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("energy", ()), ),
-        "op_count": 138,
+        "op_count": 120,
     },
     "gradient": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("gradient", (12,)), ),
-        "op_count": 272,
+        "op_count": 245,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1327,
+        "op_count": 1315,
     },
     "hessian_psd": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1327,
+        "op_count": 1315,
     },
 }
 
@@ -73,7 +73,7 @@ def psi(F, params):
     -------
     psi : (m) float64
 
-    Operation count per element: 74.
+    Operation count per element: 56.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -87,16 +87,13 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (6)
-    t0 = (1/2)*(F_0_0*F_0_0) + (1/2)*(F_1_0*F_1_0) + (1/2)*(F_2_0*F_2_0)
-    t1 = (1/2)*(F_0_1*F_0_1) + (1/2)*(F_1_1*F_1_1) + (1/2)*(F_2_1*F_2_1)
-    t2 = (1/2)*(F_0_2*F_0_2) + (1/2)*(F_1_2*F_1_2) + (1/2)*(F_2_2*F_2_2)
-    t3 = (1/2)*F_0_0
-    t4 = (1/2)*F_1_0
-    t5 = (1/2)*F_2_0
+    # intermediates (3)
+    t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
     # outputs
     _out_psi = numpy.empty((1, m))
-    _out_psi[0] = (1/2)*lam*((t0 + t1 + t2 - 3/2)**2) + mu*(((t0 - 1/2)**2) + ((t1 - 1/2)**2) + ((t2 - 1/2)**2) + 2*(((1/2)*F_0_1*F_0_2 + (1/2)*F_1_1*F_1_2 + (1/2)*F_2_1*F_2_2)**2) + 2*((F_0_1*t3 + F_1_1*t4 + F_2_1*t5)**2) + 2*((F_0_2*t3 + F_1_2*t4 + F_2_2*t5)**2))
+    _out_psi[0] = (1/8)*lam*((t0 + t1 + t2 - 3)**2) + (1/4)*mu*(((t0 - 1)**2) + ((t1 - 1)**2) + ((t2 - 1)**2) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2))
     return _finish(_out_psi, m, ())
 
 
@@ -114,7 +111,7 @@ def dpsi_dF(F, params):
     -------
     P : (m, 3, 3) float64
 
-    Operation count per element: 137.
+    Operation count per element: 110.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -128,40 +125,28 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (22)
-    t0 = (1/2)*(F_0_0*F_0_0) + (1/2)*(F_1_0*F_1_0) + (1/2)*(F_2_0*F_2_0)
-    t1 = (1/2)*(F_0_1*F_0_1) + (1/2)*(F_1_1*F_1_1) + (1/2)*(F_2_1*F_2_1)
-    t2 = (1/2)*(F_0_2*F_0_2) + (1/2)*(F_1_2*F_1_2) + (1/2)*(F_2_2*F_2_2)
-    t3 = lam*(t0 + t1 + t2 - 3/2)
-    t4 = (1/2)*F_0_0
-    t5 = (1/2)*F_1_0
-    t6 = (1/2)*F_2_0
-    t7 = F_0_1*t4 + F_1_1*t5 + F_2_1*t6
-    t8 = 2*F_0_1
-    t9 = F_0_2*t4 + F_1_2*t5 + F_2_2*t6
-    t10 = 2*F_0_2
-    t11 = t0 - 1/2
-    t12 = 2*F_0_0
-    t13 = (1/2)*F_0_1*F_0_2 + (1/2)*F_1_1*F_1_2 + (1/2)*F_2_1*F_2_2
-    t14 = t1 - 1/2
-    t15 = t2 - 1/2
-    t16 = 2*F_1_1
-    t17 = 2*F_1_2
-    t18 = 2*F_1_0
-    t19 = 2*F_2_1
-    t20 = 2*F_2_2
-    t21 = 2*F_2_0
+    # intermediates (10)
+    t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    t3 = (1/2)*lam*(t0 + t1 + t2 - 3)
+    t4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
+    t5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
+    t6 = t0 - 1
+    t7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
+    t8 = t1 - 1
+    t9 = t2 - 1
     # outputs
     _out_P = numpy.empty((9, m))
-    _out_P[0] = F_0_0*t3 + mu*(t10*t9 + t11*t12 + t7*t8)
-    _out_P[1] = F_0_1*t3 + mu*(t10*t13 + t12*t7 + t14*t8)
-    _out_P[2] = F_0_2*t3 + mu*(t10*t15 + t12*t9 + t13*t8)
-    _out_P[3] = F_1_0*t3 + mu*(t11*t18 + t16*t7 + t17*t9)
-    _out_P[4] = F_1_1*t3 + mu*(t13*t17 + t14*t16 + t18*t7)
-    _out_P[5] = F_1_2*t3 + mu*(t13*t16 + t15*t17 + t18*t9)
-    _out_P[6] = F_2_0*t3 + mu*(t11*t21 + t19*t7 + t20*t9)
-    _out_P[7] = F_2_1*t3 + mu*(t13*t20 + t14*t19 + t21*t7)
-    _out_P[8] = F_2_2*t3 + mu*(t13*t19 + t15*t20 + t21*t9)
+    _out_P[0] = F_0_0*t3 + mu*(F_0_0*t6 + F_0_1*t4 + F_0_2*t5)
+    _out_P[1] = F_0_1*t3 + mu*(F_0_0*t4 + F_0_1*t8 + F_0_2*t7)
+    _out_P[2] = F_0_2*t3 + mu*(F_0_0*t5 + F_0_1*t7 + F_0_2*t9)
+    _out_P[3] = F_1_0*t3 + mu*(F_1_0*t6 + F_1_1*t4 + F_1_2*t5)
+    _out_P[4] = F_1_1*t3 + mu*(F_1_0*t4 + F_1_1*t8 + F_1_2*t7)
+    _out_P[5] = F_1_2*t3 + mu*(F_1_0*t5 + F_1_1*t7 + F_1_2*t9)
+    _out_P[6] = F_2_0*t3 + mu*(F_2_0*t6 + F_2_1*t4 + F_2_2*t5)
+    _out_P[7] = F_2_1*t3 + mu*(F_2_0*t4 + F_2_1*t8 + F_2_2*t7)
+    _out_P[8] = F_2_2*t3 + mu*(F_2_0*t5 + F_2_1*t7 + F_2_2*t9)
     return _finish(_out_P, m, (3, 3))
 
 
@@ -179,7 +164,7 @@ def d2psi_dF2(F, params):
     -------
     dP_dF : (m, 9, 9) float64
 
-    Operation count per element: 301.
+    Operation count per element: 289.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -193,7 +178,7 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (47)
+    # intermediates (48)
     t0 = (F_0_0*F_0_0)
     t1 = (F_0_1*F_0_1)
     t2 = (F_1_0*F_1_0)
@@ -202,128 +187,129 @@ def d2psi_dF2(F, params):
     t5 = (F_0_2*F_0_2)
     t6 = t5 - 1
     t7 = t4 + t6
-    t8 = (F_1_1*F_1_1)
-    t9 = (F_1_2*F_1_2)
+    t8 = (F_1_2*F_1_2)
+    t9 = (F_2_2*F_2_2)
     t10 = (F_2_1*F_2_1)
-    t11 = (F_2_2*F_2_2)
-    t12 = lam*((1/2)*t0 + (1/2)*t1 + (1/2)*t10 + (1/2)*t11 + (1/2)*t2 + (1/2)*t4 + (1/2)*t5 + (1/2)*t8 + (1/2)*t9 - 3/2)
-    t13 = F_0_0*F_0_1
-    t14 = F_1_0*F_1_1
-    t15 = F_2_0*F_2_1
-    t16 = F_0_0*F_0_2
-    t17 = F_1_0*F_1_2
-    t18 = F_2_0*F_2_2
-    t19 = F_0_0*F_1_0
-    t20 = F_0_1*F_1_1
-    t21 = F_0_2*F_1_2
-    t22 = F_0_0*lam
-    t23 = F_1_0*mu
-    t24 = F_0_0*F_2_0
-    t25 = F_0_1*F_2_1
-    t26 = F_0_2*F_2_2
-    t27 = F_2_0*mu
-    t28 = t0 + t8
-    t29 = F_0_1*F_0_2
-    t30 = F_1_1*F_1_2
-    t31 = F_2_1*F_2_2
-    t32 = F_1_1*mu
-    t33 = F_0_1*lam
-    t34 = F_2_1*mu
-    t35 = t9 - 1
-    t36 = t0 + t11
-    t37 = F_1_2*mu
-    t38 = F_0_2*lam
-    t39 = F_2_2*mu
-    t40 = F_1_0*F_2_0
-    t41 = F_1_1*F_2_1
-    t42 = F_1_2*F_2_2
-    t43 = F_1_0*lam
-    t44 = F_1_1*lam
-    t45 = t11 + t8
-    t46 = F_1_2*lam
+    t11 = (F_1_1*F_1_1)
+    t12 = t0 + t11
+    t13 = t10 + t12
+    t14 = (1/2)*lam*(t13 + t3 + t4 + t5 + t8 + t9 - 3)
+    t15 = F_0_0*F_0_1
+    t16 = F_1_0*F_1_1
+    t17 = F_2_0*F_2_1
+    t18 = F_0_0*F_0_2
+    t19 = F_1_0*F_1_2
+    t20 = F_2_0*F_2_2
+    t21 = F_0_0*F_1_0
+    t22 = F_0_1*F_1_1
+    t23 = F_0_2*F_1_2
+    t24 = F_0_0*lam
+    t25 = F_1_0*mu
+    t26 = F_0_0*F_2_0
+    t27 = F_0_1*F_2_1
+    t28 = F_0_2*F_2_2
+    t29 = F_2_0*mu
+    t30 = F_0_1*F_0_2
+    t31 = F_1_1*F_1_2
+    t32 = F_2_1*F_2_2
+    t33 = F_1_1*mu
+    t34 = F_0_1*lam
+    t35 = F_2_1*mu
+    t36 = t8 - 1
+    t37 = t0 + t9
+    t38 = F_1_2*mu
+    t39 = F_0_2*lam
+    t40 = F_2_2*mu
+    t41 = F_1_0*F_2_0
+    t42 = F_1_1*F_2_1
+    t43 = F_1_2*F_2_2
+    t44 = F_1_0*lam
+    t45 = F_1_1*lam
+    t46 = t11 + t9
+    t47 = F_1_2*lam
     # outputs
     _out_dP_dF = numpy.empty((81, m))
-    _out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t12
-    _out_dP_dF[1] = lam*t13 + mu*(2*t13 + t14 + t15)
+    _out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t14
+    _out_dP_dF[1] = lam*t15 + mu*(2*t15 + t16 + t17)
     _out_dP_dF[9] = _out_dP_dF[1]
-    _out_dP_dF[2] = lam*t16 + mu*(2*t16 + t17 + t18)
+    _out_dP_dF[2] = lam*t18 + mu*(2*t18 + t19 + t20)
     _out_dP_dF[18] = _out_dP_dF[2]
-    _out_dP_dF[3] = lam*t19 + mu*(2*t19 + t20 + t21)
+    _out_dP_dF[3] = lam*t21 + mu*(2*t21 + t22 + t23)
     _out_dP_dF[27] = _out_dP_dF[3]
-    _out_dP_dF[4] = F_0_1*t23 + F_1_1*t22
+    _out_dP_dF[4] = F_0_1*t25 + F_1_1*t24
     _out_dP_dF[36] = _out_dP_dF[4]
-    _out_dP_dF[5] = F_0_2*t23 + F_1_2*t22
+    _out_dP_dF[5] = F_0_2*t25 + F_1_2*t24
     _out_dP_dF[45] = _out_dP_dF[5]
-    _out_dP_dF[6] = lam*t24 + mu*(2*t24 + t25 + t26)
+    _out_dP_dF[6] = lam*t26 + mu*(2*t26 + t27 + t28)
     _out_dP_dF[54] = _out_dP_dF[6]
-    _out_dP_dF[7] = F_0_1*t27 + F_2_1*t22
+    _out_dP_dF[7] = F_0_1*t29 + F_2_1*t24
     _out_dP_dF[63] = _out_dP_dF[7]
-    _out_dP_dF[8] = F_0_2*t27 + F_2_2*t22
+    _out_dP_dF[8] = F_0_2*t29 + F_2_2*t24
     _out_dP_dF[72] = _out_dP_dF[8]
-    _out_dP_dF[10] = lam*t1 + mu*(3*t1 + t10 + t28 + t6) + t12
-    _out_dP_dF[11] = lam*t29 + mu*(2*t29 + t30 + t31)
+    _out_dP_dF[10] = lam*t1 + mu*(3*t1 + t13 + t6) + t14
+    _out_dP_dF[11] = lam*t30 + mu*(2*t30 + t31 + t32)
     _out_dP_dF[19] = _out_dP_dF[11]
-    _out_dP_dF[12] = F_0_0*t32 + F_1_0*t33
+    _out_dP_dF[12] = F_0_0*t33 + F_1_0*t34
     _out_dP_dF[28] = _out_dP_dF[12]
-    _out_dP_dF[13] = lam*t20 + mu*(t19 + 2*t20 + t21)
+    _out_dP_dF[13] = lam*t22 + mu*(t21 + 2*t22 + t23)
     _out_dP_dF[37] = _out_dP_dF[13]
-    _out_dP_dF[14] = F_0_2*t32 + F_1_2*t33
+    _out_dP_dF[14] = F_0_2*t33 + F_1_2*t34
     _out_dP_dF[46] = _out_dP_dF[14]
-    _out_dP_dF[15] = F_0_0*t34 + F_2_0*t33
+    _out_dP_dF[15] = F_0_0*t35 + F_2_0*t34
     _out_dP_dF[55] = _out_dP_dF[15]
-    _out_dP_dF[16] = lam*t25 + mu*(t24 + 2*t25 + t26)
+    _out_dP_dF[16] = lam*t27 + mu*(t26 + 2*t27 + t28)
     _out_dP_dF[64] = _out_dP_dF[16]
-    _out_dP_dF[17] = F_0_2*t34 + F_2_2*t33
+    _out_dP_dF[17] = F_0_2*t35 + F_2_2*t34
     _out_dP_dF[73] = _out_dP_dF[17]
-    _out_dP_dF[20] = lam*t5 + mu*(t1 + t35 + t36 + 3*t5) + t12
-    _out_dP_dF[21] = F_0_0*t37 + F_1_0*t38
+    _out_dP_dF[20] = lam*t5 + mu*(t1 + t36 + t37 + 3*t5) + t14
+    _out_dP_dF[21] = F_0_0*t38 + F_1_0*t39
     _out_dP_dF[29] = _out_dP_dF[21]
-    _out_dP_dF[22] = F_0_1*t37 + F_1_1*t38
+    _out_dP_dF[22] = F_0_1*t38 + F_1_1*t39
     _out_dP_dF[38] = _out_dP_dF[22]
-    _out_dP_dF[23] = lam*t21 + mu*(t19 + t20 + 2*t21)
+    _out_dP_dF[23] = lam*t23 + mu*(t21 + t22 + 2*t23)
     _out_dP_dF[47] = _out_dP_dF[23]
-    _out_dP_dF[24] = F_0_0*t39 + F_2_0*t38
+    _out_dP_dF[24] = F_0_0*t40 + F_2_0*t39
     _out_dP_dF[56] = _out_dP_dF[24]
-    _out_dP_dF[25] = F_0_1*t39 + F_2_1*t38
+    _out_dP_dF[25] = F_0_1*t40 + F_2_1*t39
     _out_dP_dF[65] = _out_dP_dF[25]
-    _out_dP_dF[26] = lam*t26 + mu*(t24 + t25 + 2*t26)
+    _out_dP_dF[26] = lam*t28 + mu*(t26 + t27 + 2*t28)
     _out_dP_dF[74] = _out_dP_dF[26]
-    _out_dP_dF[30] = lam*t2 + mu*(3*t2 + t28 + t35 + t4) + t12
-    _out_dP_dF[31] = lam*t14 + mu*(t13 + 2*t14 + t15)
+    _out_dP_dF[30] = lam*t2 + mu*(t12 + 3*t2 + t36 + t4) + t14
+    _out_dP_dF[31] = lam*t16 + mu*(t15 + 2*t16 + t17)
     _out_dP_dF[39] = _out_dP_dF[31]
-    _out_dP_dF[32] = lam*t17 + mu*(t16 + 2*t17 + t18)
+    _out_dP_dF[32] = lam*t19 + mu*(t18 + 2*t19 + t20)
     _out_dP_dF[48] = _out_dP_dF[32]
-    _out_dP_dF[33] = lam*t40 + mu*(2*t40 + t41 + t42)
+    _out_dP_dF[33] = lam*t41 + mu*(2*t41 + t42 + t43)
     _out_dP_dF[57] = _out_dP_dF[33]
-    _out_dP_dF[34] = F_1_1*t27 + F_2_1*t43
+    _out_dP_dF[34] = F_1_1*t29 + F_2_1*t44
     _out_dP_dF[66] = _out_dP_dF[34]
-    _out_dP_dF[35] = F_1_2*t27 + F_2_2*t43
+    _out_dP_dF[35] = F_1_2*t29 + F_2_2*t44
     _out_dP_dF[75] = _out_dP_dF[35]
-    _out_dP_dF[40] = lam*t8 + mu*(t10 + t3 + t35 + 3*t8) + t12
-    _out_dP_dF[41] = lam*t30 + mu*(t29 + 2*t30 + t31)
+    _out_dP_dF[40] = lam*t11 + mu*(t10 + 3*t11 + t3 + t36) + t14
+    _out_dP_dF[41] = lam*t31 + mu*(t30 + 2*t31 + t32)
     _out_dP_dF[49] = _out_dP_dF[41]
-    _out_dP_dF[42] = F_2_0*t44 + F_2_1*t23
+    _out_dP_dF[42] = F_2_0*t45 + F_2_1*t25
     _out_dP_dF[58] = _out_dP_dF[42]
-    _out_dP_dF[43] = lam*t41 + mu*(t40 + 2*t41 + t42)
+    _out_dP_dF[43] = lam*t42 + mu*(t41 + 2*t42 + t43)
     _out_dP_dF[67] = _out_dP_dF[43]
-    _out_dP_dF[44] = F_1_2*t34 + F_2_2*t44
+    _out_dP_dF[44] = F_1_2*t35 + F_2_2*t45
     _out_dP_dF[76] = _out_dP_dF[44]
-    _out_dP_dF[50] = lam*t9 + mu*(t2 + t45 + t6 + 3*t9) + t12
-    _out_dP_dF[51] = F_2_0*t46 + F_2_2*t23
+    _out_dP_dF[50] = lam*t8 + mu*(t2 + t46 + t6 + 3*t8) + t14
+    _out_dP_dF[51] = F_2_0*t47 + F_2_2*t25
     _out_dP_dF[59] = _out_dP_dF[51]
-    _out_dP_dF[52] = F_2_1*t46 + F_2_2*t32
+    _out_dP_dF[52] = F_2_1*t47 + F_2_2*t33
     _out_dP_dF[68] = _out_dP_dF[52]
-    _out_dP_dF[53] = lam*t42 + mu*(t40 + t41 + 2*t42)
+    _out_dP_dF[53] = lam*t43 + mu*(t41 + t42 + 2*t43)
     _out_dP_dF[77] = _out_dP_dF[53]
-    _out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t36 + 3*t4 - 1) + t12
-    _out_dP_dF[61] = lam*t15 + mu*(t13 + t14 + 2*t15)
+    _out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t37 + 3*t4 - 1) + t14
+    _out_dP_dF[61] = lam*t17 + mu*(t15 + t16 + 2*t17)
     _out_dP_dF[69] = _out_dP_dF[61]
-    _out_dP_dF[62] = lam*t18 + mu*(t16 + t17 + 2*t18)
+    _out_dP_dF[62] = lam*t20 + mu*(t18 + t19 + 2*t20)
     _out_dP_dF[78] = _out_dP_dF[62]
-    _out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t45 - 1) + t12
-    _out_dP_dF[71] = lam*t31 + mu*(t29 + t30 + 2*t31)
+    _out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t46 - 1) + t14
+    _out_dP_dF[71] = lam*t32 + mu*(t30 + t31 + 2*t32)
     _out_dP_dF[79] = _out_dP_dF[71]
-    _out_dP_dF[80] = lam*t11 + mu*(t10 + 3*t11 + t7 + t9) + t12
+    _out_dP_dF[80] = lam*t9 + mu*(t10 + t7 + t8 + 3*t9) + t14
     return _finish(_out_dP_dF, m, (9, 9))
 
 
@@ -345,7 +331,7 @@ def energy(x_e, dphi_dX, vol, params):
     -------
     energy : (m) float64
 
-    Operation count per element: 138.
+    Operation count per element: 120.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -375,7 +361,7 @@ def energy(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (16)
+    # intermediates (13)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -385,13 +371,10 @@ def energy(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    e0 = (1/2)*(F_0_0*F_0_0) + (1/2)*(F_1_0*F_1_0) + (1/2)*(F_2_0*F_2_0)
-    e1 = (1/2)*(F_0_1*F_0_1) + (1/2)*(F_1_1*F_1_1) + (1/2)*(F_2_1*F_2_1)
-    e2 = (1/2)*(F_0_2*F_0_2) + (1/2)*(F_1_2*F_1_2) + (1/2)*(F_2_2*F_2_2)
-    e3 = (1/2)*F_0_0
-    e4 = (1/2)*F_1_0
-    e5 = (1/2)*F_2_0
-    psi = (1/2)*lam*((e0 + e1 + e2 - 3/2)**2) + mu*(((e0 - 1/2)**2) + ((e1 - 1/2)**2) + ((e2 - 1/2)**2) + 2*(((1/2)*F_0_1*F_0_2 + (1/2)*F_1_1*F_1_2 + (1/2)*F_2_1*F_2_2)**2) + 2*((F_0_1*e3 + F_1_1*e4 + F_2_1*e5)**2) + 2*((F_0_2*e3 + F_1_2*e4 + F_2_2*e5)**2))
+    e0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    e1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    e2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    psi = (1/8)*lam*((e0 + e1 + e2 - 3)**2) + (1/4)*mu*(((e0 - 1)**2) + ((e1 - 1)**2) + ((e2 - 1)**2) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2))
     # outputs
     _out_energy = numpy.empty((1, m))
     _out_energy[0] = psi*vol
@@ -416,7 +399,7 @@ def gradient(x_e, dphi_dX, vol, params):
     -------
     gradient : (m, 12) float64
 
-    Operation count per element: 272.
+    Operation count per element: 245.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -446,7 +429,7 @@ def gradient(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (40)
+    # intermediates (28)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -456,37 +439,25 @@ def gradient(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    s0 = (1/2)*(F_0_0*F_0_0) + (1/2)*(F_1_0*F_1_0) + (1/2)*(F_2_0*F_2_0)
-    s1 = (1/2)*(F_0_1*F_0_1) + (1/2)*(F_1_1*F_1_1) + (1/2)*(F_2_1*F_2_1)
-    s2 = (1/2)*(F_0_2*F_0_2) + (1/2)*(F_1_2*F_1_2) + (1/2)*(F_2_2*F_2_2)
-    s3 = lam*(s0 + s1 + s2 - 3/2)
-    s4 = (1/2)*F_0_0
-    s5 = (1/2)*F_1_0
-    s6 = (1/2)*F_2_0
-    s7 = F_0_1*s4 + F_1_1*s5 + F_2_1*s6
-    s8 = 2*F_0_1
-    s9 = F_0_2*s4 + F_1_2*s5 + F_2_2*s6
-    s10 = 2*F_0_2
-    s11 = s0 - 1/2
-    s12 = 2*F_0_0
-    s13 = (1/2)*F_0_1*F_0_2 + (1/2)*F_1_1*F_1_2 + (1/2)*F_2_1*F_2_2
-    s14 = s1 - 1/2
-    s15 = s2 - 1/2
-    s16 = 2*F_1_1
-    s17 = 2*F_1_2
-    s18 = 2*F_1_0
-    s19 = 2*F_2_1
-    s20 = 2*F_2_2
-    s21 = 2*F_2_0
-    P_0_0 = F_0_0*s3 + mu*(s10*s9 + s11*s12 + s7*s8)
-    P_0_1 = F_0_1*s3 + mu*(s10*s13 + s12*s7 + s14*s8)
-    P_0_2 = F_0_2*s3 + mu*(s10*s15 + s12*s9 + s13*s8)
-    P_1_0 = F_1_0*s3 + mu*(s11*s18 + s16*s7 + s17*s9)
-    P_1_1 = F_1_1*s3 + mu*(s13*s17 + s14*s16 + s18*s7)
-    P_1_2 = F_1_2*s3 + mu*(s13*s16 + s15*s17 + s18*s9)
-    P_2_0 = F_2_0*s3 + mu*(s11*s21 + s19*s7 + s20*s9)
-    P_2_1 = F_2_1*s3 + mu*(s13*s20 + s14*s19 + s21*s7)
-    P_2_2 = F_2_2*s3 + mu*(s13*s19 + s15*s20 + s21*s9)
+    s0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    s1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    s2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    s3 = (1/2)*lam*(s0 + s1 + s2 - 3)
+    s4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
+    s5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
+    s6 = s0 - 1
+    s7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
+    s8 = s1 - 1
+    s9 = s2 - 1
+    P_0_0 = F_0_0*s3 + mu*(F_0_0*s6 + F_0_1*s4 + F_0_2*s5)
+    P_0_1 = F_0_1*s3 + mu*(F_0_0*s4 + F_0_1*s8 + F_0_2*s7)
+    P_0_2 = F_0_2*s3 + mu*(F_0_0*s5 + F_0_1*s7 + F_0_2*s9)
+    P_1_0 = F_1_0*s3 + mu*(F_1_0*s6 + F_1_1*s4 + F_1_2*s5)
+    P_1_1 = F_1_1*s3 + mu*(F_1_0*s4 + F_1_1*s8 + F_1_2*s7)
+    P_1_2 = F_1_2*s3 + mu*(F_1_0*s5 + F_1_1*s7 + F_1_2*s9)
+    P_2_0 = F_2_0*s3 + mu*(F_2_0*s6 + F_2_1*s4 + F_2_2*s5)
+    P_2_1 = F_2_1*s3 + mu*(F_2_0*s4 + F_2_1*s8 + F_2_2*s7)
+    P_2_2 = F_2_2*s3 + mu*(F_2_0*s5 + F_2_1*s7 + F_2_2*s9)
     # outputs
     _out_gradient = numpy.empty((12, m))
     _out_gradient[0] = vol*(P_0_0*dphi_0_0 + P_0_1*dphi_0_1 + P_0_2*dphi_0_2)
@@ -522,7 +493,7 @@ def hessian(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1327.
+    Operation count per element: 1315.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -552,7 +523,7 @@ def hessian(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (200)
+    # intermediates (201)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -570,90 +541,91 @@ def hessian(x_e, dphi_dX, vol, params):
     h5 = (F_0_2*F_0_2)
     h6 = h5 - 1
     h7 = h4 + h6
-    h8 = (F_1_1*F_1_1)
-    h9 = (F_1_2*F_1_2)
+    h8 = (F_1_2*F_1_2)
+    h9 = (F_2_2*F_2_2)
     h10 = (F_2_1*F_2_1)
-    h11 = (F_2_2*F_2_2)
-    h12 = lam*((1/2)*h0 + (1/2)*h1 + (1/2)*h10 + (1/2)*h11 + (1/2)*h2 + (1/2)*h4 + (1/2)*h5 + (1/2)*h8 + (1/2)*h9 - 3/2)
-    h13 = F_0_0*F_0_1
-    h14 = F_1_0*F_1_1
-    h15 = F_2_0*F_2_1
-    h16 = F_0_0*F_0_2
-    h17 = F_1_0*F_1_2
-    h18 = F_2_0*F_2_2
-    h19 = F_0_0*F_1_0
-    h20 = F_0_1*F_1_1
-    h21 = F_0_2*F_1_2
-    h22 = F_0_0*lam
-    h23 = F_1_0*mu
-    h24 = F_0_0*F_2_0
-    h25 = F_0_1*F_2_1
-    h26 = F_0_2*F_2_2
-    h27 = F_2_0*mu
-    h28 = h0 + h8
-    h29 = F_0_1*F_0_2
-    h30 = F_1_1*F_1_2
-    h31 = F_2_1*F_2_2
-    h32 = F_1_1*mu
-    h33 = F_0_1*lam
-    h34 = F_2_1*mu
-    h35 = h9 - 1
-    h36 = h0 + h11
-    h37 = F_1_2*mu
-    h38 = F_0_2*lam
-    h39 = F_2_2*mu
-    h40 = F_1_0*F_2_0
-    h41 = F_1_1*F_2_1
-    h42 = F_1_2*F_2_2
-    h43 = F_1_0*lam
-    h44 = F_1_1*lam
-    h45 = h11 + h8
-    h46 = F_1_2*lam
-    A_0_0 = h0*lam + h12 + mu*(3*h0 + h3 + h7)
-    A_0_1 = h13*lam + mu*(2*h13 + h14 + h15)
-    A_0_2 = h16*lam + mu*(2*h16 + h17 + h18)
-    A_0_3 = h19*lam + mu*(2*h19 + h20 + h21)
-    A_0_4 = F_0_1*h23 + F_1_1*h22
-    A_0_5 = F_0_2*h23 + F_1_2*h22
-    A_0_6 = h24*lam + mu*(2*h24 + h25 + h26)
-    A_0_7 = F_0_1*h27 + F_2_1*h22
-    A_0_8 = F_0_2*h27 + F_2_2*h22
-    A_1_1 = h1*lam + h12 + mu*(3*h1 + h10 + h28 + h6)
-    A_1_2 = h29*lam + mu*(2*h29 + h30 + h31)
-    A_1_3 = F_0_0*h32 + F_1_0*h33
-    A_1_4 = h20*lam + mu*(h19 + 2*h20 + h21)
-    A_1_5 = F_0_2*h32 + F_1_2*h33
-    A_1_6 = F_0_0*h34 + F_2_0*h33
-    A_1_7 = h25*lam + mu*(h24 + 2*h25 + h26)
-    A_1_8 = F_0_2*h34 + F_2_2*h33
-    A_2_2 = h12 + h5*lam + mu*(h1 + h35 + h36 + 3*h5)
-    A_2_3 = F_0_0*h37 + F_1_0*h38
-    A_2_4 = F_0_1*h37 + F_1_1*h38
-    A_2_5 = h21*lam + mu*(h19 + h20 + 2*h21)
-    A_2_6 = F_0_0*h39 + F_2_0*h38
-    A_2_7 = F_0_1*h39 + F_2_1*h38
-    A_2_8 = h26*lam + mu*(h24 + h25 + 2*h26)
-    A_3_3 = h12 + h2*lam + mu*(3*h2 + h28 + h35 + h4)
-    A_3_4 = h14*lam + mu*(h13 + 2*h14 + h15)
-    A_3_5 = h17*lam + mu*(h16 + 2*h17 + h18)
-    A_3_6 = h40*lam + mu*(2*h40 + h41 + h42)
-    A_3_7 = F_1_1*h27 + F_2_1*h43
-    A_3_8 = F_1_2*h27 + F_2_2*h43
-    A_4_4 = h12 + h8*lam + mu*(h10 + h3 + h35 + 3*h8)
-    A_4_5 = h30*lam + mu*(h29 + 2*h30 + h31)
-    A_4_6 = F_2_0*h44 + F_2_1*h23
-    A_4_7 = h41*lam + mu*(h40 + 2*h41 + h42)
-    A_4_8 = F_1_2*h34 + F_2_2*h44
-    A_5_5 = h12 + h9*lam + mu*(h2 + h45 + h6 + 3*h9)
-    A_5_6 = F_2_0*h46 + F_2_2*h23
-    A_5_7 = F_2_1*h46 + F_2_2*h32
-    A_5_8 = h42*lam + mu*(h40 + h41 + 2*h42)
-    A_6_6 = h12 + h4*lam + mu*(h10 + h2 + h36 + 3*h4 - 1)
-    A_6_7 = h15*lam + mu*(h13 + h14 + 2*h15)
-    A_6_8 = h18*lam + mu*(h16 + h17 + 2*h18)
-    A_7_7 = h10*lam + h12 + mu*(h1 + 3*h10 + h4 + h45 - 1)
-    A_7_8 = h31*lam + mu*(h29 + h30 + 2*h31)
-    A_8_8 = h11*lam + h12 + mu*(h10 + 3*h11 + h7 + h9)
+    h11 = (F_1_1*F_1_1)
+    h12 = h0 + h11
+    h13 = h10 + h12
+    h14 = (1/2)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3)
+    h15 = F_0_0*F_0_1
+    h16 = F_1_0*F_1_1
+    h17 = F_2_0*F_2_1
+    h18 = F_0_0*F_0_2
+    h19 = F_1_0*F_1_2
+    h20 = F_2_0*F_2_2
+    h21 = F_0_0*F_1_0
+    h22 = F_0_1*F_1_1
+    h23 = F_0_2*F_1_2
+    h24 = F_0_0*lam
+    h25 = F_1_0*mu
+    h26 = F_0_0*F_2_0
+    h27 = F_0_1*F_2_1
+    h28 = F_0_2*F_2_2
+    h29 = F_2_0*mu
+    h30 = F_0_1*F_0_2
+    h31 = F_1_1*F_1_2
+    h32 = F_2_1*F_2_2
+    h33 = F_1_1*mu
+    h34 = F_0_1*lam
+    h35 = F_2_1*mu
+    h36 = h8 - 1
+    h37 = h0 + h9
+    h38 = F_1_2*mu
+    h39 = F_0_2*lam
+    h40 = F_2_2*mu
+    h41 = F_1_0*F_2_0
+    h42 = F_1_1*F_2_1
+    h43 = F_1_2*F_2_2
+    h44 = F_1_0*lam
+    h45 = F_1_1*lam
+    h46 = h11 + h9
+    h47 = F_1_2*lam
+    A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7)
+    A_0_1 = h15*lam + mu*(2*h15 + h16 + h17)
+    A_0_2 = h18*lam + mu*(2*h18 + h19 + h20)
+    A_0_3 = h21*lam + mu*(2*h21 + h22 + h23)
+    A_0_4 = F_0_1*h25 + F_1_1*h24
+    A_0_5 = F_0_2*h25 + F_1_2*h24
+    A_0_6 = h26*lam + mu*(2*h26 + h27 + h28)
+    A_0_7 = F_0_1*h29 + F_2_1*h24
+    A_0_8 = F_0_2*h29 + F_2_2*h24
+    A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6)
+    A_1_2 = h30*lam + mu*(2*h30 + h31 + h32)
+    A_1_3 = F_0_0*h33 + F_1_0*h34
+    A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23)
+    A_1_5 = F_0_2*h33 + F_1_2*h34
+    A_1_6 = F_0_0*h35 + F_2_0*h34
+    A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28)
+    A_1_8 = F_0_2*h35 + F_2_2*h34
+    A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5)
+    A_2_3 = F_0_0*h38 + F_1_0*h39
+    A_2_4 = F_0_1*h38 + F_1_1*h39
+    A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23)
+    A_2_6 = F_0_0*h40 + F_2_0*h39
+    A_2_7 = F_0_1*h40 + F_2_1*h39
+    A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28)
+    A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4)
+    A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17)
+    A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20)
+    A_3_6 = h41*lam + mu*(2*h41 + h42 + h43)
+    A_3_7 = F_1_1*h29 + F_2_1*h44
+    A_3_8 = F_1_2*h29 + F_2_2*h44
+    A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36)
+    A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32)
+    A_4_6 = F_2_0*h45 + F_2_1*h25
+    A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43)
+    A_4_8 = F_1_2*h35 + F_2_2*h45
+    A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8)
+    A_5_6 = F_2_0*h47 + F_2_2*h25
+    A_5_7 = F_2_1*h47 + F_2_2*h33
+    A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43)
+    A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1)
+    A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17)
+    A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20)
+    A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1)
+    A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32)
+    A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9)
     T_0_0 = A_0_0*dphi_0_0 + A_0_1*dphi_0_1 + A_0_2*dphi_0_2
     T_0_1 = A_0_3*dphi_0_0 + A_0_4*dphi_0_1 + A_0_5*dphi_0_2
     T_0_2 = A_0_6*dphi_0_0 + A_0_7*dphi_0_1 + A_0_8*dphi_0_2
@@ -920,7 +892,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1327.
+    Operation count per element: 1315.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'))
@@ -950,7 +922,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (201)
+    # intermediates (202)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -968,90 +940,91 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     h5 = (F_0_2*F_0_2)
     h6 = h5 - 1
     h7 = h4 + h6
-    h8 = (F_1_1*F_1_1)
-    h9 = (F_1_2*F_1_2)
+    h8 = (F_1_2*F_1_2)
+    h9 = (F_2_2*F_2_2)
     h10 = (F_2_1*F_2_1)
-    h11 = (F_2_2*F_2_2)
-    h12 = lam*((1/2)*h0 + (1/2)*h1 + (1/2)*h10 + (1/2)*h11 + (1/2)*h2 + (1/2)*h4 + (1/2)*h5 + (1/2)*h8 + (1/2)*h9 - 3/2)
-    h13 = F_0_0*F_0_1
-    h14 = F_1_0*F_1_1
-    h15 = F_2_0*F_2_1
-    h16 = F_0_0*F_0_2
-    h17 = F_1_0*F_1_2
-    h18 = F_2_0*F_2_2
-    h19 = F_0_0*F_1_0
-    h20 = F_0_1*F_1_1
-    h21 = F_0_2*F_1_2
-    h22 = F_0_0*lam
-    h23 = F_1_0*mu
-    h24 = F_0_0*F_2_0
-    h25 = F_0_1*F_2_1
-    h26 = F_0_2*F_2_2
-    h27 = F_2_0*mu
-    h28 = h0 + h8
-    h29 = F_0_1*F_0_2
-    h30 = F_1_1*F_1_2
-    h31 = F_2_1*F_2_2
-    h32 = F_1_1*mu
-    h33 = F_0_1*lam
-    h34 = F_2_1*mu
-    h35 = h9 - 1
-    h36 = h0 + h11
-    h37 = F_1_2*mu
-    h38 = F_0_2*lam
-    h39 = F_2_2*mu
-    h40 = F_1_0*F_2_0
-    h41 = F_1_1*F_2_1
-    h42 = F_1_2*F_2_2
-    h43 = F_1_0*lam
-    h44 = F_1_1*lam
-    h45 = h11 + h8
-    h46 = F_1_2*lam
-    A_0_0 = h0*lam + h12 + mu*(3*h0 + h3 + h7)
-    A_0_1 = h13*lam + mu*(2*h13 + h14 + h15)
-    A_0_2 = h16*lam + mu*(2*h16 + h17 + h18)
-    A_0_3 = h19*lam + mu*(2*h19 + h20 + h21)
-    A_0_4 = F_0_1*h23 + F_1_1*h22
-    A_0_5 = F_0_2*h23 + F_1_2*h22
-    A_0_6 = h24*lam + mu*(2*h24 + h25 + h26)
-    A_0_7 = F_0_1*h27 + F_2_1*h22
-    A_0_8 = F_0_2*h27 + F_2_2*h22
-    A_1_1 = h1*lam + h12 + mu*(3*h1 + h10 + h28 + h6)
-    A_1_2 = h29*lam + mu*(2*h29 + h30 + h31)
-    A_1_3 = F_0_0*h32 + F_1_0*h33
-    A_1_4 = h20*lam + mu*(h19 + 2*h20 + h21)
-    A_1_5 = F_0_2*h32 + F_1_2*h33
-    A_1_6 = F_0_0*h34 + F_2_0*h33
-    A_1_7 = h25*lam + mu*(h24 + 2*h25 + h26)
-    A_1_8 = F_0_2*h34 + F_2_2*h33
-    A_2_2 = h12 + h5*lam + mu*(h1 + h35 + h36 + 3*h5)
-    A_2_3 = F_0_0*h37 + F_1_0*h38
-    A_2_4 = F_0_1*h37 + F_1_1*h38
-    A_2_5 = h21*lam + mu*(h19 + h20 + 2*h21)
-    A_2_6 = F_0_0*h39 + F_2_0*h38
-    A_2_7 = F_0_1*h39 + F_2_1*h38
-    A_2_8 = h26*lam + mu*(h24 + h25 + 2*h26)
-    A_3_3 = h12 + h2*lam + mu*(3*h2 + h28 + h35 + h4)
-    A_3_4 = h14*lam + mu*(h13 + 2*h14 + h15)
-    A_3_5 = h17*lam + mu*(h16 + 2*h17 + h18)
-    A_3_6 = h40*lam + mu*(2*h40 + h41 + h42)
-    A_3_7 = F_1_1*h27 + F_2_1*h43
-    A_3_8 = F_1_2*h27 + F_2_2*h43
-    A_4_4 = h12 + h8*lam + mu*(h10 + h3 + h35 + 3*h8)
-    A_4_5 = h30*lam + mu*(h29 + 2*h30 + h31)
-    A_4_6 = F_2_0*h44 + F_2_1*h23
-    A_4_7 = h41*lam + mu*(h40 + 2*h41 + h42)
-    A_4_8 = F_1_2*h34 + F_2_2*h44
-    A_5_5 = h12 + h9*lam + mu*(h2 + h45 + h6 + 3*h9)
-    A_5_6 = F_2_0*h46 + F_2_2*h23
-    A_5_7 = F_2_1*h46 + F_2_2*h32
-    A_5_8 = h42*lam + mu*(h40 + h41 + 2*h42)
-    A_6_6 = h12 + h4*lam + mu*(h10 + h2 + h36 + 3*h4 - 1)
-    A_6_7 = h15*lam + mu*(h13 + h14 + 2*h15)
-    A_6_8 = h18*lam + mu*(h16 + h17 + 2*h18)
-    A_7_7 = h10*lam + h12 + mu*(h1 + 3*h10 + h4 + h45 - 1)
-    A_7_8 = h31*lam + mu*(h29 + h30 + 2*h31)
-    A_8_8 = h11*lam + h12 + mu*(h10 + 3*h11 + h7 + h9)
+    h11 = (F_1_1*F_1_1)
+    h12 = h0 + h11
+    h13 = h10 + h12
+    h14 = (1/2)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3)
+    h15 = F_0_0*F_0_1
+    h16 = F_1_0*F_1_1
+    h17 = F_2_0*F_2_1
+    h18 = F_0_0*F_0_2
+    h19 = F_1_0*F_1_2
+    h20 = F_2_0*F_2_2
+    h21 = F_0_0*F_1_0
+    h22 = F_0_1*F_1_1
+    h23 = F_0_2*F_1_2
+    h24 = F_0_0*lam
+    h25 = F_1_0*mu
+    h26 = F_0_0*F_2_0
+    h27 = F_0_1*F_2_1
+    h28 = F_0_2*F_2_2
+    h29 = F_2_0*mu
+    h30 = F_0_1*F_0_2
+    h31 = F_1_1*F_1_2
+    h32 = F_2_1*F_2_2
+    h33 = F_1_1*mu
+    h34 = F_0_1*lam
+    h35 = F_2_1*mu
+    h36 = h8 - 1
+    h37 = h0 + h9
+    h38 = F_1_2*mu
+    h39 = F_0_2*lam
+    h40 = F_2_2*mu
+    h41 = F_1_0*F_2_0
+    h42 = F_1_1*F_2_1
+    h43 = F_1_2*F_2_2
+    h44 = F_1_0*lam
+    h45 = F_1_1*lam
+    h46 = h11 + h9
+    h47 = F_1_2*lam
+    A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7)
+    A_0_1 = h15*lam + mu*(2*h15 + h16 + h17)
+    A_0_2 = h18*lam + mu*(2*h18 + h19 + h20)
+    A_0_3 = h21*lam + mu*(2*h21 + h22 + h23)
+    A_0_4 = F_0_1*h25 + F_1_1*h24
+    A_0_5 = F_0_2*h25 + F_1_2*h24
+    A_0_6 = h26*lam + mu*(2*h26 + h27 + h28)
+    A_0_7 = F_0_1*h29 + F_2_1*h24
+    A_0_8 = F_0_2*h29 + F_2_2*h24
+    A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6)
+    A_1_2 = h30*lam + mu*(2*h30 + h31 + h32)
+    A_1_3 = F_0_0*h33 + F_1_0*h34
+    A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23)
+    A_1_5 = F_0_2*h33 + F_1_2*h34
+    A_1_6 = F_0_0*h35 + F_2_0*h34
+    A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28)
+    A_1_8 = F_0_2*h35 + F_2_2*h34
+    A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5)
+    A_2_3 = F_0_0*h38 + F_1_0*h39
+    A_2_4 = F_0_1*h38 + F_1_1*h39
+    A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23)
+    A_2_6 = F_0_0*h40 + F_2_0*h39
+    A_2_7 = F_0_1*h40 + F_2_1*h39
+    A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28)
+    A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4)
+    A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17)
+    A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20)
+    A_3_6 = h41*lam + mu*(2*h41 + h42 + h43)
+    A_3_7 = F_1_1*h29 + F_2_1*h44
+    A_3_8 = F_1_2*h29 + F_2_2*h44
+    A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36)
+    A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32)
+    A_4_6 = F_2_0*h45 + F_2_1*h25
+    A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43)
+    A_4_8 = F_1_2*h35 + F_2_2*h45
+    A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8)
+    A_5_6 = F_2_0*h47 + F_2_2*h25
+    A_5_7 = F_2_1*h47 + F_2_2*h33
+    A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43)
+    A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1)
+    A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17)
+    A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20)
+    A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1)
+    A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32)
+    A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9)
     Ap_0_0, Ap_0_1, Ap_0_2, Ap_0_3, Ap_0_4, Ap_0_5, Ap_0_6, Ap_0_7, Ap_0_8, Ap_1_0, Ap_1_1, Ap_1_2, Ap_1_3, Ap_1_4, Ap_1_5, Ap_1_6, Ap_1_7, Ap_1_8, Ap_2_0, Ap_2_1, Ap_2_2, Ap_2_3, Ap_2_4, Ap_2_5, Ap_2_6, Ap_2_7, Ap_2_8, Ap_3_0, Ap_3_1, Ap_3_2, Ap_3_3, Ap_3_4, Ap_3_5, Ap_3_6, Ap_3_7, Ap_3_8, Ap_4_0, Ap_4_1, Ap_4_2, Ap_4_3, Ap_4_4, Ap_4_5, Ap_4_6, Ap_4_7, Ap_4_8, Ap_5_0, Ap_5_1, Ap_5_2, Ap_5_3, Ap_5_4, Ap_5_5, Ap_5_6, Ap_5_7, Ap_5_8, Ap_6_0, Ap_6_1, Ap_6_2, Ap_6_3, Ap_6_4, Ap_6_5, Ap_6_6, Ap_6_7, Ap_6_8, Ap_7_0, Ap_7_1, Ap_7_2, Ap_7_3, Ap_7_4, Ap_7_5, Ap_7_6, Ap_7_7, Ap_7_8, Ap_8_0, Ap_8_1, Ap_8_2, Ap_8_3, Ap_8_4, Ap_8_5, Ap_8_6, Ap_8_7, Ap_8_8, = _project_psd(m, 9, (A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8, ))
     T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2
     T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2
