@@ -96,7 +96,8 @@ def _register_solver_rows(backend: str) -> None:
                    "reuse it.",
         "pardiso": "fem3d-linsolve-pardiso: MKL PARDISO, real SPD (mtype 2), METIS ordering, "
                    "phases 11 / 22 / 33 called directly (pypardiso's ctypes handle).",
-        "cholmod": "fem3d-linsolve-cholmod: CHOLMOD supernodal via scikit-sparse, OpenBLAS.",
+        "cholmod": "fem3d-linsolve-cholmod: CHOLMOD via scikit-sparse, OpenBLAS; supernodal, "
+                   "or simplicial LDL^T for small factors with short columns (`cholmod_mode`).",
     }
 
     def solver(mesh: BenchMesh):

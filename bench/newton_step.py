@@ -120,7 +120,7 @@ def iteration_pieces(work: Workload) -> dict:
     }
 
 
-def run_mode(work: Workload, mode: str, cg_maxiter: int) -> dict:
+def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6) -> dict:
     """All steps of ``work`` with one linear-solver mode; totals and the trajectory."""
     system = integ.System(work.model, work.constraints)
     state = work.start
@@ -132,7 +132,8 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int) -> dict:
     for pull in work.pulls:
         t = time.perf_counter()
         state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
-                                            linear_solver=mode, cg_maxiter=cg_maxiter)
+                                            linear_solver=mode, cg_maxiter=cg_maxiter,
+                                            cg_rtol=cg_rtol)
         seconds += time.perf_counter() - t
         totals["newton"] += stats.newton_iterations
         totals["factorizations"] += stats.factorizations
@@ -155,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--swing", type=float, default=40.0, help="box velocity scale a")
     parser.add_argument("--modes", default="direct,reuse")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
+    parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")
     parser.add_argument("--repeats", type=int, default=3, help="runs per mode (best shown)")
     parser.add_argument("--jsonl", type=Path, help="append one JSON record per mode here")
     args = parser.parse_args(argv)
@@ -178,7 +180,8 @@ def main(argv: list[str] | None = None) -> None:
               "CG iterations", flush=True)
         reference = None
         for mode in modes:
-            best = min((run_mode(work, mode, args.cg_maxiter) for _ in range(args.repeats)),
+            best = min((run_mode(work, mode, args.cg_maxiter, args.cg_rtol)
+                        for _ in range(args.repeats)),
                        key=lambda r: r["seconds_per_step"])
             if reference is None:
                 reference = best
@@ -196,6 +199,7 @@ def main(argv: list[str] | None = None) -> None:
             if args.jsonl:
                 record = {k: v for k, v in best.items() if k != "trajectory"}
                 record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,
+                               cg_rtol=args.cg_rtol,
                                speedup=speedup, deviation=deviation / work.size,
                                free_dofs=work.constraints.n_free, pieces=p)
                 with args.jsonl.open("a") as f:

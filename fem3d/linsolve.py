@@ -685,16 +685,20 @@ class PreconditionedCG:
             return CGResult(np.zeros_like(b), 0, 0.0, True, False, False)
         x = self.solver.solve(b) if x0 is None else np.array(x0, dtype=np.float64)
         r = b - A @ x
-        z = self.solver.solve(r)
-        p = z.copy()
-        rz = float(r @ z)
         history = [float(np.linalg.norm(r)) / bnorm]
         it = 0
         stalled = negative = False
+        p: np.ndarray | None = None
+        rz = 0.0
         while history[-1] > self.rtol:
             if it >= self.maxiter:
                 stalled = True
                 break
+            # preconditioning only when another iteration follows (a solve is the costly part)
+            z = self.solver.solve(r)
+            rz_new = float(r @ z)
+            p = z if p is None else z + (rz_new / rz) * p
+            rz = rz_new
             Ap = A @ p
             curv = float(p @ Ap)
             if not curv > 0.0:  # indefinite A (or NaN)
@@ -709,10 +713,6 @@ class PreconditionedCG:
             if len(history) > w and history[-1] > self.stall_factor * history[-1 - w]:
                 stalled = True
                 break
-            z = self.solver.solve(r)
-            rz_new = float(r @ z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
         if stalled and self.refactorize_on_stall:
             self.refactorize(A)
             x = self.solver.solve(b)
