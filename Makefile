@@ -38,6 +38,8 @@ bench: install  ## benchmarks vs peers -> docs/benchmarks.md (pip install -e .[b
 	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --threads 1 --groups energy,gradient,hessian_elements,hessian_csr,step
 	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --groups analyze,factor,solve
 	$(PYTHON) -m bench.kernel_throughput
+	$(PYTHON) -m bench.scenes
+	$(PYTHON) -m bench.newton_step --mesh arma --refine 0,1
 
 clean:
 	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache
