@@ -112,8 +112,9 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--newton-solver", choices=("direct", "reuse"), default="direct",
-        help="Newton linear solves: refactorize each iteration (default) or reuse the step's "
-             "first factorization as a CG preconditioner",
+        help="Newton linear solves: refactorize each iteration (default) or keep a "
+             "factorization as the CG preconditioner across iterations and steps, "
+             "refactorizing when CG needs more than 16 iterations",
     )
     p.add_argument("--E", type=float, default=None, help="Young's modulus (default: the scene's)")
     p.add_argument("--nu", type=float, default=None,

@@ -90,8 +90,9 @@ class Simulation:
     newton_hessian : {"exact", "psd"}, optional
         Newton's Hessian in backward Euler (see :func:`fem3d.integrators.implicit_euler`).
     newton_solver : {"direct", "reuse"}, optional
-        Newton's linear solves: refactorize every iteration, or reuse the step's first
-        factorization as a CG preconditioner (see :func:`fem3d.integrators.implicit_euler`).
+        Newton's linear solves: refactorize every iteration, or keep a factorization as the
+        CG preconditioner across iterations and steps, refactorizing when CG needs more than
+        its budget (see :func:`fem3d.integrators.implicit_euler`).
     fixed_vertices : (n_fixed,) int, optional
         Explicit fixed vertices instead of the scene's lowest-y rule; must not be empty
         (every run is anchored: a free body would only drift with the pull).
