@@ -36,7 +36,7 @@ class BuildExt(build_ext):
 
     def build_extensions(self) -> None:
         compiler = list(getattr(self.compiler, "compiler_so", None) or ["cc"])[:1]
-        compile_args = ["-O3", "-std=c99", "-fno-math-errno"]
+        compile_args = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast"]
         link_args: list[str] = []
         portable = os.environ.get("FEM3D_PORTABLE") == "1"
         if not portable and _compiler_accepts(compiler, ["-march=native"]):
