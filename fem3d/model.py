@@ -124,47 +124,61 @@ def element_dofs(T: np.ndarray) -> np.ndarray:
     return (3 * np.asarray(T, dtype=np.int64)[:, :, None] + np.arange(3)).reshape(-1, 12)
 
 
-def block_pattern(dofs: np.ndarray, n_dofs: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """CSR pattern of a sum of dense element blocks and the block-to-``data`` scatter map.
+def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """CSR pattern of the ``3n x 3n`` element matrices of tets ``T`` and their scatter map.
+
+    The pattern is found over vertex pairs (16 per tet) and expanded to 3x3 blocks, which needs
+    about a ninth of the memory and time of sorting all 144 DOF pairs of every tet.
 
     Parameters
     ----------
-    dofs : (m, b) int64
-        Global DOFs of each element block.
-    n_dofs : int
-        Size ``N`` of the square system.
+    T : (m, 4) int64
+        Tets.
+    n_vertices : int
+        Number of vertices ``n``; the matrices are ``N x N`` with ``N = 3 n`` (vertex-major
+        DOFs, see :func:`element_dofs`).
 
     Returns
     -------
     pattern : (N, N) scipy.sparse.csr_matrix
-        Canonical (sorted, no duplicates), ``data`` all zeros.
-    scatter : (m * b * b,) int32
-        ``scatter[(e * b + i) * b + j]`` is the ``data`` position of entry
-        ``(dofs[e, i], dofs[e, j])``, so ``np.bincount(scatter, blocks.ravel(), nnz)``
-        assembles ``(m, b, b)`` blocks. int32 halves the memory and the bandwidth of the
-        fused C assembly, which reads it on every call.
+        Canonical (sorted, no duplicates), ``data`` all zeros: every ``(3 i + c, 3 j + d)`` with
+        vertices ``i, j`` in a common tet.
+    scatter : (m * 144,) int32
+        ``scatter[e * 144 + 12 r + s]`` is the ``data`` position of the entry of element DOFs
+        ``(r, s)`` of tet ``e``, so ``np.bincount(scatter, blocks.ravel(), nnz)`` assembles
+        ``(m, 12, 12)`` blocks. int32 halves the memory and the bandwidth of the fused C
+        assembly, which reads it on every call.
 
     Raises
     ------
     ValueError
         More than ``2**31 - 1`` stored entries.
     """
-    m, b = dofs.shape
-    rows = np.broadcast_to(dofs[:, :, None], (m, b, b)).reshape(-1)
-    cols = np.broadcast_to(dofs[:, None, :], (m, b, b)).reshape(-1)
-    keys = rows * np.int64(n_dofs) + cols
-    uniq, scatter = np.unique(keys, return_inverse=True)
-    if uniq.size > np.iinfo(np.int32).max:
-        raise ValueError(f"the sparsity pattern has {uniq.size} entries, more than int32 indexes")
-    indices = (uniq % n_dofs).astype(np.int32 if n_dofs < 2**31 else np.int64)
-    counts = np.bincount(uniq // n_dofs, minlength=n_dofs)
-    indptr = np.zeros(n_dofs + 1, dtype=indices.dtype)
-    np.cumsum(counts, out=indptr[1:])
-    pattern = sp.csr_matrix(
-        (np.zeros(uniq.size), indices, indptr), shape=(n_dofs, n_dofs)
-    )
+    T = np.asarray(T, dtype=np.int64)
+    m, corners = T.shape
+    n = int(n_vertices)
+    keys = (T[:, :, None] * n + T[:, None, :]).reshape(-1)
+    pairs, block = np.unique(keys, return_inverse=True)
+    del keys
+    if 9 * pairs.size > np.iinfo(np.int32).max:
+        raise ValueError(f"the sparsity pattern has {9 * pairs.size} entries, more than int32 "
+                         "indexes")
+    block_rows, block_cols = np.divmod(pairs, n)
+    block_ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(block_rows, minlength=n), out=block_ptr[1:])
+    # number the block entries 1..9 nnzb, convert to CSR: its data says where each one lands
+    numbered = np.arange(1, 9 * pairs.size + 1, dtype=np.float64).reshape(-1, 3, 3)
+    csr = sp.bsr_matrix((numbered, block_cols, block_ptr), shape=(3 * n, 3 * n)).tocsr()
+    where = np.empty(9 * pairs.size, dtype=np.int32)
+    where[csr.data.astype(np.int64) - 1] = np.arange(csr.nnz, dtype=np.int32)
+    # entry (3a + c, 3b + d) of tet e lives in block (T[e, a], T[e, b]) at (c, d)
+    block = block.astype(np.int32).reshape(m, corners, 1, corners, 1)
+    local = 3 * np.arange(3, dtype=np.int32)[:, None] + np.arange(3, dtype=np.int32)
+    scatter = where[9 * block + local.reshape(1, 1, 3, 1, 3)].reshape(-1)
+    pattern = sp.csr_matrix((np.zeros(csr.nnz), csr.indices.astype(np.int32),
+                             csr.indptr.astype(np.int32)), shape=(3 * n, 3 * n))
     pattern.has_sorted_indices = True
-    return pattern, scatter.reshape(-1).astype(np.int32)
+    return pattern, scatter
 
 
 def _readonly(*arrays: np.ndarray) -> None:
@@ -413,7 +427,7 @@ def build_model(
     params = material_parameters(material, E, nu, tuple(mat.PARAM_NAMES))
 
     dofs = element_dofs(T)
-    pattern, scatter = block_pattern(dofs, 3 * X.shape[0])
+    pattern, scatter = block_pattern(T, X.shape[0])
     mass_blocks = geo.mass_matrix(vol, (rho,))
     mass_data = np.bincount(scatter, weights=mass_blocks.reshape(-1), minlength=pattern.nnz)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)

@@ -193,6 +193,14 @@ def test_scatter_matches_coo_assembly(model):
     assert np.array_equal(model.mass.indptr, model.pattern.indptr)
     assert model.scatter.shape == (model.n_tets * 144,)
     assert model.scatter.dtype == np.int32
+    # the pattern is exactly the COO structure: every DOF pair sharing a tet, nothing else
+    ones = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(model.n_dofs,) * 2).tocsr()
+    np.testing.assert_array_equal(model.pattern.indptr, ones.indptr)
+    np.testing.assert_array_equal(model.pattern.indices, ones.indices)
+    # and the scatter sends each element entry to its own (row, col)
+    pattern_rows = np.repeat(np.arange(model.n_dofs), np.diff(model.pattern.indptr))
+    np.testing.assert_array_equal(pattern_rows[model.scatter], rows)
+    np.testing.assert_array_equal(model.pattern.indices[model.scatter], cols)
 
 
 def test_count_inverted(model):
