@@ -127,8 +127,6 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
     seconds, trajectory = 0.0, []
     totals = dict(newton=0, factorizations=0, cg=0, psd_fallbacks=0, final_gradient=0.0,
                   stopped_at_round_off=0)
-    L = float(np.linalg.norm(np.ptp(work.model.X, axis=0)))
-    atol = 1e-12 * work.dt * work.model.E * L * L  # implicit_euler's default tolerances
     for pull in work.pulls:
         t = time.perf_counter()
         state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
@@ -142,7 +140,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
         norms = stats.gradient_norms
         totals["final_gradient"] = max(totals["final_gradient"], norms[-1])
         # Newton also stops where the line search finds no decrease left (energy round-off)
-        totals["stopped_at_round_off"] += norms[-1] > max(atol, 1e-10 * norms[0])
+        totals["stopped_at_round_off"] += norms[-1] > stats.gradient_tolerance
         trajectory.append(state.q)
     return dict(totals, seconds_per_step=seconds / len(work.pulls), trajectory=trajectory)
 

@@ -172,6 +172,9 @@ class StepStats:
     psd_fallbacks : int
         Newton iterations whose exact Hessian no shift made positive definite, solved with
         the PSD-projected Hessian instead.
+    gradient_tolerance : float
+        The ``||g||`` Newton aimed for (implicit Euler); a converged step can end above it
+        only where the line search met the objective's round-off.
     converged : bool
         Newton stopped on its tolerance (or at round-off), not on the iteration cap.
     """
@@ -184,6 +187,7 @@ class StepStats:
     factorizations: int = 0
     cg_iterations: int = 0
     psd_fallbacks: int = 0
+    gradient_tolerance: float = 0.0
 
 
 @dataclass
@@ -838,10 +842,11 @@ def implicit_euler(
                 "tets or a non-finite energy)", step=state.step,
             )
     L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
+    atol = atol_factor * dt * model.E * L * L
     try:
         res = newtons_method(
             x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
-            atol=atol_factor * dt * model.E * L * L, on_no_step=no_step,
+            atol=atol, on_no_step=no_step,
         )
     except SimulationError as exc:
         if exc.step is not None:
@@ -849,6 +854,7 @@ def implicit_euler(
         raise SimulationError(f"backward Euler: {exc.reason}", step=state.step) from exc
     stats.newton_iterations = res.iterations
     stats.gradient_norms = res.gradient_norms
+    stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])
     stats.line_search_halvings = res.line_search_halvings
     stats.converged = res.converged
     new = _new_state(system, state, res.x, dt)

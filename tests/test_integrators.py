@@ -45,6 +45,7 @@ def test_newton_converges_quadratically():
     g_all = np.array(stats.gradient_norms)
     print("gradient norms:", g_all)
     assert stats.converged
+    assert stats.gradient_tolerance == pytest.approx(1e-15 * g_all[0])
     assert g_all[-1] < 1e-12 * g_all[0]  # down to round-off
     g = g_all[g_all > 1e-11 * g_all[0]]  # the iterates above the round-off floor
     print("g[k+1] / g[k]^2:", g[1:] / g[:-1] ** 2)
