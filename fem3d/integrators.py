@@ -938,16 +938,27 @@ def _pins(system: System, state: State, dt: float, fixed_positions) -> _Pins:
     return _Pins(p, q_base, v_fixed, v_t_fixed)
 
 
-def _new_state(system: System, state: State, v_free: np.ndarray, dt: float,
-               pins: _Pins | None = None) -> State:
+def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> State:
     v = system.constraints.expand_zero(v_free).reshape(-1, 3)
-    fv = system.constraints.fixed_vertices
-    if pins is not None and pins.v_fixed is not None:
-        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
     q = state.q + dt * v
-    if fv.size:  # fixed vertices exactly where prescribed (or where they were)
-        q[fv] = state.q[fv] if pins is None else pins.p
+    if system.constraints.fixed_vertices.size:  # fixed vertices stay exactly at rest
+        fv = system.constraints.fixed_vertices
+        q[fv] = system.constraints.x0.reshape(-1, 3)[fv]
     return State(q=q, v=v, t=state.t + dt, step=state.step + 1)
+
+
+def _place_pins(system: System, new: State, pins: _Pins) -> State:
+    """``new`` with the fixed vertices where ``pins`` puts them (exactly) and their velocity."""
+    fv = system.constraints.fixed_vertices
+    if fv.size == 0:
+        return new
+    q = np.array(new.q)
+    q[fv] = pins.p
+    v = new.v
+    if pins.v_fixed is not None:
+        v = np.array(v)
+        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
+    return State(q=q, v=v, t=new.t, step=new.step)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1035,7 +1046,7 @@ def linearly_implicit_euler(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
         ) from exc
     v_free = system.solve(c.restrict(rhs))
-    new = _new_state(system, state, v_free, dt, pins)
+    new = _place_pins(system, _new_state(system, state, v_free, dt), pins)
     _check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
@@ -1576,7 +1587,7 @@ def implicit_euler(
     stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])
     stats.line_search_halvings = res.line_search_halvings
     stats.converged = res.converged
-    new = _new_state(system, state, res.x, dt, pins)
+    new = _place_pins(system, _new_state(system, state, res.x, dt), pins)
     _check_finite(new.q, new.v, state.step, "backward Euler")
     return new, stats
 
