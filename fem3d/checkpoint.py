@@ -39,8 +39,9 @@ __all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_
 CHECKPOINT_NAME = "checkpoint.npz"
 
 _KIND = "fem3d-run"
-_SNAPSHOT_SCALARS = ("t", "step", "injected", "pull_k")
-_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "preconditioner", "script_active")
+_SNAPSHOT_SCALARS = ("t", "step", "injected")
+_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "pull_k", "preconditioner",
+                    "script_active")
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:

@@ -267,11 +267,14 @@ class TransformSpec(_Spec):
 
 
 class TetrahedralizeSpec(_Spec):
-    """fTetWild options for a surface body: target edge length and envelope, both relative
-    to the surface's bounding-box diagonal (smaller: finer, slower)."""
+    """fTetWild options for a surface body: target edge length (the size knob) and envelope
+    (how far the boundary may stray from the surface), both relative to the surface's
+    bounding-box diagonal (smaller: finer, slower); ``stop_quality``: the max AMIPS energy
+    fTetWild optimises down to (the quality knob; larger: faster, worse tets)."""
 
     edge_length: Annotated[StrictFloat, Field(gt=0, le=1)] = 0.05
     epsilon: Annotated[StrictFloat, Field(gt=0, le=0.1)] = 1e-3
+    stop_quality: Annotated[StrictFloat, Field(ge=3)] = 10.0
 
 
 class DampingSpec(_Spec):

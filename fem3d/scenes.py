@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem3d.errors import InputError, ParameterError
+from fem3d.errors import InputError
 from fem3d.scene import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
 __all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
@@ -166,7 +166,8 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
 
             X, T, tet_path = tetrahedralize_file(
                 path, edge_length=body.tetrahedralize.edge_length,
-                epsilon=body.tetrahedralize.epsilon)
+                epsilon=body.tetrahedralize.epsilon,
+                stop_quality=body.tetrahedralize.stop_quality)
             skin_V, skin_F = _read_surface(_stat_key(path))
         else:
             mesh = _read_tet(_stat_key(path))
@@ -430,12 +431,3 @@ def assemble(scene: Scene) -> Assembled:
         pick_radius=float(pick_radius), spring_k=float(spring_k), height=height,
         mesh_paths=[m.path for m in meshes],
     )
-
-
-def check_pull_stiffness(pulls: Sequence[ResolvedPull]) -> None:
-    """Pulls acting at once must share one stiffness until ``Pull`` takes per-spring ``k``."""
-    ks = {p.k for p in pulls}
-    if len(ks) > 1:
-        raise ParameterError(
-            f"pulls active at the same time have different stiffness ({sorted(ks)}); give "
-            f"them one stiffness")

@@ -71,18 +71,7 @@ class StepInfo:
 
 def _check_supported(scene: Scene) -> None:
     """Refuse, naming the key, the settings this build validates but cannot run yet."""
-    if any(g != 0 for g in scene.simulation.gravity):
-        raise scene.error("simulation.gravity", "gravity needs System(gravity=) from the "
-                          "physics work, not in this build yet; use [0, 0, 0]")
     for i, b in enumerate(scene.bodies):
-        if b.damping.rayleigh_mass or b.damping.rayleigh_stiffness:
-            raise scene.error(f"bodies[{i}].damping", "Rayleigh damping needs the physics "
-                              "work's System(rayleigh_alpha=, rayleigh_beta=), not in this "
-                              "build yet; use 0")
-        for j, p in enumerate(b.pins):
-            if p.motion is not None:
-                raise scene.error(f"bodies[{i}].pins[{j}].motion", "moving pins need "
-                                  "fem3d.motion (physics work), not in this build yet")
         m = b.material
         for key, val in (("params", m.params), ("regions", m.regions),
                          ("cell_fields", m.cell_fields)):
@@ -97,6 +86,25 @@ def _check_supported(scene: Scene) -> None:
         raise scene.error("contact.enabled", "contact is not in this build yet")
     if scene.obstacles:
         raise scene.error("obstacles", "obstacles need contact, not in this build yet")
+
+
+def _stiffness(k) -> float | np.ndarray:
+    a = np.asarray(k, dtype=np.float64)
+    return float(a) if a.ndim == 0 else a
+
+
+def _damping(scene: Scene, a) -> tuple:
+    """Rayleigh ``alpha`` (scalar or per vertex) and ``beta`` (scalar or per tet)."""
+    alphas = [b.damping.rayleigh_mass for b in scene.bodies]
+    betas = [b.damping.rayleigh_stiffness for b in scene.bodies]
+    if len(set(alphas)) == 1 and len(set(betas)) == 1:
+        return float(alphas[0]), float(betas[0])
+    alpha = np.zeros(a.X.shape[0])
+    beta = np.zeros(a.T.shape[0])
+    for i in range(len(scene.bodies)):
+        alpha[a.body_vertices[i]] = alphas[i]
+        beta[a.body_tets[i]] = betas[i]
+    return alpha, beta
 
 
 class Simulation:
@@ -162,10 +170,16 @@ class Simulation:
                 "[{ select = { lowest_y = { tol = 0.0 } } }])")
         self.constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
         sim = scene.simulation
+        gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
+        alpha, beta = _damping(scene, a)
         try:
-            self.system = System(self.model, self.constraints, sim.linear_solver)
+            self.system = System(self.model, self.constraints, sim.linear_solver,
+                                 gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta)
+        except ParameterError as exc:
+            raise scene.error("simulation", str(exc)) from None
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
+        self._motions = self._pin_motions()
         self.surface_faces = boundary_faces(a.T)
         self._dt = validate_dt(sim.dt)
         self._integrator = ""
@@ -179,6 +193,58 @@ class Simulation:
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
+
+    def _pin_motions(self) -> list:
+        """``(slots into fixed_vertices, rest positions, Keyframes)`` of each moving pin."""
+        from fem3d.motion import Keyframes
+        from fem3d.scenes import select_vertices
+
+        a, scene = self.assembled, self.scene
+        fixed = self.constraints.fixed_vertices
+        out, taken = [], np.zeros(fixed.size, dtype=bool)
+        for i, body in enumerate(scene.bodies):
+            off = a.body_vertices[i].start
+            for j, pin in enumerate(body.pins):
+                if pin.motion is None:
+                    continue
+                key = f"bodies[{i}].pins[{j}]"
+                ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
+                                      f"{key}.select") + off
+                slots = np.searchsorted(fixed, ids)
+                if taken[slots].any():
+                    raise scene.error(f"{key}.select", "shares pinned vertices with another "
+                                      "moving pin; a vertex can follow one motion only")
+                taken[slots] = True
+                m = pin.motion
+                rest = a.X[ids]
+                pivot = rest.mean(axis=0) if m.pivot is None else np.asarray(m.pivot)
+                try:
+                    kf = Keyframes([k.t for k in m.keyframes], [k.translate for k in m.keyframes],
+                                   [k.rotate_deg for k in m.keyframes], pivot, m.interpolation)
+                except ParameterError as exc:
+                    raise scene.error(f"{key}.motion", str(exc)) from None
+                out.append((slots, rest, kf))
+        return out
+
+    def fixed_positions(self, t: float) -> np.ndarray | None:
+        """Positions of the pinned vertices at time ``t`` (None: no moving pin).
+
+        Returns
+        -------
+        (n_fixed, 3) float64 or None
+            In the order of :attr:`fixed_vertices`; static pins at their rest positions.
+        """
+        if not self._motions:
+            return None
+        p = self.model.X[self.constraints.fixed_vertices].copy()
+        for slots, rest, kf in self._motions:
+            p[slots] = kf.apply(rest, t)
+        return p
+
+    @property
+    def motion_end(self) -> float:
+        """Time after which no pin moves any more (0 without moving pins)."""
+        return max((float(kf.times[-1]) for _, _, kf in self._motions), default=0.0)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -291,7 +357,9 @@ class Simulation:
         self._pull: Pull | None = None
         self._script_active: tuple[int, ...] = ()
         rest = State.at_rest(self.model)
-        self._set_state(State(q=rest.q, v=self.assembled.v0.copy(), t=0.0, step=0))
+        v0 = self.assembled.v0.copy()
+        v0[self.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
+        self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
         self._injected = kinetic_energy(self.model, self.v)
 
     def set_state(self, q: np.ndarray, v: np.ndarray, t: float = 0.0, step: int = 0) -> None:
@@ -320,7 +388,8 @@ class Simulation:
             put in so far: the linearly-implicit runaway bound), ``script_active``
             (j,) int64 (the scripted pulls attached: indices into ``scene.pulls``),
             ``pull_vertices`` (k,) int64, ``pull_targets`` (k, 3) float64
-            and ``pull_k`` float (``k = 0`` and empty arrays: no pull),
+            and ``pull_k`` () or (k,) float64 (one stiffness or one per spring; ``k = 0`` and
+            empty arrays: no pull),
             ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` the reduced
             matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
@@ -334,7 +403,7 @@ class Simulation:
             "script_active": np.asarray(self._script_active, dtype=np.int64),
             "pull_vertices": (np.zeros(0, np.int64) if pull is None else pull.vertices),
             "pull_targets": (np.zeros((0, 3)) if pull is None else pull.targets),
-            "pull_k": 0.0 if pull is None else float(pull.k),
+            "pull_k": np.asarray(0.0 if pull is None else pull.k, dtype=np.float64),
         }
 
     def restore(self, snap: dict) -> None:
@@ -357,7 +426,7 @@ class Simulation:
         pull = None
         if verts.size:
             pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
-                             float(snap["pull_k"]), self.model.n_vertices)
+                             _stiffness(snap["pull_k"]), self.model.n_vertices)
         self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"])))
         self._pull = pull
         self._script_active = tuple(
@@ -387,11 +456,13 @@ class Simulation:
         k : float, optional
             Stiffness (default the scene's ``spring_k``).
         """
-        pull = Pull.make(
+        self._attach(Pull.make(
             vertex_ids, target, self.spring_k if k is None else k, self.model.n_vertices
-        )
+        ))
+
+    def _attach(self, pull: Pull | None) -> None:
         before = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
-        self._pull = pull if pull.vertices.size else None
+        self._pull = pull if pull is not None and pull.vertices.size else None
         if self._pull is not None:
             # work done on the system by attaching / moving the springs: with the energy at
             # reset, an upper bound on the energy a stable scheme can hold
@@ -413,9 +484,10 @@ class Simulation:
 
     # ------------------------------------------------------------------ energies
     def energies(self) -> dict[str, float]:
-        """``{"kinetic", "potential", "pull", "total"}`` of the current state."""
+        """``{"kinetic", "potential", "pull", "total"}`` of the current state (``potential``:
+        strain energy plus gravity's ``-M g . (q - X)``)."""
         kin = kinetic_energy(self.model, self.v)
-        pot = potential_energy(self.model, self.q)
+        pot = potential_energy(self.model, self.q) + self.system.gravity_energy(self.q)
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
         return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot}
 
@@ -436,17 +508,13 @@ class Simulation:
         active = tuple(j for j, p in enumerate(pulls) if p.active(self.t, self.dt))
         if active == self._script_active:
             return
-        if active:
-            from fem3d.scenes import check_pull_stiffness
-
-            on = [pulls[j] for j in active]
-            check_pull_stiffness(on)
-            ids = np.concatenate([p.vertices for p in on])
-            tgt = np.concatenate([p.targets for p in on])
-            if len(on) > 1:  # a vertex in two pulls: its first pull's target
-                ids, first = np.unique(ids, return_index=True)
-                tgt = tgt[first]
-            self.set_pull(ids, tgt, on[0].k)
+        if len(active) == 1:
+            p = pulls[active[0]]
+            self.set_pull(p.vertices, p.targets, p.k)
+        elif active:  # every spring of every active pull (a vertex may carry several)
+            n = self.model.n_vertices
+            self._attach(Pull.combine([Pull.make(pulls[j].vertices, pulls[j].targets,
+                                                 pulls[j].k, n) for j in active], n))
         else:
             self.clear_pull()
         self._script_active = active
@@ -465,27 +533,32 @@ class Simulation:
             last good step.
         """
         self._apply_script()
+        driven = bool(self._motions) and self.t < self.motion_end
+        before = self._energy_with_pull() if driven else 0.0
+        fixed = self.fixed_positions(self.t + self._dt)
         t0 = time.perf_counter()
         if self._integrator == "linear":
             new, stats = INTEGRATORS["linear"](
                 self.system, self._state, self._dt, self._pull,
-                energy_bound=self._energy_bound(),
+                energy_bound=self._energy_bound(), fixed_positions=fixed,
             )
         else:
             new, stats = INTEGRATORS["implicit"](
                 self.system, self._state, self._dt, self._pull,
                 max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
-                linear_solver=self.newton_solver,
+                linear_solver=self.newton_solver, fixed_positions=fixed,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)
-        pot = potential_energy(self.model, new.q)
+        pot = potential_energy(self.model, new.q) + self.system.gravity_energy(new.q)
         if not (math.isfinite(kin) and math.isfinite(pot)):
             raise SimulationError(
                 f"{self._integrator} integrator exploded: non-finite energy", step=new.step - 1
             )
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, new.q)
         self._set_state(new)
+        if driven:  # work done by the moving pins: part of the runaway bound's budget
+            self._injected += max(0.0, kin + pot + pull - before)
         self.last_stats = stats
         return StepInfo(
             t=new.t, kinetic=kin, potential=pot, total=kin + pot,
