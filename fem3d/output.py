@@ -412,7 +412,7 @@ class UsdWriter:
             raise InputError("frames.usdc is missing (the checkpoint lists frames in it)",
                              path=self.path)
         stage = Usd.Stage.Open(str(self.path))
-        n = int(self.faces.max()) + 1
+        n = max(vs.stop for _, vs, _ in self.bodies)
         for s in self.frames:
             V = np.zeros((n, 3), dtype=np.float32)
             for name, (_, vs, _) in zip(self.names, self.bodies, strict=True):
@@ -432,7 +432,7 @@ def make_frame_writer(out_dir: PathLike, faces: np.ndarray, fmt: str, *,
     """The frame writer of a format: ``"vtu"``/``"obj"`` (:class:`FrameWriter`) or ``"usd"``
     (:class:`UsdWriter`, one prim per entry of ``bodies``)."""
     if fmt == "usd":
-        if bodies is None:
+        if bodies is None:  # one prim; its points: the vertices the faces use, and below
             bodies = [("body", slice(0, int(np.max(faces)) + 1), slice(0, len(faces)))]
         return UsdWriter(out_dir, faces, bodies, dt)
     return FrameWriter(out_dir, faces, fmt)
