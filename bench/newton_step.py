@@ -137,7 +137,8 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
         out["solve"] = _best_seconds(lambda: system.solve(b), repeats)
         out["cholmod_mode"] = system.solver.cholmod_mode
     if "amg" in modes:
-        amg = integ.System(work.model, work.constraints, "amg")
+        amg = system if system.linear_backend == "amg" else \
+            integ.System(work.model, work.constraints, "amg")
         out["amg_setup"] = _best_seconds(lambda: amg.amg_setup(A), repeats)
         out["vcycle"] = _best_seconds(lambda: amg.amg._M @ b, repeats)
         out["amg_levels"] = [lvl.A.shape[0] for lvl in amg.amg.ml.levels]
@@ -150,7 +151,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
     state = work.start
     seconds, trajectory = 0.0, []
     totals = dict(newton=0, factorizations=0, cg=0, psd_fallbacks=0, final_gradient=0.0,
-                  stopped_at_round_off=0, amg_setups=0)
+                  stopped_at_round_off=0, amg_setups=0, halvings=0)
     parts: dict[str, float] = {}
     for pull in work.pulls:
         t = time.perf_counter()
@@ -163,6 +164,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
         totals["cg"] += stats.cg_iterations
         totals["psd_fallbacks"] += stats.psd_fallbacks
         totals["amg_setups"] += stats.amg_setups
+        totals["halvings"] += stats.line_search_halvings
         for part, sec in stats.seconds.items():
             parts[part] = parts.get(part, 0.0) + sec
         norms = stats.gradient_norms
@@ -237,7 +239,8 @@ def main(argv: list[str] | None = None) -> None:
             other = best["seconds_per_step"] - sum(parts.values())
             print("          per step: " + ", ".join(
                 f"{k} {v * 1e3:.1f} ms" for k, v in sorted(parts.items()))
-                + f", other {other * 1e3:.1f} ms; AMG setups {best['amg_setups']}", flush=True)
+                + f", other {other * 1e3:.1f} ms; AMG setups {best['amg_setups']}, line-search "
+                f"halvings {best['halvings']}", flush=True)
             if args.jsonl:
                 record = {k: v for k, v in best.items() if k != "trajectory"}
                 record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,

@@ -325,6 +325,12 @@ class NewtonResult:
 AMG_ITERATIONS_PER_DECADE = 8.0
 #: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
 FORCING_MAX = 0.1
+#: ``"amg"``: energy increases below this fraction of the objective are round-off in the line
+#: search (:func:`newtons_method`'s ``roundoff_rtol``).
+AMG_ROUNDOFF_RTOL = 1e-10
+#: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
+#: round-off (measured floors on the swinging box: 10-20 tolerances).
+ROUNDOFF_GRADIENT_FACTOR = 1e3
 
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
@@ -1058,6 +1064,7 @@ def newtons_method(
     decrement_rtol: float = 1e-14,
     on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
     max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    roundoff_rtol: float = 0.0,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -1092,6 +1099,12 @@ def newtons_method(
         Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
         the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
         A non-positive value stops Newton at ``x`` (not converged).
+    roundoff_rtol : float, optional
+        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
+        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
+        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance, stop (converged at round-off)
+        rather than halve through noise. 0 (default): plain backtracking.
 
     Returns
     -------
@@ -1135,6 +1148,7 @@ def newtons_method(
         a = a0
         accepted = False
         any_finite = False
+        gt = None
         for _ in range(max_halvings):
             xt = x + a * d
             ft = energy(xt)
@@ -1143,6 +1157,18 @@ def newtons_method(
                 if ft <= fx + c * a * slope:
                     accepted = True
                     break
+                if roundoff_rtol and a == a0:
+                    if ft <= fx + roundoff_rtol * abs(fx):
+                        # the energy cannot tell the trial from x: judge by the gradient
+                        gt = gradient(xt)
+                        if np.isfinite(gt).all() and _gradient_norm(gt) < gn:
+                            accepted = True
+                            break
+                        gt = None
+                    if gn <= ROUNDOFF_GRADIENT_FACTOR * tol:
+                        # near the tolerance a failed full step is the energy's and the
+                        # gradient's round-off: stop there rather than halve through noise
+                        return NewtonResult(x, it, norms, True, halvings)
             a *= p
             halvings += 1
         if not accepted:
@@ -1150,7 +1176,7 @@ def newtons_method(
                 on_no_step(x, d)
             return NewtonResult(x, it, norms, any_finite, halvings)
         x, fx = xt, ft
-        g = gradient(x)
+        g = gradient(x) if gt is None else gt
         gn = _gradient_norm(g)
         norms.append(gn)
         it += 1
@@ -1525,6 +1551,7 @@ def implicit_euler(
             x0, timed(energy, "objective"), timed(gradient, "objective"), direction,
             max_iterations=max_iterations, rtol=rtol, atol=atol, on_no_step=no_step,
             max_step=clamp if step_terms else None,
+            roundoff_rtol=AMG_ROUNDOFF_RTOL if use_amg else 0.0,
         )
     except SimulationError as exc:
         if exc.step is not None:

@@ -151,7 +151,7 @@ def amg_available() -> bool:
 #: box --tets N --steps 1 --swing 4 --modes direct,amg`` on this project's shared 2-core
 #: machine: AMG is slower than CHOLMOD at 1e3 tets (576 free DOFs) and 1e4 tets, level with
 #: it around ... and faster above (docs/benchmarks.md, "AMG").
-AMG_AUTO_MIN_FREE_DOFS = 30000
+AMG_AUTO_MIN_FREE_DOFS = 6000
 
 
 def choose_backend(backend: str | None, n_free_dofs: int) -> str:
