@@ -753,7 +753,7 @@ class SweepReport:
     rows : list of dict
         One per case, in sweep order (the rows of ``results.csv``).
     ran, skipped : int
-        Cases run now / complete before.
+        Cases that ran to an end now (ok, failed or lost) / complete before.
     lost : list of str
         Ids of cases whose workers kept dying (left partial; the next invocation retries).
     interrupted : bool
@@ -839,6 +839,7 @@ def run_sweep(
     })
     lost: dict[str, str] = {}
     interrupted = False
+    ran = 0
     if plan.todo:
         from distributed import as_completed
 
@@ -862,9 +863,12 @@ def run_sweep(
                         ok = fut.result().get("status") == "ok"
                     else:  # KilledWorker after allowed-failures deaths, or a lost task
                         ok = False
-                        lost[case.id] = f"lost: {fut.exception()!r}"[:500]
+                        exc = fut.exception()
+                        why = " ".join(str(exc).split())[:300]
+                        lost[case.id] = f"lost: {type(exc).__name__}: {why}"
                     done += ok
                     failed += not ok
+                    ran += 1
                     bar.update(1)
                     bar.set_postfix_str(
                         f"done {done} failed {failed} remaining {len(futures) - done - failed}",
@@ -878,8 +882,7 @@ def run_sweep(
                     client.cancel(list(futures), force=True)
     rows = _rows(plan, lost)
     write_results(out, plan.spec, rows)
-    ran_ids = {c.id for c in plan.todo}
-    return SweepReport(rows=rows, ran=len(ran_ids), skipped=len(plan.done),
+    return SweepReport(rows=rows, ran=ran, skipped=len(plan.done),
                        lost=sorted(lost), interrupted=interrupted)
 
 
@@ -981,6 +984,8 @@ def plot_results(path: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]])
             xs = [v for v in values if v is not None]
             if xs and min(xs) > 0 and max(xs) / min(xs) > 30:
                 ax.set_xscale("log")
+            else:
+                ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4))
         else:
             labels = sorted({_cell(v) for v in values}, key=str)
             pos = lambda r, k=key, lab=labels: lab.index(_cell(r.get(k)))  # noqa: E731
@@ -991,6 +996,7 @@ def plot_results(path: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]])
             ax.plot([pos(r) for r in bad if r.get(key) is not None or key == "case"],
                     [floor for r in bad if r.get(key) is not None or key == "case"],
                     "x", color="tab:red", ms=7, label="failed / not run")
+        ax.tick_params(labelsize=7)
         ax.set_xlabel(key, fontsize=8)
         ax.set_ylabel(metric, fontsize=8)
         ax.grid(alpha=0.3)
