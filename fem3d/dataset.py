@@ -163,7 +163,7 @@ def write_trajectory(
     return atomic_write(Path(path), lambda p: np.savez_compressed(p, **arrays))
 
 
-def write_case_trajectory(case_dir: str | Path, scene: Any = None, *, dtype: str = "float32",
+def write_case_trajectory(case_dir: str | Path, *, dtype: str = "float32",
                           meta: dict[str, Any] | None = None) -> Path:
     """Pack the frames of the run in ``case_dir`` into ``case_dir/trajectory.npz``."""
     case_dir = Path(case_dir)

@@ -563,10 +563,10 @@ def _load_base(spec: SweepFile) -> Any:
     return load_scene(spec.scene, dict(spec.set) or None)
 
 
-def _resolve(base: Any, overrides: Mapping[str, Any]) -> Any:
+def _resolve(base: Any, overrides: Mapping[str, Any], source: str) -> Any:
     from fem3d.scene import apply_overrides
 
-    return apply_overrides(base, dict(overrides)) if overrides else base
+    return apply_overrides(base, dict(overrides), source=source) if overrides else base
 
 
 def _scene_schema() -> dict[str, Any]:
@@ -579,6 +579,10 @@ def _scene_from_dict(d: Mapping[str, Any]) -> Any:
     from fem3d.scene import Scene
 
     return Scene.from_dict(dict(d))
+
+
+def _frame_format(scene_dict: Mapping[str, Any]) -> Any:
+    return (scene_dict.get("output") or {}).get("format", "vtu")
 
 
 def _run_scene(scene: Any, out: Path) -> dict[str, Any]:
@@ -630,14 +634,20 @@ def plan_sweep(spec: SweepFile, out: Path, *, retry_failed: bool = False,
     cases: list[Case] = []
     for index, params in enumerate(expand_cases(spec)):
         try:
-            scene = _resolve(base, params)
+            scene = _resolve(base, params, f"{sweep_path or spec.name} case {index}")
         except InputError as exc:
             token = json.dumps([base_digest, _json_safe(params)], sort_keys=True)
             cid = hashlib.sha256(token.encode()).hexdigest()[:16]
             cases.append(Case(index, params, cid, None, None, f"invalid: {exc}"))
             continue
         digest = scene.digest()
-        cases.append(Case(index, params, digest[:16], digest, scene.to_dict()))
+        d = scene.to_dict()
+        fmt = _frame_format(d)
+        error = None
+        if spec.dataset is not None and fmt not in ("vtu", "obj"):
+            error = (f"invalid: dataset mode reads the run's frames: output.format must be "
+                     f"'vtu' or 'obj', got {fmt!r}")
+        cases.append(Case(index, params, digest[:16], digest, d, error))
     todo: dict[str, Case] = {}
     done: dict[str, Case] = {}
     for case in cases:
@@ -722,7 +732,7 @@ def run_case(task: Mapping[str, Any]) -> dict[str, Any]:
         if task.get("dataset") and record.get("status") == "ok":
             from fem3d.dataset import write_case_trajectory
 
-            write_case_trajectory(case_dir, scene, dtype=task["dataset"]["dtype"],
+            write_case_trajectory(case_dir, dtype=task["dataset"]["dtype"],
                                   meta={"id": task["id"], "params": task["params"]})
     except Fem3dError as exc:
         record.update(status="failed", message=str(exc))
