@@ -51,20 +51,27 @@ SOAK_SECONDS = float(os.environ.get("FEM3D_VIEWER_SOAK_SECONDS", "60"))
 #: Counts animation frames and websocket arrivals inside the page (times in ms).
 PAGE_PROBE = """
 (() => {
+  // viser's client runs its websocket in a Web Worker that posts the decoded messages to
+  // the page: count those that carry mesh vertices, when the page receives them.
   const probe = {arrivals: [], frames: []};
   window.__fem3dProbe = probe;
-  const Native = window.WebSocket;
-  class Probed extends Native {
+  const hasVertices = (obj, depth) => {
+    if (!obj || typeof obj !== 'object' || depth > 4) return false;
+    if (obj.type === 'SceneNodeUpdateMessage' && obj.updates && obj.updates.vertices) return true;
+    const vals = Array.isArray(obj) ? obj : Object.values(obj);
+    for (const v of vals) if (v && typeof v === 'object' && !ArrayBuffer.isView(v)
+                               && hasVertices(v, depth + 1)) return true;
+    return false;
+  };
+  const Native = window.Worker;
+  window.Worker = class extends Native {
     constructor(...args) {
       super(...args);
       this.addEventListener('message', (ev) => {
-        const d = ev.data;
-        const n = (d && (d.byteLength !== undefined ? d.byteLength : d.size)) || 0;
-        probe.arrivals.push([performance.now(), n]);
+        if (hasVertices(ev.data, 0)) probe.arrivals.push(performance.now());
       });
     }
-  }
-  window.WebSocket = Probed;
+  };
   const tick = (t) => { probe.frames.push(t); requestAnimationFrame(tick); };
   requestAnimationFrame(tick);
 })();
@@ -96,7 +103,7 @@ def wait_for(predicate: Any, timeout: float, what: str, interval: float = 0.05) 
     pytest.fail(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})")
 
 
-_T_RE = re.compile(r"t = (-?[0-9.]+) s")
+_T_RE = re.compile(r"t[ \u00a0]=[ \u00a0](-?[0-9.]+)[ \u00a0]s")
 
 
 def _decode_frame(payload: bytes) -> tuple[list[dict], list[bytes]]:
@@ -316,12 +323,11 @@ def _drag_and_check(page: Any, log: WireLog, viewer: Any, what: str) -> dict[str
     page.mouse.down()
     t_start = time.monotonic()
     rate = _page_counts(page)
+    kb0 = log.bytes
     for i in range(1, 31):  # about 3 s of dragging
         page.mouse.move(x0 + dx * min(1.0, i / 12), y0 - 0.25 * dx * min(1.0, i / 12))
         _sleep(0.1)
     rate_end = _page_counts(page)
-    with log.lock:
-        sizes = list(log.sizes)
     wait_for(
         lambda: (lambda s: s if s["pull"] and s["pull"]["ids"] else None)(viewer.snapshot()),
         20, f"the drag to pick vertices ({what})",
@@ -342,7 +348,10 @@ def _drag_and_check(page: Any, log: WireLog, viewer: Any, what: str) -> dict[str
     assert shot1 is not None
     with log.lock:
         sent = [t for t, _n, _v in log.vertices if t >= t_start]
-    return {"seconds": elapsed, **_rates(rate, rate_end, sizes), "sent_hz": len(sent) / elapsed}
+    with log.lock:
+        kb = (log.bytes - kb0) / 1e3
+    return {"seconds": elapsed, "kB_per_s": kb / elapsed, **_rates(rate, rate_end),
+            "sent_hz": len(sent) / elapsed}
 
 
 def _page_counts(page: Any) -> dict[str, Any]:
@@ -352,32 +361,21 @@ def _page_counts(page: Any) -> dict[str, Any]:
     )
 
 
-def _rates(
-    a: dict[str, Any], b: dict[str, Any], sizes: list[tuple[int, bool]]
-) -> dict[str, float]:
-    """Mesh updates received and drawn by the page per second between two probe readings.
+def _rates(a: dict[str, Any], b: dict[str, Any]) -> dict[str, float]:
+    """Mesh updates the page received and drew per second between two probe readings.
 
-    The page's arrivals and the decoded frames are the same frames in the same order
-    (matched by index; their sizes must agree).
+    An update is drawn when it is the newest one at an animation frame: updates that reach
+    the page between two frames are drawn once (the others were wasted).
     """
     t0, t1 = a["now"], b["now"]
-    n = min(len(b["a"]), len(sizes))
-    assert all(b["a"][i][1] == sizes[i][0] for i in range(n)), "frame streams differ"
-    arr = [(t, sz) for (t, sz), (_s, mesh) in zip(b["a"][:n], sizes[:n], strict=True)
-           if mesh and t0 <= t < t1]
+    arr = [t for t in b["a"] if t0 <= t < t1]
     frames = np.asarray([f for f in b["f"] if t0 <= f < t1], dtype=np.float64)
     drawn = 0
     if frames.size and arr:
-        idx = np.searchsorted(frames, [t for t, _ in arr])  # first frame after each arrival
-        idx = idx[idx < frames.size]
-        drawn = int(np.unique(idx).size)
+        idx = np.searchsorted(frames, arr)  # the first frame after each arrival
+        drawn = int(np.unique(idx[idx < frames.size]).size)
     secs = max((t1 - t0) / 1e3, 1e-9)
-    return {
-        "received_hz": len(arr) / secs,
-        "drawn_hz": drawn / secs,
-        "fps": frames.size / secs,
-        "kB_per_s": sum(n for _, n in arr) / secs / 1e3,
-    }
+    return {"received_hz": len(arr) / secs, "drawn_hz": drawn / secs, "fps": frames.size / secs}
 
 
 def _select_scene(page: Any, name: str) -> None:
