@@ -379,10 +379,7 @@ def _rates(a: dict[str, Any], b: dict[str, Any]) -> dict[str, float]:
 
 
 def _select_scene(page: Any, name: str) -> None:
-    box = page.get_by_role("textbox", name="Scene")
-    if box.count() == 0:
-        box = page.locator("input").filter(has=page.locator("[value]")).first
-    box.first.click()
+    page.get_by_label("Scene", exact=True).click()
     page.get_by_role("option", name=name, exact=True).click()
 
 
