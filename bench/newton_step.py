@@ -67,25 +67,31 @@ class Workload:
 def armadillo(level: int, steps: int) -> Workload:
     """The armadillo scene refined ``level`` times, its hand dragged for ``steps - 20`` steps."""
     from fem3d.constraints import fixed_vertices_lowest_y
-    from fem3d.scenes import load_scene
+    from fem3d.scene import load_scene
+    from fem3d.scenes import assemble
 
     scene = load_scene("arma")
-    X, T = scene.X, scene.T
+    a = assemble(scene)
+    body, pull = scene.bodies[0], scene.pulls[0]
+    X, T = a.X, a.T
     for _ in range(level):
         X, T = refine_tets(X, T)  # old vertices keep their indices: same feet, same hand
-    model = build_model(X, T, E=scene.E, nu=scene.nu, rho=scene.rho)
-    constraints = Constraints.from_fixed_vertices(X, fixed_vertices_lowest_y(X, scene.fixed_tol))
-    hand = X[scene.pull.vertex]
-    picked = pick_nearest_vertices(X, hand, scene.pick_radius, nearest_if_empty=True)
+    mat = body.material
+    model = build_model(X, T, E=mat.E, nu=mat.nu, rho=mat.density)
+    fixed_tol = body.pins[0].select.lowest_y.tol
+    constraints = Constraints.from_fixed_vertices(X, fixed_vertices_lowest_y(X, fixed_tol))
+    hand = X[pull.select.near_vertex.vertex]
+    picked = pick_nearest_vertices(X, hand, pull.select.near_vertex.radius,
+                                   nearest_if_empty=True)
     h = float(np.ptp(X[:, 1]))
     pulls: list[integ.Pull | None] = []
     for i in range(steps):
         out, angle = min(1.0, i / 30), 0.1 * max(0, i - 30)
         target = hand + h * np.array([0.1 * np.sin(angle), 0.05 * (1 - np.cos(angle)), 0.2 * out])
-        pulls.append(integ.Pull.make(picked, target, scene.spring_k, model.n_vertices)
+        pulls.append(integ.Pull.make(picked, target, pull.stiffness, model.n_vertices)
                      if i < steps - 20 else None)
     return Workload(f"armadillo x{8 ** level} ({len(T)} tets)", model, constraints,
-                    integ.State.at_rest(model), scene.dt, pulls)
+                    integ.State.at_rest(model), scene.simulation.dt, pulls)
 
 
 def swinging_box(n_tets: float, steps: int, swing: float) -> Workload:
