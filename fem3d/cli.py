@@ -69,6 +69,7 @@ SUBCOMMANDS: list[str] = [
     "fem3d.viewer:add_view_subcommand",
     "fem3d.cli:add_resume_subcommand",
     "fem3d.cli:add_schema_subcommand",
+    "fem3d.sweep:add_sweep_subcommand",
 ]
 
 #: Frames kept in memory for the GIF preview (evenly spaced).

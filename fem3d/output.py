@@ -100,6 +100,10 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, target)
+    except OSError as exc:  # disk full, quota, ...: name the file being written
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise OSError(exc.errno, f"{exc.strerror or exc} while writing", str(target)) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -848,7 +852,9 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
     InputError
         Missing file, not a fem3d checkpoint, or unreadable.
     """
-    path = Path(path)
+    from fem3d.rundir import check_input_file
+
+    path = check_input_file(path, "checkpoint")
     try:
         with np.load(path, allow_pickle=False) as z:
             if _META_KEY not in z.files:
