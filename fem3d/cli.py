@@ -50,6 +50,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from fem3d import rundir
 from fem3d.errors import InputError, ParameterError, SimulationError
 
 __all__ = ["main", "build_parser", "run_scene", "resume_run", "SUBCOMMANDS"]
@@ -477,11 +478,14 @@ def run_scene(args: argparse.Namespace) -> int:
     if args.out:  # fail on an unusable output folder before any expensive setup
         Path(args.out).mkdir(parents=True, exist_ok=True)
     settings = _settings_from_args(args, backend)
+    if args.out:  # before reading the inputs: one of them may be an output of this run
+        rundir.check_overwrite(args.out, {"mesh": settings["scene"], "skin": settings["skin"]})
     scene, sim = _build(settings)
     out = Path(args.out) if args.out else Path("out") / scene.name
-    out.mkdir(parents=True, exist_ok=True)
-    return _drive(settings, scene, sim, out, quiet=args.quiet,
-                  debug=getattr(args, "debug", False))
+    inputs = {"mesh": scene.mesh_path, "skin": scene.skin_path}
+    with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
+        return _drive(settings, scene, sim, out, quiet=args.quiet,
+                      debug=getattr(args, "debug", False))
 
 
 def resume_run(args: argparse.Namespace) -> int:
@@ -518,8 +522,11 @@ def resume_run(args: argparse.Namespace) -> int:
         sim.restore(ckpt.snapshot)
     except ParameterError as exc:
         raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
-    return _drive(settings, scene, sim, out, quiet=args.quiet,
-                  debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
+    ck = out / CHECKPOINT_NAME
+    inputs = {"mesh": scene.mesh_path, "skin": scene.skin_path, "checkpoint": ck}
+    with rundir.claim(out, inputs=inputs, allow=(ck,)):
+        return _drive(settings, scene, sim, out, quiet=args.quiet,
+                      debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
 
 
 def _run_command(args: argparse.Namespace) -> int:
@@ -542,7 +549,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     try:
-        return int(args.func(args) or 0)
+        with rundir.warnings_as_lines(f"fem3d {args.command}"):
+            return int(args.func(args) or 0)
     except InputError as exc:
         if args.debug:
             traceback.print_exc()

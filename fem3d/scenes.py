@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError, ParameterError
-from fem3d.mesh import read_surface_mesh, read_tet_mesh
+from fem3d.mesh import check_skin_placement, read_surface_mesh, read_tet_mesh
 from fem3d.model import validate_dt, validate_material
 
 __all__ = ["Scene", "PullScript", "SCENES", "load_scene", "data_dir", "PULL_DURATION"]
@@ -226,6 +226,7 @@ def _from_path(path: str | os.PathLike[str], skin: str | os.PathLike[str] | None
     skin_V = skin_F = None
     if skin is not None:
         skin_V, skin_F = read_surface_mesh(skin)
+        check_skin_placement(skin_V, mesh.X, mesh.T, path=skin)
     E = 6e5
     return Scene(
         name=Path(path).stem, X=mesh.X, T=mesh.T, skin_V=skin_V, skin_F=skin_F,
