@@ -45,8 +45,10 @@ def _env() -> dict[str, str]:
 
 
 def _leftovers(out: Path) -> list[str]:
-    """Temporary or hidden files anywhere under ``out`` (atomic writes leave none)."""
-    return [str(p) for p in out.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
+    """Temporary or hidden files anywhere under ``out`` (atomic writes leave none; the
+    folder's lock file ``.fem3d.lock`` stays on purpose, see fem3d.rundir)."""
+    return [str(p) for p in out.rglob("*")
+            if (p.name.startswith(".") or ".tmp" in p.name) and p.name != ".fem3d.lock"]
 
 
 def _assert_no_nan_in_outputs(out: Path) -> None:
