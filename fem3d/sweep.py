@@ -45,8 +45,10 @@ import math
 import os
 import re
 import shutil
+import signal
 import socket
 import sys
+import threading
 import time
 import tomllib
 import traceback
@@ -1058,6 +1060,24 @@ def add_sweep_subcommand(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """SIGTERM (a batch system stopping the job) acts as Ctrl-C: the cluster is shut down,
+    the results so far are written, and the next invocation continues."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def _sweep_command(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
@@ -1078,7 +1098,9 @@ def _sweep_command(args: argparse.Namespace) -> int:
         f"{len(plan.done)} complete before, {invalid} rejected) -> {out}",
         file=sys.stderr,
     )
-    report = run_sweep(plan, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet)
+    with _sigterm_interrupts():
+        report = run_sweep(plan, workers=args.workers, scheduler=args.scheduler,
+                           quiet=args.quiet)
     ok, failed = report.count("ok"), report.count("failed")
     print(
         f"fem3d sweep {spec.name}: {ok} ok, {failed} failed, {len(report.lost)} lost, "
