@@ -101,7 +101,10 @@ def _load_scene(name: str | Path) -> Any:
 def _make_simulation(scene: Any, integrator: str | None, backend: str | None) -> Any:
     from fem3d.simulation import Simulation
 
-    return Simulation(scene, integrator=integrator, backend=backend)
+    sim = Simulation(scene, backend=backend)
+    if integrator is not None:
+        sim.integrator = integrator
+    return sim
 
 
 def _builtin_scene_names() -> list[str]:
@@ -543,7 +546,7 @@ class Viewer:
         self._material = self._scene_material()
         self._drag_events = 0
         self._last_gui_pause = -1e9
-        self._pick_radius = float(self._scene.pick_radius)
+        self._pick_radius = float(self._sim.pick_radius)
         #: Tracebacks of exceptions caught on the viewer's threads (tests assert it stays
         #: empty; each is also printed).
         self.exceptions: list[str] = []
@@ -591,15 +594,15 @@ class Viewer:
             return dict(self._camera)
 
     def _scene_material(self) -> dict[str, float]:
-        s = self._scene
-        return {"E": float(s.E), "nu": float(s.nu), "rho": float(s.rho)}
+        m = self._scene.bodies[0].material
+        return {"E": float(m.E), "nu": float(m.nu), "rho": float(m.density)}
 
     def _radius_range(self) -> tuple[float, float, float]:
         """(min, max, initial) of the grab-radius slider: 0.1 % to 20 % of the mesh's
         bounding-box diagonal, starting at the scene's ``pick_radius``."""
         q = np.asarray(self._sim.q, dtype=np.float64)
         diag = float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))) or 1.0
-        r0 = float(self._scene.pick_radius)
+        r0 = float(self._sim.pick_radius)
         lo, hi = min(1e-3 * diag, r0), max(0.2 * diag, r0)
         return lo, hi, r0
 
@@ -1105,7 +1108,7 @@ class Viewer:
         return np.asarray(self._sim.q, dtype=np.float64)
 
     def _has_skin(self) -> bool:
-        return getattr(self._scene, "skin_F", None) is not None
+        return bool(self._sim.has_skin)
 
     def _rebuild_mesh(self) -> None:
         """Replace the displayed mesh node (simulation thread only)."""
@@ -1117,7 +1120,7 @@ class Viewer:
         self._mesh_serial += 1
         if mode == "skin":
             verts = np.asarray(self._sim.skin_positions(), dtype=np.float64)
-            faces = np.asarray(self._scene.skin_F, dtype=np.uint32)
+            faces = np.asarray(self._sim.display_faces, dtype=np.uint32)
             handle = self._server.scene.add_mesh_simple(
                 "/fem3d/skin", verts, faces, color=SKIN_COLOR, flat_shading=False,
                 cast_shadow=False, receive_shadow=False,
@@ -1239,7 +1242,7 @@ class Viewer:
             self._t = 0.0
             self._q_view = np.array(sim.q, dtype=np.float64, copy=True)
             self._material = self._scene_material()
-            self._pick_radius = float(scene.pick_radius)
+            self._pick_radius = float(self._sim.pick_radius)
         self._applied_pull_version = -1
         self._rebuild_mesh()
         self._update_spring(None, sim.q)
