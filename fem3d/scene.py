@@ -414,11 +414,21 @@ class ObstacleSpec(_Spec):
         return self
 
 
+class PreviewSpec(_Spec):
+    """Camera of ``preview.gif``: elevation and azimuth (degrees), and whether the view box
+    fits the first frame or every frame."""
+
+    elev: Annotated[StrictFloat, Field(ge=-90, le=90)] = 15.0
+    azim: StrictFloat = 30.0
+    bounds: Literal["first", "all"] = "first"
+
+
 class OutputSpec(_Spec):
-    """Frames written by ``fem3d run``: format and stride (steps)."""
+    """Frames written by ``fem3d run``: format and stride (steps); the preview's camera."""
 
     format: Literal["vtu", "obj", "usd"] = "vtu"
     every: Annotated[StrictInt, Field(ge=1)] = 1
+    preview: PreviewSpec = PreviewSpec()
 
 
 class InteractionSpec(_Spec):
