@@ -592,16 +592,26 @@ def run_scene(
     if checkpoint_every < 0:
         raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     out = Path(out)
-    rundir.check_overwrite(out, rundir.scene_inputs(scene))  # before anything is read
     _check_writable(out)
+    inputs = _scene_inputs(scene)
+    rundir.check_overwrite(out, inputs)  # before any expensive setup
     backend = _resolve_kernels(backend)
     sim = Simulation(scene, backend=backend, scripted=True)
     settings = {
         "scene": scene.to_dict(), "kernels": backend, "solver": sim.system._solver.backend,
         "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
     }
-    with rundir.claim(out, inputs=rundir.scene_inputs(scene)):  # lock, no overwrite, clean
+    out.mkdir(parents=True, exist_ok=True)
+    with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
         return _drive(scene, sim, out, settings, quiet=quiet, debug=debug)
+
+
+def _scene_inputs(scene) -> dict[str, Any]:
+    """Every file a run of ``scene`` reads, by role (for the overwrite check)."""
+    inputs: dict[str, Any] = dict(scene.files())
+    if scene.source:
+        inputs["scene file"] = scene.source
+    return inputs
 
 
 def resume_run(args: argparse.Namespace) -> int:
@@ -649,7 +659,8 @@ def resume_run(args: argparse.Namespace) -> int:
     except (ParameterError, KeyError) as exc:
         raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
     ck = out / CHECKPOINT_NAME
-    with rundir.claim(out, inputs={**rundir.scene_inputs(scene), "checkpoint": ck}, allow=(ck,)):
+    inputs = {**_scene_inputs(scene), "checkpoint": ck}
+    with rundir.claim(out, inputs=inputs, allow=(ck,)):
         summary = _drive(scene, sim, out, settings, quiet=args.quiet,
                          debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
     return summary.exit_status
@@ -660,8 +671,11 @@ def _run_command(args: argparse.Namespace) -> int:
         raise ParameterError(f"--steps must be >= 0, got {args.steps}")
     if args.checkpoint_every < 0:
         raise ParameterError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
-    if args.out:  # before the inputs are read: one of them may be an output of this run
-        rundir.check_overwrite(args.out, {"mesh": args.scene, "skin": args.skin})
+    if args.out:  # before reading the inputs: one of them may be an output of this run
+        named = {"scene file" if str(args.scene).endswith(".toml") else "mesh": args.scene,
+                 "skin": getattr(args, "skin", None)}
+        rundir.check_overwrite(args.out, {k: v for k, v in named.items()
+                                          if v is not None and Path(v).exists()})
     scene = scene_from_args(args)
     out = Path(args.out) if args.out else Path("out") / scene.name
     summary = run_scene(scene, out, quiet=args.quiet, checkpoint_every=args.checkpoint_every,

@@ -36,8 +36,7 @@ from pathlib import Path
 from fem3d.errors import InputError
 
 __all__ = ["LOCK_NAME", "OUTPUT_NAMES", "check_input_file", "claim", "clean_temp_files",
-           "not_a_file",
-           "check_overwrite", "scene_inputs", "warnings_as_lines"]
+           "check_overwrite", "warnings_as_lines"]
 
 LOCK_NAME = ".fem3d.lock"
 #: Files a run writes into its output folder (``frames/`` is written as a whole).
@@ -88,21 +87,6 @@ def check_input_file(path: str | os.PathLike[str], what: str = "file") -> Path:
             "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
     raise InputError(f"is {kind}, not a regular {what} file; fem3d reads regular files only",
                      path=p)
-
-
-def not_a_file(path: str | os.PathLike[str]) -> str:
-    """Why ``path`` cannot be read as a file, for a message (``no such file PATH``, ``PATH
-    is a named pipe (FIFO), not a regular file``, ``symbolic link loop at PATH``, ...)."""
-    try:
-        check_input_file(path)
-    except InputError as exc:
-        why = str(exc)
-        prefix = f"{Path(path)}: "
-        why = why[len(prefix):] if why.startswith(prefix) else why
-        if why == "file not found":
-            return f"no such file {path}"
-        return f"{path}: {why}"
-    return f"{path} is a file"  # callers ask only after is_file() said no
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -250,19 +234,3 @@ def warnings_as_lines(prefix: str) -> Iterator[None]:
         yield
     finally:
         warnings.showwarning = old
-
-
-def scene_inputs(scene: object) -> dict[str, Path]:
-    """``{role: path}`` of every file a :class:`fem3d.scene.Scene` reads, for
-    :func:`check_overwrite`: the scene file itself and each file it refers to (roles like
-    ``"mesh (bodies[0].mesh)"``)."""
-    out: dict[str, Path] = {}
-    source = getattr(scene, "source", None)
-    if source and os.path.isfile(source):
-        out["scene file"] = Path(source)
-    for key, path in scene.files():  # type: ignore[attr-defined]
-        last = key.rsplit(".", 1)[-1]
-        role = {"mesh": "mesh", "skin": "skin", "vertices_file": "vertices file",
-                "path": "obstacle mesh"}.get(last, "input")
-        out[f"{role} ({key})"] = Path(path)
-    return out

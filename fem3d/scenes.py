@@ -24,7 +24,7 @@ import numpy as np
 
 from fem3d.errors import InputError
 from fem3d.mesh import check_skin_placement
-from fem3d.rundir import not_a_file
+from fem3d.rundir import check_input_file
 from fem3d.scene import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
 __all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
@@ -159,8 +159,12 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
     body: BodySpec = scene.bodies[i]
     path = scene.path(body.mesh)
     key = f"bodies[{i}].mesh"
-    if not path.is_file():
-        raise scene.error(key, not_a_file(path))
+    if not (path.exists() or path.is_symlink()):
+        raise scene.error(key, f"no such file {path}")
+    try:  # a FIFO or device (would block), a folder, a symlink loop
+        check_input_file(path, "mesh")
+    except InputError as exc:
+        raise scene.error(key, f"{path}: {exc.reason}") from None
     skin_V = skin_F = None
     try:
         if is_surface_file(path):
@@ -184,7 +188,7 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
             raise scene.error(f"bodies[{i}].skin", f"no such file {skin_path}") from None
         except InputError as exc:
             raise _in_key(scene, f"bodies[{i}].skin", exc) from None
-        try:  # a display mesh far outside (another frame, other units) is refused
+        try:  # a display mesh in another frame would be skinned into nonsense
             check_skin_placement(skin_V, X, T, path=skin_path)
         except InputError as exc:
             raise _in_key(scene, f"bodies[{i}].skin", exc) from None

@@ -861,7 +861,11 @@ def run_sweep(
                               pure=False, retries=1): c
                 for c in plan.todo
             }
-            n_workers = len(client.scheduler_info(n_workers=-1).get("workers", {}))
+            try:  # distributed >= 2025 lists only 5 workers unless asked for all
+                info = client.scheduler_info(n_workers=-1)
+            except TypeError:
+                info = client.scheduler_info()
+            n_workers = len(info.get("workers", {}))
             bar = tqdm(total=len(futures), unit="case", disable=quiet or None,
                        file=sys.stderr, dynamic_ncols=True,
                        desc=f"{plan.spec.name} ({n_workers} workers)")

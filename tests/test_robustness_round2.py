@@ -301,7 +301,8 @@ def test_warnings_are_one_prefixed_line_and_the_error_is_last(tmp_path: Path) ->
         for f in F + 1:
             fh.write(f"f {f[0]} {f[1]} {f[2]}\n")
     r = _cli("run", BUNNY, "--skin", str(near), "--steps", "1", "--out", str(tmp_path / "o"),
-             "--no-preview", "--quiet", "--set", "pulls[0].select.near_vertex.vertex=99999")
+             "--no-preview", "--quiet",
+             "--set", "bodies[0].pins=[{select={box=[[1e9,1e9,1e9],[2e9,2e9,2e9]]}}]")
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     warn = [ln for ln in lines if "warning:" in ln]
     assert warn and all(ln.startswith("fem3d run: warning: ") for ln in warn), r.stderr
