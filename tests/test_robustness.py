@@ -275,8 +275,8 @@ def test_flat_tet_is_inadmissible():
 def _nan_after(step: int):
     real = integrators._new_state
 
-    def corrupted(system, state, v_free, dt):
-        new = real(system, state, v_free, dt)
+    def corrupted(system, state, v_free, dt, *rest):
+        new = real(system, state, v_free, dt, *rest)
         if state.step >= step:
             q = new.q.copy()
             q[5, 1] = math.nan
