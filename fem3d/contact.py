@@ -1,0 +1,734 @@
+"""Incremental Potential Contact (IPC) for fem3d, on the IPC Toolkit (``ipctk``).
+
+The geometry — distances, the barrier and its derivatives, lagged friction, broad phase and
+continuous collision detection (CCD) — comes from ``ipctk``; this module owns how it maps onto
+fem3d's degrees of freedom and how it enters backward Euler's objective.
+
+Collision mesh
+    The boundary surface of the simulation mesh (:func:`fem3d.mesh.boundary_faces`; interior
+    vertices are not in it), followed by the vertices and triangles of the triangle-mesh
+    obstacles (static, or kinematic: their positions are a function of time), in one
+    ``ipctk.CollisionMesh``; plane obstacles are ``ipctk`` planes (point + normal). Collision
+    vertex ``i < n_surface`` is fem3d vertex :attr:`ContactModel.surface` ``[i]``; the
+    obstacles' vertices are not degrees of freedom.
+
+Which pairs can touch
+    Different bodies always; a body with itself only with ``self_contact=True``; obstacles
+    never with each other (an ``ipctk.CollisionFilter`` over vertex groups, evaluated in C++).
+
+Potentials, in positions ``q`` (fem3d's ``(3n,)`` vertex-major DOF order)
+    * barrier ``kappa * sum_k b(d_k^2, dhat^2)`` over the pairs closer than ``dhat``
+      (``ipctk.BarrierPotential``; ``b`` the log barrier on squared distances);
+    * lagged friction ``sum_k mu lambda_k f0(|T_k^T u_k|)`` with ``u = x - x_t`` the step's
+      displacement, ``lambda_k`` the normal force and ``T_k`` the tangent basis of the contact
+      pairs at the lagged positions (the start of the step), and IPC's smoothing of Coulomb's
+      law below the slip displacement ``eps_v * dt`` (``ipctk.FrictionPotential``);
+    * Hessians PSD-projected per pair by ``ipctk`` (eigenvalues clamped at zero).
+
+Barrier stiffness
+    ``kappa=None``: ``ipctk.initial_barrier_stiffness`` balances the barrier's gradient against
+    the rest of the objective's (:meth:`ContactModel.initialize_stiffness`), and
+    ``ipctk.update_barrier_stiffness`` doubles it (up to its maximum) when the minimum distance
+    keeps shrinking below ``1e-9`` of the scene's size (:meth:`ContactModel.update_stiffness`),
+    as in Li et al. 2020.
+
+Note on planes: ``ipctk`` 1.6.1 inflates only the vertex's box by the inflation radius for
+plane-vertex candidates, so the one-call ``NormalCollisions.build(mesh, V, dhat)`` activates a
+plane only within ``dhat / 2``. Candidates are therefore built here with an inflation of
+``dhat`` (pairs further than ``dhat`` are filtered by the narrow phase), which makes the plane
+barrier active over its whole support and the energy continuous.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.errors import ParameterError, SimulationError
+from fem3d.mesh import boundary_faces
+
+__all__ = [
+    "PlaneObstacle",
+    "MeshObstacle",
+    "ContactModel",
+    "BROAD_PHASES",
+    "NARROW_PHASES",
+]
+
+#: Broad phases by name (``ipctk`` classes).
+BROAD_PHASES: dict[str, Callable[[], object]] = {
+    "hash_grid": ipctk.HashGrid,
+    "sweep_and_prune": ipctk.SweepAndPrune,
+    "lbvh": ipctk.LBVH,
+    "brute_force": ipctk.BruteForce,
+}
+
+#: Narrow-phase CCD by name. Tight Inclusion's default iteration cap (1e7) costs seconds on
+#: the parallel faces of axis-aligned meshes; capped, it returns its conservative lower bound.
+NARROW_PHASES: dict[str, Callable[[], object]] = {
+    "additive": ipctk.AdditiveCCD,
+    "tight_inclusion": lambda: ipctk.TightInclusionCCD(1e-6, 10_000),
+}
+
+#: PSD projection of the per-pair Hessians.
+_PSD = ipctk.PSDProjectionMethod.CLAMP
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneObstacle:
+    """A static plane; the half-space ``(x - point) . normal < 0`` is solid.
+
+    Attributes
+    ----------
+    point : (3,) float64
+    normal : (3,) float64
+        Unit normal (normalised on construction), pointing to the free side.
+    name : str
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    name: str = "plane"
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.point, dtype=np.float64).reshape(-1)
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if p.shape != (3,) or n.shape != (3,) or not (np.isfinite(p).all() and
+                                                       np.isfinite(n).all()):
+            raise ParameterError(f"obstacle {self.name!r}: point and normal must be 3 finite "
+                                 "numbers")
+        norm = float(np.linalg.norm(n))
+        if norm == 0.0:
+            raise ParameterError(f"obstacle {self.name!r}: the normal is zero")
+        object.__setattr__(self, "point", p)
+        object.__setattr__(self, "normal", n / norm)
+
+    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+        """``(x - point) . normal`` of points ``x (k, 3)``."""
+        return (np.asarray(x).reshape(-1, 3) - self.point) @ self.normal
+
+
+@dataclass(frozen=True, eq=False)
+class MeshObstacle:
+    """A triangle-mesh obstacle, static or kinematic (a prescribed motion).
+
+    Attributes
+    ----------
+    vertices : (k, 3) float64
+        Rest positions (the motion's reference).
+    faces : (f, 3) int64
+    motion : callable ``(rest (k, 3), t) -> (k, 3)``, optional
+        Positions at time ``t`` (for example ``fem3d.motion.Keyframes.apply``); None: static.
+    name : str
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    motion: Callable[[np.ndarray, float], np.ndarray] | None = None
+    name: str = "obstacle"
+
+    def __post_init__(self) -> None:
+        V = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        F = np.ascontiguousarray(self.faces, dtype=np.int64)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all():
+            raise ParameterError(f"obstacle {self.name!r}: vertices must be finite (k, 3)")
+        if F.ndim != 2 or F.shape[1] != 3 or F.size == 0:
+            raise ParameterError(f"obstacle {self.name!r}: faces must be (f, 3), f >= 1")
+        if F.min() < 0 or F.max() >= V.shape[0]:
+            raise ParameterError(f"obstacle {self.name!r}: a face index is out of range "
+                                 f"[0, {V.shape[0]})")
+        object.__setattr__(self, "vertices", V)
+        object.__setattr__(self, "faces", F)
+
+    def positions(self, t: float) -> np.ndarray:
+        """Vertex positions at time ``t``, ``(k, 3)``."""
+        if self.motion is None:
+            return self.vertices
+        x = np.asarray(self.motion(self.vertices, t), dtype=np.float64)
+        if x.shape != self.vertices.shape:
+            raise ValueError(f"obstacle {self.name!r}: motion returned shape {x.shape}")
+        return x
+
+
+@dataclass
+class ContactStats:
+    """Counters of the contact work (for benchmarks and step statistics).
+
+    Attributes
+    ----------
+    builds : int
+        Collision-set builds (broad + narrow phase).
+    ccd_calls : int
+    seconds_build, seconds_ccd, seconds_derivatives : float
+        Wall time in collision-set builds, CCD, and barrier/friction evaluation.
+    """
+
+    builds: int = 0
+    ccd_calls: int = 0
+    seconds_build: float = 0.0
+    seconds_ccd: float = 0.0
+    seconds_derivatives: float = 0.0
+
+    def reset(self) -> None:
+        """Zero every counter."""
+        self.__init__()
+
+
+@dataclass
+class _Active:
+    """The collision set at one configuration (cached for the last ``q``)."""
+
+    key: bytes
+    V: np.ndarray
+    collisions: ipctk.NormalCollisions
+
+
+class ContactModel:
+    """IPC barrier, lagged friction and CCD over one fem3d mesh and its obstacles.
+
+    Parameters
+    ----------
+    X : (n, 3) float64
+        Rest positions of the simulation mesh (every body, concatenated).
+    T : (m, 4) int64
+        Tets (positively oriented), indexing ``X``.
+    body_ids : (n,) int, optional
+        Body of each vertex (default: all one body, 0).
+    body_names : sequence of str, optional
+        Names for messages (default ``"body 0"``, ...).
+    planes, meshes : sequences of PlaneObstacle, MeshObstacle
+    dhat : float
+        Barrier activation distance (absolute, > 0).
+    kappa : float, optional
+        Barrier stiffness; None: IPC's adaptive stiffness (:meth:`initialize_stiffness`).
+    mu : float, optional
+        Friction coefficient (>= 0; 0: frictionless).
+    eps_v : float, optional
+        Friction smoothing velocity (absolute, > 0): slip below ``eps_v`` is static friction.
+    self_contact : bool, optional
+        Let a body touch itself.
+    broad_phase : str, optional
+        A key of :data:`BROAD_PHASES`.
+    narrow_phase : str, optional
+        A key of :data:`NARROW_PHASES` (CCD): ``"additive"`` (default; Li et al. 2021's
+        conservative additive CCD, 0.9 of the time of impact) or ``"tight_inclusion"``.
+
+    Attributes
+    ----------
+    surface : (n_surface,) int64
+        fem3d vertex of each dynamic collision vertex.
+    mesh : ipctk.CollisionMesh
+    bbox_diagonal : float
+        Diagonal of the scene's bounding box (bodies and mesh obstacles at rest).
+    kappa, max_kappa : float
+        Current barrier stiffness and the ceiling of its adaptive updates.
+    stats : ContactStats
+    """
+
+    def __init__(
+        self,
+        X: np.ndarray,
+        T: np.ndarray,
+        *,
+        body_ids: np.ndarray | None = None,
+        body_names: Sequence[str] | None = None,
+        planes: Sequence[PlaneObstacle] = (),
+        meshes: Sequence[MeshObstacle] = (),
+        dhat: float,
+        kappa: float | None = None,
+        mu: float = 0.0,
+        eps_v: float = 1e-3,
+        self_contact: bool = False,
+        broad_phase: str = "hash_grid",
+        narrow_phase: str = "additive",
+    ) -> None:
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        T = np.ascontiguousarray(T, dtype=np.int64)
+        n = X.shape[0]
+        self.n_vertices = n
+        dhat = float(dhat)
+        if not (math.isfinite(dhat) and dhat > 0):
+            raise ParameterError(f"contact.dhat must be a finite number > 0, got {dhat}")
+        mu = float(mu)
+        if not (math.isfinite(mu) and mu >= 0):
+            raise ParameterError(f"contact.mu must be a finite number >= 0, got {mu}")
+        eps_v = float(eps_v)
+        if not (math.isfinite(eps_v) and eps_v > 0):
+            raise ParameterError(f"contact.eps_v must be a finite number > 0, got {eps_v}")
+        if kappa is not None and not (math.isfinite(kappa) and kappa > 0):
+            raise ParameterError(f"contact.kappa must be a finite number > 0, got {kappa}")
+        if broad_phase not in BROAD_PHASES:
+            raise ParameterError(f"contact broad phase must be one of {sorted(BROAD_PHASES)}, "
+                                 f"got {broad_phase!r}")
+        self.dhat, self.mu, self.eps_v, self.self_contact = dhat, mu, eps_v, bool(self_contact)
+        if narrow_phase not in NARROW_PHASES:
+            raise ParameterError(f"contact CCD must be one of {sorted(NARROW_PHASES)}, "
+                                 f"got {narrow_phase!r}")
+        self.broad_phase_name = broad_phase
+        self._broad_phase = BROAD_PHASES[broad_phase]()
+        self._ccd = NARROW_PHASES[narrow_phase]()
+        self.planes = tuple(planes)
+        self.meshes = tuple(meshes)
+
+        if body_ids is None:
+            body_ids = np.zeros(n, dtype=np.int64)
+        body_ids = np.asarray(body_ids, dtype=np.int64).reshape(-1)
+        if body_ids.shape != (n,):
+            raise ValueError(f"body_ids must be ({n},), got {body_ids.shape}")
+        self.body_ids = body_ids
+        n_bodies = int(body_ids.max()) + 1 if n else 0
+        self.body_names = (list(body_names) if body_names is not None
+                           else [f"body {i}" for i in range(n_bodies)])
+
+        # dynamic part: the boundary surface, renumbered
+        F = boundary_faces(T)
+        surface = np.unique(F)
+        self.surface = surface
+        renum = np.full(n, -1, dtype=np.int64)
+        renum[surface] = np.arange(surface.size)
+        faces = [renum[F]]
+        verts = [X[surface]]
+        groups = [body_ids[surface]]
+        # kinematic / static meshes
+        offset = surface.size
+        self._mesh_offsets = []
+        for m in self.meshes:
+            faces.append(m.faces + offset)
+            verts.append(m.vertices)
+            groups.append(np.full(m.vertices.shape[0], -1, dtype=np.int64))
+            self._mesh_offsets.append(offset)
+            offset += m.vertices.shape[0]
+        self.n_surface = surface.size
+        self.n_collision_vertices = offset
+        Fc = np.ascontiguousarray(np.concatenate(faces), dtype=np.int32)
+        self.faces = Fc
+        V0 = np.asfortranarray(np.concatenate(verts))
+        self._rest = V0
+        E = ipctk.edges(Fc)
+        self.mesh = ipctk.CollisionMesh(V0, E, Fc)
+        if self.planes:
+            self.mesh.planes = [ipctk.Hyperplane(p.normal, p.point) for p in self.planes]
+        self._groups = np.concatenate(groups)
+        self.mesh.can_collide = self._filter(self._groups)
+        pts = np.concatenate([X] + [m.vertices for m in self.meshes])
+        self.bbox_diagonal = float(np.linalg.norm(np.ptp(pts, axis=0))) if pts.size else 1.0
+        # fem3d DOF of each collision DOF (-1: obstacle)
+        dof = np.full((offset, 3), -1, dtype=np.int64)
+        dof[: surface.size] = 3 * surface[:, None] + np.arange(3)
+        self._dof = dof.reshape(-1)
+        self._n_dyn_dofs = 3 * surface.size
+
+        self.kappa = float(kappa) if kappa is not None else 1.0
+        self.adaptive = kappa is None
+        self.max_kappa = math.inf if kappa is not None else self.kappa
+        self._stiffness_initialized = kappa is not None
+        self._prev_min_distance: float | None = None
+        self._barrier = ipctk.BarrierPotential(dhat, self.kappa)
+        self._friction = ipctk.FrictionPotential(eps_v)
+        self._obstacles_at = self._rest[surface.size:].copy()
+        self._obstacles_t: np.ndarray = self._obstacles_at
+        self._lagged_V: np.ndarray | None = None
+        self._tangential: ipctk.TangentialCollisions | None = None
+        self._active: _Active | None = None
+        self._dt = 1.0
+        self.stats = ContactStats()
+
+    # -- set-up -------------------------------------------------------------------------------
+    def _filter(self, groups: np.ndarray) -> ipctk.CollisionFilter:
+        """Vertices of one group cannot touch: a group is one body (unless self-contact) or
+        all the obstacles together."""
+        if self.self_contact:
+            return ipctk.make_static_obstacle_filter(self.n_surface)
+        # ipctk's connected-components filter over synthetic faces chaining each group
+        tris = []
+        for g in np.unique(groups):
+            ids = np.flatnonzero(groups == g)
+            if ids.size >= 3:
+                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
+                                     axis=1))
+            elif ids.size == 2:
+                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
+        chain = np.ascontiguousarray(np.concatenate(tris), dtype=np.int32) if tris else \
+            np.zeros((0, 3), dtype=np.int32)
+        return ipctk.make_connected_components_filter(chain)
+
+    def set_kappa(self, kappa: float) -> None:
+        """Set the barrier stiffness (the cached collision set stays valid)."""
+        self.kappa = float(kappa)
+        self._barrier = ipctk.BarrierPotential(self.dhat, self.kappa)
+
+    # -- positions ----------------------------------------------------------------------------
+    def obstacle_positions(self, t: float) -> np.ndarray:
+        """Positions of every mesh obstacle's vertices at time ``t``, ``(k, 3)``."""
+        if not self.meshes:
+            return self._rest[self.n_surface:]
+        return np.concatenate([m.positions(t) for m in self.meshes])
+
+    def set_time(self, t: float) -> None:
+        """Place the kinematic obstacles at time ``t`` (for the potentials and CCD)."""
+        self._obstacles_at = np.asarray(self.obstacle_positions(t), dtype=np.float64)
+        self._active = None
+
+    def collision_vertices(self, q: np.ndarray, obstacles: np.ndarray | None = None
+                           ) -> np.ndarray:
+        """Collision-mesh vertex positions ``(n_collision, 3)`` (Fortran order) of ``q``."""
+        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+        obs = self._obstacles_at if obstacles is None else obstacles
+        V = np.empty((self.n_collision_vertices, 3), order="F")
+        V[: self.n_surface] = q3[self.surface]
+        V[self.n_surface:] = obs
+        return V
+
+    # -- collision sets -----------------------------------------------------------------------
+    def _collisions_at(self, V: np.ndarray) -> ipctk.NormalCollisions:
+        import time
+
+        key = V.tobytes()
+        if self._active is not None and self._active.key == key:
+            return self._active.collisions
+        t0 = time.perf_counter()
+        cands = ipctk.Candidates()
+        cands.build(self.mesh, V, self.dhat, broad_phase=self._broad_phase)
+        col = ipctk.NormalCollisions()
+        col.build(cands, self.mesh, V, self.dhat)
+        self.stats.builds += 1
+        self.stats.seconds_build += time.perf_counter() - t0
+        self._active = _Active(key=key, V=V, collisions=col)
+        return col
+
+    def n_active(self, q: np.ndarray) -> int:
+        """Number of contact pairs closer than ``dhat`` at ``q``."""
+        return len(self._collisions_at(self.collision_vertices(q)))
+
+    # -- maps to fem3d DOFs ---------------------------------------------------------------------
+    def _to_full_vector(self, g: np.ndarray) -> np.ndarray:
+        out = np.zeros(3 * self.n_vertices)
+        out[self._dof[: self._n_dyn_dofs]] = g[: self._n_dyn_dofs]
+        return out
+
+    def _to_full_matrix(self, H: sp.spmatrix) -> sp.coo_matrix:
+        H = H.tocoo()
+        nd = self._n_dyn_dofs
+        keep = (H.row < nd) & (H.col < nd)
+        rows = self._dof[H.row[keep]]
+        cols = self._dof[H.col[keep]]
+        N = 3 * self.n_vertices
+        return sp.coo_matrix((H.data[keep], (rows, cols)), shape=(N, N))
+
+    # -- barrier ------------------------------------------------------------------------------
+    def barrier_energy(self, q: np.ndarray) -> float:
+        """``kappa * B(q)``; ``+inf`` when two primitives touch (distance 0)."""
+        import time
+
+        V = self.collision_vertices(q)
+        col = self._collisions_at(V)
+        if len(col) == 0:
+            return 0.0
+        t0 = time.perf_counter()
+        e = float(self._barrier(col, self.mesh, V))
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return e if math.isfinite(e) else math.inf
+
+    def barrier_gradient(self, q: np.ndarray) -> np.ndarray:
+        """``kappa dB/dq``, ``(3n,)``."""
+        import time
+
+        V = self.collision_vertices(q)
+        col = self._collisions_at(V)
+        if len(col) == 0:
+            return np.zeros(3 * self.n_vertices)
+        t0 = time.perf_counter()
+        g = self._barrier.gradient(col, self.mesh, V)
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return self._to_full_vector(g)
+
+    def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
+        import time
+
+        V = self.collision_vertices(q)
+        col = self._collisions_at(V)
+        N = 3 * self.n_vertices
+        if len(col) == 0:
+            return sp.coo_matrix((N, N))
+        t0 = time.perf_counter()
+        H = self._barrier.hessian(col, self.mesh, V,
+                                  _PSD if project else ipctk.PSDProjectionMethod.NONE)
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return self._to_full_matrix(H)
+
+    # -- friction (lagged) --------------------------------------------------------------------
+    def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None) -> None:
+        """Fix the friction's normal forces and tangent bases at ``q_lag`` (start of a step).
+
+        Parameters
+        ----------
+        q_lag : (3n,) or (n, 3) float64
+            Lagged positions (the step's start ``q_t``).
+        dt : float
+            The step: slip displacement below ``eps_v * dt`` is static friction.
+        t_start : float, optional
+            Time of ``q_lag`` (kinematic obstacles' displacement over the step starts at their
+            positions then; default: where they are now).
+        """
+        self._dt = float(dt)
+        self._friction = ipctk.FrictionPotential(self.eps_v * self._dt)
+        obs_t = self._obstacles_at if t_start is None else self.obstacle_positions(t_start)
+        self._obstacles_t = np.asarray(obs_t, dtype=np.float64)
+        V = self.collision_vertices(q_lag, self._obstacles_t)
+        self._lagged_V = V
+        if self.mu == 0.0:
+            self._tangential = None
+            return
+        cands = ipctk.Candidates()
+        cands.build(self.mesh, V, self.dhat, broad_phase=self._broad_phase)
+        col = ipctk.NormalCollisions()
+        col.build(cands, self.mesh, V, self.dhat)
+        tc = ipctk.TangentialCollisions()
+        if len(col):
+            tc.build(self.mesh, V, col, self._barrier, self.mu)
+        self._tangential = tc if len(tc) else None
+
+    def _slip(self, q: np.ndarray) -> np.ndarray | None:
+        if self._tangential is None or self._lagged_V is None:
+            return None
+        return np.asfortranarray(self.collision_vertices(q) - self._lagged_V)
+
+    def friction_energy(self, q: np.ndarray) -> float:
+        """Lagged friction potential ``D(q)`` (0 without friction or lagged contacts)."""
+        U = self._slip(q)
+        if U is None:
+            return 0.0
+        return float(self._friction(self._tangential, self.mesh, U))
+
+    def friction_gradient(self, q: np.ndarray) -> np.ndarray:
+        """``dD/dq``, ``(3n,)``."""
+        U = self._slip(q)
+        if U is None:
+            return np.zeros(3 * self.n_vertices)
+        return self._to_full_vector(self._friction.gradient(self._tangential, self.mesh, U))
+
+    def friction_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO."""
+        U = self._slip(q)
+        N = 3 * self.n_vertices
+        if U is None:
+            return sp.coo_matrix((N, N))
+        H = self._friction.hessian(self._tangential, self.mesh, U,
+                                   _PSD if project else ipctk.PSDProjectionMethod.NONE)
+        return self._to_full_matrix(H)
+
+    @property
+    def n_friction_pairs(self) -> int:
+        """Lagged friction pairs (0 when frictionless)."""
+        return 0 if self._tangential is None else len(self._tangential)
+
+    # -- totals -------------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + friction."""
+        e = self.barrier_energy(q)
+        if not math.isfinite(e):
+            return math.inf
+        return e + self.friction_energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Gradient of :meth:`energy`, ``(3n,)``."""
+        return self.barrier_gradient(q) + self.friction_gradient(q)
+
+    def hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """Hessian of :meth:`energy` (PSD-projected per pair), ``(3n, 3n)`` COO (duplicates
+        summed on conversion)."""
+        Hb = self.barrier_hessian(q, project=project)
+        if self._tangential is None:
+            return Hb
+        Hf = self.friction_hessian(q, project=project)
+        N = 3 * self.n_vertices
+        return sp.coo_matrix((np.concatenate([Hb.data, Hf.data]),
+                              (np.concatenate([Hb.row, Hf.row]),
+                               np.concatenate([Hb.col, Hf.col]))), shape=(N, N))
+
+    # -- CCD, distances, intersections --------------------------------------------------------
+    def max_step(self, q0: np.ndarray, q1: np.ndarray) -> float:
+        """Largest ``a`` in ``[0, 1]`` such that ``q0 + a (q1 - q0)`` is collision free.
+
+        Linear trajectories, bodies against each other, themselves (self-contact) and the
+        obstacles (at their current positions); ipctk's CCD (Tight Inclusion, conservative).
+        """
+        import time
+
+        t0 = time.perf_counter()
+        V0 = self.collision_vertices(q0)
+        V1 = self.collision_vertices(q1)
+        a = float(ipctk.compute_collision_free_stepsize(self.mesh, V0, V1,
+                                                        broad_phase=self._broad_phase,
+                                                        narrow_phase_ccd=self._ccd))
+        self.stats.ccd_calls += 1
+        self.stats.seconds_ccd += time.perf_counter() - t0
+        return a
+
+    def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
+        """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at
+        ``q`` (1.0 without kinematic obstacles)."""
+        if not any(m.motion is not None for m in self.meshes):
+            return 1.0
+        V0 = self.collision_vertices(q, self.obstacle_positions(t0))
+        V1 = self.collision_vertices(q, self.obstacle_positions(t1))
+        return float(ipctk.compute_collision_free_stepsize(
+            self.mesh, V0, V1, broad_phase=self._broad_phase, narrow_phase_ccd=self._ccd))
+
+    def minimum_distance(self, q: np.ndarray) -> float:
+        """Smallest distance between primitives that can touch (planes included); ``inf``
+        when no pair is closer than ``dhat``."""
+        V = self.collision_vertices(q)
+        col = self._collisions_at(V)
+        d = math.inf
+        if len(col):
+            # ipctk returns the squared distance
+            d = math.sqrt(max(float(col.compute_minimum_distance(self.mesh, V)), 0.0))
+        for p in self.planes:
+            d = min(d, float(p.signed_distance(V[: self.n_surface]).min()))
+        return d
+
+    def plane_gaps(self, q: np.ndarray) -> np.ndarray:
+        """Signed distance of every surface vertex to every plane, ``(n_planes, n_surface)``."""
+        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
+        return np.array([p.signed_distance(q3) for p in self.planes]).reshape(
+            len(self.planes), -1)
+
+    def has_intersections(self, q: np.ndarray) -> bool:
+        """Intersecting triangles (``ipctk.has_intersections``) or a vertex on or below a
+        plane."""
+        V = self.collision_vertices(q)
+        if self.planes and (self.plane_gaps(q) <= 0).any():
+            return True
+        return bool(ipctk.has_intersections(self.mesh, V, broad_phase=self._broad_phase))
+
+    def intersecting_pairs(self, q: np.ndarray) -> list[tuple[str, str]]:
+        """Names of the (body/obstacle, body/obstacle) pairs that intersect at ``q``.
+
+        Slow (one collision mesh per pair); meant for error messages.
+        """
+        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+        out: list[tuple[str, str]] = []
+        names = list(self.body_names)
+        V = self.collision_vertices(q3)
+        groups = self._groups.copy()
+        # each mesh obstacle its own group for the names
+        for i, off in enumerate(self._mesh_offsets):
+            k = self.meshes[i].vertices.shape[0]
+            groups[off:off + k] = len(names) + i
+        names += [m.name for m in self.meshes]
+        present = np.unique(groups)
+        faces_group = groups[self.faces[:, 0]]
+        for ia, a in enumerate(present):
+            for b in present[ia:]:
+                if a == b and (a >= len(self.body_names) or not self.self_contact):
+                    continue
+                sel = np.flatnonzero((faces_group == a) | (faces_group == b))
+                F = self.faces[sel]
+                used = np.unique(F)
+                ren = np.full(V.shape[0], -1, dtype=np.int64)
+                ren[used] = np.arange(used.size)
+                Fs = np.ascontiguousarray(ren[F], dtype=np.int32)
+                Vs = np.asfortranarray(V[used])
+                cm = ipctk.CollisionMesh(Vs, ipctk.edges(Fs), Fs)
+                if a != b:
+                    ga = groups[used]
+                    cm.can_collide = ipctk.make_connected_components_filter(
+                        self._chain(ga))
+                if ipctk.has_intersections(cm, Vs):
+                    out.append((names[a], names[b]))
+        for p in self.planes:
+            gaps = p.signed_distance(V[: self.n_surface])
+            for b in np.unique(self._groups[: self.n_surface][gaps <= 0]):
+                out.append((names[b], p.name))
+        return out
+
+    @staticmethod
+    def _chain(groups: np.ndarray) -> np.ndarray:
+        tris = []
+        for g in np.unique(groups):
+            ids = np.flatnonzero(groups == g)
+            if ids.size >= 3:
+                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
+                                     axis=1))
+            elif ids.size == 2:
+                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
+        return np.ascontiguousarray(np.concatenate(tris), dtype=np.int32)
+
+    def check_admissible(self, q: np.ndarray, *, step: int | None = None) -> None:
+        """Raise :class:`SimulationError` naming the bodies when ``q`` intersects or touches.
+
+        Raises
+        ------
+        SimulationError
+            Intersecting bodies/obstacles, or primitives at distance 0 (infinite barrier).
+        """
+        if self.has_intersections(q):
+            pairs = self.intersecting_pairs(q)
+            what = "; ".join(f"{a} and {b}" if a != b else f"{a} with itself"
+                             for a, b in pairs) or "the collision surfaces"
+            raise SimulationError(f"contact: the state is not intersection-free: {what} "
+                                  "intersect", step=step)
+        if not math.isfinite(self.barrier_energy(q)):
+            raise SimulationError("contact: two surfaces touch (distance 0); separate them "
+                                  "by more than 0", step=step)
+
+    # -- barrier stiffness (IPC) --------------------------------------------------------------
+    def initialize_stiffness(self, q: np.ndarray, grad_energy: np.ndarray,
+                             average_mass: float) -> float:
+        """IPC's initial ``kappa`` (and its ceiling) from the gradients at ``q``.
+
+        Parameters
+        ----------
+        q : (3n,) float64
+        grad_energy : (3n,) float64
+            Gradient of the rest of the objective with respect to the positions.
+        average_mass : float
+            Mean vertex mass.
+
+        Returns
+        -------
+        float
+            The new ``kappa`` (unchanged when it was given explicitly).
+        """
+        if not self.adaptive:
+            return self.kappa
+        V = self.collision_vertices(q)
+        col = self._collisions_at(V)
+        unit = ipctk.BarrierPotential(self.dhat, 1.0)
+        gb = unit.gradient(col, self.mesh, V) if len(col) else np.zeros(V.size)
+        gb = self._to_full_vector(gb)
+        kappa, kmax = ipctk.initial_barrier_stiffness(
+            self.bbox_diagonal, unit.barrier, self.dhat, float(average_mass),
+            np.asarray(grad_energy, dtype=np.float64), gb)
+        self.max_kappa = float(kmax)
+        self.set_kappa(float(kappa))
+        self._stiffness_initialized = True
+        self._prev_min_distance = None
+        return self.kappa
+
+    def update_stiffness(self, q: np.ndarray) -> float:
+        """IPC's update: double ``kappa`` (up to :attr:`max_kappa`) when the minimum distance
+        shrinks below ``1e-9`` of the scene's size. Returns the (possibly new) ``kappa``."""
+        if not self.adaptive:
+            return self.kappa
+        d = self.minimum_distance(q)
+        if not math.isfinite(d):
+            self._prev_min_distance = d
+            return self.kappa
+        prev = self._prev_min_distance if self._prev_min_distance is not None else d
+        prev = prev if math.isfinite(prev) else d
+        # ipctk takes squared distances (its barrier is on d^2)
+        new = float(ipctk.update_barrier_stiffness(prev * prev, d * d, self.max_kappa,
+                                                   self.kappa, self.bbox_diagonal))
+        self._prev_min_distance = d
+        if new != self.kappa:
+            self.set_kappa(new)
+        return self.kappa
+
