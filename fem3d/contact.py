@@ -732,3 +732,124 @@ class ContactModel:
             self.set_kappa(new)
         return self.kappa
 
+
+
+# ---------------------------------------------------------------------------------------------
+# the objective term of backward Euler
+
+
+class ContactTerm:
+    """A :class:`ContactModel` as an objective term of :func:`fem3d.integrators.implicit_euler`.
+
+    Implements the integrator's ``ObjectiveTerm`` protocol in positions ``q`` (barrier +
+    lagged friction energy, gradient, PSD-projected Hessian, ``max_step`` by CCD) and the
+    per-step hooks backward Euler calls when present:
+
+    * :meth:`begin_step` — obstacles to their end-of-step positions, friction lagged at the
+      step's start, the moving pins' and obstacles' own motion checked by CCD, IPC's initial
+      ``kappa`` when contact first appears;
+    * :meth:`after_iteration` — IPC's adaptive ``kappa`` update (True when the objective
+      changed);
+    * :meth:`newton_converged` — IPC's velocity-based stopping: the Newton step's largest
+      position change divided by ``dt`` is below ``tolerance * bbox_diagonal`` (per second).
+
+    Parameters
+    ----------
+    contact : ContactModel
+    tolerance : float, optional
+        IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
+    """
+
+    #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
+    requires_convergence = True
+
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3) -> None:
+        tolerance = float(tolerance)
+        if not (math.isfinite(tolerance) and tolerance > 0):
+            raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
+                                 f"{tolerance}")
+        self.contact = contact
+        self.tolerance = tolerance
+        self._dt = 1.0
+        self._had_contact = False
+        self._lag: tuple[np.ndarray, float, float] | None = None
+
+    # -- ObjectiveTerm ------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + lagged friction at ``q``."""
+        return self.contact.energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Its gradient, ``(3n,)``."""
+        return self.contact.gradient(q)
+
+    def hessian(self, q: np.ndarray):
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs."""
+        H = self.contact.hessian(q)
+        return H.row, H.col, H.data
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """CCD: the largest collision-free fraction of ``dq``."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
+
+    # -- per-step hooks -----------------------------------------------------------------------
+    def begin_step(self, q_t: np.ndarray, q_base: np.ndarray, t: float, dt: float, *,
+                   step: int | None = None) -> None:
+        """Prepare a step from ``q_t`` at time ``t`` whose Newton start is ``q_base``.
+
+        Raises
+        ------
+        SimulationError
+            A kinematic obstacle or the moving pins would pass through a body within the
+            step (the message says which), or the start is not intersection-free.
+        """
+        cm = self.contact
+        self._dt = float(dt)
+        q_t = np.asarray(q_t, dtype=np.float64).reshape(-1)
+        q_base = np.asarray(q_base, dtype=np.float64).reshape(-1)
+        # the obstacles' motion over the step, the bodies held at q_t
+        if cm.obstacle_step(q_t, t, t + dt) < 1.0:
+            moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)
+            raise SimulationError(f"contact: the moving obstacle ({moving}) would pass through "
+                                  "a body within one step; use a smaller dt or a slower "
+                                  "motion", step=step)
+        cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
+        self._lag = (q_t, t, dt)
+        cm.set_time(t + dt)
+        if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
+            raise SimulationError("contact: the moving pins would drive the surface through "
+                                  "itself or an obstacle within one step; use a smaller dt",
+                                  step=step)
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """IPC's initial ``kappa`` (adaptive stiffness only), from the gradient of the rest of
+        the objective in positions (``grad_rest``, ``(3n,)``; fixed DOFs zeroed) and the mean
+        vertex mass. In fem3d's objective (energy units, ``1/(2 dt^2) |x - x~|_M^2 + ...``)
+        IPC's mass-based bounds scale with ``average_mass / dt^2``."""
+        cm = self.contact
+        if not cm.adaptive:
+            return
+        active = cm.n_active(q) > 0
+        # once at the start, and again when contact (re)appears, as IPC does
+        if not cm._stiffness_initialized or (active and not self._had_contact):
+            before = cm.kappa
+            cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
+            if cm.kappa != before and cm.mu > 0 and self._lag is not None:
+                # the lagged normal forces scale with kappa: lag again with the new one
+                q_t, t, dt = self._lag
+                cm.lag_friction(q_t, dt, t_start=t)
+        self._had_contact = active
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        """IPC's adaptive ``kappa`` update after a Newton iteration; True when it changed."""
+        before = self.contact.kappa
+        return self.contact.update_stiffness(q) != before
+
+    def newton_converged(self, dq: np.ndarray) -> bool:
+        """IPC's stopping rule on the Newton step's position change ``dq`` (``(3n,)``)."""
+        dq = np.asarray(dq)
+        if dq.size == 0:
+            return True
+        return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
