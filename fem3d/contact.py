@@ -32,11 +32,13 @@ Barrier stiffness
     keeps shrinking below ``1e-9`` of the scene's size (:meth:`ContactModel.update_stiffness`),
     as in Li et al. 2020.
 
-Note on planes: ``ipctk`` 1.6.1 inflates only the vertex's box by the inflation radius for
-plane-vertex candidates, so the one-call ``NormalCollisions.build(mesh, V, dhat)`` activates a
-plane only within ``dhat / 2``. Candidates are therefore built here with an inflation of
-``dhat`` (pairs further than ``dhat`` are filtered by the narrow phase), which makes the plane
-barrier active over its whole support and the energy continuous.
+Planes are point-plane pairs evaluated here in NumPy with ipctk's own formulas (the same
+barrier ``b(s^2, dhat^2)`` of the signed distance ``s``, the same normal force, tangent
+projection and friction mollifier; the tests compare the two), for two reasons measured on
+ipctk 1.6.1: its plane-vertex candidates inflate only the vertex's box, so the one-call
+``NormalCollisions.build(mesh, V, dhat)`` activates a plane only within ``dhat / 2`` (the
+energy would jump there), and its plane CCD and candidates go through a broad phase over the
+surface vertices that cost more than the rest of a bunny step.
 """
 
 from __future__ import annotations
@@ -179,13 +181,20 @@ class ContactStats:
         self.__init__()
 
 
-@dataclass
-class _Active:
-    """The collision set at one configuration (cached for the last ``q``)."""
+class _Part:
+    """One collision mesh with its collision sets: the normal set cached for the last
+    configuration, the lagged tangential set for friction."""
 
-    key: bytes
-    V: np.ndarray
-    collisions: ipctk.NormalCollisions
+    def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int) -> None:
+        self.mesh = mesh
+        self.n = n_vertices
+        self.key: bytes | None = None
+        self.collisions = ipctk.NormalCollisions()
+        self.tangential: ipctk.TangentialCollisions | None = None
+
+    def view(self, V: np.ndarray) -> np.ndarray:
+        """This part's rows of the full collision-vertex array (Fortran order)."""
+        return V if V.shape[0] == self.n else np.asfortranarray(V[: self.n])
 
 
 class ContactModel:
@@ -310,11 +319,19 @@ class ContactModel:
         V0 = np.asfortranarray(np.concatenate(verts))
         self._rest = V0
         E = ipctk.edges(Fc)
-        self.mesh = ipctk.CollisionMesh(V0, E, Fc)
-        if self.planes:
-            self.mesh.planes = [ipctk.Hyperplane(p.normal, p.point) for p in self.planes]
         self._groups = np.concatenate(groups)
+        #: Every surface and mesh obstacle (no planes): intersection checks and messages.
+        self.mesh = ipctk.CollisionMesh(V0, E, Fc)
         self.mesh.can_collide = self._filter(self._groups)
+        # triangle meshes against each other through ipctk, only when two groups can touch
+        # at all (a lone body without self-contact skips the mesh broad phase); the planes
+        # are point-plane pairs evaluated here, vectorized (see the module's note)
+        self._parts: list[_Part] = []
+        if self.self_contact or np.unique(self._groups).size > 1:
+            self._parts.append(_Part(self.mesh, offset))
+        self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
+        self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
+        self._plane_lag: tuple[np.ndarray, ...] | None = None
         pts = np.concatenate([X] + [m.vertices for m in self.meshes])
         self.bbox_diagonal = float(np.linalg.norm(np.ptp(pts, axis=0))) if pts.size else 1.0
         # fem3d DOF of each collision DOF (-1: obstacle)
@@ -333,8 +350,6 @@ class ContactModel:
         self._obstacles_at = self._rest[surface.size:].copy()
         self._obstacles_t: np.ndarray = self._obstacles_at
         self._lagged_V: np.ndarray | None = None
-        self._tangential: ipctk.TangentialCollisions | None = None
-        self._active: _Active | None = None
         self._dt = 1.0
         self.stats = ContactStats()
 
@@ -372,7 +387,6 @@ class ContactModel:
     def set_time(self, t: float) -> None:
         """Place the kinematic obstacles at time ``t`` (for the potentials and CCD)."""
         self._obstacles_at = np.asarray(self.obstacle_positions(t), dtype=np.float64)
-        self._active = None
 
     def collision_vertices(self, q: np.ndarray, obstacles: np.ndarray | None = None
                            ) -> np.ndarray:
@@ -385,52 +399,71 @@ class ContactModel:
         return V
 
     # -- collision sets -----------------------------------------------------------------------
-    def _collisions_at(self, V: np.ndarray) -> ipctk.NormalCollisions:
+    def _build(self, part: _Part, V: np.ndarray) -> ipctk.NormalCollisions:
         import time
 
-        key = V.tobytes()
-        if self._active is not None and self._active.key == key:
-            return self._active.collisions
         t0 = time.perf_counter()
         cands = ipctk.Candidates()
-        cands.build(self.mesh, V, self.dhat, broad_phase=self._broad_phase)
+        # boxes inflated by dhat / 2 each: pairs closer than dhat are candidates
+        cands.build(part.mesh, V, 0.5 * self.dhat, broad_phase=self._broad_phase)
         col = ipctk.NormalCollisions()
-        col.build(cands, self.mesh, V, self.dhat)
+        col.build(cands, part.mesh, V, self.dhat)
         self.stats.builds += 1
         self.stats.seconds_build += time.perf_counter() - t0
-        self._active = _Active(key=key, V=V, collisions=col)
         return col
+
+    def _active_sets(self, q: np.ndarray) -> list[tuple[_Part, np.ndarray]]:
+        """``(part, its vertices)`` for every part with active pairs at ``q``."""
+        V = self.collision_vertices(q)
+        key = V.tobytes()
+        out = []
+        for part in self._parts:
+            Vp = part.view(V)
+            if part.key != key:
+                part.collisions = self._build(part, Vp)
+                part.key = key
+            if len(part.collisions):
+                out.append((part, Vp))
+        return out
 
     def n_active(self, q: np.ndarray) -> int:
         """Number of contact pairs closer than ``dhat`` at ``q``."""
-        return len(self._collisions_at(self.collision_vertices(q)))
+        n = sum(len(p.collisions) for p, _ in self._active_sets(q))
+        if self.planes:
+            n += int(np.count_nonzero(self._plane_distances(q) < self.dhat))
+        return n
 
     # -- maps to fem3d DOFs ---------------------------------------------------------------------
-    def _to_full_vector(self, g: np.ndarray) -> np.ndarray:
-        out = np.zeros(3 * self.n_vertices)
-        out[self._dof[: self._n_dyn_dofs]] = g[: self._n_dyn_dofs]
+    def _to_full_vector(self, g: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        if out is None:
+            out = np.zeros(3 * self.n_vertices)
+        out[self._dof[: self._n_dyn_dofs]] += g[: self._n_dyn_dofs]
         return out
 
-    def _to_full_matrix(self, H: sp.spmatrix) -> sp.coo_matrix:
-        H = H.tocoo()
-        nd = self._n_dyn_dofs
-        keep = (H.row < nd) & (H.col < nd)
-        rows = self._dof[H.row[keep]]
-        cols = self._dof[H.col[keep]]
+    def _to_full_matrix(self, Hs: Sequence[sp.spmatrix]) -> sp.coo_matrix:
         N = 3 * self.n_vertices
-        return sp.coo_matrix((H.data[keep], (rows, cols)), shape=(N, N))
+        rows, cols, vals = [], [], []
+        nd = self._n_dyn_dofs
+        for H in Hs:
+            H = H.tocoo()
+            keep = (H.row < nd) & (H.col < nd)
+            rows.append(self._dof[H.row[keep]])
+            cols.append(self._dof[H.col[keep]])
+            vals.append(H.data[keep])
+        if not rows:
+            return sp.coo_matrix((N, N))
+        return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                     np.concatenate(cols))), shape=(N, N))
 
     # -- barrier ------------------------------------------------------------------------------
     def barrier_energy(self, q: np.ndarray) -> float:
         """``kappa * B(q)``; ``+inf`` when two primitives touch (distance 0)."""
         import time
 
-        V = self.collision_vertices(q)
-        col = self._collisions_at(V)
-        if len(col) == 0:
-            return 0.0
+        active = self._active_sets(q)
         t0 = time.perf_counter()
-        e = float(self._barrier(col, self.mesh, V))
+        e = sum(float(self._barrier(p.collisions, p.mesh, V)) for p, V in active)
+        e += self._plane_barrier(q, 0)
         self.stats.seconds_derivatives += time.perf_counter() - t0
         return e if math.isfinite(e) else math.inf
 
@@ -438,29 +471,125 @@ class ContactModel:
         """``kappa dB/dq``, ``(3n,)``."""
         import time
 
-        V = self.collision_vertices(q)
-        col = self._collisions_at(V)
-        if len(col) == 0:
-            return np.zeros(3 * self.n_vertices)
+        active = self._active_sets(q)
         t0 = time.perf_counter()
-        g = self._barrier.gradient(col, self.mesh, V)
+        out = np.zeros(3 * self.n_vertices)
+        for p, V in active:
+            self._to_full_vector(self._barrier.gradient(p.collisions, p.mesh, V), out)
+        if self.planes:
+            self._to_full_vector(self._plane_barrier(q, 1), out)
         self.stats.seconds_derivatives += time.perf_counter() - t0
-        return self._to_full_vector(g)
+        return out
 
     def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
         """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
         import time
 
-        V = self.collision_vertices(q)
-        col = self._collisions_at(V)
-        N = 3 * self.n_vertices
-        if len(col) == 0:
-            return sp.coo_matrix((N, N))
+        active = self._active_sets(q)
         t0 = time.perf_counter()
-        H = self._barrier.hessian(col, self.mesh, V,
-                                  _PSD if project else ipctk.PSDProjectionMethod.NONE)
+        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        Hs = [self._barrier.hessian(p.collisions, p.mesh, V, how) for p, V in active]
+        if self.planes:
+            Hs.append(self._plane_barrier(q, 2, project=project))
         self.stats.seconds_derivatives += time.perf_counter() - t0
-        return self._to_full_matrix(H)
+        return self._to_full_matrix(Hs)
+
+    # -- planes (point-plane pairs, vectorized) -------------------------------------------------
+    def _plane_distances(self, q: np.ndarray) -> np.ndarray:
+        """Signed distances ``(n_planes, n_surface)`` of the surface vertices."""
+        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
+        return self._plane_n @ P.T - self._plane_o[:, None]
+
+    def _plane_barrier(self, q: np.ndarray, order: int, *, project: bool = True):
+        """``kappa sum b(s^2, dhat^2)`` over point-plane pairs closer than ``dhat``: the
+        energy (``order`` 0), its gradient on the collision DOFs (1) or Hessian (2, sparse on
+        the collision DOFs; PSD-projected: the one eigenvalue along the normal clamped)."""
+        ns = self.n_surface
+        if not self.planes:
+            return 0.0 if order == 0 else np.zeros(3 * ns)
+        S = self._plane_distances(q)
+        if order == 0 and (S <= 0).any():
+            return math.inf
+        pl, vi = np.nonzero(S < self.dhat)
+        s = S[pl, vi]
+        z, zh = s * s, self.dhat * self.dhat
+        k = self.kappa
+        if order == 0:
+            return float(k * (-(z - zh) ** 2 * np.log(z / zh)).sum())
+        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z  # db/dz
+        n = self._plane_n[pl]
+        if order == 1:
+            g = np.zeros((ns, 3))
+            np.add.at(g, vi, (k * b1 * 2.0 * s)[:, None] * n)
+            return g.reshape(-1)
+        b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
+        c = k * (4.0 * z * b2 + 2.0 * b1)
+        if project:
+            c = np.maximum(c, 0.0)
+        blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
+        return self._blocks_matrix(vi, blocks)
+
+    def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> sp.coo_matrix:
+        """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO on the
+        collision DOFs (duplicates summed later)."""
+        d = 3 * vi[:, None] + np.arange(3)
+        rows = np.broadcast_to(d[:, :, None], blocks.shape).reshape(-1)
+        cols = np.broadcast_to(d[:, None, :], blocks.shape).reshape(-1)
+        N = 3 * self.n_collision_vertices
+        return sp.coo_matrix((blocks.reshape(-1), (rows, cols)), shape=(N, N))
+
+    def _lag_planes(self, q_lag: np.ndarray) -> None:
+        """Normal forces ``lambda = kappa |db/ds|`` and vertices of the point-plane pairs active
+        at ``q_lag`` (tangent planes are the planes': fixed)."""
+        self._plane_lag = None
+        if not self.planes or self.mu == 0.0:
+            return
+        S = self._plane_distances(q_lag)
+        pl, vi = np.nonzero((S < self.dhat) & (S > 0))
+        if pl.size == 0:
+            return
+        s = S[pl, vi]
+        z, zh = s * s, self.dhat * self.dhat
+        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z
+        lam = self.kappa * np.abs(b1 * 2.0 * s)
+        self._plane_lag = (pl, vi, lam)
+
+    def _plane_friction(self, q: np.ndarray, order: int, *, project: bool = True):
+        """Lagged point-plane friction ``sum mu lambda f0(|P (x - x_lag)|)`` (ipctk's
+        mollifier with ``eps = eps_v dt``): energy, gradient or Hessian on collision DOFs."""
+        ns = self.n_surface
+        if self._plane_lag is None:
+            return 0.0 if order == 0 else (np.zeros(3 * ns) if order == 1 else None)
+        pl, vi, lam = self._plane_lag
+        n = self._plane_n[pl]
+        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
+        w = P[vi] - self._lagged_V[vi]
+        u = w - (w * n).sum(axis=1, keepdims=True) * n
+        y = np.sqrt((u * u).sum(axis=1))
+        eps = self.eps_v * self._dt
+        small = y < eps
+        ml = self.mu * lam
+        if order == 0:
+            f0 = np.where(small, -y ** 3 / (3 * eps * eps) + y * y / eps + eps / 3, y)
+            return float((ml * f0).sum())
+        f1_y = np.where(small, -y / (eps * eps) + 2.0 / eps, 1.0 / np.maximum(y, eps))
+        if order == 1:
+            g = np.zeros((ns, 3))
+            np.add.at(g, vi, (ml * f1_y)[:, None] * u)
+            return g.reshape(-1)
+        # (f2 - f1 / y) u u^T / y^2 = c2 uh uh^T, uh = u / y: c2 = -y / eps^2 when slipping
+        # slowly, -1 / y when sliding
+        pos = y > 0
+        yy = np.where(pos, y, 1.0)
+        uh = np.where(pos[:, None], u / yy[:, None], 0.0)
+        c2 = np.where(small, -y / (eps * eps), -1.0 / yy)
+        Pm = np.eye(3) - n[:, :, None] * n[:, None, :]
+        blocks = ml[:, None, None] * (f1_y[:, None, None] * Pm
+                                      + c2[:, None, None] * uh[:, :, None] * uh[:, None, :])
+        if project:
+            w_, V_ = np.linalg.eigh(blocks)
+            blocks = (V_ * np.maximum(w_, 0.0)[:, None, :]) @ V_.transpose(0, 2, 1)
+        return self._blocks_matrix(vi, blocks)
 
     # -- friction (lagged) --------------------------------------------------------------------
     def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None) -> None:
@@ -482,51 +611,53 @@ class ContactModel:
         self._obstacles_t = np.asarray(obs_t, dtype=np.float64)
         V = self.collision_vertices(q_lag, self._obstacles_t)
         self._lagged_V = V
-        if self.mu == 0.0:
-            self._tangential = None
-            return
-        cands = ipctk.Candidates()
-        cands.build(self.mesh, V, self.dhat, broad_phase=self._broad_phase)
-        col = ipctk.NormalCollisions()
-        col.build(cands, self.mesh, V, self.dhat)
-        tc = ipctk.TangentialCollisions()
-        if len(col):
-            tc.build(self.mesh, V, col, self._barrier, self.mu)
-        self._tangential = tc if len(tc) else None
+        self._lag_planes(q_lag)
+        for part in self._parts:
+            part.tangential = None
+            if self.mu == 0.0:
+                continue
+            Vp = part.view(V)
+            col = self._build(part, Vp)
+            if len(col):
+                tc = ipctk.TangentialCollisions()
+                tc.build(part.mesh, Vp, col, self._barrier, self.mu)
+                part.tangential = tc if len(tc) else None
 
-    def _slip(self, q: np.ndarray) -> np.ndarray | None:
-        if self._tangential is None or self._lagged_V is None:
-            return None
-        return np.asfortranarray(self.collision_vertices(q) - self._lagged_V)
+    def _slips(self, q: np.ndarray) -> list[tuple[_Part, np.ndarray]]:
+        """``(part, slip displacement of its vertices)`` for the parts with friction pairs."""
+        parts = [p for p in self._parts if p.tangential is not None]
+        if not parts or self._lagged_V is None:
+            return []
+        U = np.asfortranarray(self.collision_vertices(q) - self._lagged_V)
+        return [(p, p.view(U)) for p in parts]
 
     def friction_energy(self, q: np.ndarray) -> float:
         """Lagged friction potential ``D(q)`` (0 without friction or lagged contacts)."""
-        U = self._slip(q)
-        if U is None:
-            return 0.0
-        return float(self._friction(self._tangential, self.mesh, U))
+        e = sum(float(self._friction(p.tangential, p.mesh, U)) for p, U in self._slips(q))
+        return e + self._plane_friction(q, 0)
 
     def friction_gradient(self, q: np.ndarray) -> np.ndarray:
         """``dD/dq``, ``(3n,)``."""
-        U = self._slip(q)
-        if U is None:
-            return np.zeros(3 * self.n_vertices)
-        return self._to_full_vector(self._friction.gradient(self._tangential, self.mesh, U))
+        out = np.zeros(3 * self.n_vertices)
+        for p, U in self._slips(q):
+            self._to_full_vector(self._friction.gradient(p.tangential, p.mesh, U), out)
+        if self._plane_lag is not None:
+            self._to_full_vector(self._plane_friction(q, 1), out)
+        return out
 
     def friction_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
         """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO."""
-        U = self._slip(q)
-        N = 3 * self.n_vertices
-        if U is None:
-            return sp.coo_matrix((N, N))
-        H = self._friction.hessian(self._tangential, self.mesh, U,
-                                   _PSD if project else ipctk.PSDProjectionMethod.NONE)
-        return self._to_full_matrix(H)
+        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
+        if self._plane_lag is not None:
+            Hs.append(self._plane_friction(q, 2, project=project))
+        return self._to_full_matrix(Hs)
 
     @property
     def n_friction_pairs(self) -> int:
         """Lagged friction pairs (0 when frictionless)."""
-        return 0 if self._tangential is None else len(self._tangential)
+        n = sum(len(p.tangential) for p in self._parts if p.tangential is not None)
+        return n + (0 if self._plane_lag is None else int(self._plane_lag[0].size))
 
     # -- totals -------------------------------------------------------------------------------
     def energy(self, q: np.ndarray) -> float:
@@ -544,7 +675,7 @@ class ContactModel:
         """Hessian of :meth:`energy` (PSD-projected per pair), ``(3n, 3n)`` COO (duplicates
         summed on conversion)."""
         Hb = self.barrier_hessian(q, project=project)
-        if self._tangential is None:
+        if not self.n_friction_pairs:
             return Hb
         Hf = self.friction_hessian(q, project=project)
         N = 3 * self.n_vertices
@@ -564,12 +695,31 @@ class ContactModel:
         t0 = time.perf_counter()
         V0 = self.collision_vertices(q0)
         V1 = self.collision_vertices(q1)
-        a = float(ipctk.compute_collision_free_stepsize(self.mesh, V0, V1,
-                                                        broad_phase=self._broad_phase,
-                                                        narrow_phase_ccd=self._ccd))
+        a = 1.0
+        for part in self._parts:
+            if part.mesh is not self.mesh:
+                continue  # planes: below
+            a = min(a, float(ipctk.compute_collision_free_stepsize(
+                part.mesh, part.view(V0), part.view(V1), broad_phase=self._broad_phase,
+                narrow_phase_ccd=self._ccd)))
+        a = min(a, self._plane_step(V0[: self.n_surface], V1[: self.n_surface]))
         self.stats.ccd_calls += 1
         self.stats.seconds_ccd += time.perf_counter() - t0
         return a
+
+    def _plane_step(self, P0: np.ndarray, P1: np.ndarray) -> float:
+        """CCD of points moving linearly against the static planes: ``0.9`` of the first time
+        of impact (the conservative rescaling of ipctk's additive CCD). Done here, vectorized:
+        ipctk's plane CCD goes through a vertex-vertex broad phase of the point cloud."""
+        a = 1.0
+        for p in self.planes:
+            s0 = (P0 - p.point) @ p.normal
+            s1 = (P1 - p.point) @ p.normal
+            hit = s1 < 0.0
+            if hit.any():
+                toi = s0[hit] / (s0[hit] - s1[hit])
+                a = min(a, 0.9 * float(toi.min()))
+        return max(a, 0.0)
 
     def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
         """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at
@@ -581,15 +731,16 @@ class ContactModel:
         return float(ipctk.compute_collision_free_stepsize(
             self.mesh, V0, V1, broad_phase=self._broad_phase, narrow_phase_ccd=self._ccd))
 
+
     def minimum_distance(self, q: np.ndarray) -> float:
         """Smallest distance between primitives that can touch (planes included); ``inf``
         when no pair is closer than ``dhat``."""
         V = self.collision_vertices(q)
-        col = self._collisions_at(V)
         d = math.inf
-        if len(col):
+        for part, Vp in self._active_sets(q):
             # ipctk returns the squared distance
-            d = math.sqrt(max(float(col.compute_minimum_distance(self.mesh, V)), 0.0))
+            d2 = float(part.collisions.compute_minimum_distance(part.mesh, Vp))
+            d = min(d, math.sqrt(max(d2, 0.0)))
         for p in self.planes:
             d = min(d, float(p.signed_distance(V[: self.n_surface]).min()))
         return d
@@ -699,11 +850,15 @@ class ContactModel:
         """
         if not self.adaptive:
             return self.kappa
-        V = self.collision_vertices(q)
-        col = self._collisions_at(V)
         unit = ipctk.BarrierPotential(self.dhat, 1.0)
-        gb = unit.gradient(col, self.mesh, V) if len(col) else np.zeros(V.size)
-        gb = self._to_full_vector(gb)
+        gb = np.zeros(3 * self.n_vertices)
+        for part, Vp in self._active_sets(q):
+            self._to_full_vector(unit.gradient(part.collisions, part.mesh, Vp), gb)
+        if self.planes:
+            kappa = self.kappa
+            self.kappa = 1.0
+            self._to_full_vector(self._plane_barrier(q, 1), gb)
+            self.kappa = kappa
         kappa, kmax = ipctk.initial_barrier_stiffness(
             self.bbox_diagonal, unit.barrier, self.dhat, float(average_mass),
             np.asarray(grad_energy, dtype=np.float64), gb)

@@ -292,3 +292,54 @@ def test_bad_parameters_are_parameter_errors():
         PlaneObstacle([0, 0, 0], [0, 0, 0], name="ground")
     with pytest.raises(ParameterError, match="broad phase"):
         ContactModel(X, T, dhat=0.1, broad_phase="octree")
+
+
+def test_plane_pairs_agree_with_ipctks_own_plane_implementation():
+    """fem3d evaluates point-plane pairs itself; ipctk's planes (with candidates inflated by
+    dhat so that its plane set is complete) are the reference."""
+    X, T = box_mesh()
+    rng = np.random.default_rng(4)
+    planes = [PlaneObstacle([0, -0.05, 0], [0.2, 1, 0.1]), PlaneObstacle([-0.04, 0, 0],
+                                                                          [1, 0, 0])]
+    dhat, kappa, mu, eps_v, dt = 0.12, 3.0, 0.4, 0.5, 0.01
+    cm = ContactModel(X, T, planes=planes, dhat=dhat, kappa=kappa, mu=mu, eps_v=eps_v)
+    q_lag = X.reshape(-1) + 0.01 * rng.standard_normal(X.size)
+    q = q_lag + 0.003 * rng.standard_normal(X.size)
+    # reference: ipctk on the surface vertices with its own planes
+    surf = cm.surface
+    ref = ipctk.CollisionMesh(np.asfortranarray(X[surf]))
+    ref.planes = [ipctk.Hyperplane(p.normal, p.point) for p in planes]
+    ref.can_collide = ipctk.CollisionFilter(lambda i, j: False)
+
+    def ref_set(qq):
+        V = np.asfortranarray(qq.reshape(-1, 3)[surf])
+        cands = ipctk.Candidates()
+        cands.build(ref, V, dhat)
+        col = ipctk.NormalCollisions()
+        col.build(cands, ref, V, dhat)
+        return V, col
+
+    B = ipctk.BarrierPotential(dhat, kappa)
+    V, col = ref_set(q)
+    assert len(col) == cm.n_active(q) > 5
+    assert cm.barrier_energy(q) == pytest.approx(B(col, ref, V), rel=1e-12)
+    dof = (3 * surf[:, None] + np.arange(3)).reshape(-1)
+    np.testing.assert_allclose(cm.barrier_gradient(q)[dof], B.gradient(col, ref, V),
+                               rtol=1e-11, atol=1e-12)
+    H = cm.barrier_hessian(q).tocsr()[dof][:, dof].toarray()
+    Href = B.hessian(col, ref, V, ipctk.PSDProjectionMethod.CLAMP).toarray()
+    np.testing.assert_allclose(H, Href, rtol=1e-10, atol=1e-10 * np.abs(Href).max())
+    # friction, lagged at q_lag, slip measured from there
+    cm.lag_friction(q_lag, dt)
+    Vl, coll = ref_set(q_lag)
+    tc = ipctk.TangentialCollisions()
+    tc.build(ref, Vl, coll, B, mu)
+    assert cm.n_friction_pairs == len(tc)
+    Fp = ipctk.FrictionPotential(eps_v * dt)
+    U = np.asfortranarray(V - Vl)
+    assert cm.friction_energy(q) == pytest.approx(Fp(tc, ref, U), rel=1e-11)
+    np.testing.assert_allclose(cm.friction_gradient(q)[dof], Fp.gradient(tc, ref, U),
+                               rtol=1e-10, atol=1e-12)
+    Hf = cm.friction_hessian(q).tocsr()[dof][:, dof].toarray()
+    Hfref = Fp.hessian(tc, ref, U, ipctk.PSDProjectionMethod.CLAMP).toarray()
+    np.testing.assert_allclose(Hf, Hfref, rtol=1e-9, atol=1e-9 * np.abs(Hfref).max())
