@@ -913,12 +913,17 @@ class ContactTerm:
     contact : ContactModel
     tolerance : float, optional
         IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
+    pattern_margin : float, optional
+        The solver's pattern is widened, at each step's start, by the blocks of the
+        mesh-mesh pairs closer than ``pattern_margin * dhat`` (0: only by the active ones,
+        re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
     """
 
     #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
     requires_convergence = True
 
-    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3) -> None:
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
+                 pattern_margin: float = 4.0) -> None:
         tolerance = float(tolerance)
         if not (math.isfinite(tolerance) and tolerance > 0):
             raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
@@ -928,6 +933,8 @@ class ContactTerm:
         self._dt = 1.0
         self._had_contact = False
         self._lag: tuple[np.ndarray, float, float] | None = None
+        self.pattern_margin = float(pattern_margin)
+        self._hint: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- ObjectiveTerm ------------------------------------------------------------------------
     def energy(self, q: np.ndarray) -> float:
@@ -939,9 +946,15 @@ class ContactTerm:
         return self.contact.gradient(q)
 
     def hessian(self, q: np.ndarray):
-        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs."""
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
+        explicit zeros on the blocks of the pairs within the step's pattern margin (see
+        :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
         H = self.contact.hessian(q)
-        return H.row, H.col, H.data
+        if self._hint is None:
+            return H.row, H.col, H.data
+        r, c = self._hint
+        return (np.concatenate([H.row, r]), np.concatenate([H.col, c]),
+                np.concatenate([H.data, np.zeros(r.size)]))
 
     def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
         """CCD: the largest collision-free fraction of ``dq``."""
@@ -949,9 +962,10 @@ class ContactTerm:
         return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
 
     # -- per-step hooks -----------------------------------------------------------------------
-    def begin_step(self, q_t: np.ndarray, q_base: np.ndarray, t: float, dt: float, *,
-                   step: int | None = None) -> None:
-        """Prepare a step from ``q_t`` at time ``t`` whose Newton start is ``q_base``.
+    def begin_step(self, q_t: np.ndarray, v_t: np.ndarray, q_base: np.ndarray, t: float,
+                   dt: float, *, step: int | None = None) -> None:
+        """Prepare a step from ``(q_t, v_t)`` at time ``t`` whose Newton start is ``q_base``
+        (``q_t`` with the pins at their end-of-step positions).
 
         Raises
         ------
@@ -972,10 +986,42 @@ class ContactTerm:
         cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
         self._lag = (q_t, t, dt)
         cm.set_time(t + dt)
+        v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
+        self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
         if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
             raise SimulationError("contact: the moving pins would drive the surface through "
                                   "itself or an obstacle within one step; use a smaller dt",
                                   step=step)
+
+    def _pattern_hint(self, q: np.ndarray, reach: float):
+        """``(rows, cols)`` of the Hessian blocks of the mesh-mesh pairs closer than the
+        margin ``pattern_margin * dhat + reach`` at ``q`` (None without mesh-mesh contact;
+        ``reach``: how far two vertices may approach each other within the step). The
+        solver's pattern is the union of the elastic one and every block seen so far, and is
+        re-analysed only when a block appears that was never seen: asking for the pairs
+        within a margin now makes that rare."""
+        cm = self.contact
+        parts = cm._parts
+        if not parts or self.pattern_margin <= 0:
+            return None
+        V = cm.collision_vertices(q)
+        margin = self.pattern_margin * cm.dhat + reach
+        rows, cols = [], []
+        for part in parts:
+            Vp = part.view(V)
+            cands = ipctk.Candidates()
+            cands.build(part.mesh, Vp, 0.5 * margin, broad_phase=cm._broad_phase)
+            col = ipctk.NormalCollisions()
+            col.build(cands, part.mesh, Vp, margin)
+            if not len(col):
+                continue
+            H = ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)
+            full = cm._to_full_matrix([H])
+            rows.append(full.row)
+            cols.append(full.col)
+        if not rows:
+            return None
+        return np.concatenate(rows), np.concatenate(cols)
 
     def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
                              average_mass: float) -> None:
@@ -1008,3 +1054,32 @@ class ContactTerm:
         if dq.size == 0:
             return True
         return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def snapshot(self) -> dict:
+        """The adaptive state a resumed run needs to continue bit for bit (JSON-safe)."""
+        cm = self.contact
+        return {
+            "kappa": cm.kappa,
+            "max_kappa": cm.max_kappa if math.isfinite(cm.max_kappa) else None,
+            "stiffness_initialized": cm._stiffness_initialized,
+            "prev_min_distance": (None if cm._prev_min_distance is None
+                                  or not math.isfinite(cm._prev_min_distance)
+                                  else cm._prev_min_distance),
+            "prev_min_distance_inf": (cm._prev_min_distance is not None
+                                      and not math.isfinite(cm._prev_min_distance)),
+            "had_contact": self._had_contact,
+        }
+
+    def restore(self, snap: dict) -> None:
+        """Undo to a :meth:`snapshot`."""
+        cm = self.contact
+        cm.set_kappa(float(snap["kappa"]))
+        cm.max_kappa = math.inf if snap["max_kappa"] is None else float(snap["max_kappa"])
+        cm._stiffness_initialized = bool(snap["stiffness_initialized"])
+        if snap.get("prev_min_distance_inf"):
+            cm._prev_min_distance = math.inf
+        else:
+            p = snap["prev_min_distance"]
+            cm._prev_min_distance = None if p is None else float(p)
+        self._had_contact = bool(snap["had_contact"])

@@ -1129,7 +1129,7 @@ class ObjectiveTerm(Protocol):
 
     Per-step hooks (contact, :class:`fem3d.contact.ContactTerm`):
 
-    ``begin_step(q_t, q_base, t, dt, step=)``
+    ``begin_step(q_t, v_t, q_base, t, dt, step=)``
         Called once before Newton (lag friction, place obstacles, check the pins' motion).
     ``initialize_stiffness(q, grad_rest, average_mass)``
         Called at Newton's start with the gradient of the rest of the objective in positions.
@@ -1279,7 +1279,7 @@ def implicit_euler(
         return [getattr(t, name) for t in terms if callable(getattr(t, name, None))]
 
     for begin in hooks("begin_step"):
-        begin(q_t, q_base, state.t, dt, step=state.step)
+        begin(q_t, v_t, q_base, state.t, dt, step=state.step)
 
     def positions(v_free: np.ndarray) -> np.ndarray:
         return q_base + dt * c.expand_zero(v_free)
