@@ -27,6 +27,7 @@ the scheme explode on the first step of a scripted pull, on either mesh.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -42,7 +43,15 @@ from fem3d.assembly import (
 )
 from fem3d.constraints import Constraints
 from fem3d.errors import SimulationError
-from fem3d.linsolve import NotPositiveDefinite, PreconditionedCG, SparseSPDSolver
+from fem3d.linsolve import (
+    AMGPreconditioner,
+    NotPositiveDefinite,
+    PreconditionedCG,
+    SparseSPDSolver,
+    choose_backend,
+    iterations_per_decade,
+    rigid_body_modes,
+)
 from fem3d.model import Model, validate_dt
 
 __all__ = [
@@ -257,6 +266,12 @@ class StepStats:
         only where the line search met the objective's round-off.
     converged : bool
         Newton stopped on its tolerance (or at round-off), not on the iteration cap.
+    amg_setups : int
+        AMG hierarchies built during the step (``"amg"`` back end).
+    seconds : dict of str to float
+        Wall time of the step's parts (implicit Euler): ``"matrix"`` (Newton-matrix
+        assembly), ``"factorize"``, ``"cg"`` (CG iterations, preconditioner included),
+        ``"amg_setup"``, ``"objective"`` (energies and gradients, line search included).
     """
 
     newton_iterations: int = 0
@@ -268,6 +283,12 @@ class StepStats:
     cg_iterations: int = 0
     psd_fallbacks: int = 0
     gradient_tolerance: float = 0.0
+    amg_setups: int = 0
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def add_seconds(self, part: str, seconds: float) -> None:
+        """Accumulate wall time into :attr:`seconds`."""
+        self.seconds[part] = self.seconds.get(part, 0.0) + seconds
 
 
 @dataclass
@@ -297,6 +318,13 @@ class NewtonResult:
 
 # ---------------------------------------------------------------------------------------------
 # sparse SPD solves on the fixed reduced pattern
+
+#: ``"amg"``: rebuild the hierarchy when a solve needs more CG iterations than this per decade
+#: of residual reduction (a fresh hierarchy needs about 3-4 on the swinging box; a setup costs
+#: about 15 iterations).
+AMG_ITERATIONS_PER_DECADE = 8.0
+#: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
+FORCING_MAX = 0.1
 
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
@@ -361,13 +389,14 @@ class System:
         for a in (self._free_slot, self._free_scatter):
             a.setflags(write=False)
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
-        self._solver = SparseSPDSolver(self.pattern_free, backend=solver_backend)
-        if self._solver.backend == "superlu" and self.mass_free.shape[0]:
-            # SuperLU orders on its first factorization and takes another code path (explicit
-            # permutation, natural order) afterwards. Factorizing once here makes every step
-            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
-            # bit for bit what a long-lived one does.
-            self._solver.factorize(self.mass_free)
+        #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
+        #: back end (:func:`fem3d.linsolve.choose_backend`: ``"auto"`` picks by size).
+        self.linear_backend = choose_backend(solver_backend, constraints.n_free)
+        self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
+        self._solver: SparseSPDSolver | None = None
+        self._amg: AMGPreconditioner | None = None
+        if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
+            self._solver = self._new_direct_solver(self.pattern_free)
         from fem3d.kernels import spring_kernels
 
         self.spring = spring_kernels(backend=model.backend)
@@ -573,7 +602,7 @@ class System:
         A_free = self.on_solver_pattern(A_free)
         mass = self.on_solver_pattern(self.mass_free)
         try:
-            mu = self._solver.factorize_shifted(
+            mu = self.solver.factorize_shifted(
                 A_free, mass, mu0=mu0, growth=SHIFT_LADDER_GROWTH, max_tries=tries,
                 try_unshifted=mu0 == SHIFT_LADDER_START and shift_hint <= 0,
             )
@@ -691,7 +720,8 @@ class System:
         ext = _ExtendedPattern(pattern=pattern, keys=union,
                                base_pos=np.searchsorted(union, self._base_key_array()))
         self._ext = ext
-        self._solver = SparseSPDSolver(pattern, backend=self.solver_backend)
+        self._solver = None if self.linear_backend == "amg" else \
+            self._new_direct_solver(pattern)
         self.factorized_data = None
         self.pattern_generation += 1
         return ext
@@ -706,16 +736,56 @@ class System:
             raise ValueError(f"saved factorization data has shape {data.shape}, the reduced "
                              f"pattern {pat.nnz} entries")
         A = sp.csr_matrix((data.copy(), pat.indices, pat.indptr), shape=pat.shape)
-        self.factorize(A)
+        if self.linear_backend == "amg":
+            self.amg_setup(A)
+        else:
+            self.factorize(A)
+
+    def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
+        solver = SparseSPDSolver(pattern, backend=self._direct_backend)
+        if solver.backend == "superlu" and pattern is self.pattern_free and \
+                self.mass_free.shape[0]:
+            # SuperLU orders on its first factorization and takes another code path (explicit
+            # permutation, natural order) afterwards. Factorizing once here makes every step
+            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
+            # bit for bit what a long-lived one does.
+            solver.factorize(self.mass_free)
+        return solver
 
     @property
     def solver(self) -> SparseSPDSolver:
-        """The sparse solver holding the last factorization (shared pattern)."""
+        """The sparse direct solver holding the last factorization (made on first use with
+        the ``"amg"`` back end: the linearly-implicit scheme factorizes)."""
+        if self._solver is None:
+            pat = self.pattern_free if self._ext is None else self._ext.pattern
+            self._solver = self._new_direct_solver(pat)
         return self._solver
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve with the last factorization."""
-        return np.asarray(self._solver.solve(b)).reshape(-1)
+        return np.asarray(self.solver.solve(b)).reshape(-1)
+
+    @property
+    def amg(self) -> AMGPreconditioner:
+        """The AMG hierarchy holder (near-nullspace: rigid-body modes of the free vertices at
+        rest, so a hierarchy depends on its matrix alone)."""
+        if self._amg is None:
+            free_vertices = self.free[0::3] // 3
+            self._amg = AMGPreconditioner(rigid_body_modes(self.model.X[free_vertices]))
+        return self._amg
+
+    def amg_setup(self, A_free: sp.csr_matrix) -> None:
+        """Build the AMG hierarchy from ``A_free`` (on the solver's pattern);
+        :attr:`factorized_data` records the matrix (a checkpoint rebuilds the same one)."""
+        A_free = self.on_solver_pattern(A_free)
+        self.amg.setup(A_free, pattern_key=self.pattern_generation)
+        self.factorized_data = np.array(A_free.data)
+
+    @property
+    def amg_current(self) -> bool:
+        """A hierarchy exists for the solver's current pattern."""
+        return self._amg is not None and self._amg.ready and \
+            self._amg.pattern_key == self.pattern_generation
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1164,6 +1234,9 @@ def implicit_euler(
     cg_rtol: float = 1e-6,
     cg_maxiter: int = 16,
     converged_max_iterations: int = 100,
+    amg_maxiter: int = 200,
+    amg_budget: float = AMG_ITERATIONS_PER_DECADE,
+    forcing_max: float = FORCING_MAX,
 ) -> tuple[State, StepStats]:
     """One backward (implicit) Euler step as an energy minimisation.
 
@@ -1213,7 +1286,19 @@ def implicit_euler(
         ``"exact"`` (default): the true Hessian, quadratic convergence, shifted when
         indefinite. ``"psd"``: per-element ``dP/dF`` projected to positive semi-definite
         (generated ``hessian_psd`` kernel), always SPD, linear convergence near the solution.
-    linear_solver : {"direct", "reuse"}, optional
+    linear_solver : {"direct", "reuse", "amg"}, optional
+        How the Newton systems are solved; a :class:`System` whose back end is ``"amg"``
+        (``System(..., "amg")``, or ``"auto"`` above
+        :data:`fem3d.linsolve.AMG_AUTO_MIN_FREE_DOFS` free DOFs) always uses ``"amg"``.
+        ``"amg"``: an inexact Newton: CG preconditioned by a smoothed-aggregation AMG
+        V-cycle (:class:`fem3d.linsolve.AMGPreconditioner`), solved to the forcing term
+        ``eta_k = min(forcing_max, sqrt(|g_k| / |g_0|))`` (loose early, tighter as Newton
+        converges; never tighter than needed to reach the gradient tolerance, whose value is
+        unchanged). The hierarchy is kept across iterations and steps and rebuilt when the
+        last solve needed more than ``amg_budget`` CG iterations per decade of residual
+        reduction or did not converge within ``amg_maxiter``, and when an objective term
+        widened the pattern. An indefinite Newton matrix (CG meets negative curvature) is
+        replaced by the PSD-projected one for the rest of the step (``psd_fallbacks``).
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
         (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
@@ -1232,6 +1317,10 @@ def implicit_euler(
         costs 10 to 40 CG iterations; ``python -m bench.newton_step``).
     converged_max_iterations : int, optional
         The iteration cap when a term sets ``requires_convergence`` (default 100).
+    amg_maxiter, amg_budget, forcing_max : optional
+        ``"amg"``: CG iterations per solve, the rebuild threshold in iterations per decade
+        (:data:`AMG_ITERATIONS_PER_DECADE`) and the loosest forcing term
+        (:data:`FORCING_MAX`).
 
     Returns
     -------
@@ -1247,8 +1336,12 @@ def implicit_euler(
     if hessian not in ("exact", "psd"):
         raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
     psd = hessian == "psd"
-    if linear_solver not in ("direct", "reuse"):
-        raise ValueError(f"linear_solver must be 'direct' or 'reuse', got {linear_solver!r}")
+    if linear_solver not in ("direct", "reuse", "amg"):
+        raise ValueError(
+            f"linear_solver must be 'direct', 'reuse' or 'amg', got {linear_solver!r}")
+    use_amg = linear_solver == "amg" or system.linear_backend == "amg"
+    if use_amg:
+        linear_solver = "amg"
     terms = tuple(terms)
     if max_iterations is not None and any(
             getattr(t, "requires_convergence", False) for t in terms):
@@ -1267,6 +1360,8 @@ def implicit_euler(
     mass_free = system.mass_free
     vt_free = v_t[free]
     stats = StepStats()
+    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
+    atol = atol_factor * dt * model.E * L * L
     pins = _pins(system, state, dt, fixed_positions)
     q_base = pins.q_base
     f_free = None if system.gravity_force is None else system.gravity_force[free]
@@ -1332,12 +1427,71 @@ def implicit_euler(
         return g
 
     def matrix(q: np.ndarray, psd_matrix: bool) -> sp.csr_matrix:
+        t0 = time.perf_counter()
         A = system.newton_matrix(q, dt, pull, psd=psd_matrix, damping=damping)
         for term in hessian_terms:
             A = system.add_hessian(A, term.hessian(q), dt * dt)
+        stats.add_seconds("matrix", time.perf_counter() - t0)
         return A
 
+    def timed(f, part):
+        def call(x):
+            t0 = time.perf_counter()
+            try:
+                return f(x)
+            finally:
+                stats.add_seconds(part, time.perf_counter() - t0)
+        return call
+
+    psd_now = [psd]  # AMG: switched to the PSD-projected Hessian for the rest of the step
+    g_first = [0.0]
+    last_per_decade = [0.0]
+
+    def amg_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        q = positions(v_free)
+        gn = float(np.linalg.norm(g))
+        if not g_first[0]:
+            g_first[0] = gn
+        tol = max(atol, rtol * g_first[0])
+        # forcing term: loose far from the solution, never tighter than reaching tol needs
+        eta = min(forcing_max, math.sqrt(gn / g_first[0]))
+        eta = min(forcing_max, max(eta, 0.5 * tol / gn)) if gn > 0 else forcing_max
+        A_free = matrix(q, psd_now[0])
+        if not np.isfinite(A_free.data).all():
+            return np.full_like(g, np.nan)
+        amg = system.amg
+        for _attempt in range(3):
+            fresh = False
+            if not system.amg_current or last_per_decade[0] > amg_budget:
+                t0 = time.perf_counter()
+                system.amg_setup(A_free)
+                stats.add_seconds("amg_setup", time.perf_counter() - t0)
+                stats.amg_setups += 1
+                fresh = True
+            t0 = time.perf_counter()
+            result = amg.solve(A_free, -g, rtol=eta, maxiter=amg_maxiter)
+            stats.add_seconds("cg", time.perf_counter() - t0)
+            stats.cg_iterations += result.iterations
+            last_per_decade[0] = iterations_per_decade(result)
+            if result.negative_curvature and not psd_now[0]:
+                # indefinite exact Hessian: the PSD-projected one for the rest of the step
+                psd_now[0] = True
+                stats.psd_fallbacks += 1
+                A_free = matrix(q, True)
+                last_per_decade[0] = 0.0
+                continue
+            if result.converged or (fresh and result.iterations and not
+                                    result.negative_curvature):
+                # a fresh hierarchy's best effort is still a descent direction (CG from 0)
+                return result.x
+            if fresh:  # negative curvature on the PSD matrix: only round-off can do that
+                break
+            last_per_decade[0] = math.inf  # rebuild on this matrix and try again
+        return np.full_like(g, np.nan)  # newtons_method falls back to -g
+
     def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        if use_amg:
+            return amg_direction(v_free, g)
         q = positions(v_free)
         A_free = matrix(q, psd)
         if not np.isfinite(A_free.data).all():
@@ -1356,6 +1510,7 @@ def implicit_euler(
                 return result.x
             if result.negative_curvature:  # A is indefinite: do not try it unshifted
                 shift_hint[0] = max(shift_hint[0], SHIFT_LADDER_START)
+        t_factor = time.perf_counter()
         try:
             mu = system.factorize(A_free, shift_hint=shift_hint[0])
         except SimulationError:
@@ -1372,7 +1527,9 @@ def implicit_euler(
         stats.shifted_factorizations += int(mu > 0)
         stats.factorizations += 1
         last_cg[0] = 0
-        return -system.solve(g)
+        d = -system.solve(g)
+        stats.add_seconds("factorize", time.perf_counter() - t_factor)
+        return d
 
     def clamp(v_free: np.ndarray, d: np.ndarray) -> float:
         q = positions(v_free)
@@ -1416,12 +1573,11 @@ def implicit_euler(
         q = positions(v_free)
         return any([after(q) for after in after_hooks])
 
-    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
-    atol = atol_factor * dt * model.E * L * L
     try:
         res = newtons_method(
-            x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
-            atol=atol, on_no_step=no_step, max_step=clamp if step_terms else None,
+            x0, timed(energy, "objective"), timed(gradient, "objective"), direction,
+            max_iterations=max_iterations, rtol=rtol, atol=atol, on_no_step=no_step,
+            max_step=clamp if step_terms else None,
             converged_step=converged_step if converged_hooks else None,
             after_step=after_step if after_hooks else None,
         )

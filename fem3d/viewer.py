@@ -79,7 +79,10 @@ def _load_scene(name: str | Path) -> Any:
 def _make_simulation(scene: Any, integrator: str | None, backend: str | None) -> Any:
     from fem3d.simulation import Simulation
 
-    return Simulation(scene, integrator=integrator, backend=backend)
+    sim = Simulation(scene, backend=backend)
+    if integrator is not None:
+        sim.integrator = integrator
+    return sim
 
 
 def _builtin_scene_names() -> list[str]:
@@ -510,8 +513,8 @@ class Viewer:
             return dict(self._camera)
 
     def _scene_material(self) -> dict[str, float]:
-        s = self._scene
-        return {"E": float(s.E), "nu": float(s.nu), "rho": float(s.rho)}
+        m = self._scene.bodies[0].material
+        return {"E": float(m.E), "nu": float(m.nu), "rho": float(m.density)}
 
     # ---------------------------------------------------------------- life cycle
     def start(self) -> str:
@@ -602,7 +605,7 @@ class Viewer:
             return
         with self._lock:
             q = self._q_view
-            ids = _pick(q, grab, float(self._scene.pick_radius))
+            ids = _pick(q, grab, float(self._sim.pick_radius))
             self._pull = PullState(
                 ids=ids,
                 grab_point=grab,
@@ -856,7 +859,7 @@ class Viewer:
         return np.asarray(self._sim.q, dtype=np.float64)
 
     def _has_skin(self) -> bool:
-        return getattr(self._scene, "skin_F", None) is not None
+        return bool(self._sim.has_skin)
 
     def _rebuild_mesh(self) -> None:
         """Replace the displayed mesh node (simulation thread only)."""
@@ -867,7 +870,7 @@ class Viewer:
         self._mesh_handle_mode = mode
         if mode == "skin":
             verts = np.asarray(self._sim.skin_positions(), dtype=np.float64)
-            faces = np.asarray(self._scene.skin_F, dtype=np.uint32)
+            faces = np.asarray(self._sim.display_faces, dtype=np.uint32)
             handle = self._server.scene.add_mesh_simple(
                 "/fem3d/skin", verts, faces, color=SKIN_COLOR, flat_shading=False,
                 cast_shadow=False, receive_shadow=False,

@@ -16,15 +16,22 @@ from fem3d.integrators import (
     linearly_implicit_euler,
     newtons_method,
 )
-from fem3d.scenes import Scene, load_scene
+from fem3d.scene import Scene, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
+
+_BOX_KEYS = {"E": "bodies[0].material.E", "nu": "bodies[0].material.nu",
+             "rho": "bodies[0].material.density", "dt": "simulation.dt",
+             "spring_k": "interaction.spring_k", "pick_radius": "interaction.pick_radius",
+             "integrator": "simulation.integrator"}
 
 
 def box_scene(**kw) -> Scene:
     X, T = box_mesh(2, 3, 2, size=(1.0, 1.5, 1.0))
-    args = dict(E=1e5, nu=0.4, rho=1000.0, dt=0.01, spring_k=1e4, fixed_tol=1e-9,
-                pick_radius=0.01, integrator="implicit") | kw
-    return Scene("box", X, T, None, None, **args)
+    args = dict(E=1e5, nu=0.4, rho=1000.0, dt=0.01, spring_k=1e4, pick_radius=0.01,
+                integrator="implicit") | kw
+    overrides = {_BOX_KEYS[k]: v for k, v in args.items()}
+    overrides["bodies[0].pins"] = [{"select": {"lowest_y": {"tol": 1e-9}}}]
+    return scene_from_arrays(X, T, overrides, name="box")
 
 
 def swinging_state(X: np.ndarray) -> State:
@@ -147,7 +154,7 @@ def test_pull_moves_vertex_toward_target_and_release_returns():
 
 
 def test_linear_step_raises_on_energy_bound_and_keeps_state():
-    sim = Simulation(box_scene(), integrator="linear")
+    sim = Simulation(box_scene(integrator="linear"))
     state = swinging_state(sim.model.X)
     with pytest.raises(SimulationError, match="exploded"):
         linearly_implicit_euler(sim.system, state, 0.01, energy_bound=1e-12)
@@ -168,13 +175,13 @@ def test_reset_and_set_material():
 
 
 def test_linear_bunny_stays_bounded_for_200_steps():
-    scene = load_scene("bunny")
-    sim = Simulation(scene, "linear", scripted=True)
-    h = scene.height
+    scene = load_scene("bunny", {"simulation.integrator": "linear"})
+    sim = Simulation(scene, scripted=True)
+    h = sim.assembled.height
     worst = 0.0
     for _ in range(200):
         info = sim.step()
-        worst = max(worst, float(np.abs(sim.q - scene.X).max()))
+        worst = max(worst, float(np.abs(sim.q - sim.model.X).max()))
         assert math.isfinite(info.total)
     print(f"bunny linear: max displacement {worst:.3f} (height {h:.1f}); final {info}")
     assert worst < 0.25 * h
@@ -183,8 +190,8 @@ def test_linear_bunny_stays_bounded_for_200_steps():
 
 
 def test_linear_armadillo_explodes_and_is_reported():
-    scene = load_scene("arma")
-    sim = Simulation(scene, "linear", scripted=True)
+    scene = load_scene("arma", {"simulation.integrator": "linear"})
+    sim = Simulation(scene, scripted=True)
     with pytest.raises(SimulationError, match="exploded") as err:
         for _ in range(100):
             sim.step()
@@ -195,13 +202,14 @@ def test_linear_armadillo_explodes_and_is_reported():
 
 
 def test_implicit_armadillo_is_stable_with_the_same_pull():
-    scene = load_scene("arma")
-    sim = Simulation(scene, "implicit", scripted=True)
+    scene = load_scene("arma", {"simulation.integrator": "implicit"})
+    sim = Simulation(scene, scripted=True)
     for _ in range(60):
         info = sim.step()
         assert info.newton_iterations <= 5
-    assert np.abs(sim.q - scene.X).max() < 0.05 * scene.height
-    assert np.array_equal(sim.q[sim.fixed_vertices], scene.X[sim.fixed_vertices])
+    X = sim.model.X
+    assert np.abs(sim.q - X).max() < 0.05 * sim.assembled.height
+    assert np.array_equal(sim.q[sim.fixed_vertices], X[sim.fixed_vertices])
 
 
 def test_indefinite_hessian_uses_shifted_factorization():
@@ -306,7 +314,7 @@ def test_reuse_across_steps_factorizes_rarely_and_tracks_direct():
     for many steps and stays on the trajectory of refactorizing every iteration."""
     runs = {}
     for mode in ("direct", "reuse"):
-        sim = Simulation(load_scene("arma"), scripted=True, newton_solver=mode)
+        sim = Simulation(load_scene("arma", {"simulation.newton.solver": mode}), scripted=True)
         factorizations = 0
         for _ in range(40):
             sim.step()

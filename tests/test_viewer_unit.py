@@ -361,7 +361,7 @@ def test_real_blow_up_is_caught(viewer: Any) -> None:
     """A huge pull on the bunny's back with the linearly-implicit integrator blows up."""
     viewer.set_paused(True)
     wait_for(lambda: viewer.snapshot()["paused"], 30, "pause")
-    q = viewer._sim.scene.X
+    q = viewer._sim.model.X
     v = int(np.argmin(np.linalg.norm(q - [-68.96, 131.42, 55.16], axis=1)))  # vertex 47
     viewer.begin_pull(q[v], q[v] + np.array([-100.0, 20.0, 0.0]))
     viewer.reset()  # from rest, with the pull from step 0 (reset re-applies the pull)
