@@ -25,6 +25,11 @@ Potentials, in positions ``q`` (fem3d's ``(3n,)`` vertex-major DOF order)
       law below the slip displacement ``eps_v * dt`` (``ipctk.FrictionPotential``);
     * Hessians PSD-projected per pair by ``ipctk`` (eigenvalues clamped at zero).
 
+Determinism
+    ``ipctk`` runs single-threaded (``ipctk.set_num_threads(1)`` when a model is built): its
+    threaded assembly adds per-thread partial sums in a varying order, so two runs of the same
+    step would differ in the last bits and a resumed run would not repeat the uninterrupted one.
+
 Barrier stiffness
     ``kappa=None``: ``ipctk.initial_barrier_stiffness`` balances the barrier's gradient against
     the rest of the objective's (:meth:`ContactModel.initialize_stiffness`), and
@@ -275,6 +280,9 @@ class ContactModel:
             raise ParameterError(f"contact broad phase must be one of {sorted(BROAD_PHASES)}, "
                                  f"got {broad_phase!r}")
         self.dhat, self.mu, self.eps_v, self.self_contact = dhat, mu, eps_v, bool(self_contact)
+        # ipctk's multithreaded assembly sums per-thread parts in a varying order: the same
+        # step differs in the last bits from run to run, which breaks bit-exact resume
+        ipctk.set_num_threads(1)
         if narrow_phase not in NARROW_PHASES:
             raise ParameterError(f"contact CCD must be one of {sorted(NARROW_PHASES)}, "
                                  f"got {narrow_phase!r}")
@@ -935,6 +943,7 @@ class ContactTerm:
         self._lag: tuple[np.ndarray, float, float] | None = None
         self.pattern_margin = float(pattern_margin)
         self._hint: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial = self.state_array()
 
     # -- ObjectiveTerm ------------------------------------------------------------------------
     def energy(self, q: np.ndarray) -> float:
@@ -1056,30 +1065,97 @@ class ContactTerm:
         return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
 
     # -- checkpoints ----------------------------------------------------------------------------
-    def snapshot(self) -> dict:
-        """The adaptive state a resumed run needs to continue bit for bit (JSON-safe)."""
-        cm = self.contact
-        return {
-            "kappa": cm.kappa,
-            "max_kappa": cm.max_kappa if math.isfinite(cm.max_kappa) else None,
-            "stiffness_initialized": cm._stiffness_initialized,
-            "prev_min_distance": (None if cm._prev_min_distance is None
-                                  or not math.isfinite(cm._prev_min_distance)
-                                  else cm._prev_min_distance),
-            "prev_min_distance_inf": (cm._prev_min_distance is not None
-                                      and not math.isfinite(cm._prev_min_distance)),
-            "had_contact": self._had_contact,
-        }
+    def reset(self) -> None:
+        """Back to the adaptive state at construction (a :meth:`Simulation.reset`)."""
+        self.load_state_array(self._initial)
 
-    def restore(self, snap: dict) -> None:
-        """Undo to a :meth:`snapshot`."""
+    def state_array(self) -> np.ndarray:
+        """:meth:`snapshot` as a ``(5,) float64`` array (for ``.npz`` checkpoints):
+        ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
         cm = self.contact
-        cm.set_kappa(float(snap["kappa"]))
-        cm.max_kappa = math.inf if snap["max_kappa"] is None else float(snap["max_kappa"])
-        cm._stiffness_initialized = bool(snap["stiffness_initialized"])
-        if snap.get("prev_min_distance_inf"):
-            cm._prev_min_distance = math.inf
-        else:
-            p = snap["prev_min_distance"]
-            cm._prev_min_distance = None if p is None else float(p)
-        self._had_contact = bool(snap["had_contact"])
+        prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
+        return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
+                         float(self._had_contact)], dtype=np.float64)
+
+    def load_state_array(self, a: np.ndarray) -> None:
+        """Undo to a :meth:`state_array`."""
+        a = np.asarray(a, dtype=np.float64).reshape(-1)
+        if a.shape != (5,):
+            raise ValueError(f"contact state must have 5 values, got {a.shape}")
+        cm = self.contact
+        cm.set_kappa(float(a[0]))
+        cm.max_kappa = float(a[1])
+        cm._stiffness_initialized = bool(a[2])
+        cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
+        self._had_contact = bool(a[4])
+
+
+# ---------------------------------------------------------------------------------------------
+# from a scene
+
+
+def contact_from_scene(scene, assembled) -> ContactTerm:
+    """The :class:`ContactTerm` of a scene (``scene.contact``, ``scene.obstacles``).
+
+    ``dhat`` is relative to the diagonal of the scene's bounding box at rest (bodies and
+    mesh obstacles), ``eps_v`` and ``tolerance`` to that diagonal per second; a mesh
+    obstacle is a surface file (OBJ, STL, ... read by :func:`fem3d.mesh.read_surface_mesh`)
+    under its ``transform``, moving by its keyframed ``motion`` (as moving pins do; the pivot
+    defaults to the obstacle's vertex centroid).
+
+    Parameters
+    ----------
+    scene : fem3d.scene.Scene
+    assembled : fem3d.scenes.Assembled
+
+    Raises
+    ------
+    InputError
+        ``FILE: key.path: ...`` for a bad obstacle file or motion.
+    """
+    from fem3d.errors import InputError
+    from fem3d.mesh import read_surface_mesh
+    from fem3d.motion import Keyframes
+    from fem3d.scenes import transform_points
+
+    spec = scene.contact
+    planes, meshes = [], []
+    for i, ob in enumerate(scene.obstacles):
+        key = f"obstacles[{i}]"
+        if ob.plane is not None:
+            planes.append(PlaneObstacle(ob.plane.point, ob.plane.normal, name=f"{key} (plane)"))
+            continue
+        m = ob.mesh
+        path = scene.path(m.path)
+        if not path.is_file():
+            raise scene.error(f"{key}.mesh.path", f"no such file {path}")
+        try:
+            V, F = read_surface_mesh(path)
+        except InputError as exc:
+            raise scene.error(f"{key}.mesh.path", str(exc)) from None
+        V = transform_points(V, m.transform)
+        motion = None
+        if m.motion is not None:
+            mo = m.motion
+            pivot = V.mean(axis=0) if mo.pivot is None else np.asarray(mo.pivot, float)
+            try:
+                kf = Keyframes([k.t for k in mo.keyframes], [k.translate for k in mo.keyframes],
+                               [k.rotate_deg for k in mo.keyframes], pivot, mo.interpolation)
+            except ParameterError as exc:
+                raise scene.error(f"{key}.mesh.motion", str(exc)) from None
+            motion = kf.apply
+        try:
+            meshes.append(MeshObstacle(V, F, motion=motion, name=f"{key} ({path.name})"))
+        except ParameterError as exc:
+            raise scene.error(f"{key}.mesh", str(exc)) from None
+    a = assembled
+    body_ids = np.zeros(a.X.shape[0], dtype=np.int64)
+    for b, sl in enumerate(a.body_vertices):
+        body_ids[sl] = b
+    names = [f"bodies[{b}] ({body.label})" for b, body in enumerate(scene.bodies)]
+    pts = np.concatenate([a.X] + [m.vertices for m in meshes])
+    L = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
+                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa, mu=spec.mu,
+                      eps_v=spec.eps_v * L, self_contact=spec.self_contact)
+    return ContactTerm(cm, tolerance=spec.tolerance)

@@ -726,6 +726,20 @@ class System:
         self.pattern_generation += 1
         return ext
 
+    def pattern_keys(self) -> np.ndarray:
+        """Keys (``row * n_free + col``) of the solver's pattern when objective terms have
+        widened it, else empty: what a checkpoint needs to rebuild the same pattern (and so
+        the same fill-reducing ordering, bit for bit)."""
+        return np.zeros(0, np.int64) if self._ext is None else self._ext.keys
+
+    def restore_pattern(self, keys: np.ndarray) -> None:
+        """Widen the solver's pattern to the saved :meth:`pattern_keys` (no-op when empty or
+        already equal)."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if keys.size == 0 or (self._ext is not None and np.array_equal(self._ext.keys, keys)):
+            return
+        self._extend(keys)
+
     def refactorize_saved(self, data: np.ndarray) -> None:
         """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
         checkpoint's preconditioner): the same matrix gives the same factor, so a resumed
