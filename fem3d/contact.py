@@ -755,9 +755,9 @@ class ContactModel:
 
     def plane_gaps(self, q: np.ndarray) -> np.ndarray:
         """Signed distance of every surface vertex to every plane, ``(n_planes, n_surface)``."""
-        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
-        return np.array([p.signed_distance(q3) for p in self.planes]).reshape(
-            len(self.planes), -1)
+        if not self.planes:
+            return np.zeros((0, self.n_surface))
+        return self._plane_distances(q)
 
     def has_intersections(self, q: np.ndarray) -> bool:
         """Intersecting triangles (``ipctk.has_intersections``) or a vertex on or below a
