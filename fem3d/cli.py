@@ -69,6 +69,7 @@ SUBCOMMANDS: list[str] = [
     "fem3d.viewer:add_view_subcommand",
     "fem3d.cli:add_resume_subcommand",
     "fem3d.cli:add_schema_subcommand",
+    "fem3d.sweep:add_sweep_subcommand",
 ]
 
 #: Frames kept in memory for the GIF preview (evenly spaced).
@@ -490,7 +491,9 @@ def _drive(
     if len(log):
         output.plot_energy(log, out / "energy.png", title=f"{scene.name} ({sim.integrator})")
     if preview_on and preview:
-        output.render_preview(preview, faces, out / "preview.gif")
+        cam = scene.output.preview
+        output.render_preview(preview, faces, out / "preview.gif", elev=cam.elev,
+                              azim=cam.azim, view_bounds=cam.bounds)
     if step_seconds:
         print(
             f"fem3d {command}: {len(step_seconds)} steps in {wall:.2f} s; "

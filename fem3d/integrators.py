@@ -319,12 +319,22 @@ class NewtonResult:
 # ---------------------------------------------------------------------------------------------
 # sparse SPD solves on the fixed reduced pattern
 
+#: From this many tets :class:`System` keeps no element-to-reduced-slot map (4 bytes per
+#: element-matrix entry) and assembles Newton matrices on the full pattern, then gathers.
+LEAN_ASSEMBLY_MIN_TETS = 250_000
+
 #: ``"amg"``: rebuild the hierarchy when a solve needs more CG iterations than this per decade
 #: of residual reduction (a fresh hierarchy needs about 3-4 on the swinging box; a setup costs
 #: about 15 iterations).
 AMG_ITERATIONS_PER_DECADE = 8.0
 #: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
 FORCING_MAX = 0.1
+#: ``"amg"``: energy increases below this fraction of the objective are round-off in the line
+#: search (:func:`newtons_method`'s ``roundoff_rtol``).
+AMG_ROUNDOFF_RTOL = 1e-10
+#: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
+#: round-off (measured floors on the swinging box: 10-20 tolerances).
+ROUNDOFF_GRADIENT_FACTOR = 1e3
 
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
@@ -385,9 +395,13 @@ class System:
         self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
         self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
         self._kept = kept
-        self._free_scatter = self._free_slot[model.scatter]
-        for a in (self._free_slot, self._free_scatter):
-            a.setflags(write=False)
+        # element entry -> reduced slot (4 bytes per element-matrix entry: 576 MB at 1e6 tets);
+        # large meshes assemble on the full pattern and gather instead (the same sums)
+        self._free_scatter = None
+        if model.n_tets < LEAN_ASSEMBLY_MIN_TETS:
+            self._free_scatter = self._free_slot[model.scatter]
+            self._free_scatter.setflags(write=False)
+        self._free_slot.setflags(write=False)
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
         #: back end (:func:`fem3d.linsolve.choose_backend`: ``"auto"`` picks by size).
@@ -553,9 +567,15 @@ class System:
         kernel = "hessian_psd" if psd else "hessian"
         vol = self._volumes_times(dt * dt)
         data = np.empty(nnz_free + 1)  # the last slot is the sink of fixed-DOF entries
-        data[:nnz_free] = self.mass_free.data
         data[nnz_free] = 0.0
-        _hessian_into(model, kernel, q, vol, self._free_scatter, data)
+        if self._free_scatter is not None:
+            data[:nnz_free] = self.mass_free.data
+            _hessian_into(model, kernel, q, vol, self._free_scatter, data)
+        else:  # each kept entry gets the same contributions in the same order
+            full = np.array(model.mass.data)
+            _hessian_into(model, kernel, q, vol, model.scatter, full)
+            np.take(full, self._kept, out=data[:nnz_free])
+            del full
         if pull is not None and pull.vertices.size:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
             slots = self._free_slot[self._pull_positions(pull)]
@@ -932,16 +952,27 @@ def _pins(system: System, state: State, dt: float, fixed_positions) -> _Pins:
     return _Pins(p, q_base, v_fixed, v_t_fixed)
 
 
-def _new_state(system: System, state: State, v_free: np.ndarray, dt: float,
-               pins: _Pins | None = None) -> State:
+def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> State:
     v = system.constraints.expand_zero(v_free).reshape(-1, 3)
-    fv = system.constraints.fixed_vertices
-    if pins is not None and pins.v_fixed is not None:
-        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
     q = state.q + dt * v
-    if fv.size:  # fixed vertices exactly where prescribed (or where they were)
-        q[fv] = state.q[fv] if pins is None else pins.p
+    if system.constraints.fixed_vertices.size:  # fixed vertices stay exactly at rest
+        fv = system.constraints.fixed_vertices
+        q[fv] = system.constraints.x0.reshape(-1, 3)[fv]
     return State(q=q, v=v, t=state.t + dt, step=state.step + 1)
+
+
+def _place_pins(system: System, new: State, pins: _Pins) -> State:
+    """``new`` with the fixed vertices where ``pins`` puts them (exactly) and their velocity."""
+    fv = system.constraints.fixed_vertices
+    if fv.size == 0:
+        return new
+    q = np.array(new.q)
+    q[fv] = pins.p
+    v = new.v
+    if pins.v_fixed is not None:
+        v = np.array(v)
+        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
+    return State(q=q, v=v, t=new.t, step=new.step)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1029,7 +1060,7 @@ def linearly_implicit_euler(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
         ) from exc
     v_free = system.solve(c.restrict(rhs))
-    new = _new_state(system, state, v_free, dt, pins)
+    new = _place_pins(system, _new_state(system, state, v_free, dt), pins)
     _check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
@@ -1074,6 +1105,7 @@ def newtons_method(
     max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
     converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None,
     after_step: Callable[[np.ndarray], bool] | None = None,
+    roundoff_rtol: float = 0.0,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -1115,6 +1147,12 @@ def newtons_method(
     after_step : callable ``(x) -> bool``, optional
         Called at every accepted iterate; True means the objective itself changed there
         (IPC's adaptive barrier stiffness), so its value is re-evaluated.
+    roundoff_rtol : float, optional
+        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
+        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
+        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance, stop (converged at round-off)
+        rather than halve through noise. 0 (default): plain backtracking.
 
     Returns
     -------
@@ -1160,6 +1198,7 @@ def newtons_method(
         a = a0
         accepted = False
         any_finite = False
+        gt = None
         for _ in range(max_halvings):
             xt = x + a * d
             ft = energy(xt)
@@ -1168,6 +1207,18 @@ def newtons_method(
                 if ft <= fx + c * a * slope:
                     accepted = True
                     break
+                if roundoff_rtol and a == a0:
+                    if ft <= fx + roundoff_rtol * abs(fx):
+                        # the energy cannot tell the trial from x: judge by the gradient
+                        gt = gradient(xt)
+                        if np.isfinite(gt).all() and _gradient_norm(gt) < gn:
+                            accepted = True
+                            break
+                        gt = None
+                    if gn <= ROUNDOFF_GRADIENT_FACTOR * tol:
+                        # near the tolerance a failed full step is the energy's and the
+                        # gradient's round-off: stop there rather than halve through noise
+                        return NewtonResult(x, it, norms, True, halvings)
             a *= p
             halvings += 1
         if not accepted:
@@ -1176,8 +1227,9 @@ def newtons_method(
             return NewtonResult(x, it, norms, any_finite, halvings)
         x, fx = xt, ft
         if after_step is not None and after_step(x):
-            fx = energy(x)
-        g = gradient(x)
+            fx = energy(x)  # the objective changed at x (barrier stiffness)
+            gt = None
+        g = gradient(x) if gt is None else gt
         gn = _gradient_norm(g)
         norms.append(gn)
         it += 1
@@ -1594,6 +1646,7 @@ def implicit_euler(
             max_step=clamp if step_terms else None,
             converged_step=converged_step if converged_hooks else None,
             after_step=after_step if after_hooks else None,
+            roundoff_rtol=AMG_ROUNDOFF_RTOL if use_amg else 0.0,
         )
     except SimulationError as exc:
         if exc.step is not None:
@@ -1604,7 +1657,7 @@ def implicit_euler(
     stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])
     stats.line_search_halvings = res.line_search_halvings
     stats.converged = res.converged
-    new = _new_state(system, state, res.x, dt, pins)
+    new = _place_pins(system, _new_state(system, state, res.x, dt), pins)
     _check_finite(new.q, new.v, state.step, "backward Euler")
     return new, stats
 

@@ -100,6 +100,10 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, target)
+    except OSError as exc:  # disk full, quota, ...: name the file being written
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise OSError(exc.errno, f"{exc.strerror or exc} while writing", str(target)) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -412,7 +416,7 @@ class UsdWriter:
             raise InputError("frames.usdc is missing (the checkpoint lists frames in it)",
                              path=self.path)
         stage = Usd.Stage.Open(str(self.path))
-        n = int(self.faces.max()) + 1
+        n = max(vs.stop for _, vs, _ in self.bodies)
         for s in self.frames:
             V = np.zeros((n, 3), dtype=np.float32)
             for name, (_, vs, _) in zip(self.names, self.bodies, strict=True):
@@ -432,7 +436,7 @@ def make_frame_writer(out_dir: PathLike, faces: np.ndarray, fmt: str, *,
     """The frame writer of a format: ``"vtu"``/``"obj"`` (:class:`FrameWriter`) or ``"usd"``
     (:class:`UsdWriter`, one prim per entry of ``bodies``)."""
     if fmt == "usd":
-        if bodies is None:
+        if bodies is None:  # one prim; its points: the vertices the faces use, and below
             bodies = [("body", slice(0, int(np.max(faces)) + 1), slice(0, len(faces)))]
         return UsdWriter(out_dir, faces, bodies, dt)
     return FrameWriter(out_dir, faces, fmt)
@@ -848,7 +852,9 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
     InputError
         Missing file, not a fem3d checkpoint, or unreadable.
     """
-    path = Path(path)
+    from fem3d.rundir import check_input_file
+
+    path = check_input_file(path, "checkpoint")
     try:
         with np.load(path, allow_pickle=False) as z:
             if _META_KEY not in z.files:

@@ -25,7 +25,9 @@ Conventions
   (``y <= min y + tol``), ``box [[min], [max]]`` (closed), ``half_space {point, normal}``
   (the side the normal points to, boundary included), ``sphere {center, radius}`` (closed),
   ``vertices [ids]``, ``vertices_file`` (whitespace-separated ids, ``#`` comments),
-  ``near_vertex {vertex, radius}`` (closed ball around that vertex's position).
+  ``near_vertex {vertex, radius}`` (closed ball around that vertex's position),
+  ``nearest_to {point, radius}`` (the vertex nearest to ``point`` and those within
+  ``radius`` of it: never empty).
 * A pull's ``offset`` moves each selected vertex's target by ``offset`` from its rest
   position; ``target`` moves the selection's centroid to ``target`` (the same offset for all).
 * ``simulation.steps`` or ``simulation.duration`` (steps = round(duration / dt)); neither:
@@ -138,8 +140,15 @@ class NearVertex(_Spec):
     radius: NonNegative = 0.0
 
 
+class NearestTo(_Spec):
+    """The vertex nearest to ``point`` and every vertex within ``radius`` of it."""
+
+    point: Vec3
+    radius: NonNegative = 0.0
+
+
 _SELECTOR_KEYS = ("lowest_y", "box", "half_space", "sphere", "vertices", "vertices_file",
-                  "near_vertex")
+                  "near_vertex", "nearest_to")
 
 
 class Selector(_Spec):
@@ -152,6 +161,7 @@ class Selector(_Spec):
     vertices: Annotated[list[Index], Field(min_length=1)] | None = None
     vertices_file: StrictStr | None = None
     near_vertex: NearVertex | None = None
+    nearest_to: NearestTo | None = None
 
     @model_validator(mode="after")
     def _exactly_one(self) -> Selector:
@@ -404,11 +414,21 @@ class ObstacleSpec(_Spec):
         return self
 
 
+class PreviewSpec(_Spec):
+    """Camera of ``preview.gif``: elevation and azimuth (degrees), and whether the view box
+    fits the first frame or every frame."""
+
+    elev: Annotated[StrictFloat, Field(ge=-90, le=90)] = 15.0
+    azim: StrictFloat = 30.0
+    bounds: Literal["first", "all"] = "first"
+
+
 class OutputSpec(_Spec):
-    """Frames written by ``fem3d run``: format and stride (steps)."""
+    """Frames written by ``fem3d run``: format and stride (steps); the preview's camera."""
 
     format: Literal["vtu", "obj", "usd"] = "vtu"
     every: Annotated[StrictInt, Field(ge=1)] = 1
+    preview: PreviewSpec = PreviewSpec()
 
 
 class InteractionSpec(_Spec):
@@ -762,7 +782,7 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
     :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
     ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
     ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
-    from fem3d.scenes import rest_positions
+    from fem3d.scenes import is_surface_file, rest_positions
 
     p = Path(path)
     if not p.is_file():
@@ -770,20 +790,26 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
     dflt = MESH_SCENE_DEFAULTS
     body = {"mesh": str(p.resolve()), "material": {
         "model": "neo_hookean", "E": dflt["E"], "nu": dflt["nu"], "density": dflt["density"]}}
-    draft = _validate({"name": p.stem, "bodies": [body]}, str(p))
-    X = rest_positions(draft, 0)
+    if is_surface_file(p):  # the surface's own extent: no tetrahedralization here
+        from fem3d.mesh import read_surface_mesh
+
+        X = read_surface_mesh(p)[0]
+    else:
+        draft = _validate({"name": p.stem, "source": str(p), "bodies": [body]}, str(p))
+        X = rest_positions(draft, 0)
     h = float(X[:, 1].max() - X[:, 1].min())
     if not h > 0:
         raise InputError("mesh has no extent along y", path=p)
     top = int(X[:, 1].argmax())
+    pick = dflt["pick_fraction"] * h
+    select = ({"nearest_to": {"point": [float(c) for c in X[top]], "radius": pick}}
+              if is_surface_file(p) else {"near_vertex": {"vertex": top, "radius": pick}})
     body["pins"] = [{"select": {"lowest_y": {"tol": dflt["fix_fraction"] * h}}}]
     d = {
-        "name": p.stem, "base_dir": str(p.resolve().parent),
+        "name": p.stem, "base_dir": str(p.resolve().parent), "source": str(p),
         "simulation": {"integrator": dflt["integrator"], "dt": dflt["dt"]},
         "bodies": [body],
-        "pulls": [{"select": {"near_vertex": {"vertex": top,
-                                              "radius": dflt["pick_fraction"] * h}},
-                   "offset": [dflt["pull_fraction"] * h, 0.0, 0.0],
+        "pulls": [{"select": select, "offset": [dflt["pull_fraction"] * h, 0.0, 0.0],
                    "duration": dflt["pull_duration"]}],
     }  # interaction left out: 0.01 h and 0.15 E h (E as overridden)
     return _validate(d, str(p))
@@ -792,7 +818,7 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
 def cache_dir() -> Path:
     """fem3d's cache folder: ``$FEM3D_CACHE``, else ``~/.cache/fem3d`` (created)."""
     env = os.environ.get("FEM3D_CACHE")
-    d = Path(env) if env else Path.home() / ".cache" / "fem3d"
+    d = (Path(env) if env else Path.home() / ".cache" / "fem3d").expanduser().resolve()
     d.mkdir(parents=True, exist_ok=True)
     return d
 

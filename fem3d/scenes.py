@@ -247,6 +247,14 @@ def select_vertices(scene: Scene, X: np.ndarray, sel: Selector, key: str) -> np.
         if bad.size:
             raise scene.error(f"{key}.{kind}", f"vertex id {int(bad[0])} out of range [0, {n})")
         info = "the list is empty"
+    elif kind == "nearest_to":
+        from fem3d.constraints import pick_nearest_vertices
+
+        nt = sel.nearest_to
+        p = np.asarray(nt.point, dtype=np.float64)
+        centre = int(np.argmin(((X - p) ** 2).sum(axis=1)))
+        ids = pick_nearest_vertices(X, X[centre], nt.radius)
+        info = ""
     else:  # near_vertex
         nv = sel.near_vertex
         if nv.vertex >= n:

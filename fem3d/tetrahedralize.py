@@ -21,6 +21,7 @@ A scene body whose ``mesh`` is a surface (OBJ/STL/PLY/OFF) is tetrahedralized he
   filter repairs small holes. When what comes back has no tets, or a volume far from the
   surface's enclosed volume (an open sheet, not a solid), the surface is refused with one line
   naming the file.
+* Threads: ``$FEM3D_TETWILD_THREADS`` (default 0: all cores).
 """
 
 from __future__ import annotations
@@ -28,8 +29,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -80,7 +83,7 @@ def cache_key(path: str | os.PathLike[str], edge_length: float, epsilon: float,
 
 def tetrahedralize_arrays(V: np.ndarray, F: np.ndarray, *, edge_length: float = 0.05,
                           epsilon: float = 1e-3, stop_quality: float = 10.0,
-                          threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                          threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """fTetWild in this process (prints its log on the C++ streams).
 
     Returns
@@ -90,6 +93,9 @@ def tetrahedralize_arrays(V: np.ndarray, F: np.ndarray, *, edge_length: float = 
         Interior tets only (winding-number filter); possibly empty.
     """
     import wildmeshing as wm
+
+    if threads is None:  # 0: all cores
+        threads = int(os.environ.get("FEM3D_TETWILD_THREADS", "0") or 0)
 
     tw = wm.Tetrahedralizer(stop_quality=float(stop_quality), epsilon=float(epsilon),
                             edge_length_r=float(edge_length), max_threads=int(threads))
@@ -155,17 +161,20 @@ def tetrahedralize_file(
                              "pip install wildmeshing", path=path)
         log = folder / f"{key[:40]}.log"
         tmp = folder / f".{key[:40]}.{os.getpid()}.npz"
-        cmd = [sys.executable, "-m", "fem3d.tetrahedralize", str(path), str(tmp),
+        cmd = [sys.executable, "-m", "fem3d.tetrahedralize", str(path.resolve()), str(tmp),
                repr(float(edge_length)), repr(float(epsilon)), repr(float(stop_quality))]
         t0 = time.perf_counter()
+        work = Path(tempfile.mkdtemp(dir=folder, prefix=".work"))  # fTetWild writes into cwd
         try:
             with open(log, "wb") as fh:
-                proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT,
+                proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=work,
                                       timeout=_timeout(), env=_child_env())
         except subprocess.TimeoutExpired:
             tmp.unlink(missing_ok=True)
             raise InputError(f"fTetWild took over {_timeout():g} s (FEM3D_TETWILD_TIMEOUT); "
                              f"try a larger tetrahedralize.edge_length", path=path) from None
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0
         if proc.returncode != 0 or not tmp.is_file():
             tmp.unlink(missing_ok=True)
