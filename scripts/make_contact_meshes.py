@@ -11,13 +11,15 @@
 from __future__ import annotations
 
 import itertools
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from fem3d.mesh import TetMesh, write_tet_mesh
-
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
+
+from fem3d.mesh import TetMesh, write_tet_mesh  # noqa: E402
 
 
 def box(n, size, origin=(0.0, 0.0, 0.0)):
