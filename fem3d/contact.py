@@ -990,7 +990,8 @@ class ContactTerm:
         if cm.obstacle_step(q_t, t, t + dt) < 1.0:
             moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)
             raise SimulationError(f"contact: the moving obstacle ({moving}) would pass through "
-                                  "a body within one step; use a smaller dt or a slower "
+                                  "a body within one step (it may advance by less than its "
+                                  "gap to the bodies per step); use a smaller dt or a slower "
                                   "motion", step=step)
         cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
         self._lag = (q_t, t, dt)
