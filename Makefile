@@ -4,9 +4,10 @@ PIP_STAMP := .venv-stamp
 
 .PHONY: install browser codegen check-generated build test lint run view bench clean
 
-install: $(PIP_STAMP)
-$(PIP_STAMP): pyproject.toml setup.py generated/c/*.c
+install: $(PIP_STAMP)  ## the package, its dev tools and CHOLMOD where the machine allows it
+$(PIP_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh
 	$(PYTHON) -m pip install -q -e '.[dev]'
+	@bash scripts/install_cholmod.sh --if-possible $(PYTHON)
 	@touch $(PIP_STAMP)
 
 codegen:  ## regenerate generated/ from codegen/ and templates/, then rebuild the C extension

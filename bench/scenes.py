@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from fem3d.errors import SimulationError
-from fem3d.scenes import load_scene
+from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 
 #: (scene, integrator, Newton's linear solver); the scenes' own integrators come first.
@@ -52,16 +52,16 @@ def main(argv: list[str] | None = None) -> None:
     lines = ["| scene | integrator | Newton solves | ms / step | steps / s | Newton iterations "
              "| outcome |", "| --- | --- | --- | ---: | ---: | ---: | --- |"]
     print(lines[0], lines[1], sep="\n", flush=True)
-    scenes = {}
     for name, integrator, solver in ROWS:
-        scene = scenes.setdefault(name, load_scene(name))
-        sim = Simulation(scene, integrator, scripted=True, newton_solver=solver)
+        scene = load_scene(name, {"simulation.integrator": integrator,
+                                  "simulation.newton.solver": solver})
+        sim = Simulation(scene, scripted=True)
         runs = [run(sim, args.steps) for _ in range(args.repeats)]
         seconds, newton, outcome = min(runs)
         solves = "factorize" if integrator == "linear" else solver
         mode = sim.system.solver.cholmod_mode
         backend = sim.system.solver.backend + (f" {mode}" if mode else "")
-        lines.append(f"| {name} ({scene.T.shape[0]} tets) | {integrator} | {solves} "
+        lines.append(f"| {name} ({sim.model.n_tets} tets) | {integrator} | {solves} "
                      f"({backend}) | {seconds * 1e3:.2f} | {1 / seconds:.0f} | {newton} "
                      f"| {outcome} |")
         print(lines[-1], flush=True)

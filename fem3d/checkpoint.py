@@ -4,11 +4,13 @@ A checkpoint is one ``.npz`` written atomically by :func:`fem3d.output.save_chec
 (``DIR/checkpoint.npz``). It holds
 
 * the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
-  velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pull's state (attached
-  or not, its springs) and the energy put in so far (the linearly-implicit runaway bound);
-* ``settings``: every option needed to rebuild the same run (scene name or absolute mesh
-  path, resolved material values, ``dt``, integrator, kernel and sparse-solver back ends,
-  Newton settings, pull script, frame settings, the target step count);
+  velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pulls' state (which
+  are attached, the springs) and the energy put in so far (the linearly-implicit runaway
+  bound);
+* ``settings``: ``scene`` - the whole scene (:meth:`fem3d.scene.Scene.to_dict`: every path
+  absolute, the target step count in ``simulation.steps``), so ``fem3d resume DIR`` needs
+  nothing else - and the run's own options: ``kernels`` and ``solver`` (the resolved back
+  ends), ``checkpoint_every``, ``preview``;
 * the output bookkeeping: the energy rows so far ``(n_rows, 4)`` (the exact values written
   to ``energy.csv``), the frames written (step, time, relative path) and the frame counter;
 * a SHA-256 digest of the rest mesh, so a resume refuses a mesh file changed in between.
@@ -37,8 +39,9 @@ __all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_
 CHECKPOINT_NAME = "checkpoint.npz"
 
 _KIND = "fem3d-run"
-_SNAPSHOT_SCALARS = ("t", "step", "injected", "script_on", "pull_k")
-_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "preconditioner")
+_SNAPSHOT_SCALARS = ("t", "step", "injected")
+_SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "pull_k", "preconditioner",
+                    "script_active")
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:

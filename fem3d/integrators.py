@@ -27,8 +27,10 @@ the scheme explode on the first step of a scripted pull, on either mesh.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,7 +43,15 @@ from fem3d.assembly import (
 )
 from fem3d.constraints import Constraints
 from fem3d.errors import SimulationError
-from fem3d.linsolve import NotPositiveDefinite, PreconditionedCG, SparseSPDSolver
+from fem3d.linsolve import (
+    AMGPreconditioner,
+    NotPositiveDefinite,
+    PreconditionedCG,
+    SparseSPDSolver,
+    choose_backend,
+    iterations_per_decade,
+    rigid_body_modes,
+)
 from fem3d.model import Model, validate_dt
 
 __all__ = [
@@ -49,6 +59,7 @@ __all__ = [
     "Pull",
     "StepStats",
     "NewtonResult",
+    "ObjectiveTerm",
     "System",
     "NotPositiveDefinite",
     "linearly_implicit_euler",
@@ -97,20 +108,33 @@ class Pull:
     Attributes
     ----------
     vertices : (k,) int64
-        Pulled vertices (unique).
+        Pulled vertex of each spring, sorted (a vertex may carry several springs when pulls
+        are combined, :meth:`combine`).
     targets : (k, 3) float64
         Target point of each spring.
-    k : float
-        Spring stiffness (> 0).
+    k : float or (k,) float64
+        Spring stiffness (> 0): one value shared by every spring (a float, as given to
+        :meth:`make`), or one per spring.
     """
 
     vertices: np.ndarray
     targets: np.ndarray
-    k: float
+    k: float | np.ndarray
 
     @classmethod
-    def make(cls, vertices, targets, k: float, n_vertices: int) -> Pull:
+    def make(cls, vertices, targets, k, n_vertices: int) -> Pull:
         """Validated pull; ``targets`` may be one point ``(3,)`` shared by all vertices.
+
+        Parameters
+        ----------
+        vertices : (k,) int
+            Pulled vertices. With one shared target and one stiffness, duplicates are merged
+            (one spring per vertex); otherwise each entry is its own spring.
+        targets : (3,) or (k, 3) float64
+            One target for all springs, or one per entry of ``vertices``.
+        k : float or (k,) float64
+            Stiffness (> 0), shared or per spring.
+        n_vertices : int
 
         Raises
         ------
@@ -119,38 +143,103 @@ class Pull:
         """
         from fem3d.errors import ParameterError
 
-        idx = np.unique(np.asarray(vertices, dtype=np.int64).reshape(-1))
-        if idx.size and (idx[0] < 0 or idx[-1] >= n_vertices):
+        raw = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        if raw.size and (raw.min() < 0 or raw.max() >= n_vertices):
             raise ParameterError(f"pulled vertex out of range [0, {n_vertices})")
         tgt = np.asarray(targets, dtype=np.float64)
+        k_arr = np.asarray(k, dtype=np.float64)
+        shared = tgt.shape == (3,) and k_arr.ndim == 0
+        if shared:
+            idx, order = np.unique(raw), None
+        else:
+            order = np.argsort(raw, kind="stable")
+            idx = raw[order]
         if tgt.shape == (3,):
             tgt = np.broadcast_to(tgt, (idx.size, 3)).copy()
-        elif tgt.shape != (idx.size, 3):
-            raise ParameterError(f"pull target must be (3,) or ({idx.size}, 3), got {tgt.shape}")
+        elif tgt.shape == (raw.size, 3):
+            tgt = tgt[order]
+        else:
+            raise ParameterError(f"pull target must be (3,) or ({raw.size}, 3), got {tgt.shape}")
         if not np.isfinite(tgt).all():
             raise ParameterError("pull target is not finite")
-        k = float(k)
-        if not math.isfinite(k) or k <= 0:
+        if k_arr.ndim == 0:
+            k_val: float | np.ndarray = float(k_arr)
+            bad = not math.isfinite(k_val) or k_val <= 0
+        elif k_arr.shape == (raw.size,):
+            k_val = k_arr[order].copy()
+            bad = not (np.isfinite(k_val).all() and (k_val > 0).all())
+        else:
+            raise ParameterError(f"spring stiffness must be a number or ({raw.size},) array, "
+                                 f"got shape {k_arr.shape}")
+        if bad:
             raise ParameterError(f"spring stiffness must be a finite number > 0, got {k}")
-        return cls(vertices=idx, targets=tgt, k=k)
+        for a in (idx, tgt) + ((k_val,) if isinstance(k_val, np.ndarray) else ()):
+            a.setflags(write=False)
+        return cls(vertices=idx, targets=tgt, k=k_val)
+
+    @classmethod
+    def combine(cls, pulls, n_vertices: int) -> Pull | None:
+        """All springs of several pulls as one (``None`` entries and empty pulls skipped).
+
+        Parameters
+        ----------
+        pulls : iterable of Pull or None
+        n_vertices : int
+
+        Returns
+        -------
+        Pull or None
+            None when no spring is left; the pull itself when only one has springs.
+        """
+        live = [p for p in pulls if p is not None and p.vertices.size]
+        if not live:
+            return None
+        if len(live) == 1:
+            return live[0]
+        return cls.make(np.concatenate([p.vertices for p in live]),
+                        np.concatenate([p.targets for p in live]),
+                        np.concatenate([p.stiffness for p in live]), n_vertices)
+
+    @property
+    def stiffness(self) -> np.ndarray:
+        """``(k,)`` stiffness of each spring."""
+        if isinstance(self.k, np.ndarray):
+            return self.k
+        return np.full(self.vertices.size, self.k)
+
+    def _kernel_k(self) -> tuple[tuple[float], np.ndarray | None]:
+        """The kernels' scalar parameter and the per-spring factor (linear in ``k``)."""
+        if isinstance(self.k, np.ndarray):
+            return (1.0,), self.k
+        return (self.k,), None
 
     def energy(self, spring, q: np.ndarray) -> float:
         """Spring energy at positions ``q (n, 3)``."""
         if self.vertices.size == 0:
             return 0.0
-        return float(spring.energy(q[self.vertices], self.targets, (self.k,)).sum())
+        kk, scale = self._kernel_k()
+        e = spring.energy(q[self.vertices], self.targets, kk)
+        return float((e if scale is None else e * scale).sum())
 
     def gradient(self, spring, q: np.ndarray) -> np.ndarray:
         """``d V_pull / d q`` as a full ``(3n,)`` vector."""
         g = np.zeros(q.size)
         if self.vertices.size:
-            ge = spring.gradient(q[self.vertices], self.targets, (self.k,))[:, :3]
-            g.reshape(-1, 3)[self.vertices] += ge
+            kk, scale = self._kernel_k()
+            ge = spring.gradient(q[self.vertices], self.targets, kk)[:, :3]
+            if scale is not None:
+                ge = ge * scale[:, None]
+            if self.vertices.size < 2 or bool((np.diff(self.vertices) > 0).all()):
+                g.reshape(-1, 3)[self.vertices] += ge
+            else:  # several springs on one vertex
+                np.add.at(g.reshape(-1, 3), self.vertices, ge)
         return g
 
     def hessian_blocks(self, spring, q: np.ndarray) -> np.ndarray:
         """``(k, 3, 3)`` Hessian blocks of each pulled vertex (the target is not a DOF)."""
-        return spring.hessian(q[self.vertices], self.targets, (self.k,))[:, :3, :3]
+        kk, scale = self._kernel_k()
+        h = spring.hessian(q[self.vertices], self.targets, kk)[:, :3, :3]
+        return h if scale is None else h * scale[:, None, None]
 
 
 @dataclass
@@ -177,6 +266,12 @@ class StepStats:
         only where the line search met the objective's round-off.
     converged : bool
         Newton stopped on its tolerance (or at round-off), not on the iteration cap.
+    amg_setups : int
+        AMG hierarchies built during the step (``"amg"`` back end).
+    seconds : dict of str to float
+        Wall time of the step's parts (implicit Euler): ``"matrix"`` (Newton-matrix
+        assembly), ``"factorize"``, ``"cg"`` (CG iterations, preconditioner included),
+        ``"amg_setup"``, ``"objective"`` (energies and gradients, line search included).
     """
 
     newton_iterations: int = 0
@@ -188,6 +283,12 @@ class StepStats:
     cg_iterations: int = 0
     psd_fallbacks: int = 0
     gradient_tolerance: float = 0.0
+    amg_setups: int = 0
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def add_seconds(self, part: str, seconds: float) -> None:
+        """Accumulate wall time into :attr:`seconds`."""
+        self.seconds[part] = self.seconds.get(part, 0.0) + seconds
 
 
 @dataclass
@@ -217,6 +318,23 @@ class NewtonResult:
 
 # ---------------------------------------------------------------------------------------------
 # sparse SPD solves on the fixed reduced pattern
+
+#: From this many tets :class:`System` keeps no element-to-reduced-slot map (4 bytes per
+#: element-matrix entry) and assembles Newton matrices on the full pattern, then gathers.
+LEAN_ASSEMBLY_MIN_TETS = 250_000
+
+#: ``"amg"``: rebuild the hierarchy when a solve needs more CG iterations than this per decade
+#: of residual reduction (a fresh hierarchy needs about 3-4 on the swinging box; a setup costs
+#: about 15 iterations).
+AMG_ITERATIONS_PER_DECADE = 8.0
+#: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
+FORCING_MAX = 0.1
+#: ``"amg"``: energy increases below this fraction of the objective are round-off in the line
+#: search (:func:`newtons_method`'s ``roundoff_rtol``).
+AMG_ROUNDOFF_RTOL = 1e-10
+#: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
+#: round-off (measured floors on the swinging box: 10-20 tolerances).
+ROUNDOFF_GRADIENT_FACTOR = 1e3
 
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
@@ -250,10 +368,21 @@ class System:
     ``3n x 3n`` matrix is built and reduced per Newton iteration.
     """
 
-    def __init__(self, model: Model, constraints: Constraints, solver_backend: str = "auto"):
+    def __init__(
+        self,
+        model: Model,
+        constraints: Constraints,
+        solver_backend: str = "auto",
+        *,
+        gravity=None,
+        rayleigh_alpha=0.0,
+        rayleigh_beta=0.0,
+    ):
         if constraints.n_dofs != model.n_dofs:
             raise ValueError("constraints and model have different DOF counts")
         self.model = model
+        self.gravity, self.rayleigh_alpha, self.rayleigh_beta = _validate_physics(
+            model, gravity, rayleigh_alpha, rayleigh_beta)
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
@@ -265,17 +394,23 @@ class System:
         kept = constraints.kept_entries(model.pattern)
         self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
         self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
-        self._free_scatter = self._free_slot[model.scatter]
-        for a in (self._free_slot, self._free_scatter):
-            a.setflags(write=False)
+        self._kept = kept
+        # element entry -> reduced slot (4 bytes per element-matrix entry: 576 MB at 1e6 tets);
+        # large meshes assemble on the full pattern and gather instead (the same sums)
+        self._free_scatter = None
+        if model.n_tets < LEAN_ASSEMBLY_MIN_TETS:
+            self._free_scatter = self._free_slot[model.scatter]
+            self._free_scatter.setflags(write=False)
+        self._free_slot.setflags(write=False)
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
-        self._solver = SparseSPDSolver(self.pattern_free, backend=solver_backend)
-        if self._solver.backend == "superlu" and self.mass_free.shape[0]:
-            # SuperLU orders on its first factorization and takes another code path (explicit
-            # permutation, natural order) afterwards. Factorizing once here makes every step
-            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
-            # bit for bit what a long-lived one does.
-            self._solver.factorize(self.mass_free)
+        #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
+        #: back end (:func:`fem3d.linsolve.choose_backend`: ``"auto"`` picks by size).
+        self.linear_backend = choose_backend(solver_backend, constraints.n_free)
+        self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
+        self._solver: SparseSPDSolver | None = None
+        self._amg: AMGPreconditioner | None = None
+        if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
+            self._solver = self._new_direct_solver(self.pattern_free)
         from fem3d.kernels import spring_kernels
 
         self.spring = spring_kernels(backend=model.backend)
@@ -283,6 +418,13 @@ class System:
         self.factorized_data: np.ndarray | None = None
         #: Shifted attempts of :meth:`factorize` (``mu = 1e-4 ... 1e8``) before giving up.
         self.max_shift_tries = 13
+        # objective terms' Hessian entries outside pattern_free widen the solver's pattern
+        self._ext: _ExtendedPattern | None = None
+        #: Incremented whenever objective terms widen the solver's pattern (preconditioners
+        #: built on an older pattern are stale).
+        self.pattern_generation = 0
+        self._base_keys: np.ndarray | None = None
+        self._physics_cache()
 
     def with_model(self, model: Model) -> System:
         """Same constraints and solver (the pattern is shared), new material values."""
@@ -290,7 +432,74 @@ class System:
         new.__dict__.update(self.__dict__)
         new.model = model
         new.mass_free = self.constraints.reduce_matrix(model.mass)
+        new._physics_cache()
         return new
+
+    # -- gravity and Rayleigh damping ---------------------------------------------------------
+    def _physics_cache(self) -> None:
+        """Gravity force and the mass part of the damping matrix for the current model."""
+        model = self.model
+        self.gravity_force: np.ndarray | None = None
+        if self.gravity is not None:
+            f = model.mass @ np.tile(self.gravity, model.n_vertices)
+            f.setflags(write=False)
+            self.gravity_force = f
+        alpha = self.rayleigh_alpha
+        self._alpha_mass: np.ndarray | None = None
+        if np.ndim(alpha) == 0:
+            if alpha > 0:
+                self._alpha_mass = float(alpha) * model.mass.data
+        elif np.any(alpha > 0):
+            # S M S with S = diag(sqrt(alpha)) per DOF: symmetric positive semi-definite, and
+            # alpha M on every body whose vertices share one alpha
+            s = np.repeat(np.sqrt(alpha), 3)
+            pat = model.pattern
+            rows = np.repeat(np.arange(pat.shape[0]), np.diff(pat.indptr))
+            self._alpha_mass = model.mass.data * s[rows] * s[pat.indices]
+        beta = self.rayleigh_beta
+        self._beta_vol: np.ndarray | None = None
+        if np.ndim(beta) == 0:
+            if beta > 0:
+                self._beta_vol = model.vol * float(beta)
+        elif np.any(beta > 0):
+            self._beta_vol = model.vol * beta
+
+    @property
+    def has_damping(self) -> bool:
+        """Whether ``D = alpha M + beta K`` is non-zero."""
+        return self._alpha_mass is not None or self._beta_vol is not None
+
+    def damping_data(self, q: np.ndarray) -> np.ndarray | None:
+        """CSR ``data`` on ``model.pattern`` of the Rayleigh damping matrix at ``q``.
+
+        ``D = alpha M + beta K_psd(q)``: ``K_psd`` is the elastic Hessian with each
+        element's ``dP/dF`` projected to positive semi-definite (generated ``hessian_psd``),
+        scaled per tet by ``beta``. The integrators evaluate it at the start of the step
+        (``q_t``: constant during the step, so backward Euler's dissipation stays a quadratic
+        ``dt/2 v^T D v``). The projection keeps ``D`` positive semi-definite where the exact
+        ``K`` is indefinite (compressed tets), so damping never feeds energy in; at rest it
+        is the exact stiffness (the classic Rayleigh ``beta K``).
+
+        Returns
+        -------
+        (nnz,) float64 or None
+            None without damping.
+        """
+        if not self.has_damping:
+            return None
+        data = np.zeros(self.model.nnz)
+        if self._beta_vol is not None:
+            _hessian_into(self.model, "hessian_psd", q, self._beta_vol, self.model.scatter, data)
+        if self._alpha_mass is not None:
+            data += self._alpha_mass
+        return data
+
+    def gravity_energy(self, q: np.ndarray) -> float:
+        """Gravity's potential ``-f_g . (q - X)`` (zero at rest; ``f_g = M g``)."""
+        if self.gravity_force is None:
+            return 0.0
+        dq = np.asarray(q, dtype=np.float64).reshape(-1) - self.model.X.reshape(-1)
+        return -float(self.gravity_force @ dq)
 
     # -- helpers ------------------------------------------------------------------------------
     def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -327,9 +536,11 @@ class System:
         return cached[1]
 
     def newton_matrix(
-        self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False
+        self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False,
+        damping: np.ndarray | None = None,
     ) -> sp.csr_matrix:
-        """``P (M + dt^2 (H(q) + H_pull(q))) P^T`` on :attr:`pattern_free`, assembled directly.
+        """``P (M + dt^2 (H(q) + H_pull(q)) + dt D) P^T`` on :attr:`pattern_free`, assembled
+        directly.
 
         Parameters
         ----------
@@ -341,6 +552,9 @@ class System:
             Pull springs whose Hessian is added (the target is not a DOF).
         psd : bool, optional
             Use the generated ``hessian_psd`` kernel (``dP/dF`` projected per element).
+        damping : (model.nnz,) float64, optional
+            The damping matrix ``D`` on ``model.pattern`` (:meth:`damping_data`), added as
+            ``dt D``.
 
         Returns
         -------
@@ -353,20 +567,21 @@ class System:
         kernel = "hessian_psd" if psd else "hessian"
         vol = self._volumes_times(dt * dt)
         data = np.empty(nnz_free + 1)  # the last slot is the sink of fixed-DOF entries
-        data[:nnz_free] = self.mass_free.data
         data[nnz_free] = 0.0
-        if model.mat.has_assemble(kernel):
-            getattr(model.mat, f"{kernel}_assemble")(
-                q, model.T, model.dphi_dX, vol, model.params, self._free_scatter, data)
-        else:
-            x_e = np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), model.T, axis=0)
-            H = getattr(model.mat, kernel)(x_e, model.dphi_dX, vol, model.params)
-            data += np.bincount(self._free_scatter, weights=H.reshape(-1),
-                                minlength=nnz_free + 1)
+        if self._free_scatter is not None:
+            data[:nnz_free] = self.mass_free.data
+            _hessian_into(model, kernel, q, vol, self._free_scatter, data)
+        else:  # each kept entry gets the same contributions in the same order
+            full = np.array(model.mass.data)
+            _hessian_into(model, kernel, q, vol, model.scatter, full)
+            np.take(full, self._kept, out=data[:nnz_free])
+            del full
         if pull is not None and pull.vertices.size:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
             slots = self._free_slot[self._pull_positions(pull)]
             np.add.at(data, slots, (dt * dt) * pull.hessian_blocks(self.spring, q3).reshape(-1))
+        if damping is not None:  # + dt D (backward Euler's dissipation dt/2 v^T D v)
+            data[:nnz_free] += dt * damping[self._kept]
         A = sp.csr_matrix((data[:nnz_free], self.pattern_free.indices, self.pattern_free.indptr),
                           shape=self.pattern_free.shape, copy=False)
         A.has_sorted_indices = True
@@ -404,42 +619,261 @@ class System:
         if 0 < shift_hint <= mu_max:  # the rungs of the ladder from the hint up
             tries = 1 + math.floor(math.log(mu_max / shift_hint, SHIFT_LADDER_GROWTH) + 1e-9)
             mu0 = shift_hint
+        A_free = self.on_solver_pattern(A_free)
+        mass = self.on_solver_pattern(self.mass_free)
         try:
-            mu = self._solver.factorize_shifted(
-                A_free, self.mass_free, mu0=mu0, growth=SHIFT_LADDER_GROWTH, max_tries=tries,
+            mu = self.solver.factorize_shifted(
+                A_free, mass, mu0=mu0, growth=SHIFT_LADDER_GROWTH, max_tries=tries,
                 try_unshifted=mu0 == SHIFT_LADDER_START and shift_hint <= 0,
             )
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
         # the matrix actually factorized: a checkpoint rebuilds exactly this factor
-        self.factorized_data = A_free.data + mu * self.mass_free.data if mu else \
-            np.array(A_free.data)
+        self.factorized_data = A_free.data + mu * mass.data if mu else np.array(A_free.data)
         return mu
+
+    # -- objective terms' Hessian entries -----------------------------------------------------
+    def on_solver_pattern(self, A: sp.csr_matrix) -> sp.csr_matrix:
+        """``A`` (on :attr:`pattern_free` or the solver's pattern) on the solver's pattern."""
+        ext = self._ext
+        if ext is None or A.nnz == ext.pattern.nnz:
+            return A
+        if A.nnz != self.pattern_free.nnz:
+            raise ValueError("matrix is on neither the reduced nor the extended pattern")
+        data = np.zeros(ext.pattern.nnz)
+        data[ext.base_pos] = A.data
+        return ext.csr(data)
+
+    def add_hessian(self, A: sp.csr_matrix, H, scale: float = 1.0) -> sp.csr_matrix:
+        """``A + scale P H P^T``: an objective term's Hessian added to a reduced matrix.
+
+        Parameters
+        ----------
+        A : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+            On :attr:`pattern_free` or the solver's current (extended) pattern.
+        H : None, (3n, 3n) scipy.sparse matrix, or (rows, cols, values)
+            The term's Hessian in full-DOF indices (duplicates are summed; entries on fixed
+            DOFs are dropped). A matrix on ``model.pattern`` itself is added directly.
+        scale : float
+            ``dt^2`` for a position-space term in backward Euler's velocity unknowns.
+
+        Returns
+        -------
+        scipy.sparse.csr_matrix
+            On :attr:`pattern_free` when every entry falls inside it; otherwise on an extended
+            pattern (``pattern_free`` plus the term's entries, made structurally symmetric).
+            A new extended pattern replaces the solver (one symbolic analysis) and drops the
+            kept factorization; the pattern only grows, so a term whose entries come and go
+            (contact pairs) re-analyses only when an entry appears that was never seen.
+        """
+        if H is None:
+            return A
+        pat = self.model.pattern
+        if sp.issparse(H):
+            H = sp.csr_matrix(H)
+            if H.shape != pat.shape:
+                raise ValueError(f"term Hessian has shape {H.shape}, expected {pat.shape}")
+            if H.nnz == pat.nnz and np.array_equal(H.indptr, pat.indptr) and \
+                    np.array_equal(H.indices, pat.indices):
+                A = self.on_solver_pattern(A)
+                data = np.array(A.data)
+                if self._ext is None:
+                    data += scale * H.data[self._kept]
+                else:
+                    data[self._ext.base_pos] += scale * H.data[self._kept]
+                return self._like(A, data)
+            H = H.tocoo()
+            rows, cols, vals = H.row, H.col, H.data
+        else:
+            rows, cols, vals = H
+        new = self.constraints._new_index
+        rows = new[np.asarray(rows, dtype=np.int64)]
+        cols = new[np.asarray(cols, dtype=np.int64)]
+        vals = scale * np.asarray(vals, dtype=np.float64)
+        keep = (rows >= 0) & (cols >= 0)
+        if not keep.all():
+            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+        if rows.size == 0:
+            return A
+        nf = self.constraints.n_free
+        keys = rows * nf + cols
+        if self._ext is None:
+            base = self._base_key_array()
+            pos = np.minimum(np.searchsorted(base, keys), base.size - 1)
+            if np.array_equal(base[pos], keys):
+                data = np.array(A.data)
+                np.add.at(data, pos, vals)
+                return self._like(A, data)
+        ext = self._ext
+        if ext is None or not np.array_equal(
+                ext.keys[np.minimum(np.searchsorted(ext.keys, keys), ext.keys.size - 1)], keys):
+            ext = self._extend(keys)
+        A = self.on_solver_pattern(A)
+        data = np.array(A.data)
+        np.add.at(data, np.searchsorted(ext.keys, keys), vals)
+        return ext.csr(data)
+
+    def _like(self, A: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
+        B = sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape, copy=False)
+        B.has_sorted_indices = True
+        return B
+
+    def _base_key_array(self) -> np.ndarray:
+        if self._base_keys is None:
+            pf = self.pattern_free
+            r = np.repeat(np.arange(pf.shape[0], dtype=np.int64), np.diff(pf.indptr))
+            self._base_keys = r * pf.shape[1] + pf.indices
+        return self._base_keys
+
+    def _extend(self, keys: np.ndarray) -> _ExtendedPattern:
+        """Widen the solver's pattern by ``keys`` (and their transposes); new analysis."""
+        nf = self.constraints.n_free
+        old = self._base_key_array() if self._ext is None else self._ext.keys
+        r, c = np.divmod(keys, nf)
+        union = np.union1d(old, np.concatenate([keys, c * nf + r]))
+        rows, cols = np.divmod(union, nf)
+        indptr = np.zeros(nf + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=nf), out=indptr[1:])
+        pattern = sp.csr_matrix((np.zeros(union.size), cols.astype(np.int32), indptr),
+                                shape=(nf, nf))
+        pattern.has_sorted_indices = True
+        ext = _ExtendedPattern(pattern=pattern, keys=union,
+                               base_pos=np.searchsorted(union, self._base_key_array()))
+        self._ext = ext
+        self._solver = None if self.linear_backend == "amg" else \
+            self._new_direct_solver(pattern)
+        self.factorized_data = None
+        self.pattern_generation += 1
+        return ext
 
     def refactorize_saved(self, data: np.ndarray) -> None:
         """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
         checkpoint's preconditioner): the same matrix gives the same factor, so a resumed
         run that reuses factorizations across steps stays bit for bit identical."""
         data = np.asarray(data, dtype=np.float64)
-        if data.shape != (self.pattern_free.nnz,):
+        pat = self.pattern_free if self._ext is None else self._ext.pattern
+        if data.shape != (pat.nnz,):
             raise ValueError(f"saved factorization data has shape {data.shape}, the reduced "
-                             f"pattern {self.pattern_free.nnz} entries")
-        A = sp.csr_matrix((data.copy(), self.pattern_free.indices, self.pattern_free.indptr),
-                          shape=self.pattern_free.shape)
-        self.factorize(A)
+                             f"pattern {pat.nnz} entries")
+        A = sp.csr_matrix((data.copy(), pat.indices, pat.indptr), shape=pat.shape)
+        if self.linear_backend == "amg":
+            self.amg_setup(A)
+        else:
+            self.factorize(A)
+
+    def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
+        solver = SparseSPDSolver(pattern, backend=self._direct_backend)
+        if solver.backend == "superlu" and pattern is self.pattern_free and \
+                self.mass_free.shape[0]:
+            # SuperLU orders on its first factorization and takes another code path (explicit
+            # permutation, natural order) afterwards. Factorizing once here makes every step
+            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
+            # bit for bit what a long-lived one does.
+            solver.factorize(self.mass_free)
+        return solver
 
     @property
     def solver(self) -> SparseSPDSolver:
-        """The sparse solver holding the last factorization (shared pattern)."""
+        """The sparse direct solver holding the last factorization (made on first use with
+        the ``"amg"`` back end: the linearly-implicit scheme factorizes)."""
+        if self._solver is None:
+            pat = self.pattern_free if self._ext is None else self._ext.pattern
+            self._solver = self._new_direct_solver(pat)
         return self._solver
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve with the last factorization."""
-        return np.asarray(self._solver.solve(b)).reshape(-1)
+        return np.asarray(self.solver.solve(b)).reshape(-1)
+
+    @property
+    def amg(self) -> AMGPreconditioner:
+        """The AMG hierarchy holder (near-nullspace: rigid-body modes of the free vertices at
+        rest, so a hierarchy depends on its matrix alone)."""
+        if self._amg is None:
+            free_vertices = self.free[0::3] // 3
+            self._amg = AMGPreconditioner(rigid_body_modes(self.model.X[free_vertices]))
+        return self._amg
+
+    def amg_setup(self, A_free: sp.csr_matrix) -> None:
+        """Build the AMG hierarchy from ``A_free`` (on the solver's pattern);
+        :attr:`factorized_data` records the matrix (a checkpoint rebuilds the same one)."""
+        A_free = self.on_solver_pattern(A_free)
+        self.amg.setup(A_free, pattern_key=self.pattern_generation)
+        self.factorized_data = np.array(A_free.data)
+
+    @property
+    def amg_current(self) -> bool:
+        """A hierarchy exists for the solver's current pattern."""
+        return self._amg is not None and self._amg.ready and \
+            self._amg.pattern_key == self.pattern_generation
 
 
 # ---------------------------------------------------------------------------------------------
 # helpers
+
+
+@dataclass(frozen=True, eq=False)
+class _ExtendedPattern:
+    """``pattern_free`` widened by objective terms' entries (``keys = row * n + col``)."""
+
+    pattern: sp.csr_matrix
+    keys: np.ndarray
+    base_pos: np.ndarray
+
+    def csr(self, data: np.ndarray) -> sp.csr_matrix:
+        A = sp.csr_matrix((data, self.pattern.indices, self.pattern.indptr),
+                          shape=self.pattern.shape, copy=False)
+        A.has_sorted_indices = True
+        return A
+
+
+def _hessian_into(model: Model, kernel: str, q: np.ndarray, vol: np.ndarray,
+                  scatter: np.ndarray, out: np.ndarray) -> None:
+    """Add the element Hessians (``kernel``: ``"hessian"`` or ``"hessian_psd"``, element
+    volumes ``vol``, i.e. any per-element scale folded in) into ``out[scatter]``."""
+    if model.mat.has_assemble(kernel):
+        getattr(model.mat, f"{kernel}_assemble")(
+            q, model.T, model.dphi_dX, vol, model.params, scatter, out)
+    else:
+        x_e = np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), model.T, axis=0)
+        H = getattr(model.mat, kernel)(x_e, model.dphi_dX, vol, model.params)
+        out += np.bincount(scatter, weights=H.reshape(-1), minlength=out.size)
+
+
+def _validate_physics(model: Model, gravity, alpha, beta):
+    """Checked gravity ``(3,)`` (or None), Rayleigh ``alpha`` (float or ``(n,)``) and
+    ``beta`` (float or ``(m,)``); ParameterError names the bad one."""
+    from fem3d.errors import ParameterError
+
+    g = None
+    if gravity is not None:
+        g = np.array(gravity, dtype=np.float64).reshape(-1)
+        if g.shape != (3,) or not np.isfinite(g).all():
+            raise ParameterError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        if not g.any():
+            g = None
+        else:
+            g.setflags(write=False)
+
+    def coefficient(value, name: str, count: int, what: str):
+        a = np.asarray(value, dtype=np.float64)
+        if a.ndim == 0:
+            v = float(a)
+            if not math.isfinite(v) or v < 0:
+                raise ParameterError(f"{name} must be a finite number >= 0, got {v}")
+            return v
+        if a.shape != (count,):
+            raise ParameterError(f"{name} must be a number or one per {what} ({count},), got "
+                                 f"shape {a.shape}")
+        if not (np.isfinite(a).all() and (a >= 0).all()):
+            bad = int(np.flatnonzero(~(np.isfinite(a) & (a >= 0)))[0])
+            raise ParameterError(f"{name} of {what} {bad} must be finite and >= 0, got {a[bad]}")
+        a = a.copy()
+        a.setflags(write=False)
+        return a
+
+    return (g, coefficient(alpha, "rayleigh_alpha", model.n_vertices, "vertex"),
+            coefficient(beta, "rayleigh_beta", model.n_tets, "tet"))
 
 
 def _check_finite(q: np.ndarray, v: np.ndarray, step: int, what: str) -> None:
@@ -465,6 +899,45 @@ def _gradient_norm(g: np.ndarray) -> float:
     return n
 
 
+@dataclass(frozen=True, eq=False)
+class _Pins:
+    """The fixed vertices over one step: end positions ``p`` and velocities ``v_c``."""
+
+    p: np.ndarray  # (n_fixed, 3) positions at the end of the step
+    q_base: np.ndarray  # (3n,) q_t with the fixed DOFs at p
+    v_fixed: np.ndarray | None  # (3n,) v_c on fixed DOFs, 0 on free ones (None: static pins)
+    v_t_fixed: np.ndarray | None  # (3n,) v_t on fixed DOFs, 0 on free ones
+
+
+def _pins(system: System, state: State, dt: float, fixed_positions) -> _Pins:
+    """Where the fixed vertices go this step (``fixed_positions`` None: they stay)."""
+    c = system.constraints
+    fv = c.fixed_vertices
+    q_t = state.q.reshape(-1)
+    fixed_dofs = (3 * fv[:, None] + np.arange(3)).reshape(-1)
+    v_t_fixed = None
+    if fixed_dofs.size and np.any(state.v.reshape(-1)[fixed_dofs]):
+        v_t_fixed = np.zeros(c.n_dofs)
+        v_t_fixed[fixed_dofs] = state.v.reshape(-1)[fixed_dofs]
+    if fixed_positions is None:
+        v_fixed = None if v_t_fixed is None else np.zeros(c.n_dofs)
+        return _Pins(state.q[fv], q_t, v_fixed, v_t_fixed)
+    from fem3d.errors import ParameterError
+
+    p = np.array(fixed_positions, dtype=np.float64)
+    if p.shape != (fv.size, 3):
+        raise ParameterError(f"fixed_positions must have shape ({fv.size}, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ParameterError("fixed_positions are not finite")
+    q_base = q_t.copy()
+    q_base[fixed_dofs] = p.reshape(-1)
+    v_fixed = np.zeros(c.n_dofs)
+    v_fixed[fixed_dofs] = (p.reshape(-1) - q_t[fixed_dofs]) / dt
+    if v_t_fixed is None:
+        v_t_fixed = np.zeros(c.n_dofs)
+    return _Pins(p, q_base, v_fixed, v_t_fixed)
+
+
 def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> State:
     v = system.constraints.expand_zero(v_free).reshape(-1, 3)
     q = state.q + dt * v
@@ -472,6 +945,20 @@ def _new_state(system: System, state: State, v_free: np.ndarray, dt: float) -> S
         fv = system.constraints.fixed_vertices
         q[fv] = system.constraints.x0.reshape(-1, 3)[fv]
     return State(q=q, v=v, t=state.t + dt, step=state.step + 1)
+
+
+def _place_pins(system: System, new: State, pins: _Pins) -> State:
+    """``new`` with the fixed vertices where ``pins`` puts them (exactly) and their velocity."""
+    fv = system.constraints.fixed_vertices
+    if fv.size == 0:
+        return new
+    q = np.array(new.q)
+    q[fv] = pins.p
+    v = new.v
+    if pins.v_fixed is not None:
+        v = np.array(v)
+        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
+    return State(q=q, v=v, t=new.t, step=new.step)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -486,12 +973,15 @@ def linearly_implicit_euler(
     *,
     energy_bound: float | None = None,
     linearize_pull: bool = True,
+    fixed_positions: np.ndarray | None = None,
 ) -> tuple[State, StepStats]:
     """One linearly-implicit Euler step.
 
-    Solves ``(M - dt^2 K(q_t)) v+ = M v_t + dt f(q_t)`` on the free DOFs (``K = -H``) and sets
-    ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their stiffness part
-    of ``K``.
+    Solves ``(M - dt^2 K(q_t) + dt D) v+ = M v_t + dt (f(q_t) + M g)`` on the free DOFs
+    (``K = -H``, ``D`` the Rayleigh damping :meth:`System.damping_data` at ``q_t``, ``g``
+    gravity) and sets ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their
+    stiffness part of ``K``. Moving pins: the fixed DOFs' velocity ``v_c = (p - q_t) / dt``
+    is known, so the free rows solve ``A_ff v_f = rhs_f - A_fc v_c``.
 
     Parameters
     ----------
@@ -508,6 +998,9 @@ def linearly_implicit_euler(
     linearize_pull : bool, optional
         Include the pull springs' stiffness in the matrix (default True). False gives the
         assignment's variant (spring force explicit), which explodes for the scenes' pulls.
+    fixed_positions : (n_fixed, 3) float64, optional
+        Positions of the fixed vertices at the end of the step (moving pins; None: they stay
+        where they are). The fixed vertices land on them exactly.
 
     Returns
     -------
@@ -522,11 +1015,25 @@ def linearly_implicit_euler(
     dt = validate_dt(dt)
     model, c = system.model, system.constraints
     qf, vf = state.q.reshape(-1), state.v.reshape(-1)
+    pins = _pins(system, state, dt, fixed_positions)
     f = -assemble_gradient(model, qf)
     if pull is not None:
         f -= pull.gradient(system.spring, state.q)
-    A = system.newton_matrix(qf, dt, pull if linearize_pull else None)
+    if system.gravity_force is not None:
+        f += system.gravity_force
+    damping = system.damping_data(qf)
+    A = system.newton_matrix(qf, dt, pull if linearize_pull else None, damping=damping)
     rhs = model.mass @ vf + dt * f
+    if pins.v_fixed is not None:  # move A_fc v_c to the right-hand side
+        vc = pins.v_fixed
+        Avc = model.mass @ vc
+        hdata = np.zeros(model.nnz)
+        _hessian_into(model, "hessian", qf, system._volumes_times(dt * dt), model.scatter,
+                      hdata)
+        Avc += model.csr(hdata) @ vc
+        if damping is not None:
+            Avc += dt * (model.csr(damping) @ vc)
+        rhs = rhs - Avc
     stats = StepStats(newton_iterations=1)
     if not (np.isfinite(A.data).all() and np.isfinite(rhs).all()):
         raise SimulationError(
@@ -539,11 +1046,13 @@ def linearly_implicit_euler(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
         ) from exc
     v_free = system.solve(c.restrict(rhs))
-    new = _new_state(system, state, v_free, dt)
+    new = _place_pins(system, _new_state(system, state, v_free, dt), pins)
     _check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
         total += pull.energy(system.spring, new.q)
+    if system.gravity_force is not None:
+        total += system.gravity_energy(new.q)
     if not math.isfinite(total):
         n_inv = count_inverted(model, new.q)
         raise SimulationError(
@@ -579,6 +1088,8 @@ def newtons_method(
     max_halvings: int = 30,
     decrement_rtol: float = 1e-14,
     on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
+    max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    roundoff_rtol: float = 0.0,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -609,6 +1120,16 @@ def newtons_method(
     on_no_step : callable ``(x, d)``, optional
         Called when every trial point was inadmissible (``+inf``); expected to raise. When it
         is None or returns, Newton stops at the current ``x``.
+    max_step : callable ``(x, d) -> float``, optional
+        Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
+        the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
+        A non-positive value stops Newton at ``x`` (not converged).
+    roundoff_rtol : float, optional
+        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
+        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
+        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance, stop (converged at round-off)
+        rather than halve through noise. 0 (default): plain backtracking.
 
     Returns
     -------
@@ -632,10 +1153,15 @@ def newtons_method(
         if not (slope < 0 and np.isfinite(d).all()):  # not a descent direction: fall back
             d = -g
             slope = -gn * gn
+        a0 = alpha
+        if max_step is not None:
+            a0 = min(alpha, float(max_step(x, d)))
+            if not a0 > 0.0:
+                return NewtonResult(x, it, norms, False, halvings)
         if -slope <= decrement_rtol * abs(fx):
             # The predicted decrease is below the objective's round-off, so Armijo tests are
             # noise: take the full step while it is admissible and shrinks the gradient.
-            xt = x + d
+            xt = x + d if a0 == 1.0 else x + a0 * d
             gt = gradient(xt) if math.isfinite(energy(xt)) else None
             gtn = math.inf if gt is None or not np.isfinite(gt).all() else _gradient_norm(gt)
             if not gtn < gn:
@@ -644,9 +1170,10 @@ def newtons_method(
             norms.append(gn)
             it += 1
             continue
-        a = alpha
+        a = a0
         accepted = False
         any_finite = False
+        gt = None
         for _ in range(max_halvings):
             xt = x + a * d
             ft = energy(xt)
@@ -655,6 +1182,18 @@ def newtons_method(
                 if ft <= fx + c * a * slope:
                     accepted = True
                     break
+                if roundoff_rtol and a == a0:
+                    if ft <= fx + roundoff_rtol * abs(fx):
+                        # the energy cannot tell the trial from x: judge by the gradient
+                        gt = gradient(xt)
+                        if np.isfinite(gt).all() and _gradient_norm(gt) < gn:
+                            accepted = True
+                            break
+                        gt = None
+                    if gn <= ROUNDOFF_GRADIENT_FACTOR * tol:
+                        # near the tolerance a failed full step is the energy's and the
+                        # gradient's round-off: stop there rather than halve through noise
+                        return NewtonResult(x, it, norms, True, halvings)
             a *= p
             halvings += 1
         if not accepted:
@@ -662,7 +1201,7 @@ def newtons_method(
                 on_no_step(x, d)
             return NewtonResult(x, it, norms, any_finite, halvings)
         x, fx = xt, ft
-        g = gradient(x)
+        g = gradient(x) if gt is None else gt
         gn = _gradient_norm(g)
         norms.append(gn)
         it += 1
@@ -673,12 +1212,43 @@ def newtons_method(
 # backward Euler
 
 
+@runtime_checkable
+class ObjectiveTerm(Protocol):
+    """A term added to backward Euler's objective (contact barrier, friction, ...).
+
+    Everything is in positions ``q`` (full ``(3n,)`` vertex-major vector, fixed DOFs
+    included); :func:`implicit_euler` applies the chain rule to its velocity unknowns
+    (``q = q_base + dt P^T v_free``: gradient ``dt P g``, Hessian ``dt^2 P H P^T``).
+
+    Required: ``energy(q) -> float`` (``+inf`` marks an inadmissible point) and
+    ``gradient(q) -> (3n,)``. Optional:
+
+    ``hessian(q)``
+        ``None``, a ``(3n, 3n)`` scipy.sparse matrix, or ``(rows, cols, values)`` triplets in
+        full-DOF indices (duplicates summed); symmetric positive semi-definite is the term's
+        job (e.g. a PSD-projected barrier Hessian). Entries outside the mesh's pattern widen
+        the solver's pattern (:meth:`System.add_hessian`).
+    ``max_step(q, dq) -> float``
+        Largest admissible fraction of the position increment ``dq`` (continuous collision
+        detection); clamps the line search before it backtracks.
+    ``requires_convergence`` (attribute, bool)
+        True: the step runs Newton to its tolerance instead of stopping at the iteration cap
+        (``converged_max_iterations`` caps it).
+    """
+
+    def energy(self, q: np.ndarray) -> float: ...
+
+    def gradient(self, q: np.ndarray) -> np.ndarray: ...
+
+
 def implicit_euler(
     system: System,
     state: State,
     dt: float,
     pull: Pull | None = None,
     *,
+    fixed_positions: np.ndarray | None = None,
+    terms: Sequence[ObjectiveTerm] = (),
     max_iterations: int | None = 5,
     rtol: float = 1e-10,
     atol_factor: float = 1e-12,
@@ -686,27 +1256,47 @@ def implicit_euler(
     linear_solver: str = "direct",
     cg_rtol: float = 1e-6,
     cg_maxiter: int = 16,
+    converged_max_iterations: int = 100,
+    amg_maxiter: int = 200,
+    amg_budget: float = AMG_ITERATIONS_PER_DECADE,
+    forcing_max: float = FORCING_MAX,
 ) -> tuple[State, StepStats]:
     """One backward (implicit) Euler step as an energy minimisation.
 
-    ``v+ = argmin_v E(v)``, ``E(v) = 1/2 (v - v_t)^T M (v - v_t) + V(q_t + dt v)
-    + V_pull(q_t + dt v)`` over the free DOFs, by :func:`newtons_method` with gradient
-    ``M (v - v_t) + dt dV/dq`` and Hessian ``M + dt^2 H`` (pull springs included).
+    ``v+ = argmin_v E(v)`` over the free DOFs, ``q(v) = q_base + dt P^T v`` (``q_base``:
+    ``q_t`` with the fixed DOFs at their end-of-step positions), with
+
+    ``E(v) = 1/2 dv^T M dv + V(q) + V_pull(q) - dt f_g . v + dt/2 v^T D v + sum_i T_i(q)``
+
+    (``dv = v - v_t`` over all DOFs, the fixed ones' velocity ``(p - q_t)/dt`` prescribed;
+    ``f_g = M g`` gravity, as the potential ``-f_g . q`` relative to ``q_t``; ``D`` the
+    Rayleigh damping at ``q_t``, :meth:`System.damping_data`; ``T_i`` the objective terms),
+    minimised by :func:`newtons_method` with gradient ``M dv + dt (dV/dq + ...) - dt f_g +
+    dt D v`` and Hessian ``M + dt^2 (H + H_pull + sum H_i) + dt D``. Its minimiser is the
+    backward-Euler update ``M (v+ - v_t) = dt (f(q+) + f_g - D v+)``, and the line search sees
+    this one energy.
 
     Indefinite Hessian (compressed Neo-Hookean tets): the factorization is tried as is and,
     when it is not positive definite, retried with a diagonal shift ``tau diag(M)`` of
     increasing ``tau`` (see :meth:`System.factorize`), which always gives a descent
     direction; if no shift of the ladder works (tets close to inversion), the iteration uses
     the PSD-projected Hessian (``hessian_psd``), which is always positive definite. Any trial
-    point with an inverted tet (``det F <= 0``) or a non-finite energy counts as ``+inf`` in
-    the line search, so accepted states never invert.
+    point with an inverted tet (``det F <= 0``; unless ``model.allows_inversion``) or a
+    non-finite energy counts as ``+inf`` in the line search, so accepted states never invert.
 
     Parameters
     ----------
     system : System
+        Holds gravity and damping.
     state : State
     dt : float
     pull : Pull, optional
+    fixed_positions : (n_fixed, 3) float64, optional
+        Positions of the fixed vertices at the end of the step (moving pins); None: they
+        stay where they are. The free DOFs see them in the elastic energy; the fixed
+        vertices land on them exactly.
+    terms : sequence of ObjectiveTerm, optional
+        Further terms of the objective (see :class:`ObjectiveTerm`).
     max_iterations : int or None, optional
         Newton iterations per step (default 5; None: until converged).
     rtol : float, optional
@@ -719,7 +1309,19 @@ def implicit_euler(
         ``"exact"`` (default): the true Hessian, quadratic convergence, shifted when
         indefinite. ``"psd"``: per-element ``dP/dF`` projected to positive semi-definite
         (generated ``hessian_psd`` kernel), always SPD, linear convergence near the solution.
-    linear_solver : {"direct", "reuse"}, optional
+    linear_solver : {"direct", "reuse", "amg"}, optional
+        How the Newton systems are solved; a :class:`System` whose back end is ``"amg"``
+        (``System(..., "amg")``, or ``"auto"`` above
+        :data:`fem3d.linsolve.AMG_AUTO_MIN_FREE_DOFS` free DOFs) always uses ``"amg"``.
+        ``"amg"``: an inexact Newton: CG preconditioned by a smoothed-aggregation AMG
+        V-cycle (:class:`fem3d.linsolve.AMGPreconditioner`), solved to the forcing term
+        ``eta_k = min(forcing_max, sqrt(|g_k| / |g_0|))`` (loose early, tighter as Newton
+        converges; never tighter than needed to reach the gradient tolerance, whose value is
+        unchanged). The hierarchy is kept across iterations and steps and rebuilt when the
+        last solve needed more than ``amg_budget`` CG iterations per decade of residual
+        reduction or did not converge within ``amg_maxiter``, and when an objective term
+        widened the pattern. An indefinite Newton matrix (CG meets negative curvature) is
+        replaced by the PSD-projected one for the rest of the step (``psd_fallbacks``).
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
         (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
@@ -736,6 +1338,12 @@ def implicit_euler(
         CG iterations per solve before refactorizing (default 16: about the cost of one
         factorization on armadillo-class meshes of 1e3 to 1e5 tets, where a factorization
         costs 10 to 40 CG iterations; ``python -m bench.newton_step``).
+    converged_max_iterations : int, optional
+        The iteration cap when a term sets ``requires_convergence`` (default 100).
+    amg_maxiter, amg_budget, forcing_max : optional
+        ``"amg"``: CG iterations per solve, the rebuild threshold in iterations per decade
+        (:data:`AMG_ITERATIONS_PER_DECADE`) and the loosest forcing term
+        (:data:`FORCING_MAX`).
 
     Returns
     -------
@@ -751,8 +1359,16 @@ def implicit_euler(
     if hessian not in ("exact", "psd"):
         raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
     psd = hessian == "psd"
-    if linear_solver not in ("direct", "reuse"):
-        raise ValueError(f"linear_solver must be 'direct' or 'reuse', got {linear_solver!r}")
+    if linear_solver not in ("direct", "reuse", "amg"):
+        raise ValueError(
+            f"linear_solver must be 'direct', 'reuse' or 'amg', got {linear_solver!r}")
+    use_amg = linear_solver == "amg" or system.linear_backend == "amg"
+    if use_amg:
+        linear_solver = "amg"
+    terms = tuple(terms)
+    if max_iterations is not None and any(
+            getattr(t, "requires_convergence", False) for t in terms):
+        max_iterations = max(max_iterations, converged_max_iterations)
     pcg = None
     if linear_solver == "reuse":
         pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=cg_maxiter,
@@ -760,24 +1376,53 @@ def implicit_euler(
     last_cg = [0]  # CG iterations of this step's last solve (0 after a factorization)
     shift_hint = [0.0]  # where this step's next shift ladder starts (0: unshifted first)
     model, c, spring = system.model, system.constraints, system.spring
+    check_inversion = not getattr(model, "allows_inversion", False)
     free = c.free_dofs
     q_t = state.q.reshape(-1)
     v_t = state.v.reshape(-1)
     mass_free = system.mass_free
     vt_free = v_t[free]
     stats = StepStats()
+    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
+    atol = atol_factor * dt * model.E * L * L
+    pins = _pins(system, state, dt, fixed_positions)
+    q_base = pins.q_base
+    f_free = None if system.gravity_force is None else system.gravity_force[free]
+    damping = system.damping_data(q_t)
+    D = None if damping is None else model.csr(damping)
+    hessian_terms = [t for t in terms if callable(getattr(t, "hessian", None))]
+    step_terms = [t for t in terms if callable(getattr(t, "max_step", None))]
 
     def positions(v_free: np.ndarray) -> np.ndarray:
-        return q_t + dt * c.expand_zero(v_free)
+        return q_base + dt * c.expand_zero(v_free)
+
+    # moving pins (or pins that stopped): the fixed DOFs' velocity change is prescribed and
+    # enters the kinetic term through the mass matrix's free-fixed coupling
+    dv_fixed = None if pins.v_fixed is None else pins.v_fixed - pins.v_t_fixed
+
+    def velocity(v_free: np.ndarray) -> np.ndarray:
+        v = c.expand_zero(v_free)
+        return v if pins.v_fixed is None else v + pins.v_fixed
 
     def energy(v_free: np.ndarray) -> float:
         q = positions(v_free)
-        if count_inverted(model, q):
+        if check_inversion and count_inverted(model, q):
             return math.inf
-        dv = v_free - vt_free
-        e = 0.5 * float(dv @ (mass_free @ dv)) + potential_energy(model, q)
+        if dv_fixed is None:
+            dv = v_free - vt_free
+            e = 0.5 * float(dv @ (mass_free @ dv)) + potential_energy(model, q)
+        else:
+            dv = c.expand_zero(v_free - vt_free) + dv_fixed
+            e = 0.5 * float(dv @ (model.mass @ dv)) + potential_energy(model, q)
         if pull is not None:
             e += pull.energy(spring, q.reshape(-1, 3))
+        if f_free is not None:
+            e -= dt * float(f_free @ v_free)
+        if D is not None:
+            v = velocity(v_free)
+            e += 0.5 * dt * float(v @ (D @ v))
+        for term in terms:
+            e += float(term.energy(q))
         return e if math.isfinite(e) else math.inf
 
     def gradient(v_free: np.ndarray) -> np.ndarray:
@@ -785,17 +1430,94 @@ def implicit_euler(
         gq = assemble_gradient(model, q)
         if pull is not None:
             gq += pull.gradient(spring, q.reshape(-1, 3))
-        return mass_free @ (v_free - vt_free) + dt * gq[free]
+        for term in terms:
+            gq += term.gradient(q)
+        if dv_fixed is None:
+            g = mass_free @ (v_free - vt_free) + dt * gq[free]
+        else:
+            dv = c.expand_zero(v_free - vt_free) + dv_fixed
+            g = (model.mass @ dv)[free] + dt * gq[free]
+        if f_free is not None:
+            g -= dt * f_free
+        if D is not None:
+            g += dt * (D @ velocity(v_free))[free]
+        return g
+
+    def matrix(q: np.ndarray, psd_matrix: bool) -> sp.csr_matrix:
+        t0 = time.perf_counter()
+        A = system.newton_matrix(q, dt, pull, psd=psd_matrix, damping=damping)
+        for term in hessian_terms:
+            A = system.add_hessian(A, term.hessian(q), dt * dt)
+        stats.add_seconds("matrix", time.perf_counter() - t0)
+        return A
+
+    def timed(f, part):
+        def call(x):
+            t0 = time.perf_counter()
+            try:
+                return f(x)
+            finally:
+                stats.add_seconds(part, time.perf_counter() - t0)
+        return call
+
+    psd_now = [psd]  # AMG: switched to the PSD-projected Hessian for the rest of the step
+    g_first = [0.0]
+    last_per_decade = [0.0]
+
+    def amg_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        q = positions(v_free)
+        gn = float(np.linalg.norm(g))
+        if not g_first[0]:
+            g_first[0] = gn
+        tol = max(atol, rtol * g_first[0])
+        # forcing term: loose far from the solution, never tighter than reaching tol needs
+        eta = min(forcing_max, math.sqrt(gn / g_first[0]))
+        eta = min(forcing_max, max(eta, 0.5 * tol / gn)) if gn > 0 else forcing_max
+        A_free = matrix(q, psd_now[0])
+        if not np.isfinite(A_free.data).all():
+            return np.full_like(g, np.nan)
+        amg = system.amg
+        for _attempt in range(3):
+            fresh = False
+            if not system.amg_current or last_per_decade[0] > amg_budget:
+                t0 = time.perf_counter()
+                system.amg_setup(A_free)
+                stats.add_seconds("amg_setup", time.perf_counter() - t0)
+                stats.amg_setups += 1
+                fresh = True
+            t0 = time.perf_counter()
+            result = amg.solve(A_free, -g, rtol=eta, maxiter=amg_maxiter)
+            stats.add_seconds("cg", time.perf_counter() - t0)
+            stats.cg_iterations += result.iterations
+            last_per_decade[0] = iterations_per_decade(result)
+            if result.negative_curvature and not psd_now[0]:
+                # indefinite exact Hessian: the PSD-projected one for the rest of the step
+                psd_now[0] = True
+                stats.psd_fallbacks += 1
+                A_free = matrix(q, True)
+                last_per_decade[0] = 0.0
+                continue
+            if result.converged or (fresh and result.iterations and not
+                                    result.negative_curvature):
+                # a fresh hierarchy's best effort is still a descent direction (CG from 0)
+                return result.x
+            if fresh:  # negative curvature on the PSD matrix: only round-off can do that
+                break
+            last_per_decade[0] = math.inf  # rebuild on this matrix and try again
+        return np.full_like(g, np.nan)  # newtons_method falls back to -g
 
     def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        if use_amg:
+            return amg_direction(v_free, g)
         q = positions(v_free)
-        A_free = system.newton_matrix(q, dt, pull, psd=psd)
+        A_free = matrix(q, psd)
         if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
         # an aged preconditioner (the last solve needed over half the budget) is replaced now
         # rather than after another long CG run
         if pcg is not None and system.factorized_data is not None and \
                 last_cg[0] <= cg_maxiter // 2:
+            pcg.solver = system.solver  # an objective term may have widened the pattern
             result = pcg.solve(A_free, -g)
             stats.cg_iterations += result.iterations
             last_cg[0] = result.iterations
@@ -805,6 +1527,7 @@ def implicit_euler(
                 return result.x
             if result.negative_curvature:  # A is indefinite: do not try it unshifted
                 shift_hint[0] = max(shift_hint[0], SHIFT_LADDER_START)
+        t_factor = time.perf_counter()
         try:
             mu = system.factorize(A_free, shift_hint=shift_hint[0])
         except SimulationError:
@@ -812,7 +1535,7 @@ def implicit_euler(
                 raise
             # no shift up to the ladder's end makes the exact Hessian positive definite (tets
             # close to inversion); the PSD-projected one always is
-            mu = system.factorize(system.newton_matrix(q, dt, pull, psd=True))
+            mu = system.factorize(matrix(q, True))
             stats.psd_fallbacks += 1
         # Levenberg-Marquardt memory: the next iteration starts one rung lower, back to the
         # exact Hessian once below the ladder (a failed attempt costs a whole factorization)
@@ -821,7 +1544,14 @@ def implicit_euler(
         stats.shifted_factorizations += int(mu > 0)
         stats.factorizations += 1
         last_cg[0] = 0
-        return -system.solve(g)
+        d = -system.solve(g)
+        stats.add_seconds("factorize", time.perf_counter() - t_factor)
+        return d
+
+    def clamp(v_free: np.ndarray, d: np.ndarray) -> float:
+        q = positions(v_free)
+        dq = dt * c.expand_zero(d)
+        return min([1.0] + [float(t.max_step(q, dq)) for t in step_terms])
 
     def no_step(v_free: np.ndarray, d: np.ndarray) -> None:
         n_inv = count_inverted(model, positions(v_free + d))
@@ -838,15 +1568,15 @@ def implicit_euler(
         x0 = np.zeros_like(vt_free)
         if not math.isfinite(energy(x0)):
             raise SimulationError(
-                f"the current state is inadmissible ({count_inverted(model, q_t)} inverted "
+                f"the current state is inadmissible ({count_inverted(model, q_base)} inverted "
                 "tets or a non-finite energy)", step=state.step,
             )
-    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
-    atol = atol_factor * dt * model.E * L * L
     try:
         res = newtons_method(
-            x0, energy, gradient, direction, max_iterations=max_iterations, rtol=rtol,
-            atol=atol, on_no_step=no_step,
+            x0, timed(energy, "objective"), timed(gradient, "objective"), direction,
+            max_iterations=max_iterations, rtol=rtol, atol=atol, on_no_step=no_step,
+            max_step=clamp if step_terms else None,
+            roundoff_rtol=AMG_ROUNDOFF_RTOL if use_amg else 0.0,
         )
     except SimulationError as exc:
         if exc.step is not None:
@@ -857,7 +1587,7 @@ def implicit_euler(
     stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])
     stats.line_search_halvings = res.line_search_halvings
     stats.converged = res.converged
-    new = _new_state(system, state, res.x, dt)
+    new = _place_pins(system, _new_state(system, state, res.x, dt), pins)
     _check_finite(new.q, new.v, state.step, "backward Euler")
     return new, stats
 

@@ -37,15 +37,18 @@ from __future__ import annotations
 import contextlib
 import io
 import itertools
+import struct
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from os import PathLike
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from fem3d.errors import InputError
+from fem3d.rundir import check_input_file
 
 __all__ = [
     "MeshWarning",
@@ -690,9 +693,10 @@ def _header(tk: _Tokens, names: Sequence[str], defaults: Sequence[int]) -> list[
 def _tetgen_tet_mesh(path: Path) -> TetMesh:
     node_path, ele_path = _tetgen_paths(path)
     for p in (node_path, ele_path):
-        if not p.exists():
+        if not p.exists() and not p.is_symlink():
             raise InputError(f"file not found (TetGen meshes need both {node_path.name} and "
                              f"{ele_path.name})", path=p)
+        check_input_file(p, "mesh")
     tk = _Tokens(node_path)
     n, dim, nattr, nmark = _header(tk, ["the number of points", "the dimension",
                                        "the number of attributes",
@@ -768,8 +772,7 @@ def _meshio_extensions() -> set[str]:
 def _meshio_read(path: Path):  # -> meshio.Mesh
     import meshio
 
-    if not path.exists():
-        raise InputError("file not found", path=path)
+    check_input_file(path, "mesh")
     try:
         size = path.stat().st_size
         with open(path, "rb") as fh:
@@ -790,14 +793,34 @@ def _meshio_read(path: Path):  # -> meshio.Mesh
         raise InputError("cannot read file: it asks for more memory than available "
                          "(corrupt counts?)", path=path) from None
     except Exception as exc:  # noqa: BLE001 - any meshio/parser failure is bad input
-        msg = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
-        detail = type(exc).__name__ + (f": {msg}" if msg else "")
-        raise InputError(f"cannot read file ({detail})", path=path) from None
+        raise InputError(_parser_failure(exc, meshio, path), path=path) from None
     if points.ndim != 2 or points.shape[1] not in (2, 3):
         raise InputError(f"points must be 3-D, got an array of shape {points.shape}", path=path)
     if points.shape[1] == 2:
         raise InputError("only 3-D meshes are supported, file has 2-D points", path=path)
     return mesh, points
+
+
+def _parser_failure(exc: BaseException, meshio: Any, path: Path) -> str:
+    """What is wrong with a file a parser choked on, in terms of the file (not of the
+    parser's internals such as ``IndexError: list index out of range``)."""
+    fmt = path.suffix.lstrip(".").upper() or "mesh"
+    msg = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+    if isinstance(exc, getattr(meshio, "ReadError", ())) and msg:
+        what = msg[0].lower() + msg[1:]
+    elif isinstance(exc, UnicodeDecodeError):
+        what = "it holds binary or wrongly encoded data where text is expected"
+    elif isinstance(exc, SyntaxError) and msg:  # XML (VTU) parse errors
+        what = f"malformed XML ({msg})"
+    elif isinstance(exc, (IndexError, EOFError, struct.error)):
+        what = "it ends early, or a count in it does not match the data that follows"
+    elif isinstance(exc, KeyError):
+        what = "a section or field the format requires is missing"
+    elif isinstance(exc, (ValueError, TypeError)):
+        what = "a value is not a number where the format expects one, or a count is wrong"
+    else:
+        what = "its contents do not follow the format"
+    return f"not a readable {fmt} file: {what}"
 
 
 def _meshio_read_quietly(meshio, path: Path):  # -> meshio.Mesh
@@ -876,10 +899,7 @@ def read_tet_mesh(path: PathArg) -> TetMesh:
     suffix = p.suffix.lower()
     if suffix in (".node", ".ele") or (not p.exists() and Path(str(p) + ".node").exists()):
         return replace(_tetgen_tet_mesh(p), path=str(path))
-    if not p.exists():
-        raise InputError("file not found", path=p)
-    if p.is_dir():
-        raise InputError("is a directory, not a mesh file", path=p)
+    check_input_file(p, "mesh")
     if suffix == ".mesh":
         return _medit_tet_mesh(p)
     if suffix in _meshio_extensions() and suffix not in (".obj", ".stl", ".off", ".ply"):
@@ -998,10 +1018,7 @@ def read_surface_mesh(path: PathArg) -> tuple[np.ndarray, np.ndarray]:
     InputError
     """
     p = _check_path(path)
-    if not p.exists():
-        raise InputError("file not found", path=p)
-    if p.is_dir():
-        raise InputError("is a directory, not a mesh file", path=p)
+    check_input_file(p, "mesh")
     suffix = p.suffix.lower()
     if suffix == ".obj":
         return _read_obj(p)

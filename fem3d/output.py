@@ -39,6 +39,8 @@ __all__ = [
     "atomic_path",
     "atomic_write",
     "FrameWriter",
+    "UsdWriter",
+    "make_frame_writer",
     "EnergyLog",
     "read_energy_csv",
     "plot_energy",
@@ -98,6 +100,10 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, target)
+    except OSError as exc:  # disk full, quota, ...: name the file being written
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise OSError(exc.errno, f"{exc.strerror or exc} while writing", str(target)) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -278,6 +284,162 @@ class FrameWriter:
             lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(rel)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
         return "\n".join(lines)
+
+
+    # -- what the run loop calls on every writer (the USD writer works otherwise) --------
+    def flush(self) -> None:
+        """Nothing to do: every frame is on disk once :meth:`write` returns."""
+
+    def restore(self, frames: Mapping[int, tuple[float, str]], step: int) -> None:
+        """Continue a run: the frames written up to ``step`` (a checkpoint's list); files of
+        later frames (written after the checkpoint by an interrupted run) are removed."""
+        self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()}
+        for f in self.frame_dir.glob(f"frame_*.{self.fmt}"):
+            with contextlib.suppress(ValueError):
+                if int(f.stem.split("_")[-1]) > step:
+                    f.unlink()
+        if self.pvd_path is not None:
+            atomic_write(self.pvd_path, self.pvd_text())
+
+    def read_frames(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(step, (n_skin, 3) vertices)`` of every frame listed, read back from disk."""
+        import meshio
+
+        for step in sorted(self.frames):
+            with contextlib.suppress(Exception):
+                yield step, meshio.read(self.out_dir / self.frames[step][1]).points
+
+
+def _prim_names(names: Sequence[str]) -> list[str]:
+    import re
+
+    out: list[str] = []
+    for name in names:
+        n = re.sub(r"[^A-Za-z0-9_]", "_", str(name)) or "body"
+        if n[0].isdigit():
+            n = "_" + n
+        base, k = n, 1
+        while n in out:
+            k += 1
+            n = f"{base}_{k}"
+        out.append(n)
+    return out
+
+
+class UsdWriter:
+    """One ``frames.usdc`` (Pixar USD, binary crate) with time-sampled points per body.
+
+    The stage holds ``/World/<body>`` ``UsdGeom.Mesh`` prims (the body's display mesh,
+    faces fixed) whose ``points`` are sampled at time code = step index, with
+    ``timeCodesPerSecond = 1 / dt`` so players show simulated time. Blender, Houdini and
+    usdview open it directly. Frames are kept in memory (float32) and the file is rewritten
+    atomically by :meth:`flush` (at checkpoints and at the end of a run).
+
+    Parameters
+    ----------
+    out_dir : path
+    faces : (n_faces, 3) int
+        Triangles of the whole display mesh.
+    bodies : list of (name, vertex slice, face slice)
+        Each body's part of the display mesh.
+    dt : float
+        Time step (seconds per time code).
+    """
+
+    fmt = "usd"
+
+    def __init__(self, out_dir: PathLike, faces: np.ndarray,
+                 bodies: Sequence[tuple[str, slice, slice]], dt: float) -> None:
+        from pxr import Usd  # noqa: F401 - fail early without usd-core
+
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.out_dir / "frames.usdc"
+        self.faces = _check_faces(faces)
+        self.bodies = [(n, vs, fs) for n, vs, fs in bodies]
+        self.names = _prim_names([b[0] for b in bodies])
+        self.dt = float(dt)
+        self.frames: dict[int, tuple[float, str]] = {}
+        self._points: dict[int, np.ndarray] = {}
+        self.pvd_path = None
+        self.frame_dir = self.out_dir
+
+    def write(self, step_index: int, t: float, V: np.ndarray, point_data=None) -> Path:
+        """Keep one frame (written to disk by :meth:`flush`)."""
+        step_index = int(step_index)
+        V = _check_vertices(V, self.faces, step_index)
+        self._points[step_index] = np.asarray(V, dtype=np.float32).copy()
+        self.frames[step_index] = (float(t), self.path.name)
+        return self.path
+
+    def flush(self) -> None:
+        """Write ``frames.usdc`` (atomically) with every frame kept so far."""
+        if not self._points:
+            return
+        from pxr import Sdf, Usd, UsdGeom, Vt
+
+        stage = Usd.Stage.CreateInMemory()
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        steps = sorted(self._points)
+        stage.SetStartTimeCode(steps[0])
+        stage.SetEndTimeCode(steps[-1])
+        stage.SetTimeCodesPerSecond(1.0 / self.dt)
+        stage.SetFramesPerSecond(1.0 / self.dt)
+        world = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(world.GetPrim())
+        for name, (_, vs, fs) in zip(self.names, self.bodies, strict=True):
+            mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(f"/World/{name}"))
+            F = self.faces[fs] - vs.start
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(
+                np.full(F.shape[0], 3, dtype=np.int32)))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(
+                np.ascontiguousarray(F.reshape(-1), dtype=np.int32)))
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            pts = mesh.CreatePointsAttr()
+            for s in steps:
+                pts.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(self._points[s][vs])),
+                        Usd.TimeCode(s))
+        layer = stage.Flatten()
+        atomic_write(self.path, lambda p: layer.Export(str(p)))
+
+    def restore(self, frames: Mapping[int, tuple[float, str]], step: int) -> None:
+        """Continue a run: read back the frames up to ``step`` from ``frames.usdc``."""
+        self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()
+                       if int(k) <= step}
+        self._points = {}
+        if not self.frames:
+            return
+        from pxr import Usd, UsdGeom
+
+        if not self.path.is_file():
+            raise InputError("frames.usdc is missing (the checkpoint lists frames in it)",
+                             path=self.path)
+        stage = Usd.Stage.Open(str(self.path))
+        n = max(vs.stop for _, vs, _ in self.bodies)
+        for s in self.frames:
+            V = np.zeros((n, 3), dtype=np.float32)
+            for name, (_, vs, _) in zip(self.names, self.bodies, strict=True):
+                attr = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}")).GetPointsAttr()
+                V[vs] = np.asarray(attr.Get(Usd.TimeCode(s)), dtype=np.float32)
+            self._points[s] = V
+
+    def read_frames(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(step, vertices)`` of every frame kept."""
+        for s in sorted(self._points):
+            yield s, self._points[s].astype(np.float64)
+
+
+def make_frame_writer(out_dir: PathLike, faces: np.ndarray, fmt: str, *,
+                      bodies: Sequence[tuple[str, slice, slice]] | None = None,
+                      dt: float = 1.0) -> FrameWriter | UsdWriter:
+    """The frame writer of a format: ``"vtu"``/``"obj"`` (:class:`FrameWriter`) or ``"usd"``
+    (:class:`UsdWriter`, one prim per entry of ``bodies``)."""
+    if fmt == "usd":
+        if bodies is None:  # one prim; its points: the vertices the faces use, and below
+            bodies = [("body", slice(0, int(np.max(faces)) + 1), slice(0, len(faces)))]
+        return UsdWriter(out_dir, faces, bodies, dt)
+    return FrameWriter(out_dir, faces, fmt)
 
 
 # --------------------------------------------------------------------------------------
@@ -690,7 +852,9 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
     InputError
         Missing file, not a fem3d checkpoint, or unreadable.
     """
-    path = Path(path)
+    from fem3d.rundir import check_input_file
+
+    path = check_input_file(path, "checkpoint")
     try:
         with np.load(path, allow_pickle=False) as z:
             if _META_KEY not in z.files:

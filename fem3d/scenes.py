@@ -1,53 +1,33 @@
-"""Built-in scenes (the assignment's bunny and armadillo) and scenes from any tet mesh.
+"""From a scene description (:mod:`fem3d.scene`) to arrays: meshes, selections, pulls.
 
-=========  ======================  ===============  ======  ========  =====  ======  =========
-scene      simulation mesh         display (skin)   E       spring k  fix    pick    integrator
-=========  ======================  ===============  ======  ========  =====  ======  =========
-bunny      coarser_bunny.mesh      bunny_skin.obj   6e6     1e8       3      1.0     linear
-arma       arma_6.node / .ele      armadillo.obj    6e5     1e5       0.1    0.01    implicit
-=========  ======================  ===============  ======  ========  =====  ======  =========
+:func:`assemble` reads every body's mesh (a tet mesh, or a closed surface tetrahedralized by
+:mod:`fem3d.tetrahedralize`), applies its transform, evaluates its selectors on the
+transformed rest positions and concatenates the bodies into one mesh. It is the one place
+where a scene's settings turn into numbers; :class:`fem3d.simulation.Simulation` takes the
+result.
 
-Both: ``dt = 0.01``, ``rho = 0.1``, ``nu = 0.4``, no gravity, Neo-Hookean; fixed vertices
-are those within ``fix`` of the lowest ``y``.
-
-Scripted pull (what ``fem3d run`` does, so a headless run shows motion): zero-rest-length
-springs of stiffness ``spring k`` attach the vertices within ``pick`` of a chosen vertex to
-that vertex's rest position plus an offset, for ``PULL_DURATION = 0.3`` s from ``t = 0``,
-then are released.
-
-* bunny: the top-most vertex (max ``y``: the tip of the ear); offset ``+0.15 h`` along x
-  (``h`` the mesh height, about 165 units).
-* armadillo: its raised hand, chosen as the vertex with the largest ``x`` among the
-  vertices above mid-height (``y > (y_min + y_max) / 2``; vertex 61 of ``arma_6``);
-  offset ``+0.20 h`` along z (sideways, across the arm). With this pull the
-  linearly-implicit scheme explodes on the armadillo a few steps after the release (about
-  step 45), as the assignment expects, while backward Euler stays stable.
-* a mesh from a path: the top-most vertex, ``+0.15 h`` along x.
-
-A path scene (``load_scene("my.mesh")``) uses the armadillo's material and backward Euler,
-with the lengths scaled to the mesh: ``fixed_tol = 0.02 h``, ``pick_radius = 0.01 h`` and
-``spring_k = 0.15 E h`` (the two built-in scenes have ``k / (E h)`` of 0.1 and 0.17).
+The built-in scenes are files: ``data/scenes/bunny.toml`` and ``data/scenes/arma.toml`` (the
+assignment's two scenes: see their comments). :func:`top_vertex` and :func:`hand_vertex` are
+the rules their scripted pulls' vertices were chosen by.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from fem3d.errors import InputError, ParameterError
-from fem3d.mesh import read_surface_mesh, read_tet_mesh
-from fem3d.model import validate_dt, validate_material
+from fem3d.errors import InputError
+from fem3d.scene import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
-__all__ = ["Scene", "PullScript", "SCENES", "load_scene", "data_dir", "PULL_DURATION"]
-
-#: Seconds the scripted pull lasts before release.
-PULL_DURATION = 0.3
-#: Offset of the scripted pull target as a fraction of the mesh height.
-PULL_FRACTION = 0.15
+__all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
+           "select_vertices", "transform_points", "rotation_matrix", "data_dir", "load_scene",
+           "scene_names", "SCENES", "top_vertex", "hand_vertex", "is_surface_file"]
 
 
 def data_dir() -> Path:
@@ -58,120 +38,24 @@ def data_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "data"
 
 
-@dataclass(frozen=True, eq=False)
-class PullScript:
-    """A scripted pull: springs from the picked vertices to their rest position + offset.
+class _Names(Sequence):
+    """The named scenes, listed from ``data/scenes`` each time (``for name in SCENES``)."""
 
-    Attributes
-    ----------
-    vertex : int
-        The chosen vertex (picking centre).
-    point : (3,) float64
-        Its rest position.
-    offset : (3,) float64
-        Target displacement applied to every picked vertex.
-    start : float
-        Time the springs attach.
-    duration : float
-        How long they stay.
-    """
+    def __getitem__(self, i):
+        return scene_names()[i]
 
-    vertex: int
-    point: np.ndarray
-    offset: np.ndarray
-    start: float = 0.0
-    duration: float = PULL_DURATION
+    def __len__(self) -> int:
+        return len(scene_names())
 
-    def active(self, t: float, dt: float) -> bool:
-        """Whether the pull acts during the step that starts at ``t``."""
-        eps = 1e-9 * dt
-        return self.start - eps <= t < self.start + self.duration - eps
+    def __contains__(self, name: object) -> bool:
+        return name in scene_names()
+
+    def __repr__(self) -> str:
+        return repr(scene_names())
 
 
-@dataclass(frozen=True, eq=False)
-class Scene:
-    """Everything needed to set up a simulation.
-
-    Attributes
-    ----------
-    name : str
-    X : (n, 3) float64
-        Rest positions of the simulation mesh.
-    T : (m, 4) int64
-        Tets (positively oriented).
-    skin_V : (k, 3) float64 or None
-        Display mesh vertices (rest), skinned to the tets.
-    skin_F : (f, 3) int64 or None
-        Display mesh triangles.
-    E, nu, rho, dt : float
-        Young's modulus, Poisson's ratio, density, time step.
-    spring_k : float
-        Pull-spring stiffness.
-    fixed_tol : float
-        Vertices within this of the lowest y are fixed.
-    pick_radius : float
-        Picking radius around a pick point.
-    integrator : {"linear", "implicit"}
-        Default integrator.
-    pull : PullScript or None
-        Scripted pull used by headless runs.
-    material : str
-        Material name (``"neo_hookean"``).
-    mesh_path, skin_path : str or None
-        Source files.
-    """
-
-    name: str
-    X: np.ndarray
-    T: np.ndarray
-    skin_V: np.ndarray | None
-    skin_F: np.ndarray | None
-    E: float
-    nu: float
-    rho: float
-    dt: float
-    spring_k: float
-    fixed_tol: float
-    pick_radius: float
-    integrator: str
-    pull: PullScript | None = None
-    material: str = "neo_hookean"
-    mesh_path: str | None = None
-    skin_path: str | None = None
-    extra: dict = field(default_factory=dict, repr=False)
-
-    @property
-    def height(self) -> float:
-        """Extent of the rest mesh along y."""
-        return float(np.ptp(self.X[:, 1]))
-
-    def replace(self, **changes) -> Scene:
-        """A copy with some fields changed (validated)."""
-        new = dataclasses.replace(self, **changes)
-        _validate(new)
-        return new
-
-
-def _validate(s: Scene) -> None:
-    validate_material(s.E, s.nu, s.rho)
-    validate_dt(s.dt)
-    for name in ("spring_k", "fixed_tol", "pick_radius"):
-        v = float(getattr(s, name))
-        if not np.isfinite(v) or v < 0 or (name == "spring_k" and v == 0):
-            op = ">" if name == "spring_k" else ">="
-            raise ParameterError(f"{name} must be a finite number {op} 0, got {v}")
-    from fem3d.integrators import INTEGRATORS
-
-    if s.integrator not in INTEGRATORS:
-        raise ParameterError(
-            f"unknown integrator {s.integrator!r}; choose one of {', '.join(INTEGRATORS)}"
-        )
-
-
-def _pull_script(X: np.ndarray, vertex: int, axis: int, fraction: float) -> PullScript:
-    offset = np.zeros(3)
-    offset[axis] = fraction * float(np.ptp(X[:, 1]))
-    return PullScript(vertex=int(vertex), point=X[vertex].copy(), offset=offset)
+#: Names of the scenes in ``data/scenes`` (a live view: ``list(SCENES)``).
+SCENES = _Names()
 
 
 def top_vertex(X: np.ndarray) -> int:
@@ -186,100 +70,372 @@ def hand_vertex(X: np.ndarray) -> int:
     return int(upper[np.argmax(X[upper, 0])])
 
 
-def _bunny() -> Scene:
-    d = data_dir()
-    mesh = read_tet_mesh(d / "coarser_bunny.mesh")
-    skin_path = d / "bunny_skin.obj"
-    skin_V, skin_F = read_surface_mesh(skin_path)
-    return Scene(
-        name="bunny", X=mesh.X, T=mesh.T, skin_V=skin_V, skin_F=skin_F,
-        E=6e6, nu=0.4, rho=0.1, dt=0.01, spring_k=1e8, fixed_tol=3.0, pick_radius=1.0,
-        integrator="linear",
-        pull=_pull_script(mesh.X, top_vertex(mesh.X), axis=0, fraction=0.15),
-        mesh_path=str(mesh.path), skin_path=str(skin_path),
-    )
+def is_surface_file(path: str | os.PathLike[str]) -> bool:
+    """Whether a body mesh file is a surface to tetrahedralize (by its suffix)."""
+    return Path(path).suffix.lower() in SURFACE_SUFFIXES
 
 
-def _arma() -> Scene:
-    d = data_dir()
-    mesh = read_tet_mesh(d / "arma_6.node")
-    skin_path = d / "armadillo.obj"
-    skin_V, skin_F = read_surface_mesh(skin_path)
-    return Scene(
-        name="arma", X=mesh.X, T=mesh.T, skin_V=skin_V, skin_F=skin_F,
-        E=6e5, nu=0.4, rho=0.1, dt=0.01, spring_k=1e5, fixed_tol=0.1, pick_radius=0.01,
-        integrator="implicit",
-        pull=_pull_script(mesh.X, hand_vertex(mesh.X), axis=2, fraction=0.20),
-        mesh_path=str(mesh.path), skin_path=str(skin_path),
-    )
+# ------------------------------------------------------------------------------ geometry
+def rotation_matrix(rotate_deg: Sequence[float]) -> np.ndarray:
+    """``Rz Ry Rx`` for angles in degrees about x, y, z, ``(3, 3) float64``."""
+    ax, ay, az = (math.radians(float(a)) for a in rotate_deg)
+    cx, sx, cy, sy, cz, sz = (math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay),
+                              math.cos(az), math.sin(az))
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
 
 
-#: Built-in scene factories by name.
-SCENES = {"bunny": _bunny, "arma": _arma}
+def transform_points(X: np.ndarray, transform) -> np.ndarray:
+    """``R (scale X) + translate`` (:class:`fem3d.scene.TransformSpec`); the identity
+    transform returns ``X`` unchanged, bit for bit."""
+    X = np.asarray(X, dtype=np.float64)
+    s, rot, tr = float(transform.scale), tuple(transform.rotate_deg), tuple(transform.translate)
+    out = X
+    if s != 1.0:
+        out = out * s
+    if any(a != 0 for a in rot):
+        out = out @ rotation_matrix(rot).T
+    if any(c != 0 for c in tr):
+        out = out + np.asarray(tr, dtype=np.float64)
+    return out
 
 
-def _from_path(path: str | os.PathLike[str], skin: str | os.PathLike[str] | None) -> Scene:
-    mesh = read_tet_mesh(path)
-    h = float(np.ptp(mesh.X[:, 1]))
-    if not h > 0:
-        raise InputError("mesh has no extent along y", path=path)
-    skin_V = skin_F = None
-    if skin is not None:
-        skin_V, skin_F = read_surface_mesh(skin)
-    E = 6e5
-    return Scene(
-        name=Path(path).stem, X=mesh.X, T=mesh.T, skin_V=skin_V, skin_F=skin_F,
-        E=E, nu=0.4, rho=0.1, dt=0.01, spring_k=0.15 * E * h, fixed_tol=0.02 * h,
-        pick_radius=0.01 * h, integrator="implicit",
-        pull=_pull_script(mesh.X, top_vertex(mesh.X), axis=0, fraction=PULL_FRACTION),
-        mesh_path=str(path), skin_path=None if skin is None else str(skin),
-    )
+@dataclass(frozen=True, eq=False)
+class BodyMesh:
+    """One body's meshes in its own (untransformed) frame.
 
-
-def load_scene(
-    name_or_path: str | os.PathLike[str],
-    *,
-    skin: str | os.PathLike[str] | None = None,
-    **overrides,
-) -> Scene:
-    """A built-in scene by name, or a scene around any tet mesh file.
-
-    Parameters
+    Attributes
     ----------
-    name_or_path : str or PathLike
-        ``"bunny"``, ``"arma"``, or a path read by :func:`fem3d.mesh.read_tet_mesh`.
-    skin : str or PathLike, optional
-        Display mesh for a path scene (any format ``read_surface_mesh`` reads).
-    **overrides
-        Scene fields to change (``E=``, ``dt=``, ``integrator=``, ...); ``None`` values are
-        ignored.
+    X : (n, 3) float64
+    T : (m, 4) int64
+    skin_V : (k, 3) float64 or None
+    skin_F : (f, 3) int64 or None
+    path : str
+        The tet mesh actually read (for a surface: the cached fTetWild output).
+    """
 
-    Returns
-    -------
-    Scene
+    X: np.ndarray
+    T: np.ndarray
+    skin_V: np.ndarray | None
+    skin_F: np.ndarray | None
+    path: str
+
+
+def _stat_key(p: Path) -> tuple[str, int, int]:
+    st = p.stat()
+    return (str(p.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=16)
+def _read_tet(key: tuple[str, int, int]):
+    from fem3d.mesh import read_tet_mesh
+
+    return read_tet_mesh(key[0])
+
+
+@lru_cache(maxsize=16)
+def _read_surface(key: tuple[str, int, int]):
+    from fem3d.mesh import read_surface_mesh
+
+    return read_surface_mesh(key[0])
+
+
+def _in_key(scene: Scene, key: str, exc: InputError) -> InputError:
+    return scene.error(key, str(exc))
+
+
+def body_mesh(scene: Scene, i: int) -> BodyMesh:
+    """Read (or tetrahedralize, cached) body ``i``'s meshes.
 
     Raises
     ------
     InputError
-        Unknown name / unreadable mesh (naming file, line, element).
-    ParameterError
-        An override out of range.
+        ``FILE: bodies[i].mesh: ...`` naming the mesh file's own problem.
     """
-    key = str(name_or_path)
-    if key in SCENES:
-        if skin is not None:
-            raise InputError(f"--skin is only for mesh files, not the built-in scene {key!r}")
-        scene = SCENES[key]()
-    elif Path(key).suffix or Path(key).exists():
-        scene = _from_path(name_or_path, skin)
+    body: BodySpec = scene.bodies[i]
+    path = scene.path(body.mesh)
+    key = f"bodies[{i}].mesh"
+    if not path.is_file():
+        raise scene.error(key, f"no such file {path}")
+    skin_V = skin_F = None
+    try:
+        if is_surface_file(path):
+            from fem3d.tetrahedralize import tetrahedralize_file
+
+            X, T, tet_path = tetrahedralize_file(
+                path, edge_length=body.tetrahedralize.edge_length,
+                epsilon=body.tetrahedralize.epsilon,
+                stop_quality=body.tetrahedralize.stop_quality)
+            skin_V, skin_F = _read_surface(_stat_key(path))
+        else:
+            mesh = _read_tet(_stat_key(path))
+            X, T, tet_path = mesh.X, mesh.T, str(mesh.path)
+    except InputError as exc:
+        raise _in_key(scene, key, exc) from None
+    if body.skin is not None:
+        skin_path = scene.path(body.skin)
+        try:
+            skin_V, skin_F = _read_surface(_stat_key(skin_path))
+        except FileNotFoundError:
+            raise scene.error(f"bodies[{i}].skin", f"no such file {skin_path}") from None
+        except InputError as exc:
+            raise _in_key(scene, f"bodies[{i}].skin", exc) from None
+    return BodyMesh(X=X, T=T, skin_V=skin_V, skin_F=skin_F, path=str(tet_path))
+
+
+def rest_positions(scene: Scene, i: int) -> np.ndarray:
+    """Body ``i``'s rest positions after its transform, ``(n_i, 3) float64``."""
+    return transform_points(body_mesh(scene, i).X, scene.bodies[i].transform)
+
+
+def _read_ids(path: Path, scene: Scene, key: str) -> np.ndarray:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise scene.error(key, f"cannot read {path} ({exc.strerror or exc})") from None
+    words = []
+    for line in text.splitlines():
+        words += line.split("#", 1)[0].replace(",", " ").split()
+    try:
+        ids = np.array([int(w) for w in words], dtype=np.int64)
+    except ValueError:
+        raise scene.error(key, f"{path} must hold whitespace-separated vertex ids") from None
+    return ids
+
+
+def select_vertices(scene: Scene, X: np.ndarray, sel: Selector, key: str) -> np.ndarray:
+    """Vertices of one body (rest positions ``X (n, 3)``, transformed) chosen by ``sel``.
+
+    Returns
+    -------
+    (k,) int64
+        Sorted, unique, never empty.
+
+    Raises
+    ------
+    InputError
+        ``FILE: key: selects no vertex ...`` or an id out of range.
+    """
+    n = X.shape[0]
+    kind = sel.kind
+    if kind == "lowest_y":
+        y0 = float(X[:, 1].min())
+        ids = np.flatnonzero(X[:, 1] <= y0 + sel.lowest_y.tol)
+        info = f"lowest y {y0:.6g}"
+    elif kind == "box":
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in sel.box)
+        ids = np.flatnonzero(((X >= lo) & (X <= hi)).all(axis=1))
+        info = "bounding box " + _bbox(X)
+    elif kind == "half_space":
+        p, nrm = (np.asarray(a, dtype=np.float64) for a in
+                  (sel.half_space.point, sel.half_space.normal))
+        ids = np.flatnonzero((X - p) @ nrm >= 0)
+        info = "bounding box " + _bbox(X)
+    elif kind == "sphere":
+        c = np.asarray(sel.sphere.center, dtype=np.float64)
+        d2 = ((X - c) ** 2).sum(axis=1)
+        ids = np.flatnonzero(d2 <= sel.sphere.radius ** 2)
+        info = f"the nearest vertex is {math.sqrt(float(d2.min())):.4g} away"
+    elif kind in ("vertices", "vertices_file"):
+        if kind == "vertices":
+            ids = np.asarray(sel.vertices, dtype=np.int64)
+        else:
+            ids = _read_ids(scene.path(sel.vertices_file), scene, f"{key}.vertices_file")
+        bad = ids[(ids < 0) | (ids >= n)]
+        if bad.size:
+            raise scene.error(f"{key}.{kind}", f"vertex id {int(bad[0])} out of range [0, {n})")
+        info = "the list is empty"
+    elif kind == "nearest_to":
+        from fem3d.constraints import pick_nearest_vertices
+
+        nt = sel.nearest_to
+        p = np.asarray(nt.point, dtype=np.float64)
+        centre = int(np.argmin(((X - p) ** 2).sum(axis=1)))
+        ids = pick_nearest_vertices(X, X[centre], nt.radius)
+        info = ""
+    else:  # near_vertex
+        nv = sel.near_vertex
+        if nv.vertex >= n:
+            raise scene.error(f"{key}.near_vertex.vertex",
+                              f"vertex {nv.vertex} out of range [0, {n})")
+        from fem3d.constraints import pick_nearest_vertices
+
+        ids = pick_nearest_vertices(X, X[nv.vertex], nv.radius)
+        info = ""
+    ids = np.unique(np.asarray(ids, dtype=np.int64))
+    if ids.size == 0:
+        raise scene.error(f"{key}.{kind}", f"selects no vertex ({info})")
+    return ids
+
+
+def _bbox(X: np.ndarray) -> str:
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    return "[" + ", ".join(f"{a:.4g}" for a in lo) + "] - [" + ", ".join(
+        f"{b:.4g}" for b in hi) + "]"
+
+
+@dataclass(frozen=True, eq=False)
+class ResolvedPull:
+    """A scripted pull in numbers: global vertex ids, spring targets, stiffness, timing."""
+
+    vertices: np.ndarray
+    targets: np.ndarray
+    k: float
+    start: float
+    duration: float
+
+    def active(self, t: float, dt: float) -> bool:
+        """Whether the pull acts during the step that starts at ``t``."""
+        eps = 1e-9 * dt
+        return self.start - eps <= t < self.start + self.duration - eps
+
+
+@dataclass(frozen=True, eq=False)
+class Assembled:
+    """A scene in arrays (all bodies concatenated).
+
+    Attributes
+    ----------
+    X : (n, 3) float64
+        Rest positions (transformed).
+    T : (m, 4) int64
+    v0 : (n, 3) float64
+        Initial velocities (linear + angular about each body's vertex centroid).
+    fixed : (n_fixed,) int64
+        Pinned vertices (sorted).
+    pulls : list of ResolvedPull
+    body_vertices, body_tets : list of slice
+        Each body's range of vertices / tets.
+    skin_V : (k, 3) float64 or None
+        Display mesh (rest), None when no body has a skin (then the display is the tet
+        mesh's boundary).
+    skin_F : (f, 3) int64 or None
+    skin_bodies : list of (slice, slice)
+        Each body's range of display vertices and faces.
+    skin_identity : list of bool
+        Bodies whose display vertices are their simulation vertices (no skin of their own).
+    pick_radius, spring_k, height : float
+        Resolved interaction values; ``height`` the extent along y of the rest mesh.
+    mesh_paths : list of str
+    """
+
+    X: np.ndarray
+    T: np.ndarray
+    v0: np.ndarray
+    fixed: np.ndarray
+    pulls: list[ResolvedPull]
+    body_vertices: list[slice]
+    body_tets: list[slice]
+    skin_V: np.ndarray | None
+    skin_F: np.ndarray | None
+    skin_bodies: list[tuple[slice, slice]]
+    skin_identity: list[bool]
+    pick_radius: float
+    spring_k: float
+    height: float
+    mesh_paths: list[str] = field(default_factory=list)
+
+
+def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    from fem3d.mesh import boundary_faces
+
+    return np.arange(n), boundary_faces(T)
+
+
+def assemble(scene: Scene) -> Assembled:
+    """Every body's mesh, selection and pull of ``scene`` in numbers.
+
+    Raises
+    ------
+    InputError
+        ``FILE: key.path: ...`` for a missing or bad mesh, a selector that selects nothing,
+        a vertex id out of range.
+    """
+    Xs, Ts, v0s, fixed, skins = [], [], [], [], []
+    body_v, body_t = [], []
+    nv = nt = 0
+    meshes = []
+    for i, body in enumerate(scene.bodies):
+        bm = body_mesh(scene, i)
+        meshes.append(bm)
+        X = transform_points(bm.X, body.transform)
+        T = np.asarray(bm.T, dtype=np.int64)
+        v = np.broadcast_to(np.asarray(body.velocity, dtype=np.float64), X.shape).copy()
+        if any(w != 0 for w in body.angular_velocity):
+            w = np.asarray(body.angular_velocity, dtype=np.float64)
+            v += np.cross(w, X - X.mean(axis=0))
+        for j, pin in enumerate(body.pins):
+            ids = select_vertices(scene, X, pin.select, f"bodies[{i}].pins[{j}].select")
+            fixed.append(ids + nv)
+        skin = None
+        if bm.skin_V is not None:
+            skin = (transform_points(bm.skin_V, body.transform),
+                    np.asarray(bm.skin_F, dtype=np.int64))
+        skins.append(skin)
+        Xs.append(X)
+        Ts.append(T + nv)
+        v0s.append(v)
+        body_v.append(slice(nv, nv + X.shape[0]))
+        body_t.append(slice(nt, nt + T.shape[0]))
+        nv += X.shape[0]
+        nt += T.shape[0]
+    X = Xs[0] if len(Xs) == 1 else np.concatenate(Xs)
+    T = Ts[0] if len(Ts) == 1 else np.concatenate(Ts)
+    v0 = np.concatenate(v0s)
+    fixed_ids = (np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, np.int64))
+    height = float(X[:, 1].max() - X[:, 1].min())
+
+    # display mesh: bodies' skins, or (for a body without one) its own boundary
+    skin_V = skin_F = None
+    skin_bodies: list[tuple[slice, slice]] = []
+    identity = [s is None for s in skins]
+    if not all(identity):
+        Vs, Fs = [], []
+        kv = kf = 0
+        for i, s in enumerate(skins):
+            if s is None:
+                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0])
+                s = (Xs[i][idx], F)
+            Vs.append(s[0])
+            Fs.append(s[1] + kv)
+            skin_bodies.append((slice(kv, kv + s[0].shape[0]), slice(kf, kf + s[1].shape[0])))
+            kv += s[0].shape[0]
+            kf += s[1].shape[0]
+        skin_V = Vs[0] if len(Vs) == 1 else np.concatenate(Vs)
+        skin_F = Fs[0] if len(Fs) == 1 else np.concatenate(Fs)
     else:
-        raise InputError(
-            f"unknown scene {key!r}: use one of {', '.join(SCENES)} or a tet mesh file path"
-        )
-    changes = {k: v for k, v in overrides.items() if v is not None}
-    unknown = set(changes) - {f.name for f in dataclasses.fields(Scene)}
-    if unknown:
-        raise ParameterError(f"unknown scene field(s): {', '.join(sorted(unknown))}")
-    scene = dataclasses.replace(scene, **changes)
-    _validate(scene)
-    return scene
+        skin_bodies = [(body_v[i], body_t[i]) for i in range(len(Xs))]
+
+    E0 = scene.bodies[0].material.E
+    pick_radius = scene.interaction.pick_radius
+    if pick_radius is None:
+        pick_radius = 0.01 * height
+    spring_k = scene.interaction.spring_k
+    if spring_k is None:
+        if E0 is None:
+            raise scene.error("interaction.spring_k",
+                              "give it (it defaults to 0.15 E h, and bodies[0] has no E)")
+        spring_k = 0.15 * E0 * height
+        if not spring_k > 0:
+            raise scene.error("interaction.spring_k", "the mesh has no height to derive it")
+
+    pulls = []
+    for j, p in enumerate(scene.pulls):
+        Xb = Xs[p.body]
+        ids = select_vertices(scene, Xb, p.select, f"pulls[{j}].select")
+        if p.offset is not None:
+            off = np.asarray(p.offset, dtype=np.float64)
+        else:
+            off = np.asarray(p.target, dtype=np.float64) - Xb[ids].mean(axis=0)
+        pulls.append(ResolvedPull(
+            vertices=ids + body_v[p.body].start, targets=Xb[ids] + off,
+            k=float(spring_k if p.stiffness is None else p.stiffness),
+            start=float(p.start), duration=float(p.duration)))
+    return Assembled(
+        X=X, T=T, v0=v0, fixed=fixed_ids, pulls=pulls, body_vertices=body_v, body_tets=body_t,
+        skin_V=skin_V, skin_F=skin_F, skin_bodies=skin_bodies, skin_identity=identity,
+        pick_radius=float(pick_radius), spring_k=float(spring_k), height=height,
+        mesh_paths=[m.path for m in meshes],
+    )

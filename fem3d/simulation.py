@@ -2,10 +2,10 @@
 
 Used by the headless ``fem3d run``, the viewer and the benchmarks::
 
-    from fem3d.scenes import load_scene
+    from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
 
-    sim = Simulation(load_scene("bunny"))          # scene's default integrator
+    sim = Simulation(load_scene("bunny"))          # everything from data/scenes/bunny.toml
     sim.set_pull(sim.pick(sim.q[155]), sim.q[155] + [20.0, 0.0, 0.0])
     info = sim.step()                               # StepInfo(t, kinetic, potential, ...)
     sim.clear_pull()
@@ -25,12 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from fem3d.assembly import kinetic_energy, potential_energy
-from fem3d.constraints import Constraints, fixed_vertices_lowest_y, pick_nearest_vertices
-from fem3d.errors import ParameterError, SimulationError
+from fem3d.constraints import Constraints, pick_nearest_vertices
+from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.integrators import INTEGRATORS, Pull, State, StepStats, System
 from fem3d.mesh import boundary_faces
 from fem3d.model import Model, build_model, validate_dt
-from fem3d.scenes import Scene
+from fem3d.scene import Scene
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 
@@ -69,101 +69,182 @@ class StepInfo:
     step: int = 0
 
 
+def _check_supported(scene: Scene) -> None:
+    """Refuse, naming the key, the settings this build validates but cannot run yet."""
+    for i, b in enumerate(scene.bodies):
+        m = b.material
+        for key, val in (("params", m.params), ("regions", m.regions),
+                         ("cell_fields", m.cell_fields)):
+            if val:
+                raise scene.error(f"bodies[{i}].material.{key}", "needs build_model(groups=) "
+                                  "from the materials work, not in this build yet; give E, nu")
+        if i and m != scene.bodies[0].material:
+            raise scene.error(f"bodies[{i}].material", "bodies with different materials need "
+                              "build_model(groups=) from the materials work, not in this "
+                              "build yet; give every body the same material")
+    if scene.contact.enabled:
+        raise scene.error("contact.enabled", "contact is not in this build yet")
+    if scene.obstacles:
+        raise scene.error("obstacles", "obstacles need contact, not in this build yet")
+
+
+def _stiffness(k) -> float | np.ndarray:
+    a = np.asarray(k, dtype=np.float64)
+    return float(a) if a.ndim == 0 else a
+
+
+def _damping(scene: Scene, a) -> tuple:
+    """Rayleigh ``alpha`` (scalar or per vertex) and ``beta`` (scalar or per tet)."""
+    alphas = [b.damping.rayleigh_mass for b in scene.bodies]
+    betas = [b.damping.rayleigh_stiffness for b in scene.bodies]
+    if len(set(alphas)) == 1 and len(set(betas)) == 1:
+        return float(alphas[0]), float(betas[0])
+    alpha = np.zeros(a.X.shape[0])
+    beta = np.zeros(a.T.shape[0])
+    for i in range(len(scene.bodies)):
+        alpha[a.body_vertices[i]] = alphas[i]
+        beta[a.body_tets[i]] = betas[i]
+    return alpha, beta
+
+
 class Simulation:
     """A running simulation of one scene.
 
     Parameters
     ----------
-    scene : Scene
-        From :func:`fem3d.scenes.load_scene`.
-    integrator : {"linear", "implicit"}, optional
-        None: the scene's default.
+    scene : fem3d.scene.Scene
+        Everything about the run (from :func:`fem3d.scene.load_scene`); read here, once.
     backend : {None, "numpy", "c"}, optional
         Kernel back end (None: C if built).
     scripted : bool, optional
-        Apply the scene's scripted pull (attach at ``pull.start``, release after
-        ``pull.duration``) inside :meth:`step`. Default False (interactive use).
-    solver_backend : str, optional
-        Sparse solver back end (``fem3d.linsolve``; default ``"auto"``).
-    max_newton_iterations : int or None, optional
-        Newton iterations per backward-Euler step (default 5; None: until converged).
-    newton_hessian : {"exact", "psd"}, optional
-        Newton's Hessian in backward Euler (see :func:`fem3d.integrators.implicit_euler`).
-    newton_solver : {"direct", "reuse"}, optional
-        Newton's linear solves: refactorize every iteration, or keep a factorization as the
-        CG preconditioner across iterations and steps, refactorizing when CG needs more than
-        its budget (see :func:`fem3d.integrators.implicit_euler`).
-    fixed_vertices : (n_fixed,) int, optional
-        Explicit fixed vertices instead of the scene's lowest-y rule; must not be empty
-        (every run is anchored: a free body would only drift with the pull).
+        Apply the scene's scripted pulls (each attaches at its ``start`` and is released
+        after its ``duration``) inside :meth:`step`. Default False (interactive use).
 
     Raises
     ------
-    ParameterError
-        An empty fixed-vertex set, or (``scripted``) a picking radius that selects no vertex
-        around the scripted pull's point.
+    InputError
+        ``FILE: key.path: ...``: a bad mesh, a selector that selects nothing, a setting this
+        build cannot run yet.
 
     Attributes
     ----------
     scene : Scene
+    assembled : fem3d.scenes.Assembled
+        The scene in arrays (rest positions, tets, pins, pulls, display mesh).
     model : Model
         Frozen model (replaced by :meth:`set_material`).
     constraints : Constraints
-        The fixed vertices (lowest y within ``scene.fixed_tol``).
+        The pinned vertices.
     surface_faces : (f, 3) int64
         Outward boundary triangles of the simulation mesh.
+    pick_radius, spring_k : float
+        Interactive picking radius and pull-spring stiffness (``scene.interaction``,
+        resolved); settable.
+    max_newton_iterations, newton_hessian, newton_solver
+        Backward Euler's Newton settings (``scene.simulation.newton``).
     last_stats : StepStats or None
         Details of the last step (Newton gradient norms, shifts, ...).
     """
 
-    def __init__(
-        self,
-        scene: Scene,
-        integrator: str | None = None,
-        backend: str | None = None,
-        *,
-        scripted: bool = False,
-        solver_backend: str = "auto",
-        max_newton_iterations: int | None = 5,
-        newton_hessian: str = "exact",
-        fixed_vertices: np.ndarray | None = None,
-        newton_solver: str = "direct",
-    ) -> None:
+    def __init__(self, scene: Scene, *, backend: str | None = None,
+                 scripted: bool = False) -> None:
+        from fem3d.scenes import assemble
+
         self.scene = scene
-        self.model: Model = build_model(
-            scene.X, scene.T, E=scene.E, nu=scene.nu, rho=scene.rho,
-            material=scene.material, backend=backend, path=scene.mesh_path,
-        )
-        if fixed_vertices is None:
-            fixed = fixed_vertices_lowest_y(scene.X, scene.fixed_tol)
-        else:
-            fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64).reshape(-1))
-            if fixed.size == 0:
-                raise ParameterError(
-                    "the fixed-vertex set is empty: a run needs at least one fixed vertex"
-                )
-        self.constraints = Constraints.from_fixed_vertices(scene.X, fixed)
-        self.system = System(self.model, self.constraints, solver_backend)
-        self.surface_faces = boundary_faces(scene.T)
-        self._dt = validate_dt(scene.dt)
-        self._integrator = ""
-        self.integrator = integrator or scene.integrator
-        self.scripted = scripted
-        self._script_ids: np.ndarray | None = None
-        if scripted and scene.pull is not None:
-            self._script_ids = self._pick_script_vertices()
-        self.max_newton_iterations = max_newton_iterations
-        if newton_hessian not in ("exact", "psd"):
-            raise ParameterError(f"newton_hessian must be 'exact' or 'psd', got {newton_hessian!r}")
-        self.newton_hessian = newton_hessian
-        if newton_solver not in ("direct", "reuse"):
-            raise ParameterError(
-                f"newton_solver must be 'direct' or 'reuse', got {newton_solver!r}"
+        _check_supported(scene)
+        a = assemble(scene)
+        self.assembled = a
+        mat = scene.bodies[0].material
+        try:
+            self.model: Model = build_model(
+                a.X, a.T, E=mat.E, nu=mat.nu, rho=mat.density, material=mat.model,
+                backend=backend, path=a.mesh_paths[0] if len(a.mesh_paths) == 1 else None,
             )
-        self.newton_solver = newton_solver
+        except InputError as exc:
+            if isinstance(exc, ParameterError):
+                raise scene.error("bodies[0].material", str(exc)) from None
+            raise scene.error("bodies[0].mesh", str(exc)) from None
+        if a.fixed.size == 0:
+            raise scene.error(
+                "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
+                "[{ select = { lowest_y = { tol = 0.0 } } }])")
+        self.constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
+        sim = scene.simulation
+        gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
+        alpha, beta = _damping(scene, a)
+        try:
+            self.system = System(self.model, self.constraints, sim.linear_solver,
+                                 gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta)
+        except ParameterError as exc:
+            raise scene.error("simulation", str(exc)) from None
+        except (ValueError, ImportError) as exc:
+            raise scene.error("simulation.linear_solver", str(exc)) from None
+        self._motions = self._pin_motions()
+        self.surface_faces = boundary_faces(a.T)
+        self._dt = validate_dt(sim.dt)
+        self._integrator = ""
+        self.integrator = sim.integrator
+        self.scripted = scripted
+        self.max_newton_iterations = sim.newton.max_iterations
+        self.newton_hessian = sim.newton.hessian
+        self.newton_solver = sim.newton.solver
+        self.pick_radius = a.pick_radius
+        self.spring_k = a.spring_k
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
+
+    def _pin_motions(self) -> list:
+        """``(slots into fixed_vertices, rest positions, Keyframes)`` of each moving pin."""
+        from fem3d.motion import Keyframes
+        from fem3d.scenes import select_vertices
+
+        a, scene = self.assembled, self.scene
+        fixed = self.constraints.fixed_vertices
+        out, taken = [], np.zeros(fixed.size, dtype=bool)
+        for i, body in enumerate(scene.bodies):
+            off = a.body_vertices[i].start
+            for j, pin in enumerate(body.pins):
+                if pin.motion is None:
+                    continue
+                key = f"bodies[{i}].pins[{j}]"
+                ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
+                                      f"{key}.select") + off
+                slots = np.searchsorted(fixed, ids)
+                if taken[slots].any():
+                    raise scene.error(f"{key}.select", "shares pinned vertices with another "
+                                      "moving pin; a vertex can follow one motion only")
+                taken[slots] = True
+                m = pin.motion
+                rest = a.X[ids]
+                pivot = rest.mean(axis=0) if m.pivot is None else np.asarray(m.pivot)
+                try:
+                    kf = Keyframes([k.t for k in m.keyframes], [k.translate for k in m.keyframes],
+                                   [k.rotate_deg for k in m.keyframes], pivot, m.interpolation)
+                except ParameterError as exc:
+                    raise scene.error(f"{key}.motion", str(exc)) from None
+                out.append((slots, rest, kf))
+        return out
+
+    def fixed_positions(self, t: float) -> np.ndarray | None:
+        """Positions of the pinned vertices at time ``t`` (None: no moving pin).
+
+        Returns
+        -------
+        (n_fixed, 3) float64 or None
+            In the order of :attr:`fixed_vertices`; static pins at their rest positions.
+        """
+        if not self._motions:
+            return None
+        p = self.model.X[self.constraints.fixed_vertices].copy()
+        for slots, rest, kf in self._motions:
+            p[slots] = kf.apply(rest, t)
+        return p
+
+    @property
+    def motion_end(self) -> float:
+        """Time after which no pin moves any more (0 without moving pins)."""
+        return max((float(kf.times[-1]) for _, _, kf in self._motions), default=0.0)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -226,16 +307,39 @@ class Simulation:
     @property
     def skinning_matrix(self):
         """``(k, n)`` sparse skinning matrix (built on first use), or None without a skin."""
-        if self._W is None and self.scene.skin_V is not None:
+        a = self.assembled
+        if self._W is None and a.skin_V is not None:
+            import scipy.sparse as sp
+
             from fem3d.skinning import build_skinning_matrix
 
-            self._W = build_skinning_matrix(self.scene.X, self.scene.T, self.scene.skin_V)
+            blocks = []
+            for i, (vs, _) in enumerate(a.skin_bodies):
+                bv, bt = a.body_vertices[i], a.body_tets[i]
+                n_i = bv.stop - bv.start
+                if a.skin_identity[i]:
+                    W_i = sp.identity(n_i, format="csr")
+                else:
+                    W_i = build_skinning_matrix(a.X[bv], a.T[bt] - bv.start, a.skin_V[vs])
+                blocks.append(W_i)
+            self._W = blocks[0] if len(blocks) == 1 else sp.block_diag(blocks, format="csr")
         return self._W
 
     @property
     def display_faces(self) -> np.ndarray:
         """Triangles of :meth:`skin_positions`: the skin's, or the surface of the tet mesh."""
-        return self.scene.skin_F if self.scene.skin_F is not None else self.surface_faces
+        return self.assembled.skin_F if self.assembled.skin_F is not None else self.surface_faces
+
+    @property
+    def has_skin(self) -> bool:
+        """Whether the display mesh is a skin (not the simulation mesh's boundary)."""
+        return self.assembled.skin_F is not None
+
+    @property
+    def rest_skin(self) -> np.ndarray:
+        """Rest display vertices, ``(k, 3) float64`` (the rest mesh without a skin)."""
+        a = self.assembled
+        return a.X if a.skin_V is None else a.skin_V
 
     def skin_positions(self) -> np.ndarray:
         """Skinned display vertices ``W @ q``, ``(k, 3) float64``; ``q`` itself without a skin."""
@@ -251,9 +355,12 @@ class Simulation:
     def reset(self) -> None:
         """Back to rest, zero velocity, ``t = 0``, no pull."""
         self._pull: Pull | None = None
-        self._script_on = False
-        self._set_state(State.at_rest(self.model))
-        self._injected = 0.0
+        self._script_active: tuple[int, ...] = ()
+        rest = State.at_rest(self.model)
+        v0 = self.assembled.v0.copy()
+        v0[self.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
+        self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
+        self._injected = kinetic_energy(self.model, self.v)
 
     def set_state(self, q: np.ndarray, v: np.ndarray, t: float = 0.0, step: int = 0) -> None:
         """Replace positions and velocities (e.g. from a checkpoint).
@@ -278,9 +385,11 @@ class Simulation:
         -------
         dict
             ``q, v`` (n, 3) float64, ``t`` float, ``step`` int, ``injected`` float (energy
-            put in so far: the linearly-implicit runaway bound), ``script_on`` bool (the
-            scripted pull is attached), ``pull_vertices`` (k,) int64, ``pull_targets``
-            (k, 3) float64 and ``pull_k`` float (``k = 0`` and empty arrays: no pull),
+            put in so far: the linearly-implicit runaway bound), ``script_active``
+            (j,) int64 (the scripted pulls attached: indices into ``scene.pulls``),
+            ``pull_vertices`` (k,) int64, ``pull_targets`` (k, 3) float64
+            and ``pull_k`` () or (k,) float64 (one stiffness or one per spring; ``k = 0`` and
+            empty arrays: no pull),
             ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` the reduced
             matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
@@ -291,10 +400,10 @@ class Simulation:
             "preconditioner": np.zeros(0) if kept is None else kept,
             "q": self._state.q, "v": self._state.v, "t": float(self._state.t),
             "step": int(self._state.step), "injected": float(self._injected),
-            "script_on": bool(self._script_on),
+            "script_active": np.asarray(self._script_active, dtype=np.int64),
             "pull_vertices": (np.zeros(0, np.int64) if pull is None else pull.vertices),
             "pull_targets": (np.zeros((0, 3)) if pull is None else pull.targets),
-            "pull_k": 0.0 if pull is None else float(pull.k),
+            "pull_k": np.asarray(0.0 if pull is None else pull.k, dtype=np.float64),
         }
 
     def restore(self, snap: dict) -> None:
@@ -317,10 +426,11 @@ class Simulation:
         pull = None
         if verts.size:
             pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
-                             float(snap["pull_k"]), self.model.n_vertices)
+                             _stiffness(snap["pull_k"]), self.model.n_vertices)
         self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"])))
         self._pull = pull
-        self._script_on = bool(snap["script_on"])
+        self._script_active = tuple(
+            int(i) for i in np.asarray(snap["script_active"], dtype=np.int64).reshape(-1))
         self._injected = float(snap["injected"])
         saved = np.asarray(snap.get("preconditioner", np.zeros(0)), dtype=np.float64)
         if self.newton_solver == "reuse" and saved.size:
@@ -331,7 +441,7 @@ class Simulation:
 
         Returns the nearest vertex when none is that close; ``(k,) int64``.
         """
-        r = self.scene.pick_radius if radius is None else radius
+        r = self.pick_radius if radius is None else radius
         return pick_nearest_vertices(self.q, point, r, nearest_if_empty=True)
 
     def set_pull(self, vertex_ids, target, k: float | None = None) -> None:
@@ -346,11 +456,13 @@ class Simulation:
         k : float, optional
             Stiffness (default the scene's ``spring_k``).
         """
-        pull = Pull.make(
-            vertex_ids, target, self.scene.spring_k if k is None else k, self.model.n_vertices
-        )
+        self._attach(Pull.make(
+            vertex_ids, target, self.spring_k if k is None else k, self.model.n_vertices
+        ))
+
+    def _attach(self, pull: Pull | None) -> None:
         before = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
-        self._pull = pull if pull.vertices.size else None
+        self._pull = pull if pull is not None and pull.vertices.size else None
         if self._pull is not None:
             # work done on the system by attaching / moving the springs: with the energy at
             # reset, an upper bound on the energy a stable scheme can hold
@@ -372,9 +484,10 @@ class Simulation:
 
     # ------------------------------------------------------------------ energies
     def energies(self) -> dict[str, float]:
-        """``{"kinetic", "potential", "pull", "total"}`` of the current state."""
+        """``{"kinetic", "potential", "pull", "total"}`` of the current state (``potential``:
+        strain energy plus gravity's ``-M g . (q - X)``)."""
         kin = kinetic_energy(self.model, self.v)
-        pot = potential_energy(self.model, self.q)
+        pot = potential_energy(self.model, self.q) + self.system.gravity_energy(self.q)
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
         return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot}
 
@@ -387,34 +500,24 @@ class Simulation:
         return RUNAWAY_FACTOR * max(self._injected, floor)
 
     # ------------------------------------------------------------------ stepping
-    def _pick_script_vertices(self) -> np.ndarray:
-        """Rest-shape vertices within ``pick_radius`` of the scripted pull's point."""
-        script = self.scene.pull
-        r = self.scene.pick_radius
-        ids = pick_nearest_vertices(self.model.X, script.point, r)
-        if ids.size == 0:
-            d = float(np.sqrt(((self.model.X - script.point) ** 2).sum(axis=1).min()))
-            p = ", ".join(f"{c:.6g}" for c in script.point)
-            raise ParameterError(
-                f"picking radius {r:g} selects no vertex around the pull point ({p}); "
-                f"the nearest vertex is {d:.4g} away"
-            )
-        return ids
-
     def _apply_script(self) -> None:
-        script = self.scene.pull
-        if not self.scripted or script is None:
+        """Attach / release the scene's scripted pulls for the step that starts now."""
+        pulls = self.assembled.pulls
+        if not self.scripted or not pulls:
             return
-        active = script.active(self.t, self.dt)
-        if active and not self._script_on:
-            if self._script_ids is None:
-                self._script_ids = self._pick_script_vertices()
-            ids = self._script_ids
-            self.set_pull(ids, self.model.X[ids] + script.offset)
-            self._script_on = True
-        elif not active and self._script_on:
+        active = tuple(j for j, p in enumerate(pulls) if p.active(self.t, self.dt))
+        if active == self._script_active:
+            return
+        if len(active) == 1:
+            p = pulls[active[0]]
+            self.set_pull(p.vertices, p.targets, p.k)
+        elif active:  # every spring of every active pull (a vertex may carry several)
+            n = self.model.n_vertices
+            self._attach(Pull.combine([Pull.make(pulls[j].vertices, pulls[j].targets,
+                                                 pulls[j].k, n) for j in active], n))
+        else:
             self.clear_pull()
-            self._script_on = False
+        self._script_active = active
 
     def step(self) -> StepInfo:
         """Advance one time step with the current integrator.
@@ -430,27 +533,35 @@ class Simulation:
             last good step.
         """
         self._apply_script()
+        driven = bool(self._motions) and self.t < self.motion_end
+        before = self._energy_with_pull() if driven else 0.0
+        fixed = self.fixed_positions(self.t + self._dt)
         t0 = time.perf_counter()
         if self._integrator == "linear":
             new, stats = INTEGRATORS["linear"](
                 self.system, self._state, self._dt, self._pull,
-                energy_bound=self._energy_bound(),
+                # while pins move they do work the bound cannot know in advance: it applies
+                # again (with that work added to the budget) once they stop
+                energy_bound=None if driven else self._energy_bound(),
+                fixed_positions=fixed,
             )
         else:
             new, stats = INTEGRATORS["implicit"](
                 self.system, self._state, self._dt, self._pull,
                 max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
-                linear_solver=self.newton_solver,
+                linear_solver=self.newton_solver, fixed_positions=fixed,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)
-        pot = potential_energy(self.model, new.q)
+        pot = potential_energy(self.model, new.q) + self.system.gravity_energy(new.q)
         if not (math.isfinite(kin) and math.isfinite(pot)):
             raise SimulationError(
                 f"{self._integrator} integrator exploded: non-finite energy", step=new.step - 1
             )
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, new.q)
         self._set_state(new)
+        if driven:  # work done by the moving pins: part of the runaway bound's budget
+            self._injected += max(0.0, kin + pot + pull - before)
         self.last_stats = stats
         return StepInfo(
             t=new.t, kinetic=kin, potential=pot, total=kin + pot,

@@ -29,6 +29,8 @@ import argparse
 import collections
 import dataclasses
 import math
+import socket
+import sys
 import threading
 import time
 import traceback
@@ -49,16 +51,36 @@ __all__ = [
     "RealtimePacer",
     "Viewer",
     "add_view_subcommand",
+    "HOTKEYS",
     "camera_for_points",
+    "energy_text",
+    "format_energy",
     "format_status",
-    "plot_unit_line",
-    "scale_energies",
     "serve",
     "spring_segments",
 ]
 
 INTEGRATOR_LABELS = {"linear": "linearly-implicit Euler", "implicit": "backward Euler"}
 MESH_MODE_LABELS = {"skin": "skinned display mesh", "sim": "simulation mesh"}
+
+#: Hotkeys. S is not used: viser's camera moves with W/A/S/D (and Q/E), so the mesh
+#: toggle is M.
+HOTKEYS = {"mesh": "M", "integrator": "N", "pause": "space", "reset": "R"}
+
+#: A mesh update waits until every page has processed the previous one (frame
+#: acknowledgement), but never longer than this (seconds): a stalled tab cannot freeze the
+#: others for good.
+ACK_TIMEOUT = 1.0
+_ACK_KEY = "fem3d-frame-ack"
+
+#: The energy plots: (key, label, colour). Each has its own y scale: the pull spring's
+#: energy (up to 1e9 on the bunny) must not flatten the elastic energies (1e-6 at rest).
+ENERGY_PLOTS = (
+    ("kinetic", "T (kinetic)", "#1f77b4"),
+    ("potential", "V (strain)", "#ff7f0e"),
+    ("total", "T+V", "#2ca02c"),
+    ("pull", "pull spring", "#d62728"),
+)
 
 SKIN_COLOR = (236, 196, 150)
 SIM_COLOR = (90, 160, 230)
@@ -79,7 +101,10 @@ def _load_scene(name: str | Path) -> Any:
 def _make_simulation(scene: Any, integrator: str | None, backend: str | None) -> Any:
     from fem3d.simulation import Simulation
 
-    return Simulation(scene, integrator=integrator, backend=backend)
+    sim = Simulation(scene, backend=backend)
+    if integrator is not None:
+        sim.integrator = integrator
+    return sim
 
 
 def _builtin_scene_names() -> list[str]:
@@ -161,7 +186,7 @@ class RealtimePacer:
 
 
 class EnergyHistory:
-    """Rolling history of (t, kinetic, potential, total) for the energy plot.
+    """Rolling history of (t, kinetic, potential, total[, pull]) for the energy plots.
 
     Parameters
     ----------
@@ -170,9 +195,7 @@ class EnergyHistory:
     """
 
     def __init__(self, maxlen: int = 4000) -> None:
-        self._rows: collections.deque[tuple[float, float, float, float]] = collections.deque(
-            maxlen=maxlen
-        )
+        self._rows: collections.deque[tuple[float, ...]] = collections.deque(maxlen=maxlen)
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -180,8 +203,12 @@ class EnergyHistory:
     def clear(self) -> None:
         self._rows.clear()
 
-    def append(self, t: float, kinetic: float, potential: float, total: float) -> None:
-        self._rows.append((float(t), float(kinetic), float(potential), float(total)))
+    def append(
+        self, t: float, kinetic: float, potential: float, total: float, pull: float = 0.0
+    ) -> None:
+        self._rows.append(
+            (float(t), float(kinetic), float(potential), float(total), float(pull))
+        )
 
     def window(self, seconds: float | None = None) -> tuple[np.ndarray, ...]:
         """The samples of the last ``seconds`` of simulated time.
@@ -199,26 +226,34 @@ class EnergyHistory:
             a = a[a[:, 0] >= a[-1, 0] - seconds]
         return tuple(np.ascontiguousarray(a[:, i]) for i in range(4))
 
-    def resampled(self, seconds: float, n: int = 200) -> tuple[np.ndarray, ...]:
-        """The last ``seconds`` on a fixed grid of times relative to the newest sample.
+    def recent(self, seconds: float, n: int = 400) -> tuple[np.ndarray, ...]:
+        """The real samples of the last ``seconds``, at most ``n`` of them (every k-th).
 
-        A fixed x grid keeps the plot's x axis still (uPlot does not have to rescale it on
-        every update); values before the first sample repeat the first sample.
+        Nothing is invented: before the first sample (after a reset) the plot stays
+        empty, and between samples uPlot draws straight lines.
 
         Returns
         -------
-        (x, kinetic, potential, total) : four (n,) float64 arrays
-            ``x = linspace(-seconds, 0, n)`` (seconds before the newest sample).
+        (x, kinetic, potential, total, pull) : five (m,) float64 arrays
+            ``x = t - t_newest`` (seconds before the newest sample, ``<= 0``); ``m = 0``
+            for an empty history.
         """
-        x = np.linspace(-float(seconds), 0.0, int(n))
         if not self._rows:
-            return (x, *(np.zeros(int(n)) for _ in range(3)))
-        t, T, V, tot = self.window(seconds)
-        xt = t - t[-1]
-        return (x, *(np.interp(x, xt, a) for a in (T, V, tot)))
+            return tuple(np.zeros(0) for _ in range(5))
+        a = np.asarray(self._rows, dtype=np.float64)
+        a = a[a[:, 0] >= a[-1, 0] - seconds]
+        k = max(1, math.ceil(a.shape[0] / int(n)))
+        a = a[::-1][::k][::-1]  # keep the newest sample
+        x = a[:, 0] - a[-1, 0]
+        return (np.ascontiguousarray(x), *(np.ascontiguousarray(a[:, i]) for i in range(1, 5)))
+
+    def latest(self) -> tuple[float, ...] | None:
+        """The newest (t, kinetic, potential, total, pull), or None."""
+        return self._rows[-1] if self._rows else None
 
     def rows(self) -> list[tuple[float, float, float, float]]:
-        return list(self._rows)
+        """(t, kinetic, potential, total) per sample."""
+        return [r[:4] for r in self._rows]
 
 
 @dataclasses.dataclass
@@ -244,6 +279,7 @@ class PullState:
     target: np.ndarray
     start_positions: np.ndarray
     generation: int
+    owner: int | None = None
 
 
 def spring_segments(positions: np.ndarray, ids: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -318,6 +354,21 @@ def camera_for_points(
     }
 
 
+def _nb(text: str) -> str:
+    """Non-breaking spaces inside a phrase: the status line wraps only between phrases."""
+    return text.replace(" ", "\u00a0")
+
+
+def format_energy(value: float) -> str:
+    """An energy for the panel: ``1.23e-06``, ``0.0123``, ``4.56e+09``; ``0`` for zero."""
+    v = float(value)
+    if v == 0.0:
+        return "0"
+    if 1e-3 <= abs(v) < 1e5:
+        return f"{v:.4g}"
+    return f"{v:.3e}"
+
+
 def format_status(
     *,
     scene: str,
@@ -332,48 +383,70 @@ def format_status(
     E: float,
     nu: float,
     rho: float,
+    grabbed: int | None = None,
+    pick_radius: float | None = None,
 ) -> str:
-    """The panel's markdown status line."""
+    """The panel's markdown status text.
+
+    Phrases are joined by `` · `` and keep their own spaces non-breaking, so a narrow panel
+    wraps the line between phrases, never inside one (``t = 1.23 s`` stays whole).
+    ``grabbed`` (vertices held by the current drag, None: no drag) and ``pick_radius`` add
+    a grabbing line.
+    """
     if error is not None:
         state = "**stopped: simulation error** (R resets)"
     else:
         state = "paused" if paused else "running"
-    return (
-        f"**{scene}** · {INTEGRATOR_LABELS.get(integrator, integrator)} · "
-        f"{MESH_MODE_LABELS.get(mesh_mode, mesh_mode)} · {state}  \n"
-        f"t = {t:.2f} s · {ms_per_step:.1f} ms/step · "
-        f"{newton_per_step:.2f} Newton it/step · {steps_per_second:.0f} steps/s  \n"
-        f"E = {E:.3g} · ν = {nu:.3g} · ρ = {rho:.3g}"
-    )
+    lines = [
+        [f"**{scene}**", INTEGRATOR_LABELS.get(integrator, integrator),
+         MESH_MODE_LABELS.get(mesh_mode, mesh_mode), state],
+        [f"t = {t:.2f} s", f"{ms_per_step:.1f} ms/step",
+         f"{newton_per_step:.2f} Newton it/step", f"{steps_per_second:.0f} steps/s"],
+        [f"E = {E:.4g}", f"ν = {nu:.3g}", f"ρ = {rho:.3g}"],
+    ]
+    if pick_radius is not None or grabbed is not None:
+        grab = []
+        if pick_radius is not None:
+            grab.append(f"grab radius {pick_radius:.3g}")
+        grab.append("not dragging" if grabbed is None else
+                    f"dragging {grabbed} " + ("vertex" if grabbed == 1 else "vertices"))
+        lines.append(grab)
+    return "  \n".join(" · ".join(_nb(p) for p in line) for line in lines)
 
 
-def scale_energies(data: tuple[np.ndarray, ...]) -> tuple[int, tuple[np.ndarray, ...]]:
-    """Scale the energy series by a power of 1000 so the plot's tick labels stay short.
-
-    Parameters
-    ----------
-    data : (x, kinetic, potential, total), four (n,) float64 arrays
-
-    Returns
-    -------
-    exponent : int
-        A multiple of 3; the plotted values are energies / 10**exponent.
-    scaled : four (n,) float64 arrays
-        ``x`` unchanged, the energies divided by ``10**exponent``.
-    """
-    x, *ys = data
-    m = max((float(np.abs(y).max()) for y in ys if y.size), default=0.0)
-    exponent = 0 if not (m > 0 and math.isfinite(m)) else 3 * math.floor(math.log10(m) / 3)
-    if exponent == 0:
-        return 0, (x, *ys)
-    f = 10.0**-exponent
-    return exponent, (x, *(y * f for y in ys))
+def energy_text(latest: Sequence[float] | None) -> str:
+    """The current energies above the plots (markdown), one phrase per energy."""
+    if latest is None:
+        return "energies: none yet"
+    _t, T, V, tot, pull = (list(latest) + [0.0])[:5]
+    parts = [f"T = {format_energy(T)}", f"V = {format_energy(V)}",
+             f"T+V = {format_energy(tot)}", f"pull = {format_energy(pull)}"]
+    return "now: " + " · ".join(_nb(p) for p in parts)
 
 
-def plot_unit_line(exponent: int) -> str:
-    """The status-text line that gives the energy plot's unit (markdown)."""
-    unit = "1" if exponent == 0 else f"1e{exponent}"
-    return f"  \nenergy plot unit: {unit}"
+def _free_port(host: str) -> int:
+    """A port nobody listens on now (``--port 0``)."""
+    with socket.socket(_family(host), socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def _family(host: str) -> socket.AddressFamily:
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
+
+
+def _check_port_free(host: str, port: int) -> None:
+    """Raise InputError (one line) when ``host:port`` cannot be listened on."""
+    with socket.socket(_family(host), socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as exc:
+            why = "is in use" if exc.errno in (98, 48) else f"cannot be used ({exc.strerror})"
+            raise InputError(
+                f"port {port} on {host} {why}; pick another with --port N, "
+                "or --port 0 for a free one"
+            ) from None
 
 
 def _surface_faces(sim: Any) -> np.ndarray:
@@ -473,6 +546,16 @@ class Viewer:
         self._material = self._scene_material()
         self._drag_events = 0
         self._last_gui_pause = -1e9
+        self._pick_radius = float(self._sim.pick_radius)
+        #: Tracebacks of exceptions caught on the viewer's threads (tests assert it stays
+        #: empty; each is also printed).
+        self.exceptions: list[str] = []
+        # Frame acknowledgements: client id -> [last seq sent, last seq acked, time sent].
+        self._acks: dict[int, list[float]] = {}
+        self._ack_seq = 0
+        self._acked = 0
+        self._held_back = 0
+        self._history_reset()
 
         # Simulation-thread-only state.
         self._server: Any = None
@@ -487,7 +570,8 @@ class Viewer:
         self._applied_generation = -1
         self._last_push = 0.0
         self._last_plot = 0.0
-        self._shown: tuple[Any, Any] | None = None  # (mesh handle, pull) last sent
+        self._mesh_serial = 0  # incremented whenever the mesh node is replaced
+        self._shown: tuple[Any, Any] | None = None  # (mesh serial, pull) last sent
         self._shown_q = np.zeros((0, 3))
         self._gui_dirty = True
         self._camera: dict[str, Any] = self._scene_camera()
@@ -510,19 +594,60 @@ class Viewer:
             return dict(self._camera)
 
     def _scene_material(self) -> dict[str, float]:
-        s = self._scene
-        return {"E": float(s.E), "nu": float(s.nu), "rho": float(s.rho)}
+        m = self._scene.bodies[0].material
+        return {"E": float(m.E), "nu": float(m.nu), "rho": float(m.density)}
+
+    def _radius_range(self) -> tuple[float, float, float]:
+        """(min, max, initial) of the grab-radius slider: 0.1 % to 20 % of the mesh's
+        bounding-box diagonal, starting at the scene's ``pick_radius``."""
+        q = np.asarray(self._sim.q, dtype=np.float64)
+        diag = float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))) or 1.0
+        r0 = float(self._sim.pick_radius)
+        lo, hi = min(1e-3 * diag, r0), max(0.2 * diag, r0)
+        return lo, hi, r0
+
+    def _history_reset(self) -> None:
+        """Start the energy history at the current state (a real sample, not padding)."""
+        self._history.clear()
+        try:
+            e = self._sim.energies()
+        except Exception:  # noqa: BLE001 - an exotic simulation without energies
+            return
+        self._history.append(float(self._sim.t), e["kinetic"], e["potential"], e["total"],
+                             e.get("pull", 0.0))
+
+    def _log_exception(self) -> None:
+        text = traceback.format_exc()
+        print(text, end="", file=sys.stderr, flush=True)
+        with self._lock:
+            self.exceptions.append(text)
 
     # ---------------------------------------------------------------- life cycle
     def start(self) -> str:
-        """Start the viser server and the simulation thread; return the URL."""
+        """Start the viser server and the simulation thread; return the URL.
+
+        Raises
+        ------
+        InputError
+            The port is taken (viser would silently move to the next free one; an SSH
+            forward to the requested port would then reach something else).
+        """
         viser = _import_viser()
-        self._server = viser.ViserServer(host=self.host, port=self.port, verbose=False)
+        port = _free_port(self.host) if self.port == 0 else self.port
+        _check_port_free(self.host, port)
+        self._server = viser.ViserServer(host=self.host, port=port, verbose=False)
+        if self._server.get_port() != port:
+            got = self._server.get_port()
+            self._server.stop()
+            self._server = None
+            raise InputError(f"port {port} on {self.host} is in use (viser moved to {got}); "
+                             "pick another with --port N, or --port 0 for a free one")
         self._server.scene.set_up_direction("+y")
         self._build_gui()
         self._apply_camera(initial=True)
         self._rebuild_mesh()
         self._server.on_client_connect(self._on_client_connect)
+        self._server.on_client_disconnect(self._on_client_disconnect)
         self._thread = threading.Thread(target=self._run, name="fem3d-view-sim", daemon=True)
         self._thread.start()
         return self.url
@@ -585,9 +710,16 @@ class Viewer:
         self._post(lambda: self._do_set_material(E, nu, rho))
 
     def begin_pull(
-        self, grab_point: Sequence[float], target: Sequence[float] | None = None
+        self,
+        grab_point: Sequence[float],
+        target: Sequence[float] | None = None,
+        owner: int | None = None,
     ) -> None:
-        """Pick the vertices within the scene's picking radius of ``grab_point``.
+        """Pick the vertices within the grab radius of ``grab_point``.
+
+        The grab radius starts at the scene's ``pick_radius`` and follows the panel's
+        slider (:meth:`set_pick_radius`); the nearest vertex is picked when none is
+        within it.
 
         Parameters
         ----------
@@ -595,6 +727,9 @@ class Viewer:
             World-space point on the displayed mesh.
         target : (3,) float, optional
             Initial pull target (default: the grab point).
+        owner : int, optional
+            The browser client that drags (its moves and release then apply to this pull
+            only, so two clients dragging at once cannot end each other's drag).
         """
         grab = np.asarray(grab_point, dtype=np.float64).reshape(3)
         tgt = grab.copy() if target is None else np.asarray(target, dtype=np.float64).reshape(3)
@@ -602,39 +737,52 @@ class Viewer:
             return
         with self._lock:
             q = self._q_view
-            ids = _pick(q, grab, float(self._scene.pick_radius))
+            ids = _pick(q, grab, self._pick_radius)
             self._pull = PullState(
                 ids=ids,
                 grab_point=grab,
                 target=tgt,
                 start_positions=q[ids].copy(),
                 generation=self._generation,
+                owner=owner,
             )
+            self._gui_dirty = True
             self._pull_version += 1
             self._drag_events += 1
         self._wake.set()
 
-    def move_pull(self, target: Sequence[float]) -> None:
+    def move_pull(self, target: Sequence[float], owner: int | None = None) -> None:
         """Move the pull target (world space)."""
         tgt = np.asarray(target, dtype=np.float64).reshape(3)
         if not np.isfinite(tgt).all():
             return
         with self._lock:
-            if self._pull is None:
+            if self._pull is None or (owner is not None and self._pull.owner != owner):
                 return
             self._pull.target = tgt
             self._pull_version += 1
             self._drag_events += 1
         self._wake.set()
 
-    def end_pull(self) -> None:
+    def end_pull(self, owner: int | None = None) -> None:
         """Release the pull."""
         with self._lock:
-            if self._pull is None:
+            if self._pull is None or (owner is not None and self._pull.owner != owner):
                 return
             self._pull = None
+            self._gui_dirty = True
             self._pull_version += 1
             self._drag_events += 1
+        self._wake.set()
+
+    def set_pick_radius(self, radius: float) -> None:
+        """Grab radius (world units) for the next drag."""
+        r = float(radius)
+        if not (math.isfinite(r) and r > 0):
+            raise ParameterError(f"grab radius must be positive, got {radius}")
+        with self._lock:
+            self._pick_radius = r
+            self._gui_dirty = True
         self._wake.set()
 
     # ---------------------------------------------------------------- state for tests
@@ -645,7 +793,9 @@ class Viewer:
         ``t``, ``steps``, ``pushes``, ``ms_per_step``, ``newton_per_step``,
         ``steps_per_second``, ``material``, ``pull`` (None or ``ids``, ``grab_point``,
         ``target``, ``start_positions``, ``positions``), ``energy`` (list of
-        ``[t, T, V, T+V]``), ``drag_events``, ``generation``.
+        ``[t, T, V, T+V]``), ``drag_events``, ``generation``, ``pick_radius``, ``acked``
+        (mesh updates the pages acknowledged), ``held_back`` (mesh updates not sent because
+        a page had not processed the previous one), ``clients``, ``exceptions``.
         """
         with self._lock:
             pull = None
@@ -675,6 +825,11 @@ class Viewer:
                 "energy": [list(r) for r in self._history.rows()],
                 "drag_events": self._drag_events,
                 "generation": self._generation,
+                "pick_radius": self._pick_radius,
+                "acked": self._acked,
+                "held_back": self._held_back,
+                "clients": len(self._acks),
+                "exceptions": list(self.exceptions),
             }
 
     def positions(self) -> np.ndarray:
@@ -703,7 +858,7 @@ class Viewer:
         gui = self._server.gui
         g: dict[str, Any] = {}
         g["status"] = gui.add_markdown("starting…")
-        g["mesh"] = gui.add_button("Mesh: skinned ⇄ simulation (S)")
+        g["mesh"] = gui.add_button(f"Mesh: skinned ⇄ simulation ({HOTKEYS['mesh']})")
         g["integrator"] = gui.add_button("Integrator: linear ⇄ backward Euler (N)")
         g["pause"] = gui.add_button("Pause / resume (space)")
         g["reset"] = gui.add_button("Reset (R)")
@@ -712,27 +867,30 @@ class Viewer:
             names.append(self._scene_label)
         g["scene"] = gui.add_dropdown("Scene", tuple(names), initial_value=self._scene_label)
         E, nu, rho = self._material["E"], self._material["nu"], self._material["rho"]
-        lE = math.log10(E)
+        g["E_value"] = gui.add_number("Young's modulus E", initial_value=E, min=1e-12)
         g["E"] = gui.add_slider(
-            "log10 Young's modulus", min=lE - 2.0, max=lE + 2.0, step=0.05, initial_value=lE
+            "E (slider)", min=E / 10.0, max=E * 10.0, step=E / 10.0, initial_value=E
         )
         g["nu"] = gui.add_slider("Poisson's ratio", min=0.0, max=0.49, step=0.01, initial_value=nu)
         g["rho"] = gui.add_slider(
             "Density", min=rho / 10.0, max=rho * 10.0, step=rho / 10.0, initial_value=rho
         )
-        t, T, V, tot = self._history.resampled(self.plot_window)
-        g["plot"] = gui.add_uplot(
-            data=(t, T, V, tot),
-            series=(
-                {"label": "t - now (s)"},
-                {"label": "T", "stroke": "#1f77b4", "width": 2},
-                {"label": "V", "stroke": "#ff7f0e", "width": 2},
-                {"label": "T+V", "stroke": "#2ca02c", "width": 2},
-            ),
-            scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
-            title=f"Energy T, V, T+V (last {self.plot_window:g} s)",
-            aspect=1.4,
+        lo, hi, r0 = self._radius_range()
+        g["radius"] = gui.add_slider(
+            "Grab radius", min=lo, max=hi, step=(hi - lo) / 200.0, initial_value=r0
         )
+        g["energy"] = gui.add_markdown("")
+        x, *series = self._history.recent(self.plot_window)
+        for (key, label, color), y in zip(ENERGY_PLOTS, series, strict=True):
+            g[f"plot_{key}"] = gui.add_uplot(
+                data=(x, y),
+                series=({"label": "t - now (s)"}, {"label": label, "stroke": color, "width": 2}),
+                scales={"x": {"time": False, "auto": False, "range": [-self.plot_window, 0.0]},
+                        "y": {"auto": True}},
+                legend={"show": False},
+                title=label,
+                aspect=3.0,
+            )
         g["mesh"].on_click(lambda _e: self.toggle_mesh_mode())
         g["integrator"].on_click(lambda _e: self.toggle_integrator())
         g["pause"].on_click(lambda _e: self._gui_toggle_pause())
@@ -744,7 +902,17 @@ class Viewer:
 
         def _on_E(event: Any) -> None:
             if event.client is not None:
-                self.set_material(E=10.0 ** float(event.target.value))
+                self.set_material(E=float(event.target.value))
+
+        def _on_E_value(event: Any) -> None:
+            if event.client is not None:
+                value = float(event.target.value)
+                if value > 0 and math.isfinite(value):
+                    self.set_material(E=value)
+
+        def _on_radius(event: Any) -> None:
+            if event.client is not None:
+                self.set_pick_radius(float(event.target.value))
 
         def _on_nu(event: Any) -> None:
             if event.client is not None:
@@ -756,18 +924,32 @@ class Viewer:
 
         g["scene"].on_update(_on_scene)
         g["E"].on_update(_on_E)
+        g["E_value"].on_update(_on_E_value)
+        g["radius"].on_update(_on_radius)
         g["nu"].on_update(_on_nu)
         g["rho"].on_update(_on_rho)
 
         for label, key, action in (
-            ("Toggle skinned / simulation mesh", "S", self.toggle_mesh_mode),
-            ("Toggle linearly-implicit / backward Euler", "N", self.toggle_integrator),
-            ("Pause / resume", "space", self._gui_toggle_pause),
-            ("Reset", "R", self.reset),
+            ("Toggle skinned / simulation mesh", HOTKEYS["mesh"], self.toggle_mesh_mode),
+            ("Toggle linearly-implicit / backward Euler", HOTKEYS["integrator"],
+             self.toggle_integrator),
+            ("Pause / resume", HOTKEYS["pause"], self._gui_toggle_pause),
+            ("Reset", HOTKEYS["reset"], self.reset),
         ):
             cmd = gui.add_command(label, hotkey=key)
             cmd.on_trigger(lambda _e, a=action: a())
         self._gui = g
+
+    def _sync_E_widgets(self, E: float) -> None:
+        """Show ``E`` in the number field and on the slider (re-centring the slider's range
+        on a value typed outside it)."""
+        g = self._gui
+        if abs(float(g["E_value"].value) - E) > 1e-9 * E:
+            g["E_value"].value = E
+        if not (g["E"].min <= E <= g["E"].max):
+            g["E"].min, g["E"].max, g["E"].step = E / 10.0, E * 10.0, E / 10.0
+        if abs(float(g["E"].value) - E) > 1e-9 * E:
+            g["E"].value = E
 
     def _gui_toggle_pause(self) -> None:
         """Pause/resume from the panel: a focused button receives space as a click too, so
@@ -780,12 +962,82 @@ class Viewer:
         self.toggle_pause()
 
     def _on_client_connect(self, client: Any) -> None:
+        self._register_acks(client)
         with self._lock:
             cam = dict(self._camera)
             error = self._error
         self._set_client_camera(client, cam)
         if error is not None:
             self._notify_client(client, error)
+
+    def _on_client_disconnect(self, client: Any) -> None:
+        with self._lock:
+            self._acks.pop(int(client.client_id), None)
+            if self._pull is not None and self._pull.owner == int(client.client_id):
+                self._pull = None
+                self._pull_version += 1
+
+    def _register_acks(self, client: Any) -> None:
+        """Listen for the page's frame acknowledgements (see :meth:`_request_acks`)."""
+        try:
+            from viser import _messages as vm
+
+            conn = client._websock_connection
+        except (ImportError, AttributeError):  # pragma: no cover - another viser
+            return
+        cid = int(client.client_id)
+
+        def got(_client_id: int, message: Any) -> None:
+            uid = str(getattr(message, "request_uuid", ""))
+            if not uid.startswith("fem3d-ack-"):
+                return
+            seq = int(uid.rsplit("-", 1)[1])
+            with self._lock:
+                st = self._acks.get(cid)
+                if st is not None and seq > st[1]:
+                    st[1] = seq
+                    self._acked += 1
+            self._wake.set()
+
+        conn.register_handler(vm.LocalStorageGetItemResponseMessage, got)
+        with self._lock:
+            self._acks[cid] = [0, 0, 0.0]
+
+    def _clients_busy(self, now: float) -> bool:
+        """True while some page has not yet processed the last mesh update (for at most
+        :data:`ACK_TIMEOUT` seconds)."""
+        with self._lock:
+            return any(st[1] < st[0] and now - st[2] < ACK_TIMEOUT for st in self._acks.values())
+
+    def _request_acks(self, now: float) -> None:
+        """Ask every page to answer once it has processed the messages sent so far.
+
+        The request is a localStorage read, which viser's client answers from the page's
+        main thread (the one that draws): a page busy drawing answers late, and the next
+        mesh update waits for the answer. This is the viewer's backpressure: the pages get
+        the updates they can draw instead of a queue of stale ones.
+        """
+        try:
+            from viser import _messages as vm
+        except ImportError:  # pragma: no cover
+            return
+        self._ack_seq += 1
+        seq = self._ack_seq
+        for client in self._server.get_clients().values():
+            cid = int(client.client_id)
+            with self._lock:
+                st = self._acks.get(cid)
+                if st is None:
+                    continue
+                st[0], st[2] = seq, now
+            try:
+                client._websock_connection.queue_message(
+                    vm.LocalStorageGetItemRequestMessage(key=_ACK_KEY,
+                                                         request_uuid=f"fem3d-ack-{seq}")
+                )
+            except Exception:  # noqa: BLE001 - a closing client
+                with self._lock:
+                    self._acks.pop(cid, None)
 
     @staticmethod
     def _set_client_camera(client: Any, cam: dict[str, Any]) -> None:
@@ -856,7 +1108,7 @@ class Viewer:
         return np.asarray(self._sim.q, dtype=np.float64)
 
     def _has_skin(self) -> bool:
-        return getattr(self._scene, "skin_F", None) is not None
+        return bool(self._sim.has_skin)
 
     def _rebuild_mesh(self) -> None:
         """Replace the displayed mesh node (simulation thread only)."""
@@ -865,9 +1117,10 @@ class Viewer:
             old, self._mesh_handle = self._mesh_handle, None
             old.remove()
         self._mesh_handle_mode = mode
+        self._mesh_serial += 1
         if mode == "skin":
             verts = np.asarray(self._sim.skin_positions(), dtype=np.float64)
-            faces = np.asarray(self._scene.skin_F, dtype=np.uint32)
+            faces = np.asarray(self._sim.display_faces, dtype=np.uint32)
             handle = self._server.scene.add_mesh_simple(
                 "/fem3d/skin", verts, faces, color=SKIN_COLOR, flat_shading=False,
                 cast_shadow=False, receive_shadow=False,
@@ -880,12 +1133,13 @@ class Viewer:
             )
 
         async def _on_drag(event: Any) -> None:
+            owner = getattr(event, "client_id", None)
             if event.phase == "start":
-                self.begin_pull(event.start_position, event.end_position)
+                self.begin_pull(event.start_position, event.end_position, owner=owner)
             elif event.phase == "update":
-                self.move_pull(event.end_position)
+                self.move_pull(event.end_position, owner=owner)
             else:
-                self.end_pull()
+                self.end_pull(owner=owner)
 
         handle.on_drag("left")(_on_drag)
         self._mesh_handle = handle
@@ -943,7 +1197,7 @@ class Viewer:
         with self._lock:
             self._error = None
             self._paused = False
-            self._history.clear()
+            self._history_reset()
             self._recent.clear()
             self._t = 0.0
             self._q_view = np.array(self._sim.q, dtype=np.float64, copy=True)
@@ -961,6 +1215,8 @@ class Viewer:
             for k, v in (("E", E), ("nu", nu), ("rho", rho)):
                 if v is not None:
                     self._material[k] = float(v)
+        if E is not None and self._gui:
+            self._sync_E_widgets(float(E))
         self._gui_dirty = True
 
     def _do_switch_scene(self, name: str) -> None:
@@ -981,20 +1237,25 @@ class Viewer:
             self._pull_version += 1
             self._error = None
             self._paused = False
-            self._history.clear()
+            self._history_reset()
             self._recent.clear()
             self._t = 0.0
             self._q_view = np.array(sim.q, dtype=np.float64, copy=True)
             self._material = self._scene_material()
+            self._pick_radius = float(self._sim.pick_radius)
         self._applied_pull_version = -1
         self._rebuild_mesh()
         self._update_spring(None, sim.q)
         self._apply_camera()
         g = self._gui
-        lE = math.log10(self._material["E"])
+        E = self._material["E"]
         rho = self._material["rho"]
-        g["E"].min, g["E"].max = lE - 2.0, lE + 2.0
-        g["E"].value = lE
+        g["E"].min, g["E"].max, g["E"].step = E / 10.0, E * 10.0, E / 10.0
+        g["E"].value = E
+        g["E_value"].value = E
+        lo, hi, r0 = self._radius_range()
+        g["radius"].min, g["radius"].max, g["radius"].step = lo, hi, (hi - lo) / 200.0
+        g["radius"].value = r0
         g["nu"].value = self._material["nu"]
         g["rho"].min, g["rho"].max, g["rho"].step = rho / 10.0, rho * 10.0, rho / 10.0
         g["rho"].value = rho
@@ -1024,7 +1285,7 @@ class Viewer:
             self._fail(str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - keep the viewer alive, show the error
-            traceback.print_exc()
+            self._log_exception()
             self._fail(f"{type(exc).__name__}: {exc}")
             return
         now = time.perf_counter()
@@ -1033,7 +1294,8 @@ class Viewer:
             self._steps += 1
             self._t = float(info.t)
             self._q_view = np.array(q, dtype=np.float64, copy=True)
-            self._history.append(info.t, info.kinetic, info.potential, info.total)
+            self._history.append(info.t, info.kinetic, info.potential, info.total,
+                                 float(getattr(info, "pull", 0.0)))
             self._recent.append((now, seconds, int(info.newton_iterations)))
 
     def _fail(self, message: str) -> None:
@@ -1053,15 +1315,25 @@ class Viewer:
         self._last_push = now
         q = np.asarray(self._sim.q, dtype=np.float64)
         pull_key = None if pull is None else (pull.ids.tobytes(), pull.target.tobytes())
-        shown = (self._mesh_handle, pull_key)
-        if not (force or shown != self._shown or not np.array_equal(q, self._shown_q)):
+        # The mesh node is identified by a serial number: viser's handles compare their
+        # vertex arrays, so comparing handles raises once the mesh is replaced.
+        shown = (self._mesh_serial, pull_key)
+        changed = (
+            self._shown is None or shown[0] != self._shown[0] or shown[1] != self._shown[1]
+            or q.shape != self._shown_q.shape or not np.array_equal(q, self._shown_q)
+        )
+        if not (force or changed):
             pass  # nothing moved (paused, or at rest): send nothing
+        elif not force and self._clients_busy(now):
+            with self._lock:
+                self._held_back += 1  # a page is still busy with the last update
         else:
             verts = self._display_positions()
             if np.isfinite(verts).all():
                 with self._server.atomic():
                     self._mesh_handle.vertices = verts.astype(np.float32)
                     self._update_spring(pull, q)
+                self._request_acks(now)
                 self._shown, self._shown_q = shown, q.copy()
                 with self._lock:
                     self._pushes += 1
@@ -1073,6 +1345,9 @@ class Viewer:
     def _push_gui(self) -> None:
         with self._lock:
             stats = self._stats_locked()
+            pull = self._pull
+            grabbed = None if pull is None or pull.generation != self._generation else int(
+                pull.ids.size)
             text = format_status(
                 scene=self._scene_label,
                 integrator=self._sim_integrator,
@@ -1083,14 +1358,16 @@ class Viewer:
                 E=self._material["E"],
                 nu=self._material["nu"],
                 rho=self._material["rho"],
+                grabbed=grabbed,
+                pick_radius=self._pick_radius,
                 **stats,
             )
-            data = self._history.resampled(self.plot_window)
-        # The unit goes in the status text: changing the plot's title or labels would make
-        # the client rebuild the chart, which loses its x range.
-        exponent, scaled = scale_energies(data)
-        self._gui["status"].content = text + plot_unit_line(exponent)
-        self._gui["plot"].data = scaled
+            x, *series = self._history.recent(self.plot_window)
+            latest = self._history.latest()
+        self._gui["status"].content = text
+        self._gui["energy"].content = energy_text(latest)
+        for (key, _label, _color), y in zip(ENERGY_PLOTS, series, strict=True):
+            self._gui[f"plot_{key}"].data = (x, y)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -1103,12 +1380,12 @@ class Viewer:
                 try:
                     command()
                 except Exception as exc:  # noqa: BLE001 - a bad command must not stop the loop
-                    traceback.print_exc()
+                    self._log_exception()
                     self._fail(f"{type(exc).__name__}: {exc}")
             try:
                 pull = self._sync_pull()
             except Exception as exc:  # noqa: BLE001 - e.g. a rejected pull
-                traceback.print_exc()
+                self._log_exception()
                 self._fail(f"{type(exc).__name__}: {exc}")
                 with self._lock:
                     self._pull = None
@@ -1130,7 +1407,7 @@ class Viewer:
             except Exception:  # noqa: BLE001 - e.g. the server is stopping
                 if self._stop.is_set():
                     break
-                traceback.print_exc()
+                self._log_exception()
             if wait > 0.0:
                 due = self._last_push + 1.0 / self.push_hz - time.perf_counter()
                 self._wake.wait(max(0.0, min(wait, due)))

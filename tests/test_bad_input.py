@@ -142,11 +142,11 @@ def test_truncated_obj_and_binary(tmp_path: Path) -> None:
     write_tet_mesh(tmp_path / "full.vtu", mesh)
     data = (tmp_path / "full.vtu").read_bytes()
     (tmp_path / "cut.vtu").write_bytes(data[: len(data) // 2])
-    raises_at(read_tet_mesh, tmp_path / "cut.vtu", "cannot read file")
+    raises_at(read_tet_mesh, tmp_path / "cut.vtu", "not a readable VTU file")
     write_tet_mesh(tmp_path / "full.msh", mesh)
     data = (tmp_path / "full.msh").read_bytes()
     (tmp_path / "cut.msh").write_bytes(data[: len(data) // 2])
-    raises_at(read_tet_mesh, tmp_path / "cut.msh", "cannot read file")
+    raises_at(read_tet_mesh, tmp_path / "cut.msh", "not a readable MSH file")
 
 
 # ------------------------------------------------------------------------ wrong counts

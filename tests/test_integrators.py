@@ -16,15 +16,22 @@ from fem3d.integrators import (
     linearly_implicit_euler,
     newtons_method,
 )
-from fem3d.scenes import Scene, load_scene
+from fem3d.scene import Scene, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
+
+_BOX_KEYS = {"E": "bodies[0].material.E", "nu": "bodies[0].material.nu",
+             "rho": "bodies[0].material.density", "dt": "simulation.dt",
+             "spring_k": "interaction.spring_k", "pick_radius": "interaction.pick_radius",
+             "integrator": "simulation.integrator"}
 
 
 def box_scene(**kw) -> Scene:
     X, T = box_mesh(2, 3, 2, size=(1.0, 1.5, 1.0))
-    args = dict(E=1e5, nu=0.4, rho=1000.0, dt=0.01, spring_k=1e4, fixed_tol=1e-9,
-                pick_radius=0.01, integrator="implicit") | kw
-    return Scene("box", X, T, None, None, **args)
+    args = dict(E=1e5, nu=0.4, rho=1000.0, dt=0.01, spring_k=1e4, pick_radius=0.01,
+                integrator="implicit") | kw
+    overrides = {_BOX_KEYS[k]: v for k, v in args.items()}
+    overrides["bodies[0].pins"] = [{"select": {"lowest_y": {"tol": 1e-9}}}]
+    return scene_from_arrays(X, T, overrides, name="box")
 
 
 def swinging_state(X: np.ndarray) -> State:
@@ -147,7 +154,7 @@ def test_pull_moves_vertex_toward_target_and_release_returns():
 
 
 def test_linear_step_raises_on_energy_bound_and_keeps_state():
-    sim = Simulation(box_scene(), integrator="linear")
+    sim = Simulation(box_scene(integrator="linear"))
     state = swinging_state(sim.model.X)
     with pytest.raises(SimulationError, match="exploded"):
         linearly_implicit_euler(sim.system, state, 0.01, energy_bound=1e-12)
@@ -168,13 +175,13 @@ def test_reset_and_set_material():
 
 
 def test_linear_bunny_stays_bounded_for_200_steps():
-    scene = load_scene("bunny")
-    sim = Simulation(scene, "linear", scripted=True)
-    h = scene.height
+    scene = load_scene("bunny", {"simulation.integrator": "linear"})
+    sim = Simulation(scene, scripted=True)
+    h = sim.assembled.height
     worst = 0.0
     for _ in range(200):
         info = sim.step()
-        worst = max(worst, float(np.abs(sim.q - scene.X).max()))
+        worst = max(worst, float(np.abs(sim.q - sim.model.X).max()))
         assert math.isfinite(info.total)
     print(f"bunny linear: max displacement {worst:.3f} (height {h:.1f}); final {info}")
     assert worst < 0.25 * h
@@ -183,8 +190,8 @@ def test_linear_bunny_stays_bounded_for_200_steps():
 
 
 def test_linear_armadillo_explodes_and_is_reported():
-    scene = load_scene("arma")
-    sim = Simulation(scene, "linear", scripted=True)
+    scene = load_scene("arma", {"simulation.integrator": "linear"})
+    sim = Simulation(scene, scripted=True)
     with pytest.raises(SimulationError, match="exploded") as err:
         for _ in range(100):
             sim.step()
@@ -195,13 +202,14 @@ def test_linear_armadillo_explodes_and_is_reported():
 
 
 def test_implicit_armadillo_is_stable_with_the_same_pull():
-    scene = load_scene("arma")
-    sim = Simulation(scene, "implicit", scripted=True)
+    scene = load_scene("arma", {"simulation.integrator": "implicit"})
+    sim = Simulation(scene, scripted=True)
     for _ in range(60):
         info = sim.step()
         assert info.newton_iterations <= 5
-    assert np.abs(sim.q - scene.X).max() < 0.05 * scene.height
-    assert np.array_equal(sim.q[sim.fixed_vertices], scene.X[sim.fixed_vertices])
+    X = sim.model.X
+    assert np.abs(sim.q - X).max() < 0.05 * sim.assembled.height
+    assert np.array_equal(sim.q[sim.fixed_vertices], X[sim.fixed_vertices])
 
 
 def test_indefinite_hessian_uses_shifted_factorization():
@@ -306,7 +314,7 @@ def test_reuse_across_steps_factorizes_rarely_and_tracks_direct():
     for many steps and stays on the trajectory of refactorizing every iteration."""
     runs = {}
     for mode in ("direct", "reuse"):
-        sim = Simulation(load_scene("arma"), scripted=True, newton_solver=mode)
+        sim = Simulation(load_scene("arma", {"simulation.newton.solver": mode}), scripted=True)
         factorizations = 0
         for _ in range(40):
             sim.step()
@@ -350,3 +358,366 @@ def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
     before = A.data.copy()
     system.newton_matrix(model.X, dt)
     np.testing.assert_array_equal(A.data, before)
+
+
+# ---------------------------------------------------------------------------------------------
+# gravity, Rayleigh damping, moving pins, several pulls, objective terms
+
+G = np.array([0.0, -9.81, 0.0])
+
+
+def small_model(nx=2, ny=2, nz=2, size=(1.0, 1.0, 1.0), E=1e5, nu=0.35, rho=1000.0):
+    from fem3d.model import build_model
+
+    X, T = box_mesh(nx, ny, nz, size=size)
+    return build_model(X, T, E=E, nu=nu, rho=rho)
+
+
+def make_system(model, fixed=(), **physics):
+    from fem3d.constraints import Constraints
+    from fem3d.integrators import System
+
+    c = Constraints.from_fixed_vertices(model.X, np.asarray(fixed, dtype=np.int64))
+    return System(model, c, **physics)
+
+
+STEPPERS = {
+    "implicit": lambda system, state, dt, **kw: implicit_euler(system, state, dt, **kw),
+    "linear": lambda system, state, dt, **kw: linearly_implicit_euler(system, state, dt, **kw),
+}
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "linear"])
+def test_free_fall_matches_backward_euler_closed_form(integrator):
+    """An unpinned body under gravity: both schemes update ``v+ = v + dt g``, ``q+ = q + dt
+    v+``, so after n steps ``v = n dt g`` and ``q - X = g dt^2 n (n + 1) / 2 = g t^2 / 2 + g t
+    dt / 2``: the exact parabola plus backward Euler's known first-order error ``g t dt / 2``.
+    Checked to round-off (1e-9 of the fall)."""
+    model = small_model()
+    system = make_system(model, gravity=G)
+    state, dt, n = State.at_rest(model), 0.01, 30
+    for _ in range(n):
+        state, _ = STEPPERS[integrator](system, state, dt)
+    t = n * dt
+    fall = G * dt * dt * n * (n + 1) / 2
+    np.testing.assert_allclose(fall, G * t * t / 2 + G * t * dt / 2, rtol=1e-12)
+    scale = np.abs(fall).max()
+    assert np.abs(state.q - model.X - fall).max() < 1e-9 * scale
+    assert np.abs(state.v - n * dt * G).max() < 1e-9 * np.abs(n * dt * G).max()
+
+
+def test_pinned_cantilever_settles_at_the_static_solution():
+    """A cantilever under gravity with mass damping settles where ``dV/dq = M g`` (the static
+    problem, solved separately by plain Newton on ``dV/dq - f_g = 0``)."""
+    import scipy.sparse.linalg as spla
+
+    from fem3d.assembly import assemble_gradient, hessian_data
+
+    model = small_model(4, 1, 1, size=(2.0, 0.5, 0.5), E=1e7, rho=500.0)
+    fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
+    system = make_system(model, fixed, gravity=G, rayleigh_alpha=50.0)
+    c, free = system.constraints, system.constraints.free_dofs
+    f = system.gravity_force
+    np.testing.assert_allclose(f.reshape(-1, 3).sum(axis=0), G * model.rho * 0.5, rtol=1e-12)
+    u = model.X.reshape(-1)[free]
+    for _ in range(8):
+        q = c.expand(u)
+        u = u - spla.spsolve(system.reduced(hessian_data(model, q)).tocsc(),
+                             (assemble_gradient(model, q) - f)[free])
+    q_static = c.expand(u).reshape(-1, 3)
+    assert np.abs((assemble_gradient(model, q_static) - f)[free]).max() < 1e-8
+    sag = np.abs(q_static - model.X).max()
+    assert sag > 1e-2  # it does sag
+    state = State.at_rest(model)
+    for _ in range(60):
+        state, _ = implicit_euler(system, state, 0.05, max_iterations=None)
+    assert np.abs(state.q - q_static).max() < 1e-7 * sag
+    assert np.array_equal(state.q[fixed], model.X[fixed])
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "linear"])
+def test_mass_damping_decays_a_translation_at_the_discrete_rate(integrator):
+    """``M dv/dt = -alpha M v``: backward Euler gives ``v_n = v_0 / (1 + alpha dt)^n`` exactly
+    (the continuous ``exp(-alpha t)`` to first order in ``dt``); alpha per vertex equal to a
+    constant is the same damping."""
+    model = small_model()
+    v0 = np.tile([0.3, -0.2, 0.5], (model.n_vertices, 1))
+    alpha, dt, n = 2.0, 0.01, 40
+    expected = v0 / (1 + alpha * dt) ** n
+    for a in (alpha, np.full(model.n_vertices, alpha)):
+        system = make_system(model, rayleigh_alpha=a)
+        state = State(q=model.X.copy(), v=v0.copy())
+        speeds = []
+        for _ in range(n):
+            state, _ = STEPPERS[integrator](system, state, dt)
+            speeds.append(np.linalg.norm(state.v[0]))
+        assert np.all(np.diff(speeds) < 0)
+        assert np.abs(state.v - expected).max() < 1e-9 * np.abs(v0).max()
+    continuous = v0 * math.exp(-alpha * n * dt)
+    assert np.abs(expected - continuous).max() < alpha * alpha * n * dt * dt * np.abs(v0).max()
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "linear"])
+def test_rayleigh_damping_decays_energy_monotonically(integrator):
+    """A swinging clamped box: with ``alpha M + beta K`` the total energy never increases and
+    ends well below the undamped run's."""
+    from fem3d.assembly import kinetic_energy, potential_energy
+
+    model = small_model(2, 3, 2, size=(1.0, 1.5, 1.0))
+    fixed = np.flatnonzero(model.X[:, 1] <= 1e-12)
+    start = swinging_state(model.X)
+    finals = {}
+    for damping in ({}, {"rayleigh_alpha": 3.0, "rayleigh_beta": 0.02}):
+        system = make_system(model, fixed, **damping)
+        state = start
+        energies = [kinetic_energy(model, state.v) + potential_energy(model, state.q)]
+        for _ in range(40):
+            state, _ = STEPPERS[integrator](system, state, 0.01)
+            energies.append(kinetic_energy(model, state.v) + potential_energy(model, state.q))
+        e = np.array(energies)
+        if damping:
+            assert np.all(np.diff(e) <= 1e-12 * e[0]), e
+        finals[bool(damping)] = e[-1]
+    assert finals[True] < 0.5 * finals[False]
+
+
+def test_damping_per_tet_and_per_vertex_arrays_equal_the_scalars():
+    model = small_model()
+    q = model.X + 0.05 * np.random.default_rng(1).normal(size=model.X.shape)
+    a = make_system(model, rayleigh_alpha=0.3, rayleigh_beta=0.02).damping_data(q)
+    b = make_system(model, rayleigh_alpha=np.full(model.n_vertices, 0.3),
+                    rayleigh_beta=np.full(model.n_tets, 0.02)).damping_data(q)
+    np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * np.abs(a).max())
+    assert make_system(model).damping_data(q) is None
+
+
+def test_bad_gravity_and_damping_are_parameter_errors():
+    from fem3d.errors import ParameterError
+
+    model = small_model()
+    with pytest.raises(ParameterError, match="gravity"):
+        make_system(model, gravity=[0.0, -9.81])
+    with pytest.raises(ParameterError, match="rayleigh_alpha"):
+        make_system(model, rayleigh_alpha=-1.0)
+    with pytest.raises(ParameterError, match="rayleigh_beta of tet 2"):
+        beta = np.zeros(model.n_tets)
+        beta[2] = np.nan
+        make_system(model, rayleigh_beta=beta)
+    with pytest.raises(ParameterError, match="one per vertex"):
+        make_system(model, rayleigh_alpha=np.zeros(3))
+    system = make_system(model, [0, 1])
+    with pytest.raises(ParameterError, match="fixed_positions"):
+        implicit_euler(system, State.at_rest(model), 0.01, fixed_positions=np.zeros((3, 3)))
+
+
+def test_zero_gravity_and_damping_are_the_plain_step():
+    model = small_model(2, 3, 2, size=(1.0, 1.5, 1.0))
+    fixed = np.flatnonzero(model.X[:, 1] <= 1e-12)
+    start = swinging_state(model.X)
+    plain = make_system(model, fixed)
+    zero = make_system(model, fixed, gravity=[0, 0, 0], rayleigh_alpha=0.0,
+                       rayleigh_beta=np.zeros(model.n_tets))
+    for step in STEPPERS.values():
+        a, _ = step(plain, start, 0.01)
+        b, _ = step(zero, start, 0.01)
+        assert np.array_equal(a.q, b.q) and np.array_equal(a.v, b.v)
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "linear"])
+def test_moving_pins_reach_their_keyframes_and_carry_the_body(integrator):
+    """The clamped end follows a keyframed rotation + translation exactly; the body, damped,
+    ends close to the rigidly moved rest shape."""
+    from fem3d.motion import Keyframes
+
+    model = small_model(3, 1, 1, size=(1.5, 0.5, 0.5), E=1e8)
+    fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
+    pivot = model.X[fixed].mean(axis=0)
+    kf = Keyframes([0.0, 0.4, 1.0], [[0, 0, 0], [0.1, 0.05, 0], [0.1, 0.05, 0]],
+                   [[0, 0, 0], [0, 0, 30], [0, 0, 30]], pivot, interpolation="smooth")
+    system = make_system(model, fixed, rayleigh_beta=0.01)
+    state, dt = State.at_rest(model), 0.01
+    for _ in range(100):
+        target = kf.apply(model.X[fixed], state.t + dt)
+        prev = state.q[fixed].copy()
+        state, _ = STEPPERS[integrator](system, state, dt, fixed_positions=target)
+        assert np.array_equal(state.q[fixed], target)
+        np.testing.assert_allclose(state.v[fixed], (target - prev) / dt, rtol=1e-12,
+                                   atol=1e-12)
+    rigid = kf.apply(model.X, 1.0)
+    moved = np.abs(rigid - model.X).max()
+    assert moved > 0.2
+    assert np.abs(state.q - rigid).max() < 0.05 * moved
+    # pins released (fixed_positions=None): they stay where they are, at rest
+    state, _ = STEPPERS[integrator](system, state, dt)
+    assert np.array_equal(state.q[fixed], rigid[fixed]) and not state.v[fixed].any()
+
+
+def test_moving_pins_agree_between_the_schemes_for_a_small_step():
+    """The same keyframed drive through both schemes: trajectories agree to O(dt)."""
+    from fem3d.motion import Keyframes
+
+    model = small_model(3, 1, 1, size=(1.5, 0.5, 0.5))
+    fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
+    kf = Keyframes([0.0, 0.2], [[0, 0, 0], [0, 0.05, 0]], [[0, 0, 0], [0, 0, 0]],
+                   [0, 0, 0])
+    system = make_system(model, fixed)
+    ends = {}
+    for name, step in STEPPERS.items():
+        state = State.at_rest(model)
+        for _ in range(40):
+            state, _ = step(system, state, 0.005,
+                            fixed_positions=kf.apply(model.X[fixed], state.t + 0.005))
+        ends[name] = state.q
+    tip = np.abs(ends["implicit"] - model.X).max()
+    assert tip > 0.04
+    assert np.abs(ends["implicit"] - ends["linear"]).max() < 0.05 * tip
+
+
+def test_pull_with_per_spring_stiffness_and_combined_pulls():
+    from fem3d.integrators import Pull
+
+    model = small_model()
+    system = make_system(model, [0])
+    q = model.X + 0.01
+    a = Pull.make([5, 3], [[0, 0, 1], [1, 1, 1]], np.array([10.0, 20.0]), model.n_vertices)
+    assert a.vertices.tolist() == [3, 5]  # sorted with their targets and stiffness
+    np.testing.assert_array_equal(a.targets, [[1, 1, 1], [0, 0, 1]])
+    np.testing.assert_array_equal(a.stiffness, [20.0, 10.0])
+    expected = 0.5 * (20 * np.sum((q[3] - 1) ** 2) + 10 * np.sum((q[5] - [0, 0, 1]) ** 2))
+    assert a.energy(system.spring, q) == pytest.approx(expected, rel=1e-14)
+    b = Pull.make([5], [2.0, 0.0, 0.0], 5.0, model.n_vertices)
+    both = Pull.combine([a, None, b], model.n_vertices)
+    assert both.vertices.tolist() == [3, 5, 5]
+    assert both.energy(system.spring, q) == pytest.approx(
+        a.energy(system.spring, q) + b.energy(system.spring, q), rel=1e-14)
+    np.testing.assert_allclose(both.gradient(system.spring, q),
+                               a.gradient(system.spring, q) + b.gradient(system.spring, q),
+                               rtol=1e-14)
+    A = system.newton_matrix(q, 0.01, both)
+    B = system.newton_matrix(q, 0.01, a)
+    C = system.newton_matrix(q, 0.01, b)
+    M = system.newton_matrix(q, 0.01)
+    np.testing.assert_allclose(A.data, B.data + C.data - M.data, rtol=1e-12,
+                               atol=1e-12 * np.abs(M.data).max())
+    assert Pull.combine([None], model.n_vertices) is None
+    from fem3d.errors import ParameterError
+    with pytest.raises(ParameterError, match="stiffness"):
+        Pull.make([1, 2], [0, 0, 0], np.array([1.0, -1.0]), model.n_vertices)
+
+
+class PairSprings:
+    """An objective term: zero-rest-length springs between vertex pairs that share no tet
+    (entries outside the mesh's sparsity pattern)."""
+
+    def __init__(self, pairs, k):
+        self.pairs = np.asarray(pairs)
+        self.k = k
+
+    def energy(self, q):
+        x = q.reshape(-1, 3)
+        d = x[self.pairs[:, 0]] - x[self.pairs[:, 1]]
+        return 0.5 * self.k * float((d * d).sum())
+
+    def gradient(self, q):
+        x = q.reshape(-1, 3)
+        d = x[self.pairs[:, 0]] - x[self.pairs[:, 1]]
+        g = np.zeros_like(x)
+        np.add.at(g, self.pairs[:, 0], self.k * d)
+        np.add.at(g, self.pairs[:, 1], -self.k * d)
+        return g.reshape(-1)
+
+    def hessian(self, q):
+        rows, cols, vals = [], [], []
+        for a, b in self.pairs:
+            for i in range(3):
+                for (r, cc, s) in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
+                    rows.append(3 * r + i)
+                    cols.append(3 * cc + i)
+                    vals.append(s * self.k)
+        return np.array(rows), np.array(cols), np.array(vals)
+
+
+def test_objective_term_outside_the_pattern_widens_it_once():
+    model = small_model(3, 1, 1, size=(1.5, 0.5, 0.5))
+    fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
+    far = [int(np.argmax(model.X.sum(axis=1))),
+           int(np.argmin(np.linalg.norm(model.X - [0.5, 0.0, 0.0], axis=1)))]
+    term = PairSprings([far], 2e4)
+    system = make_system(model, fixed)
+    state = State.at_rest(model)
+    v = np.zeros_like(model.X)
+    v[far[0]] = [0.0, 0.0, 2.0]
+    state = State(q=state.q, v=v)
+    from fem3d.assembly import assemble_gradient
+
+    for mode in ("direct", "reuse"):
+        s = state
+        for _ in range(3):
+            before = s
+            s, stats = implicit_euler(system, s, 0.01, terms=[term], max_iterations=None,
+                                      linear_solver=mode)
+            assert stats.converged
+            assert system.pattern_generation == 1  # widened on the first use only
+            # stationary point of the whole objective, checked independently
+            q = s.q.reshape(-1)
+            g = model.mass @ (s.v - before.v).reshape(-1) + 0.01 * (
+                assemble_gradient(model, q) + term.gradient(q))
+            assert np.abs(g[system.constraints.free_dofs]).max() < 1e-8 * np.abs(
+                model.mass @ state.v.reshape(-1)).max()
+    # the springs did pull the two vertices together
+    d0 = np.linalg.norm(model.X[far[0]] - model.X[far[1]])
+    assert np.linalg.norm(s.q[far[0]] - s.q[far[1]]) < d0
+
+
+class Floor:
+    """A log barrier keeping every vertex above ``y = level`` with a CCD-like ``max_step``."""
+
+    requires_convergence = True
+
+    def __init__(self, level, kappa, dhat):
+        self.level, self.kappa, self.dhat = level, kappa, dhat
+
+    def _gap(self, q):
+        return q.reshape(-1, 3)[:, 1] - self.level
+
+    def energy(self, q):
+        d = self._gap(q)
+        if (d <= 0).any():
+            return math.inf
+        a = np.minimum(d, self.dhat)
+        return float(-self.kappa * ((a - self.dhat) ** 2 * np.log(a / self.dhat)).sum())
+
+    def gradient(self, q):
+        d = np.minimum(self._gap(q), self.dhat)
+        g = -self.kappa * (2 * (d - self.dhat) * np.log(d / self.dhat) + (d - self.dhat) ** 2 / d)
+        out = np.zeros(q.size)
+        out[1::3] = g
+        return out
+
+    def hessian(self, q):
+        d = np.minimum(self._gap(q), self.dhat)
+        h = -self.kappa * (2 * np.log(d / self.dhat) + 4 * (d - self.dhat) / d
+                           - (d - self.dhat) ** 2 / d**2)
+        idx = np.arange(1, q.size, 3)
+        return idx, idx, np.maximum(h, 0.0)
+
+    def max_step(self, q, dq):
+        d, dy = self._gap(q), dq[1::3]
+        down = dy < 0
+        if not down.any():
+            return 1.0
+        return float(min(1.0, 0.8 * (d[down] / -dy[down]).min()))
+
+
+def test_max_step_keeps_a_falling_body_above_a_barrier_floor():
+    model = small_model(size=(0.2, 0.2, 0.2), E=1e5)
+    floor = Floor(level=-0.05, kappa=1e3, dhat=0.02)
+    system = make_system(model, gravity=[0, -9.81, 0])
+    state = State(q=model.X.copy(), v=np.tile([0.0, -3.0, 0.0], (model.n_vertices, 1)))
+    lowest = []
+    for _ in range(15):
+        state, stats = implicit_euler(system, state, 0.01, terms=[floor])
+        lowest.append(state.q[:, 1].min())
+        assert stats.converged
+    assert min(lowest) > floor.level  # without the clamp a step of 3 cm crosses the floor
+    assert min(lowest) < floor.level + floor.dhat  # it did reach the barrier

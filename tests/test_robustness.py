@@ -26,10 +26,10 @@ import fem3d.integrators as integrators
 from fem3d.assembly import count_inverted
 from fem3d.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.cli import main
-from fem3d.errors import InputError, ParameterError, SimulationError
+from fem3d.errors import InputError, SimulationError
 from fem3d.integrators import State, implicit_euler, linearly_implicit_euler
 from fem3d.output import read_energy_csv
-from fem3d.scenes import Scene, load_scene
+from fem3d.scene import apply_overrides, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -68,9 +68,9 @@ def _compare_runs(a: Path, b: Path) -> None:
     """Uninterrupted run ``a`` and checkpointed + resumed run ``b`` are bit for bit equal."""
     ca, cb = load_run_checkpoint(a / CHECKPOINT_NAME), load_run_checkpoint(b / CHECKPOINT_NAME)
     assert ca.step == cb.step
-    for key in ("q", "v", "pull_vertices", "pull_targets"):
+    for key in ("q", "v", "pull_vertices", "pull_targets", "script_active"):
         assert np.array_equal(ca.snapshot[key], cb.snapshot[key]), key
-    for key in ("t", "injected", "script_on", "pull_k"):
+    for key in ("t", "injected", "pull_k"):
         assert ca.snapshot[key] == cb.snapshot[key], key
     ea, eb = read_energy_csv(a / "energy.csv"), read_energy_csv(b / "energy.csv")
     for col in ea:
@@ -122,14 +122,15 @@ def test_resume_is_bit_exact(tmp_path, capsys, monkeypatch, argv, n, k, solver):
 
 def test_superlu_needs_no_first_factorization_state():
     """A fresh solver (a resumed run) computes what a long-lived one does (SuperLU primed)."""
-    scene = load_scene(BUNNY, integrator="linear")
-    a = Simulation(scene, scripted=True, solver_backend="superlu")
-    b = Simulation(scene, scripted=True, solver_backend="superlu")
+    scene = load_scene(BUNNY, {"simulation.integrator": "linear",
+                               "simulation.linear_solver": "superlu"})
+    a = Simulation(scene, scripted=True)
+    b = Simulation(scene, scripted=True)
     for _ in range(6):
         a.step()
     for _ in range(3):
         b.step()
-    c = Simulation(scene, scripted=True, solver_backend="superlu")
+    c = Simulation(scene, scripted=True)
     c.restore(b.snapshot())
     for _ in range(3):
         c.step()
@@ -216,8 +217,10 @@ def test_signal_saves_checkpoint_and_resume_completes(tmp_path, capsys, signum):
 def _one_tet_sim() -> Simulation:
     X = np.array([[0, 0, 0], [0, 0, 1.0], [1, 0, 0], [0, 1, 0]])  # apex 3 at y = 1
     T = np.array([[0, 1, 2, 3]])
-    scene = Scene("tet", X, T, None, None, E=1e5, nu=0.4, rho=1000.0, dt=0.01, spring_k=1e4,
-                  fixed_tol=1e-9, pick_radius=0.01, integrator="implicit")
+    scene = scene_from_arrays(X, T, {
+        "bodies[0].material": {"E": 1e5, "nu": 0.4, "density": 1000.0},
+        "bodies[0].pins": [{"select": {"lowest_y": {"tol": 1e-9}}}],
+        "interaction": {"spring_k": 1e4, "pick_radius": 0.01}}, name="tet")
     sim = Simulation(scene)
     assert sim.fixed_vertices.tolist() == [0, 1, 2]
     return sim
@@ -320,19 +323,21 @@ def test_cli_stops_on_non_finite_state_without_writing_nan(tmp_path, capsys, mon
 @pytest.mark.parametrize(
     "extra, needle",
     [
-        (["--rho", "0"], "density rho"),
-        (["--rho", "-0.1"], "density rho"),
-        (["--E", "0"], "Young's modulus"),
-        (["--E=-6e5"], "Young's modulus"),
-        (["--E", "nan"], "Young's modulus"),
-        (["--nu", "0.5"], "Poisson's ratio"),
-        (["--nu", "-1"], "Poisson's ratio"),
-        (["--nu", "0.7"], "Poisson's ratio"),
+        (["--rho", "0"], "bodies[0].material.density"),
+        (["--rho", "-0.1"], "bodies[0].material.density"),
+        (["--E", "0"], "bodies[0].material.E"),
+        (["--E=-6e5"], "bodies[0].material.E"),
+        (["--E", "nan"], "bodies[0].material.E"),
+        (["--nu", "0.5"], "bodies[0].material.nu"),
+        (["--nu", "-1"], "bodies[0].material.nu"),
+        (["--nu", "0.7"], "bodies[0].material.nu"),
         (["--dt", "0"], "--dt"),
         (["--dt", "inf"], "--dt"),
         (["--steps", "-1"], "--steps"),
-        (["--fix-below", "-100"], "selects no vertex to fix"),
-        (["--pick-radius", "0.001", "--pull-point", "0", "0", "5"], "selects no vertex around"),
+        (["--set", "bodies[0].pins[0].select={box=[[0,-100,0],[1,-99,1]]}"],
+         "bodies[0].pins[0].select.box: selects no vertex"),
+        (["--set", "pulls[0].select={sphere={center=[0,0,5],radius=0.001}}"],
+         "pulls[0].select.sphere: selects no vertex"),
         (["--pick-radius", "-1"], "pick_radius"),
         (["--checkpoint-every", "-2"], "--checkpoint-every"),
         (["--frame-every", "0"], "--frame-every"),
@@ -350,22 +355,22 @@ def test_cli_bad_parameter_exits_2_with_one_line(tmp_path, capsys, extra, needle
 def test_cli_debug_shows_traceback(tmp_path, capsys):
     status = main(["--debug", "run", ARMA, "--rho", "0", "--out", str(tmp_path), "--quiet"])
     err = capsys.readouterr().err
-    assert status == 2 and "Traceback" in err and "density rho" in err
+    assert status == 2 and "Traceback" in err and "material.density" in err
 
 
 def test_api_parameter_errors():
     scene = load_scene(ARMA)
-    with pytest.raises(ParameterError, match="fixed-vertex set is empty"):
-        Simulation(scene, fixed_vertices=np.zeros(0, np.int64))
-    far = scene.replace(pick_radius=1e-6)
-    far = far.replace(pull=type(far.pull)(vertex=0, point=np.array([0.0, 0.0, 9.0]),
-                                          offset=np.zeros(3)))
-    with pytest.raises(ParameterError, match="picking radius"):
+    with pytest.raises(InputError, match="no pinned vertex"):
+        Simulation(apply_overrides(scene, {"bodies[0].pins": []}))
+    far = apply_overrides(scene, {"pulls[0].select": {"sphere": {"center": [0.0, 0.0, 9.0],
+                                                                 "radius": 1e-6}}})
+    with pytest.raises(InputError, match=r"pulls\[0\]\.select\.sphere: selects no vertex"):
         Simulation(far, scripted=True)
-    Simulation(far, scripted=False)  # only a scripted pull needs the pick
-    for bad in ({"rho": 0.0}, {"E": -1.0}, {"nu": 0.5}, {"nu": -1.0}, {"dt": 0.0}):
-        with pytest.raises(ParameterError):
-            load_scene(ARMA, **bad)
+    for bad in ({"bodies[0].material.density": 0.0}, {"bodies[0].material.E": -1.0},
+                {"bodies[0].material.nu": 0.5}, {"bodies[0].material.nu": -1.0},
+                {"simulation.dt": 0.0}):
+        with pytest.raises(InputError, match=next(iter(bad)).replace("[", r"\[")):
+            load_scene(ARMA, bad)
     with pytest.raises(InputError):
         Simulation(scene).restore({**Simulation(scene).snapshot(), "q": np.zeros((3, 3))})
 

@@ -12,31 +12,39 @@ import numpy as np
 import pytest
 
 from fem3d.cli import SUBCOMMANDS, build_parser, main
-from fem3d.errors import InputError, ParameterError
-from fem3d.scenes import SCENES, hand_vertex, load_scene, top_vertex
+from fem3d.errors import InputError
+from fem3d.scene import load_scene
+from fem3d.scenes import SCENES, assemble, hand_vertex, top_vertex
 from fem3d.simulation import Simulation, StepInfo
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_scene_table():
-    bunny = load_scene("bunny")
-    assert (bunny.X.shape, bunny.T.shape) == ((500, 3), (1518, 4))
-    assert (bunny.E, bunny.spring_k, bunny.fixed_tol, bunny.pick_radius) == (6e6, 1e8, 3, 1.0)
-    assert bunny.integrator == "linear"
-    arma = load_scene("arma")
-    assert (arma.X.shape, arma.T.shape) == ((259, 3), (627, 4))
-    assert (arma.E, arma.spring_k, arma.fixed_tol, arma.pick_radius) == (6e5, 1e5, 0.1, 0.01)
-    assert arma.integrator == "implicit"
-    assert arma.skin_V.shape == (26002, 3) and arma.skin_F.shape == (52000, 3)
-    for s in (bunny, arma):
-        assert (s.dt, s.rho, s.nu) == (0.01, 0.1, 0.4)
-        assert s.pull is not None and s.pull.duration == pytest.approx(0.3)
-        assert 0.14 * s.height <= np.linalg.norm(s.pull.offset) <= 0.21 * s.height
-        assert s.skin_V is not None
-    assert bunny.pull.vertex == top_vertex(bunny.X)
-    assert arma.pull.vertex == hand_vertex(arma.X) == 61
-    assert set(SCENES) == {"bunny", "arma"}
+    bunny, arma = load_scene("bunny"), load_scene("arma")
+    a_b, a_a = assemble(bunny), assemble(arma)
+    assert (a_b.X.shape, a_b.T.shape) == ((500, 3), (1518, 4))
+    m = bunny.bodies[0].material
+    assert (m.model, m.E, m.nu, m.density) == ("neo_hookean", 6e6, 0.4, 0.1)
+    assert (a_b.spring_k, a_b.pick_radius) == (1e8, 1.0)
+    assert bunny.bodies[0].pins[0].select.lowest_y.tol == 3.0
+    assert bunny.simulation.integrator == "linear"
+    assert (a_a.X.shape, a_a.T.shape) == ((259, 3), (627, 4))
+    m = arma.bodies[0].material
+    assert (m.E, a_a.spring_k, a_a.pick_radius) == (6e5, 1e5, 0.01)
+    assert arma.bodies[0].pins[0].select.lowest_y.tol == 0.1
+    assert arma.simulation.integrator == "implicit"
+    assert a_a.skin_V.shape == (26002, 3) and a_a.skin_F.shape == (52000, 3)
+    for s, a in ((bunny, a_b), (arma, a_a)):
+        assert s.simulation.dt == 0.01 and s.n_steps == 100
+        (pull,) = a.pulls
+        assert pull.duration == pytest.approx(0.3) and pull.start == 0
+        off = pull.targets - a.X[pull.vertices]
+        assert 0.14 * a.height <= np.linalg.norm(off[0]) <= 0.21 * a.height
+        assert a.skin_V is not None
+    assert a_b.pulls[0].vertices.tolist() == [top_vertex(a_b.X)]
+    assert a_a.pulls[0].vertices.tolist() == [hand_vertex(a_a.X)] == [61]
+    assert list(SCENES)[:2] == ["bunny", "arma"]
 
 
 def test_scene_errors():
@@ -44,30 +52,33 @@ def test_scene_errors():
         load_scene("teapot")
     with pytest.raises(InputError):
         load_scene("does/not/exist.mesh")
-    with pytest.raises(ParameterError):
-        load_scene("arma", dt=-0.01)
-    with pytest.raises(ParameterError):
-        load_scene("arma", integrator="rk4")
-    with pytest.raises(ParameterError):
-        load_scene("arma", colour="red")
+    with pytest.raises(InputError, match=r"simulation\.dt"):
+        load_scene("arma", {"simulation.dt": -0.01})
+    with pytest.raises(InputError, match=r"simulation\.integrator"):
+        load_scene("arma", {"simulation.integrator": "rk4"})
+    with pytest.raises(InputError, match="unknown key"):
+        load_scene("arma", {"colour": "red"})
 
 
 def test_scene_from_path_and_simulation_api(tmp_path):
-    scene = load_scene(ROOT / "data" / "arma_6.node", E=1e5)
-    assert scene.name == "arma_6" and scene.E == 1e5 and scene.integrator == "implicit"
+    scene = load_scene(ROOT / "data" / "arma_6.node", {"bodies[0].material.E": 1e5})
+    assert scene.name == "arma_6" and scene.bodies[0].material.E == 1e5
+    assert scene.simulation.integrator == "implicit"
     sim = Simulation(scene)
-    assert sim.surface_faces.shape[1] == 3 and sim.skin_positions().shape == scene.X.shape
+    assert sim.surface_faces.shape[1] == 3 and sim.skin_positions().shape == sim.model.X.shape
+    h = float(np.ptp(sim.model.X[:, 1]))
+    assert sim.spring_k == pytest.approx(0.15 * 1e5 * h) and sim.pick_radius == 0.01 * h
     info = sim.step()
-    assert isinstance(info, StepInfo) and info.t == pytest.approx(scene.dt)
+    assert isinstance(info, StepInfo) and info.t == pytest.approx(scene.simulation.dt)
     assert info.total == pytest.approx(info.kinetic + info.potential)
     ids = sim.pick(sim.q[10])
     assert 10 in ids
     sim.set_pull(ids, sim.q[10] + [0.0, 0.0, 0.05])
     sim.integrator = "implicit"
     assert sim.step().pull > 0
-    with pytest.raises(ParameterError):
+    with pytest.raises(InputError):
         sim.integrator = "verlet"
-    with pytest.raises(ParameterError):
+    with pytest.raises(InputError):
         sim.set_pull(ids, [1.0, 2.0])
     sim.reset()
     assert sim.t == 0 and sim.pull is None
@@ -76,7 +87,7 @@ def test_scene_from_path_and_simulation_api(tmp_path):
 def test_arma_skin_follows_simulation():
     sim = Simulation(load_scene("arma"), scripted=True)
     rest = sim.skin_positions()
-    assert np.allclose(rest, sim.scene.skin_V, atol=1e-9)
+    assert np.allclose(rest, sim.assembled.skin_V, atol=1e-9)
     for _ in range(3):
         sim.step()
     moved = sim.skin_positions()
@@ -128,7 +139,7 @@ def test_cli_linear_on_arma_fails_with_message(tmp_path, capsys):
     [
         (["run", "teapot"], "unknown scene"),
         (["run", "nosuch.mesh"], "nosuch.mesh"),
-        (["run", "arma", "--dt", "-1"], "dt"),
+        (["run", "arma", "--dt", "-1"], "--dt: simulation.dt"),
         (["run", "arma", "--steps", "-3"], "--steps"),
     ],
 )

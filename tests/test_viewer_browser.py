@@ -259,11 +259,13 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             page.mouse.up()
             wait_for(lambda: viewer.snapshot()["pull"] is None, 10, "the pull to be released")
 
-            # Hotkeys: S toggles the mesh, N the integrator.
+            # Hotkeys: M toggles the mesh (S is viser's camera key), N the integrator.
             mode0 = viewer.snapshot()["mesh_mode"]
             integ0 = viewer.snapshot()["integrator"]
-            page.keyboard.press("s")
-            wait_for(lambda: viewer.snapshot()["mesh_mode"] != mode0, 10, "S to switch the mesh")
+            from fem3d.viewer import HOTKEYS
+
+            page.keyboard.press(HOTKEYS["mesh"].lower())
+            wait_for(lambda: viewer.snapshot()["mesh_mode"] != mode0, 10, "M to switch the mesh")
             page.keyboard.press("n")
             wait_for(
                 lambda: viewer.snapshot()["integrator"] != integ0, 10, "N to switch the integrator"
@@ -277,7 +279,7 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                     _image(page.screenshot(timeout=60_000))
                 ),
                 10,
-                "the picture to change after S",
+                "the picture to change after M",
                 interval=0.3,
             )
             log("hotkeys verified")

@@ -26,9 +26,9 @@ from fem3d.viewer import (
     RealtimePacer,
     add_view_subcommand,
     camera_for_points,
+    energy_text,
+    format_energy,
     format_status,
-    plot_unit_line,
-    scale_energies,
     spring_segments,
 )
 
@@ -92,16 +92,17 @@ def test_energy_history_window_and_empty() -> None:
     np.testing.assert_allclose(tot, T + V)
     assert all(a.flags.c_contiguous and a.dtype == np.float64 for a in (t, T, V, tot))
     assert len(h.window(None)[0]) == 5
-    x, T, V, tot = h.resampled(0.2, n=5)  # fixed grid relative to the newest sample
-    np.testing.assert_allclose(x, [-0.2, -0.15, -0.1, -0.05, 0.0])
-    np.testing.assert_allclose(T, [5, 5.5, 6, 6.5, 7])
-    np.testing.assert_allclose(tot, 3 * T)
-    x, T, V, tot = h.resampled(10.0, n=4)  # before the first sample: the first value
-    assert T[0] == 3.0 and T[-1] == 7.0
+    h.append(0.8, 8, 16, 24, 99.0)  # the pull spring's energy rides along
+    assert h.latest() == (0.8, 8.0, 16.0, 24.0, 99.0)
+    x, T, V, tot, pull = h.recent(0.25)  # real samples only, relative to the newest
+    np.testing.assert_allclose(x, [-0.2, -0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(T, [6, 7, 8])
+    np.testing.assert_allclose(pull, [0, 0, 99])
+    x, T, *_ = h.recent(10.0, n=2)  # decimated, newest kept
+    assert x[-1] == 0.0 and T[-1] == 8.0 and len(x) <= 3
     h.clear()
-    assert len(h) == 0
-    x, T, V, tot = h.resampled(1.0, n=3)
-    assert x.shape == T.shape == (3,) and not T.any()
+    assert len(h) == 0 and h.latest() is None
+    assert all(a.size == 0 for a in h.recent(1.0))  # nothing invented after a reset
 
 
 def test_spring_segments() -> None:
@@ -143,16 +144,14 @@ def test_camera_frames_all_points(scale: float, direction: tuple[float, ...]) ->
     assert c @ right < 0  # the centre projects left of the middle
 
 
-def test_scale_energies_and_title() -> None:
-    x = np.linspace(-1, 0, 3)
-    e, (x2, T, V, tot) = scale_energies((x, np.array([0, 1e9, 2e10]), np.zeros(3), np.ones(3)))
-    assert e == 9 and x2 is x
-    np.testing.assert_allclose(T, [0, 1, 20])
-    assert plot_unit_line(e).endswith("energy plot unit: 1e9")
-    assert scale_energies((x, np.full(3, 5.0), np.zeros(3), np.zeros(3)))[0] == 0
-    assert scale_energies((x, np.full(3, 2e-4), np.zeros(3), np.zeros(3)))[0] == -6
-    assert scale_energies((x, np.zeros(3), np.zeros(3), np.zeros(3)))[0] == 0
-    assert plot_unit_line(0).endswith("unit: 1")
+def test_energy_text_shows_every_current_value() -> None:
+    assert format_energy(0.0) == "0"
+    assert format_energy(1.5e-6) == "1.500e-06" and format_energy(1.2e9) == "1.200e+09"
+    assert format_energy(0.5) == "0.5"
+    s = energy_text((1.0, 1e-6, 2e-6, 3e-6, 4e9)).replace("\u00a0", " ")
+    for part in ("T = 1.000e-06", "V = 2.000e-06", "T+V = 3.000e-06", "pull = 4.000e+09"):
+        assert part in s, part
+    assert "none" in energy_text(None)
 
 
 def test_format_status() -> None:
@@ -162,12 +161,21 @@ def test_format_status() -> None:
         E=6e6, nu=0.4, rho=0.1,
     )
     s = format_status(**kw)
+    # Phrases keep non-breaking spaces: the panel wraps only between phrases.
+    for phrase in s.replace("  \n", " · ").split(" · "):
+        assert " " not in phrase, phrase
+    s = s.replace("\u00a0", " ")
     for part in ("bunny", "linearly-implicit Euler", "skinned", "running", "t = 1.23 s",
                  "12.3 ms/step", "1.00 Newton", "E = 6e+06"):
         assert part in s, part
-    assert "paused" in format_status(**{**kw, "paused": True})
-    assert "simulation error" in format_status(**{**kw, "paused": True, "error": "boom"})
-    assert "backward Euler" in format_status(**{**kw, "integrator": "implicit"})
+    def plain(**over: Any) -> str:
+        return format_status(**{**kw, **over}).replace("\u00a0", " ")
+
+    assert "paused" in plain(paused=True)
+    assert "simulation error" in plain(paused=True, error="boom")
+    assert "backward Euler" in plain(integrator="implicit")
+    g = format_status(**kw, grabbed=7, pick_radius=2.5).replace("\u00a0", " ")
+    assert "grab radius 2.5" in g and "dragging 7 vertices" in g
 
 
 def test_cli_subcommand_parses() -> None:
@@ -361,7 +369,7 @@ def test_real_blow_up_is_caught(viewer: Any) -> None:
     """A huge pull on the bunny's back with the linearly-implicit integrator blows up."""
     viewer.set_paused(True)
     wait_for(lambda: viewer.snapshot()["paused"], 30, "pause")
-    q = viewer._sim.scene.X
+    q = viewer._sim.model.X
     v = int(np.argmin(np.linalg.norm(q - [-68.96, 131.42, 55.16], axis=1)))  # vertex 47
     viewer.begin_pull(q[v], q[v] + np.array([-100.0, 20.0, 0.0]))
     viewer.reset()  # from rest, with the pull from step 0 (reset re-applies the pull)

@@ -1,0 +1,129 @@
+"""Sweep throughput: 16 armadillo cases with 1 and 2 Dask workers, against plain `fem3d run`.
+
+    python -m bench.sweep [--cases 16] [--steps 20] [--workers 1,2] [--plain 4]
+                          [--scene arma] [--markdown FILE] [--keep DIR]
+
+Writes a sweep file (the ``--scene`` with ``simulation.steps = --steps``, Young's modulus
+swept over ``--cases`` values from 2e5 to 2e6) and times, as subprocesses, what a user runs:
+
+* ``fem3d sweep FILE --workers W --out DIR`` for each ``W`` (fresh ``DIR``: every case runs):
+  wall time, cases per second, speed-up and scaling efficiency against 1 worker;
+* ``fem3d run SCENE --set ... --out DIR`` for the first ``--plain`` cases one by one (the
+  shell loop a sweep replaces): mean wall time per case.
+
+Per-case overhead of the engine: ``T_sweep(1 worker) / cases - T_plain``: what a case costs
+in a 1-worker sweep beyond a plain run (negative: the sweep is cheaper, because a worker
+imports fem3d once for all its cases). Also printed: the part of ``T_sweep(1)`` outside the
+cases themselves (Python start, planning, cluster start-up, scheduling, results), per case.
+The 1-minute load average is printed before and after: on a shared machine the figures are
+only as good as that load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _fem3d(args: list[str]) -> float:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "fem3d", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"fem3d {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr}")
+    return seconds
+
+
+def _load() -> str:
+    try:
+        return f"{os.getloadavg()[0]:.2f}"
+    except OSError:
+        return "?"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", type=int, default=16)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--workers", default="1,2", help="comma-separated worker counts")
+    parser.add_argument("--plain", type=int, default=4,
+                        help="cases also run one by one with `fem3d run` (default 4)")
+    parser.add_argument("--scene", default="arma")
+    parser.add_argument("--markdown", type=Path, help="also write the table here")
+    parser.add_argument("--keep", type=Path, help="keep the outputs in this folder")
+    args = parser.parse_args(argv)
+    workers = [int(w) for w in args.workers.split(",")]
+    root = Path(args.keep or tempfile.mkdtemp(prefix="fem3d-bench-sweep-"))
+    root.mkdir(parents=True, exist_ok=True)
+    values = [round(2e5 * 10 ** (i / max(args.cases - 1, 1)), 3) for i in range(args.cases)]
+    spec = root / "bench_sweep.toml"
+    spec.write_text(
+        f'name = "bench_sweep"\nscene = "{args.scene}"\n[set]\n"simulation.steps" = '
+        f'{args.steps}\n[grid]\n"bodies[0].material.E" = {json.dumps(values)}\n',
+        encoding="utf-8",
+    )
+    print(f"load average before: {_load()} ({os.cpu_count()} cores)", flush=True)
+    lines = ["| run | wall s | cases / s | speed-up | efficiency |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    print(*lines, sep="\n", flush=True)
+    sweep_s: dict[int, float] = {}
+    inside: dict[int, float] = {}
+    for w in workers:
+        out = root / f"workers_{w}"
+        shutil.rmtree(out, ignore_errors=True)
+        sweep_s[w] = _fem3d(["sweep", str(spec), "--workers", str(w), "--out", str(out),
+                             "--quiet"])
+        summaries = [json.loads(p.read_text()) for p in out.glob("cases/*/summary.json")]
+        assert len(summaries) == args.cases and all(s["status"] == "ok" for s in summaries)
+        inside[w] = sum(s["case_seconds"] for s in summaries)
+        ratio = ""
+        if 1 in sweep_s:
+            speedup = sweep_s[1] / sweep_s[w]
+            ratio = f"{speedup:.2f}x | {100 * speedup / w:.0f} %"
+        lines.append(f"| sweep, {w} worker{'s' if w > 1 else ''} | {sweep_s[w]:.1f} | "
+                     f"{args.cases / sweep_s[w]:.2f} | {ratio or ' | '} |")
+        print(lines[-1], flush=True)
+    plain = []
+    for i, E in enumerate(values[: args.plain]):
+        out = root / f"plain_{i}"
+        shutil.rmtree(out, ignore_errors=True)
+        plain.append(_fem3d(["run", args.scene, "--set", f"bodies[0].material.E={E!r}",
+                             "--steps", str(args.steps), "--no-preview", "--quiet",
+                             "--out", str(out)]))
+    t_plain = sum(plain) / max(len(plain), 1)
+    if plain:
+        lines.append(f"| fem3d run, one by one ({len(plain)} cases) | {t_plain:.2f} per case "
+                     f"| {1 / t_plain:.2f} | | |")
+        print(lines[-1], flush=True)
+    notes = []
+    if 1 in sweep_s:
+        per_case = sweep_s[1] / args.cases
+        if plain:
+            notes.append(f"per-case overhead of the engine (1 worker): {per_case:.2f} - "
+                         f"{t_plain:.2f} = {per_case - t_plain:+.2f} s per case")
+        notes.append(f"outside the cases (Python start, planning, cluster start, scheduling, "
+                     f"results), 1 worker: {(sweep_s[1] - inside[1]) / args.cases:.2f} s per "
+                     f"case ({sweep_s[1] - inside[1]:.1f} s in all)")
+    notes.append(f"load average after: {_load()}; {args.cases} cases x {args.steps} steps of "
+                 f"{args.scene}; `python -m bench.sweep --cases {args.cases} --steps "
+                 f"{args.steps} --workers {args.workers} --plain {args.plain}`")
+    print(*notes, sep="\n")
+    if args.markdown:
+        args.markdown.write_text("\n".join(lines) + "\n\n" + "\n".join(notes) + "\n")
+    if args.keep is None:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

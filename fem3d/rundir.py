@@ -1,0 +1,214 @@
+"""The output folder of a run: lock, overwrite check, temp-file cleanup; input-file checks.
+
+``fem3d run`` and ``fem3d resume`` hold :func:`claim` for the run's lifetime::
+
+    with rundir.claim(out, inputs={"mesh": mesh_path, "skin": skin_path}, command="run"):
+        ...  # write frames, energy.csv, checkpoint.npz
+
+* **Lock**: ``DIR/.fem3d.lock`` is locked with ``flock`` (released by the kernel when the
+  process dies, even after ``kill -9``: a stale lock file is simply taken over) and holds
+  the owner's pid and command line, so a second run into the same folder refuses with one
+  line naming the other process.
+* **Overwrite check**: the run refuses when a file it writes (``frames/*``, ``frames.pvd``,
+  ``energy.csv``, ``energy.png``, ``preview.gif``, ``checkpoint.npz``) is one of its inputs
+  (mesh, skin, scene file, ...). ``fem3d resume`` passes the checkpoint it resumes as
+  ``allow`` (it replaces it atomically, on purpose).
+* **Temp cleanup**: the hidden ``.<name>.tmp*`` files that only a killed writer leaves
+  behind (:func:`fem3d.output.atomic_path`) are removed once the lock is held.
+
+:func:`check_input_file` is what every reader calls first: it refuses FIFOs, devices and
+sockets (reading one would block forever), symlink loops and folders with one clear line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import socket
+import stat
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+from fem3d.errors import InputError
+
+__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "check_input_file", "claim", "clean_temp_files",
+           "check_overwrite"]
+
+LOCK_NAME = ".fem3d.lock"
+#: Files a run writes into its output folder (``frames/`` is written as a whole).
+OUTPUT_NAMES = ("frames.pvd", "energy.csv", "energy.png", "preview.gif", "checkpoint.npz")
+
+
+def check_input_file(path: str | os.PathLike[str], what: str = "file") -> Path:
+    """Refuse what cannot be read as a regular file, with one line naming the path.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    what : str
+        What the file is for (``"mesh"``, ``"scene file"``), used in the message.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        Missing, a symlink loop, a folder, a FIFO, a device or a socket.
+    """
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(f"symbolic link loop: the {what} path never reaches a file",
+                             path=p) from None
+        if exc.errno == errno.ENOENT:
+            if p.is_symlink():
+                raise InputError(f"broken symbolic link (its target {os.readlink(p)!r} "
+                                 f"does not exist)", path=p) from None
+            raise InputError("file not found", path=p) from None
+        if exc.errno == errno.ENOTDIR:
+            raise InputError("file not found (a parent of it is not a folder)",
+                             path=p) from None
+        raise InputError(f"cannot read {what}: {exc.strerror}", path=p) from None
+    mode = st.st_mode
+    if stat.S_ISREG(mode):
+        return p
+    if stat.S_ISDIR(mode):
+        raise InputError(f"is a directory, not a {what} file", path=p)
+    kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    raise InputError(f"is {kind}, not a regular {what} file; fem3d reads regular files only",
+                     path=p)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one does not exist (yet)
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_overwrite(
+    out: str | os.PathLike[str],
+    inputs: Mapping[str, str | os.PathLike[str] | None],
+    *,
+    allow: tuple[str | os.PathLike[str], ...] = (),
+) -> None:
+    """Refuse a run whose outputs in ``out`` would overwrite one of its ``inputs``.
+
+    Parameters
+    ----------
+    out : folder the run writes into
+    inputs : {role: path}, e.g. ``{"mesh": ..., "skin": ..., "scene file": ...}``; None
+        values are skipped
+    allow : paths the run may replace although they are inputs (the checkpoint a resume
+        continues from)
+
+    Raises
+    ------
+    InputError
+        Naming the input, its role and the output folder.
+    """
+    out = Path(out)
+    frames = out / "frames"
+    written = [out / n for n in OUTPUT_NAMES]
+    for role, path in inputs.items():
+        if path is None:
+            continue
+        p = Path(path)
+        if any(_same_file(p, Path(a)) for a in allow):
+            continue
+        hit = any(_same_file(p, w) for w in written)
+        in_frames = os.path.realpath(p.parent) == os.path.realpath(frames)
+        if hit or in_frames:
+            raise InputError(
+                f"the run would overwrite its own {role} {p}: it writes its outputs "
+                f"(frames/, energy.csv, checkpoint.npz, ...) into {out}; choose another --out",
+                path=p,
+            )
+
+
+def clean_temp_files(out: str | os.PathLike[str]) -> list[Path]:
+    """Remove the ``.<name>.tmp*`` files a killed writer left in ``out`` and ``out/frames``.
+
+    Call only while holding the folder's lock (:func:`claim`): then no live writer owns
+    them. Returns the removed paths.
+    """
+    removed = []
+    for folder in (Path(out), Path(out) / "frames"):
+        if not folder.is_dir():
+            continue
+        for f in folder.iterdir():
+            if f.name.startswith(".") and ".tmp" in f.name and f.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    f.unlink()
+                    removed.append(f)
+    return removed
+
+
+def _owner_text(lock: Path) -> str:
+    try:
+        text = lock.read_text(encoding="utf-8", errors="replace").strip()
+    except OSError:
+        return "another process"
+    parts = dict(line.split("=", 1) for line in text.splitlines() if "=" in line)
+    pid = parts.get("pid", "?")
+    cmd = parts.get("command", "")
+    since = parts.get("since", "")
+    return f"process {pid}" + (f" ({cmd})" if cmd else "") + (f", since {since}" if since else "")
+
+
+@contextlib.contextmanager
+def claim(
+    out: str | os.PathLike[str],
+    *,
+    inputs: Mapping[str, str | os.PathLike[str] | None] | None = None,
+    allow: tuple[str | os.PathLike[str], ...] = (),
+    command: str | None = None,
+) -> Iterator[Path]:
+    """Hold the output folder for a run: check, lock, clean; release on exit.
+
+    Raises
+    ------
+    InputError
+        An input would be overwritten (:func:`check_overwrite`), or another live process
+        holds the folder (named in the message).
+    """
+    import fcntl
+
+    out = Path(out)
+    check_overwrite(out, inputs or {}, allow=allow)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = out / LOCK_NAME
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise InputError(
+                f"output folder is in use by {_owner_text(lock)}; wait for it to finish "
+                "or choose another --out", path=out,
+            ) from None
+        cmd = command or " ".join(Path(a).name if i == 0 else a for i, a in enumerate(sys.argv))
+        info = (f"pid={os.getpid()}\nhost={socket.gethostname()}\ncommand={cmd}\n"
+                f"since={time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info.encode("utf-8"), 0)
+        clean_temp_files(out)
+        try:
+            yield out
+        finally:
+            # The file stays (unlinking it would let a waiting run lock a dead inode).
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)

@@ -1,0 +1,913 @@
+"""A scene as data: one frozen, validated description of a run, read from a TOML file.
+
+A scene file is TOML (read with :mod:`tomllib`) checked against the pydantic v2 models below,
+which are the single source of truth: ``fem3d schema`` prints them as JSON Schema
+(:func:`scene_schema`). Every model forbids unknown keys (the error suggests the nearest
+known one) and is frozen; paths are relative to the scene file's folder (``base_dir``).
+
+::
+
+    from fem3d.scene import load_scene, apply_overrides
+    scene = load_scene("bunny")                            # data/scenes/bunny.toml
+    scene = load_scene("my_scene.toml")                    # a scene file
+    scene = load_scene("beam.msh")                         # a one-body scene around a mesh
+    scene = apply_overrides(scene, {"bodies[0].material.E": 1e5, "simulation.dt": 0.005})
+    scene.digest()                                         # sha256: settings + mesh contents
+
+Errors are :class:`~fem3d.errors.InputError` with one line ``FILE: key.path: what is wrong``
+(``override`` instead of ``FILE`` for :func:`apply_overrides`).
+
+Conventions
+-----------
+* ``transform``: ``x' = R (scale x) + translate`` with ``R = Rz Ry Rx`` of ``rotate_deg``
+  (degrees about the x, then y, then z axis).
+* Selectors pick vertices of a body's rest positions after its transform: ``lowest_y {tol}``
+  (``y <= min y + tol``), ``box [[min], [max]]`` (closed), ``half_space {point, normal}``
+  (the side the normal points to, boundary included), ``sphere {center, radius}`` (closed),
+  ``vertices [ids]``, ``vertices_file`` (whitespace-separated ids, ``#`` comments),
+  ``near_vertex {vertex, radius}`` (closed ball around that vertex's position),
+  ``nearest_to {point, radius}`` (the vertex nearest to ``point`` and those within
+  ``radius`` of it: never empty).
+* A pull's ``offset`` moves each selected vertex's target by ``offset`` from its rest
+  position; ``target`` moves the selection's centroid to ``target`` (the same offset for all).
+* ``simulation.steps`` or ``simulation.duration`` (steps = round(duration / dt)); neither:
+  :data:`DEFAULT_STEPS`. Setting one by :func:`apply_overrides` clears the other.
+* ``interaction.pick_radius`` / ``spring_k`` left out: ``0.01 h`` and ``0.15 E h`` (``h`` the
+  height of the rest mesh along y, ``E`` the first body's Young's modulus).
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import json
+import math
+import os
+import re
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from fem3d.errors import InputError
+
+__all__ = [
+    "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
+    "Selector", "PinSpec", "MotionSpec", "Keyframe", "PullSpec", "ContactSpec",
+    "ObstacleSpec", "OutputSpec", "InteractionSpec", "TransformSpec", "TetrahedralizeSpec",
+    "DampingSpec", "load_scene", "apply_overrides", "scene_schema", "scenes_dir",
+    "scene_names", "scene_from_arrays", "mesh_scene", "cache_dir", "DEFAULT_STEPS",
+    "MESH_SCENE_DEFAULTS", "SURFACE_SUFFIXES",
+]
+
+#: Steps of a run whose scene gives neither ``steps`` nor ``duration``.
+DEFAULT_STEPS = 100
+
+#: Closed-surface file types a body's ``mesh`` may be (tetrahedralized with fTetWild).
+SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
+
+#: What ``load_scene(MESH)`` puts around a bare mesh (lengths as fractions of its height).
+MESH_SCENE_DEFAULTS = {
+    "E": 6e5, "nu": 0.4, "density": 0.1, "dt": 0.01, "integrator": "implicit",
+    "fix_fraction": 0.02, "pick_fraction": 0.01, "spring_fraction": 0.15,
+    "pull_fraction": 0.15, "pull_duration": 0.3,
+}
+
+Float = StrictFloat
+Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
+ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
+Positive = Annotated[StrictFloat, Field(gt=0)]
+NonNegative = Annotated[StrictFloat, Field(ge=0)]
+Index = Annotated[StrictInt, Field(ge=0)]
+
+
+class _Spec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _nonzero(v: Vec3, what: str = "vector") -> Vec3:
+    if not any(c != 0 for c in v):
+        raise ValueError(f"{what} must not be zero")
+    return v
+
+
+# ------------------------------------------------------------------------------ selectors
+class LowestY(_Spec):
+    """Vertices with ``y <= min y + tol``."""
+
+    tol: NonNegative = 0.0
+
+
+class HalfSpace(_Spec):
+    """Vertices with ``(x - point) . normal >= 0``."""
+
+    point: Vec3
+    normal: Vec3
+
+    @field_validator("normal")
+    @classmethod
+    def _normal(cls, v: Vec3) -> Vec3:
+        return _nonzero(v, "normal")
+
+
+class Sphere(_Spec):
+    """Vertices with ``|x - center| <= radius``."""
+
+    center: Vec3
+    radius: NonNegative
+
+
+class NearVertex(_Spec):
+    """Vertices within ``radius`` of vertex ``vertex`` (body-local index)."""
+
+    vertex: Index
+    radius: NonNegative = 0.0
+
+
+class NearestTo(_Spec):
+    """The vertex nearest to ``point`` and every vertex within ``radius`` of it."""
+
+    point: Vec3
+    radius: NonNegative = 0.0
+
+
+_SELECTOR_KEYS = ("lowest_y", "box", "half_space", "sphere", "vertices", "vertices_file",
+                  "near_vertex", "nearest_to")
+
+
+class Selector(_Spec):
+    """Exactly one way of choosing vertices (see the module docstring)."""
+
+    lowest_y: LowestY | None = None
+    box: tuple[Vec3, Vec3] | None = None
+    half_space: HalfSpace | None = None
+    sphere: Sphere | None = None
+    vertices: Annotated[list[Index], Field(min_length=1)] | None = None
+    vertices_file: StrictStr | None = None
+    near_vertex: NearVertex | None = None
+    nearest_to: NearestTo | None = None
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Selector:
+        given = [k for k in _SELECTOR_KEYS if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                f"give exactly one of {', '.join(_SELECTOR_KEYS)} (got "
+                f"{', '.join(given) if given else 'none'})"
+            )
+        if self.box is not None and any(a > b for a, b in zip(*self.box, strict=True)):
+            raise ValueError("box: each min must be <= its max")
+        return self
+
+    @property
+    def kind(self) -> str:
+        """The selector's key (``"box"``, ...)."""
+        return next(k for k in _SELECTOR_KEYS if getattr(self, k) is not None)
+
+
+# ------------------------------------------------------------------------------ motion
+class Keyframe(_Spec):
+    """Rigid pose of pinned vertices at time ``t``: rotate about the pivot, then translate."""
+
+    t: NonNegative
+    translate: Vec3 = ZERO3
+    rotate_deg: Vec3 = ZERO3
+
+
+class MotionSpec(_Spec):
+    """Keyframed rigid motion (between keyframes: interpolated; outside: held)."""
+
+    keyframes: Annotated[list[Keyframe], Field(min_length=1)]
+    pivot: Vec3 | None = None
+    interpolation: Literal["linear", "smooth"] = "linear"
+
+    @field_validator("keyframes")
+    @classmethod
+    def _ordered(cls, frames: list[Keyframe]) -> list[Keyframe]:
+        for i in range(1, len(frames)):
+            if not frames[i].t > frames[i - 1].t:
+                raise ValueError(
+                    f"keyframes[{i}].t = {frames[i].t:g} must be after keyframes[{i - 1}].t "
+                    f"= {frames[i - 1].t:g} (times must increase)"
+                )
+        return frames
+
+
+class PinSpec(_Spec):
+    """Fixed vertices (``motion``: prescribed keyframed positions instead of fixed)."""
+
+    select: Selector
+    motion: MotionSpec | None = None
+
+
+# ------------------------------------------------------------------------------ bodies
+class RegionSpec(_Spec):
+    """Material values of the elements whose vertices all lie in ``select``."""
+
+    select: Selector
+    E: Positive | None = None
+    nu: Annotated[StrictFloat, Field(gt=-1.0, lt=0.5)] | None = None
+    params: dict[str, StrictFloat] = Field(default_factory=dict)
+
+
+class MaterialSpec(_Spec):
+    """A generated material by name, with ``E``/``nu`` or its own ``params``, and density."""
+
+    model: StrictStr = "neo_hookean"
+    density: Positive = 1000.0
+    E: Positive | None = None
+    nu: Annotated[StrictFloat, Field(gt=-1.0, lt=0.5)] | None = None
+    params: dict[str, StrictFloat] = Field(default_factory=dict)
+    regions: list[RegionSpec] = Field(default_factory=list)
+    cell_fields: dict[str, StrictStr] = Field(default_factory=dict)
+
+    @field_validator("model")
+    @classmethod
+    def _known(cls, name: str) -> str:
+        names = material_names()
+        if name not in names:
+            near = difflib.get_close_matches(name, names, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise ValueError(f"unknown material {name!r} (known: {', '.join(names)}){hint}")
+        return name
+
+    @model_validator(mode="after")
+    def _values(self) -> MaterialSpec:
+        if self.params and (self.E is not None or self.nu is not None):
+            raise ValueError("give E and nu, or params, not both")
+        if not self.params and (self.E is None or self.nu is None):
+            raise ValueError("give both E and nu (or the model's own params)")
+        return self
+
+
+def material_names() -> list[str]:
+    """Names of the generated materials (:func:`fem3d.kernels.available_materials`)."""
+    try:
+        from fem3d.materials import names  # the materials helper's registry, once on main
+
+        return list(names())
+    except ImportError:
+        from fem3d.kernels import available_materials
+
+        return list(available_materials())
+
+
+class TransformSpec(_Spec):
+    """``x' = Rz Ry Rx (scale x) + translate`` (degrees)."""
+
+    scale: Positive = 1.0
+    rotate_deg: Vec3 = ZERO3
+    translate: Vec3 = ZERO3
+
+
+class TetrahedralizeSpec(_Spec):
+    """fTetWild options for a surface body: target edge length (the size knob) and envelope
+    (how far the boundary may stray from the surface), both relative to the surface's
+    bounding-box diagonal (smaller: finer, slower); ``stop_quality``: the max AMIPS energy
+    fTetWild optimises down to (the quality knob; larger: faster, worse tets)."""
+
+    edge_length: Annotated[StrictFloat, Field(gt=0, le=1)] = 0.05
+    epsilon: Annotated[StrictFloat, Field(gt=0, le=0.1)] = 1e-3
+    stop_quality: Annotated[StrictFloat, Field(ge=3)] = 10.0
+
+
+class DampingSpec(_Spec):
+    """Rayleigh damping ``alpha M + beta K``."""
+
+    rayleigh_mass: NonNegative = 0.0
+    rayleigh_stiffness: NonNegative = 0.0
+
+
+class BodySpec(_Spec):
+    """One elastic body: a tet mesh, or a closed surface tetrahedralized with fTetWild."""
+
+    name: StrictStr | None = None
+    mesh: StrictStr
+    skin: StrictStr | None = None
+    tetrahedralize: TetrahedralizeSpec = TetrahedralizeSpec()
+    transform: TransformSpec = TransformSpec()
+    velocity: Vec3 = ZERO3
+    angular_velocity: Vec3 = ZERO3
+    material: MaterialSpec
+    damping: DampingSpec = DampingSpec()
+    pins: list[PinSpec] = Field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        """``name``, or the mesh file's stem."""
+        return self.name or Path(self.mesh).stem
+
+
+# ------------------------------------------------------------------------------ the rest
+class NewtonSpec(_Spec):
+    """Backward Euler's Newton solve."""
+
+    max_iterations: Annotated[StrictInt, Field(ge=1)] | None = 5
+    hessian: Literal["exact", "psd"] = "exact"
+    solver: Literal["direct", "reuse"] = "direct"
+
+
+class SimulationSpec(_Spec):
+    """Time stepping."""
+
+    integrator: Literal["linear", "implicit"] = "implicit"
+    dt: Positive = 0.01
+    steps: Annotated[StrictInt, Field(ge=0)] | None = None
+    duration: NonNegative | None = None
+    gravity: Vec3 = ZERO3
+    newton: NewtonSpec = NewtonSpec()
+    linear_solver: Literal["auto", "cholmod", "pardiso", "superlu", "amg"] = "auto"
+
+    @model_validator(mode="after")
+    def _one_length(self) -> SimulationSpec:
+        if self.steps is not None and self.duration is not None:
+            raise ValueError("give steps or duration, not both")
+        return self
+
+    @property
+    def n_steps(self) -> int:
+        """``steps``, or ``round(duration / dt)``, or :data:`DEFAULT_STEPS`."""
+        if self.steps is not None:
+            return self.steps
+        if self.duration is not None:
+            return int(round(self.duration / self.dt))
+        return DEFAULT_STEPS
+
+
+class PullSpec(_Spec):
+    """A scripted pull: zero-rest-length springs on the selected vertices of ``body`` from
+    ``start`` for ``duration`` seconds (stiffness: ``interaction.spring_k`` if left out)."""
+
+    body: Index = 0
+    select: Selector
+    offset: Vec3 | None = None
+    target: Vec3 | None = None
+    start: NonNegative = 0.0
+    duration: Positive = 0.3
+    stiffness: Positive | None = None
+
+    @model_validator(mode="after")
+    def _where(self) -> PullSpec:
+        if (self.offset is None) == (self.target is None):
+            raise ValueError("give exactly one of offset, target")
+        return self
+
+
+class ContactSpec(_Spec):
+    """Contact (IPC barrier); distances relative to the scene's bounding-box diagonal."""
+
+    enabled: StrictBool = False
+    dhat: Positive = 1e-3
+    kappa: Positive | None = None
+    mu: NonNegative = 0.0
+    eps_v: Positive = 1e-3
+    self_contact: StrictBool = False
+    tolerance: Positive = 1e-2
+
+
+class PlaneObstacle(_Spec):
+    """An infinite plane; the free side is the one the normal points to."""
+
+    point: Vec3
+    normal: Vec3
+
+    @field_validator("normal")
+    @classmethod
+    def _normal(cls, v: Vec3) -> Vec3:
+        return _nonzero(v, "normal")
+
+
+class MeshObstacle(_Spec):
+    """A rigid surface mesh, optionally moving like a keyframed pin."""
+
+    path: StrictStr
+    transform: TransformSpec = TransformSpec()
+    motion: MotionSpec | None = None
+
+
+class ObstacleSpec(_Spec):
+    """Exactly one of ``plane``, ``mesh``."""
+
+    plane: PlaneObstacle | None = None
+    mesh: MeshObstacle | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> ObstacleSpec:
+        if (self.plane is None) == (self.mesh is None):
+            raise ValueError("give exactly one of plane, mesh")
+        return self
+
+
+class PreviewSpec(_Spec):
+    """Camera of ``preview.gif``: elevation and azimuth (degrees), and whether the view box
+    fits the first frame or every frame."""
+
+    elev: Annotated[StrictFloat, Field(ge=-90, le=90)] = 15.0
+    azim: StrictFloat = 30.0
+    bounds: Literal["first", "all"] = "first"
+
+
+class OutputSpec(_Spec):
+    """Frames written by ``fem3d run``: format and stride (steps); the preview's camera."""
+
+    format: Literal["vtu", "obj", "usd"] = "vtu"
+    every: Annotated[StrictInt, Field(ge=1)] = 1
+    preview: PreviewSpec = PreviewSpec()
+
+
+class InteractionSpec(_Spec):
+    """Mouse interaction in the viewer (left out: derived from the mesh, see the module)."""
+
+    pick_radius: NonNegative | None = None
+    spring_k: Positive | None = None
+
+
+class Scene(_Spec):
+    """Everything a run needs, as data (see :mod:`fem3d.scene`)."""
+
+    name: StrictStr = "scene"
+    base_dir: StrictStr = "."
+    source: StrictStr | None = Field(
+        default=None, description="the file the scene was read from (messages only)")
+    simulation: SimulationSpec = SimulationSpec()
+    bodies: Annotated[list[BodySpec], Field(min_length=1)]
+    pulls: list[PullSpec] = Field(default_factory=list)
+    contact: ContactSpec = ContactSpec()
+    obstacles: list[ObstacleSpec] = Field(default_factory=list)
+    output: OutputSpec = OutputSpec()
+    interaction: InteractionSpec = InteractionSpec()
+
+    @model_validator(mode="after")
+    def _pull_bodies(self) -> Scene:
+        for i, p in enumerate(self.pulls):
+            if p.body >= len(self.bodies):
+                raise ValueError(
+                    f"pulls[{i}].body = {p.body}: there are only {len(self.bodies)} bodies")
+        return self
+
+    # ----------------------------------------------------------------- paths
+    def path(self, p: str) -> Path:
+        """``p`` resolved against :attr:`base_dir` (absolute paths stay)."""
+        q = Path(os.path.expanduser(p))
+        return q if q.is_absolute() else Path(self.base_dir) / q
+
+    @property
+    def where(self) -> str:
+        """What error messages name: the source file, or the scene's name."""
+        return self.source or f"scene {self.name!r}"
+
+    def error(self, key: str, message: str) -> InputError:
+        """An :class:`InputError` ``FILE: key: message`` for this scene."""
+        return InputError(f"{key}: {message}", path=self.where)
+
+    def files(self) -> list[tuple[str, Path]]:
+        """``(key path, resolved path)`` of every file the scene refers to."""
+        out: list[tuple[str, Path]] = []
+        for i, b in enumerate(self.bodies):
+            out.append((f"bodies[{i}].mesh", self.path(b.mesh)))
+            if b.skin is not None:
+                out.append((f"bodies[{i}].skin", self.path(b.skin)))
+            sels = [(f"bodies[{i}].pins[{j}].select", p.select) for j, p in enumerate(b.pins)]
+            sels += [(f"bodies[{i}].material.regions[{j}].select", r.select)
+                     for j, r in enumerate(b.material.regions)]
+            out += [(f"{k}.vertices_file", self.path(s.vertices_file))
+                    for k, s in sels if s.vertices_file is not None]
+        for j, p in enumerate(self.pulls):
+            if p.select.vertices_file is not None:
+                out.append((f"pulls[{j}].select.vertices_file", self.path(p.select.vertices_file)))
+        for j, o in enumerate(self.obstacles):
+            if o.mesh is not None:
+                out.append((f"obstacles[{j}].mesh.path", self.path(o.mesh.path)))
+        return out
+
+    def check_files(self) -> None:
+        """Every referenced file exists (else ``FILE: key: no such file PATH``)."""
+        for key, p in self.files():
+            if not p.is_file():
+                raise self.error(key, f"no such file {p}")
+
+    # ----------------------------------------------------------------- serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict; every path absolute (so the dict means the same anywhere)."""
+        d = self.model_dump(mode="json")
+        for key, p in self.files():
+            _set_path(d, _parse_key(key), str(p.resolve()))
+        d["base_dir"] = str(Path(self.base_dir).resolve())
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], *, source: str | None = None) -> Scene:
+        """Validate a dict (e.g. :meth:`to_dict`'s or a parsed TOML file's).
+
+        Raises
+        ------
+        InputError
+            ``SOURCE: key.path: what is wrong``.
+        """
+        return _validate(d, source or (d.get("source") if isinstance(d, Mapping) else None)
+                         or "scene")
+
+    def digest(self) -> str:
+        """sha256 of the canonical JSON of :meth:`to_dict` (without ``source``) and of the
+        contents of every file the scene refers to."""
+        d = self.to_dict()
+        d.pop("source", None)
+        h = hashlib.sha256(json.dumps(d, sort_keys=True, separators=(",", ":")).encode())
+        for key, p in self.files():
+            h.update(key.encode())
+            h.update(_file_sha256(p).encode())
+        return h.hexdigest()
+
+    # ----------------------------------------------------------------- derived
+    @property
+    def n_steps(self) -> int:
+        """Steps of a run (see :attr:`SimulationSpec.n_steps`)."""
+        return self.simulation.n_steps
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError:
+        return "missing"
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------ errors
+def _key_path(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _unwrap_models(ann: Any) -> list[type[BaseModel]]:
+    """Pydantic model classes inside an annotation (through Optional, list, tuple, ...)."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return [ann]
+    out: list[type[BaseModel]] = []
+    origin = typing.get_origin(ann)
+    if origin is Annotated:
+        return _unwrap_models(typing.get_args(ann)[0])
+    if origin is not None or isinstance(ann, types.UnionType):
+        for a in typing.get_args(ann):
+            out += _unwrap_models(a)
+    return out
+
+
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    cls: type[BaseModel] | None = Scene
+    for part in loc:
+        if isinstance(part, int) or cls is None:
+            continue
+        field = cls.model_fields.get(str(part))
+        if field is None:
+            return None
+        models = _unwrap_models(field.annotation)
+        cls = models[0] if models else None
+    return cls
+
+
+def _message(err: dict) -> str:
+    kind = err["type"]
+    loc = tuple(err["loc"])
+    if kind == "extra_forbidden":
+        parent = _model_at(loc[:-1])
+        names = list(parent.model_fields) if parent is not None else []
+        near = difflib.get_close_matches(str(loc[-1]), names, n=1, cutoff=0.5)
+        hint = f"; did you mean {near[0]!r}?" if near else ""
+        return f"unknown key{hint} (known: {', '.join(names)})" if names else "unknown key"
+    if kind == "missing":
+        return "missing (required)"
+    msg = str(err["msg"])
+    msg = re.sub(r"^(Value error|Assertion failed), ", "", msg)
+    if kind in ("float_type", "int_type", "string_type", "bool_type", "list_type",
+                "tuple_type", "dict_type", "model_type", "literal_error", "model_attributes_type",
+                "too_short", "too_long", "greater_than", "greater_than_equal", "less_than",
+                "less_than_equal", "finite_number", "int_from_float"):
+        value = err.get("input")
+        shown = repr(value)
+        if len(shown) > 60:
+            shown = shown[:57] + "..."
+        msg = f"{msg}, got {shown}"
+    return msg
+
+
+def _validate(d: Any, source: str) -> Scene:
+    if not isinstance(d, Mapping):
+        raise InputError(f"a scene must be a table of keys, got {type(d).__name__}", path=source)
+    try:
+        return Scene.model_validate(dict(d))
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False)
+        # report the error nearest to the file's own words: the first one
+        err = errors[0]
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise InputError(f"{_key_path(tuple(err['loc']))}: {_message(err)}{more}",
+                         path=source) from None
+    except (TypeError, ValueError, RecursionError) as exc:  # pragma: no cover - defensive
+        raise InputError(f"invalid scene ({type(exc).__name__}: {exc})", path=source) from None
+
+
+# ------------------------------------------------------------------------------ key paths
+_PART = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)|\[(-?\d+)\]")
+
+
+def _parse_key(key: str, source: str = "override") -> list[str | int]:
+    """``"bodies[0].material.E"`` -> ``["bodies", 0, "material", "E"]``."""
+    parts: list[str | int] = []
+    pos = 0
+    key = key.strip()
+    while pos < len(key):
+        if key[pos] == "." and parts and pos + 1 < len(key):
+            pos += 1
+        m = _PART.match(key, pos)
+        if m is None:
+            raise InputError(f"{key}: not a key path (like bodies[0].material.E)", path=source)
+        parts.append(m.group(1) if m.group(1) is not None else int(m.group(2)))
+        pos = m.end()
+    if not parts or not isinstance(parts[0], str):
+        raise InputError(f"{key}: not a key path (like bodies[0].material.E)", path=source)
+    return parts
+
+
+def _set_path(d: Any, parts: list[str | int], value: Any, key: str = "",
+              source: str = "override") -> None:
+    node = d
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        here = _key_path(tuple(parts[: i + 1]))
+        if isinstance(part, int):
+            if not isinstance(node, list):
+                raise InputError(f"{key or here}: {_key_path(tuple(parts[:i]))} is not a list",
+                                 path=source)
+            if not -len(node) <= part < len(node):
+                raise InputError(f"{key or here}: index {part} out of range (there are "
+                                 f"{len(node)})", path=source)
+        else:
+            if not isinstance(node, dict):
+                raise InputError(f"{key or here}: {_key_path(tuple(parts[:i])) or 'scene'} is "
+                                 f"not a table", path=source)
+        if last:
+            node[part] = value
+            return
+        nxt = node[part] if isinstance(part, int) else node.get(part)
+        if nxt is None:
+            nxt = [] if isinstance(parts[i + 1], int) else {}
+            node[part] = nxt
+        node = nxt
+
+
+def apply_overrides(
+    scene: Scene, overrides: Mapping[str, Any] | None, *, source: str = "override"
+) -> Scene:
+    """A copy of ``scene`` with fields changed by dotted key paths, validated again.
+
+    Parameters
+    ----------
+    scene : Scene
+    overrides : mapping of str to value
+        ``{"bodies[0].material.E": 1e5, "simulation.dt": 0.005, "pulls": []}``. Setting
+        ``simulation.steps`` clears ``simulation.duration`` and vice versa. Values are what
+        the scene file would hold (TOML types); ``None`` removes an optional value.
+
+    source : str, optional
+        What error messages name (``"--dt"`` for a command-line flag).
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    InputError
+        ``SOURCE: key.path: what is wrong`` (the scene's own file when the error is
+        elsewhere).
+    """
+    if not overrides:
+        return scene
+    d = scene.model_dump(mode="python")
+    for key, value in overrides.items():
+        parts = _parse_key(str(key), source)
+        if isinstance(value, tuple):
+            value = list(value)
+        _set_path(d, parts, copy.deepcopy(value), str(key), source)
+        if parts == ["simulation", "steps"] and value is not None:
+            d["simulation"]["duration"] = None
+        elif parts == ["simulation", "duration"] and value is not None:
+            d["simulation"]["steps"] = None
+    try:
+        return Scene.model_validate(d)
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False)
+        err = errors[0]
+        loc = _key_path(tuple(err["loc"]))
+        given = [_key_path(tuple(_parse_key(str(k), source))) for k in overrides]
+        src = source if any(loc.startswith(k) or k.startswith(loc) for k in given) \
+            else scene.where
+        raise InputError(f"{loc}: {_message(err)}", path=src) from None
+
+
+# ------------------------------------------------------------------------------ loading
+def scenes_dir() -> Path:
+    """Folder of the named scenes: ``$FEM3D_SCENES``, else the checkout's ``data/scenes``."""
+    env = os.environ.get("FEM3D_SCENES")
+    if env:
+        return Path(env)
+    from fem3d.scenes import data_dir
+
+    return data_dir() / "scenes"
+
+
+def scene_names() -> list[str]:
+    """Names ``load_scene`` accepts (the ``*.toml`` files of :func:`scenes_dir`), sorted,
+    the classic ``bunny`` and ``arma`` first."""
+    names = sorted(p.stem for p in scenes_dir().glob("*.toml"))
+    first = [n for n in ("bunny", "arma") if n in names]
+    return first + [n for n in names if n not in first]
+
+
+def read_scene_file(path: str | os.PathLike[str]) -> Scene:
+    """Parse and validate one TOML scene file (relative paths: relative to its folder)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read scene file ({exc.strerror or exc})", path=path) from None
+    try:
+        text = raw.decode("utf-8")
+        data = tomllib.loads(text)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})",
+                         path=path) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", path=path) from None
+    data.setdefault("name", path.stem)
+    if "base_dir" in data:
+        raise InputError("base_dir: set by the loader (the file's folder), not in the file",
+                         path=path)
+    if "source" in data:
+        raise InputError("source: set by the loader, not in the file", path=path)
+    data["base_dir"] = str(path.resolve().parent)
+    data["source"] = str(path)
+    scene = _validate(data, str(path))
+    scene.check_files()
+    return scene
+
+
+def mesh_scene(path: str | os.PathLike[str]) -> Scene:
+    """A one-body scene around a tet mesh or closed surface file (see
+    :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
+    ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
+    ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
+    from fem3d.scenes import is_surface_file, rest_positions
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("no such file", path=p)
+    dflt = MESH_SCENE_DEFAULTS
+    body = {"mesh": str(p.resolve()), "material": {
+        "model": "neo_hookean", "E": dflt["E"], "nu": dflt["nu"], "density": dflt["density"]}}
+    if is_surface_file(p):  # the surface's own extent: no tetrahedralization here
+        from fem3d.mesh import read_surface_mesh
+
+        X = read_surface_mesh(p)[0]
+    else:
+        draft = _validate({"name": p.stem, "source": str(p), "bodies": [body]}, str(p))
+        X = rest_positions(draft, 0)
+    h = float(X[:, 1].max() - X[:, 1].min())
+    if not h > 0:
+        raise InputError("mesh has no extent along y", path=p)
+    top = int(X[:, 1].argmax())
+    pick = dflt["pick_fraction"] * h
+    select = ({"nearest_to": {"point": [float(c) for c in X[top]], "radius": pick}}
+              if is_surface_file(p) else {"near_vertex": {"vertex": top, "radius": pick}})
+    body["pins"] = [{"select": {"lowest_y": {"tol": dflt["fix_fraction"] * h}}}]
+    d = {
+        "name": p.stem, "base_dir": str(p.resolve().parent), "source": str(p),
+        "simulation": {"integrator": dflt["integrator"], "dt": dflt["dt"]},
+        "bodies": [body],
+        "pulls": [{"select": select, "offset": [dflt["pull_fraction"] * h, 0.0, 0.0],
+                   "duration": dflt["pull_duration"]}],
+    }  # interaction left out: 0.01 h and 0.15 E h (E as overridden)
+    return _validate(d, str(p))
+
+
+def cache_dir() -> Path:
+    """fem3d's cache folder: ``$FEM3D_CACHE``, else ``~/.cache/fem3d`` (created)."""
+    env = os.environ.get("FEM3D_CACHE")
+    d = (Path(env) if env else Path.home() / ".cache" / "fem3d").expanduser().resolve()
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def scene_from_arrays(X: Any, T: Any, overrides: Mapping[str, Any] | None = None, *,
+                      name: str = "arrays") -> Scene:
+    """A one-body scene (:func:`mesh_scene`) around a tet mesh given as arrays.
+
+    The mesh is stored once in :func:`cache_dir` ``/arrays/<sha256>.mesh`` (named by its
+    content), so the scene stays data: a path, serialisable and digestible.
+
+    Parameters
+    ----------
+    X : (n, 3) float64
+    T : (m, 4) int
+    overrides : mapping, optional
+        :func:`apply_overrides` on the result (``{"bodies[0].material.E": 1e5}``).
+    name : str
+    """
+    import numpy as np
+
+    from fem3d.mesh import TetMesh, write_tet_mesh
+    from fem3d.output import atomic_write
+
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    T = np.ascontiguousarray(T, dtype=np.int64)
+    h = hashlib.sha256(repr((X.shape, T.shape)).encode() + X.tobytes() + T.tobytes())
+    folder = cache_dir() / "arrays"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{h.hexdigest()[:32]}.mesh"
+    if not path.is_file():
+        atomic_write(path, lambda p: write_tet_mesh(p, TetMesh(X, T)))
+    scene = mesh_scene(path)
+    return apply_overrides(apply_overrides(scene, {"name": name}), overrides)
+
+
+def load_scene(
+    name_or_path: str | os.PathLike[str], overrides: Mapping[str, Any] | None = None
+) -> Scene:
+    """A scene by name (``data/scenes/<name>.toml``), from a ``.toml`` file, or around a mesh.
+
+    Parameters
+    ----------
+    name_or_path : str or PathLike
+        A name of :func:`scene_names`, a scene file, or a tet mesh / closed surface file
+        (then a one-body scene, :func:`mesh_scene`).
+    overrides : mapping, optional
+        Passed to :func:`apply_overrides`.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    InputError
+        Unknown name, unreadable or invalid file (``FILE: key.path: what is wrong``).
+    """
+    key = str(name_or_path)
+    p = Path(key)
+    if p.suffix.lower() == ".toml":
+        scene = read_scene_file(p)
+    elif p.suffix or p.exists():
+        scene = mesh_scene(p)
+    else:
+        named = scenes_dir() / f"{key}.toml"
+        if not named.is_file():
+            names = scene_names()
+            near = difflib.get_close_matches(key, names, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise InputError(f"unknown scene {key!r}{hint} (use one of {', '.join(names)}, a "
+                             f".toml scene file or a mesh file)")
+        scene = read_scene_file(named)
+    scene = apply_overrides(scene, overrides)
+    scene.check_files()
+    return scene
+
+
+def scene_schema() -> dict[str, Any]:
+    """JSON Schema of a scene file (what ``fem3d schema`` prints)."""
+    schema = Scene.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "fem3d scene"
+    props = schema.get("properties", {})
+    for k in ("base_dir", "source"):
+        props.pop(k, None)
+    return schema
+
+
+def is_finite_number(x: Any) -> bool:
+    """A real number (not bool) that is finite."""
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
