@@ -166,6 +166,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "show":
         return show(args.kernel, args.backend)
+    from codegen.derive import module_names
+
+    unknown = sorted(set(args.only or ()) - set(module_names()))
+    if unknown:
+        print(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(module_names())}",
+              file=sys.stderr)
+        return 2
     _ensure_fixed_hash_seed(argv)
     from codegen.docs import render_docs
 
