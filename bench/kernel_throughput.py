@@ -65,9 +65,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--backend", nargs="+", default=None, choices=("numpy", "c"))
     parser.add_argument("--kernel", nargs="+", default=list(KERNELS), choices=KERNELS)
     args = parser.parse_args(argv)
-    names = args.material or materials.names()
-    if REFERENCE not in names:
-        names = [REFERENCE, *names]
+    # the reference first: every other row's ratio is against it
+    names = [REFERENCE, *(n for n in args.material or materials.names() if n != REFERENCE)]
     x_e, dphi, vol = random_elements(args.elements)
     m = len(vol)
     backends = args.backend or (["numpy"] + (["c"] if c_extension() is not None else []))
