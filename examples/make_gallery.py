@@ -1,0 +1,115 @@
+"""Build the scene gallery: the box meshes its scene files use, and a preview of each scene.
+
+Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
+
+* ``data/scenes/meshes/*.mesh``: Kuhn-subdivided boxes (6 positive tets per cell) written once
+  (:func:`box_mesh`), e.g. the cantilever's 1 x 0.1 x 0.1 beam of 40 x 4 x 4 cells.
+* ``docs/gallery/<scene>.gif``: each gallery scene run headless through
+  :func:`fem3d.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
+  :func:`fem3d.output.render_preview`; the printed line per scene is its
+  :class:`~fem3d.cli.RunSummary`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
+MESHES = ROOT / "data" / "scenes" / "meshes"
+GALLERY = ROOT / "docs" / "gallery"
+
+#: Gallery scenes (data/scenes/<name>.toml), in the order docs/scenes.md lists them.
+SCENES = ["cantilever", "twist", "bunny_surface", "armadillo_surface", "jelly_neo_hookean",
+          "jelly_stvk", "swing", "two_pulls"]
+
+#: name -> (cells (nx, ny, nz), size (x, y, z))
+BOXES = {
+    "beam_40x4x4": ((40, 4, 4), (1.0, 0.1, 0.1)),
+    "bar_16x4x4": ((16, 4, 4), (1.0, 0.25, 0.25)),
+    "cube_6": ((6, 6, 6), (0.2, 0.2, 0.2)),
+    "hanging_bar_3x12x3": ((3, 12, 3), (0.1, 0.6, 0.1)),
+}
+
+
+def box_mesh(cells, size) -> tuple[np.ndarray, np.ndarray]:
+    """Kuhn-subdivided box ``[0, size]``: ``(nx+1)(ny+1)(nz+1)`` vertices, ``6 nx ny nz``
+    positively oriented tets.
+
+    Returns
+    -------
+    X : (n, 3) float64
+    T : (m, 4) int64
+    """
+    nx, ny, nz = cells
+    g = np.stack(np.meshgrid(*(np.linspace(0.0, s, k + 1) for s, k in zip(size, cells,
+                                                                          strict=True)),
+                             indexing="ij"), axis=-1).reshape(-1, 3)
+    idx = np.arange(g.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    tets = []
+    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
+        for perm in itertools.permutations(range(3)):
+            c = np.array([i, j, k])
+            path = [c.copy()]
+            for a in perm:
+                c = c.copy()
+                c[a] += 1
+                path.append(c)
+            tets.append([idx[tuple(p)] for p in path])
+    T = np.array(tets, dtype=np.int64)
+    e = g[T[:, 1:]] - g[T[:, :1]]
+    neg = np.linalg.det(e) < 0
+    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
+    return g, T
+
+
+def write_meshes() -> None:
+    """The box meshes of the gallery (skipped when present)."""
+    from fem3d.mesh import TetMesh, write_tet_mesh
+
+    MESHES.mkdir(parents=True, exist_ok=True)
+    for name, (cells, size) in BOXES.items():
+        p = MESHES / f"{name}.mesh"
+        if not p.is_file():
+            X, T = box_mesh(cells, size)
+            write_tet_mesh(p, TetMesh(X, T))
+            print(f"wrote {p.relative_to(ROOT)}: {len(X)} vertices, {len(T)} tets")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", nargs="*", default=None, help="scene names")
+    parser.add_argument("--meshes-only", action="store_true")
+    args = parser.parse_args(argv)
+    write_meshes()
+    if args.meshes_only:
+        return 0
+    from fem3d.cli import run_scene
+    from fem3d.scene import load_scene
+
+    GALLERY.mkdir(parents=True, exist_ok=True)
+    status = 0
+    for name in args.only or SCENES:
+        t0 = time.perf_counter()
+        scene = load_scene(name)
+        with tempfile.TemporaryDirectory() as tmp:
+            summary = run_scene(scene, Path(tmp) / name, preview=True)
+            if (Path(tmp) / name / "preview.gif").is_file():
+                shutil.copy(Path(tmp) / name / "preview.gif", GALLERY / f"{name}.gif")
+        status |= summary.status != "ok"
+        print(f"{name}: {summary.status} {summary.message} steps {summary.steps}, "
+              f"max displacement {summary.max_displacement:.4g}, "
+              f"{time.perf_counter() - t0:.1f} s", flush=True)
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
