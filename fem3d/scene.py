@@ -42,7 +42,6 @@ import copy
 import difflib
 import hashlib
 import json
-import math
 import os
 import re
 import tomllib
@@ -89,7 +88,6 @@ MESH_SCENE_DEFAULTS = {
     "pull_fraction": 0.15, "pull_duration": 0.3,
 }
 
-Float = StrictFloat
 Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
 Positive = Annotated[StrictFloat, Field(gt=0)]
@@ -708,7 +706,7 @@ def apply_overrides(
     """
     if not overrides:
         return scene
-    d = scene.model_dump(mode="python")
+    d = scene.model_dump(mode="json")  # lists, not tuples: items settable by index
     for key, value in overrides.items():
         parts = _parse_key(str(key), source)
         if isinstance(value, tuple):
@@ -879,12 +877,14 @@ def load_scene(
     """
     key = str(name_or_path)
     p = Path(key)
+    named = scenes_dir() / f"{key}.toml"
     if p.suffix.lower() == ".toml":
         scene = read_scene_file(p)
+    elif not p.suffix and "/" not in key and named.is_file():
+        scene = read_scene_file(named)
     elif p.suffix or p.exists():
         scene = mesh_scene(p)
     else:
-        named = scenes_dir() / f"{key}.toml"
         if not named.is_file():
             names = scene_names()
             near = difflib.get_close_matches(key, names, n=1)
@@ -907,7 +907,3 @@ def scene_schema() -> dict[str, Any]:
         props.pop(k, None)
     return schema
 
-
-def is_finite_number(x: Any) -> bool:
-    """A real number (not bool) that is finite."""
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
