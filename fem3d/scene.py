@@ -225,7 +225,10 @@ class RegionSpec(_Spec):
 
 
 class MaterialSpec(_Spec):
-    """A generated material by name, with ``E``/``nu`` or its own ``params``, and density."""
+    """A generated material by name, with ``E``/``nu`` or its own ``params`` (those that keep
+    the small-strain response, e.g. Fung's ``b``, may go next to ``E``/``nu``), density,
+    ``regions`` (other values on the tets whose vertices a selector picks) and ``cell_fields``
+    (a parameter per tet from a cell-data array of the mesh file)."""
 
     model: StrictStr = "neo_hookean"
     density: Positive = 1000.0
@@ -247,10 +250,10 @@ class MaterialSpec(_Spec):
 
     @model_validator(mode="after")
     def _values(self) -> MaterialSpec:
-        if self.params and (self.E is not None or self.nu is not None):
-            raise ValueError("give E and nu, or params, not both")
-        if not self.params and (self.E is None or self.nu is None):
-            raise ValueError("give both E and nu (or the model's own params)")
+        if (self.E is None) != (self.nu is None):
+            raise ValueError("E and nu go together (or give the model's own params)")
+        if self.E is None and not self.params and not self.cell_fields:
+            raise ValueError("give E and nu, or the model's own params")
         return self
 
 
