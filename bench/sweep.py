@@ -1,9 +1,10 @@
 """Sweep throughput: 16 armadillo cases with 1 and 2 Dask workers, against plain `fem3d run`.
 
-    python -m bench.sweep [--cases 16] [--steps 20] [--workers 1,2] [--plain 4]
+    python -m bench.sweep [--cases 16] [--steps 20] [--every 5] [--workers 1,2] [--plain 4]
                           [--scene arma] [--markdown FILE] [--keep DIR]
 
-Writes a sweep file (the ``--scene`` with ``simulation.steps = --steps``, Young's modulus
+Writes a sweep file (the ``--scene`` with ``simulation.steps = --steps``, a frame every
+``--every`` steps (``output.every``), Young's modulus
 swept over ``--cases`` values from 2e5 to 2e6) and times, as subprocesses, what a user runs:
 
 * ``fem3d sweep FILE --workers W --out DIR`` for each ``W`` (fresh ``DIR``: every case runs):
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=16)
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--every", type=int, default=5, help="a frame every N steps")
     parser.add_argument("--workers", default="1,2", help="comma-separated worker counts")
     parser.add_argument("--plain", type=int, default=4,
                         help="cases also run one by one with `fem3d run` (default 4)")
@@ -70,7 +72,8 @@ def main(argv: list[str] | None = None) -> None:
     spec = root / "bench_sweep.toml"
     spec.write_text(
         f'name = "bench_sweep"\nscene = "{args.scene}"\n[set]\n"simulation.steps" = '
-        f'{args.steps}\n[grid]\n"bodies[0].material.E" = {json.dumps(values)}\n',
+        f'{args.steps}\n"output.every" = {args.every}\n'
+        f'[grid]\n"bodies[0].material.E" = {json.dumps(values)}\n',
         encoding="utf-8",
     )
     print(f"load average before: {_load()} ({os.cpu_count()} cores)", flush=True)
@@ -99,8 +102,8 @@ def main(argv: list[str] | None = None) -> None:
         out = root / f"plain_{i}"
         shutil.rmtree(out, ignore_errors=True)
         plain.append(_fem3d(["run", args.scene, "--set", f"bodies[0].material.E={E!r}",
-                             "--steps", str(args.steps), "--no-preview", "--quiet",
-                             "--out", str(out)]))
+                             "--set", f"output.every={args.every}", "--steps", str(args.steps),
+                             "--no-preview", "--quiet", "--out", str(out)]))
     t_plain = sum(plain) / max(len(plain), 1)
     if plain:
         lines.append(f"| fem3d run, one by one ({len(plain)} cases) | {t_plain:.2f} per case "
@@ -116,8 +119,9 @@ def main(argv: list[str] | None = None) -> None:
                      f"results), 1 worker: {(sweep_s[1] - inside[1]) / args.cases:.2f} s per "
                      f"case ({sweep_s[1] - inside[1]:.1f} s in all)")
     notes.append(f"load average after: {_load()}; {args.cases} cases x {args.steps} steps of "
-                 f"{args.scene}; `python -m bench.sweep --cases {args.cases} --steps "
-                 f"{args.steps} --workers {args.workers} --plain {args.plain}`")
+                 f"{args.scene}, a frame every {args.every}; `python -m bench.sweep --cases "
+                 f"{args.cases} --steps {args.steps} --every {args.every} --workers "
+                 f"{args.workers} --plain {args.plain}`")
     print(*notes, sep="\n")
     if args.markdown:
         args.markdown.write_text("\n".join(lines) + "\n\n" + "\n".join(notes) + "\n")

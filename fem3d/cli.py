@@ -58,6 +58,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from fem3d import rundir
 from fem3d.errors import InputError, ParameterError, SimulationError
 
 __all__ = ["main", "build_parser", "run_scene", "resume_run", "scene_from_args", "RunSummary",
@@ -592,6 +593,8 @@ def run_scene(
         raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     out = Path(out)
     _check_writable(out)
+    inputs = _scene_inputs(scene)
+    rundir.check_overwrite(out, inputs)  # before any expensive setup
     backend = _resolve_kernels(backend)
     sim = Simulation(scene, backend=backend, scripted=True)
     settings = {
@@ -599,7 +602,16 @@ def run_scene(
         "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
     }
     out.mkdir(parents=True, exist_ok=True)
-    return _drive(scene, sim, out, settings, quiet=quiet, debug=debug)
+    with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
+        return _drive(scene, sim, out, settings, quiet=quiet, debug=debug)
+
+
+def _scene_inputs(scene) -> dict[str, Any]:
+    """Every file a run of ``scene`` reads, by role (for the overwrite check)."""
+    inputs: dict[str, Any] = dict(scene.files())
+    if scene.source:
+        inputs["scene file"] = scene.source
+    return inputs
 
 
 def resume_run(args: argparse.Namespace) -> int:
@@ -646,8 +658,11 @@ def resume_run(args: argparse.Namespace) -> int:
         sim.restore(ckpt.snapshot)
     except (ParameterError, KeyError) as exc:
         raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
-    summary = _drive(scene, sim, out, settings, quiet=args.quiet,
-                     debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
+    ck = out / CHECKPOINT_NAME
+    inputs = {**_scene_inputs(scene), "checkpoint": ck}
+    with rundir.claim(out, inputs=inputs, allow=(ck,)):
+        summary = _drive(scene, sim, out, settings, quiet=args.quiet,
+                         debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
     return summary.exit_status
 
 
@@ -656,6 +671,11 @@ def _run_command(args: argparse.Namespace) -> int:
         raise ParameterError(f"--steps must be >= 0, got {args.steps}")
     if args.checkpoint_every < 0:
         raise ParameterError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    if args.out:  # before reading the inputs: one of them may be an output of this run
+        named = {"scene file" if str(args.scene).endswith(".toml") else "mesh": args.scene,
+                 "skin": getattr(args, "skin", None)}
+        rundir.check_overwrite(args.out, {k: v for k, v in named.items()
+                                          if v is not None and Path(v).exists()})
     scene = scene_from_args(args)
     out = Path(args.out) if args.out else Path("out") / scene.name
     summary = run_scene(scene, out, quiet=args.quiet, checkpoint_every=args.checkpoint_every,
@@ -694,7 +714,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     try:
-        return int(args.func(args) or 0)
+        with rundir.warnings_as_lines(f"fem3d {args.command}"):
+            return int(args.func(args) or 0)
     except InputError as exc:
         if args.debug:
             traceback.print_exc()

@@ -276,10 +276,12 @@ class SweepData:
     def __iter__(self) -> Iterator[CaseData]:
         return iter(self.cases)
 
-    def params(self) -> np.ndarray:
-        """``(n_cases, n_keys)`` float64 parameter matrix (numeric key paths)."""
-        return np.array([[float(c.params[k]) for k in self.keys] for c in self.cases],
-                        dtype=np.float64).reshape(len(self.cases), len(self.keys))
+    def params(self, keys: Sequence[str] | None = None) -> np.ndarray:
+        """``(n_cases, n_keys)`` float64 matrix of numeric parameters (``keys``, default
+        :attr:`keys`); NaN where a case does not set a key."""
+        keys = list(self.keys if keys is None else keys)
+        return np.array([[float(c.params.get(k, np.nan)) for k in keys] for c in self.cases],
+                        dtype=np.float64).reshape(len(self.cases), len(keys))
 
     def positions(self) -> np.ndarray:
         """``(n_cases, n_frames, n_points, 3)``: every case's positions stacked (the cases

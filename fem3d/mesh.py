@@ -55,6 +55,7 @@ __all__ = [
     "TetMesh",
     "boundary_faces",
     "check_skin_inside",
+    "check_skin_placement",
     "read_surface_mesh",
     "read_tet_mesh",
     "skin_outside_distance",
@@ -1261,3 +1262,49 @@ def check_skin_inside(skin_V: np.ndarray, X: np.ndarray, tol: float = 0.05,
             MeshWarning, stacklevel=2,
         )
     return d
+
+
+def check_skin_placement(
+    skin_V: np.ndarray,
+    X: np.ndarray,
+    T: np.ndarray | None = None,
+    *,
+    path: PathArg | None = None,
+    warn_tol: float = 0.05,
+    refuse_tol: float = 0.5,
+) -> np.ndarray:
+    """Refuse a display mesh far outside the simulation mesh; warn when it sticks out.
+
+    A display mesh half a bounding-box diagonal or more outside the simulation mesh is in
+    another frame (other units, an offset): skinning would extrapolate it into nonsense.
+
+    Parameters
+    ----------
+    skin_V, X, T : as :func:`check_skin_inside`
+    path : the display mesh's file, named in the message
+    warn_tol, refuse_tol : float
+        Distances outside, as fractions of the simulation mesh's bounding-box diagonal.
+
+    Returns
+    -------
+    d : (n_skin,) float64
+        Distance of each display vertex outside the simulation mesh.
+
+    Raises
+    ------
+    InputError
+        Some display vertex lies more than ``refuse_tol`` diagonals outside.
+    """
+    X = np.asarray(X, np.float64)
+    diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    d = skin_outside_distance(skin_V, X, T)
+    far = d > refuse_tol * diag
+    if far.any():
+        raise InputError(
+            f"display mesh lies far outside the simulation mesh: {int(far.sum())} of {len(d)} "
+            f"vertices are more than {refuse_tol:g} x its bounding-box diagonal outside (max "
+            f"{d.max() / diag:.3g} x); is it in the same frame (units, offset)?",
+            path=path,
+        )
+    name = "display mesh" if path is None else f"display mesh {path}"
+    return check_skin_inside(skin_V, X, warn_tol, T, name=name)

@@ -29,13 +29,14 @@ import socket
 import stat
 import sys
 import time
+import warnings
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from fem3d.errors import InputError
 
 __all__ = ["LOCK_NAME", "OUTPUT_NAMES", "check_input_file", "claim", "clean_temp_files",
-           "check_overwrite"]
+           "check_overwrite", "warnings_as_lines"]
 
 LOCK_NAME = ".fem3d.lock"
 #: Files a run writes into its output folder (``frames/`` is written as a whole).
@@ -212,3 +213,24 @@ def claim(
                 os.ftruncate(fd, 0)
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def warnings_as_lines(prefix: str) -> Iterator[None]:
+    """Print each warning as one line ``<prefix>: warning: <message>`` on stderr.
+
+    Python's default format takes two lines and quotes the source line that warned; with
+    this, a command's output stays one line per message and an error printed after the
+    warnings is the last line.
+    """
+    old = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):  # noqa: ANN001
+        text = " ".join(str(message).split())
+        print(f"{prefix}: warning: {text}", file=sys.stderr, flush=True)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = old

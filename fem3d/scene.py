@@ -498,9 +498,15 @@ class Scene(_Spec):
 
     def check_files(self) -> None:
         """Every referenced file exists (else ``FILE: key: no such file PATH``)."""
+        from fem3d.rundir import check_input_file
+
         for key, p in self.files():
-            if not p.is_file():
+            if not (p.exists() or p.is_symlink()):
                 raise self.error(key, f"no such file {p}")
+            try:  # missing, a FIFO or device (would block), a folder, a symlink loop
+                check_input_file(p)
+            except InputError as exc:
+                raise self.error(key, f"{p}: {exc.reason}") from None
 
     # ----------------------------------------------------------------- serialisation
     def to_dict(self) -> dict[str, Any]:
@@ -751,7 +757,9 @@ def scene_names() -> list[str]:
 
 def read_scene_file(path: str | os.PathLike[str]) -> Scene:
     """Parse and validate one TOML scene file (relative paths: relative to its folder)."""
-    path = Path(path)
+    from fem3d.rundir import check_input_file
+
+    path = check_input_file(path, "scene file")
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -782,11 +790,10 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
     :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
     ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
     ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
+    from fem3d.rundir import check_input_file
     from fem3d.scenes import is_surface_file, rest_positions
 
-    p = Path(path)
-    if not p.is_file():
-        raise InputError("no such file", path=p)
+    p = check_input_file(path, "mesh")
     dflt = MESH_SCENE_DEFAULTS
     body = {"mesh": str(p.resolve()), "material": {
         "model": "neo_hookean", "E": dflt["E"], "nu": dflt["nu"], "density": dflt["density"]}}

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
+from fem3d.mesh import check_skin_placement
+from fem3d.rundir import check_input_file
 from fem3d.scene import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
 __all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
@@ -157,8 +159,12 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
     body: BodySpec = scene.bodies[i]
     path = scene.path(body.mesh)
     key = f"bodies[{i}].mesh"
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise scene.error(key, f"no such file {path}")
+    try:  # a FIFO or device (would block), a folder, a symlink loop
+        check_input_file(path, "mesh")
+    except InputError as exc:
+        raise scene.error(key, f"{path}: {exc.reason}") from None
     skin_V = skin_F = None
     try:
         if is_surface_file(path):
@@ -180,6 +186,10 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
             skin_V, skin_F = _read_surface(_stat_key(skin_path))
         except FileNotFoundError:
             raise scene.error(f"bodies[{i}].skin", f"no such file {skin_path}") from None
+        except InputError as exc:
+            raise _in_key(scene, f"bodies[{i}].skin", exc) from None
+        try:  # a display mesh in another frame would be skinned into nonsense
+            check_skin_placement(skin_V, X, T, path=skin_path)
         except InputError as exc:
             raise _in_key(scene, f"bodies[{i}].skin", exc) from None
     return BodyMesh(X=X, T=T, skin_V=skin_V, skin_F=skin_F, path=str(tet_path))

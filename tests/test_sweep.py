@@ -44,11 +44,19 @@ SWEEP = """
 "simulation.steps" = 4
 [grid]
 "bodies[0].material.E" = [2e5, 6e5]
-[zip]
-"bodies[0].material.nu" = [0.35, 0.7]
+[[cases]]
+"bodies[0].material.nu" = 0.35
+[[cases]]                               # rejected by the scene
+"bodies[0].material.nu" = 0.7
+[[cases]]                               # explodes at step 1
+"simulation.integrator" = "linear"
+"pulls[0].offset" = [0.0, 0.0, 50.0]
+"pulls[0].stiffness" = 1e8
 [dataset]
 dtype = "float32"
 """
+NU, INTEGRATOR = "bodies[0].material.nu", "simulation.integrator"
+STATUSES = ["ok", "failed", "failed"] * 2
 
 
 def _main(*args: str) -> tuple[int, str]:
@@ -61,7 +69,7 @@ def _main(*args: str) -> tuple[int, str]:
 
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory):
-    """A 4-case sweep (2 rejected: nu = 0.7) run once with 2 workers."""
+    """A 6-case sweep run once with 2 workers: 2 ok, 2 rejected (nu = 0.7), 2 exploding."""
     folder = tmp_path_factory.mktemp("sweep")
     spec = _sweep_file(folder, SWEEP)
     out = folder / "out"
@@ -72,17 +80,24 @@ def swept(tmp_path_factory):
 def test_results_table_and_failed_cases(swept):
     spec, out, rc, err = swept
     assert rc == 1, err  # some cases failed
-    assert "2 ok, 2 failed, 0 lost" in err
+    assert "2 ok, 4 failed, 0 lost" in err
     rows = _results(out)
-    assert [r["case"] for r in rows] == ["0", "1", "2", "3"]
-    assert [r["status"] for r in rows] == ["ok", "failed", "ok", "failed"]
-    assert [float(r["bodies[0].material.E"]) for r in rows] == [2e5, 2e5, 6e5, 6e5]
-    assert [float(r["bodies[0].material.nu"]) for r in rows] == [0.35, 0.7, 0.35, 0.7]
+    assert [r["case"] for r in rows] == [str(i) for i in range(6)]
+    assert [r["status"] for r in rows] == STATUSES
+    assert [float(r["bodies[0].material.E"]) for r in rows] == [2e5] * 3 + [6e5] * 3
+    assert [r[NU] for r in rows] == ["0.35", "0.7", ""] * 2
+    assert [r[INTEGRATOR] for r in rows] == ["", "", "linear"] * 2
     for r in rows:
-        if r["status"] == "failed":
+        if r[NU] == "0.7":  # rejected before running: no folder
             assert r["message"].startswith(f"invalid: {spec} case {r['case']}: ")
             assert "bodies[0].material.nu: Input should be less than 0.5" in r["message"]
             assert not (out / "cases" / r["id"]).exists()
+            continue
+        if r[INTEGRATOR] == "linear":  # ran, exploded, recorded; the sweep went on
+            assert "step 1: linearly-implicit Euler exploded" in r["message"], r["message"]
+            summary = json.loads((out / "cases" / r["id"] / "summary.json").read_text())
+            assert summary["status"] == "failed" and int(r["steps"]) == 1
+            assert not (out / "cases" / r["id"] / "trajectory.npz").exists()
             continue
         assert int(r["steps"]) == 4 and float(r["wall_seconds"]) > 0
         for col in ("kinetic_final", "potential_final", "total_final", "total_max",
@@ -108,7 +123,7 @@ def test_cases_equal_fem3d_run_one_by_one(swept, tmp_path):
     for r in (r for r in _results(out) if r["status"] == "ok"):
         alone = tmp_path / r["id"]
         sets = ["simulation.steps=4", f"bodies[0].material.E={r['bodies[0].material.E']}",
-                f"bodies[0].material.nu={r['bodies[0].material.nu']}"]
+                f"bodies[0].material.nu={r[NU]}"]
         rc, err = _main("run", str(MESH), *(a for s in sets for a in ("--set", s)),
                         "--out", str(alone), "--no-preview", "--quiet")
         assert rc == 0, err
@@ -121,9 +136,12 @@ def test_cases_equal_fem3d_run_one_by_one(swept, tmp_path):
 def test_dataset_matches_frames(swept):
     _, out, _, _ = swept
     data = load_sweep(out)
-    assert data.keys == ["bodies[0].material.E", "bodies[0].material.nu"]
-    assert len(data) == 2
-    np.testing.assert_array_equal(data.params(), [[2e5, 0.35], [6e5, 0.35]])
+    assert data.keys == ["bodies[0].material.E", NU, INTEGRATOR, "pulls[0].offset",
+                         "pulls[0].stiffness"]
+    assert len(data) == 2  # the ok cases
+    np.testing.assert_array_equal(data.params(["bodies[0].material.E", NU]),
+                                  [[2e5, 0.35], [6e5, 0.35]])
+    assert np.isnan(data.params(["pulls[0].stiffness"])).all()
     Y = data.positions()
     assert Y.dtype == np.float32 and Y.shape[:2] == (2, 5) and Y.shape[3] == 3
     for case in data:
@@ -146,24 +164,30 @@ def test_second_invocation_runs_nothing_then_redoes_a_partial_case(swept):
     start = time.perf_counter()
     rc, err = _main("sweep", str(spec), "--workers", "2", "--out", str(out), "--quiet")
     assert rc == 1, err
-    assert "(0 to run, 2 complete before, 2 rejected)" in err
-    assert "ran 0, skipped 2" in err
+    assert "(0 to run, 4 complete before, 2 rejected)" in err
+    assert "ran 0, skipped 4" in err
     assert stamps == {i: (out / "cases" / i / "summary.json").stat().st_mtime_ns for i in ok}
     assert _results(out) == rows
     print(f"no-op sweep: {time.perf_counter() - start:.2f} s")
-    # a case interrupted half-way: no summary.json, a stale frame; the next run redoes it
+    # a case interrupted half-way: no summary.json, a stale frame; the next run redoes it,
+    # and --retry-failed runs the exploding cases again
     partial = out / "cases" / ok[0]
     (partial / "summary.json").unlink()
     (partial / "frames" / "frame_00004.vtu").write_bytes(b"garbage")
-    rc, err = _main("sweep", str(spec), "--workers", "1", "--out", str(out), "--quiet")
-    assert "(1 to run, 1 complete before, 2 rejected)" in err, err
+    rc, err = _main("sweep", str(spec), "--workers", "1", "--out", str(out), "--quiet",
+                    "--retry-failed")
+    assert "(3 to run, 1 complete before, 2 rejected)" in err, err
     again = _results(out)
-    assert again[0]["attempt"] == "2" and again[0]["status"] == "ok"
+    assert [r["status"] for r in again] == STATUSES
+    assert again[0]["attempt"] == "2"
     assert (out / "cases" / ok[1] / "summary.json").stat().st_mtime_ns == stamps[ok[1]]
     for col in ("steps", "total_final", "max_displacement", "kinetic_final"):
         assert again[0][col] == rows[0][col]
+    steps, _, P, _ = read_run_frames(partial)
+    assert list(steps) == [0, 1, 2, 3, 4] and np.isfinite(P).all()
 
 
+@pytest.mark.slow  # a sweep process of its own, and a worker started again
 def test_killed_worker_loses_no_case(tmp_path):
     spec = _sweep_file(tmp_path, """
         [set]
@@ -182,6 +206,8 @@ def test_killed_worker_loses_no_case(tmp_path):
         victim = None
         while victim is None and time.monotonic() < deadline and proc.poll() is None:
             for f in sorted((out / "cases").glob("*/started.json")):
+                if (f.parent / "summary.json").exists():
+                    continue  # finished already: find one that is running
                 try:
                     victim = (f.parent, json.loads(f.read_text())["pid"])
                     break

@@ -458,3 +458,59 @@ def test_switch_scene() -> None:
         v.switch_scene("no-such-scene")  # an error notification, the scene stays
         time.sleep(0.3)
         assert v.snapshot()["scene"] == "arma" and v.snapshot()["error"] is None
+
+
+@needs_viser
+def test_port_in_use_is_refused_in_one_line_and_port_0_is_free() -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "fem3d", "view", "bunny", "--port", str(port)],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2, r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1, r.stderr
+        assert f"port {port} on 127.0.0.1 is in use" in lines[0] and "--port 0" in lines[0]
+    from fem3d.viewer import Viewer
+
+    with Viewer("bunny", port=0, realtime=False, mesh_mode="sim") as v:
+        assert v.server.get_port() != 0 and v.url.endswith(f":{v.server.get_port()}")
+
+
+@needs_viser
+def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noqa: ANN001
+    """A .toml scene opens; the grab radius follows set_pick_radius; the mesh toggle (the S
+    freeze of issue 12) and a scene switch keep mesh updates going, with no exception."""
+    from pathlib import Path
+
+    from fem3d.viewer import Viewer
+
+    toml = Path(__file__).resolve().parent.parent / "data" / "scenes" / "arma.toml"
+    with Viewer(str(toml), port=0, realtime=False, mesh_mode="skin") as v:
+        snap = wait_for(lambda: (lambda s: s if s["steps"] > 2 else None)(v.snapshot()), 60,
+                        "steps")
+        assert snap["scene"] == "arma"
+        r0 = snap["pick_radius"]
+        q = v.positions()
+        v.set_pick_radius(50 * r0)
+        wait_for(lambda: v.snapshot()["pick_radius"] == 50 * r0, 10, "the radius")
+        v.begin_pull(q[0], q[0] + 0.1)
+        many = len(v.snapshot()["pull"]["ids"])
+        v.end_pull()
+        v.set_pick_radius(r0)
+        wait_for(lambda: v.snapshot()["pick_radius"] == r0, 10, "the radius back")
+        v.begin_pull(q[0], q[0] + 0.1)
+        assert len(v.snapshot()["pull"]["ids"]) < many
+        for action in (v.toggle_mesh_mode, v.toggle_mesh_mode, lambda: v.switch_scene("bunny")):
+            action()
+            n = v.snapshot()["pushes"]
+            v.begin_pull(v.positions()[0], v.positions()[0] + 1.0)  # keeps the mesh moving
+            wait_for(lambda n=n: v.snapshot()["pushes"] > n + 2, 60, "mesh updates")
+            v.end_pull()
+        assert v.snapshot()["scene"] == "bunny"
+        assert v.exceptions == [], v.exceptions
+        with pytest.raises(ParameterError, match="radius"):
+            v.set_pick_radius(0.0)
