@@ -110,6 +110,22 @@ def _make_simulation(scene: Any, integrator: str | None, backend: str | None) ->
     return sim
 
 
+def _material_names() -> list[str]:
+    try:
+        from fem3d.scene import material_names
+    except ImportError:  # pragma: no cover - runtime missing
+        return []
+    return [str(n) for n in material_names()]
+
+
+def _with_material(scene: Any, name: str) -> Any:
+    """``scene`` with every body's material model set to ``name`` (validated)."""
+    from fem3d.scene import apply_overrides
+
+    keys = {f"bodies[{i}].material.model": name for i in range(len(scene.bodies))}
+    return apply_overrides(scene, keys, source="the viewer's material menu")
+
+
 def _builtin_scene_names() -> list[str]:
     try:
         from fem3d.scenes import SCENES
@@ -702,6 +718,11 @@ class Viewer:
         """Back to rest, t = 0; clears an error (``R``)."""
         self._post(self._do_reset)
 
+    def switch_material(self, name: str) -> None:
+        """Change every body's material model (a name of :func:`fem3d.materials.names`),
+        keeping the motion: positions, velocities and time carry over."""
+        self._post(lambda: self._do_switch_material(name))
+
     def switch_scene(self, name: str) -> None:
         """Load another scene (runs on the simulation thread)."""
         self._post(lambda: self._do_switch_scene(name))
@@ -824,6 +845,7 @@ class Viewer:
                 "pushes": self._pushes,
                 **stats,
                 "material": dict(self._material),
+                "material_model": self._material_model(),
                 "pull": pull,
                 "energy": [list(r) for r in self._history.rows()],
                 "drag_events": self._drag_events,
@@ -869,6 +891,11 @@ class Viewer:
         if self._scene_label not in names:
             names.append(self._scene_label)
         g["scene"] = gui.add_dropdown("Scene", tuple(names), initial_value=self._scene_label)
+        models = _material_names()
+        current = self._material_model()
+        if current not in models:
+            models.append(current)
+        g["material"] = gui.add_dropdown("Material", tuple(models), initial_value=current)
         E, nu, rho = self._material["E"], self._material["nu"], self._material["rho"]
         g["E_value"] = gui.add_number("Young's modulus E", initial_value=E, min=1e-12)
         g["E"] = gui.add_slider(
@@ -926,6 +953,12 @@ class Viewer:
                 self.set_material(rho=float(event.target.value))
 
         g["scene"].on_update(_on_scene)
+
+        def _on_material(event: Any) -> None:
+            if event.client is not None:
+                self.switch_material(str(event.target.value))
+
+        g["material"].on_update(_on_material)
         g["E"].on_update(_on_E)
         g["E_value"].on_update(_on_E_value)
         g["radius"].on_update(_on_radius)
@@ -1222,6 +1255,32 @@ class Viewer:
             self._sync_E_widgets(float(E))
         self._gui_dirty = True
 
+    def _material_model(self) -> str:
+        return str(self._scene.bodies[0].material.model)
+
+    def _do_switch_material(self, name: str) -> None:
+        if name == self._material_model():
+            return
+        old = self._sim
+        try:
+            scene = _with_material(self._scene, name)
+            sim = _make_simulation(scene, self._sim_integrator, self.backend)
+            sim.set_state(old.q, old.v, old.t, old.step_index)
+            with self._lock:
+                mat = dict(self._material)
+            if mat != self._scene_material():  # keep the panel's edits (body 0's values)
+                sim.set_material(E=mat["E"], nu=mat["nu"], rho=mat["rho"])
+        except Fem3dError as exc:
+            self._notify_all("Material not changed", str(exc), color="yellow", seconds=10.0)
+            self._gui["material"].value = self._material_model()
+            return
+        with self._lock:
+            self._scene, self._sim = scene, sim
+            self._error = None
+        self._applied_pull_version = -1  # re-apply an active pull to the new simulation
+        self._pacer.reset()
+        self._gui_dirty = True
+
     def _do_switch_scene(self, name: str) -> None:
         if name == self._scene_label:
             return
@@ -1256,6 +1315,9 @@ class Viewer:
         g["E"].min, g["E"].max, g["E"].step = E / 10.0, E * 10.0, E / 10.0
         g["E"].value = E
         g["E_value"].value = E
+        if self._material_model() not in g["material"].options:
+            g["material"].options = (*g["material"].options, self._material_model())
+        g["material"].value = self._material_model()
         lo, hi, r0 = self._radius_range()
         g["radius"].min, g["radius"].max, g["radius"].step = lo, hi, (hi - lo) / 200.0
         g["radius"].value = r0
