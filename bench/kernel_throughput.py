@@ -1,9 +1,13 @@
-"""Throughput of the generated element kernels, NumPy vs C, in elements per second.
+"""Throughput of the generated element kernels of every material, NumPy vs C, elements/s.
 
-    python -m bench.kernel_throughput [--elements 100000] [--repeats 7] [--material neo_hookean]
+    python -m bench.kernel_throughput [--elements 100000] [--repeats 7] [--material NAME ...]
+                                      [--backend numpy c] [--kernel energy gradient ...]
 
-Random well-shaped tets deformed by random gradients; median of repeats after one warm-up.
-Not a test: figures depend on the machine (print them, never assert them).
+Random well-shaped tets deformed by random gradients (fibre directions random); parameters
+from ``E = 1e5, nu = 0.3`` through each material's mapping; median of repeats after one
+warm-up. The last column is the ratio to ``neo_hookean`` (the assignment's material) measured
+in the same run, which is what to compare on a shared machine. Not a test: figures depend on
+the machine (print them, never assert them).
 """
 
 from __future__ import annotations
@@ -14,9 +18,11 @@ import time
 
 import numpy as np
 
+from fem3d import materials
 from fem3d.kernels import c_extension, geometry_kernels, material_kernels
 
 KERNELS = ("energy", "gradient", "hessian", "hessian_psd")
+REFERENCE = "neo_hookean"
 
 
 def random_elements(m: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -31,31 +37,58 @@ def random_elements(m: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.n
     return x_e[keep], dphi[keep], vol[keep]
 
 
+def material_arguments(name: str, m: int, seed: int = 1) -> tuple[list[np.ndarray], np.ndarray]:
+    """The material's per-element inputs (random) and its parameters of ``E = 1e5, nu = 0.3``."""
+    info = materials.info(name)
+    rng = np.random.default_rng(seed)
+    inputs = [rng.normal(size=(m, *shape)) for shape in info.per_element_inputs.values()]
+    values = materials.parameters_from(name, E=1e5, nu=0.3)
+    return inputs, np.array([values[p] for p in info.param_names])
+
+
+def median_seconds(function, repeats: int) -> float:
+    function()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--elements", type=int, default=100_000)
     parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--material", default="neo_hookean")
+    parser.add_argument("--material", nargs="+", default=None,
+                        help="materials to measure (default: every registered one)")
+    parser.add_argument("--backend", nargs="+", default=None, choices=("numpy", "c"))
+    parser.add_argument("--kernel", nargs="+", default=list(KERNELS), choices=KERNELS)
     args = parser.parse_args(argv)
+    # the reference first: every other row's ratio is against it
+    names = [REFERENCE, *(n for n in args.material or materials.names() if n != REFERENCE)]
     x_e, dphi, vol = random_elements(args.elements)
     m = len(vol)
-    params = {"neo_hookean": (1.0e5, 5.0e5), "stvk": (2.0e5, 1.0e6)}.get(args.material, (1.0, 1.0))
-    backends = ["numpy"] + (["c"] if c_extension() is not None else [])
+    backends = args.backend or (["numpy"] + (["c"] if c_extension() is not None else []))
     threads = c_extension().max_threads() if c_extension() is not None else 1
-    print(f"{args.material}, {m} elements, median of {args.repeats}; "
-          f"C threads {threads} (OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')})")
-    print(f"{'kernel':<12} {'backend':<6} {'seconds':>9} {'elements/s':>12}")
-    for kernel in KERNELS:
-        for backend in backends:
-            function = getattr(material_kernels(args.material, backend), kernel)
-            function(x_e, dphi, vol, params)
-            times = []
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                function(x_e, dphi, vol, params)
-                times.append(time.perf_counter() - start)
-            t = float(np.median(times))
-            print(f"{kernel:<12} {backend:<6} {t:9.4f} {m / t:12.3e}")
+    print(f"{m} elements, median of {args.repeats}; C threads {threads} "
+          f"(OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')})")
+    print(f"{'material':<20} {'kernel':<12} {'backend':<6} {'ops':>6} {'seconds':>9} "
+          f"{'elements/s':>12} {'vs ' + REFERENCE:>15}")
+    reference: dict[tuple[str, str], float] = {}
+    for name in names:
+        inputs, params = material_arguments(name, m)
+        for kernel in args.kernel:
+            for backend in backends:
+                module = material_kernels(name, backend)
+                function = getattr(module, kernel)
+                arguments = (x_e, dphi, vol, *inputs, params)
+                t = median_seconds(lambda f=function, a=arguments: f(*a), args.repeats)
+                reference.setdefault((kernel, backend), t)
+                ratio = reference[(kernel, backend)] / t
+                ops = module.SIGNATURES[kernel]["op_count"]
+                print(f"{name:<20} {kernel:<12} {backend:<6} {ops:>6} {t:9.4f} {m / t:12.3e} "
+                      f"{ratio:14.2f}x", flush=True)
 
 
 if __name__ == "__main__":

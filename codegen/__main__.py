@@ -1,8 +1,13 @@
 """Stage 4: write, check or show the generated files.
 
-    python -m codegen                 # regenerate generated/
-    python -m codegen --check         # fail with a diff when generated/ is stale
+    python -m codegen                 # regenerate generated/ and docs/materials.md
+    python -m codegen --check         # fail with a diff when either is stale
     python -m codegen show neo_hookean.hessian [--backend c]
+    python -m codegen show stable_neo_hookean   # a material's formulas
+    python -m codegen docs            # write docs/materials.md only
+
+Modules are derived in parallel (``FEM3D_CODEGEN_JOBS`` processes, default: the CPUs this
+process may use); the output does not depend on it.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from pathlib import Path
 from codegen.render import ROOT, render_all
 
 GENERATED = ROOT / "generated"
+DOCS = ROOT / "docs" / "materials.md"
 UPDATE_COMMAND = "make codegen"
 
 
@@ -26,11 +32,30 @@ def _ensure_fixed_hash_seed(argv: list[str]) -> None:
         os.execve(sys.executable, [sys.executable, "-m", "codegen", *argv], env)
 
 
-def generate() -> dict[str, str]:
-    """Relative path under ``generated/`` -> text, for every generated file."""
-    from codegen.derive import all_modules
+def _jobs() -> int:
+    value = os.environ.get("FEM3D_CODEGEN_JOBS")
+    return max(1, int(value)) if value else len(os.sched_getaffinity(0))
 
-    return render_all(all_modules())
+
+def modules(names: list[str] | None = None) -> list:
+    """The :class:`~codegen.spec.ModuleSpec` of every module (or of ``names``), in
+    :func:`codegen.derive.module_names` order, derived in parallel."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from codegen.derive import build_module, module_names
+
+    names = module_names() if names is None else names
+    jobs = min(_jobs(), len(names))
+    if jobs <= 1:
+        return [build_module(n) for n in names]
+    with ProcessPoolExecutor(jobs) as pool:
+        return list(pool.map(build_module, names))
+
+
+def generate(names: list[str] | None = None) -> tuple[dict[str, str], list]:
+    """Relative path under ``generated/`` -> text for every generated file, and the specs."""
+    specs = modules(names)
+    return render_all(specs), specs
 
 
 def write(files: dict[str, str], target: Path) -> None:
@@ -66,12 +91,37 @@ def check(files: dict[str, str], target: Path) -> int:
     return 0
 
 
+def show_material(name: str) -> int:
+    """Print a material's formulas: psi, parameters, the E/nu mapping, inversion, source."""
+    from codegen.derive import material_info
+
+    info = material_info(name)
+    print(f"{name}: {info['description']}")
+    print(f"\npsi = {info['psi_text']}")
+    print(f"\nparameters: {', '.join(info['param_names'])}")
+    for n, shape in info["element_inputs"]:
+        print(f"per-element input: {n} {shape}")
+    exact = "exact small-strain linear elasticity" if info["exact_small_strain"] else \
+        "NOT exact small-strain linear elasticity"
+    print(f"\nfrom E, nu ({exact}):")
+    for p, text in info["mapping_text"].items():
+        free = "  (free: does not change the small-strain response)" \
+            if p in info["shape_params"] else ""
+        print(f"  {p} = {text}{free}")
+    print(f"\nallows inversion: {info['allows_inversion']}; J <= 0: {info['inversion']}")
+    print(f"\n{info['doc']}")
+    return 0
+
+
 def show(kernel: str, backend: str) -> int:
-    """Print the source of one kernel (``module.kernel``) for one back end."""
+    """Print the source of one kernel (``module.kernel``) for one back end, or a material's
+    formulas (a bare material name)."""
     from codegen.derive import all_modules, material_module, spring_module, tet_module
     from codegen.materials import MATERIALS
     from codegen.render import BACKENDS
 
+    if kernel in MATERIALS:
+        return show_material(kernel)
     module_name, _, kernel_name = kernel.partition(".")
     builders = {"tet": tet_module, "spring": spring_module}
     if module_name in MATERIALS:
@@ -107,18 +157,59 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=GENERATED, help="target folder")
     sub = parser.add_subparsers(dest="command")
     show_parser = sub.add_parser("show", help="print one kernel's generated source")
-    show_parser.add_argument("kernel", help="module.kernel, e.g. neo_hookean.hessian")
+    show_parser.add_argument("kernel", help="module.kernel (e.g. neo_hookean.hessian), or a "
+                             "material name for its formulas")
     show_parser.add_argument("--backend", choices=("numpy", "c"), default="numpy")
+    sub.add_parser("docs", help=f"write {DOCS.relative_to(ROOT)} only")
+    parser.add_argument("--only", nargs="+", metavar="MODULE",
+                        help="derive only these modules (with --out: a partial tree, for tests)")
     args = parser.parse_args(argv)
     if args.command == "show":
         return show(args.kernel, args.backend)
+    from codegen.derive import module_names
+
+    unknown = sorted(set(args.only or ()) - set(module_names()))
+    if unknown:
+        print(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(module_names())}",
+              file=sys.stderr)
+        return 2
     _ensure_fixed_hash_seed(argv)
-    files = generate()
+    from codegen.docs import render_docs
+
+    files, specs = generate(args.only)
+    docs = render_docs(specs) if args.only is None else None
+    if args.command == "docs":
+        DOCS.write_text(docs)
+        print(f"wrote {DOCS}")
+        return 0
     if args.check:
-        return check(files, args.out)
-    write(files, args.out)
+        status = check(files, args.out) if args.only is None else check_subset(files, args.out)
+        if docs is not None and args.out == GENERATED:
+            if not DOCS.exists() or DOCS.read_text() != docs:
+                print(f"{DOCS.relative_to(ROOT)} is stale; run `{UPDATE_COMMAND}` and commit.")
+                status = 1
+        return status
+    if args.only is None:
+        write(files, args.out)
+        if args.out == GENERATED:
+            DOCS.write_text(docs)
+    else:
+        for rel, text in files.items():
+            (args.out / rel).parent.mkdir(parents=True, exist_ok=True)
+            (args.out / rel).write_text(text)
     print(f"wrote {len(files)} files to {args.out}")
     return 0
+
+
+def check_subset(files: dict[str, str], target: Path) -> int:
+    """Like :func:`check` for the modules' own files only (``--only``)."""
+    stale = [rel for rel, text in files.items() if rel.split("/")[-1] not in
+             ("__init__.py", "_ckernels.c") and
+             (not (target / rel).exists() or (target / rel).read_text() != text)]
+    for rel in stale:
+        print(f"generated/{rel} is stale")
+    print(f"{len(files) - len(stale)} of {len(files)} checked files are up to date.")
+    return 1 if stale else 0
 
 
 if __name__ == "__main__":

@@ -31,3 +31,9 @@ def flatten(matrix: sp.Matrix) -> list[sp.Expr]:
 def deformation_gradient(x_e: sp.Matrix, dphi_dX: sp.Matrix) -> sp.Matrix:
     """``F = sum_v x_v dphi_v/dX^T`` for ``x_e`` (4x3, rows are vertices) and ``dphi_dX`` (4x3)."""
     return x_e.T * dphi_dX
+
+
+def identity_like(F: sp.MatrixBase | sp.MatrixExpr) -> sp.MatrixBase | sp.MatrixExpr:
+    """The 3x3 identity as ``F`` holds it: explicit for a matrix of symbols (derivations),
+    ``Identity(3)`` for a matrix symbol (the formula shown by ``show`` and the docs)."""
+    return sp.Identity(3) if isinstance(F, sp.MatrixExpr) else sp.eye(3)

@@ -20,6 +20,7 @@ class MaterialDerivation:
 
     F: sp.Matrix
     params: dict[str, sp.Symbol]
+    inputs: dict[str, sp.Matrix]
     psi: sp.Expr
     P: sp.Matrix
     dP_dF: sp.Matrix
@@ -31,12 +32,88 @@ def derive_material(name: str) -> MaterialDerivation:
     material = MATERIALS[name]
     F = symbol_matrix("F", 3, 3)
     params = {p: sp.Symbol(p, real=True) for p in material.PARAM_NAMES}
-    psi = material.psi(F, params)
+    inputs = {n: _input_symbols(n, shape) for n, shape in element_inputs(name)}
+    # doit: identities written as sp.Identity (for the displayed formula) become explicit
+    psi = sp.sympify(material.psi(F, {**params, **inputs})).doit()
     P = sp.Matrix(3, 3, lambda i, j: sp.diff(psi, F[i, j]))
     F_flat = flatten(F)
     P_flat = flatten(P)
     dP_dF = sp.Matrix(9, 9, lambda a, b: sp.diff(P_flat[a], F_flat[b]))
-    return MaterialDerivation(F, params, psi, P, dP_dF)
+    return MaterialDerivation(F, params, inputs, psi, P, dP_dF)
+
+
+def element_inputs(name: str) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """A material's per-element inputs ``(name, shape)`` (e.g. a fibre direction ``(3,)``)."""
+    return tuple((n, tuple(s)) for n, s in getattr(MATERIALS[name], "ELEMENT_INPUTS", {}).items())
+
+
+def _input_symbols(name: str, shape: tuple[int, ...]) -> sp.Matrix:
+    if len(shape) == 1:
+        return symbol_vector(name, shape[0])
+    return symbol_matrix(name, *shape)
+
+
+def _input_args(d: MaterialDerivation) -> list[Argument]:
+    return [_matrix_arg(n, m, f"per-element material input {n}") for n, m in d.inputs.items()]
+
+
+@dataclass(frozen=True)
+class Mapping:
+    """A material's parameters as SymPy expressions of ``E``, ``nu``."""
+
+    E: sp.Symbol
+    nu: sp.Symbol
+    exprs: dict[str, sp.Expr]
+
+
+@cache
+def small_strain_mapping(name: str) -> Mapping:
+    """``from_E_nu`` of material ``name`` in the symbols ``E`` and ``nu``."""
+    material = MATERIALS[name]
+    E, nu = sp.Symbol("E", positive=True), sp.Symbol("nu", real=True)
+    params = {p: sp.Symbol(p, real=True) for p in material.PARAM_NAMES}
+    exprs = material.from_E_nu(E, nu, params)
+    if set(exprs) != set(material.PARAM_NAMES):
+        raise ValueError(f"{name}.from_E_nu must return {material.PARAM_NAMES}, got {set(exprs)}")
+    return Mapping(E, nu, {p: sp.sympify(exprs[p]) for p in material.PARAM_NAMES})
+
+
+_DISPLAY_NAMES = {"lam": "lambda"}
+
+
+def display_psi(name: str) -> sp.Expr:
+    """``psi`` of material ``name`` with ``F`` (and element inputs) as matrix symbols: the
+    formula as written, ``tr``/``det`` unexpanded, for ``show`` and the docs."""
+    material = MATERIALS[name]
+    symbols: dict = {p: sp.Symbol(_DISPLAY_NAMES.get(p, p), real=True)
+                     for p in material.PARAM_NAMES}
+    for n, shape in element_inputs(name):
+        symbols[n] = sp.MatrixSymbol(n, *shape, *((1,) if len(shape) == 1 else ()))
+    return material.psi(sp.MatrixSymbol("F", 3, 3), symbols)
+
+
+def material_info(name: str) -> dict:
+    """Everything the runtime and the docs need about a material besides its kernels."""
+    material = MATERIALS[name]
+    mapping = small_strain_mapping(name)
+    display = display_psi(name)
+    return {
+        "param_names": tuple(material.PARAM_NAMES),
+        "element_inputs": element_inputs(name),
+        "shape_params": tuple(getattr(material, "SHAPE_PARAMS", ())),
+        "positive": tuple(getattr(material, "POSITIVE", ())),
+        "allows_inversion": bool(material.ALLOWS_INVERSION),
+        "exact_small_strain": bool(getattr(material, "EXACT_SMALL_STRAIN", True)),
+        "rotation_invariant": bool(getattr(material, "ROTATION_INVARIANT", True)),
+        "inversion": material.INVERSION,
+        "description": material.DESCRIPTION,
+        "doc": (material.__doc__ or "").strip(),
+        "psi_text": sp.sstr(display),
+        "psi_latex": sp.latex(display),
+        "mapping": {p: sp.pycode(e) for p, e in mapping.exprs.items()},
+        "mapping_text": {p: sp.sstr(e) for p, e in mapping.exprs.items()},
+        "mapping_latex": {p: sp.latex(e) for p, e in mapping.exprs.items()},
+    }
 
 
 def _param_args(names: tuple[str, ...], symbols: dict[str, sp.Symbol]) -> tuple[Argument, ...]:
@@ -66,14 +143,24 @@ def material_module(name: str) -> ModuleSpec:
     material: ModuleType = MATERIALS[name]
     d = derive_material(name)
     params = _param_args(material.PARAM_NAMES, d.params)
-    F_arg = _matrix_arg("F", d.F, "deformation gradients")
+    extra = _input_args(d)
+    F_args = [_matrix_arg("F", d.F, "deformation gradients"), *extra]
+    # Each derivative is CSE'd once, in the symbols of F, and shared by the pointwise kernel
+    # and the element kernel (which computes F from x_e first): the CSE is the slow stage.
+    psi_sym, P_sym = sp.Symbol("psi"), symbol_matrix("P", 3, 3)
+    A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
+    upper = [(a, b) for a in range(9) for b in range(a, 9)]  # dP/dF is symmetric
+    psi_steps = _cse_prelude([d.psi], [psi_sym], "e")
+    P_steps = _cse_prelude(flatten(d.P), flatten(P_sym), "s")
+    A_steps = _cse_prelude([d.dP_dF[a, b] for a, b in upper], [A_sym[a, b] for a, b in upper],
+                           "h")
     kernels: list[KernelSpec] = [
-        make_kernel(name, "psi", "Strain energy density psi(F).", [F_arg], params,
-                    [("psi", (), [d.psi], False)]),
-        make_kernel(name, "dpsi_dF", "First Piola-Kirchhoff stress P = dpsi/dF.", [F_arg], params,
-                    [("P", (3, 3), flatten(d.P), False)]),
-        make_kernel(name, "d2psi_dF2", "dP/dF, 9x9 in the row-major flattening of F.", [F_arg],
-                    params, [("dP_dF", (9, 9), flatten(d.dP_dF), True)]),
+        make_kernel(name, "psi", "Strain energy density psi(F).", F_args, params,
+                    [("psi", (), [psi_sym], False)], psi_steps),
+        make_kernel(name, "dpsi_dF", "First Piola-Kirchhoff stress P = dpsi/dF.", F_args, params,
+                    [("P", (3, 3), flatten(P_sym), False)], P_steps),
+        make_kernel(name, "d2psi_dF2", "dP/dF, 9x9 in the row-major flattening of F.", F_args,
+                    params, [("dP_dF", (9, 9), flatten(A_sym), True)], A_steps),
     ]
 
     x, D, vol = _element_symbols()
@@ -81,28 +168,22 @@ def material_module(name: str) -> ModuleSpec:
         _matrix_arg("x_e", x, "deformed vertex positions of each tet"),
         _matrix_arg("dphi_dX", D, "rest-shape gradients of the shape functions"),
         Argument("vol", (), (vol,), doc="rest volumes"),
+        *extra,
     ]
     F_def = deformation_gradient(x, D)
     prelude_F = list(zip(flatten(d.F), flatten(F_def), strict=True))
 
-    energy_prelude = prelude_F + _cse_prelude([d.psi], [sp.Symbol("psi")], "e")
     kernels.append(make_kernel(
         name, "energy", "Element potential energy vol * psi(F(x_e)).", element_inputs, params,
-        [("energy", (), [vol * sp.Symbol("psi")], False)], energy_prelude))
+        [("energy", (), [vol * psi_sym], False)], prelude_F + psi_steps))
 
-    P_sym = symbol_matrix("P", 3, 3)
-    grad_prelude = prelude_F + _cse_prelude(flatten(d.P), flatten(P_sym), "s")
     gradient = [vol * sum(P_sym[c, j] * D[v, j] for j in range(3))
                 for v in range(4) for c in range(3)]
     kernels.append(make_kernel(
         name, "gradient", "Element gradient d(vol psi)/dx_e, vertex-major (12).", element_inputs,
-        params, [("gradient", (12,), gradient, False)], grad_prelude))
+        params, [("gradient", (12,), gradient, False)], prelude_F + P_steps))
 
-    # dP/dF is symmetric: compute the upper triangle once and reference it from both sides.
-    A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
-    upper = [(a, b) for a in range(9) for b in range(a, 9)]
-    stress_derivative = prelude_F + _cse_prelude(
-        [d.dP_dF[a, b] for a, b in upper], [A_sym[a, b] for a, b in upper], "h")
+    stress_derivative = prelude_F + A_steps
     hess_doc = "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."
     kernels.append(make_kernel(
         name, "hessian", hess_doc, element_inputs, params,
@@ -116,7 +197,8 @@ def material_module(name: str) -> ModuleSpec:
         *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
-                      param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels))
+                      param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),
+                      info=material_info(name))
 
 
 def _hessian_contraction(A: sp.Matrix, D: sp.Matrix, vol: sp.Symbol, prelude: list):
@@ -214,9 +296,23 @@ def spring_module() -> ModuleSpec:
                       param_names=("k",), kernels=kernels)
 
 
+def module_names() -> list[str]:
+    """Every module the generator emits, in a fixed order."""
+    return ["tet", "spring", *sorted(MATERIALS)]
+
+
+def build_module(name: str) -> ModuleSpec:
+    """The spec of one module (``tet``, ``spring`` or a material)."""
+    if name == "tet":
+        return tet_module()
+    if name == "spring":
+        return spring_module()
+    return material_module(name)
+
+
 def all_modules() -> list[ModuleSpec]:
     """Every module the generator emits, in a fixed order."""
-    return [tet_module(), spring_module(), *(material_module(n) for n in sorted(MATERIALS))]
+    return [build_module(n) for n in module_names()]
 
 
 def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[list[sp.Expr]]]:
@@ -224,11 +320,13 @@ def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[l
 
     Element kernels are differentiated directly with respect to the 12 DOFs, not through the
     chain rule the generated code uses. Returns ``(input symbols, [flat exprs per output])``
-    with the input symbols in the kernel's argument order (inputs, then parameters).
+    with the input symbols in the kernel's argument order (inputs, then parameters; a
+    material's element inputs are the last inputs).
     """
     if module in MATERIALS:
         d = derive_material(module)
         params = [d.params[n] for n in MATERIALS[module].PARAM_NAMES]
+        params = [s for m in d.inputs.values() for s in flatten(m)] + params
         if kernel in ("psi", "dpsi_dF", "d2psi_dF2"):
             out = {"psi": [d.psi], "dpsi_dF": flatten(d.P), "d2psi_dF2": flatten(d.dP_dF)}[kernel]
             return flatten(d.F) + params, [out]

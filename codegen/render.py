@@ -160,6 +160,23 @@ def kernel_view_assemble(kernel: KernelSpec) -> bool:
             and kernel.inputs[0].shape == (4, 3) and len(kernel.outputs) == 1)
 
 
+def material_view(module: ModuleSpec, printer) -> dict | None:
+    """A material's metadata for the NumPy module: Python literals (``repr``) and the
+    ``E, nu`` mapping printed as code."""
+    info = module.info
+    if info is None:
+        return None
+    from codegen.derive import small_strain_mapping
+
+    mapping = small_strain_mapping(module.name)
+    literals = {key: repr(info[key]) for key in (
+        "allows_inversion", "exact_small_strain", "rotation_invariant", "element_inputs",
+        "shape_params", "positive", "description", "inversion", "psi_text", "psi_latex", "doc",
+        "mapping_text")}
+    return {**literals,
+            "mapping_code": [(p, printer.doprint(e)) for p, e in mapping.exprs.items()]}
+
+
 def render_module(module: ModuleSpec, backend: str) -> str:
     """Source text of one module for one back end."""
     spec = BACKENDS[backend]
@@ -167,6 +184,7 @@ def render_module(module: ModuleSpec, backend: str) -> str:
     template = _environment().get_template(spec.template)
     return template.render(
         module=module,
+        material=material_view(module, printer),
         kernels=[kernel_view(k, printer) for k in module.kernels],
         template_name=f"templates/{spec.template}",
         sympy_version=sp.__version__,

@@ -105,6 +105,8 @@ class ModuleSpec:
     source: str
     param_names: tuple[str, ...]
     kernels: tuple[KernelSpec, ...]
+    info: dict | None = None
+    """Materials only: :func:`codegen.derive.material_info` (mapping, inversion, formulas)."""
 
 
 def make_kernel(

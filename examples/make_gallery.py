@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
 MESHES = ROOT / "data" / "scenes" / "meshes"
 GALLERY = ROOT / "docs" / "gallery"
 

@@ -41,7 +41,9 @@ CHECKPOINT_NAME = "checkpoint.npz"
 _KIND = "fem3d-run"
 _SNAPSHOT_SCALARS = ("t", "step", "injected")
 _SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "pull_k", "preconditioner",
-                    "script_active")
+                    "script_active", "contact", "pattern_keys")
+#: Snapshot arrays that older checkpoints do not have (restored as empty).
+_SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys")
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:
@@ -126,8 +128,8 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
     try:
         snap: dict[str, Any] = dict(d["state"])
         for k in _SNAPSHOT_ARRAYS:
-            if k == "preconditioner" and f"state_{k}" not in d:
-                continue  # checkpoints written before factorization reuse existed
+            if k in _SNAPSHOT_OPTIONAL and f"state_{k}" not in d:
+                continue  # checkpoints written before that state existed
             snap[k] = np.array(d[f"state_{k}"])
         energy = np.asarray(d["energy"], dtype=np.float64)
         steps = [int(s) for s in np.asarray(d["frame_steps"]).reshape(-1)]

@@ -746,6 +746,20 @@ class System:
         self.pattern_generation += 1
         return ext
 
+    def pattern_keys(self) -> np.ndarray:
+        """Keys (``row * n_free + col``) of the solver's pattern when objective terms have
+        widened it, else empty: what a checkpoint needs to rebuild the same pattern (and so
+        the same fill-reducing ordering, bit for bit)."""
+        return np.zeros(0, np.int64) if self._ext is None else self._ext.keys
+
+    def restore_pattern(self, keys: np.ndarray) -> None:
+        """Widen the solver's pattern to the saved :meth:`pattern_keys` (no-op when empty or
+        already equal)."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if keys.size == 0 or (self._ext is not None and np.array_equal(self._ext.keys, keys)):
+            return
+        self._extend(keys)
+
     def refactorize_saved(self, data: np.ndarray) -> None:
         """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
         checkpoint's preconditioner): the same matrix gives the same factor, so a resumed
@@ -1089,6 +1103,8 @@ def newtons_method(
     decrement_rtol: float = 1e-14,
     on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
     max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+    after_step: Callable[[np.ndarray], bool] | None = None,
     roundoff_rtol: float = 0.0,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
@@ -1124,6 +1140,13 @@ def newtons_method(
         Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
         the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
         A non-positive value stops Newton at ``x`` (not converged).
+    converged_step : callable ``(x, d) -> bool``, optional
+        A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
+        from the second iteration on (the first step is always taken): True stops Newton at
+        ``x``, converged.
+    after_step : callable ``(x) -> bool``, optional
+        Called at every accepted iterate; True means the objective itself changed there
+        (IPC's adaptive barrier stiffness), so its value is re-evaluated.
     roundoff_rtol : float, optional
         ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
         at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
@@ -1153,6 +1176,8 @@ def newtons_method(
         if not (slope < 0 and np.isfinite(d).all()):  # not a descent direction: fall back
             d = -g
             slope = -gn * gn
+        if converged_step is not None and it > 0 and converged_step(x, d):
+            return NewtonResult(x, it, norms, True, halvings)
         a0 = alpha
         if max_step is not None:
             a0 = min(alpha, float(max_step(x, d)))
@@ -1201,6 +1226,9 @@ def newtons_method(
                 on_no_step(x, d)
             return NewtonResult(x, it, norms, any_finite, halvings)
         x, fx = xt, ft
+        if after_step is not None and after_step(x):
+            fx = energy(x)  # the objective changed at x (barrier stiffness)
+            gt = None
         g = gradient(x) if gt is None else gt
         gn = _gradient_norm(g)
         norms.append(gn)
@@ -1234,6 +1262,21 @@ class ObjectiveTerm(Protocol):
     ``requires_convergence`` (attribute, bool)
         True: the step runs Newton to its tolerance instead of stopping at the iteration cap
         (``converged_max_iterations`` caps it).
+
+    Per-step hooks (contact, :class:`fem3d.contact.ContactTerm`):
+
+    ``begin_step(q_t, v_t, q_base, t, dt, step=)``
+        Called once before Newton (lag friction, place obstacles, check the pins' motion).
+    ``initialize_stiffness(q, grad_rest, average_mass)``
+        Called at Newton's start with the gradient of the rest of the objective in positions.
+    ``after_iteration(q) -> bool``
+        Called at every accepted iterate; True when the term's energy changed there.
+    ``newton_converged(dq) -> bool``
+        Stopping rule on the Newton step's position change ``dq``; Newton stops when every
+        term that has it agrees (and at the gradient tolerance as before).
+
+    With a ``max_step`` term the Newton start is ``v_t`` clamped by ``max_step`` from
+    ``v = 0`` (a start that tunnelled through an obstacle would be finite but wrong).
     """
 
     def energy(self, q: np.ndarray) -> float: ...
@@ -1393,6 +1436,12 @@ def implicit_euler(
     hessian_terms = [t for t in terms if callable(getattr(t, "hessian", None))]
     step_terms = [t for t in terms if callable(getattr(t, "max_step", None))]
 
+    def hooks(name: str) -> list:
+        return [getattr(t, name) for t in terms if callable(getattr(t, name, None))]
+
+    for begin in hooks("begin_step"):
+        begin(q_t, v_t, q_base, state.t, dt, step=state.step)
+
     def positions(v_free: np.ndarray) -> np.ndarray:
         return q_base + dt * c.expand_zero(v_free)
 
@@ -1425,12 +1474,12 @@ def implicit_euler(
             e += float(term.energy(q))
         return e if math.isfinite(e) else math.inf
 
-    def gradient(v_free: np.ndarray) -> np.ndarray:
+    def gradient(v_free: np.ndarray, with_terms: bool = True) -> np.ndarray:
         q = positions(v_free)
         gq = assemble_gradient(model, q)
         if pull is not None:
             gq += pull.gradient(spring, q.reshape(-1, 3))
-        for term in terms:
+        for term in terms if with_terms else ():
             gq += term.gradient(q)
         if dv_fixed is None:
             g = mass_free @ (v_free - vt_free) + dt * gq[free]
@@ -1564,6 +1613,8 @@ def implicit_euler(
 
     # start from v_t; if that position is inadmissible, from v = 0 (q_t itself, admissible)
     x0 = vt_free.copy()
+    if step_terms:  # the start must be reached without crossing anything (CCD from v = 0)
+        x0 *= clamp(np.zeros_like(vt_free), vt_free)
     if not math.isfinite(energy(x0)):
         x0 = np.zeros_like(vt_free)
         if not math.isfinite(energy(x0)):
@@ -1571,11 +1622,30 @@ def implicit_euler(
                 f"the current state is inadmissible ({count_inverted(model, q_base)} inverted "
                 "tets or a non-finite energy)", step=state.step,
             )
+    init_stiffness = hooks("initialize_stiffness")
+    if init_stiffness:
+        grad_rest = c.expand_zero(gradient(x0, with_terms=False)) / dt
+        average_mass = float(model.mass.sum()) / model.n_dofs
+        for init in init_stiffness:
+            init(positions(x0), grad_rest, average_mass)
+    converged_hooks = hooks("newton_converged")
+    after_hooks = hooks("after_iteration")
+
+    def converged_step(v_free: np.ndarray, d: np.ndarray) -> bool:
+        dq = dt * c.expand_zero(d)
+        return all([ok(dq) for ok in converged_hooks])
+
+    def after_step(v_free: np.ndarray) -> bool:
+        q = positions(v_free)
+        return any([after(q) for after in after_hooks])
+
     try:
         res = newtons_method(
             x0, timed(energy, "objective"), timed(gradient, "objective"), direction,
             max_iterations=max_iterations, rtol=rtol, atol=atol, on_no_step=no_step,
             max_step=clamp if step_terms else None,
+            converged_step=converged_step if converged_hooks else None,
+            after_step=after_step if after_hooks else None,
             roundoff_rtol=AMG_ROUNDOFF_RTOL if use_amg else 0.0,
         )
     except SimulationError as exc:

@@ -52,7 +52,8 @@ class KernelModule:
     """The kernels of one generated module (a material, ``tet`` or ``spring``) on one back end.
 
     Every kernel is an attribute taking the per-element inputs, then (if the kernel has any)
-    the parameter sequence, and returning its outputs with a leading element axis. The keyword
+    the parameters (``(n_params,)`` shared, or ``(m, n_params)`` per element), and returning
+    its outputs with a leading element axis. The keyword
     ``out`` (an array, or a tuple of arrays for several outputs, of the result's shapes and
     float64) receives the results instead of new arrays: repeated calls on large meshes then
     skip the allocation and its page faults (the C back end writes straight into ``out``).
@@ -110,10 +111,15 @@ def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., objec
             elif a.shape[0] != m:
                 raise ValueError(f"{qualified}: {name} has {a.shape[0]} elements, expected {m}")
             arrays.append(a)
-        params = np.atleast_1d(np.asarray(args[len(inputs)] if n_params else (), dtype=np.float64))
-        if params.shape != (n_params,):
-            raise ValueError(f"{qualified}: expected {n_params} parameters "
-                             f"{signature['params']}, got shape {params.shape}")
+        params = np.asarray(args[len(inputs)] if n_params else (), dtype=np.float64)
+        if params.ndim == 2 and params.shape == (m, n_params):  # per element
+            params = np.ascontiguousarray(params)
+        else:
+            params = np.atleast_1d(params)
+            if params.shape != (n_params,):
+                raise ValueError(f"{qualified}: expected {n_params} parameters "
+                                 f"{signature['params']} (or ({m}, {n_params}) per element), "
+                                 f"got shape {params.shape}")
         shapes = [(m, *shape) for _, shape in outputs]
         if out is None:
             results = [np.empty(shape) for shape in shapes]
@@ -171,8 +177,10 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     ----------
     q : (n, 3) float64
     T : (m, 4) int64
-    *inputs : the kernel's other per-element inputs (``dphi_dX (m, 4, 3)``, ``vol (m,)``)
-    params : sequence of float
+    *inputs : the kernel's other per-element inputs (``dphi_dX (m, 4, 3)``, ``vol (m,)``, then
+        the material's own, e.g. a fibre direction ``(m, 3)``)
+    params : (n_params,) or (m, n_params) float64
+        Shared by every element, or per element.
     index : (m, size) int32
         Destination of each output entry in ``out`` (e.g. the CSR scatter map); other integer
         types are converted (ValueError when a value does not fit in int32).
@@ -186,7 +194,7 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
             np.ascontiguousarray(q, dtype=np.float64),
             np.ascontiguousarray(T, dtype=np.int64),
             *(np.ascontiguousarray(a, dtype=np.float64) for a in inputs),
-            np.atleast_1d(np.asarray(params, dtype=np.float64)),
+            np.ascontiguousarray(np.atleast_1d(np.asarray(params, dtype=np.float64))),
             _as_index32(index),
             out,
         )

@@ -4,8 +4,9 @@ A :class:`Model` is built once per mesh (:func:`build_model`) and holds
 
 * the rest shape: ``X``, ``T``, the shape-function gradients ``dphi_dX`` and volumes ``vol``
   (from the generated geometry kernels);
-* the material: name, ``E``, ``nu``, ``rho`` and the kernel parameters (Neo-Hookean
-  ``C = 0.5 E / (2 (1 + nu))``, ``D = 0.5 E nu / ((1 + nu)(1 - 2 nu))``);
+* the material: one or several :class:`MaterialGroup` (a registered material on a subset of
+  the elements, its parameters per group or per element, see :mod:`fem3d.materials`), a
+  density per mesh or per element, and the summary values ``E``, ``nu``, ``rho``;
 * the exact consistent mass matrix (generated ``mass_matrix`` kernel, assembled);
 * the sparsity pattern of the ``3n x 3n`` system and two precomputed scatter maps:
   ``scatter`` sends the ``(m, 12, 12)`` element blocks straight into CSR ``data`` positions
@@ -19,7 +20,8 @@ The stiffness and the mass matrix share the pattern, so ``M + dt^2 H`` is arithm
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -29,6 +31,8 @@ import scipy.sparse as sp
 from fem3d.errors import InputError, ParameterError
 
 __all__ = [
+    "GroupData",
+    "MaterialGroup",
     "Model",
     "build_model",
     "material_parameters",
@@ -84,29 +88,22 @@ def material_parameters(material: str, E: float, nu: float, param_names: tuple[s
     Parameters
     ----------
     material : str
-        Material name (for messages).
+        Registered material name.
     E, nu : float
-        Young's modulus and Poisson's ratio (validated by :func:`validate_material`).
+        Young's modulus and Poisson's ratio.
     param_names : tuple of str
-        The material kernels' ``PARAM_NAMES``.
+        The material kernels' ``PARAM_NAMES`` (the order of the result).
 
     Returns
     -------
     (n_params,) float64
-        In ``param_names`` order. Known names: ``C = 0.5 E / (2 (1 + nu))`` (half the shear
-        modulus ``mu``), ``D = 0.5 E nu / ((1 + nu)(1 - 2 nu))`` (half Lame's ``lambda``),
-        ``mu`` and ``lambda`` / ``lam``.
+        ``fem3d.materials.parameters_from(material, E, nu)`` in ``param_names`` order (for
+        ``neo_hookean``: ``C = 0.5 E / (2 (1 + nu))``, ``D = 0.5 E nu / ((1 + nu)(1 - 2 nu))``).
     """
-    mu = E / (2.0 * (1.0 + nu))
-    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    known = {"C": 0.5 * mu, "D": 0.5 * lam, "mu": mu, "lambda": lam, "lam": lam}
-    missing = [p for p in param_names if p not in known]
-    if missing:
-        raise ParameterError(
-            f"material {material!r} has parameters {param_names}; cannot derive "
-            f"{missing} from E and nu"
-        )
-    return np.array([known[p] for p in param_names], dtype=np.float64)
+    from fem3d.materials import parameters_from
+
+    values = parameters_from(material, E=E, nu=nu)
+    return np.array([values[p] for p in param_names], dtype=np.float64)
 
 
 def element_dofs(T: np.ndarray) -> np.ndarray:
@@ -186,6 +183,298 @@ def _readonly(*arrays: np.ndarray) -> None:
         a.setflags(write=False)
 
 
+@dataclass(frozen=True)
+class MaterialGroup:
+    """A material on a set of elements, as given to :func:`build_model`.
+
+    Parameters
+    ----------
+    material : str
+        Registered material name (:func:`fem3d.materials.names`).
+    elements : (k,) int64, optional
+        The tets of this group; None: every tet no other group lists (at most one group).
+    params : mapping, optional
+        ``E`` and ``nu`` (mapped by :func:`fem3d.materials.parameters_from`) and/or the
+        material's own parameters, each a number or a per-element ``(k,)`` array (a
+        stiffness field), plus the material's per-element inputs (e.g. a fibre direction
+        ``a``: one ``(3,)`` value or ``(k, 3)``; a missing one defaults to the first unit
+        vector, the x axis).
+    """
+
+    material: str
+    elements: np.ndarray | None = None
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class GroupData:
+    """A :class:`MaterialGroup` resolved for one mesh (built by :func:`build_model`).
+
+    Attributes
+    ----------
+    material : str
+    elements : (k,) int64 or None
+        None: every tet of the mesh (the arrays of the model are used as they are).
+    values : dict of str -> float or (k,) float64
+        The material's parameters (resolved from ``E, nu`` where given).
+    params : (n_params,) or (k, n_params) float64
+        Kernel parameters, shared by the group or per element.
+    inputs : tuple of (k, ...) float64
+        The material's per-element inputs, in kernel order.
+    kernels : KernelModule
+    """
+
+    material: str
+    elements: np.ndarray | None
+    values: dict
+    params: np.ndarray
+    inputs: tuple[np.ndarray, ...]
+    kernels: Any = field(repr=False)
+    n_tets: int = 0
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def allows_inversion(self) -> bool:
+        """Whether this group's material is defined for ``J <= 0``."""
+        from fem3d.materials import info
+
+        return info(self.material).allows_inversion
+
+    def subset(self, array: np.ndarray) -> np.ndarray:
+        """``array``'s rows of this group's elements. ``array`` has a leading tet axis, or is
+        flat with a fixed number of entries per tet (a scatter map). Subsets of read-only
+        arrays (the model's maps, the integrator's scaled volumes) are cached, so repeated
+        fused-kernel calls copy nothing."""
+        if self.elements is None:
+            return array
+        a = np.asarray(array)
+        cached = self._cache.get(id(a))
+        if cached is not None and cached[0] is a:
+            return cached[1]
+        if a.ndim == 1:
+            if a.size % self.n_tets:
+                raise ValueError(f"an array of {a.size} values does not hold one row per tet "
+                                 f"({self.n_tets} tets)")
+            picked = np.ascontiguousarray(a.reshape(self.n_tets, -1)[self.elements]).reshape(-1)
+        else:
+            picked = np.ascontiguousarray(a[self.elements])
+        if not a.flags.writeable:
+            picked.setflags(write=False)
+            if len(self._cache) >= 16:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[id(a)] = (a, picked)
+        return picked
+
+
+class _GroupToken:
+    """``model.params`` of a model whose material is not one set of shared parameters: the
+    kernels of :class:`GroupedKernels` take it in place of a parameter array."""
+
+    def __repr__(self) -> str:
+        return "<per-group material parameters>"
+
+
+GROUP_PARAMS = _GroupToken()
+
+
+class GroupedKernels:
+    """``model.mat`` of a model with several material groups, per-element parameters or
+    per-element inputs: the kernels of :class:`fem3d.kernels.KernelModule` with the same
+    arguments over the whole mesh, evaluated group by group.
+
+    Element arrays (``x_e``, ``dphi_dX``, ``vol``, the fused kernels' ``T`` and ``index``) are
+    split by the groups' elements; each group adds its own inputs and parameters. The
+    parameter argument must be ``model.params`` (:data:`GROUP_PARAMS`).
+    """
+
+    def __init__(self, groups: Sequence[GroupData]) -> None:
+        self.groups = tuple(groups)
+        first = self.groups[0].kernels
+        self.backend = first.backend
+        self.name = "+".join(dict.fromkeys(g.material for g in self.groups))
+        self.SIGNATURES = first.SIGNATURES
+        for kernel, signature in first.SIGNATURES.items():
+            setattr(self, kernel, self._kernel(kernel, signature))
+            if all(g.kernels.has_assemble(kernel) for g in self.groups):
+                setattr(self, f"{kernel}_assemble", self._assemble(kernel))
+
+    def has_assemble(self, kernel: str) -> bool:
+        """Whether the fused ``<kernel>_assemble`` exists for every group (C back end)."""
+        return hasattr(self, f"{kernel}_assemble")
+
+    def __repr__(self) -> str:
+        return f"GroupedKernels({self.name!r}, {len(self.groups)} groups, backend={self.backend!r})"
+
+    @staticmethod
+    def _check(params: object, kernel: str) -> None:
+        if params is not GROUP_PARAMS:
+            raise TypeError(f"{kernel}: this model's material parameters are per group; pass "
+                            "model.params")
+
+    def _base_inputs(self, kernel: str, group: GroupData) -> int:
+        own = len(group.inputs)
+        return len(group.kernels.SIGNATURES[kernel]["inputs"]) - own
+
+    def _kernel(self, kernel: str, signature: dict):
+        def call(*args, out=None):
+            *arrays, params = args
+            self._check(params, kernel)
+            m = len(arrays[0])
+            shapes = [(m, *shape) for _, shape in signature["outputs"]]
+            results = [np.empty(s) for s in shapes] if out is None else \
+                list(out) if isinstance(out, tuple | list) else [out]
+            for g in self.groups:
+                n_base = self._base_inputs(kernel, g)
+                base = [np.asarray(a) if g.elements is None else np.asarray(a)[g.elements]
+                        for a in arrays[:n_base]]
+                values = getattr(g.kernels, kernel)(*base, *g.inputs, g.params)
+                values = values if isinstance(values, tuple) else (values,)
+                for r, v in zip(results, values, strict=True):
+                    if g.elements is None:
+                        r[...] = v
+                    else:
+                        r[g.elements] = v
+            return results[0] if len(results) == 1 else tuple(results)
+
+        call.__name__ = kernel
+        return call
+
+    def _assemble(self, kernel: str):
+        def call(q, T, *rest):
+            *arrays, params, index, out = rest
+            self._check(params, kernel)
+            for g in self.groups:
+                fused = getattr(g.kernels, f"{kernel}_assemble")
+                fused(q, g.subset(T), *(g.subset(a) for a in arrays), *g.inputs, g.params,
+                      g.subset(index), out)
+            return out
+
+        call.__name__ = f"{kernel}_assemble"
+        return call
+
+
+def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
+                    path: str | None) -> tuple[GroupData, ...]:
+    """Check the groups against a mesh of ``m`` tets and resolve their parameters."""
+    from fem3d.materials import info
+
+    if not groups:
+        raise ParameterError("build_model needs at least one material group")
+    owner = np.full(m, -1, dtype=np.int64)
+    rest = [i for i, g in enumerate(groups) if g.elements is None]
+    if len(rest) > 1:
+        raise ParameterError(f"material groups {rest[0]} and {rest[1]} both have elements=None "
+                             "(at most one group takes the remaining tets)")
+    element_sets: list[np.ndarray | None] = []
+    for i, g in enumerate(groups):
+        if not isinstance(g, MaterialGroup):
+            raise ParameterError(f"material group {i} must be a MaterialGroup, got "
+                                 f"{type(g).__name__}")
+        info(g.material)  # unknown names: ParameterError
+        if g.elements is None:
+            element_sets.append(None)
+            continue
+        el = np.asarray(g.elements)
+        if el.ndim != 1 or not (el.size == 0 or np.issubdtype(el.dtype, np.integer)):
+            raise ParameterError(f"material group {i} ({g.material}): elements must be a 1-d "
+                                 f"array of tet indices, got shape {el.shape} {el.dtype}")
+        el = el.astype(np.int64)
+        bad = (el < 0) | (el >= m)
+        if bad.any():
+            raise ParameterError(f"material group {i} ({g.material}): element "
+                                 f"{int(el[bad][0])} is outside [0, {m})")
+        taken = owner[el] >= 0
+        if taken.any() or np.unique(el).size != el.size:
+            e = int(el[taken][0]) if taken.any() else int(el[np.argmax(np.bincount(el))])
+            other = int(owner[e]) if taken.any() else i
+            raise ParameterError(f"material group {i} ({g.material}): element {e} is already "
+                                 f"in material group {other}")
+        owner[el] = i
+        element_sets.append(el)
+    if rest:
+        remaining = np.flatnonzero(owner < 0)
+        element_sets[rest[0]] = None if remaining.size == m else remaining
+        owner[remaining] = rest[0]
+    elif (owner < 0).any():
+        e = int(np.flatnonzero(owner < 0)[0])
+        raise ParameterError(f"tet {e} is in no material group ({int((owner < 0).sum())} such "
+                             "tets); give one group elements=None for the rest")
+    resolved = []
+    for i, (g, el) in enumerate(zip(groups, element_sets, strict=True)):
+        resolved.append(_resolve_group(i, g, el, m, backend))
+    return tuple(resolved)
+
+
+def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
+                   backend: str | None) -> GroupData:
+    from fem3d.kernels import material_kernels
+    from fem3d.materials import info, parameters_from
+
+    material = info(g.material)
+    k = m if el is None else el.size
+    where = f"material group {i} ({g.material})"
+    given = dict(g.params)
+    inputs = []
+    for name, shape in material.per_element_inputs.items():
+        value = given.pop(name, None)
+        if value is None:
+            a = np.zeros((k, *shape))
+            a.reshape(k, -1)[:, 0] = 1.0
+        else:
+            a = np.asarray(value, dtype=np.float64)
+            if a.shape == shape:
+                a = np.broadcast_to(a, (k, *shape))
+            if a.shape != (k, *shape):
+                raise ParameterError(f"{where}: input {name!r} must have shape {shape} or "
+                                     f"({k}, {', '.join(map(str, shape))}), got {a.shape}")
+            flat = a.reshape(k, -1)
+            bad = ~(np.isfinite(flat).all(axis=1) & (np.abs(flat).sum(axis=1) > 0))
+            if bad.any():
+                raise ParameterError(f"{where}: input {name!r} of element "
+                                     f"{int(bad.argmax()) if el is None else int(el[bad.argmax()])}"
+                                     " is zero or not finite")
+        inputs.append(np.ascontiguousarray(a, dtype=np.float64))
+    for key, value in given.items():
+        size = np.asarray(value).size
+        if np.ndim(value) > 0 and size != k:
+            raise ParameterError(f"{where}: parameter {key!r} has {size} values for {k} "
+                                 "elements")
+    E, nu = given.pop("E", None), given.pop("nu", None)
+    try:
+        values = parameters_from(g.material, E=E, nu=nu, params=given)
+    except ParameterError as error:
+        raise ParameterError(f"{where}: {error}") from None
+    names = material.param_names
+    if all(np.ndim(values[p]) == 0 for p in names):
+        params = np.array([values[p] for p in names], dtype=np.float64)
+    else:
+        params = np.ascontiguousarray(np.stack(
+            [np.broadcast_to(np.asarray(values[p], dtype=np.float64), (k,)) for p in names],
+            axis=1))
+    _readonly(params, *inputs)
+    return GroupData(material=g.material, elements=el, values=values, params=params,
+                     inputs=tuple(inputs), kernels=material_kernels(g.material, backend),
+                     n_tets=m)
+
+
+def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
+    """Volume-weighted mean small-strain ``E`` and ``nu`` of the groups (for scales, such as
+    the Newton tolerance, and the viewer's sliders)."""
+    from fem3d.materials import lame_to_E_nu, small_strain_lame
+
+    total_E = total_nu = total_vol = 0.0
+    for g in groups:
+        w = vol if g.elements is None else vol[g.elements]
+        names = [n for n, _ in g.kernels.SIGNATURES["psi"]["inputs"][1:]]
+        mu, lam = small_strain_lame(g.material, g.values,
+                                    dict(zip(names, g.inputs, strict=True)))
+        E, nu = lame_to_E_nu(np.asarray(mu), np.asarray(lam))
+        total_E += float(np.sum(np.broadcast_to(E, w.shape) * w))
+        total_nu += float(np.sum(np.broadcast_to(nu, w.shape) * w))
+        total_vol += float(w.sum())
+    return total_E / total_vol, total_nu / total_vol
+
+
 @dataclass(frozen=True, eq=False)
 class Model:
     """Mesh + material + precomputed sparsity (immutable; see the module docstring).
@@ -201,13 +490,18 @@ class Model:
     vol : (m,) float64
         Rest volumes (all ``> 0``).
     material : str
-        Material name in the kernel registry (``"neo_hookean"``).
+        Material name in the kernel registry (``"neo_hookean"``); ``"a+b"`` for groups of
+        several materials.
     E, nu, rho : float
-        Young's modulus, Poisson's ratio, density.
-    params : (n_params,) float64
-        Kernel parameters in the material's ``PARAM_NAMES`` order.
+        Young's modulus, Poisson's ratio, density: as given, or (material groups with their
+        own parameters, per-element densities) the volume-weighted means of the effective
+        small-strain values.
+    params : (n_params,) float64 or GROUP_PARAMS
+        Kernel parameters in the material's ``PARAM_NAMES`` order (one group with shared
+        parameters), else the token :data:`GROUP_PARAMS` that :class:`GroupedKernels` takes.
     mat : object
-        Material kernels (``fem3d.kernels.material_kernels``).
+        Material kernels: ``fem3d.kernels.material_kernels`` (one group with shared
+        parameters) or :class:`GroupedKernels`; both take ``(..., model.params)``.
     geo : object
         Geometry kernels.
     mass : (3n, 3n) scipy.sparse.csr_matrix
@@ -220,6 +514,11 @@ class Model:
         Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map.
     backend : str or None
         Kernel back end requested (None: automatic).
+    groups : tuple of GroupData
+        The material groups, resolved (:class:`MaterialGroup` as given to
+        :func:`build_model`).
+    density : (m,) float64 or None
+        Per-element density when one was given, else None (``rho`` everywhere).
     """
 
     X: np.ndarray
@@ -238,6 +537,14 @@ class Model:
     scatter: np.ndarray = field(repr=False)
     elem_dofs: np.ndarray = field(repr=False)
     backend: str | None = None
+    groups: tuple[GroupData, ...] = field(default=(), repr=False)
+    density: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def allows_inversion(self) -> bool:
+        """True when every group's material is defined for ``J <= 0`` (declared by its material
+        file): the line search need not refuse inverted tets."""
+        return bool(self.groups) and all(g.allows_inversion for g in self.groups)
 
     @property
     def n_vertices(self) -> int:
@@ -280,7 +587,9 @@ class Model:
     @cached_property
     def energy_slots(self) -> np.ndarray:
         """``(m,) int32`` zeros: the fused energy kernel sums every element into slot 0."""
-        return np.zeros(self.n_tets, dtype=np.int32)
+        slots = np.zeros(self.n_tets, dtype=np.int32)
+        slots.setflags(write=False)
+        return slots
 
     @cached_property
     def element_slots(self) -> np.ndarray:
@@ -322,46 +631,83 @@ class Model:
         return A
 
     def with_material(
-        self, E: float | None = None, nu: float | None = None, rho: float | None = None
+        self, E: float | None = None, nu: float | None = None, rho: float | None = None,
+        *, material: str | None = None,
     ) -> Model:
         """A copy with new material values, sharing the mesh, pattern and scatter maps.
 
         Parameters
         ----------
-        E, nu, rho : float, optional
-            New values (None keeps the current one).
+        material : str, optional
+            Another registered material for every tet (one group, parameters of ``E, nu``:
+            the viewer's material menu). Its per-element inputs take their defaults.
+        E, nu : float, optional
+            New Young's modulus / Poisson's ratio (None keeps the current one). When either
+            is given, every group gets its material's parameters of ``E, nu`` (per-element
+            stiffness fields become uniform; shape parameters such as Fung's ``b`` and the
+            per-element inputs such as fibre directions are kept).
+        rho : float, optional
+            New density; a per-element density is scaled so that its mean becomes ``rho``.
         """
         E, nu, rho = validate_material(
             self.E if E is None else E,
             self.nu if nu is None else nu,
             self.rho if rho is None else rho,
         )
-        params = material_parameters(self.material, E, nu, tuple(self.mat.PARAM_NAMES))
-        _readonly(params)
-        mass = self.mass
+        groups, mat, params = self.groups, self.mat, self.params
+        if material is not None:
+            groups = _resolve_groups([MaterialGroup(material, None, {"E": E, "nu": nu})],
+                                     self.n_tets, self.backend, None)
+            mat, params = _kernels_of(groups)
+        elif (E, nu) != (self.E, self.nu):
+            groups = tuple(_with_E_nu(g, E, nu) for g in self.groups)
+            mat, params = _kernels_of(groups)
+        mass, density = self.mass, self.density
         if rho != self.rho:
             mass = self.csr(self.mass.data * (rho / self.rho))  # M is linear in rho
             _readonly(mass.data)
-        return Model(
-            X=self.X, T=self.T, dphi_dX=self.dphi_dX, vol=self.vol, material=self.material,
-            E=E, nu=nu, rho=rho, params=params, mat=self.mat, geo=self.geo, mass=mass,
-            pattern=self.pattern, scatter=self.scatter, elem_dofs=self.elem_dofs,
-            backend=self.backend,
-        )
+            if density is not None:
+                density = density * (rho / self.rho)
+                _readonly(density)
+        name = "+".join(dict.fromkeys(g.material for g in groups))
+        return replace(self, material=name, E=E, nu=nu, rho=rho, params=params, mat=mat,
+                       mass=mass, groups=groups, density=density)
+
+
+def _with_E_nu(g: GroupData, E: float, nu: float) -> GroupData:
+    """Group ``g`` with the parameters of ``E, nu`` (scalar shape parameters kept)."""
+    from fem3d.materials import info, parameters_from
+
+    material = info(g.material)
+    shape = {p: g.values[p] for p in material.shape_params if np.ndim(g.values[p]) == 0}
+    values = parameters_from(g.material, E=E, nu=nu, params=shape)
+    params = np.array([values[p] for p in material.param_names], dtype=np.float64)
+    _readonly(params)
+    return replace(g, values=values, params=params, _cache={})
+
+
+def _kernels_of(groups: Sequence[GroupData]) -> tuple[Any, Any]:
+    """``(model.mat, model.params)`` of a model with ``groups``."""
+    if len(groups) == 1 and groups[0].elements is None and not groups[0].inputs \
+            and groups[0].params.ndim == 1:
+        return groups[0].kernels, groups[0].params
+    return GroupedKernels(groups), GROUP_PARAMS
 
 
 def build_model(
     X: np.ndarray,
     T: np.ndarray,
     *,
-    E: float,
-    nu: float,
-    rho: float,
+    E: float | None = None,
+    nu: float | None = None,
+    rho: float | None = None,
     material: str = "neo_hookean",
+    groups: Sequence[MaterialGroup] | None = None,
+    density: float | np.ndarray | None = None,
     backend: str | None = None,
     path: str | None = None,
 ) -> Model:
-    """Precompute everything about a mesh and material.
+    """Precompute everything about a mesh and its materials.
 
     Parameters
     ----------
@@ -369,10 +715,18 @@ def build_model(
         Rest positions.
     T : (m, 4) int
         Tets, 0-based, positively oriented.
-    E, nu, rho : float
-        Young's modulus (> 0), Poisson's ratio (-1, 0.5), density (> 0).
+    E, nu : float, optional
+        Young's modulus (> 0), Poisson's ratio (-1, 0.5) of ``material`` on every tet (the
+        one-material form; not together with ``groups``).
+    rho : float, optional
+        Density (> 0); the same as ``density`` given as a number.
     material : str, optional
-        Registered material name (default ``"neo_hookean"``).
+        Registered material name (default ``"neo_hookean"``) of the one-material form.
+    groups : sequence of MaterialGroup, optional
+        Materials per set of tets, each with its parameters (per group or per element); every
+        tet in exactly one group (one group may have ``elements=None``: the rest).
+    density : float or (m,) float64, optional
+        Density per mesh or per tet (> 0).
     backend : {None, "numpy", "c"}, optional
         Kernel back end (None: C if built, else NumPy; ``FEM3D_KERNELS`` overrides).
     path : str, optional
@@ -385,13 +739,31 @@ def build_model(
     Raises
     ------
     ParameterError
-        Bad material values.
+        Bad material values or groups (the message names the group and parameter).
     InputError
         Bad arrays, a vertex index out of range, or a tet with non-positive volume.
     """
-    from fem3d.kernels import geometry_kernels, material_kernels
+    from fem3d.kernels import geometry_kernels
 
-    E, nu, rho = validate_material(E, nu, rho)
+    if rho is not None and density is not None:
+        raise ParameterError("give the density once: rho= or density=, not both")
+    density = rho if density is None else density
+    if density is None:
+        raise ParameterError("build_model needs a density (rho= or density=)")
+    per_element_density = np.ndim(density) > 0
+    if groups is None:
+        E, nu, rho = validate_material(E if E is not None else math.nan,
+                                       nu if nu is not None else math.nan,
+                                       1.0 if per_element_density else density)
+        groups = [MaterialGroup(material, None, {"E": E, "nu": nu})]
+        given_E_nu = (E, nu)
+    else:
+        if E is not None or nu is not None:
+            raise ParameterError("with groups=, give E and nu in each MaterialGroup's params")
+        given_E_nu = None
+        rho = 1.0 if per_element_density else float(density)
+        if not per_element_density:
+            validate_material(1.0, 0.0, rho)
     X = np.array(X, dtype=np.float64, order="C")  # own copy: it is made read-only
     T = np.array(T, order="C")
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
@@ -412,7 +784,6 @@ def build_model(
             path=path, element=e,
         )
 
-    mat = material_kernels(material, backend=backend)
     geo = geometry_kernels(backend=backend)
     dphi_dX, vol = geo.rest_shape(X[T])
     dphi_dX = np.ascontiguousarray(dphi_dX, dtype=np.float64)
@@ -424,18 +795,37 @@ def build_model(
             f"tet has non-positive volume {vol[e]:.3g} (degenerate or inverted; "
             f"{int(bad.sum())} such tets)", path=path, element=e,
         )
-    params = material_parameters(material, E, nu, tuple(mat.PARAM_NAMES))
+    resolved = _resolve_groups(groups, T.shape[0], backend, path)
+    mat, params = _kernels_of(resolved)
+    if per_element_density:
+        rho_e = np.array(density, dtype=np.float64)
+        if rho_e.shape != (T.shape[0],):
+            raise ParameterError(f"density must be a number or one value per tet "
+                                 f"({T.shape[0]}), got shape {rho_e.shape}")
+        bad = ~(np.isfinite(rho_e) & (rho_e > 0))
+        if bad.any():
+            raise ParameterError(f"density of tet {int(bad.argmax())} must be a finite number "
+                                 f"> 0, got {rho_e[bad.argmax()]}")
+        rho = float((rho_e * vol).sum() / vol.sum())
+        _readonly(rho_e)
+    else:
+        rho_e = None
+    if given_E_nu is None:
+        E, nu = _summary_E_nu(resolved, vol)
 
     dofs = element_dofs(T)
     pattern, scatter = block_pattern(T, X.shape[0])
-    mass_blocks = geo.mass_matrix(vol, (rho,))
+    # M is linear in rho: a per-tet density scales each tet's volume
+    mass_blocks = geo.mass_matrix(vol, (rho,)) if rho_e is None else \
+        geo.mass_matrix(vol * rho_e, (1.0,))
     mass_data = np.bincount(scatter, weights=mass_blocks.reshape(-1), minlength=pattern.nnz)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
-    _readonly(X, T, dphi_dX, vol, params, mass.data, scatter, dofs,
+    _readonly(X, T, dphi_dX, vol, mass.data, scatter, dofs,
               pattern.indices, pattern.indptr)
+    material_name = "+".join(dict.fromkeys(g.material for g in resolved))
     return Model(
-        X=X, T=T, dphi_dX=dphi_dX, vol=vol, material=material, E=E, nu=nu, rho=rho,
-        params=params, mat=mat, geo=geo, mass=mass, pattern=pattern, scatter=scatter,
-        elem_dofs=dofs, backend=backend,
+        X=X, T=T, dphi_dX=dphi_dX, vol=vol, material=material_name, E=float(E), nu=float(nu),
+        rho=float(rho), params=params, mat=mat, geo=geo, mass=mass, pattern=pattern,
+        scatter=scatter, elem_dofs=dofs, backend=backend, groups=resolved, density=rho_e,
     )

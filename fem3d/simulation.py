@@ -82,10 +82,17 @@ def _check_supported(scene: Scene) -> None:
             raise scene.error(f"bodies[{i}].material", "bodies with different materials need "
                               "build_model(groups=) from the materials work, not in this "
                               "build yet; give every body the same material")
-    if scene.contact.enabled:
-        raise scene.error("contact.enabled", "contact is not in this build yet")
-    if scene.obstacles:
-        raise scene.error("obstacles", "obstacles need contact, not in this build yet")
+    if scene.obstacles and not scene.contact.enabled:
+        raise scene.error("obstacles", "obstacles act through contact: set [contact] enabled "
+                          "= true")
+    if scene.contact.enabled and scene.simulation.integrator == "linear":
+        raise scene.error("simulation.integrator", CONTACT_NEEDS_IMPLICIT)
+
+
+#: Why the linearly-implicit scheme refuses contact scenes (one line, CLI and viewer).
+CONTACT_NEEDS_IMPLICIT = ("contact needs backward Euler (integrator = \"implicit\"): the "
+                          "linearly-implicit scheme cannot keep IPC's no-intersection "
+                          "guarantee")
 
 
 def _stiffness(k) -> float | np.ndarray:
@@ -164,7 +171,7 @@ class Simulation:
             if isinstance(exc, ParameterError):
                 raise scene.error("bodies[0].material", str(exc)) from None
             raise scene.error("bodies[0].mesh", str(exc)) from None
-        if a.fixed.size == 0:
+        if a.fixed.size == 0 and not scene.contact.enabled:
             raise scene.error(
                 "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
                 "[{ select = { lowest_y = { tol = 0.0 } } }])")
@@ -180,6 +187,17 @@ class Simulation:
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = self._pin_motions()
+        #: The IPC contact term (:class:`fem3d.contact.ContactTerm`) of a contact scene.
+        self.contact = None
+        if scene.contact.enabled:
+            from fem3d.contact import contact_from_scene
+
+            self.contact = contact_from_scene(scene, a)
+            try:
+                self.contact.contact.check_admissible(self._initial_positions())
+            except SimulationError as exc:
+                raise scene.error("bodies", f"the initial state {exc.reason.split(': ', 1)[1]}"
+                                  ) from None
         self.surface_faces = boundary_faces(a.T)
         self._dt = validate_dt(sim.dt)
         self._integrator = ""
@@ -193,6 +211,23 @@ class Simulation:
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
+
+    def _initial_positions(self) -> np.ndarray:
+        """Rest positions with the moving pins at their ``t = 0`` positions."""
+        q = self.model.X.copy()
+        p = self.fixed_positions(0.0)
+        if p is not None:
+            q[self.constraints.fixed_vertices] = p
+        return q
+
+    def obstacles(self, t: float | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """The contact scene's mesh obstacles at time ``t`` (default: now), for display:
+        ``(name, vertices (k, 3), faces (f, 3))`` each; planes are
+        ``self.contact.contact.planes`` (point, normal). Empty without contact."""
+        if self.contact is None:
+            return []
+        t = self.t if t is None else t
+        return [(m.name, m.positions(t), m.faces) for m in self.contact.contact.meshes]
 
     def _pin_motions(self) -> list:
         """``(slots into fixed_vertices, rest positions, Keyframes)`` of each moving pin."""
@@ -258,6 +293,8 @@ class Simulation:
             raise ParameterError(
                 f"unknown integrator {name!r}; choose one of {', '.join(INTEGRATORS)}"
             )
+        if name == "linear" and getattr(self, "contact", None) is not None:
+            raise ParameterError(CONTACT_NEEDS_IMPLICIT)
         self._integrator = name
 
     @property
@@ -361,6 +398,8 @@ class Simulation:
         v0[self.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
         self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
         self._injected = kinetic_energy(self.model, self.v)
+        if self.contact is not None:
+            self.contact.reset()
 
     def set_state(self, q: np.ndarray, v: np.ndarray, t: float = 0.0, step: int = 0) -> None:
         """Replace positions and velocities (e.g. from a checkpoint).
@@ -404,6 +443,8 @@ class Simulation:
             "pull_vertices": (np.zeros(0, np.int64) if pull is None else pull.vertices),
             "pull_targets": (np.zeros((0, 3)) if pull is None else pull.targets),
             "pull_k": np.asarray(0.0 if pull is None else pull.k, dtype=np.float64),
+            "contact": (np.zeros(0) if self.contact is None else self.contact.state_array()),
+            "pattern_keys": self.system.pattern_keys(),
         }
 
     def restore(self, snap: dict) -> None:
@@ -432,6 +473,11 @@ class Simulation:
         self._script_active = tuple(
             int(i) for i in np.asarray(snap["script_active"], dtype=np.int64).reshape(-1))
         self._injected = float(snap["injected"])
+        contact = np.asarray(snap.get("contact", np.zeros(0)), dtype=np.float64)
+        if self.contact is not None and contact.size:
+            self.contact.load_state_array(contact)
+        keys = np.asarray(snap.get("pattern_keys", np.zeros(0, np.int64)), dtype=np.int64)
+        self.system.restore_pattern(keys)
         saved = np.asarray(snap.get("preconditioner", np.zeros(0)), dtype=np.float64)
         if self.newton_solver == "reuse" and saved.size:
             self.system.refactorize_saved(saved)
@@ -550,6 +596,7 @@ class Simulation:
                 self.system, self._state, self._dt, self._pull,
                 max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
                 linear_solver=self.newton_solver, fixed_positions=fixed,
+                terms=() if self.contact is None else (self.contact,),
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)

@@ -45,8 +45,10 @@ import math
 import os
 import re
 import shutil
+import signal
 import socket
 import sys
+import threading
 import time
 import tomllib
 import traceback
@@ -792,7 +794,9 @@ def _open_client(workers: int | None, scheduler: str | None, stack: contextlib.E
     stack.enter_context(dask.config.set({"distributed.scheduler.allowed-failures": 3}))
     cluster = stack.enter_context(LocalCluster(
         n_workers=workers or _cores(), threads_per_worker=1, processes=True,
-        dashboard_address=None, silence_logs=logging.CRITICAL, env=dict(THREAD_ENV),
+        dashboard_address=None,  # no dashboard; its HTTP server on a free local port
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+        silence_logs=logging.CRITICAL, env=dict(THREAD_ENV),
     ))
     return stack.enter_context(Client(cluster))
 
@@ -1048,6 +1052,9 @@ def add_sweep_subcommand(subparsers) -> argparse.ArgumentParser:
                    help="output folder (default out/<sweep name>)")
     p.add_argument("--retry-failed", action="store_true",
                    help="run the cases recorded as failed again")
+    p.add_argument("--metric", choices=METRICS, default=None,
+                   help="the results.csv column plotted in results.png (default: the sweep "
+                   "file's [results] metric, else max_displacement)")
     p.add_argument("--list", action="store_true", dest="list_cases",
                    help="print the cases (id, state, overrides) and run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -1058,12 +1065,32 @@ def add_sweep_subcommand(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """SIGTERM (a batch system stopping the job) acts as Ctrl-C: the cluster is shut down,
+    the results so far are written, and the next invocation continues."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def _sweep_command(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     if args.workers is not None and args.scheduler is not None:
         raise InputError("--workers and --scheduler exclude each other")
     spec = load_sweep_file(args.sweep)
+    if args.metric is not None:
+        spec = spec.model_copy(update={"results": ResultsSpec(metric=args.metric)})
     out = Path(args.out) if args.out else Path("out") / spec.name
     plan = plan_sweep(spec, out, retry_failed=args.retry_failed, sweep_path=args.sweep)
     if args.list_cases:
@@ -1078,7 +1105,9 @@ def _sweep_command(args: argparse.Namespace) -> int:
         f"{len(plan.done)} complete before, {invalid} rejected) -> {out}",
         file=sys.stderr,
     )
-    report = run_sweep(plan, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet)
+    with _sigterm_interrupts():
+        report = run_sweep(plan, workers=args.workers, scheduler=args.scheduler,
+                           quiet=args.quiet)
     ok, failed = report.count("ok"), report.count("failed")
     print(
         f"fem3d sweep {spec.name}: {ok} ok, {failed} failed, {len(report.lost)} lost, "

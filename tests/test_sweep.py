@@ -206,6 +206,8 @@ def test_killed_worker_loses_no_case(tmp_path):
         victim = None
         while victim is None and time.monotonic() < deadline and proc.poll() is None:
             for f in sorted((out / "cases").glob("*/started.json")):
+                if (f.parent / "summary.json").exists():
+                    continue  # finished already: find one that is running
                 try:
                     victim = (f.parent, json.loads(f.read_text())["pid"])
                     break

@@ -3,7 +3,8 @@
 // The CPython extension fem3d._ckernels: argument checking shared by every kernel, then the
 // kernels of each generated module. Call convention of every kernel:
 //     kernel(input_0, ..., params, output_0, ...)
-// with C-contiguous float64 buffers; inputs and outputs have m * size entries.
+// with C-contiguous float64 buffers; inputs and outputs have m * size entries; params holds
+// n_params values (shared by every element) or m * n_params (per element, row-major).
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
@@ -106,7 +107,8 @@ static void fem3d_project_psd(int n, double *a)
         }
 }
 
-typedef void (*kernel_fn)(Py_ssize_t, const double *const *, const double *, double *const *);
+typedef void (*kernel_fn)(Py_ssize_t, const double *const *, const double *, Py_ssize_t,
+                          double *const *);
 
 static int is_float64(const Py_buffer *view)
 {
@@ -124,6 +126,7 @@ static PyObject *run_kernel(PyObject *args, const char *name, kernel_fn fn, int 
     const double *inputs[FEM3D_MAX_ARGS];
     double *outputs[FEM3D_MAX_ARGS];
     const double *params = NULL;
+    Py_ssize_t param_stride = 0;
     const int n_args = n_inputs + 1 + n_outputs;
     int n_views = 0;
     Py_ssize_t m = -1;
@@ -158,11 +161,12 @@ static PyObject *run_kernel(PyObject *args, const char *name, kernel_fn fn, int 
             m = count / input_sizes[i];
             inputs[i] = (const double *)views[i].buf;
         } else if (i == n_inputs) {
-            if (count != n_params) {
-                PyErr_Format(PyExc_ValueError, "%s: expected %d parameters, got %zd", name,
-                             n_params, count);
+            if (count != n_params && !(m >= 0 && n_params > 0 && count == m * n_params)) {
+                PyErr_Format(PyExc_ValueError, "%s: expected %d parameters (or m * %d per "
+                             "element), got %zd", name, n_params, n_params, count);
                 goto done;
             }
+            param_stride = count == n_params ? 0 : n_params;
             params = (const double *)views[i].buf;
         } else {
             const int k = i - n_inputs - 1;
@@ -175,7 +179,7 @@ static PyObject *run_kernel(PyObject *args, const char *name, kernel_fn fn, int 
         }
     }
     Py_BEGIN_ALLOW_THREADS
-    fn(m, inputs, params, outputs);
+    fn(m, inputs, params, param_stride, outputs);
     Py_END_ALLOW_THREADS
     result = Py_NewRef(Py_None);
 done:
@@ -203,12 +207,13 @@ static int is_int32(const Py_buffer *view)
 // [0, n) and as e + 1 for a destination outside [0, len(out)). The bounds are checked in the
 // element loop itself: a separate validation pass would read T and index once more per call.
 typedef Py_ssize_t (*assemble_fn)(Py_ssize_t, Py_ssize_t, const double *, const long long *,
-                                  const double *const *, const double *, const int *, Py_ssize_t,
-                                  double *);
+                                  const double *const *, const double *, Py_ssize_t, const int *,
+                                  Py_ssize_t, double *);
 
 // Arguments of every fused element kernel: (q, T, rest inputs..., params, index, out) with
-// q (n*3) float64, T (m*4) int64 in [0, n), each rest input m*size float64, index (m*out_size)
-// int32 in [0, len(out)), out float64 (added to, not overwritten).
+// q (n*3) float64, T (m*4) int64 in [0, n), each rest input m*size float64, params n_params
+// or m*n_params float64 (shared or per element), index (m*out_size) int32 in [0, len(out)),
+// out float64 (added to, not overwritten).
 static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, int n_rest,
                               const Py_ssize_t *rest_sizes, int n_params, Py_ssize_t out_size)
 {
@@ -256,10 +261,13 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
             }
             rest[r] = (const double *)views[2 + r].buf;
         }
-        if (views[2 + n_rest].len / 8 != n_params) {
-            PyErr_Format(PyExc_ValueError, "%s: expected %d parameters", name, n_params);
+        const Py_ssize_t n_given = views[2 + n_rest].len / 8;
+        if (n_given != n_params && !(n_params > 0 && n_given == m * n_params)) {
+            PyErr_Format(PyExc_ValueError, "%s: expected %d parameters (or m * %d per element)",
+                         name, n_params, n_params);
             goto done;
         }
+        const Py_ssize_t param_stride = n_given == n_params ? 0 : n_params;
         if (views[n_args - 2].len / 4 != m * out_size) {
             PyErr_Format(PyExc_ValueError, "%s: index must have m * %zd entries", name, out_size);
             goto done;
@@ -271,7 +279,7 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
         double *out = (double *)views[n_args - 1].buf;
         Py_ssize_t bad;
         Py_BEGIN_ALLOW_THREADS
-        bad = fn(m, n / 3, q, T, rest, params, index, n_out, out);
+        bad = fn(m, n / 3, q, T, rest, params, param_stride, index, n_out, out);
         Py_END_ALLOW_THREADS
         if (bad < 0) {
             PyErr_Format(PyExc_ValueError, "%s: T has a vertex index outside [0, %zd) in element "
@@ -292,7 +300,13 @@ done:
 
 #include "tet.c"
 #include "spring.c"
+#include "fibre_reinforced.c"
+#include "fung.c"
+#include "linear.c"
+#include "mooney_rivlin.c"
 #include "neo_hookean.c"
+#include "neo_hookean_lame.c"
+#include "stable_neo_hookean.c"
 #include "stvk.c"
 
 static PyObject *py_max_threads(PyObject *self, PyObject *unused)
@@ -319,6 +333,66 @@ static PyMethodDef methods[] = {
     {"spring_energy", py_spring_energy, METH_VARARGS, "Spring energy 1/2 k |x_a - x_b|^2."},
     {"spring_gradient", py_spring_gradient, METH_VARARGS, "Spring gradient (d/dx_a, d/dx_b), length 6."},
     {"spring_hessian", py_spring_hessian, METH_VARARGS, "Spring Hessian (6x6)."},
+    {"fibre_reinforced_psi", py_fibre_reinforced_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"fibre_reinforced_dpsi_dF", py_fibre_reinforced_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"fibre_reinforced_d2psi_dF2", py_fibre_reinforced_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"fibre_reinforced_energy", py_fibre_reinforced_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"fibre_reinforced_energy_assemble", py_fibre_reinforced_energy_assemble, METH_VARARGS,
+     "fibre_reinforced_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fibre_reinforced_gradient", py_fibre_reinforced_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"fibre_reinforced_gradient_assemble", py_fibre_reinforced_gradient_assemble, METH_VARARGS,
+     "fibre_reinforced_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fibre_reinforced_hessian", py_fibre_reinforced_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"fibre_reinforced_hessian_assemble", py_fibre_reinforced_hessian_assemble, METH_VARARGS,
+     "fibre_reinforced_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fibre_reinforced_hessian_psd", py_fibre_reinforced_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"fibre_reinforced_hessian_psd_assemble", py_fibre_reinforced_hessian_psd_assemble, METH_VARARGS,
+     "fibre_reinforced_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fung_psi", py_fung_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"fung_dpsi_dF", py_fung_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"fung_d2psi_dF2", py_fung_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"fung_energy", py_fung_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"fung_energy_assemble", py_fung_energy_assemble, METH_VARARGS,
+     "fung_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fung_gradient", py_fung_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"fung_gradient_assemble", py_fung_gradient_assemble, METH_VARARGS,
+     "fung_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fung_hessian", py_fung_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"fung_hessian_assemble", py_fung_hessian_assemble, METH_VARARGS,
+     "fung_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"fung_hessian_psd", py_fung_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"fung_hessian_psd_assemble", py_fung_hessian_psd_assemble, METH_VARARGS,
+     "fung_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"linear_psi", py_linear_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"linear_dpsi_dF", py_linear_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"linear_d2psi_dF2", py_linear_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"linear_energy", py_linear_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"linear_energy_assemble", py_linear_energy_assemble, METH_VARARGS,
+     "linear_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"linear_gradient", py_linear_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"linear_gradient_assemble", py_linear_gradient_assemble, METH_VARARGS,
+     "linear_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"linear_hessian", py_linear_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"linear_hessian_assemble", py_linear_hessian_assemble, METH_VARARGS,
+     "linear_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"linear_hessian_psd", py_linear_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"linear_hessian_psd_assemble", py_linear_hessian_psd_assemble, METH_VARARGS,
+     "linear_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_psi", py_mooney_rivlin_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"mooney_rivlin_dpsi_dF", py_mooney_rivlin_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"mooney_rivlin_d2psi_dF2", py_mooney_rivlin_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"mooney_rivlin_energy", py_mooney_rivlin_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"mooney_rivlin_energy_assemble", py_mooney_rivlin_energy_assemble, METH_VARARGS,
+     "mooney_rivlin_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_gradient", py_mooney_rivlin_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"mooney_rivlin_gradient_assemble", py_mooney_rivlin_gradient_assemble, METH_VARARGS,
+     "mooney_rivlin_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_hessian", py_mooney_rivlin_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"mooney_rivlin_hessian_assemble", py_mooney_rivlin_hessian_assemble, METH_VARARGS,
+     "mooney_rivlin_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_hessian_psd", py_mooney_rivlin_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"mooney_rivlin_hessian_psd_assemble", py_mooney_rivlin_hessian_psd_assemble, METH_VARARGS,
+     "mooney_rivlin_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_psi", py_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -334,6 +408,36 @@ static PyMethodDef methods[] = {
     {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"neo_hookean_hessian_psd_assemble", py_neo_hookean_hessian_psd_assemble, METH_VARARGS,
      "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_psi", py_neo_hookean_lame_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"neo_hookean_lame_dpsi_dF", py_neo_hookean_lame_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"neo_hookean_lame_d2psi_dF2", py_neo_hookean_lame_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"neo_hookean_lame_energy", py_neo_hookean_lame_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"neo_hookean_lame_energy_assemble", py_neo_hookean_lame_energy_assemble, METH_VARARGS,
+     "neo_hookean_lame_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_gradient", py_neo_hookean_lame_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"neo_hookean_lame_gradient_assemble", py_neo_hookean_lame_gradient_assemble, METH_VARARGS,
+     "neo_hookean_lame_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_hessian", py_neo_hookean_lame_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"neo_hookean_lame_hessian_assemble", py_neo_hookean_lame_hessian_assemble, METH_VARARGS,
+     "neo_hookean_lame_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_hessian_psd", py_neo_hookean_lame_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"neo_hookean_lame_hessian_psd_assemble", py_neo_hookean_lame_hessian_psd_assemble, METH_VARARGS,
+     "neo_hookean_lame_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_psi", py_stable_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
+    {"stable_neo_hookean_dpsi_dF", py_stable_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
+    {"stable_neo_hookean_d2psi_dF2", py_stable_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
+    {"stable_neo_hookean_energy", py_stable_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
+    {"stable_neo_hookean_energy_assemble", py_stable_neo_hookean_energy_assemble, METH_VARARGS,
+     "stable_neo_hookean_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_gradient", py_stable_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
+    {"stable_neo_hookean_gradient_assemble", py_stable_neo_hookean_gradient_assemble, METH_VARARGS,
+     "stable_neo_hookean_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_hessian", py_stable_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
+    {"stable_neo_hookean_hessian_assemble", py_stable_neo_hookean_hessian_assemble, METH_VARARGS,
+     "stable_neo_hookean_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_hessian_psd", py_stable_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
+    {"stable_neo_hookean_hessian_psd_assemble", py_stable_neo_hookean_hessian_psd_assemble, METH_VARARGS,
+     "stable_neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},

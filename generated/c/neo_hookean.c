@@ -5,7 +5,7 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 
 // Strain energy density psi(F).
-// inputs: F (m, 3, 3); params: (C, D)
+// inputs: F (m, 3, 3); params: (C, D), shared or per element
 // outputs: psi (m); operation count per element: 48
 static inline void neo_hookean_psi_element(const double *const *in, const double *params,
     double *const *out)
@@ -24,26 +24,27 @@ static inline void neo_hookean_psi_element(const double *const *in, const double
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (6)
-    const double t0 = F_0_0*F_1_2*F_2_1;
-    const double t1 = F_0_1*F_1_0*F_2_2;
-    const double t2 = F_0_2*F_1_1*F_2_0;
-    const double t3 = F_0_0*F_1_1*F_2_2;
-    const double t4 = F_0_1*F_1_2*F_2_0;
-    const double t5 = F_0_2*F_1_0*F_2_1;
+    // intermediates (7)
+    const double e0 = F_0_0*F_1_2*F_2_1;
+    const double e1 = F_0_1*F_1_0*F_2_2;
+    const double e2 = F_0_2*F_1_1*F_2_0;
+    const double e3 = F_0_0*F_1_1*F_2_2;
+    const double e4 = F_0_1*F_1_2*F_2_0;
+    const double e5 = F_0_2*F_1_0*F_2_1;
+    const double psi = -C*(3 - ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/(cbrt(-e0 - e1 - e2 + e3 + e4 + e5)*cbrt(-e0 - e1 - e2 + e3 + e4 + e5))) + D*(fem3d_powi((e0 + e1 + e2 - e3 - e4 - e5 + 1), 2));
     // outputs
     double *restrict out_psi = out[0];
-    out_psi[0] = -C*(3 - ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/(cbrt(-t0 - t1 - t2 + t3 + t4 + t5)*cbrt(-t0 - t1 - t2 + t3 + t4 + t5))) + D*(fem3d_powi((t0 + t1 + t2 - t3 - t4 - t5 + 1), 2));
+    out_psi[0] = psi;
 }
 
 static void neo_hookean_psi(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        neo_hookean_psi_element(in, params, out);
+        neo_hookean_psi_element(in, params + param_stride * e, out);
     }
 }
 
@@ -58,7 +59,7 @@ static PyObject *py_neo_hookean_psi(PyObject *self, PyObject *args)
 }
 
 // First Piola-Kirchhoff stress P = dpsi/dF.
-// inputs: F (m, 3, 3); params: (C, D)
+// inputs: F (m, 3, 3); params: (C, D), shared or per element
 // outputs: P (m, 3, 3); operation count per element: 139
 static inline void neo_hookean_dpsi_dF_element(const double *const *in, const double *params,
     double *const *out)
@@ -77,53 +78,62 @@ static inline void neo_hookean_dpsi_dF_element(const double *const *in, const do
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (25)
-    const double t0 = F_1_1*F_2_2;
-    const double t1 = F_1_2*F_2_1;
-    const double t2 = t0 - t1;
-    const double t3 = F_0_0*t1;
-    const double t4 = F_1_0*F_2_2;
-    const double t5 = F_0_1*t4;
-    const double t6 = F_1_1*F_2_0;
-    const double t7 = F_0_2*t6;
-    const double t8 = F_0_0*t0;
-    const double t9 = F_1_2*F_2_0;
-    const double t10 = F_0_1*t9;
-    const double t11 = F_1_0*F_2_1;
-    const double t12 = F_0_2*t11;
-    const double t13 = D*(-t10 - t12 + t3 + t5 + t7 - t8 + 1);
-    const double t14 = t10 + t12 - t3 - t5 - t7 + t8;
-    const double t15 = ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/t14;
-    const double t16 = (1.0/3.0)*C/(cbrt(t14)*cbrt(t14));
-    const double t17 = t4 - t9;
-    const double t18 = t11 - t6;
-    const double t19 = F_0_1*F_2_2 - F_0_2*F_2_1;
-    const double t20 = F_0_0*F_2_2 - F_0_2*F_2_0;
-    const double t21 = F_0_0*F_2_1 - F_0_1*F_2_0;
-    const double t22 = F_0_1*F_1_2 - F_0_2*F_1_1;
-    const double t23 = F_0_0*F_1_2 - F_0_2*F_1_0;
-    const double t24 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    // intermediates (34)
+    const double s0 = F_1_1*F_2_2;
+    const double s1 = F_1_2*F_2_1;
+    const double s2 = s0 - s1;
+    const double s3 = F_0_0*s1;
+    const double s4 = F_1_0*F_2_2;
+    const double s5 = F_0_1*s4;
+    const double s6 = F_1_1*F_2_0;
+    const double s7 = F_0_2*s6;
+    const double s8 = F_0_0*s0;
+    const double s9 = F_1_2*F_2_0;
+    const double s10 = F_0_1*s9;
+    const double s11 = F_1_0*F_2_1;
+    const double s12 = F_0_2*s11;
+    const double s13 = D*(-s10 - s12 + s3 + s5 + s7 - s8 + 1);
+    const double s14 = s10 + s12 - s3 - s5 - s7 + s8;
+    const double s15 = ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/s14;
+    const double s16 = (1.0/3.0)*C/(cbrt(s14)*cbrt(s14));
+    const double s17 = s4 - s9;
+    const double s18 = s11 - s6;
+    const double s19 = F_0_1*F_2_2 - F_0_2*F_2_1;
+    const double s20 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double s21 = F_0_0*F_2_1 - F_0_1*F_2_0;
+    const double s22 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double s23 = F_0_0*F_1_2 - F_0_2*F_1_0;
+    const double s24 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double P_0_0 = -2*s13*s2 + 2*s16*(3*F_0_0 - s15*s2);
+    const double P_0_1 = 2*s13*s17 + 2*s16*(3*F_0_1 + s15*s17);
+    const double P_0_2 = -2*s13*s18 + 2*s16*(3*F_0_2 - s15*s18);
+    const double P_1_0 = 2*s13*s19 + 2*s16*(3*F_1_0 + s15*s19);
+    const double P_1_1 = -2*s13*s20 + 2*s16*(3*F_1_1 - s15*s20);
+    const double P_1_2 = 2*s13*s21 + 2*s16*(3*F_1_2 + s15*s21);
+    const double P_2_0 = -2*s13*s22 + 2*s16*(3*F_2_0 - s15*s22);
+    const double P_2_1 = 2*s13*s23 + 2*s16*(3*F_2_1 + s15*s23);
+    const double P_2_2 = -2*s13*s24 + 2*s16*(3*F_2_2 - s15*s24);
     // outputs
     double *restrict out_P = out[0];
-    out_P[0] = -2*t13*t2 + 2*t16*(3*F_0_0 - t15*t2);
-    out_P[1] = 2*t13*t17 + 2*t16*(3*F_0_1 + t15*t17);
-    out_P[2] = -2*t13*t18 + 2*t16*(3*F_0_2 - t15*t18);
-    out_P[3] = 2*t13*t19 + 2*t16*(3*F_1_0 + t15*t19);
-    out_P[4] = -2*t13*t20 + 2*t16*(3*F_1_1 - t15*t20);
-    out_P[5] = 2*t13*t21 + 2*t16*(3*F_1_2 + t15*t21);
-    out_P[6] = -2*t13*t22 + 2*t16*(3*F_2_0 - t15*t22);
-    out_P[7] = 2*t13*t23 + 2*t16*(3*F_2_1 + t15*t23);
-    out_P[8] = -2*t13*t24 + 2*t16*(3*F_2_2 - t15*t24);
+    out_P[0] = P_0_0;
+    out_P[1] = P_0_1;
+    out_P[2] = P_0_2;
+    out_P[3] = P_1_0;
+    out_P[4] = P_1_1;
+    out_P[5] = P_1_2;
+    out_P[6] = P_2_0;
+    out_P[7] = P_2_1;
+    out_P[8] = P_2_2;
 }
 
 static void neo_hookean_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 9 * e, };
-        neo_hookean_dpsi_dF_element(in, params, out);
+        neo_hookean_dpsi_dF_element(in, params + param_stride * e, out);
     }
 }
 
@@ -138,7 +148,7 @@ static PyObject *py_neo_hookean_dpsi_dF(PyObject *self, PyObject *args)
 }
 
 // dP/dF, 9x9 in the row-major flattening of F.
-// inputs: F (m, 3, 3); params: (C, D)
+// inputs: F (m, 3, 3); params: (C, D), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 671
 static inline void neo_hookean_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
@@ -157,153 +167,198 @@ static inline void neo_hookean_d2psi_dF2_element(const double *const *in, const 
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (89)
-    const double t0 = F_1_1*F_2_2;
-    const double t1 = F_1_2*F_2_1;
-    const double t2 = t0 - t1;
-    const double t3 = (t2*t2);
-    const double t4 = F_0_0*t0;
-    const double t5 = F_1_2*F_2_0;
-    const double t6 = F_0_1*t5;
-    const double t7 = F_1_0*F_2_1;
-    const double t8 = F_0_2*t7;
-    const double t9 = F_0_0*t1;
-    const double t10 = F_1_0*F_2_2;
-    const double t11 = F_0_1*t10;
-    const double t12 = F_1_1*F_2_0;
-    const double t13 = F_0_2*t12;
-    const double t14 = -t11 - t13 + t4 + t6 + t8 - t9;
-    const double t15 = (1.0/(t14));
-    const double t16 = 12*t15;
-    const double t17 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2);
-    const double t18 = 5*t17;
-    const double t19 = t18/(t14*t14);
-    const double t20 = (1.0/9.0)*C;
-    const double t21 = t20/(cbrt(t14)*cbrt(t14));
-    const double t22 = t10 - t5;
-    const double t23 = D*t2;
-    const double t24 = 6*F_0_0;
-    const double t25 = 6*t2;
-    const double t26 = t15*t18;
-    const double t27 = t2*t26;
-    const double t28 = (cbrt(t14)/(t14*t14));
-    const double t29 = t20*t28;
-    const double t30 = -t12 + t7;
-    const double t31 = F_0_1*F_2_2 - F_0_2*F_2_1;
-    const double t32 = F_0_0*F_2_2 - F_0_2*F_2_0;
-    const double t33 = D*(t11 + t13 - t4 - t6 - t8 + t9 + 1);
-    const double t34 = F_2_2*t33;
-    const double t35 = 3*t17;
-    const double t36 = F_2_2*t35;
-    const double t37 = F_0_0*F_2_1 - F_0_1*F_2_0;
-    const double t38 = F_2_1*t33;
-    const double t39 = F_2_1*t35;
-    const double t40 = F_0_1*F_1_2 - F_0_2*F_1_1;
-    const double t41 = F_0_0*F_1_2 - F_0_2*F_1_0;
-    const double t42 = F_1_2*t33;
-    const double t43 = F_1_2*t35;
-    const double t44 = F_0_0*F_1_1 - F_0_1*F_1_0;
-    const double t45 = F_1_1*t33;
-    const double t46 = F_1_1*t35;
-    const double t47 = (t22*t22);
-    const double t48 = D*t22;
-    const double t49 = 6*F_0_1;
-    const double t50 = 6*t22;
-    const double t51 = t22*t26;
-    const double t52 = F_2_0*t33;
-    const double t53 = -F_2_0*t35;
-    const double t54 = F_1_0*t33;
-    const double t55 = F_1_0*t35;
-    const double t56 = (t30*t30);
-    const double t57 = D*t30;
-    const double t58 = 6*t30;
-    const double t59 = t26*t30;
-    const double t60 = 6*F_0_2;
-    const double t61 = (t31*t31);
-    const double t62 = D*t31;
-    const double t63 = 6*F_1_0;
-    const double t64 = 6*t31;
-    const double t65 = t26*t31;
-    const double t66 = F_0_2*t33;
-    const double t67 = F_0_2*t35;
-    const double t68 = F_0_1*t33;
-    const double t69 = F_0_1*t35;
-    const double t70 = (t32*t32);
-    const double t71 = D*t32;
-    const double t72 = 6*F_1_1;
-    const double t73 = 6*t32;
-    const double t74 = t26*t32;
-    const double t75 = F_0_0*t33;
-    const double t76 = F_0_0*t35;
-    const double t77 = (t37*t37);
-    const double t78 = D*t37;
-    const double t79 = 6*F_1_2;
-    const double t80 = t26*t37;
-    const double t81 = 6*t37;
-    const double t82 = (t40*t40);
-    const double t83 = 6*F_2_0;
-    const double t84 = 6*t40;
-    const double t85 = t26*t40;
-    const double t86 = (t41*t41);
-    const double t87 = t41*t44;
-    const double t88 = (t44*t44);
+    // intermediates (134)
+    const double h0 = F_1_1*F_2_2;
+    const double h1 = F_1_2*F_2_1;
+    const double h2 = h0 - h1;
+    const double h3 = (h2*h2);
+    const double h4 = F_0_0*h0;
+    const double h5 = F_1_2*F_2_0;
+    const double h6 = F_0_1*h5;
+    const double h7 = F_1_0*F_2_1;
+    const double h8 = F_0_2*h7;
+    const double h9 = F_0_0*h1;
+    const double h10 = F_1_0*F_2_2;
+    const double h11 = F_0_1*h10;
+    const double h12 = F_1_1*F_2_0;
+    const double h13 = F_0_2*h12;
+    const double h14 = -h11 - h13 + h4 + h6 + h8 - h9;
+    const double h15 = (1.0/(h14));
+    const double h16 = 12*h15;
+    const double h17 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2);
+    const double h18 = 5*h17;
+    const double h19 = h18/(h14*h14);
+    const double h20 = (1.0/9.0)*C;
+    const double h21 = h20/(cbrt(h14)*cbrt(h14));
+    const double h22 = h10 - h5;
+    const double h23 = D*h2;
+    const double h24 = 6*F_0_0;
+    const double h25 = 6*h2;
+    const double h26 = h15*h18;
+    const double h27 = h2*h26;
+    const double h28 = (cbrt(h14)/(h14*h14));
+    const double h29 = h20*h28;
+    const double h30 = -h12 + h7;
+    const double h31 = F_0_1*F_2_2 - F_0_2*F_2_1;
+    const double h32 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double h33 = D*(h11 + h13 - h4 - h6 - h8 + h9 + 1);
+    const double h34 = F_2_2*h33;
+    const double h35 = 3*h17;
+    const double h36 = F_2_2*h35;
+    const double h37 = F_0_0*F_2_1 - F_0_1*F_2_0;
+    const double h38 = F_2_1*h33;
+    const double h39 = F_2_1*h35;
+    const double h40 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double h41 = F_0_0*F_1_2 - F_0_2*F_1_0;
+    const double h42 = F_1_2*h33;
+    const double h43 = F_1_2*h35;
+    const double h44 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double h45 = F_1_1*h33;
+    const double h46 = F_1_1*h35;
+    const double h47 = (h22*h22);
+    const double h48 = D*h22;
+    const double h49 = 6*F_0_1;
+    const double h50 = 6*h22;
+    const double h51 = h22*h26;
+    const double h52 = F_2_0*h33;
+    const double h53 = -F_2_0*h35;
+    const double h54 = F_1_0*h33;
+    const double h55 = F_1_0*h35;
+    const double h56 = (h30*h30);
+    const double h57 = D*h30;
+    const double h58 = 6*h30;
+    const double h59 = h26*h30;
+    const double h60 = 6*F_0_2;
+    const double h61 = (h31*h31);
+    const double h62 = D*h31;
+    const double h63 = 6*F_1_0;
+    const double h64 = 6*h31;
+    const double h65 = h26*h31;
+    const double h66 = F_0_2*h33;
+    const double h67 = F_0_2*h35;
+    const double h68 = F_0_1*h33;
+    const double h69 = F_0_1*h35;
+    const double h70 = (h32*h32);
+    const double h71 = D*h32;
+    const double h72 = 6*F_1_1;
+    const double h73 = 6*h32;
+    const double h74 = h26*h32;
+    const double h75 = F_0_0*h33;
+    const double h76 = F_0_0*h35;
+    const double h77 = (h37*h37);
+    const double h78 = D*h37;
+    const double h79 = 6*F_1_2;
+    const double h80 = h26*h37;
+    const double h81 = 6*h37;
+    const double h82 = (h40*h40);
+    const double h83 = 6*F_2_0;
+    const double h84 = 6*h40;
+    const double h85 = h26*h40;
+    const double h86 = (h41*h41);
+    const double h87 = h41*h44;
+    const double h88 = (h44*h44);
+    const double A_0_0 = 2*D*h3 + 2*h21*(-F_0_0*h16*h2 + h19*h3 + 9);
+    const double A_0_1 = -2*h22*h23 - 2*h29*(F_0_1*h25 - h22*h24 + h22*h27);
+    const double A_0_2 = 2*D*h2*h30 - 2*h29*(F_0_2*h25 + h24*h30 - h27*h30);
+    const double A_0_3 = -2*h23*h31 - 2*h29*(F_1_0*h25 - h24*h31 + h27*h31);
+    const double A_0_4 = 2*D*h2*h32 - 2*h29*(F_1_1*h25 + h24*h32 - h27*h32 + h36) - 2*h34;
+    const double A_0_5 = -2*h23*h37 + 2*h29*(-F_1_2*h25 + h24*h37 - h27*h37 + h39) + 2*h38;
+    const double A_0_6 = 2*D*h2*h40 - 2*h29*(F_2_0*h25 + h24*h40 - h27*h40);
+    const double A_0_7 = -2*h23*h41 + 2*h29*(-F_2_1*h25 + h24*h41 - h27*h41 + h43) + 2*h42;
+    const double A_0_8 = 2*D*h2*h44 - 2*h29*(F_2_2*h25 + h24*h44 - h27*h44 + h46) - 2*h45;
+    const double A_1_1 = 2*D*h47 + 2*h21*(F_0_1*h16*h22 + h19*h47 + 9);
+    const double A_1_2 = -2*h29*(-F_0_2*h50 + h30*h49 + h30*h51) - 2*h30*h48;
+    const double A_1_3 = 2*h29*(F_1_0*h50 + h31*h49 + h31*h51 + h36) + 2*h31*h48 + 2*h34;
+    const double A_1_4 = -2*h29*(-F_1_1*h50 + h32*h49 + h32*h51) - 2*h32*h48;
+    const double A_1_5 = 2*h29*(F_1_2*h50 + h37*h49 + h37*h51 + h53) + 2*h37*h48 - 2*h52;
+    const double A_1_6 = (2.0/9.0)*C*h28*(6*F_2_0*h22 - h40*h49 - h40*h51 - h43) - 2*h40*h48 - 2*h42;
+    const double A_1_7 = 2*h29*(F_2_1*h50 + h41*h49 + h41*h51) + 2*h41*h48;
+    const double A_1_8 = -2*h29*(-F_2_2*h50 + h44*h49 + h44*h51 - h55) - 2*h44*h48 + 2*h54;
+    const double A_2_2 = 2*D*h56 + 2*h21*(-F_0_2*h16*h30 + h19*h56 + 9);
+    const double A_2_3 = (2.0/9.0)*C*h28*(6*F_0_2*h31 - F_1_0*h58 - h31*h59 - h39) - 2*h31*h57 - 2*h38;
+    const double A_2_4 = -2*h29*(F_1_1*h58 - h32*h59 + h32*h60 + h53) + 2*h32*h57 + 2*h52;
+    const double A_2_5 = -2*h29*(F_1_2*h58 + h37*h59 - h37*h60) - 2*h37*h57;
+    const double A_2_6 = -2*h29*(F_2_0*h58 - h40*h59 + h40*h60 - h46) + 2*h40*h57 + 2*h45;
+    const double A_2_7 = (2.0/9.0)*C*h28*(6*F_0_2*h41 - F_2_1*h58 - h41*h59 - h55) - 2*h41*h57 - 2*h54;
+    const double A_2_8 = 2*D*h30*h44 - 2*h29*(F_2_2*h58 - h44*h59 + h44*h60);
+    const double A_3_3 = 2*D*h61 + 2*h21*(F_1_0*h16*h31 + h19*h61 + 9);
+    const double A_3_4 = -2*h29*(-F_1_1*h64 + h32*h63 + h32*h65) - 2*h32*h62;
+    const double A_3_5 = 2*h29*(F_1_2*h64 + h37*h63 + h37*h65) + 2*h37*h62;
+    const double A_3_6 = -2*h29*(-F_2_0*h64 + h40*h63 + h40*h65) - 2*h40*h62;
+    const double A_3_7 = 2*h29*(F_2_1*h64 + h41*h63 + h41*h65 - h67) + 2*h41*h62 - 2*h66;
+    const double A_3_8 = 2*h29*(F_2_2*h64 - h44*h63 - h44*h65 + h69) - 2*h44*h62 + 2*h68;
+    const double A_4_4 = 2*D*h70 + 2*h21*(-F_1_1*h16*h32 + h19*h70 + 9);
+    const double A_4_5 = -2*h29*(F_1_2*h73 - h37*h72 + h37*h74) - 2*h37*h71;
+    const double A_4_6 = 2*h29*(-F_2_0*h73 - h40*h72 + h40*h74 + h67) + 2*h40*h71 + 2*h66;
+    const double A_4_7 = -2*h29*(F_2_1*h73 - h41*h72 + h41*h74) - 2*h41*h71;
+    const double A_4_8 = 2*D*h32*h44 - 2*h29*(F_2_2*h73 + h44*h72 - h44*h74 + h76) - 2*h75;
+    const double A_5_5 = 2*D*h77 + 2*h21*(F_1_2*h16*h37 + h19*h77 + 9);
+    const double A_5_6 = (2.0/9.0)*C*h28*(6*F_2_0*h37 - h40*h79 - h40*h80 - h69) - 2*h40*h78 - 2*h68;
+    const double A_5_7 = 2*h29*(F_2_1*h81 + h41*h79 + h41*h80 + h76) + 2*h41*h78 + 2*h75;
+    const double A_5_8 = -2*h29*(-F_2_2*h81 + h44*h79 + h44*h80) - 2*h44*h78;
+    const double A_6_6 = 2*D*h82 + 2*h21*(-F_2_0*h16*h40 + h19*h82 + 9);
+    const double A_6_7 = -2*D*h40*h41 - 2*h29*(F_2_1*h84 - h41*h83 + h41*h85);
+    const double A_6_8 = 2*D*h40*h44 - 2*h29*(F_2_2*h84 + h44*h83 - h44*h85);
+    const double A_7_7 = 2*D*h86 + 2*h21*(F_2_1*h16*h41 + h19*h86 + 9);
+    const double A_7_8 = -2*D*h87 - 2*h29*(6*F_2_1*h44 - 6*F_2_2*h41 + h26*h87);
+    const double A_8_8 = 2*D*h88 + 2*h21*(-F_2_2*h16*h44 + h19*h88 + 9);
     // outputs
     double *restrict out_dP_dF = out[0];
-    out_dP_dF[0] = 2*D*t3 + 2*t21*(-F_0_0*t16*t2 + t19*t3 + 9);
-    out_dP_dF[1] = out_dP_dF[9] = -2*t22*t23 - 2*t29*(F_0_1*t25 - t22*t24 + t22*t27);
-    out_dP_dF[2] = out_dP_dF[18] = 2*D*t2*t30 - 2*t29*(F_0_2*t25 + t24*t30 - t27*t30);
-    out_dP_dF[3] = out_dP_dF[27] = -2*t23*t31 - 2*t29*(F_1_0*t25 - t24*t31 + t27*t31);
-    out_dP_dF[4] = out_dP_dF[36] = 2*D*t2*t32 - 2*t29*(F_1_1*t25 + t24*t32 - t27*t32 + t36) - 2*t34;
-    out_dP_dF[5] = out_dP_dF[45] = -2*t23*t37 + 2*t29*(-F_1_2*t25 + t24*t37 - t27*t37 + t39) + 2*t38;
-    out_dP_dF[6] = out_dP_dF[54] = 2*D*t2*t40 - 2*t29*(F_2_0*t25 + t24*t40 - t27*t40);
-    out_dP_dF[7] = out_dP_dF[63] = -2*t23*t41 + 2*t29*(-F_2_1*t25 + t24*t41 - t27*t41 + t43) + 2*t42;
-    out_dP_dF[8] = out_dP_dF[72] = 2*D*t2*t44 - 2*t29*(F_2_2*t25 + t24*t44 - t27*t44 + t46) - 2*t45;
-    out_dP_dF[10] = 2*D*t47 + 2*t21*(F_0_1*t16*t22 + t19*t47 + 9);
-    out_dP_dF[11] = out_dP_dF[19] = -2*t29*(-F_0_2*t50 + t30*t49 + t30*t51) - 2*t30*t48;
-    out_dP_dF[12] = out_dP_dF[28] = 2*t29*(F_1_0*t50 + t31*t49 + t31*t51 + t36) + 2*t31*t48 + 2*t34;
-    out_dP_dF[13] = out_dP_dF[37] = -2*t29*(-F_1_1*t50 + t32*t49 + t32*t51) - 2*t32*t48;
-    out_dP_dF[14] = out_dP_dF[46] = 2*t29*(F_1_2*t50 + t37*t49 + t37*t51 + t53) + 2*t37*t48 - 2*t52;
-    out_dP_dF[15] = out_dP_dF[55] = (2.0/9.0)*C*t28*(6*F_2_0*t22 - t40*t49 - t40*t51 - t43) - 2*t40*t48 - 2*t42;
-    out_dP_dF[16] = out_dP_dF[64] = 2*t29*(F_2_1*t50 + t41*t49 + t41*t51) + 2*t41*t48;
-    out_dP_dF[17] = out_dP_dF[73] = -2*t29*(-F_2_2*t50 + t44*t49 + t44*t51 - t55) - 2*t44*t48 + 2*t54;
-    out_dP_dF[20] = 2*D*t56 + 2*t21*(-F_0_2*t16*t30 + t19*t56 + 9);
-    out_dP_dF[21] = out_dP_dF[29] = (2.0/9.0)*C*t28*(6*F_0_2*t31 - F_1_0*t58 - t31*t59 - t39) - 2*t31*t57 - 2*t38;
-    out_dP_dF[22] = out_dP_dF[38] = -2*t29*(F_1_1*t58 - t32*t59 + t32*t60 + t53) + 2*t32*t57 + 2*t52;
-    out_dP_dF[23] = out_dP_dF[47] = -2*t29*(F_1_2*t58 + t37*t59 - t37*t60) - 2*t37*t57;
-    out_dP_dF[24] = out_dP_dF[56] = -2*t29*(F_2_0*t58 - t40*t59 + t40*t60 - t46) + 2*t40*t57 + 2*t45;
-    out_dP_dF[25] = out_dP_dF[65] = (2.0/9.0)*C*t28*(6*F_0_2*t41 - F_2_1*t58 - t41*t59 - t55) - 2*t41*t57 - 2*t54;
-    out_dP_dF[26] = out_dP_dF[74] = 2*D*t30*t44 - 2*t29*(F_2_2*t58 - t44*t59 + t44*t60);
-    out_dP_dF[30] = 2*D*t61 + 2*t21*(F_1_0*t16*t31 + t19*t61 + 9);
-    out_dP_dF[31] = out_dP_dF[39] = -2*t29*(-F_1_1*t64 + t32*t63 + t32*t65) - 2*t32*t62;
-    out_dP_dF[32] = out_dP_dF[48] = 2*t29*(F_1_2*t64 + t37*t63 + t37*t65) + 2*t37*t62;
-    out_dP_dF[33] = out_dP_dF[57] = -2*t29*(-F_2_0*t64 + t40*t63 + t40*t65) - 2*t40*t62;
-    out_dP_dF[34] = out_dP_dF[66] = 2*t29*(F_2_1*t64 + t41*t63 + t41*t65 - t67) + 2*t41*t62 - 2*t66;
-    out_dP_dF[35] = out_dP_dF[75] = 2*t29*(F_2_2*t64 - t44*t63 - t44*t65 + t69) - 2*t44*t62 + 2*t68;
-    out_dP_dF[40] = 2*D*t70 + 2*t21*(-F_1_1*t16*t32 + t19*t70 + 9);
-    out_dP_dF[41] = out_dP_dF[49] = -2*t29*(F_1_2*t73 - t37*t72 + t37*t74) - 2*t37*t71;
-    out_dP_dF[42] = out_dP_dF[58] = 2*t29*(-F_2_0*t73 - t40*t72 + t40*t74 + t67) + 2*t40*t71 + 2*t66;
-    out_dP_dF[43] = out_dP_dF[67] = -2*t29*(F_2_1*t73 - t41*t72 + t41*t74) - 2*t41*t71;
-    out_dP_dF[44] = out_dP_dF[76] = 2*D*t32*t44 - 2*t29*(F_2_2*t73 + t44*t72 - t44*t74 + t76) - 2*t75;
-    out_dP_dF[50] = 2*D*t77 + 2*t21*(F_1_2*t16*t37 + t19*t77 + 9);
-    out_dP_dF[51] = out_dP_dF[59] = (2.0/9.0)*C*t28*(6*F_2_0*t37 - t40*t79 - t40*t80 - t69) - 2*t40*t78 - 2*t68;
-    out_dP_dF[52] = out_dP_dF[68] = 2*t29*(F_2_1*t81 + t41*t79 + t41*t80 + t76) + 2*t41*t78 + 2*t75;
-    out_dP_dF[53] = out_dP_dF[77] = -2*t29*(-F_2_2*t81 + t44*t79 + t44*t80) - 2*t44*t78;
-    out_dP_dF[60] = 2*D*t82 + 2*t21*(-F_2_0*t16*t40 + t19*t82 + 9);
-    out_dP_dF[61] = out_dP_dF[69] = -2*D*t40*t41 - 2*t29*(F_2_1*t84 - t41*t83 + t41*t85);
-    out_dP_dF[62] = out_dP_dF[78] = 2*D*t40*t44 - 2*t29*(F_2_2*t84 + t44*t83 - t44*t85);
-    out_dP_dF[70] = 2*D*t86 + 2*t21*(F_2_1*t16*t41 + t19*t86 + 9);
-    out_dP_dF[71] = out_dP_dF[79] = -2*D*t87 - 2*t29*(6*F_2_1*t44 - 6*F_2_2*t41 + t26*t87);
-    out_dP_dF[80] = 2*D*t88 + 2*t21*(-F_2_2*t16*t44 + t19*t88 + 9);
+    out_dP_dF[0] = A_0_0;
+    out_dP_dF[1] = out_dP_dF[9] = A_0_1;
+    out_dP_dF[2] = out_dP_dF[18] = A_0_2;
+    out_dP_dF[3] = out_dP_dF[27] = A_0_3;
+    out_dP_dF[4] = out_dP_dF[36] = A_0_4;
+    out_dP_dF[5] = out_dP_dF[45] = A_0_5;
+    out_dP_dF[6] = out_dP_dF[54] = A_0_6;
+    out_dP_dF[7] = out_dP_dF[63] = A_0_7;
+    out_dP_dF[8] = out_dP_dF[72] = A_0_8;
+    out_dP_dF[10] = A_1_1;
+    out_dP_dF[11] = out_dP_dF[19] = A_1_2;
+    out_dP_dF[12] = out_dP_dF[28] = A_1_3;
+    out_dP_dF[13] = out_dP_dF[37] = A_1_4;
+    out_dP_dF[14] = out_dP_dF[46] = A_1_5;
+    out_dP_dF[15] = out_dP_dF[55] = A_1_6;
+    out_dP_dF[16] = out_dP_dF[64] = A_1_7;
+    out_dP_dF[17] = out_dP_dF[73] = A_1_8;
+    out_dP_dF[20] = A_2_2;
+    out_dP_dF[21] = out_dP_dF[29] = A_2_3;
+    out_dP_dF[22] = out_dP_dF[38] = A_2_4;
+    out_dP_dF[23] = out_dP_dF[47] = A_2_5;
+    out_dP_dF[24] = out_dP_dF[56] = A_2_6;
+    out_dP_dF[25] = out_dP_dF[65] = A_2_7;
+    out_dP_dF[26] = out_dP_dF[74] = A_2_8;
+    out_dP_dF[30] = A_3_3;
+    out_dP_dF[31] = out_dP_dF[39] = A_3_4;
+    out_dP_dF[32] = out_dP_dF[48] = A_3_5;
+    out_dP_dF[33] = out_dP_dF[57] = A_3_6;
+    out_dP_dF[34] = out_dP_dF[66] = A_3_7;
+    out_dP_dF[35] = out_dP_dF[75] = A_3_8;
+    out_dP_dF[40] = A_4_4;
+    out_dP_dF[41] = out_dP_dF[49] = A_4_5;
+    out_dP_dF[42] = out_dP_dF[58] = A_4_6;
+    out_dP_dF[43] = out_dP_dF[67] = A_4_7;
+    out_dP_dF[44] = out_dP_dF[76] = A_4_8;
+    out_dP_dF[50] = A_5_5;
+    out_dP_dF[51] = out_dP_dF[59] = A_5_6;
+    out_dP_dF[52] = out_dP_dF[68] = A_5_7;
+    out_dP_dF[53] = out_dP_dF[77] = A_5_8;
+    out_dP_dF[60] = A_6_6;
+    out_dP_dF[61] = out_dP_dF[69] = A_6_7;
+    out_dP_dF[62] = out_dP_dF[78] = A_6_8;
+    out_dP_dF[70] = A_7_7;
+    out_dP_dF[71] = out_dP_dF[79] = A_7_8;
+    out_dP_dF[80] = A_8_8;
 }
 
 static void neo_hookean_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 81 * e, };
-        neo_hookean_d2psi_dF2_element(in, params, out);
+        neo_hookean_d2psi_dF2_element(in, params + param_stride * e, out);
     }
 }
 
@@ -318,7 +373,7 @@ static PyObject *py_neo_hookean_d2psi_dF2(PyObject *self, PyObject *args)
 }
 
 // Element potential energy vol * psi(F(x_e)).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: energy (m); operation count per element: 112
 static inline void neo_hookean_energy_element(const double *const *in, const double *params,
     double *const *out)
@@ -378,13 +433,13 @@ static inline void neo_hookean_energy_element(const double *const *in, const dou
 }
 
 static void neo_hookean_energy(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        neo_hookean_energy_element(in, params, out);
+        neo_hookean_energy_element(in, params + param_stride * e, out);
     }
 }
 
@@ -399,11 +454,12 @@ static PyObject *py_neo_hookean_energy(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t neo_hookean_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[1];
     const double *in[] = { x, NULL, NULL, };
@@ -416,7 +472,7 @@ static Py_ssize_t neo_hookean_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertice
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        neo_hookean_energy_element(in, params, result);
+        neo_hookean_energy_element(in, params + param_stride * e, result);
         const int *slot = index + 1 * e;
         for (int i = 0; i < 1; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -436,7 +492,7 @@ static PyObject *py_neo_hookean_energy_assemble(PyObject *self, PyObject *args)
 }
 
 // Element gradient d(vol psi)/dx_e, vertex-major (12).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: gradient (m, 12); operation count per element: 274
 static inline void neo_hookean_gradient_element(const double *const *in, const double *params,
     double *const *out)
@@ -534,13 +590,13 @@ static inline void neo_hookean_gradient_element(const double *const *in, const d
 }
 
 static void neo_hookean_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 12 * e, };
-        neo_hookean_gradient_element(in, params, out);
+        neo_hookean_gradient_element(in, params + param_stride * e, out);
     }
 }
 
@@ -555,11 +611,12 @@ static PyObject *py_neo_hookean_gradient(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t neo_hookean_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[12];
     const double *in[] = { x, NULL, NULL, };
@@ -572,7 +629,7 @@ static Py_ssize_t neo_hookean_gradient_assemble(Py_ssize_t m, Py_ssize_t n_verti
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        neo_hookean_gradient_element(in, params, result);
+        neo_hookean_gradient_element(in, params + param_stride * e, result);
         const int *slot = index + 12 * e;
         for (int i = 0; i < 12; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -592,7 +649,7 @@ static PyObject *py_neo_hookean_gradient_assemble(PyObject *self, PyObject *args
 }
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1697
 static inline void neo_hookean_hessian_element(const double *const *in, const double *params,
     double *const *out)
@@ -955,13 +1012,13 @@ static inline void neo_hookean_hessian_element(const double *const *in, const do
 }
 
 static void neo_hookean_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 144 * e, };
-        neo_hookean_hessian_element(in, params, out);
+        neo_hookean_hessian_element(in, params + param_stride * e, out);
     }
 }
 
@@ -976,11 +1033,12 @@ static PyObject *py_neo_hookean_hessian(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t neo_hookean_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
@@ -993,7 +1051,7 @@ static Py_ssize_t neo_hookean_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertic
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        neo_hookean_hessian_element(in, params, result);
+        neo_hookean_hessian_element(in, params + param_stride * e, result);
         const int *slot = index + 144 * e;
         for (int i = 0; i < 144; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -1013,7 +1071,7 @@ static PyObject *py_neo_hookean_hessian_assemble(PyObject *self, PyObject *args)
 }
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1697
 static inline void neo_hookean_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
@@ -1459,13 +1517,13 @@ static inline void neo_hookean_hessian_psd_element(const double *const *in, cons
 }
 
 static void neo_hookean_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 144 * e, };
-        neo_hookean_hessian_psd_element(in, params, out);
+        neo_hookean_hessian_psd_element(in, params + param_stride * e, out);
     }
 }
 
@@ -1480,11 +1538,12 @@ static PyObject *py_neo_hookean_hessian_psd(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t neo_hookean_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
@@ -1497,7 +1556,7 @@ static Py_ssize_t neo_hookean_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_ve
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        neo_hookean_hessian_psd_element(in, params, result);
+        neo_hookean_hessian_psd_element(in, params + param_stride * e, result);
         const int *slot = index + 144 * e;
         for (int i = 0; i < 144; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;

@@ -5,7 +5,7 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 
 // Spring energy 1/2 k |x_a - x_b|^2.
-// inputs: x_a (m, 3), x_b (m, 3); params: (k)
+// inputs: x_a (m, 3), x_b (m, 3); params: (k), shared or per element
 // outputs: energy (m); operation count per element: 10
 static inline void spring_energy_element(const double *const *in, const double *params,
     double *const *out)
@@ -28,13 +28,13 @@ static inline void spring_energy_element(const double *const *in, const double *
 }
 
 static void spring_energy(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 3 * e, inputs[1] + 3 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        spring_energy_element(in, params, out);
+        spring_energy_element(in, params + param_stride * e, out);
     }
 }
 
@@ -49,7 +49,7 @@ static PyObject *py_spring_energy(PyObject *self, PyObject *args)
 }
 
 // Spring gradient (d/dx_a, d/dx_b), length 6.
-// inputs: x_a (m, 3), x_b (m, 3); params: (k)
+// inputs: x_a (m, 3), x_b (m, 3); params: (k), shared or per element
 // outputs: gradient (m, 6); operation count per element: 9
 static inline void spring_gradient_element(const double *const *in, const double *params,
     double *const *out)
@@ -80,13 +80,13 @@ static inline void spring_gradient_element(const double *const *in, const double
 }
 
 static void spring_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 3 * e, inputs[1] + 3 * e, };
         double *out[] = { outputs[0] + 6 * e, };
-        spring_gradient_element(in, params, out);
+        spring_gradient_element(in, params + param_stride * e, out);
     }
 }
 
@@ -101,7 +101,7 @@ static PyObject *py_spring_gradient(PyObject *self, PyObject *args)
 }
 
 // Spring Hessian (6x6).
-// inputs: x_a (m, 3), x_b (m, 3); params: (k)
+// inputs: x_a (m, 3), x_b (m, 3); params: (k), shared or per element
 // outputs: hessian (m, 6, 6); operation count per element: 1
 static inline void spring_hessian_element(const double *const *in, const double *params,
     double *const *out)
@@ -137,13 +137,13 @@ static inline void spring_hessian_element(const double *const *in, const double 
 }
 
 static void spring_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 3 * e, inputs[1] + 3 * e, };
         double *out[] = { outputs[0] + 36 * e, };
-        spring_hessian_element(in, params, out);
+        spring_hessian_element(in, params + param_stride * e, out);
     }
 }
 

@@ -5,7 +5,7 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 
 // Strain energy density psi(F).
-// inputs: F (m, 3, 3); params: (mu, lam)
+// inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: psi (m); operation count per element: 56
 static inline void stvk_psi_element(const double *const *in, const double *params,
     double *const *out)
@@ -24,23 +24,24 @@ static inline void stvk_psi_element(const double *const *in, const double *param
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (3)
-    const double t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
-    const double t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
-    const double t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    // intermediates (4)
+    const double e0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double e1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double e2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    const double psi = (1.0/8.0)*lam*(fem3d_powi((e0 + e1 + e2 - 3), 2)) + (1.0/4.0)*mu*((fem3d_powi((e0 - 1), 2)) + (fem3d_powi((e1 - 1), 2)) + (fem3d_powi((e2 - 1), 2)) + 2*(fem3d_powi((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1), 2)) + 2*(fem3d_powi((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2), 2)));
     // outputs
     double *restrict out_psi = out[0];
-    out_psi[0] = (1.0/8.0)*lam*(fem3d_powi((t0 + t1 + t2 - 3), 2)) + (1.0/4.0)*mu*((fem3d_powi((t0 - 1), 2)) + (fem3d_powi((t1 - 1), 2)) + (fem3d_powi((t2 - 1), 2)) + 2*(fem3d_powi((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1), 2)) + 2*(fem3d_powi((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2), 2)) + 2*(fem3d_powi((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2), 2)));
+    out_psi[0] = psi;
 }
 
 static void stvk_psi(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        stvk_psi_element(in, params, out);
+        stvk_psi_element(in, params + param_stride * e, out);
     }
 }
 
@@ -55,7 +56,7 @@ static PyObject *py_stvk_psi(PyObject *self, PyObject *args)
 }
 
 // First Piola-Kirchhoff stress P = dpsi/dF.
-// inputs: F (m, 3, 3); params: (mu, lam)
+// inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: P (m, 3, 3); operation count per element: 110
 static inline void stvk_dpsi_dF_element(const double *const *in, const double *params,
     double *const *out)
@@ -74,38 +75,47 @@ static inline void stvk_dpsi_dF_element(const double *const *in, const double *p
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (10)
-    const double t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
-    const double t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
-    const double t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
-    const double t3 = (1.0/2.0)*lam*(t0 + t1 + t2 - 3);
-    const double t4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1;
-    const double t5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2;
-    const double t6 = t0 - 1;
-    const double t7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2;
-    const double t8 = t1 - 1;
-    const double t9 = t2 - 1;
+    // intermediates (19)
+    const double s0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0);
+    const double s1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1);
+    const double s2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2);
+    const double s3 = (1.0/2.0)*lam*(s0 + s1 + s2 - 3);
+    const double s4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1;
+    const double s5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2;
+    const double s6 = s0 - 1;
+    const double s7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2;
+    const double s8 = s1 - 1;
+    const double s9 = s2 - 1;
+    const double P_0_0 = F_0_0*s3 + mu*(F_0_0*s6 + F_0_1*s4 + F_0_2*s5);
+    const double P_0_1 = F_0_1*s3 + mu*(F_0_0*s4 + F_0_1*s8 + F_0_2*s7);
+    const double P_0_2 = F_0_2*s3 + mu*(F_0_0*s5 + F_0_1*s7 + F_0_2*s9);
+    const double P_1_0 = F_1_0*s3 + mu*(F_1_0*s6 + F_1_1*s4 + F_1_2*s5);
+    const double P_1_1 = F_1_1*s3 + mu*(F_1_0*s4 + F_1_1*s8 + F_1_2*s7);
+    const double P_1_2 = F_1_2*s3 + mu*(F_1_0*s5 + F_1_1*s7 + F_1_2*s9);
+    const double P_2_0 = F_2_0*s3 + mu*(F_2_0*s6 + F_2_1*s4 + F_2_2*s5);
+    const double P_2_1 = F_2_1*s3 + mu*(F_2_0*s4 + F_2_1*s8 + F_2_2*s7);
+    const double P_2_2 = F_2_2*s3 + mu*(F_2_0*s5 + F_2_1*s7 + F_2_2*s9);
     // outputs
     double *restrict out_P = out[0];
-    out_P[0] = F_0_0*t3 + mu*(F_0_0*t6 + F_0_1*t4 + F_0_2*t5);
-    out_P[1] = F_0_1*t3 + mu*(F_0_0*t4 + F_0_1*t8 + F_0_2*t7);
-    out_P[2] = F_0_2*t3 + mu*(F_0_0*t5 + F_0_1*t7 + F_0_2*t9);
-    out_P[3] = F_1_0*t3 + mu*(F_1_0*t6 + F_1_1*t4 + F_1_2*t5);
-    out_P[4] = F_1_1*t3 + mu*(F_1_0*t4 + F_1_1*t8 + F_1_2*t7);
-    out_P[5] = F_1_2*t3 + mu*(F_1_0*t5 + F_1_1*t7 + F_1_2*t9);
-    out_P[6] = F_2_0*t3 + mu*(F_2_0*t6 + F_2_1*t4 + F_2_2*t5);
-    out_P[7] = F_2_1*t3 + mu*(F_2_0*t4 + F_2_1*t8 + F_2_2*t7);
-    out_P[8] = F_2_2*t3 + mu*(F_2_0*t5 + F_2_1*t7 + F_2_2*t9);
+    out_P[0] = P_0_0;
+    out_P[1] = P_0_1;
+    out_P[2] = P_0_2;
+    out_P[3] = P_1_0;
+    out_P[4] = P_1_1;
+    out_P[5] = P_1_2;
+    out_P[6] = P_2_0;
+    out_P[7] = P_2_1;
+    out_P[8] = P_2_2;
 }
 
 static void stvk_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 9 * e, };
-        stvk_dpsi_dF_element(in, params, out);
+        stvk_dpsi_dF_element(in, params + param_stride * e, out);
     }
 }
 
@@ -120,7 +130,7 @@ static PyObject *py_stvk_dpsi_dF(PyObject *self, PyObject *args)
 }
 
 // dP/dF, 9x9 in the row-major flattening of F.
-// inputs: F (m, 3, 3); params: (mu, lam)
+// inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 289
 static inline void stvk_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
@@ -139,112 +149,157 @@ static inline void stvk_d2psi_dF2_element(const double *const *in, const double 
     const double F_2_0 = in_F[6];
     const double F_2_1 = in_F[7];
     const double F_2_2 = in_F[8];
-    // intermediates (48)
-    const double t0 = (F_0_0*F_0_0);
-    const double t1 = (F_0_1*F_0_1);
-    const double t2 = (F_1_0*F_1_0);
-    const double t3 = t1 + t2;
-    const double t4 = (F_2_0*F_2_0);
-    const double t5 = (F_0_2*F_0_2);
-    const double t6 = t5 - 1;
-    const double t7 = t4 + t6;
-    const double t8 = (F_1_2*F_1_2);
-    const double t9 = (F_2_2*F_2_2);
-    const double t10 = (F_2_1*F_2_1);
-    const double t11 = (F_1_1*F_1_1);
-    const double t12 = t0 + t11;
-    const double t13 = t10 + t12;
-    const double t14 = (1.0/2.0)*lam*(t13 + t3 + t4 + t5 + t8 + t9 - 3);
-    const double t15 = F_0_0*F_0_1;
-    const double t16 = F_1_0*F_1_1;
-    const double t17 = F_2_0*F_2_1;
-    const double t18 = F_0_0*F_0_2;
-    const double t19 = F_1_0*F_1_2;
-    const double t20 = F_2_0*F_2_2;
-    const double t21 = F_0_0*F_1_0;
-    const double t22 = F_0_1*F_1_1;
-    const double t23 = F_0_2*F_1_2;
-    const double t24 = F_0_0*lam;
-    const double t25 = F_1_0*mu;
-    const double t26 = F_0_0*F_2_0;
-    const double t27 = F_0_1*F_2_1;
-    const double t28 = F_0_2*F_2_2;
-    const double t29 = F_2_0*mu;
-    const double t30 = F_0_1*F_0_2;
-    const double t31 = F_1_1*F_1_2;
-    const double t32 = F_2_1*F_2_2;
-    const double t33 = F_1_1*mu;
-    const double t34 = F_0_1*lam;
-    const double t35 = F_2_1*mu;
-    const double t36 = t8 - 1;
-    const double t37 = t0 + t9;
-    const double t38 = F_1_2*mu;
-    const double t39 = F_0_2*lam;
-    const double t40 = F_2_2*mu;
-    const double t41 = F_1_0*F_2_0;
-    const double t42 = F_1_1*F_2_1;
-    const double t43 = F_1_2*F_2_2;
-    const double t44 = F_1_0*lam;
-    const double t45 = F_1_1*lam;
-    const double t46 = t11 + t9;
-    const double t47 = F_1_2*lam;
+    // intermediates (93)
+    const double h0 = (F_0_0*F_0_0);
+    const double h1 = (F_0_1*F_0_1);
+    const double h2 = (F_1_0*F_1_0);
+    const double h3 = h1 + h2;
+    const double h4 = (F_2_0*F_2_0);
+    const double h5 = (F_0_2*F_0_2);
+    const double h6 = h5 - 1;
+    const double h7 = h4 + h6;
+    const double h8 = (F_1_2*F_1_2);
+    const double h9 = (F_2_2*F_2_2);
+    const double h10 = (F_2_1*F_2_1);
+    const double h11 = (F_1_1*F_1_1);
+    const double h12 = h0 + h11;
+    const double h13 = h10 + h12;
+    const double h14 = (1.0/2.0)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3);
+    const double h15 = F_0_0*F_0_1;
+    const double h16 = F_1_0*F_1_1;
+    const double h17 = F_2_0*F_2_1;
+    const double h18 = F_0_0*F_0_2;
+    const double h19 = F_1_0*F_1_2;
+    const double h20 = F_2_0*F_2_2;
+    const double h21 = F_0_0*F_1_0;
+    const double h22 = F_0_1*F_1_1;
+    const double h23 = F_0_2*F_1_2;
+    const double h24 = F_0_0*lam;
+    const double h25 = F_1_0*mu;
+    const double h26 = F_0_0*F_2_0;
+    const double h27 = F_0_1*F_2_1;
+    const double h28 = F_0_2*F_2_2;
+    const double h29 = F_2_0*mu;
+    const double h30 = F_0_1*F_0_2;
+    const double h31 = F_1_1*F_1_2;
+    const double h32 = F_2_1*F_2_2;
+    const double h33 = F_1_1*mu;
+    const double h34 = F_0_1*lam;
+    const double h35 = F_2_1*mu;
+    const double h36 = h8 - 1;
+    const double h37 = h0 + h9;
+    const double h38 = F_1_2*mu;
+    const double h39 = F_0_2*lam;
+    const double h40 = F_2_2*mu;
+    const double h41 = F_1_0*F_2_0;
+    const double h42 = F_1_1*F_2_1;
+    const double h43 = F_1_2*F_2_2;
+    const double h44 = F_1_0*lam;
+    const double h45 = F_1_1*lam;
+    const double h46 = h11 + h9;
+    const double h47 = F_1_2*lam;
+    const double A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7);
+    const double A_0_1 = h15*lam + mu*(2*h15 + h16 + h17);
+    const double A_0_2 = h18*lam + mu*(2*h18 + h19 + h20);
+    const double A_0_3 = h21*lam + mu*(2*h21 + h22 + h23);
+    const double A_0_4 = F_0_1*h25 + F_1_1*h24;
+    const double A_0_5 = F_0_2*h25 + F_1_2*h24;
+    const double A_0_6 = h26*lam + mu*(2*h26 + h27 + h28);
+    const double A_0_7 = F_0_1*h29 + F_2_1*h24;
+    const double A_0_8 = F_0_2*h29 + F_2_2*h24;
+    const double A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6);
+    const double A_1_2 = h30*lam + mu*(2*h30 + h31 + h32);
+    const double A_1_3 = F_0_0*h33 + F_1_0*h34;
+    const double A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23);
+    const double A_1_5 = F_0_2*h33 + F_1_2*h34;
+    const double A_1_6 = F_0_0*h35 + F_2_0*h34;
+    const double A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28);
+    const double A_1_8 = F_0_2*h35 + F_2_2*h34;
+    const double A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5);
+    const double A_2_3 = F_0_0*h38 + F_1_0*h39;
+    const double A_2_4 = F_0_1*h38 + F_1_1*h39;
+    const double A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23);
+    const double A_2_6 = F_0_0*h40 + F_2_0*h39;
+    const double A_2_7 = F_0_1*h40 + F_2_1*h39;
+    const double A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28);
+    const double A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4);
+    const double A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17);
+    const double A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20);
+    const double A_3_6 = h41*lam + mu*(2*h41 + h42 + h43);
+    const double A_3_7 = F_1_1*h29 + F_2_1*h44;
+    const double A_3_8 = F_1_2*h29 + F_2_2*h44;
+    const double A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36);
+    const double A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32);
+    const double A_4_6 = F_2_0*h45 + F_2_1*h25;
+    const double A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43);
+    const double A_4_8 = F_1_2*h35 + F_2_2*h45;
+    const double A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8);
+    const double A_5_6 = F_2_0*h47 + F_2_2*h25;
+    const double A_5_7 = F_2_1*h47 + F_2_2*h33;
+    const double A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43);
+    const double A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1);
+    const double A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17);
+    const double A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20);
+    const double A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1);
+    const double A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32);
+    const double A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9);
     // outputs
     double *restrict out_dP_dF = out[0];
-    out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t14;
-    out_dP_dF[1] = out_dP_dF[9] = lam*t15 + mu*(2*t15 + t16 + t17);
-    out_dP_dF[2] = out_dP_dF[18] = lam*t18 + mu*(2*t18 + t19 + t20);
-    out_dP_dF[3] = out_dP_dF[27] = lam*t21 + mu*(2*t21 + t22 + t23);
-    out_dP_dF[4] = out_dP_dF[36] = F_0_1*t25 + F_1_1*t24;
-    out_dP_dF[5] = out_dP_dF[45] = F_0_2*t25 + F_1_2*t24;
-    out_dP_dF[6] = out_dP_dF[54] = lam*t26 + mu*(2*t26 + t27 + t28);
-    out_dP_dF[7] = out_dP_dF[63] = F_0_1*t29 + F_2_1*t24;
-    out_dP_dF[8] = out_dP_dF[72] = F_0_2*t29 + F_2_2*t24;
-    out_dP_dF[10] = lam*t1 + mu*(3*t1 + t13 + t6) + t14;
-    out_dP_dF[11] = out_dP_dF[19] = lam*t30 + mu*(2*t30 + t31 + t32);
-    out_dP_dF[12] = out_dP_dF[28] = F_0_0*t33 + F_1_0*t34;
-    out_dP_dF[13] = out_dP_dF[37] = lam*t22 + mu*(t21 + 2*t22 + t23);
-    out_dP_dF[14] = out_dP_dF[46] = F_0_2*t33 + F_1_2*t34;
-    out_dP_dF[15] = out_dP_dF[55] = F_0_0*t35 + F_2_0*t34;
-    out_dP_dF[16] = out_dP_dF[64] = lam*t27 + mu*(t26 + 2*t27 + t28);
-    out_dP_dF[17] = out_dP_dF[73] = F_0_2*t35 + F_2_2*t34;
-    out_dP_dF[20] = lam*t5 + mu*(t1 + t36 + t37 + 3*t5) + t14;
-    out_dP_dF[21] = out_dP_dF[29] = F_0_0*t38 + F_1_0*t39;
-    out_dP_dF[22] = out_dP_dF[38] = F_0_1*t38 + F_1_1*t39;
-    out_dP_dF[23] = out_dP_dF[47] = lam*t23 + mu*(t21 + t22 + 2*t23);
-    out_dP_dF[24] = out_dP_dF[56] = F_0_0*t40 + F_2_0*t39;
-    out_dP_dF[25] = out_dP_dF[65] = F_0_1*t40 + F_2_1*t39;
-    out_dP_dF[26] = out_dP_dF[74] = lam*t28 + mu*(t26 + t27 + 2*t28);
-    out_dP_dF[30] = lam*t2 + mu*(t12 + 3*t2 + t36 + t4) + t14;
-    out_dP_dF[31] = out_dP_dF[39] = lam*t16 + mu*(t15 + 2*t16 + t17);
-    out_dP_dF[32] = out_dP_dF[48] = lam*t19 + mu*(t18 + 2*t19 + t20);
-    out_dP_dF[33] = out_dP_dF[57] = lam*t41 + mu*(2*t41 + t42 + t43);
-    out_dP_dF[34] = out_dP_dF[66] = F_1_1*t29 + F_2_1*t44;
-    out_dP_dF[35] = out_dP_dF[75] = F_1_2*t29 + F_2_2*t44;
-    out_dP_dF[40] = lam*t11 + mu*(t10 + 3*t11 + t3 + t36) + t14;
-    out_dP_dF[41] = out_dP_dF[49] = lam*t31 + mu*(t30 + 2*t31 + t32);
-    out_dP_dF[42] = out_dP_dF[58] = F_2_0*t45 + F_2_1*t25;
-    out_dP_dF[43] = out_dP_dF[67] = lam*t42 + mu*(t41 + 2*t42 + t43);
-    out_dP_dF[44] = out_dP_dF[76] = F_1_2*t35 + F_2_2*t45;
-    out_dP_dF[50] = lam*t8 + mu*(t2 + t46 + t6 + 3*t8) + t14;
-    out_dP_dF[51] = out_dP_dF[59] = F_2_0*t47 + F_2_2*t25;
-    out_dP_dF[52] = out_dP_dF[68] = F_2_1*t47 + F_2_2*t33;
-    out_dP_dF[53] = out_dP_dF[77] = lam*t43 + mu*(t41 + t42 + 2*t43);
-    out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t37 + 3*t4 - 1) + t14;
-    out_dP_dF[61] = out_dP_dF[69] = lam*t17 + mu*(t15 + t16 + 2*t17);
-    out_dP_dF[62] = out_dP_dF[78] = lam*t20 + mu*(t18 + t19 + 2*t20);
-    out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t46 - 1) + t14;
-    out_dP_dF[71] = out_dP_dF[79] = lam*t32 + mu*(t30 + t31 + 2*t32);
-    out_dP_dF[80] = lam*t9 + mu*(t10 + t7 + t8 + 3*t9) + t14;
+    out_dP_dF[0] = A_0_0;
+    out_dP_dF[1] = out_dP_dF[9] = A_0_1;
+    out_dP_dF[2] = out_dP_dF[18] = A_0_2;
+    out_dP_dF[3] = out_dP_dF[27] = A_0_3;
+    out_dP_dF[4] = out_dP_dF[36] = A_0_4;
+    out_dP_dF[5] = out_dP_dF[45] = A_0_5;
+    out_dP_dF[6] = out_dP_dF[54] = A_0_6;
+    out_dP_dF[7] = out_dP_dF[63] = A_0_7;
+    out_dP_dF[8] = out_dP_dF[72] = A_0_8;
+    out_dP_dF[10] = A_1_1;
+    out_dP_dF[11] = out_dP_dF[19] = A_1_2;
+    out_dP_dF[12] = out_dP_dF[28] = A_1_3;
+    out_dP_dF[13] = out_dP_dF[37] = A_1_4;
+    out_dP_dF[14] = out_dP_dF[46] = A_1_5;
+    out_dP_dF[15] = out_dP_dF[55] = A_1_6;
+    out_dP_dF[16] = out_dP_dF[64] = A_1_7;
+    out_dP_dF[17] = out_dP_dF[73] = A_1_8;
+    out_dP_dF[20] = A_2_2;
+    out_dP_dF[21] = out_dP_dF[29] = A_2_3;
+    out_dP_dF[22] = out_dP_dF[38] = A_2_4;
+    out_dP_dF[23] = out_dP_dF[47] = A_2_5;
+    out_dP_dF[24] = out_dP_dF[56] = A_2_6;
+    out_dP_dF[25] = out_dP_dF[65] = A_2_7;
+    out_dP_dF[26] = out_dP_dF[74] = A_2_8;
+    out_dP_dF[30] = A_3_3;
+    out_dP_dF[31] = out_dP_dF[39] = A_3_4;
+    out_dP_dF[32] = out_dP_dF[48] = A_3_5;
+    out_dP_dF[33] = out_dP_dF[57] = A_3_6;
+    out_dP_dF[34] = out_dP_dF[66] = A_3_7;
+    out_dP_dF[35] = out_dP_dF[75] = A_3_8;
+    out_dP_dF[40] = A_4_4;
+    out_dP_dF[41] = out_dP_dF[49] = A_4_5;
+    out_dP_dF[42] = out_dP_dF[58] = A_4_6;
+    out_dP_dF[43] = out_dP_dF[67] = A_4_7;
+    out_dP_dF[44] = out_dP_dF[76] = A_4_8;
+    out_dP_dF[50] = A_5_5;
+    out_dP_dF[51] = out_dP_dF[59] = A_5_6;
+    out_dP_dF[52] = out_dP_dF[68] = A_5_7;
+    out_dP_dF[53] = out_dP_dF[77] = A_5_8;
+    out_dP_dF[60] = A_6_6;
+    out_dP_dF[61] = out_dP_dF[69] = A_6_7;
+    out_dP_dF[62] = out_dP_dF[78] = A_6_8;
+    out_dP_dF[70] = A_7_7;
+    out_dP_dF[71] = out_dP_dF[79] = A_7_8;
+    out_dP_dF[80] = A_8_8;
 }
 
 static void stvk_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 9 * e, };
         double *out[] = { outputs[0] + 81 * e, };
-        stvk_d2psi_dF2_element(in, params, out);
+        stvk_d2psi_dF2_element(in, params + param_stride * e, out);
     }
 }
 
@@ -259,7 +314,7 @@ static PyObject *py_stvk_d2psi_dF2(PyObject *self, PyObject *args)
 }
 
 // Element potential energy vol * psi(F(x_e)).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: energy (m); operation count per element: 120
 static inline void stvk_energy_element(const double *const *in, const double *params,
     double *const *out)
@@ -316,13 +371,13 @@ static inline void stvk_energy_element(const double *const *in, const double *pa
 }
 
 static void stvk_energy(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        stvk_energy_element(in, params, out);
+        stvk_energy_element(in, params + param_stride * e, out);
     }
 }
 
@@ -337,11 +392,12 @@ static PyObject *py_stvk_energy(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t stvk_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[1];
     const double *in[] = { x, NULL, NULL, };
@@ -354,7 +410,7 @@ static Py_ssize_t stvk_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        stvk_energy_element(in, params, result);
+        stvk_energy_element(in, params + param_stride * e, result);
         const int *slot = index + 1 * e;
         for (int i = 0; i < 1; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -374,7 +430,7 @@ static PyObject *py_stvk_energy_assemble(PyObject *self, PyObject *args)
 }
 
 // Element gradient d(vol psi)/dx_e, vertex-major (12).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: gradient (m, 12); operation count per element: 245
 static inline void stvk_gradient_element(const double *const *in, const double *params,
     double *const *out)
@@ -457,13 +513,13 @@ static inline void stvk_gradient_element(const double *const *in, const double *
 }
 
 static void stvk_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 12 * e, };
-        stvk_gradient_element(in, params, out);
+        stvk_gradient_element(in, params + param_stride * e, out);
     }
 }
 
@@ -478,11 +534,12 @@ static PyObject *py_stvk_gradient(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t stvk_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[12];
     const double *in[] = { x, NULL, NULL, };
@@ -495,7 +552,7 @@ static Py_ssize_t stvk_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        stvk_gradient_element(in, params, result);
+        stvk_gradient_element(in, params + param_stride * e, result);
         const int *slot = index + 12 * e;
         for (int i = 0; i < 12; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -515,7 +572,7 @@ static PyObject *py_stvk_gradient_assemble(PyObject *self, PyObject *args)
 }
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315
 static inline void stvk_hessian_element(const double *const *in, const double *params,
     double *const *out)
@@ -837,13 +894,13 @@ static inline void stvk_hessian_element(const double *const *in, const double *p
 }
 
 static void stvk_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 144 * e, };
-        stvk_hessian_element(in, params, out);
+        stvk_hessian_element(in, params + param_stride * e, out);
     }
 }
 
@@ -858,11 +915,12 @@ static PyObject *py_stvk_hessian(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t stvk_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
@@ -875,7 +933,7 @@ static Py_ssize_t stvk_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        stvk_hessian_element(in, params, result);
+        stvk_hessian_element(in, params + param_stride * e, result);
         const int *slot = index + 144 * e;
         for (int i = 0; i < 144; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -895,7 +953,7 @@ static PyObject *py_stvk_hessian_assemble(PyObject *self, PyObject *args)
 }
 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam)
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315
 static inline void stvk_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
@@ -1300,13 +1358,13 @@ static inline void stvk_hessian_psd_element(const double *const *in, const doubl
 }
 
 static void stvk_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
         double *out[] = { outputs[0] + 144 * e, };
-        stvk_hessian_psd_element(in, params, out);
+        stvk_hessian_psd_element(in, params + param_stride * e, out);
     }
 }
 
@@ -1321,11 +1379,12 @@ static PyObject *py_stvk_hessian_psd(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t stvk_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
@@ -1338,7 +1397,7 @@ static Py_ssize_t stvk_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
         }
         in[1] = rest[0] + 12 * e;
         in[2] = rest[1] + 1 * e;
-        stvk_hessian_psd_element(in, params, result);
+        stvk_hessian_psd_element(in, params + param_stride * e, result);
         const int *slot = index + 144 * e;
         for (int i = 0; i < 144; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;

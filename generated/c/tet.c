@@ -5,7 +5,7 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 
 // Shape-function gradients dphi/dX and signed volume of rest tets.
-// inputs: X_e (m, 4, 3); params: ()
+// inputs: X_e (m, 4, 3); params: (), shared or per element
 // outputs: dphi_dX (m, 4, 3), volume (m); operation count per element: 152
 static inline void tet_rest_shape_element(const double *const *in, const double *params,
     double *const *out)
@@ -83,13 +83,13 @@ static inline void tet_rest_shape_element(const double *const *in, const double 
 }
 
 static void tet_rest_shape(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, };
         double *out[] = { outputs[0] + 12 * e, outputs[1] + 1 * e, };
-        tet_rest_shape_element(in, params, out);
+        tet_rest_shape_element(in, params + param_stride * e, out);
     }
 }
 
@@ -104,7 +104,7 @@ static PyObject *py_tet_rest_shape(PyObject *self, PyObject *args)
 }
 
 // Shape functions (barycentric coordinates) of each tet at a point p.
-// inputs: X_e (m, 4, 3), p (m, 3); params: ()
+// inputs: X_e (m, 4, 3), p (m, 3); params: (), shared or per element
 // outputs: phi (m, 4); operation count per element: 150
 static inline void tet_phi_element(const double *const *in, const double *params,
     double *const *out)
@@ -175,13 +175,13 @@ static inline void tet_phi_element(const double *const *in, const double *params
 }
 
 static void tet_phi(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 3 * e, };
         double *out[] = { outputs[0] + 4 * e, };
-        tet_phi_element(in, params, out);
+        tet_phi_element(in, params + param_stride * e, out);
     }
 }
 
@@ -196,7 +196,7 @@ static PyObject *py_tet_phi(PyObject *self, PyObject *args)
 }
 
 // Exact consistent mass matrix rho * integral N^T N dV (12x12).
-// inputs: vol (m); params: (rho)
+// inputs: vol (m); params: (rho), shared or per element
 // outputs: mass (m, 12, 12); operation count per element: 3
 static inline void tet_mass_matrix_element(const double *const *in, const double *params,
     double *const *out)
@@ -293,13 +293,13 @@ static inline void tet_mass_matrix_element(const double *const *in, const double
 }
 
 static void tet_mass_matrix(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 1 * e, };
         double *out[] = { outputs[0] + 144 * e, };
-        tet_mass_matrix_element(in, params, out);
+        tet_mass_matrix_element(in, params + param_stride * e, out);
     }
 }
 
@@ -314,7 +314,7 @@ static PyObject *py_tet_mass_matrix(PyObject *self, PyObject *args)
 }
 
 // Deformation gradient F = sum_v x_v dphi_v/dX^T.
-// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3); params: ()
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3); params: (), shared or per element
 // outputs: F (m, 3, 3); operation count per element: 63
 static inline void tet_deformation_gradient_element(const double *const *in, const double *params,
     double *const *out)
@@ -362,13 +362,13 @@ static inline void tet_deformation_gradient_element(const double *const *in, con
 }
 
 static void tet_deformation_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, };
         double *out[] = { outputs[0] + 9 * e, };
-        tet_deformation_gradient_element(in, params, out);
+        tet_deformation_gradient_element(in, params + param_stride * e, out);
     }
 }
 
@@ -383,11 +383,12 @@ static PyObject *py_tet_deformation_gradient(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t tet_deformation_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[9];
     const double *in[] = { x, NULL, };
@@ -399,7 +400,7 @@ static Py_ssize_t tet_deformation_gradient_assemble(Py_ssize_t m, Py_ssize_t n_v
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
         in[1] = rest[0] + 12 * e;
-        tet_deformation_gradient_element(in, params, result);
+        tet_deformation_gradient_element(in, params + param_stride * e, result);
         const int *slot = index + 9 * e;
         for (int i = 0; i < 9; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
@@ -419,8 +420,8 @@ static PyObject *py_tet_deformation_gradient_assemble(PyObject *self, PyObject *
 }
 
 // Signed volume of deformed tets (<= 0: inverted or flat).
-// inputs: x_e (m, 4, 3); params: ()
-// outputs: volume (m); operation count per element: 72
+// inputs: x_e (m, 4, 3); params: (), shared or per element
+// outputs: volume (m); operation count per element: 95
 static inline void tet_deformed_volume_element(const double *const *in, const double *params,
     double *const *out)
 {
@@ -442,17 +443,17 @@ static inline void tet_deformed_volume_element(const double *const *in, const do
     // intermediates (0)
     // outputs
     double *restrict out_volume = out[0];
-    out_volume[0] = (1.0/6.0)*(-x_0_0*x_1_1*x_2_2 + x_0_0*x_1_1*x_3_2 + x_0_0*x_1_2*x_2_1 - x_0_0*x_1_2*x_3_1 - x_0_0*x_2_1*x_3_2 + x_0_0*x_2_2*x_3_1 + x_0_1*x_1_0*x_2_2 - x_0_1*x_1_0*x_3_2 - x_0_1*x_1_2*x_2_0 + x_0_1*x_1_2*x_3_0 + x_0_1*x_2_0*x_3_2 - x_0_1*x_2_2*x_3_0 - x_0_2*x_1_0*x_2_1 + x_0_2*x_1_0*x_3_1 + x_0_2*x_1_1*x_2_0 - x_0_2*x_1_1*x_3_0 - x_0_2*x_2_0*x_3_1 + x_0_2*x_2_1*x_3_0 + x_1_0*x_2_1*x_3_2 - x_1_0*x_2_2*x_3_1 - x_1_1*x_2_0*x_3_2 + x_1_1*x_2_2*x_3_0 + x_1_2*x_2_0*x_3_1 - x_1_2*x_2_1*x_3_0);
+    out_volume[0] = -1.0/6.0*x_0_0*x_1_1*x_2_2 + (1.0/6.0)*x_0_0*x_1_1*x_3_2 + (1.0/6.0)*x_0_0*x_1_2*x_2_1 - 1.0/6.0*x_0_0*x_1_2*x_3_1 - 1.0/6.0*x_0_0*x_2_1*x_3_2 + (1.0/6.0)*x_0_0*x_2_2*x_3_1 + (1.0/6.0)*x_0_1*x_1_0*x_2_2 - 1.0/6.0*x_0_1*x_1_0*x_3_2 - 1.0/6.0*x_0_1*x_1_2*x_2_0 + (1.0/6.0)*x_0_1*x_1_2*x_3_0 + (1.0/6.0)*x_0_1*x_2_0*x_3_2 - 1.0/6.0*x_0_1*x_2_2*x_3_0 - 1.0/6.0*x_0_2*x_1_0*x_2_1 + (1.0/6.0)*x_0_2*x_1_0*x_3_1 + (1.0/6.0)*x_0_2*x_1_1*x_2_0 - 1.0/6.0*x_0_2*x_1_1*x_3_0 - 1.0/6.0*x_0_2*x_2_0*x_3_1 + (1.0/6.0)*x_0_2*x_2_1*x_3_0 + (1.0/6.0)*x_1_0*x_2_1*x_3_2 - 1.0/6.0*x_1_0*x_2_2*x_3_1 - 1.0/6.0*x_1_1*x_2_0*x_3_2 + (1.0/6.0)*x_1_1*x_2_2*x_3_0 + (1.0/6.0)*x_1_2*x_2_0*x_3_1 - 1.0/6.0*x_1_2*x_2_1*x_3_0;
 }
 
 static void tet_deformed_volume(Py_ssize_t m, const double *const *inputs, const double *params,
-    double *const *outputs)
+    Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
     for (Py_ssize_t e = 0; e < m; ++e) {
         const double *in[] = { inputs[0] + 12 * e, };
         double *out[] = { outputs[0] + 1 * e, };
-        tet_deformed_volume_element(in, params, out);
+        tet_deformed_volume_element(in, params + param_stride * e, out);
     }
 }
 
@@ -467,11 +468,12 @@ static PyObject *py_tet_deformed_volume(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Returns 0,
-// or the first element with a bad vertex (-(e + 1)) or destination (e + 1).
+// element after element (one thread: no write conflicts, fixed summation order). Parameters
+// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
+// vertex (-(e + 1)) or destination (e + 1).
 static Py_ssize_t tet_deformed_volume_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
     const double *q, const long long *T, const double *const *rest, const double *params,
-    const int *index, Py_ssize_t n_out, double *out)
+    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
 {
     double x[12], local[1];
     const double *in[] = { x, };
@@ -482,7 +484,7 @@ static Py_ssize_t tet_deformed_volume_assemble(Py_ssize_t m, Py_ssize_t n_vertic
             if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
-        tet_deformed_volume_element(in, params, result);
+        tet_deformed_volume_element(in, params + param_stride * e, result);
         const int *slot = index + 1 * e;
         for (int i = 0; i < 1; ++i) {
             if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;

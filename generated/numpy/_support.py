@@ -25,10 +25,17 @@ def _elements(*arrays):
     return m, columns
 
 
-def _params(params, names):
-    """Parameters as floats in ``names`` order; a single parameter may be a bare scalar."""
-    values = tuple(float(p) for p in numpy.atleast_1d(numpy.asarray(params, dtype=float)))
-    if len(values) != len(names):
+def _params(params, names, m):
+    """Parameters in ``names`` order: floats when shared by the call (a single parameter may be
+    a bare scalar), ``(m,)`` columns when given per element as an ``(m, n_params)`` array."""
+    a = numpy.asarray(params, dtype=float)
+    if a.ndim == 2:
+        if a.shape != (m, len(names)):
+            raise ValueError(f"per-element parameters {names} must have shape "
+                             f"({m}, {len(names)}), got {a.shape}")
+        return tuple(numpy.ascontiguousarray(a[:, k]) for k in range(len(names)))
+    values = tuple(float(p) for p in numpy.atleast_1d(a))
+    if a.ndim > 1 or len(values) != len(names):
         raise ValueError(f"expected {len(names)} parameters {names}, got {len(values)}")
     return values
 

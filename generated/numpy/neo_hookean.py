@@ -2,8 +2,9 @@
 # Source: codegen.materials.neo_hookean; SymPy 1.14.0. Regenerate with `make codegen`.
 """compressible Neo-Hookean, psi = C (J^(-2/3) tr(F^T F) - 3) + D (J - 1)^2: kernels vectorized over elements (NumPy back end).
 
-Every array argument has a leading element axis ``m``; parameters are scalars shared by the
-call, given in ``PARAM_NAMES`` order. Flattening conventions: see ``codegen.conventions``.
+Every array argument has a leading element axis ``m``; parameters are given in ``PARAM_NAMES``
+order, either shared by the call ``(n_params,)`` or per element ``(m, n_params)``.
+Flattening conventions: see ``codegen.conventions``.
 """
 
 import numpy
@@ -11,6 +12,28 @@ import numpy
 from ._support import _elements, _finish, _params, _project_psd  # noqa: F401
 
 PARAM_NAMES = ('C', 'D')
+ALLOWS_INVERSION = False
+EXACT_SMALL_STRAIN = False
+ROTATION_INVARIANT = True
+ELEMENT_INPUTS = ()
+SHAPE_PARAMS = ()
+POSITIVE = ('C',)
+DESCRIPTION = 'compressible Neo-Hookean, psi = C (J^(-2/3) tr(F^T F) - 3) + D (J - 1)^2'
+INVERSION = 'undefined: J^(-2/3) is infinite at J = 0 and the isochoric invariant is meaningless for J < 0; inverted tets are refused by the line search'
+PSI = 'C*(-3 + Trace(F.T*F)/Determinant(F)**(2/3)) + D*(Determinant(F) - 1)**2'
+PSI_LATEX = 'C \\left(-3 + \\frac{\\operatorname{tr}\\left(F^{T} F \\right)}{\\left|{F}\\right|^{\\frac{2}{3}}}\\right) + D \\left(\\left|{F}\\right| - 1\\right)^{2}'
+MAPPING = {'C': 'E/(4*nu + 4)', 'D': 'E*nu/((1 - 2*nu)*(2*nu + 2))'}
+DOC = "Compressible Neo-Hookean of the assignment: ``C (J^(-2/3) tr(F^T F) - 3) + D (J - 1)^2``.\n\nSource: the course assignment's energy (a decoupled Neo-Hookean in the form of Bonet and Wood,\n*Nonlinear Continuum Mechanics for Finite Element Analysis*, 2nd ed., 2008, section 6.6.2,\nwith ``C = mu / 2`` and ``D = kappa / 2``).\n\nThe assignment fixes the mapping ``C = mu / 2``, ``D = lambda / 2`` from the Lame parameters\nof ``E, nu``. At small strain the model is linear elasticity with shear modulus ``2 C = mu``\nand bulk modulus ``2 D``, i.e. an effective Lame ``lambda_eff = 2 D - 4 C / 3 = lambda - 2 mu /\n3``: it is *not* exactly the linear elasticity of ``E, nu`` (its Poisson ratio is lower)."
+
+
+def parameters_from_E_nu(E, nu):
+    """Parameters from Young's modulus ``E`` and Poisson's ratio ``nu`` (floats or arrays)."""
+    return {
+        "C": E/(4*nu + 4),
+        "D": E*nu/((1 - 2*nu)*(2*nu + 2)),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ),
@@ -66,8 +89,8 @@ def psi(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -76,7 +99,7 @@ def psi(F, params):
     Operation count per element: 48.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -87,16 +110,17 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (6)
-    t0 = F_0_0*F_1_2*F_2_1
-    t1 = F_0_1*F_1_0*F_2_2
-    t2 = F_0_2*F_1_1*F_2_0
-    t3 = F_0_0*F_1_1*F_2_2
-    t4 = F_0_1*F_1_2*F_2_0
-    t5 = F_0_2*F_1_0*F_2_1
+    # intermediates (7)
+    e0 = F_0_0*F_1_2*F_2_1
+    e1 = F_0_1*F_1_0*F_2_2
+    e2 = F_0_2*F_1_1*F_2_0
+    e3 = F_0_0*F_1_1*F_2_2
+    e4 = F_0_1*F_1_2*F_2_0
+    e5 = F_0_2*F_1_0*F_2_1
+    psi = -C*(3 - ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/(numpy.cbrt(-e0 - e1 - e2 + e3 + e4 + e5)*numpy.cbrt(-e0 - e1 - e2 + e3 + e4 + e5))) + D*((e0 + e1 + e2 - e3 - e4 - e5 + 1)**2)
     # outputs
     _out_psi = numpy.empty((1, m))
-    _out_psi[0] = -C*(3 - ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/(numpy.cbrt(-t0 - t1 - t2 + t3 + t4 + t5)*numpy.cbrt(-t0 - t1 - t2 + t3 + t4 + t5))) + D*((t0 + t1 + t2 - t3 - t4 - t5 + 1)**2)
+    _out_psi[0] = psi
     return _finish(_out_psi, m, ())
 
 
@@ -107,8 +131,8 @@ def dpsi_dF(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -117,7 +141,7 @@ def dpsi_dF(F, params):
     Operation count per element: 139.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -128,43 +152,52 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (25)
-    t0 = F_1_1*F_2_2
-    t1 = F_1_2*F_2_1
-    t2 = t0 - t1
-    t3 = F_0_0*t1
-    t4 = F_1_0*F_2_2
-    t5 = F_0_1*t4
-    t6 = F_1_1*F_2_0
-    t7 = F_0_2*t6
-    t8 = F_0_0*t0
-    t9 = F_1_2*F_2_0
-    t10 = F_0_1*t9
-    t11 = F_1_0*F_2_1
-    t12 = F_0_2*t11
-    t13 = D*(-t10 - t12 + t3 + t5 + t7 - t8 + 1)
-    t14 = t10 + t12 - t3 - t5 - t7 + t8
-    t15 = ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/t14
-    t16 = (1/3)*C/(numpy.cbrt(t14)*numpy.cbrt(t14))
-    t17 = t4 - t9
-    t18 = t11 - t6
-    t19 = F_0_1*F_2_2 - F_0_2*F_2_1
-    t20 = F_0_0*F_2_2 - F_0_2*F_2_0
-    t21 = F_0_0*F_2_1 - F_0_1*F_2_0
-    t22 = F_0_1*F_1_2 - F_0_2*F_1_1
-    t23 = F_0_0*F_1_2 - F_0_2*F_1_0
-    t24 = F_0_0*F_1_1 - F_0_1*F_1_0
+    # intermediates (34)
+    s0 = F_1_1*F_2_2
+    s1 = F_1_2*F_2_1
+    s2 = s0 - s1
+    s3 = F_0_0*s1
+    s4 = F_1_0*F_2_2
+    s5 = F_0_1*s4
+    s6 = F_1_1*F_2_0
+    s7 = F_0_2*s6
+    s8 = F_0_0*s0
+    s9 = F_1_2*F_2_0
+    s10 = F_0_1*s9
+    s11 = F_1_0*F_2_1
+    s12 = F_0_2*s11
+    s13 = D*(-s10 - s12 + s3 + s5 + s7 - s8 + 1)
+    s14 = s10 + s12 - s3 - s5 - s7 + s8
+    s15 = ((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/s14
+    s16 = (1/3)*C/(numpy.cbrt(s14)*numpy.cbrt(s14))
+    s17 = s4 - s9
+    s18 = s11 - s6
+    s19 = F_0_1*F_2_2 - F_0_2*F_2_1
+    s20 = F_0_0*F_2_2 - F_0_2*F_2_0
+    s21 = F_0_0*F_2_1 - F_0_1*F_2_0
+    s22 = F_0_1*F_1_2 - F_0_2*F_1_1
+    s23 = F_0_0*F_1_2 - F_0_2*F_1_0
+    s24 = F_0_0*F_1_1 - F_0_1*F_1_0
+    P_0_0 = -2*s13*s2 + 2*s16*(3*F_0_0 - s15*s2)
+    P_0_1 = 2*s13*s17 + 2*s16*(3*F_0_1 + s15*s17)
+    P_0_2 = -2*s13*s18 + 2*s16*(3*F_0_2 - s15*s18)
+    P_1_0 = 2*s13*s19 + 2*s16*(3*F_1_0 + s15*s19)
+    P_1_1 = -2*s13*s20 + 2*s16*(3*F_1_1 - s15*s20)
+    P_1_2 = 2*s13*s21 + 2*s16*(3*F_1_2 + s15*s21)
+    P_2_0 = -2*s13*s22 + 2*s16*(3*F_2_0 - s15*s22)
+    P_2_1 = 2*s13*s23 + 2*s16*(3*F_2_1 + s15*s23)
+    P_2_2 = -2*s13*s24 + 2*s16*(3*F_2_2 - s15*s24)
     # outputs
     _out_P = numpy.empty((9, m))
-    _out_P[0] = -2*t13*t2 + 2*t16*(3*F_0_0 - t15*t2)
-    _out_P[1] = 2*t13*t17 + 2*t16*(3*F_0_1 + t15*t17)
-    _out_P[2] = -2*t13*t18 + 2*t16*(3*F_0_2 - t15*t18)
-    _out_P[3] = 2*t13*t19 + 2*t16*(3*F_1_0 + t15*t19)
-    _out_P[4] = -2*t13*t20 + 2*t16*(3*F_1_1 - t15*t20)
-    _out_P[5] = 2*t13*t21 + 2*t16*(3*F_1_2 + t15*t21)
-    _out_P[6] = -2*t13*t22 + 2*t16*(3*F_2_0 - t15*t22)
-    _out_P[7] = 2*t13*t23 + 2*t16*(3*F_2_1 + t15*t23)
-    _out_P[8] = -2*t13*t24 + 2*t16*(3*F_2_2 - t15*t24)
+    _out_P[0] = P_0_0
+    _out_P[1] = P_0_1
+    _out_P[2] = P_0_2
+    _out_P[3] = P_1_0
+    _out_P[4] = P_1_1
+    _out_P[5] = P_1_2
+    _out_P[6] = P_2_0
+    _out_P[7] = P_2_1
+    _out_P[8] = P_2_2
     return _finish(_out_P, m, (3, 3))
 
 
@@ -175,8 +208,8 @@ def d2psi_dF2(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -185,7 +218,7 @@ def d2psi_dF2(F, params):
     Operation count per element: 671.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -196,179 +229,224 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (89)
-    t0 = F_1_1*F_2_2
-    t1 = F_1_2*F_2_1
-    t2 = t0 - t1
-    t3 = (t2*t2)
-    t4 = F_0_0*t0
-    t5 = F_1_2*F_2_0
-    t6 = F_0_1*t5
-    t7 = F_1_0*F_2_1
-    t8 = F_0_2*t7
-    t9 = F_0_0*t1
-    t10 = F_1_0*F_2_2
-    t11 = F_0_1*t10
-    t12 = F_1_1*F_2_0
-    t13 = F_0_2*t12
-    t14 = -t11 - t13 + t4 + t6 + t8 - t9
-    t15 = (1.0/(t14))
-    t16 = 12*t15
-    t17 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    t18 = 5*t17
-    t19 = t18/(t14*t14)
-    t20 = (1/9)*C
-    t21 = t20/(numpy.cbrt(t14)*numpy.cbrt(t14))
-    t22 = t10 - t5
-    t23 = D*t2
-    t24 = 6*F_0_0
-    t25 = 6*t2
-    t26 = t15*t18
-    t27 = t2*t26
-    t28 = (numpy.cbrt(t14)/(t14*t14))
-    t29 = t20*t28
-    t30 = -t12 + t7
-    t31 = F_0_1*F_2_2 - F_0_2*F_2_1
-    t32 = F_0_0*F_2_2 - F_0_2*F_2_0
-    t33 = D*(t11 + t13 - t4 - t6 - t8 + t9 + 1)
-    t34 = F_2_2*t33
-    t35 = 3*t17
-    t36 = F_2_2*t35
-    t37 = F_0_0*F_2_1 - F_0_1*F_2_0
-    t38 = F_2_1*t33
-    t39 = F_2_1*t35
-    t40 = F_0_1*F_1_2 - F_0_2*F_1_1
-    t41 = F_0_0*F_1_2 - F_0_2*F_1_0
-    t42 = F_1_2*t33
-    t43 = F_1_2*t35
-    t44 = F_0_0*F_1_1 - F_0_1*F_1_0
-    t45 = F_1_1*t33
-    t46 = F_1_1*t35
-    t47 = (t22*t22)
-    t48 = D*t22
-    t49 = 6*F_0_1
-    t50 = 6*t22
-    t51 = t22*t26
-    t52 = F_2_0*t33
-    t53 = -F_2_0*t35
-    t54 = F_1_0*t33
-    t55 = F_1_0*t35
-    t56 = (t30*t30)
-    t57 = D*t30
-    t58 = 6*t30
-    t59 = t26*t30
-    t60 = 6*F_0_2
-    t61 = (t31*t31)
-    t62 = D*t31
-    t63 = 6*F_1_0
-    t64 = 6*t31
-    t65 = t26*t31
-    t66 = F_0_2*t33
-    t67 = F_0_2*t35
-    t68 = F_0_1*t33
-    t69 = F_0_1*t35
-    t70 = (t32*t32)
-    t71 = D*t32
-    t72 = 6*F_1_1
-    t73 = 6*t32
-    t74 = t26*t32
-    t75 = F_0_0*t33
-    t76 = F_0_0*t35
-    t77 = (t37*t37)
-    t78 = D*t37
-    t79 = 6*F_1_2
-    t80 = t26*t37
-    t81 = 6*t37
-    t82 = (t40*t40)
-    t83 = 6*F_2_0
-    t84 = 6*t40
-    t85 = t26*t40
-    t86 = (t41*t41)
-    t87 = t41*t44
-    t88 = (t44*t44)
+    # intermediates (134)
+    h0 = F_1_1*F_2_2
+    h1 = F_1_2*F_2_1
+    h2 = h0 - h1
+    h3 = (h2*h2)
+    h4 = F_0_0*h0
+    h5 = F_1_2*F_2_0
+    h6 = F_0_1*h5
+    h7 = F_1_0*F_2_1
+    h8 = F_0_2*h7
+    h9 = F_0_0*h1
+    h10 = F_1_0*F_2_2
+    h11 = F_0_1*h10
+    h12 = F_1_1*F_2_0
+    h13 = F_0_2*h12
+    h14 = -h11 - h13 + h4 + h6 + h8 - h9
+    h15 = (1.0/(h14))
+    h16 = 12*h15
+    h17 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    h18 = 5*h17
+    h19 = h18/(h14*h14)
+    h20 = (1/9)*C
+    h21 = h20/(numpy.cbrt(h14)*numpy.cbrt(h14))
+    h22 = h10 - h5
+    h23 = D*h2
+    h24 = 6*F_0_0
+    h25 = 6*h2
+    h26 = h15*h18
+    h27 = h2*h26
+    h28 = (numpy.cbrt(h14)/(h14*h14))
+    h29 = h20*h28
+    h30 = -h12 + h7
+    h31 = F_0_1*F_2_2 - F_0_2*F_2_1
+    h32 = F_0_0*F_2_2 - F_0_2*F_2_0
+    h33 = D*(h11 + h13 - h4 - h6 - h8 + h9 + 1)
+    h34 = F_2_2*h33
+    h35 = 3*h17
+    h36 = F_2_2*h35
+    h37 = F_0_0*F_2_1 - F_0_1*F_2_0
+    h38 = F_2_1*h33
+    h39 = F_2_1*h35
+    h40 = F_0_1*F_1_2 - F_0_2*F_1_1
+    h41 = F_0_0*F_1_2 - F_0_2*F_1_0
+    h42 = F_1_2*h33
+    h43 = F_1_2*h35
+    h44 = F_0_0*F_1_1 - F_0_1*F_1_0
+    h45 = F_1_1*h33
+    h46 = F_1_1*h35
+    h47 = (h22*h22)
+    h48 = D*h22
+    h49 = 6*F_0_1
+    h50 = 6*h22
+    h51 = h22*h26
+    h52 = F_2_0*h33
+    h53 = -F_2_0*h35
+    h54 = F_1_0*h33
+    h55 = F_1_0*h35
+    h56 = (h30*h30)
+    h57 = D*h30
+    h58 = 6*h30
+    h59 = h26*h30
+    h60 = 6*F_0_2
+    h61 = (h31*h31)
+    h62 = D*h31
+    h63 = 6*F_1_0
+    h64 = 6*h31
+    h65 = h26*h31
+    h66 = F_0_2*h33
+    h67 = F_0_2*h35
+    h68 = F_0_1*h33
+    h69 = F_0_1*h35
+    h70 = (h32*h32)
+    h71 = D*h32
+    h72 = 6*F_1_1
+    h73 = 6*h32
+    h74 = h26*h32
+    h75 = F_0_0*h33
+    h76 = F_0_0*h35
+    h77 = (h37*h37)
+    h78 = D*h37
+    h79 = 6*F_1_2
+    h80 = h26*h37
+    h81 = 6*h37
+    h82 = (h40*h40)
+    h83 = 6*F_2_0
+    h84 = 6*h40
+    h85 = h26*h40
+    h86 = (h41*h41)
+    h87 = h41*h44
+    h88 = (h44*h44)
+    A_0_0 = 2*D*h3 + 2*h21*(-F_0_0*h16*h2 + h19*h3 + 9)
+    A_0_1 = -2*h22*h23 - 2*h29*(F_0_1*h25 - h22*h24 + h22*h27)
+    A_0_2 = 2*D*h2*h30 - 2*h29*(F_0_2*h25 + h24*h30 - h27*h30)
+    A_0_3 = -2*h23*h31 - 2*h29*(F_1_0*h25 - h24*h31 + h27*h31)
+    A_0_4 = 2*D*h2*h32 - 2*h29*(F_1_1*h25 + h24*h32 - h27*h32 + h36) - 2*h34
+    A_0_5 = -2*h23*h37 + 2*h29*(-F_1_2*h25 + h24*h37 - h27*h37 + h39) + 2*h38
+    A_0_6 = 2*D*h2*h40 - 2*h29*(F_2_0*h25 + h24*h40 - h27*h40)
+    A_0_7 = -2*h23*h41 + 2*h29*(-F_2_1*h25 + h24*h41 - h27*h41 + h43) + 2*h42
+    A_0_8 = 2*D*h2*h44 - 2*h29*(F_2_2*h25 + h24*h44 - h27*h44 + h46) - 2*h45
+    A_1_1 = 2*D*h47 + 2*h21*(F_0_1*h16*h22 + h19*h47 + 9)
+    A_1_2 = -2*h29*(-F_0_2*h50 + h30*h49 + h30*h51) - 2*h30*h48
+    A_1_3 = 2*h29*(F_1_0*h50 + h31*h49 + h31*h51 + h36) + 2*h31*h48 + 2*h34
+    A_1_4 = -2*h29*(-F_1_1*h50 + h32*h49 + h32*h51) - 2*h32*h48
+    A_1_5 = 2*h29*(F_1_2*h50 + h37*h49 + h37*h51 + h53) + 2*h37*h48 - 2*h52
+    A_1_6 = (2/9)*C*h28*(6*F_2_0*h22 - h40*h49 - h40*h51 - h43) - 2*h40*h48 - 2*h42
+    A_1_7 = 2*h29*(F_2_1*h50 + h41*h49 + h41*h51) + 2*h41*h48
+    A_1_8 = -2*h29*(-F_2_2*h50 + h44*h49 + h44*h51 - h55) - 2*h44*h48 + 2*h54
+    A_2_2 = 2*D*h56 + 2*h21*(-F_0_2*h16*h30 + h19*h56 + 9)
+    A_2_3 = (2/9)*C*h28*(6*F_0_2*h31 - F_1_0*h58 - h31*h59 - h39) - 2*h31*h57 - 2*h38
+    A_2_4 = -2*h29*(F_1_1*h58 - h32*h59 + h32*h60 + h53) + 2*h32*h57 + 2*h52
+    A_2_5 = -2*h29*(F_1_2*h58 + h37*h59 - h37*h60) - 2*h37*h57
+    A_2_6 = -2*h29*(F_2_0*h58 - h40*h59 + h40*h60 - h46) + 2*h40*h57 + 2*h45
+    A_2_7 = (2/9)*C*h28*(6*F_0_2*h41 - F_2_1*h58 - h41*h59 - h55) - 2*h41*h57 - 2*h54
+    A_2_8 = 2*D*h30*h44 - 2*h29*(F_2_2*h58 - h44*h59 + h44*h60)
+    A_3_3 = 2*D*h61 + 2*h21*(F_1_0*h16*h31 + h19*h61 + 9)
+    A_3_4 = -2*h29*(-F_1_1*h64 + h32*h63 + h32*h65) - 2*h32*h62
+    A_3_5 = 2*h29*(F_1_2*h64 + h37*h63 + h37*h65) + 2*h37*h62
+    A_3_6 = -2*h29*(-F_2_0*h64 + h40*h63 + h40*h65) - 2*h40*h62
+    A_3_7 = 2*h29*(F_2_1*h64 + h41*h63 + h41*h65 - h67) + 2*h41*h62 - 2*h66
+    A_3_8 = 2*h29*(F_2_2*h64 - h44*h63 - h44*h65 + h69) - 2*h44*h62 + 2*h68
+    A_4_4 = 2*D*h70 + 2*h21*(-F_1_1*h16*h32 + h19*h70 + 9)
+    A_4_5 = -2*h29*(F_1_2*h73 - h37*h72 + h37*h74) - 2*h37*h71
+    A_4_6 = 2*h29*(-F_2_0*h73 - h40*h72 + h40*h74 + h67) + 2*h40*h71 + 2*h66
+    A_4_7 = -2*h29*(F_2_1*h73 - h41*h72 + h41*h74) - 2*h41*h71
+    A_4_8 = 2*D*h32*h44 - 2*h29*(F_2_2*h73 + h44*h72 - h44*h74 + h76) - 2*h75
+    A_5_5 = 2*D*h77 + 2*h21*(F_1_2*h16*h37 + h19*h77 + 9)
+    A_5_6 = (2/9)*C*h28*(6*F_2_0*h37 - h40*h79 - h40*h80 - h69) - 2*h40*h78 - 2*h68
+    A_5_7 = 2*h29*(F_2_1*h81 + h41*h79 + h41*h80 + h76) + 2*h41*h78 + 2*h75
+    A_5_8 = -2*h29*(-F_2_2*h81 + h44*h79 + h44*h80) - 2*h44*h78
+    A_6_6 = 2*D*h82 + 2*h21*(-F_2_0*h16*h40 + h19*h82 + 9)
+    A_6_7 = -2*D*h40*h41 - 2*h29*(F_2_1*h84 - h41*h83 + h41*h85)
+    A_6_8 = 2*D*h40*h44 - 2*h29*(F_2_2*h84 + h44*h83 - h44*h85)
+    A_7_7 = 2*D*h86 + 2*h21*(F_2_1*h16*h41 + h19*h86 + 9)
+    A_7_8 = -2*D*h87 - 2*h29*(6*F_2_1*h44 - 6*F_2_2*h41 + h26*h87)
+    A_8_8 = 2*D*h88 + 2*h21*(-F_2_2*h16*h44 + h19*h88 + 9)
     # outputs
     _out_dP_dF = numpy.empty((81, m))
-    _out_dP_dF[0] = 2*D*t3 + 2*t21*(-F_0_0*t16*t2 + t19*t3 + 9)
-    _out_dP_dF[1] = -2*t22*t23 - 2*t29*(F_0_1*t25 - t22*t24 + t22*t27)
+    _out_dP_dF[0] = A_0_0
+    _out_dP_dF[1] = A_0_1
     _out_dP_dF[9] = _out_dP_dF[1]
-    _out_dP_dF[2] = 2*D*t2*t30 - 2*t29*(F_0_2*t25 + t24*t30 - t27*t30)
+    _out_dP_dF[2] = A_0_2
     _out_dP_dF[18] = _out_dP_dF[2]
-    _out_dP_dF[3] = -2*t23*t31 - 2*t29*(F_1_0*t25 - t24*t31 + t27*t31)
+    _out_dP_dF[3] = A_0_3
     _out_dP_dF[27] = _out_dP_dF[3]
-    _out_dP_dF[4] = 2*D*t2*t32 - 2*t29*(F_1_1*t25 + t24*t32 - t27*t32 + t36) - 2*t34
+    _out_dP_dF[4] = A_0_4
     _out_dP_dF[36] = _out_dP_dF[4]
-    _out_dP_dF[5] = -2*t23*t37 + 2*t29*(-F_1_2*t25 + t24*t37 - t27*t37 + t39) + 2*t38
+    _out_dP_dF[5] = A_0_5
     _out_dP_dF[45] = _out_dP_dF[5]
-    _out_dP_dF[6] = 2*D*t2*t40 - 2*t29*(F_2_0*t25 + t24*t40 - t27*t40)
+    _out_dP_dF[6] = A_0_6
     _out_dP_dF[54] = _out_dP_dF[6]
-    _out_dP_dF[7] = -2*t23*t41 + 2*t29*(-F_2_1*t25 + t24*t41 - t27*t41 + t43) + 2*t42
+    _out_dP_dF[7] = A_0_7
     _out_dP_dF[63] = _out_dP_dF[7]
-    _out_dP_dF[8] = 2*D*t2*t44 - 2*t29*(F_2_2*t25 + t24*t44 - t27*t44 + t46) - 2*t45
+    _out_dP_dF[8] = A_0_8
     _out_dP_dF[72] = _out_dP_dF[8]
-    _out_dP_dF[10] = 2*D*t47 + 2*t21*(F_0_1*t16*t22 + t19*t47 + 9)
-    _out_dP_dF[11] = -2*t29*(-F_0_2*t50 + t30*t49 + t30*t51) - 2*t30*t48
+    _out_dP_dF[10] = A_1_1
+    _out_dP_dF[11] = A_1_2
     _out_dP_dF[19] = _out_dP_dF[11]
-    _out_dP_dF[12] = 2*t29*(F_1_0*t50 + t31*t49 + t31*t51 + t36) + 2*t31*t48 + 2*t34
+    _out_dP_dF[12] = A_1_3
     _out_dP_dF[28] = _out_dP_dF[12]
-    _out_dP_dF[13] = -2*t29*(-F_1_1*t50 + t32*t49 + t32*t51) - 2*t32*t48
+    _out_dP_dF[13] = A_1_4
     _out_dP_dF[37] = _out_dP_dF[13]
-    _out_dP_dF[14] = 2*t29*(F_1_2*t50 + t37*t49 + t37*t51 + t53) + 2*t37*t48 - 2*t52
+    _out_dP_dF[14] = A_1_5
     _out_dP_dF[46] = _out_dP_dF[14]
-    _out_dP_dF[15] = (2/9)*C*t28*(6*F_2_0*t22 - t40*t49 - t40*t51 - t43) - 2*t40*t48 - 2*t42
+    _out_dP_dF[15] = A_1_6
     _out_dP_dF[55] = _out_dP_dF[15]
-    _out_dP_dF[16] = 2*t29*(F_2_1*t50 + t41*t49 + t41*t51) + 2*t41*t48
+    _out_dP_dF[16] = A_1_7
     _out_dP_dF[64] = _out_dP_dF[16]
-    _out_dP_dF[17] = -2*t29*(-F_2_2*t50 + t44*t49 + t44*t51 - t55) - 2*t44*t48 + 2*t54
+    _out_dP_dF[17] = A_1_8
     _out_dP_dF[73] = _out_dP_dF[17]
-    _out_dP_dF[20] = 2*D*t56 + 2*t21*(-F_0_2*t16*t30 + t19*t56 + 9)
-    _out_dP_dF[21] = (2/9)*C*t28*(6*F_0_2*t31 - F_1_0*t58 - t31*t59 - t39) - 2*t31*t57 - 2*t38
+    _out_dP_dF[20] = A_2_2
+    _out_dP_dF[21] = A_2_3
     _out_dP_dF[29] = _out_dP_dF[21]
-    _out_dP_dF[22] = -2*t29*(F_1_1*t58 - t32*t59 + t32*t60 + t53) + 2*t32*t57 + 2*t52
+    _out_dP_dF[22] = A_2_4
     _out_dP_dF[38] = _out_dP_dF[22]
-    _out_dP_dF[23] = -2*t29*(F_1_2*t58 + t37*t59 - t37*t60) - 2*t37*t57
+    _out_dP_dF[23] = A_2_5
     _out_dP_dF[47] = _out_dP_dF[23]
-    _out_dP_dF[24] = -2*t29*(F_2_0*t58 - t40*t59 + t40*t60 - t46) + 2*t40*t57 + 2*t45
+    _out_dP_dF[24] = A_2_6
     _out_dP_dF[56] = _out_dP_dF[24]
-    _out_dP_dF[25] = (2/9)*C*t28*(6*F_0_2*t41 - F_2_1*t58 - t41*t59 - t55) - 2*t41*t57 - 2*t54
+    _out_dP_dF[25] = A_2_7
     _out_dP_dF[65] = _out_dP_dF[25]
-    _out_dP_dF[26] = 2*D*t30*t44 - 2*t29*(F_2_2*t58 - t44*t59 + t44*t60)
+    _out_dP_dF[26] = A_2_8
     _out_dP_dF[74] = _out_dP_dF[26]
-    _out_dP_dF[30] = 2*D*t61 + 2*t21*(F_1_0*t16*t31 + t19*t61 + 9)
-    _out_dP_dF[31] = -2*t29*(-F_1_1*t64 + t32*t63 + t32*t65) - 2*t32*t62
+    _out_dP_dF[30] = A_3_3
+    _out_dP_dF[31] = A_3_4
     _out_dP_dF[39] = _out_dP_dF[31]
-    _out_dP_dF[32] = 2*t29*(F_1_2*t64 + t37*t63 + t37*t65) + 2*t37*t62
+    _out_dP_dF[32] = A_3_5
     _out_dP_dF[48] = _out_dP_dF[32]
-    _out_dP_dF[33] = -2*t29*(-F_2_0*t64 + t40*t63 + t40*t65) - 2*t40*t62
+    _out_dP_dF[33] = A_3_6
     _out_dP_dF[57] = _out_dP_dF[33]
-    _out_dP_dF[34] = 2*t29*(F_2_1*t64 + t41*t63 + t41*t65 - t67) + 2*t41*t62 - 2*t66
+    _out_dP_dF[34] = A_3_7
     _out_dP_dF[66] = _out_dP_dF[34]
-    _out_dP_dF[35] = 2*t29*(F_2_2*t64 - t44*t63 - t44*t65 + t69) - 2*t44*t62 + 2*t68
+    _out_dP_dF[35] = A_3_8
     _out_dP_dF[75] = _out_dP_dF[35]
-    _out_dP_dF[40] = 2*D*t70 + 2*t21*(-F_1_1*t16*t32 + t19*t70 + 9)
-    _out_dP_dF[41] = -2*t29*(F_1_2*t73 - t37*t72 + t37*t74) - 2*t37*t71
+    _out_dP_dF[40] = A_4_4
+    _out_dP_dF[41] = A_4_5
     _out_dP_dF[49] = _out_dP_dF[41]
-    _out_dP_dF[42] = 2*t29*(-F_2_0*t73 - t40*t72 + t40*t74 + t67) + 2*t40*t71 + 2*t66
+    _out_dP_dF[42] = A_4_6
     _out_dP_dF[58] = _out_dP_dF[42]
-    _out_dP_dF[43] = -2*t29*(F_2_1*t73 - t41*t72 + t41*t74) - 2*t41*t71
+    _out_dP_dF[43] = A_4_7
     _out_dP_dF[67] = _out_dP_dF[43]
-    _out_dP_dF[44] = 2*D*t32*t44 - 2*t29*(F_2_2*t73 + t44*t72 - t44*t74 + t76) - 2*t75
+    _out_dP_dF[44] = A_4_8
     _out_dP_dF[76] = _out_dP_dF[44]
-    _out_dP_dF[50] = 2*D*t77 + 2*t21*(F_1_2*t16*t37 + t19*t77 + 9)
-    _out_dP_dF[51] = (2/9)*C*t28*(6*F_2_0*t37 - t40*t79 - t40*t80 - t69) - 2*t40*t78 - 2*t68
+    _out_dP_dF[50] = A_5_5
+    _out_dP_dF[51] = A_5_6
     _out_dP_dF[59] = _out_dP_dF[51]
-    _out_dP_dF[52] = 2*t29*(F_2_1*t81 + t41*t79 + t41*t80 + t76) + 2*t41*t78 + 2*t75
+    _out_dP_dF[52] = A_5_7
     _out_dP_dF[68] = _out_dP_dF[52]
-    _out_dP_dF[53] = -2*t29*(-F_2_2*t81 + t44*t79 + t44*t80) - 2*t44*t78
+    _out_dP_dF[53] = A_5_8
     _out_dP_dF[77] = _out_dP_dF[53]
-    _out_dP_dF[60] = 2*D*t82 + 2*t21*(-F_2_0*t16*t40 + t19*t82 + 9)
-    _out_dP_dF[61] = -2*D*t40*t41 - 2*t29*(F_2_1*t84 - t41*t83 + t41*t85)
+    _out_dP_dF[60] = A_6_6
+    _out_dP_dF[61] = A_6_7
     _out_dP_dF[69] = _out_dP_dF[61]
-    _out_dP_dF[62] = 2*D*t40*t44 - 2*t29*(F_2_2*t84 + t44*t83 - t44*t85)
+    _out_dP_dF[62] = A_6_8
     _out_dP_dF[78] = _out_dP_dF[62]
-    _out_dP_dF[70] = 2*D*t86 + 2*t21*(F_2_1*t16*t41 + t19*t86 + 9)
-    _out_dP_dF[71] = -2*D*t87 - 2*t29*(6*F_2_1*t44 - 6*F_2_2*t41 + t26*t87)
+    _out_dP_dF[70] = A_7_7
+    _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
-    _out_dP_dF[80] = 2*D*t88 + 2*t21*(-F_2_2*t16*t44 + t19*t88 + 9)
+    _out_dP_dF[80] = A_8_8
     return _finish(_out_dP_dF, m, (9, 9))
 
 
@@ -383,8 +461,8 @@ def energy(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -393,7 +471,7 @@ def energy(x_e, dphi_dX, vol, params):
     Operation count per element: 112.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -454,8 +532,8 @@ def gradient(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -464,7 +542,7 @@ def gradient(x_e, dphi_dX, vol, params):
     Operation count per element: 274.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -563,8 +641,8 @@ def hessian(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -573,7 +651,7 @@ def hessian(x_e, dphi_dX, vol, params):
     Operation count per element: 1697.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -1003,8 +1081,8 @@ def hessian_psd(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (C, D).
+    params : (n_params,) or (m, n_params) float64
+        (C, D), shared or per element.
 
     Returns
     -------
@@ -1013,7 +1091,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     Operation count per element: 1697.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    C, D, = _params(params, ('C', 'D'))
+    C, D, = _params(params, ('C', 'D'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]

@@ -2,8 +2,9 @@
 # Source: codegen.derive; SymPy 1.14.0. Regenerate with `make codegen`.
 """zero-rest-length spring: kernels vectorized over elements (NumPy back end).
 
-Every array argument has a leading element axis ``m``; parameters are scalars shared by the
-call, given in ``PARAM_NAMES`` order. Flattening conventions: see ``codegen.conventions``.
+Every array argument has a leading element axis ``m``; parameters are given in ``PARAM_NAMES``
+order, either shared by the call ``(n_params,)`` or per element ``(m, n_params)``.
+Flattening conventions: see ``codegen.conventions``.
 """
 
 import numpy
@@ -44,8 +45,8 @@ def energy(x_a, x_b, params):
         first end points.
     x_b : (m, 3) float64
         second end points.
-    params : sequence of float
-        (k).
+    params : (n_params,) or (m, n_params) float64
+        (k), shared or per element.
 
     Returns
     -------
@@ -54,7 +55,7 @@ def energy(x_a, x_b, params):
     Operation count per element: 10.
     """
     m, (_in_x_a, _in_x_b, ) = _elements((x_a, "x_a", (3,)), (x_b, "x_b", (3,)), )
-    k, = _params(params, ('k',))
+    k, = _params(params, ('k',), m)
     # inputs
     xa_0 = _in_x_a[0]
     xa_1 = _in_x_a[1]
@@ -78,8 +79,8 @@ def gradient(x_a, x_b, params):
         first end points.
     x_b : (m, 3) float64
         second end points.
-    params : sequence of float
-        (k).
+    params : (n_params,) or (m, n_params) float64
+        (k), shared or per element.
 
     Returns
     -------
@@ -88,7 +89,7 @@ def gradient(x_a, x_b, params):
     Operation count per element: 9.
     """
     m, (_in_x_a, _in_x_b, ) = _elements((x_a, "x_a", (3,)), (x_b, "x_b", (3,)), )
-    k, = _params(params, ('k',))
+    k, = _params(params, ('k',), m)
     # inputs
     xa_0 = _in_x_a[0]
     xa_1 = _in_x_a[1]
@@ -120,8 +121,8 @@ def hessian(x_a, x_b, params):
         first end points.
     x_b : (m, 3) float64
         second end points.
-    params : sequence of float
-        (k).
+    params : (n_params,) or (m, n_params) float64
+        (k), shared or per element.
 
     Returns
     -------
@@ -130,7 +131,7 @@ def hessian(x_a, x_b, params):
     Operation count per element: 1.
     """
     m, (_in_x_a, _in_x_b, ) = _elements((x_a, "x_a", (3,)), (x_b, "x_b", (3,)), )
-    k, = _params(params, ('k',))
+    k, = _params(params, ('k',), m)
     # inputs
     # intermediates (1)
     t0 = -k

@@ -2,8 +2,9 @@
 # Source: codegen.materials.stvk; SymPy 1.14.0. Regenerate with `make codegen`.
 """St. Venant-Kirchhoff, psi = mu tr(E^2) + lam/2 tr(E)^2, E = (F^T F - I)/2: kernels vectorized over elements (NumPy back end).
 
-Every array argument has a leading element axis ``m``; parameters are scalars shared by the
-call, given in ``PARAM_NAMES`` order. Flattening conventions: see ``codegen.conventions``.
+Every array argument has a leading element axis ``m``; parameters are given in ``PARAM_NAMES``
+order, either shared by the call ``(n_params,)`` or per element ``(m, n_params)``.
+Flattening conventions: see ``codegen.conventions``.
 """
 
 import numpy
@@ -11,6 +12,28 @@ import numpy
 from ._support import _elements, _finish, _params, _project_psd  # noqa: F401
 
 PARAM_NAMES = ('mu', 'lam')
+ALLOWS_INVERSION = False
+EXACT_SMALL_STRAIN = True
+ROTATION_INVARIANT = True
+ELEMENT_INPUTS = ()
+SHAPE_PARAMS = ()
+POSITIVE = ('mu',)
+DESCRIPTION = 'St. Venant-Kirchhoff, psi = mu tr(E^2) + lam/2 tr(E)^2, E = (F^T F - I)/2'
+INVERSION = 'finite for every F, but it resists compression ever less and collapses (zero energy for F = -I...); kept non-inverting: the line search refuses J <= 0'
+PSI = 'lambda*(Trace(F.T*F)/2 - 3/2)**2/2 + mu*Trace((-(1/2)*I + (1/2)*F.T*F)**2)'
+PSI_LATEX = '\\frac{\\lambda \\left(\\frac{\\operatorname{tr}\\left(F^{T} F \\right)}{2} - \\frac{3}{2}\\right)^{2}}{2} + \\mu \\operatorname{tr}\\left(\\left(- \\frac{1}{2} \\mathbb{I} + \\left(\\frac{1}{2}\\right) F^{T} F\\right)^{2} \\right)'
+MAPPING = {'mu': 'E/(2*nu + 2)', 'lam': 'E*nu/((1 - 2*nu)*(nu + 1))'}
+DOC = 'St. Venant-Kirchhoff: ``mu tr(E^2) + lambda/2 tr(E)^2`` with ``E = (F^T F - I) / 2``.\n\nSource: the classical Saint Venant-Kirchhoff model, e.g. Bonet and Wood, *Nonlinear Continuum\nMechanics for Finite Element Analysis*, 2nd ed., 2008, section 6.4.1. Its linearization at\n``F = I`` is linear elasticity with the same Lame parameters, so ``mu, lam`` from ``E, nu``\nare exact at small strain.'
+
+
+def parameters_from_E_nu(E, nu):
+    """Parameters from Young's modulus ``E`` and Poisson's ratio ``nu`` (floats or arrays)."""
+    return {
+        "mu": E/(2*nu + 2),
+        "lam": E*nu/((1 - 2*nu)*(nu + 1)),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ),
@@ -66,8 +89,8 @@ def psi(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -76,7 +99,7 @@ def psi(F, params):
     Operation count per element: 56.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -87,13 +110,14 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (3)
-    t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
-    t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
-    t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    # intermediates (4)
+    e0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    e1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    e2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    psi = (1/8)*lam*((e0 + e1 + e2 - 3)**2) + (1/4)*mu*(((e0 - 1)**2) + ((e1 - 1)**2) + ((e2 - 1)**2) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2))
     # outputs
     _out_psi = numpy.empty((1, m))
-    _out_psi[0] = (1/8)*lam*((t0 + t1 + t2 - 3)**2) + (1/4)*mu*(((t0 - 1)**2) + ((t1 - 1)**2) + ((t2 - 1)**2) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2))
+    _out_psi[0] = psi
     return _finish(_out_psi, m, ())
 
 
@@ -104,8 +128,8 @@ def dpsi_dF(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -114,7 +138,7 @@ def dpsi_dF(F, params):
     Operation count per element: 110.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -125,28 +149,37 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (10)
-    t0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
-    t1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
-    t2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
-    t3 = (1/2)*lam*(t0 + t1 + t2 - 3)
-    t4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
-    t5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
-    t6 = t0 - 1
-    t7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
-    t8 = t1 - 1
-    t9 = t2 - 1
+    # intermediates (19)
+    s0 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    s1 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    s2 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    s3 = (1/2)*lam*(s0 + s1 + s2 - 3)
+    s4 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
+    s5 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
+    s6 = s0 - 1
+    s7 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
+    s8 = s1 - 1
+    s9 = s2 - 1
+    P_0_0 = F_0_0*s3 + mu*(F_0_0*s6 + F_0_1*s4 + F_0_2*s5)
+    P_0_1 = F_0_1*s3 + mu*(F_0_0*s4 + F_0_1*s8 + F_0_2*s7)
+    P_0_2 = F_0_2*s3 + mu*(F_0_0*s5 + F_0_1*s7 + F_0_2*s9)
+    P_1_0 = F_1_0*s3 + mu*(F_1_0*s6 + F_1_1*s4 + F_1_2*s5)
+    P_1_1 = F_1_1*s3 + mu*(F_1_0*s4 + F_1_1*s8 + F_1_2*s7)
+    P_1_2 = F_1_2*s3 + mu*(F_1_0*s5 + F_1_1*s7 + F_1_2*s9)
+    P_2_0 = F_2_0*s3 + mu*(F_2_0*s6 + F_2_1*s4 + F_2_2*s5)
+    P_2_1 = F_2_1*s3 + mu*(F_2_0*s4 + F_2_1*s8 + F_2_2*s7)
+    P_2_2 = F_2_2*s3 + mu*(F_2_0*s5 + F_2_1*s7 + F_2_2*s9)
     # outputs
     _out_P = numpy.empty((9, m))
-    _out_P[0] = F_0_0*t3 + mu*(F_0_0*t6 + F_0_1*t4 + F_0_2*t5)
-    _out_P[1] = F_0_1*t3 + mu*(F_0_0*t4 + F_0_1*t8 + F_0_2*t7)
-    _out_P[2] = F_0_2*t3 + mu*(F_0_0*t5 + F_0_1*t7 + F_0_2*t9)
-    _out_P[3] = F_1_0*t3 + mu*(F_1_0*t6 + F_1_1*t4 + F_1_2*t5)
-    _out_P[4] = F_1_1*t3 + mu*(F_1_0*t4 + F_1_1*t8 + F_1_2*t7)
-    _out_P[5] = F_1_2*t3 + mu*(F_1_0*t5 + F_1_1*t7 + F_1_2*t9)
-    _out_P[6] = F_2_0*t3 + mu*(F_2_0*t6 + F_2_1*t4 + F_2_2*t5)
-    _out_P[7] = F_2_1*t3 + mu*(F_2_0*t4 + F_2_1*t8 + F_2_2*t7)
-    _out_P[8] = F_2_2*t3 + mu*(F_2_0*t5 + F_2_1*t7 + F_2_2*t9)
+    _out_P[0] = P_0_0
+    _out_P[1] = P_0_1
+    _out_P[2] = P_0_2
+    _out_P[3] = P_1_0
+    _out_P[4] = P_1_1
+    _out_P[5] = P_1_2
+    _out_P[6] = P_2_0
+    _out_P[7] = P_2_1
+    _out_P[8] = P_2_2
     return _finish(_out_P, m, (3, 3))
 
 
@@ -157,8 +190,8 @@ def d2psi_dF2(F, params):
     ----------
     F : (m, 3, 3) float64
         deformation gradients.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -167,7 +200,7 @@ def d2psi_dF2(F, params):
     Operation count per element: 289.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -178,138 +211,183 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (48)
-    t0 = (F_0_0*F_0_0)
-    t1 = (F_0_1*F_0_1)
-    t2 = (F_1_0*F_1_0)
-    t3 = t1 + t2
-    t4 = (F_2_0*F_2_0)
-    t5 = (F_0_2*F_0_2)
-    t6 = t5 - 1
-    t7 = t4 + t6
-    t8 = (F_1_2*F_1_2)
-    t9 = (F_2_2*F_2_2)
-    t10 = (F_2_1*F_2_1)
-    t11 = (F_1_1*F_1_1)
-    t12 = t0 + t11
-    t13 = t10 + t12
-    t14 = (1/2)*lam*(t13 + t3 + t4 + t5 + t8 + t9 - 3)
-    t15 = F_0_0*F_0_1
-    t16 = F_1_0*F_1_1
-    t17 = F_2_0*F_2_1
-    t18 = F_0_0*F_0_2
-    t19 = F_1_0*F_1_2
-    t20 = F_2_0*F_2_2
-    t21 = F_0_0*F_1_0
-    t22 = F_0_1*F_1_1
-    t23 = F_0_2*F_1_2
-    t24 = F_0_0*lam
-    t25 = F_1_0*mu
-    t26 = F_0_0*F_2_0
-    t27 = F_0_1*F_2_1
-    t28 = F_0_2*F_2_2
-    t29 = F_2_0*mu
-    t30 = F_0_1*F_0_2
-    t31 = F_1_1*F_1_2
-    t32 = F_2_1*F_2_2
-    t33 = F_1_1*mu
-    t34 = F_0_1*lam
-    t35 = F_2_1*mu
-    t36 = t8 - 1
-    t37 = t0 + t9
-    t38 = F_1_2*mu
-    t39 = F_0_2*lam
-    t40 = F_2_2*mu
-    t41 = F_1_0*F_2_0
-    t42 = F_1_1*F_2_1
-    t43 = F_1_2*F_2_2
-    t44 = F_1_0*lam
-    t45 = F_1_1*lam
-    t46 = t11 + t9
-    t47 = F_1_2*lam
+    # intermediates (93)
+    h0 = (F_0_0*F_0_0)
+    h1 = (F_0_1*F_0_1)
+    h2 = (F_1_0*F_1_0)
+    h3 = h1 + h2
+    h4 = (F_2_0*F_2_0)
+    h5 = (F_0_2*F_0_2)
+    h6 = h5 - 1
+    h7 = h4 + h6
+    h8 = (F_1_2*F_1_2)
+    h9 = (F_2_2*F_2_2)
+    h10 = (F_2_1*F_2_1)
+    h11 = (F_1_1*F_1_1)
+    h12 = h0 + h11
+    h13 = h10 + h12
+    h14 = (1/2)*lam*(h13 + h3 + h4 + h5 + h8 + h9 - 3)
+    h15 = F_0_0*F_0_1
+    h16 = F_1_0*F_1_1
+    h17 = F_2_0*F_2_1
+    h18 = F_0_0*F_0_2
+    h19 = F_1_0*F_1_2
+    h20 = F_2_0*F_2_2
+    h21 = F_0_0*F_1_0
+    h22 = F_0_1*F_1_1
+    h23 = F_0_2*F_1_2
+    h24 = F_0_0*lam
+    h25 = F_1_0*mu
+    h26 = F_0_0*F_2_0
+    h27 = F_0_1*F_2_1
+    h28 = F_0_2*F_2_2
+    h29 = F_2_0*mu
+    h30 = F_0_1*F_0_2
+    h31 = F_1_1*F_1_2
+    h32 = F_2_1*F_2_2
+    h33 = F_1_1*mu
+    h34 = F_0_1*lam
+    h35 = F_2_1*mu
+    h36 = h8 - 1
+    h37 = h0 + h9
+    h38 = F_1_2*mu
+    h39 = F_0_2*lam
+    h40 = F_2_2*mu
+    h41 = F_1_0*F_2_0
+    h42 = F_1_1*F_2_1
+    h43 = F_1_2*F_2_2
+    h44 = F_1_0*lam
+    h45 = F_1_1*lam
+    h46 = h11 + h9
+    h47 = F_1_2*lam
+    A_0_0 = h0*lam + h14 + mu*(3*h0 + h3 + h7)
+    A_0_1 = h15*lam + mu*(2*h15 + h16 + h17)
+    A_0_2 = h18*lam + mu*(2*h18 + h19 + h20)
+    A_0_3 = h21*lam + mu*(2*h21 + h22 + h23)
+    A_0_4 = F_0_1*h25 + F_1_1*h24
+    A_0_5 = F_0_2*h25 + F_1_2*h24
+    A_0_6 = h26*lam + mu*(2*h26 + h27 + h28)
+    A_0_7 = F_0_1*h29 + F_2_1*h24
+    A_0_8 = F_0_2*h29 + F_2_2*h24
+    A_1_1 = h1*lam + h14 + mu*(3*h1 + h13 + h6)
+    A_1_2 = h30*lam + mu*(2*h30 + h31 + h32)
+    A_1_3 = F_0_0*h33 + F_1_0*h34
+    A_1_4 = h22*lam + mu*(h21 + 2*h22 + h23)
+    A_1_5 = F_0_2*h33 + F_1_2*h34
+    A_1_6 = F_0_0*h35 + F_2_0*h34
+    A_1_7 = h27*lam + mu*(h26 + 2*h27 + h28)
+    A_1_8 = F_0_2*h35 + F_2_2*h34
+    A_2_2 = h14 + h5*lam + mu*(h1 + h36 + h37 + 3*h5)
+    A_2_3 = F_0_0*h38 + F_1_0*h39
+    A_2_4 = F_0_1*h38 + F_1_1*h39
+    A_2_5 = h23*lam + mu*(h21 + h22 + 2*h23)
+    A_2_6 = F_0_0*h40 + F_2_0*h39
+    A_2_7 = F_0_1*h40 + F_2_1*h39
+    A_2_8 = h28*lam + mu*(h26 + h27 + 2*h28)
+    A_3_3 = h14 + h2*lam + mu*(h12 + 3*h2 + h36 + h4)
+    A_3_4 = h16*lam + mu*(h15 + 2*h16 + h17)
+    A_3_5 = h19*lam + mu*(h18 + 2*h19 + h20)
+    A_3_6 = h41*lam + mu*(2*h41 + h42 + h43)
+    A_3_7 = F_1_1*h29 + F_2_1*h44
+    A_3_8 = F_1_2*h29 + F_2_2*h44
+    A_4_4 = h11*lam + h14 + mu*(h10 + 3*h11 + h3 + h36)
+    A_4_5 = h31*lam + mu*(h30 + 2*h31 + h32)
+    A_4_6 = F_2_0*h45 + F_2_1*h25
+    A_4_7 = h42*lam + mu*(h41 + 2*h42 + h43)
+    A_4_8 = F_1_2*h35 + F_2_2*h45
+    A_5_5 = h14 + h8*lam + mu*(h2 + h46 + h6 + 3*h8)
+    A_5_6 = F_2_0*h47 + F_2_2*h25
+    A_5_7 = F_2_1*h47 + F_2_2*h33
+    A_5_8 = h43*lam + mu*(h41 + h42 + 2*h43)
+    A_6_6 = h14 + h4*lam + mu*(h10 + h2 + h37 + 3*h4 - 1)
+    A_6_7 = h17*lam + mu*(h15 + h16 + 2*h17)
+    A_6_8 = h20*lam + mu*(h18 + h19 + 2*h20)
+    A_7_7 = h10*lam + h14 + mu*(h1 + 3*h10 + h4 + h46 - 1)
+    A_7_8 = h32*lam + mu*(h30 + h31 + 2*h32)
+    A_8_8 = h14 + h9*lam + mu*(h10 + h7 + h8 + 3*h9)
     # outputs
     _out_dP_dF = numpy.empty((81, m))
-    _out_dP_dF[0] = lam*t0 + mu*(3*t0 + t3 + t7) + t14
-    _out_dP_dF[1] = lam*t15 + mu*(2*t15 + t16 + t17)
+    _out_dP_dF[0] = A_0_0
+    _out_dP_dF[1] = A_0_1
     _out_dP_dF[9] = _out_dP_dF[1]
-    _out_dP_dF[2] = lam*t18 + mu*(2*t18 + t19 + t20)
+    _out_dP_dF[2] = A_0_2
     _out_dP_dF[18] = _out_dP_dF[2]
-    _out_dP_dF[3] = lam*t21 + mu*(2*t21 + t22 + t23)
+    _out_dP_dF[3] = A_0_3
     _out_dP_dF[27] = _out_dP_dF[3]
-    _out_dP_dF[4] = F_0_1*t25 + F_1_1*t24
+    _out_dP_dF[4] = A_0_4
     _out_dP_dF[36] = _out_dP_dF[4]
-    _out_dP_dF[5] = F_0_2*t25 + F_1_2*t24
+    _out_dP_dF[5] = A_0_5
     _out_dP_dF[45] = _out_dP_dF[5]
-    _out_dP_dF[6] = lam*t26 + mu*(2*t26 + t27 + t28)
+    _out_dP_dF[6] = A_0_6
     _out_dP_dF[54] = _out_dP_dF[6]
-    _out_dP_dF[7] = F_0_1*t29 + F_2_1*t24
+    _out_dP_dF[7] = A_0_7
     _out_dP_dF[63] = _out_dP_dF[7]
-    _out_dP_dF[8] = F_0_2*t29 + F_2_2*t24
+    _out_dP_dF[8] = A_0_8
     _out_dP_dF[72] = _out_dP_dF[8]
-    _out_dP_dF[10] = lam*t1 + mu*(3*t1 + t13 + t6) + t14
-    _out_dP_dF[11] = lam*t30 + mu*(2*t30 + t31 + t32)
+    _out_dP_dF[10] = A_1_1
+    _out_dP_dF[11] = A_1_2
     _out_dP_dF[19] = _out_dP_dF[11]
-    _out_dP_dF[12] = F_0_0*t33 + F_1_0*t34
+    _out_dP_dF[12] = A_1_3
     _out_dP_dF[28] = _out_dP_dF[12]
-    _out_dP_dF[13] = lam*t22 + mu*(t21 + 2*t22 + t23)
+    _out_dP_dF[13] = A_1_4
     _out_dP_dF[37] = _out_dP_dF[13]
-    _out_dP_dF[14] = F_0_2*t33 + F_1_2*t34
+    _out_dP_dF[14] = A_1_5
     _out_dP_dF[46] = _out_dP_dF[14]
-    _out_dP_dF[15] = F_0_0*t35 + F_2_0*t34
+    _out_dP_dF[15] = A_1_6
     _out_dP_dF[55] = _out_dP_dF[15]
-    _out_dP_dF[16] = lam*t27 + mu*(t26 + 2*t27 + t28)
+    _out_dP_dF[16] = A_1_7
     _out_dP_dF[64] = _out_dP_dF[16]
-    _out_dP_dF[17] = F_0_2*t35 + F_2_2*t34
+    _out_dP_dF[17] = A_1_8
     _out_dP_dF[73] = _out_dP_dF[17]
-    _out_dP_dF[20] = lam*t5 + mu*(t1 + t36 + t37 + 3*t5) + t14
-    _out_dP_dF[21] = F_0_0*t38 + F_1_0*t39
+    _out_dP_dF[20] = A_2_2
+    _out_dP_dF[21] = A_2_3
     _out_dP_dF[29] = _out_dP_dF[21]
-    _out_dP_dF[22] = F_0_1*t38 + F_1_1*t39
+    _out_dP_dF[22] = A_2_4
     _out_dP_dF[38] = _out_dP_dF[22]
-    _out_dP_dF[23] = lam*t23 + mu*(t21 + t22 + 2*t23)
+    _out_dP_dF[23] = A_2_5
     _out_dP_dF[47] = _out_dP_dF[23]
-    _out_dP_dF[24] = F_0_0*t40 + F_2_0*t39
+    _out_dP_dF[24] = A_2_6
     _out_dP_dF[56] = _out_dP_dF[24]
-    _out_dP_dF[25] = F_0_1*t40 + F_2_1*t39
+    _out_dP_dF[25] = A_2_7
     _out_dP_dF[65] = _out_dP_dF[25]
-    _out_dP_dF[26] = lam*t28 + mu*(t26 + t27 + 2*t28)
+    _out_dP_dF[26] = A_2_8
     _out_dP_dF[74] = _out_dP_dF[26]
-    _out_dP_dF[30] = lam*t2 + mu*(t12 + 3*t2 + t36 + t4) + t14
-    _out_dP_dF[31] = lam*t16 + mu*(t15 + 2*t16 + t17)
+    _out_dP_dF[30] = A_3_3
+    _out_dP_dF[31] = A_3_4
     _out_dP_dF[39] = _out_dP_dF[31]
-    _out_dP_dF[32] = lam*t19 + mu*(t18 + 2*t19 + t20)
+    _out_dP_dF[32] = A_3_5
     _out_dP_dF[48] = _out_dP_dF[32]
-    _out_dP_dF[33] = lam*t41 + mu*(2*t41 + t42 + t43)
+    _out_dP_dF[33] = A_3_6
     _out_dP_dF[57] = _out_dP_dF[33]
-    _out_dP_dF[34] = F_1_1*t29 + F_2_1*t44
+    _out_dP_dF[34] = A_3_7
     _out_dP_dF[66] = _out_dP_dF[34]
-    _out_dP_dF[35] = F_1_2*t29 + F_2_2*t44
+    _out_dP_dF[35] = A_3_8
     _out_dP_dF[75] = _out_dP_dF[35]
-    _out_dP_dF[40] = lam*t11 + mu*(t10 + 3*t11 + t3 + t36) + t14
-    _out_dP_dF[41] = lam*t31 + mu*(t30 + 2*t31 + t32)
+    _out_dP_dF[40] = A_4_4
+    _out_dP_dF[41] = A_4_5
     _out_dP_dF[49] = _out_dP_dF[41]
-    _out_dP_dF[42] = F_2_0*t45 + F_2_1*t25
+    _out_dP_dF[42] = A_4_6
     _out_dP_dF[58] = _out_dP_dF[42]
-    _out_dP_dF[43] = lam*t42 + mu*(t41 + 2*t42 + t43)
+    _out_dP_dF[43] = A_4_7
     _out_dP_dF[67] = _out_dP_dF[43]
-    _out_dP_dF[44] = F_1_2*t35 + F_2_2*t45
+    _out_dP_dF[44] = A_4_8
     _out_dP_dF[76] = _out_dP_dF[44]
-    _out_dP_dF[50] = lam*t8 + mu*(t2 + t46 + t6 + 3*t8) + t14
-    _out_dP_dF[51] = F_2_0*t47 + F_2_2*t25
+    _out_dP_dF[50] = A_5_5
+    _out_dP_dF[51] = A_5_6
     _out_dP_dF[59] = _out_dP_dF[51]
-    _out_dP_dF[52] = F_2_1*t47 + F_2_2*t33
+    _out_dP_dF[52] = A_5_7
     _out_dP_dF[68] = _out_dP_dF[52]
-    _out_dP_dF[53] = lam*t43 + mu*(t41 + t42 + 2*t43)
+    _out_dP_dF[53] = A_5_8
     _out_dP_dF[77] = _out_dP_dF[53]
-    _out_dP_dF[60] = lam*t4 + mu*(t10 + t2 + t37 + 3*t4 - 1) + t14
-    _out_dP_dF[61] = lam*t17 + mu*(t15 + t16 + 2*t17)
+    _out_dP_dF[60] = A_6_6
+    _out_dP_dF[61] = A_6_7
     _out_dP_dF[69] = _out_dP_dF[61]
-    _out_dP_dF[62] = lam*t20 + mu*(t18 + t19 + 2*t20)
+    _out_dP_dF[62] = A_6_8
     _out_dP_dF[78] = _out_dP_dF[62]
-    _out_dP_dF[70] = lam*t10 + mu*(t1 + 3*t10 + t4 + t46 - 1) + t14
-    _out_dP_dF[71] = lam*t32 + mu*(t30 + t31 + 2*t32)
+    _out_dP_dF[70] = A_7_7
+    _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
-    _out_dP_dF[80] = lam*t9 + mu*(t10 + t7 + t8 + 3*t9) + t14
+    _out_dP_dF[80] = A_8_8
     return _finish(_out_dP_dF, m, (9, 9))
 
 
@@ -324,8 +402,8 @@ def energy(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -334,7 +412,7 @@ def energy(x_e, dphi_dX, vol, params):
     Operation count per element: 120.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -392,8 +470,8 @@ def gradient(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -402,7 +480,7 @@ def gradient(x_e, dphi_dX, vol, params):
     Operation count per element: 245.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -486,8 +564,8 @@ def hessian(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -496,7 +574,7 @@ def hessian(x_e, dphi_dX, vol, params):
     Operation count per element: 1315.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
@@ -885,8 +963,8 @@ def hessian_psd(x_e, dphi_dX, vol, params):
         rest-shape gradients of the shape functions.
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (mu, lam).
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
 
     Returns
     -------
@@ -895,7 +973,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     Operation count per element: 1315.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
-    mu, lam, = _params(params, ('mu', 'lam'))
+    mu, lam, = _params(params, ('mu', 'lam'), m)
     # inputs
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]

@@ -2,8 +2,9 @@
 # Source: codegen.tet; SymPy 1.14.0. Regenerate with `make codegen`.
 """linear tetrahedron geometry: kernels vectorized over elements (NumPy back end).
 
-Every array argument has a leading element axis ``m``; parameters are scalars shared by the
-call, given in ``PARAM_NAMES`` order. Flattening conventions: see ``codegen.conventions``.
+Every array argument has a leading element axis ``m``; parameters are given in ``PARAM_NAMES``
+order, either shared by the call ``(n_params,)`` or per element ``(m, n_params)``.
+Flattening conventions: see ``codegen.conventions``.
 """
 
 import numpy
@@ -40,7 +41,7 @@ SIGNATURES = {
         "inputs": (("x_e", (4, 3)), ),
         "params": (),
         "outputs": (("volume", ()), ),
-        "op_count": 72,
+        "op_count": 95,
     },
 }
 
@@ -221,8 +222,8 @@ def mass_matrix(vol, params):
     ----------
     vol : (m) float64
         rest volumes.
-    params : sequence of float
-        (rho).
+    params : (n_params,) or (m, n_params) float64
+        (rho), shared or per element.
 
     Returns
     -------
@@ -231,7 +232,7 @@ def mass_matrix(vol, params):
     Operation count per element: 3.
     """
     m, (_in_vol, ) = _elements((vol, "vol", ()), )
-    rho, = _params(params, ('rho',))
+    rho, = _params(params, ('rho',), m)
     # inputs
     vol = _in_vol[0]
     # intermediates (3)
@@ -456,7 +457,7 @@ def deformed_volume(x_e, ):
     -------
     volume : (m) float64
 
-    Operation count per element: 72.
+    Operation count per element: 95.
     """
     m, (_in_x_e, ) = _elements((x_e, "x_e", (4, 3)), )
     # inputs
@@ -475,5 +476,5 @@ def deformed_volume(x_e, ):
     # intermediates (0)
     # outputs
     _out_volume = numpy.empty((1, m))
-    _out_volume[0] = (1/6)*(-x_0_0*x_1_1*x_2_2 + x_0_0*x_1_1*x_3_2 + x_0_0*x_1_2*x_2_1 - x_0_0*x_1_2*x_3_1 - x_0_0*x_2_1*x_3_2 + x_0_0*x_2_2*x_3_1 + x_0_1*x_1_0*x_2_2 - x_0_1*x_1_0*x_3_2 - x_0_1*x_1_2*x_2_0 + x_0_1*x_1_2*x_3_0 + x_0_1*x_2_0*x_3_2 - x_0_1*x_2_2*x_3_0 - x_0_2*x_1_0*x_2_1 + x_0_2*x_1_0*x_3_1 + x_0_2*x_1_1*x_2_0 - x_0_2*x_1_1*x_3_0 - x_0_2*x_2_0*x_3_1 + x_0_2*x_2_1*x_3_0 + x_1_0*x_2_1*x_3_2 - x_1_0*x_2_2*x_3_1 - x_1_1*x_2_0*x_3_2 + x_1_1*x_2_2*x_3_0 + x_1_2*x_2_0*x_3_1 - x_1_2*x_2_1*x_3_0)
+    _out_volume[0] = -1/6*x_0_0*x_1_1*x_2_2 + (1/6)*x_0_0*x_1_1*x_3_2 + (1/6)*x_0_0*x_1_2*x_2_1 - 1/6*x_0_0*x_1_2*x_3_1 - 1/6*x_0_0*x_2_1*x_3_2 + (1/6)*x_0_0*x_2_2*x_3_1 + (1/6)*x_0_1*x_1_0*x_2_2 - 1/6*x_0_1*x_1_0*x_3_2 - 1/6*x_0_1*x_1_2*x_2_0 + (1/6)*x_0_1*x_1_2*x_3_0 + (1/6)*x_0_1*x_2_0*x_3_2 - 1/6*x_0_1*x_2_2*x_3_0 - 1/6*x_0_2*x_1_0*x_2_1 + (1/6)*x_0_2*x_1_0*x_3_1 + (1/6)*x_0_2*x_1_1*x_2_0 - 1/6*x_0_2*x_1_1*x_3_0 - 1/6*x_0_2*x_2_0*x_3_1 + (1/6)*x_0_2*x_2_1*x_3_0 + (1/6)*x_1_0*x_2_1*x_3_2 - 1/6*x_1_0*x_2_2*x_3_1 - 1/6*x_1_1*x_2_0*x_3_2 + (1/6)*x_1_1*x_2_2*x_3_0 + (1/6)*x_1_2*x_2_0*x_3_1 - 1/6*x_1_2*x_2_1*x_3_0
     return _finish(_out_volume, m, ())

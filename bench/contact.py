@@ -1,0 +1,214 @@
+"""Backward Euler with IPC contact: steps per second and where the time goes.
+
+    python -m bench.contact [--steps 150] [--refine 0 1] [--narrow-phase additive]
+                            [--markdown FILE]
+
+Cases: the coarse bunny (``data/coarser_bunny.mesh``, 1,518 tets) dropped on a ground plane,
+bouncing and coming to rest, and a stack of two bunnies dropped onto each other and the
+ground (3,036 tets); ``--refine k`` also runs each case on the mesh red-refined ``k`` times
+(x8 tets per level: about 1.2e4 and 1e5 tets). Every step is a full backward-Euler step as
+``fem3d run`` takes it (Newton to IPC's velocity tolerance, CCD-clamped line search), one
+thread (``OMP_NUM_THREADS=1`` is set here before NumPy loads).
+
+Time split (wall seconds summed over the run, from wrappers around the integrator's calls):
+``ccd`` (continuous collision detection), ``contact`` (collision-set builds + barrier and
+friction energy/gradient/Hessian), ``elastic`` (strain energy, gradient, Newton matrix
+assembly incl. mass and inversion checks), ``pattern`` (adding the contact Hessian into the
+solver pattern, re-analysis when new pairs appear), ``solve`` (factorizations + triangular
+solves); ``other`` is the rest (Python, line search bookkeeping).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def refine_red(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One level of red refinement (8 tets per tet; interior octahedron split along a
+    diagonal); keeps orientation."""
+    edges = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    e = np.sort(T[:, edges].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    mid = X.shape[0] + inv.reshape(-1, 6)
+    Xn = np.vstack([X, 0.5 * (X[uniq[:, 0]] + X[uniq[:, 1]])])
+    v0, v1, v2, v3 = T.T
+    m01, m02, m03, m12, m13, m23 = mid.T
+    tets = [
+        [v0, m01, m02, m03], [m01, v1, m12, m13], [m02, m12, v2, m23], [m03, m13, m23, v3],
+        [m01, m02, m03, m13], [m01, m02, m13, m12], [m02, m03, m13, m23],
+        [m02, m12, m13, m23],
+    ]
+    Tn = np.concatenate([np.stack(t, axis=1) for t in tets])
+    # fix orientation where the split made a tet negative
+    d = Xn[Tn[:, 1:]] - Xn[Tn[:, :1]]
+    neg = np.linalg.det(d) < 0
+    Tn[neg, 2], Tn[neg, 3] = Tn[neg, 3].copy(), Tn[neg, 2].copy()
+    return Xn, Tn
+
+
+class Timers:
+    """Wall time per category, from wrappers installed on module attributes."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._undo: list = []
+
+    def wrap(self, owner, name: str, category: str) -> None:
+        fn = getattr(owner, name)
+
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                self.seconds[category] += time.perf_counter() - t0
+
+        setattr(owner, name, timed)
+        self._undo.append((owner, name, fn))
+
+    def restore(self) -> None:
+        for owner, name, fn in reversed(self._undo):
+            setattr(owner, name, fn)
+        self._undo.clear()
+
+
+def build_case(name: str, refine: int, narrow_phase: str):
+    """(model, system, contact term, initial state, dt) of a case."""
+    from fem3d.constraints import Constraints
+    from fem3d.contact import ContactModel, ContactTerm, PlaneObstacle
+    from fem3d.integrators import State, System
+    from fem3d.mesh import read_tet_mesh
+    from fem3d.model import build_model
+
+    m = read_tet_mesh(ROOT / "data" / "coarser_bunny.mesh")
+    X0, T0 = m.X, m.T
+    for _ in range(refine):
+        X0, T0 = refine_red(X0, T0)
+    # 165 units tall -> 0.33 m; lowest point 0.05 m above the ground
+    X0 = (X0 - X0.mean(axis=0)) * 0.002
+    X0[:, 1] += 0.05 - X0[:, 1].min()
+    if name == "bunny_drop":
+        X, T, ids = X0, T0, np.zeros(len(X0), dtype=np.int64)
+    elif name == "bunny_stack":
+        top = X0 + np.array([0.05, X0[:, 1].max() - X0[:, 1].min() + 0.02, 0.02])
+        X = np.vstack([X0, top])
+        T = np.vstack([T0, T0 + len(X0)])
+        ids = np.r_[np.zeros(len(X0), np.int64), np.ones(len(X0), np.int64)]
+    else:
+        raise ValueError(name)
+    model = build_model(X, T, E=2e5, nu=0.4, rho=1000.0)
+    system = System(model, Constraints.from_fixed_vertices(X, np.zeros(0, np.int64)),
+                    gravity=[0.0, -9.81, 0.0])
+    L = float(np.linalg.norm(np.ptp(X, axis=0)))
+    cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
+                      dhat=1e-3 * L, mu=0.3, eps_v=1e-3 * L, narrow_phase=narrow_phase)
+    term = ContactTerm(cm, tolerance=1e-2)
+    return model, system, term, State.at_rest(model), 0.01
+
+
+def run_case(name: str, refine: int, steps: int, narrow_phase: str,
+             newton_solver: str = "direct", contact: bool = True) -> dict:
+    import fem3d.integrators as integ
+    from fem3d.contact import ContactModel
+
+    model, system, term, state, dt = build_case(name, refine, narrow_phase)
+    timers = Timers()
+    timers.wrap(integ, "assemble_gradient", "elastic")
+    timers.wrap(integ, "potential_energy", "elastic")
+    timers.wrap(integ, "count_inverted", "elastic")
+    timers.wrap(integ.System, "newton_matrix", "elastic")
+    timers.wrap(integ.System, "add_hessian", "pattern")
+    timers.wrap(integ.System, "factorize", "solve")
+    timers.wrap(integ.System, "solve", "solve")
+    timers.wrap(integ.PreconditionedCG, "solve", "solve")
+    timers.wrap(ContactModel, "max_step", "ccd")
+    timers.wrap(ContactModel, "obstacle_step", "ccd")
+    for fn in ("energy", "gradient", "hessian", "lag_friction", "n_active",
+               "minimum_distance", "initialize_stiffness"):
+        timers.wrap(ContactModel, fn, "contact")
+    newton = factorizations = 0
+    terms = [term] if contact else []
+    generations0 = getattr(system, "pattern_generation", 0)
+    lowest = np.inf
+    t0 = time.perf_counter()
+    try:
+        for _ in range(steps):
+            state, stats = integ.implicit_euler(system, state, dt, terms=terms,
+                                                linear_solver=newton_solver)
+            newton += stats.newton_iterations
+            factorizations += stats.factorizations
+            lowest = min(lowest, float(state.q[:, 1].min()))
+    finally:
+        wall = time.perf_counter() - t0
+        timers.restore()
+    sec = dict(timers.seconds)
+    # nested calls: CCD inside contact wrappers never happens; elastic includes none of these
+    sec["other"] = wall - sum(sec.values())
+    return {
+        "case": name + ("" if contact else " (no contact)") + (
+            "" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "tets": model.n_tets, "factorizations_per_step": factorizations / steps,
+        "steps": steps, "wall": wall,
+        "steps_per_s": steps / wall, "newton_per_step": newton / steps,
+        "pattern_reanalyses": getattr(system, "pattern_generation", 0) - generations0,
+        "lowest_gap": lowest, "seconds": sec,
+    }
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--refine", type=int, nargs="*", default=[0])
+    ap.add_argument("--cases", nargs="*", default=["bunny_drop", "bunny_stack"])
+    ap.add_argument("--narrow-phase", default="additive")
+    ap.add_argument("--newton-solver", nargs="*", default=["direct", "reuse"])
+    ap.add_argument("--no-peer", action="store_true",
+                    help="skip the contact-free peer row (same mesh, free fall)")
+    ap.add_argument("--markdown", type=Path)
+    args = ap.parse_args(argv)
+    rows = []
+    for refine in args.refine:
+        for case in args.cases:
+            steps = args.steps if refine == 0 else max(3, args.steps // (8 ** refine))
+            runs = [(s, True) for s in args.newton_solver]
+            if not args.no_peer and case == "bunny_drop":
+                runs.append(("direct", False))
+            for solver, contact in runs:
+                r = run_case(case, refine, steps, args.narrow_phase, solver, contact)
+                rows.append(r)
+                s = r["seconds"]
+                split = "  ".join(f"{k} {v / r['wall']:.0%}" for k, v in sorted(s.items()))
+                print(f"{r['case']:28s} {r['tets']:7d} tets {r['steps']:4d} steps "
+                      f"{r['steps_per_s']:7.1f} steps/s  {r['newton_per_step']:.2f} Newton/step "
+                      f"{r['factorizations_per_step']:.2f} fact/step  re-analyses "
+                      f"{r['pattern_reanalyses']}  min y {r['lowest_gap']:.2e} | {split}",
+                      flush=True)
+    if args.markdown:
+        lines = ["| case | tets | steps/s | Newton/step | factorizations/step | re-analyses | ccd "
+                 "| contact | elastic | pattern | solve | other |",
+                 "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+                 "| ---: |"]
+        for r in rows:
+            s = r["seconds"]
+            pct = [f"{s.get(k, 0.0) / r['wall']:.0%}" for k in
+                   ("ccd", "contact", "elastic", "pattern", "solve", "other")]
+            lines.append(f"| {r['case']} | {r['tets']:,} | {r['steps_per_s']:.1f} | "
+                         f"{r['newton_per_step']:.2f} | {r['factorizations_per_step']:.2f} | "
+                         f"{r['pattern_reanalyses']} | "
+                         + " | ".join(pct) + " |")
+        args.markdown.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

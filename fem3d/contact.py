@@ -1,0 +1,1162 @@
+"""Incremental Potential Contact (IPC) for fem3d, on the IPC Toolkit (``ipctk``).
+
+The geometry — distances, the barrier and its derivatives, lagged friction, broad phase and
+continuous collision detection (CCD) — comes from ``ipctk``; this module owns how it maps onto
+fem3d's degrees of freedom and how it enters backward Euler's objective.
+
+Collision mesh
+    The boundary surface of the simulation mesh (:func:`fem3d.mesh.boundary_faces`; interior
+    vertices are not in it), followed by the vertices and triangles of the triangle-mesh
+    obstacles (static, or kinematic: their positions are a function of time), in one
+    ``ipctk.CollisionMesh``; plane obstacles are ``ipctk`` planes (point + normal). Collision
+    vertex ``i < n_surface`` is fem3d vertex :attr:`ContactModel.surface` ``[i]``; the
+    obstacles' vertices are not degrees of freedom.
+
+Which pairs can touch
+    Different bodies always; a body with itself only with ``self_contact=True``; obstacles
+    never with each other (an ``ipctk.CollisionFilter`` over vertex groups, evaluated in C++).
+
+Potentials, in positions ``q`` (fem3d's ``(3n,)`` vertex-major DOF order)
+    * barrier ``kappa * sum_k b(d_k^2, dhat^2)`` over the pairs closer than ``dhat``
+      (``ipctk.BarrierPotential``; ``b`` the log barrier on squared distances);
+    * lagged friction ``sum_k mu lambda_k f0(|T_k^T u_k|)`` with ``u = x - x_t`` the step's
+      displacement, ``lambda_k`` the normal force and ``T_k`` the tangent basis of the contact
+      pairs at the lagged positions (the start of the step), and IPC's smoothing of Coulomb's
+      law below the slip displacement ``eps_v * dt`` (``ipctk.FrictionPotential``);
+    * Hessians PSD-projected per pair by ``ipctk`` (eigenvalues clamped at zero).
+
+Determinism
+    ``ipctk`` runs single-threaded (``ipctk.set_num_threads(1)`` when a model is built): its
+    threaded assembly adds per-thread partial sums in a varying order, so two runs of the same
+    step would differ in the last bits and a resumed run would not repeat the uninterrupted one.
+
+Barrier stiffness
+    ``kappa=None``: ``ipctk.initial_barrier_stiffness`` balances the barrier's gradient against
+    the rest of the objective's (:meth:`ContactModel.initialize_stiffness`), and
+    ``ipctk.update_barrier_stiffness`` doubles it (up to its maximum) when the minimum distance
+    keeps shrinking below ``1e-9`` of the scene's size (:meth:`ContactModel.update_stiffness`),
+    as in Li et al. 2020.
+
+Planes are point-plane pairs evaluated here in NumPy with ipctk's own formulas (the same
+barrier ``b(s^2, dhat^2)`` of the signed distance ``s``, the same normal force, tangent
+projection and friction mollifier; the tests compare the two), for two reasons measured on
+ipctk 1.6.1: its plane-vertex candidates inflate only the vertex's box, so the one-call
+``NormalCollisions.build(mesh, V, dhat)`` activates a plane only within ``dhat / 2`` (the
+energy would jump there), and its plane CCD and candidates go through a broad phase over the
+surface vertices that cost more than the rest of a bunny step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.errors import ParameterError, SimulationError
+from fem3d.mesh import boundary_faces
+
+__all__ = [
+    "PlaneObstacle",
+    "MeshObstacle",
+    "ContactModel",
+    "BROAD_PHASES",
+    "NARROW_PHASES",
+]
+
+#: Broad phases by name (``ipctk`` classes).
+BROAD_PHASES: dict[str, Callable[[], object]] = {
+    "hash_grid": ipctk.HashGrid,
+    "sweep_and_prune": ipctk.SweepAndPrune,
+    "lbvh": ipctk.LBVH,
+    "brute_force": ipctk.BruteForce,
+}
+
+#: Narrow-phase CCD by name. Tight Inclusion's default iteration cap (1e7) costs seconds on
+#: the parallel faces of axis-aligned meshes; capped, it returns its conservative lower bound.
+NARROW_PHASES: dict[str, Callable[[], object]] = {
+    "additive": ipctk.AdditiveCCD,
+    "tight_inclusion": lambda: ipctk.TightInclusionCCD(1e-6, 10_000),
+}
+
+#: PSD projection of the per-pair Hessians.
+_PSD = ipctk.PSDProjectionMethod.CLAMP
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneObstacle:
+    """A static plane; the half-space ``(x - point) . normal < 0`` is solid.
+
+    Attributes
+    ----------
+    point : (3,) float64
+    normal : (3,) float64
+        Unit normal (normalised on construction), pointing to the free side.
+    name : str
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    name: str = "plane"
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.point, dtype=np.float64).reshape(-1)
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if p.shape != (3,) or n.shape != (3,) or not (np.isfinite(p).all() and
+                                                       np.isfinite(n).all()):
+            raise ParameterError(f"obstacle {self.name!r}: point and normal must be 3 finite "
+                                 "numbers")
+        norm = float(np.linalg.norm(n))
+        if norm == 0.0:
+            raise ParameterError(f"obstacle {self.name!r}: the normal is zero")
+        object.__setattr__(self, "point", p)
+        object.__setattr__(self, "normal", n / norm)
+
+    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+        """``(x - point) . normal`` of points ``x (k, 3)``."""
+        return (np.asarray(x).reshape(-1, 3) - self.point) @ self.normal
+
+
+@dataclass(frozen=True, eq=False)
+class MeshObstacle:
+    """A triangle-mesh obstacle, static or kinematic (a prescribed motion).
+
+    Attributes
+    ----------
+    vertices : (k, 3) float64
+        Rest positions (the motion's reference).
+    faces : (f, 3) int64
+    motion : callable ``(rest (k, 3), t) -> (k, 3)``, optional
+        Positions at time ``t`` (for example ``fem3d.motion.Keyframes.apply``); None: static.
+    name : str
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    motion: Callable[[np.ndarray, float], np.ndarray] | None = None
+    name: str = "obstacle"
+
+    def __post_init__(self) -> None:
+        V = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        F = np.ascontiguousarray(self.faces, dtype=np.int64)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all():
+            raise ParameterError(f"obstacle {self.name!r}: vertices must be finite (k, 3)")
+        if F.ndim != 2 or F.shape[1] != 3 or F.size == 0:
+            raise ParameterError(f"obstacle {self.name!r}: faces must be (f, 3), f >= 1")
+        if F.min() < 0 or F.max() >= V.shape[0]:
+            raise ParameterError(f"obstacle {self.name!r}: a face index is out of range "
+                                 f"[0, {V.shape[0]})")
+        object.__setattr__(self, "vertices", V)
+        object.__setattr__(self, "faces", F)
+
+    def positions(self, t: float) -> np.ndarray:
+        """Vertex positions at time ``t``, ``(k, 3)``."""
+        if self.motion is None:
+            return self.vertices
+        x = np.asarray(self.motion(self.vertices, t), dtype=np.float64)
+        if x.shape != self.vertices.shape:
+            raise ValueError(f"obstacle {self.name!r}: motion returned shape {x.shape}")
+        return x
+
+
+@dataclass
+class ContactStats:
+    """Counters of the contact work (for benchmarks and step statistics).
+
+    Attributes
+    ----------
+    builds : int
+        Collision-set builds (broad + narrow phase).
+    ccd_calls : int
+    seconds_build, seconds_ccd, seconds_derivatives : float
+        Wall time in collision-set builds, CCD, and barrier/friction evaluation.
+    """
+
+    builds: int = 0
+    ccd_calls: int = 0
+    seconds_build: float = 0.0
+    seconds_ccd: float = 0.0
+    seconds_derivatives: float = 0.0
+
+    def reset(self) -> None:
+        """Zero every counter."""
+        self.__init__()
+
+
+class _Part:
+    """One collision mesh with its collision sets: the normal set cached for the last
+    configuration, the lagged tangential set for friction."""
+
+    def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int) -> None:
+        self.mesh = mesh
+        self.n = n_vertices
+        self.key: bytes | None = None
+        self.collisions = ipctk.NormalCollisions()
+        self.tangential: ipctk.TangentialCollisions | None = None
+
+    def view(self, V: np.ndarray) -> np.ndarray:
+        """This part's rows of the full collision-vertex array (Fortran order)."""
+        return V if V.shape[0] == self.n else np.asfortranarray(V[: self.n])
+
+
+class ContactModel:
+    """IPC barrier, lagged friction and CCD over one fem3d mesh and its obstacles.
+
+    Parameters
+    ----------
+    X : (n, 3) float64
+        Rest positions of the simulation mesh (every body, concatenated).
+    T : (m, 4) int64
+        Tets (positively oriented), indexing ``X``.
+    body_ids : (n,) int, optional
+        Body of each vertex (default: all one body, 0).
+    body_names : sequence of str, optional
+        Names for messages (default ``"body 0"``, ...).
+    planes, meshes : sequences of PlaneObstacle, MeshObstacle
+    dhat : float
+        Barrier activation distance (absolute, > 0).
+    kappa : float, optional
+        Barrier stiffness; None: IPC's adaptive stiffness (:meth:`initialize_stiffness`).
+    mu : float, optional
+        Friction coefficient (>= 0; 0: frictionless).
+    eps_v : float, optional
+        Friction smoothing velocity (absolute, > 0): slip below ``eps_v`` is static friction.
+    self_contact : bool, optional
+        Let a body touch itself.
+    broad_phase : str, optional
+        A key of :data:`BROAD_PHASES`.
+    narrow_phase : str, optional
+        A key of :data:`NARROW_PHASES` (CCD): ``"additive"`` (default; Li et al. 2021's
+        conservative additive CCD, 0.9 of the time of impact) or ``"tight_inclusion"``.
+
+    Attributes
+    ----------
+    surface : (n_surface,) int64
+        fem3d vertex of each dynamic collision vertex.
+    mesh : ipctk.CollisionMesh
+    bbox_diagonal : float
+        Diagonal of the scene's bounding box (bodies and mesh obstacles at rest).
+    kappa, max_kappa : float
+        Current barrier stiffness and the ceiling of its adaptive updates.
+    stats : ContactStats
+    """
+
+    def __init__(
+        self,
+        X: np.ndarray,
+        T: np.ndarray,
+        *,
+        body_ids: np.ndarray | None = None,
+        body_names: Sequence[str] | None = None,
+        planes: Sequence[PlaneObstacle] = (),
+        meshes: Sequence[MeshObstacle] = (),
+        dhat: float,
+        kappa: float | None = None,
+        mu: float = 0.0,
+        eps_v: float = 1e-3,
+        self_contact: bool = False,
+        broad_phase: str = "hash_grid",
+        narrow_phase: str = "additive",
+    ) -> None:
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        T = np.ascontiguousarray(T, dtype=np.int64)
+        n = X.shape[0]
+        self.n_vertices = n
+        dhat = float(dhat)
+        if not (math.isfinite(dhat) and dhat > 0):
+            raise ParameterError(f"contact.dhat must be a finite number > 0, got {dhat}")
+        mu = float(mu)
+        if not (math.isfinite(mu) and mu >= 0):
+            raise ParameterError(f"contact.mu must be a finite number >= 0, got {mu}")
+        eps_v = float(eps_v)
+        if not (math.isfinite(eps_v) and eps_v > 0):
+            raise ParameterError(f"contact.eps_v must be a finite number > 0, got {eps_v}")
+        if kappa is not None and not (math.isfinite(kappa) and kappa > 0):
+            raise ParameterError(f"contact.kappa must be a finite number > 0, got {kappa}")
+        if broad_phase not in BROAD_PHASES:
+            raise ParameterError(f"contact broad phase must be one of {sorted(BROAD_PHASES)}, "
+                                 f"got {broad_phase!r}")
+        self.dhat, self.mu, self.eps_v, self.self_contact = dhat, mu, eps_v, bool(self_contact)
+        # ipctk's multithreaded assembly sums per-thread parts in a varying order: the same
+        # step differs in the last bits from run to run, which breaks bit-exact resume
+        ipctk.set_num_threads(1)
+        if narrow_phase not in NARROW_PHASES:
+            raise ParameterError(f"contact CCD must be one of {sorted(NARROW_PHASES)}, "
+                                 f"got {narrow_phase!r}")
+        self.broad_phase_name = broad_phase
+        self._broad_phase = BROAD_PHASES[broad_phase]()
+        self._ccd = NARROW_PHASES[narrow_phase]()
+        self.planes = tuple(planes)
+        self.meshes = tuple(meshes)
+
+        if body_ids is None:
+            body_ids = np.zeros(n, dtype=np.int64)
+        body_ids = np.asarray(body_ids, dtype=np.int64).reshape(-1)
+        if body_ids.shape != (n,):
+            raise ValueError(f"body_ids must be ({n},), got {body_ids.shape}")
+        self.body_ids = body_ids
+        n_bodies = int(body_ids.max()) + 1 if n else 0
+        self.body_names = (list(body_names) if body_names is not None
+                           else [f"body {i}" for i in range(n_bodies)])
+
+        # dynamic part: the boundary surface, renumbered
+        F = boundary_faces(T)
+        surface = np.unique(F)
+        self.surface = surface
+        renum = np.full(n, -1, dtype=np.int64)
+        renum[surface] = np.arange(surface.size)
+        faces = [renum[F]]
+        verts = [X[surface]]
+        groups = [body_ids[surface]]
+        # kinematic / static meshes
+        offset = surface.size
+        self._mesh_offsets = []
+        for m in self.meshes:
+            faces.append(m.faces + offset)
+            verts.append(m.vertices)
+            groups.append(np.full(m.vertices.shape[0], -1, dtype=np.int64))
+            self._mesh_offsets.append(offset)
+            offset += m.vertices.shape[0]
+        self.n_surface = surface.size
+        self.n_collision_vertices = offset
+        Fc = np.ascontiguousarray(np.concatenate(faces), dtype=np.int32)
+        self.faces = Fc
+        V0 = np.asfortranarray(np.concatenate(verts))
+        self._rest = V0
+        E = ipctk.edges(Fc)
+        self._groups = np.concatenate(groups)
+        #: Every surface and mesh obstacle (no planes): intersection checks and messages.
+        self.mesh = ipctk.CollisionMesh(V0, E, Fc)
+        self.mesh.can_collide = self._filter(self._groups)
+        # triangle meshes against each other through ipctk, only when two groups can touch
+        # at all (a lone body without self-contact skips the mesh broad phase); the planes
+        # are point-plane pairs evaluated here, vectorized (see the module's note)
+        self._parts: list[_Part] = []
+        if self.self_contact or np.unique(self._groups).size > 1:
+            self._parts.append(_Part(self.mesh, offset))
+        self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
+        self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
+        self._plane_lag: tuple[np.ndarray, ...] | None = None
+        pts = np.concatenate([X] + [m.vertices for m in self.meshes])
+        self.bbox_diagonal = float(np.linalg.norm(np.ptp(pts, axis=0))) if pts.size else 1.0
+        # fem3d DOF of each collision DOF (-1: obstacle)
+        dof = np.full((offset, 3), -1, dtype=np.int64)
+        dof[: surface.size] = 3 * surface[:, None] + np.arange(3)
+        self._dof = dof.reshape(-1)
+        self._n_dyn_dofs = 3 * surface.size
+
+        self.kappa = float(kappa) if kappa is not None else 1.0
+        self.adaptive = kappa is None
+        self.max_kappa = math.inf if kappa is not None else self.kappa
+        self._stiffness_initialized = kappa is not None
+        self._prev_min_distance: float | None = None
+        self._barrier = ipctk.BarrierPotential(dhat, self.kappa)
+        self._friction = ipctk.FrictionPotential(eps_v)
+        self._obstacles_at = self._rest[surface.size:].copy()
+        self._obstacles_t: np.ndarray = self._obstacles_at
+        self._lagged_V: np.ndarray | None = None
+        self._dt = 1.0
+        self.stats = ContactStats()
+
+    # -- set-up -------------------------------------------------------------------------------
+    def _filter(self, groups: np.ndarray) -> ipctk.CollisionFilter:
+        """Vertices of one group cannot touch: a group is one body (unless self-contact) or
+        all the obstacles together."""
+        if self.self_contact:
+            return ipctk.make_static_obstacle_filter(self.n_surface)
+        # ipctk's connected-components filter over synthetic faces chaining each group
+        tris = []
+        for g in np.unique(groups):
+            ids = np.flatnonzero(groups == g)
+            if ids.size >= 3:
+                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
+                                     axis=1))
+            elif ids.size == 2:
+                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
+        chain = np.ascontiguousarray(np.concatenate(tris), dtype=np.int32) if tris else \
+            np.zeros((0, 3), dtype=np.int32)
+        return ipctk.make_connected_components_filter(chain)
+
+    def set_kappa(self, kappa: float) -> None:
+        """Set the barrier stiffness (the cached collision set stays valid)."""
+        self.kappa = float(kappa)
+        self._barrier = ipctk.BarrierPotential(self.dhat, self.kappa)
+
+    # -- positions ----------------------------------------------------------------------------
+    def obstacle_positions(self, t: float) -> np.ndarray:
+        """Positions of every mesh obstacle's vertices at time ``t``, ``(k, 3)``."""
+        if not self.meshes:
+            return self._rest[self.n_surface:]
+        return np.concatenate([m.positions(t) for m in self.meshes])
+
+    def set_time(self, t: float) -> None:
+        """Place the kinematic obstacles at time ``t`` (for the potentials and CCD)."""
+        self._obstacles_at = np.asarray(self.obstacle_positions(t), dtype=np.float64)
+
+    def collision_vertices(self, q: np.ndarray, obstacles: np.ndarray | None = None
+                           ) -> np.ndarray:
+        """Collision-mesh vertex positions ``(n_collision, 3)`` (Fortran order) of ``q``."""
+        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+        obs = self._obstacles_at if obstacles is None else obstacles
+        V = np.empty((self.n_collision_vertices, 3), order="F")
+        V[: self.n_surface] = q3[self.surface]
+        V[self.n_surface:] = obs
+        return V
+
+    # -- collision sets -----------------------------------------------------------------------
+    def _build(self, part: _Part, V: np.ndarray) -> ipctk.NormalCollisions:
+        import time
+
+        t0 = time.perf_counter()
+        cands = ipctk.Candidates()
+        # boxes inflated by dhat / 2 each: pairs closer than dhat are candidates
+        cands.build(part.mesh, V, 0.5 * self.dhat, broad_phase=self._broad_phase)
+        col = ipctk.NormalCollisions()
+        col.build(cands, part.mesh, V, self.dhat)
+        self.stats.builds += 1
+        self.stats.seconds_build += time.perf_counter() - t0
+        return col
+
+    def _active_sets(self, q: np.ndarray) -> list[tuple[_Part, np.ndarray]]:
+        """``(part, its vertices)`` for every part with active pairs at ``q``."""
+        V = self.collision_vertices(q)
+        key = V.tobytes()
+        out = []
+        for part in self._parts:
+            Vp = part.view(V)
+            if part.key != key:
+                part.collisions = self._build(part, Vp)
+                part.key = key
+            if len(part.collisions):
+                out.append((part, Vp))
+        return out
+
+    def n_active(self, q: np.ndarray) -> int:
+        """Number of contact pairs closer than ``dhat`` at ``q``."""
+        n = sum(len(p.collisions) for p, _ in self._active_sets(q))
+        if self.planes:
+            n += int(np.count_nonzero(self._plane_distances(q) < self.dhat))
+        return n
+
+    # -- maps to fem3d DOFs ---------------------------------------------------------------------
+    def _to_full_vector(self, g: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        if out is None:
+            out = np.zeros(3 * self.n_vertices)
+        out[self._dof[: self._n_dyn_dofs]] += g[: self._n_dyn_dofs]
+        return out
+
+    def _to_full_matrix(self, Hs: Sequence[sp.spmatrix]) -> sp.coo_matrix:
+        N = 3 * self.n_vertices
+        rows, cols, vals = [], [], []
+        nd = self._n_dyn_dofs
+        for H in Hs:
+            H = H.tocoo()
+            keep = (H.row < nd) & (H.col < nd)
+            rows.append(self._dof[H.row[keep]])
+            cols.append(self._dof[H.col[keep]])
+            vals.append(H.data[keep])
+        if not rows:
+            return sp.coo_matrix((N, N))
+        return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                     np.concatenate(cols))), shape=(N, N))
+
+    # -- barrier ------------------------------------------------------------------------------
+    def barrier_energy(self, q: np.ndarray) -> float:
+        """``kappa * B(q)``; ``+inf`` when two primitives touch (distance 0)."""
+        import time
+
+        active = self._active_sets(q)
+        t0 = time.perf_counter()
+        e = sum(float(self._barrier(p.collisions, p.mesh, V)) for p, V in active)
+        e += self._plane_barrier(q, 0)
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return e if math.isfinite(e) else math.inf
+
+    def barrier_gradient(self, q: np.ndarray) -> np.ndarray:
+        """``kappa dB/dq``, ``(3n,)``."""
+        import time
+
+        active = self._active_sets(q)
+        t0 = time.perf_counter()
+        out = np.zeros(3 * self.n_vertices)
+        for p, V in active:
+            self._to_full_vector(self._barrier.gradient(p.collisions, p.mesh, V), out)
+        if self.planes:
+            self._to_full_vector(self._plane_barrier(q, 1), out)
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return out
+
+    def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
+        import time
+
+        active = self._active_sets(q)
+        t0 = time.perf_counter()
+        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        Hs = [self._barrier.hessian(p.collisions, p.mesh, V, how) for p, V in active]
+        if self.planes:
+            Hs.append(self._plane_barrier(q, 2, project=project))
+        self.stats.seconds_derivatives += time.perf_counter() - t0
+        return self._to_full_matrix(Hs)
+
+    # -- planes (point-plane pairs, vectorized) -------------------------------------------------
+    def _plane_distances(self, q: np.ndarray) -> np.ndarray:
+        """Signed distances ``(n_planes, n_surface)`` of the surface vertices."""
+        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
+        return self._plane_n @ P.T - self._plane_o[:, None]
+
+    def _plane_barrier(self, q: np.ndarray, order: int, *, project: bool = True):
+        """``kappa sum b(s^2, dhat^2)`` over point-plane pairs closer than ``dhat``: the
+        energy (``order`` 0), its gradient on the collision DOFs (1) or Hessian (2, sparse on
+        the collision DOFs; PSD-projected: the one eigenvalue along the normal clamped)."""
+        ns = self.n_surface
+        if not self.planes:
+            return 0.0 if order == 0 else np.zeros(3 * ns)
+        S = self._plane_distances(q)
+        if order == 0 and (S <= 0).any():
+            return math.inf
+        pl, vi = np.nonzero(S < self.dhat)
+        s = S[pl, vi]
+        z, zh = s * s, self.dhat * self.dhat
+        k = self.kappa
+        if order == 0:
+            return float(k * (-(z - zh) ** 2 * np.log(z / zh)).sum())
+        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z  # db/dz
+        n = self._plane_n[pl]
+        if order == 1:
+            g = np.zeros((ns, 3))
+            np.add.at(g, vi, (k * b1 * 2.0 * s)[:, None] * n)
+            return g.reshape(-1)
+        b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
+        c = k * (4.0 * z * b2 + 2.0 * b1)
+        if project:
+            c = np.maximum(c, 0.0)
+        blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
+        return self._blocks_matrix(vi, blocks)
+
+    def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> sp.coo_matrix:
+        """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO on the
+        collision DOFs (duplicates summed later)."""
+        d = 3 * vi[:, None] + np.arange(3)
+        rows = np.broadcast_to(d[:, :, None], blocks.shape).reshape(-1)
+        cols = np.broadcast_to(d[:, None, :], blocks.shape).reshape(-1)
+        N = 3 * self.n_collision_vertices
+        return sp.coo_matrix((blocks.reshape(-1), (rows, cols)), shape=(N, N))
+
+    def _lag_planes(self, q_lag: np.ndarray) -> None:
+        """Normal forces ``lambda = kappa |db/ds|`` and vertices of the point-plane pairs active
+        at ``q_lag`` (tangent planes are the planes': fixed)."""
+        self._plane_lag = None
+        if not self.planes or self.mu == 0.0:
+            return
+        S = self._plane_distances(q_lag)
+        pl, vi = np.nonzero((S < self.dhat) & (S > 0))
+        if pl.size == 0:
+            return
+        s = S[pl, vi]
+        z, zh = s * s, self.dhat * self.dhat
+        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z
+        lam = self.kappa * np.abs(b1 * 2.0 * s)
+        self._plane_lag = (pl, vi, lam)
+
+    def _plane_friction(self, q: np.ndarray, order: int, *, project: bool = True):
+        """Lagged point-plane friction ``sum mu lambda f0(|P (x - x_lag)|)`` (ipctk's
+        mollifier with ``eps = eps_v dt``): energy, gradient or Hessian on collision DOFs."""
+        ns = self.n_surface
+        if self._plane_lag is None:
+            return 0.0 if order == 0 else (np.zeros(3 * ns) if order == 1 else None)
+        pl, vi, lam = self._plane_lag
+        n = self._plane_n[pl]
+        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
+        w = P[vi] - self._lagged_V[vi]
+        u = w - (w * n).sum(axis=1, keepdims=True) * n
+        y = np.sqrt((u * u).sum(axis=1))
+        eps = self.eps_v * self._dt
+        small = y < eps
+        ml = self.mu * lam
+        if order == 0:
+            f0 = np.where(small, -y ** 3 / (3 * eps * eps) + y * y / eps + eps / 3, y)
+            return float((ml * f0).sum())
+        f1_y = np.where(small, -y / (eps * eps) + 2.0 / eps, 1.0 / np.maximum(y, eps))
+        if order == 1:
+            g = np.zeros((ns, 3))
+            np.add.at(g, vi, (ml * f1_y)[:, None] * u)
+            return g.reshape(-1)
+        # (f2 - f1 / y) u u^T / y^2 = c2 uh uh^T, uh = u / y: c2 = -y / eps^2 when slipping
+        # slowly, -1 / y when sliding
+        pos = y > 0
+        yy = np.where(pos, y, 1.0)
+        uh = np.where(pos[:, None], u / yy[:, None], 0.0)
+        c2 = np.where(small, -y / (eps * eps), -1.0 / yy)
+        Pm = np.eye(3) - n[:, :, None] * n[:, None, :]
+        blocks = ml[:, None, None] * (f1_y[:, None, None] * Pm
+                                      + c2[:, None, None] * uh[:, :, None] * uh[:, None, :])
+        if project:
+            w_, V_ = np.linalg.eigh(blocks)
+            blocks = (V_ * np.maximum(w_, 0.0)[:, None, :]) @ V_.transpose(0, 2, 1)
+        return self._blocks_matrix(vi, blocks)
+
+    # -- friction (lagged) --------------------------------------------------------------------
+    def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None) -> None:
+        """Fix the friction's normal forces and tangent bases at ``q_lag`` (start of a step).
+
+        Parameters
+        ----------
+        q_lag : (3n,) or (n, 3) float64
+            Lagged positions (the step's start ``q_t``).
+        dt : float
+            The step: slip displacement below ``eps_v * dt`` is static friction.
+        t_start : float, optional
+            Time of ``q_lag`` (kinematic obstacles' displacement over the step starts at their
+            positions then; default: where they are now).
+        """
+        self._dt = float(dt)
+        self._friction = ipctk.FrictionPotential(self.eps_v * self._dt)
+        obs_t = self._obstacles_at if t_start is None else self.obstacle_positions(t_start)
+        self._obstacles_t = np.asarray(obs_t, dtype=np.float64)
+        V = self.collision_vertices(q_lag, self._obstacles_t)
+        self._lagged_V = V
+        self._lag_planes(q_lag)
+        for part in self._parts:
+            part.tangential = None
+            if self.mu == 0.0:
+                continue
+            Vp = part.view(V)
+            col = self._build(part, Vp)
+            if len(col):
+                tc = ipctk.TangentialCollisions()
+                tc.build(part.mesh, Vp, col, self._barrier, self.mu)
+                part.tangential = tc if len(tc) else None
+
+    def _slips(self, q: np.ndarray) -> list[tuple[_Part, np.ndarray]]:
+        """``(part, slip displacement of its vertices)`` for the parts with friction pairs."""
+        parts = [p for p in self._parts if p.tangential is not None]
+        if not parts or self._lagged_V is None:
+            return []
+        U = np.asfortranarray(self.collision_vertices(q) - self._lagged_V)
+        return [(p, p.view(U)) for p in parts]
+
+    def friction_energy(self, q: np.ndarray) -> float:
+        """Lagged friction potential ``D(q)`` (0 without friction or lagged contacts)."""
+        e = sum(float(self._friction(p.tangential, p.mesh, U)) for p, U in self._slips(q))
+        return e + self._plane_friction(q, 0)
+
+    def friction_gradient(self, q: np.ndarray) -> np.ndarray:
+        """``dD/dq``, ``(3n,)``."""
+        out = np.zeros(3 * self.n_vertices)
+        for p, U in self._slips(q):
+            self._to_full_vector(self._friction.gradient(p.tangential, p.mesh, U), out)
+        if self._plane_lag is not None:
+            self._to_full_vector(self._plane_friction(q, 1), out)
+        return out
+
+    def friction_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO."""
+        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
+        if self._plane_lag is not None:
+            Hs.append(self._plane_friction(q, 2, project=project))
+        return self._to_full_matrix(Hs)
+
+    @property
+    def n_friction_pairs(self) -> int:
+        """Lagged friction pairs (0 when frictionless)."""
+        n = sum(len(p.tangential) for p in self._parts if p.tangential is not None)
+        return n + (0 if self._plane_lag is None else int(self._plane_lag[0].size))
+
+    # -- totals -------------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + friction."""
+        e = self.barrier_energy(q)
+        if not math.isfinite(e):
+            return math.inf
+        return e + self.friction_energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Gradient of :meth:`energy`, ``(3n,)``."""
+        return self.barrier_gradient(q) + self.friction_gradient(q)
+
+    def hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
+        """Hessian of :meth:`energy` (PSD-projected per pair), ``(3n, 3n)`` COO (duplicates
+        summed on conversion)."""
+        Hb = self.barrier_hessian(q, project=project)
+        if not self.n_friction_pairs:
+            return Hb
+        Hf = self.friction_hessian(q, project=project)
+        N = 3 * self.n_vertices
+        return sp.coo_matrix((np.concatenate([Hb.data, Hf.data]),
+                              (np.concatenate([Hb.row, Hf.row]),
+                               np.concatenate([Hb.col, Hf.col]))), shape=(N, N))
+
+    # -- CCD, distances, intersections --------------------------------------------------------
+    def max_step(self, q0: np.ndarray, q1: np.ndarray) -> float:
+        """Largest ``a`` in ``[0, 1]`` such that ``q0 + a (q1 - q0)`` is collision free.
+
+        Linear trajectories, bodies against each other, themselves (self-contact) and the
+        obstacles (at their current positions); ipctk's CCD (Tight Inclusion, conservative).
+        """
+        import time
+
+        t0 = time.perf_counter()
+        V0 = self.collision_vertices(q0)
+        V1 = self.collision_vertices(q1)
+        a = 1.0
+        for part in self._parts:
+            if part.mesh is not self.mesh:
+                continue  # planes: below
+            a = min(a, float(ipctk.compute_collision_free_stepsize(
+                part.mesh, part.view(V0), part.view(V1), broad_phase=self._broad_phase,
+                narrow_phase_ccd=self._ccd)))
+        a = min(a, self._plane_step(V0[: self.n_surface], V1[: self.n_surface]))
+        self.stats.ccd_calls += 1
+        self.stats.seconds_ccd += time.perf_counter() - t0
+        return a
+
+    def _plane_step(self, P0: np.ndarray, P1: np.ndarray) -> float:
+        """CCD of points moving linearly against the static planes: ``0.9`` of the first time
+        of impact (the conservative rescaling of ipctk's additive CCD). Done here, vectorized:
+        ipctk's plane CCD goes through a vertex-vertex broad phase of the point cloud."""
+        a = 1.0
+        for p in self.planes:
+            s0 = (P0 - p.point) @ p.normal
+            s1 = (P1 - p.point) @ p.normal
+            hit = s1 < 0.0
+            if hit.any():
+                toi = s0[hit] / (s0[hit] - s1[hit])
+                a = min(a, 0.9 * float(toi.min()))
+        return max(a, 0.0)
+
+    def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
+        """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at
+        ``q`` (1.0 without kinematic obstacles)."""
+        if not any(m.motion is not None for m in self.meshes):
+            return 1.0
+        V0 = self.collision_vertices(q, self.obstacle_positions(t0))
+        V1 = self.collision_vertices(q, self.obstacle_positions(t1))
+        return float(ipctk.compute_collision_free_stepsize(
+            self.mesh, V0, V1, broad_phase=self._broad_phase, narrow_phase_ccd=self._ccd))
+
+
+    def minimum_distance(self, q: np.ndarray) -> float:
+        """Smallest distance between primitives that can touch (planes included); ``inf``
+        when no pair is closer than ``dhat``."""
+        V = self.collision_vertices(q)
+        d = math.inf
+        for part, Vp in self._active_sets(q):
+            # ipctk returns the squared distance
+            d2 = float(part.collisions.compute_minimum_distance(part.mesh, Vp))
+            d = min(d, math.sqrt(max(d2, 0.0)))
+        for p in self.planes:
+            d = min(d, float(p.signed_distance(V[: self.n_surface]).min()))
+        return d
+
+    def plane_gaps(self, q: np.ndarray) -> np.ndarray:
+        """Signed distance of every surface vertex to every plane, ``(n_planes, n_surface)``."""
+        if not self.planes:
+            return np.zeros((0, self.n_surface))
+        return self._plane_distances(q)
+
+    def has_intersections(self, q: np.ndarray) -> bool:
+        """Intersecting triangles (``ipctk.has_intersections``) or a vertex on or below a
+        plane."""
+        V = self.collision_vertices(q)
+        if self.planes and (self.plane_gaps(q) <= 0).any():
+            return True
+        return bool(ipctk.has_intersections(self.mesh, V, broad_phase=self._broad_phase))
+
+    def intersecting_pairs(self, q: np.ndarray) -> list[tuple[str, str]]:
+        """Names of the (body/obstacle, body/obstacle) pairs that intersect at ``q``.
+
+        Slow (one collision mesh per pair); meant for error messages.
+        """
+        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+        out: list[tuple[str, str]] = []
+        names = list(self.body_names)
+        V = self.collision_vertices(q3)
+        groups = self._groups.copy()
+        # each mesh obstacle its own group for the names
+        for i, off in enumerate(self._mesh_offsets):
+            k = self.meshes[i].vertices.shape[0]
+            groups[off:off + k] = len(names) + i
+        names += [m.name for m in self.meshes]
+        present = np.unique(groups)
+        faces_group = groups[self.faces[:, 0]]
+        for ia, a in enumerate(present):
+            for b in present[ia:]:
+                if a == b and (a >= len(self.body_names) or not self.self_contact):
+                    continue
+                sel = np.flatnonzero((faces_group == a) | (faces_group == b))
+                F = self.faces[sel]
+                used = np.unique(F)
+                ren = np.full(V.shape[0], -1, dtype=np.int64)
+                ren[used] = np.arange(used.size)
+                Fs = np.ascontiguousarray(ren[F], dtype=np.int32)
+                Vs = np.asfortranarray(V[used])
+                cm = ipctk.CollisionMesh(Vs, ipctk.edges(Fs), Fs)
+                if a != b:
+                    ga = groups[used]
+                    cm.can_collide = ipctk.make_connected_components_filter(
+                        self._chain(ga))
+                if ipctk.has_intersections(cm, Vs):
+                    out.append((names[a], names[b]))
+        for p in self.planes:
+            gaps = p.signed_distance(V[: self.n_surface])
+            for b in np.unique(self._groups[: self.n_surface][gaps <= 0]):
+                out.append((names[b], p.name))
+        return out
+
+    @staticmethod
+    def _chain(groups: np.ndarray) -> np.ndarray:
+        tris = []
+        for g in np.unique(groups):
+            ids = np.flatnonzero(groups == g)
+            if ids.size >= 3:
+                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
+                                     axis=1))
+            elif ids.size == 2:
+                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
+        return np.ascontiguousarray(np.concatenate(tris), dtype=np.int32)
+
+    def check_admissible(self, q: np.ndarray, *, step: int | None = None) -> None:
+        """Raise :class:`SimulationError` naming the bodies when ``q`` intersects or touches.
+
+        Raises
+        ------
+        SimulationError
+            Intersecting bodies/obstacles, or primitives at distance 0 (infinite barrier).
+        """
+        if self.has_intersections(q):
+            pairs = self.intersecting_pairs(q)
+            what = "; ".join(f"{a} and {b}" if a != b else f"{a} with itself"
+                             for a, b in pairs) or "the collision surfaces"
+            raise SimulationError(f"contact: the state is not intersection-free: {what} "
+                                  "intersect", step=step)
+        if not math.isfinite(self.barrier_energy(q)):
+            raise SimulationError("contact: two surfaces touch (distance 0); separate them "
+                                  "by more than 0", step=step)
+
+    # -- barrier stiffness (IPC) --------------------------------------------------------------
+    def initialize_stiffness(self, q: np.ndarray, grad_energy: np.ndarray,
+                             average_mass: float) -> float:
+        """IPC's initial ``kappa`` (and its ceiling) from the gradients at ``q``.
+
+        Parameters
+        ----------
+        q : (3n,) float64
+        grad_energy : (3n,) float64
+            Gradient of the rest of the objective with respect to the positions.
+        average_mass : float
+            Mean vertex mass.
+
+        Returns
+        -------
+        float
+            The new ``kappa`` (unchanged when it was given explicitly).
+        """
+        if not self.adaptive:
+            return self.kappa
+        unit = ipctk.BarrierPotential(self.dhat, 1.0)
+        gb = np.zeros(3 * self.n_vertices)
+        for part, Vp in self._active_sets(q):
+            self._to_full_vector(unit.gradient(part.collisions, part.mesh, Vp), gb)
+        if self.planes:
+            kappa = self.kappa
+            self.kappa = 1.0
+            self._to_full_vector(self._plane_barrier(q, 1), gb)
+            self.kappa = kappa
+        kappa, kmax = ipctk.initial_barrier_stiffness(
+            self.bbox_diagonal, unit.barrier, self.dhat, float(average_mass),
+            np.asarray(grad_energy, dtype=np.float64), gb)
+        self.max_kappa = float(kmax)
+        self.set_kappa(float(kappa))
+        self._stiffness_initialized = True
+        self._prev_min_distance = None
+        return self.kappa
+
+    def update_stiffness(self, q: np.ndarray) -> float:
+        """IPC's update: double ``kappa`` (up to :attr:`max_kappa`) when the minimum distance
+        shrinks below ``1e-9`` of the scene's size. Returns the (possibly new) ``kappa``."""
+        if not self.adaptive:
+            return self.kappa
+        d = self.minimum_distance(q)
+        if not math.isfinite(d):
+            self._prev_min_distance = d
+            return self.kappa
+        prev = self._prev_min_distance if self._prev_min_distance is not None else d
+        prev = prev if math.isfinite(prev) else d
+        # ipctk takes squared distances (its barrier is on d^2)
+        new = float(ipctk.update_barrier_stiffness(prev * prev, d * d, self.max_kappa,
+                                                   self.kappa, self.bbox_diagonal))
+        self._prev_min_distance = d
+        if new != self.kappa:
+            self.set_kappa(new)
+        return self.kappa
+
+
+
+# ---------------------------------------------------------------------------------------------
+# the objective term of backward Euler
+
+
+class ContactTerm:
+    """A :class:`ContactModel` as an objective term of :func:`fem3d.integrators.implicit_euler`.
+
+    Implements the integrator's ``ObjectiveTerm`` protocol in positions ``q`` (barrier +
+    lagged friction energy, gradient, PSD-projected Hessian, ``max_step`` by CCD) and the
+    per-step hooks backward Euler calls when present:
+
+    * :meth:`begin_step` — obstacles to their end-of-step positions, friction lagged at the
+      step's start, the moving pins' and obstacles' own motion checked by CCD, IPC's initial
+      ``kappa`` when contact first appears;
+    * :meth:`after_iteration` — IPC's adaptive ``kappa`` update (True when the objective
+      changed);
+    * :meth:`newton_converged` — IPC's velocity-based stopping: the Newton step's largest
+      position change divided by ``dt`` is below ``tolerance * bbox_diagonal`` (per second).
+
+    Parameters
+    ----------
+    contact : ContactModel
+    tolerance : float, optional
+        IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
+    pattern_margin : float, optional
+        The solver's pattern is widened, at each step's start, by the blocks of the
+        mesh-mesh pairs closer than ``pattern_margin * dhat`` (0: only by the active ones,
+        re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
+    """
+
+    #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
+    requires_convergence = True
+
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
+                 pattern_margin: float = 4.0) -> None:
+        tolerance = float(tolerance)
+        if not (math.isfinite(tolerance) and tolerance > 0):
+            raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
+                                 f"{tolerance}")
+        self.contact = contact
+        self.tolerance = tolerance
+        self._dt = 1.0
+        self._had_contact = False
+        self._lag: tuple[np.ndarray, float, float] | None = None
+        self.pattern_margin = float(pattern_margin)
+        self._hint: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial = self.state_array()
+
+    # -- ObjectiveTerm ------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + lagged friction at ``q``."""
+        return self.contact.energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Its gradient, ``(3n,)``."""
+        return self.contact.gradient(q)
+
+    def hessian(self, q: np.ndarray):
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
+        explicit zeros on the blocks of the pairs within the step's pattern margin (see
+        :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
+        H = self.contact.hessian(q)
+        if self._hint is None:
+            return H.row, H.col, H.data
+        r, c = self._hint
+        return (np.concatenate([H.row, r]), np.concatenate([H.col, c]),
+                np.concatenate([H.data, np.zeros(r.size)]))
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """CCD: the largest collision-free fraction of ``dq``."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
+
+    # -- per-step hooks -----------------------------------------------------------------------
+    def begin_step(self, q_t: np.ndarray, v_t: np.ndarray, q_base: np.ndarray, t: float,
+                   dt: float, *, step: int | None = None) -> None:
+        """Prepare a step from ``(q_t, v_t)`` at time ``t`` whose Newton start is ``q_base``
+        (``q_t`` with the pins at their end-of-step positions).
+
+        Raises
+        ------
+        SimulationError
+            A kinematic obstacle or the moving pins would pass through a body within the
+            step (the message says which), or the start is not intersection-free.
+        """
+        cm = self.contact
+        self._dt = float(dt)
+        q_t = np.asarray(q_t, dtype=np.float64).reshape(-1)
+        q_base = np.asarray(q_base, dtype=np.float64).reshape(-1)
+        # the obstacles' motion over the step, the bodies held at q_t
+        if cm.obstacle_step(q_t, t, t + dt) < 1.0:
+            moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)
+            raise SimulationError(f"contact: the moving obstacle ({moving}) would pass through "
+                                  "a body within one step (it may advance by less than its "
+                                  "gap to the bodies per step); use a smaller dt or a slower "
+                                  "motion", step=step)
+        cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
+        self._lag = (q_t, t, dt)
+        cm.set_time(t + dt)
+        v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
+        self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
+        if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
+            raise SimulationError("contact: the moving pins would drive the surface through "
+                                  "itself or an obstacle within one step; use a smaller dt",
+                                  step=step)
+
+    def _pattern_hint(self, q: np.ndarray, reach: float):
+        """``(rows, cols)`` of the Hessian blocks of the mesh-mesh pairs closer than the
+        margin ``pattern_margin * dhat + reach`` at ``q`` (None without mesh-mesh contact;
+        ``reach``: how far two vertices may approach each other within the step). The
+        solver's pattern is the union of the elastic one and every block seen so far, and is
+        re-analysed only when a block appears that was never seen: asking for the pairs
+        within a margin now makes that rare."""
+        cm = self.contact
+        parts = cm._parts
+        if not parts or self.pattern_margin <= 0:
+            return None
+        V = cm.collision_vertices(q)
+        margin = self.pattern_margin * cm.dhat + reach
+        rows, cols = [], []
+        for part in parts:
+            Vp = part.view(V)
+            cands = ipctk.Candidates()
+            cands.build(part.mesh, Vp, 0.5 * margin, broad_phase=cm._broad_phase)
+            col = ipctk.NormalCollisions()
+            col.build(cands, part.mesh, Vp, margin)
+            if not len(col):
+                continue
+            H = ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)
+            full = cm._to_full_matrix([H])
+            rows.append(full.row)
+            cols.append(full.col)
+        if not rows:
+            return None
+        return np.concatenate(rows), np.concatenate(cols)
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """IPC's initial ``kappa`` (adaptive stiffness only), from the gradient of the rest of
+        the objective in positions (``grad_rest``, ``(3n,)``; fixed DOFs zeroed) and the mean
+        vertex mass. In fem3d's objective (energy units, ``1/(2 dt^2) |x - x~|_M^2 + ...``)
+        IPC's mass-based bounds scale with ``average_mass / dt^2``."""
+        cm = self.contact
+        if not cm.adaptive:
+            return
+        active = cm.n_active(q) > 0
+        # once at the start, and again when contact (re)appears, as IPC does
+        if not cm._stiffness_initialized or (active and not self._had_contact):
+            before = cm.kappa
+            cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
+            if cm.kappa != before and cm.mu > 0 and self._lag is not None:
+                # the lagged normal forces scale with kappa: lag again with the new one
+                q_t, t, dt = self._lag
+                cm.lag_friction(q_t, dt, t_start=t)
+        self._had_contact = active
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        """IPC's adaptive ``kappa`` update after a Newton iteration; True when it changed."""
+        before = self.contact.kappa
+        return self.contact.update_stiffness(q) != before
+
+    def newton_converged(self, dq: np.ndarray) -> bool:
+        """IPC's stopping rule on the Newton step's position change ``dq`` (``(3n,)``)."""
+        dq = np.asarray(dq)
+        if dq.size == 0:
+            return True
+        return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Back to the adaptive state at construction (a :meth:`Simulation.reset`)."""
+        self.load_state_array(self._initial)
+
+    def state_array(self) -> np.ndarray:
+        """:meth:`snapshot` as a ``(5,) float64`` array (for ``.npz`` checkpoints):
+        ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
+        cm = self.contact
+        prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
+        return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
+                         float(self._had_contact)], dtype=np.float64)
+
+    def load_state_array(self, a: np.ndarray) -> None:
+        """Undo to a :meth:`state_array`."""
+        a = np.asarray(a, dtype=np.float64).reshape(-1)
+        if a.shape != (5,):
+            raise ValueError(f"contact state must have 5 values, got {a.shape}")
+        cm = self.contact
+        cm.set_kappa(float(a[0]))
+        cm.max_kappa = float(a[1])
+        cm._stiffness_initialized = bool(a[2])
+        cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
+        self._had_contact = bool(a[4])
+
+
+# ---------------------------------------------------------------------------------------------
+# from a scene
+
+
+def contact_from_scene(scene, assembled) -> ContactTerm:
+    """The :class:`ContactTerm` of a scene (``scene.contact``, ``scene.obstacles``).
+
+    ``dhat`` is relative to the diagonal of the scene's bounding box at rest (bodies and
+    mesh obstacles), ``eps_v`` and ``tolerance`` to that diagonal per second; a mesh
+    obstacle is a surface file (OBJ, STL, ... read by :func:`fem3d.mesh.read_surface_mesh`)
+    under its ``transform``, moving by its keyframed ``motion`` (as moving pins do; the pivot
+    defaults to the obstacle's vertex centroid).
+
+    Parameters
+    ----------
+    scene : fem3d.scene.Scene
+    assembled : fem3d.scenes.Assembled
+
+    Raises
+    ------
+    InputError
+        ``FILE: key.path: ...`` for a bad obstacle file or motion.
+    """
+    from fem3d.errors import InputError
+    from fem3d.mesh import read_surface_mesh
+    from fem3d.motion import Keyframes
+    from fem3d.scenes import transform_points
+
+    spec = scene.contact
+    planes, meshes = [], []
+    for i, ob in enumerate(scene.obstacles):
+        key = f"obstacles[{i}]"
+        if ob.plane is not None:
+            planes.append(PlaneObstacle(ob.plane.point, ob.plane.normal, name=f"{key} (plane)"))
+            continue
+        m = ob.mesh
+        path = scene.path(m.path)
+        if not path.is_file():
+            raise scene.error(f"{key}.mesh.path", f"no such file {path}")
+        try:
+            V, F = read_surface_mesh(path)
+        except InputError as exc:
+            raise scene.error(f"{key}.mesh.path", str(exc)) from None
+        V = transform_points(V, m.transform)
+        motion = None
+        if m.motion is not None:
+            mo = m.motion
+            pivot = V.mean(axis=0) if mo.pivot is None else np.asarray(mo.pivot, float)
+            try:
+                kf = Keyframes([k.t for k in mo.keyframes], [k.translate for k in mo.keyframes],
+                               [k.rotate_deg for k in mo.keyframes], pivot, mo.interpolation)
+            except ParameterError as exc:
+                raise scene.error(f"{key}.mesh.motion", str(exc)) from None
+            motion = kf.apply
+        try:
+            meshes.append(MeshObstacle(V, F, motion=motion, name=f"{key} ({path.name})"))
+        except ParameterError as exc:
+            raise scene.error(f"{key}.mesh", str(exc)) from None
+    a = assembled
+    body_ids = np.zeros(a.X.shape[0], dtype=np.int64)
+    for b, sl in enumerate(a.body_vertices):
+        body_ids[sl] = b
+    names = [f"bodies[{b}] ({body.label})" for b, body in enumerate(scene.bodies)]
+    pts = np.concatenate([a.X] + [m.vertices for m in meshes])
+    L = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
+                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa, mu=spec.mu,
+                      eps_v=spec.eps_v * L, self_contact=spec.self_contact)
+    return ContactTerm(cm, tolerance=spec.tolerance)

@@ -1,0 +1,213 @@
+"""Contact scenes end to end: scene files with [contact] and obstacles, through Simulation and
+the ``fem3d`` command line (exit status, the one-line message, the files written)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import ipctk
+import numpy as np
+import pytest
+
+from fem3d.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
+from fem3d.cli import main
+from fem3d.errors import InputError, ParameterError
+from fem3d.mesh import boundary_faces
+from fem3d.output import read_energy_csv
+from fem3d.scene import load_scene
+from fem3d.simulation import Simulation
+from tests.conftest_mesh_helpers import medit_text
+from tests.test_contact import box_mesh
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def write_scene(tmp_path: Path, *, lower_y=0.004, upper_y=0.07, integrator="implicit",
+                mu=0.2, obstacles_extra="") -> Path:
+    """Two soft 10 cm blocks above a ground plane: the upper one falls onto the lower one."""
+    X, T = box_mesh((2, 1, 2), size=(0.1, 0.05, 0.1))
+    (tmp_path / "block.mesh").write_text(medit_text(X, T))
+    text = f"""
+[simulation]
+integrator = "{integrator}"
+dt = 0.01
+steps = 12
+gravity = [0.0, -9.81, 0.0]
+
+[[bodies]]
+name = "lower"
+mesh = "block.mesh"
+transform = {{ translate = [0.0, {lower_y}, 0.0] }}
+material = {{ model = "neo_hookean", E = 2e5, nu = 0.3, density = 1000.0 }}
+
+[[bodies]]
+name = "upper"
+mesh = "block.mesh"
+transform = {{ translate = [0.03, {upper_y}, 0.02] }}
+material = {{ model = "neo_hookean", E = 2e5, nu = 0.3, density = 1000.0 }}
+
+[contact]
+enabled = true
+dhat = 1e-3
+mu = {mu}
+
+[[obstacles]]
+plane = {{ point = [0.0, 0.0, 0.0], normal = [0.0, 1.0, 0.0] }}
+{obstacles_extra}
+"""
+    path = tmp_path / "stack.toml"
+    path.write_text(text)
+    return path
+
+
+def surfaces_intersect(sim: Simulation) -> bool:
+    """Triangle-triangle intersections of the bodies' boundaries, by a fresh ipctk mesh."""
+    F = boundary_faces(sim.model.T).astype(np.int32)
+    X = np.asfortranarray(sim.model.X)
+    cm = ipctk.CollisionMesh.build_from_full_mesh(X, ipctk.edges(F), F)
+    return ipctk.has_intersections(cm, cm.vertices(np.asfortranarray(sim.q)))
+
+
+def test_stack_scene_never_intersects_and_the_upper_block_lands(tmp_path):
+    sim = Simulation(load_scene(str(write_scene(tmp_path))))
+    assert sim.contact is not None and sim.fixed_vertices.size == 0
+    upper = sim.assembled.body_vertices[1]
+    y0 = sim.q[upper, 1].min()
+    for _ in range(12):
+        info = sim.step()
+        assert sim.last_stats.converged
+        assert sim.q[:, 1].min() > 0.0  # nothing below the ground
+        assert not surfaces_intersect(sim)
+    assert info.newton_iterations >= 1
+    assert sim.q[upper, 1].min() < y0 - 0.01  # it fell onto the lower block
+
+
+def test_cli_runs_a_contact_scene_and_writes_every_body(tmp_path, capsys):
+    scene = write_scene(tmp_path)
+    out = tmp_path / "run"
+    status = main(["run", str(scene), "--steps", "6", "--frame-every", "3", "--out", str(out),
+                   "--quiet", "--no-preview"])
+    assert status == 0, capsys.readouterr().err
+    import meshio
+
+    frames = sorted((out / "frames").glob("*.vtu"))
+    assert len(frames) == 3
+    m = meshio.read(frames[-1])
+    X, T = box_mesh((2, 1, 2), size=(0.1, 0.05, 0.1))
+    # both blocks' boundaries are in the frame
+    assert m.points.shape[0] == 2 * np.unique(boundary_faces(T)).size or \
+        m.points.shape[0] == 2 * X.shape[0]
+    assert len(read_energy_csv(out / "energy.csv")["t"]) == 7
+
+
+def test_linearly_implicit_euler_refuses_contact_scenes(tmp_path, capsys):
+    scene = write_scene(tmp_path)
+    status = main(["run", str(scene), "--integrator", "linear", "--out", str(tmp_path / "x"),
+                   "--quiet", "--no-preview"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "simulation.integrator" in err and "contact needs backward Euler" in err
+    # and the viewer's integrator switch says the same
+    sim = Simulation(load_scene(str(scene)))
+    with pytest.raises(ParameterError, match="contact needs backward Euler"):
+        sim.integrator = "linear"
+    assert sim.integrator == "implicit"
+
+
+def test_intersecting_bodies_at_the_start_are_named(tmp_path, capsys):
+    scene = write_scene(tmp_path, upper_y=0.03)  # the upper block overlaps the lower one
+    with pytest.raises(InputError, match=r"bodies\[0\] \(lower\) and bodies\[1\] \(upper\)"):
+        Simulation(load_scene(str(scene)))
+    status = main(["run", str(scene), "--out", str(tmp_path / "x"), "--quiet",
+                   "--no-preview"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and len(err.splitlines()) == 1
+    assert "stack.toml" in err and "intersect" in err
+    below = write_scene(tmp_path, lower_y=-0.01)  # the lower block pokes through the ground
+    with pytest.raises(InputError, match=r"bodies\[0\] \(lower\) and obstacles\[0\]"):
+        Simulation(load_scene(str(below)))
+
+
+def test_obstacles_without_contact_are_refused(tmp_path):
+    scene = write_scene(tmp_path)
+    text = scene.read_text().replace("enabled = true", "enabled = false")
+    scene.write_text(text)
+    with pytest.raises(InputError, match="obstacles act through contact"):
+        Simulation(load_scene(str(scene)))
+
+
+def test_contact_checkpoint_resume_is_bit_exact(tmp_path, capsys):
+    """Split while the blocks are in contact (the solver pattern has grown by the contact
+    pairs and the barrier stiffness has adapted): the resumed run equals the straight one."""
+    scene = write_scene(tmp_path)
+    common = ["--quiet", "--no-preview", "--frame-every", "3"]
+    a, b = tmp_path / "straight", tmp_path / "resumed"
+    assert main(["run", str(scene), "--steps", "12", "--checkpoint-every", "12", "--out",
+                 str(a), *common]) == 0
+    assert main(["run", str(scene), "--steps", "8", "--checkpoint-every", "8", "--out",
+                 str(b), *common]) == 0
+    mid = load_run_checkpoint(b / CHECKPOINT_NAME)
+    assert mid.snapshot["pattern_keys"].size > 0  # contact pairs had widened the pattern
+    assert mid.snapshot["contact"].shape == (5,)
+    assert main(["resume", str(b), "--steps", "12", "--quiet"]) == 0
+    ca, cb = load_run_checkpoint(a / CHECKPOINT_NAME), load_run_checkpoint(b / CHECKPOINT_NAME)
+    for key in ("q", "v", "contact", "pattern_keys"):
+        assert np.array_equal(ca.snapshot[key], cb.snapshot[key]), key
+    assert (a / "energy.csv").read_bytes() == (b / "energy.csv").read_bytes()
+    for name in sorted(p.name for p in (a / "frames").iterdir()):
+        assert (a / "frames" / name).read_bytes() == (b / "frames" / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "data" / "scenes").glob(
+    "contact_*.toml")))
+def test_gallery_contact_scenes_load_and_step(name):
+    sim = Simulation(load_scene(name))
+    assert sim.contact is not None
+    for _ in range(2):
+        sim.step()
+    gaps = sim.contact.contact.plane_gaps(sim.q)
+    assert (gaps > 0).all()
+    assert not sim.contact.contact.has_intersections(sim.q.reshape(-1))
+
+
+def test_keyframed_mesh_obstacle_lifts_a_block_without_intersecting(tmp_path):
+    """A mesh obstacle (an OBJ floor, keyframed upward) pushes a block resting on it.
+
+    Slowly (0.1 mm per step, below the gap): a kinematic obstacle's motion over a step is
+    checked by CCD with the bodies held where they are, so it may not advance by more than
+    its gap to them in one step (docs/contact.md, limits)."""
+    from tests.conftest_mesh_helpers import obj_text
+
+    X, T = box_mesh((2, 1, 2), size=(0.1, 0.05, 0.1))
+    (tmp_path / "block.mesh").write_text(medit_text(X, T))
+    V = np.array([[-0.2, 0.0, -0.2], [0.3, 0.0, -0.2], [0.3, 0.0, 0.3], [-0.2, 0.0, 0.3]])
+    (tmp_path / "floor.obj").write_text(obj_text(V, np.array([[0, 2, 1], [0, 3, 2]])))
+    (tmp_path / "lift.toml").write_text("""
+[simulation]
+integrator = "implicit"
+dt = 0.01
+steps = 10
+
+[[bodies]]
+mesh = "block.mesh"
+transform = { translate = [0.0, 0.0002, 0.0] }
+material = { model = "neo_hookean", E = 2e5, nu = 0.3, density = 1000.0 }
+
+[contact]
+enabled = true
+
+[[obstacles]]
+mesh = { path = "floor.obj", motion = { keyframes = [
+    { t = 0.0, translate = [0.0, 0.0, 0.0] }, { t = 0.1, translate = [0.0, 0.001, 0.0] }] } }
+""")
+    sim = Simulation(load_scene(str(tmp_path / "lift.toml")))
+    assert len(sim.obstacles()) == 1
+    for _ in range(10):
+        sim.step()
+        name, Vt, F = sim.obstacles()[0]
+        floor_y = Vt[:, 1].max()
+        assert sim.q[:, 1].min() > floor_y  # never below the (moving) floor
+        assert not sim.contact.contact.has_intersections(sim.q.reshape(-1))
+    assert floor_y == pytest.approx(0.001)
+    assert sim.q[:, 1].min() > 0.001  # carried up with it (it started 0.0002 above y = 0)
