@@ -53,6 +53,7 @@ __all__ = [
     "add_view_subcommand",
     "HOTKEYS",
     "camera_for_points",
+    "plane_quad",
     "energy_text",
     "format_energy",
     "format_status",
@@ -84,6 +85,8 @@ ENERGY_PLOTS = (
 
 #: Samples per energy plot (4 plots x 2 float32 arrays: 6.4 kB per update at 200).
 PLOT_POINTS = 200
+
+OBSTACLE_COLOR = (150, 150, 150)
 
 SKIN_COLOR = (236, 196, 150)
 SIM_COLOR = (90, 160, 230)
@@ -468,6 +471,27 @@ def _check_port_free(host: str, port: int) -> None:
             ) from None
 
 
+def plane_quad(point: np.ndarray, normal: np.ndarray, center: np.ndarray,
+               half: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square piece of a plane for display: ``2 half`` wide, centred on ``center``'s
+    projection onto the plane.
+
+    Returns
+    -------
+    vertices : (4, 3) float64
+    faces : (2, 3) uint32
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    c = np.asarray(center, dtype=np.float64)
+    c = c - ((c - np.asarray(point, dtype=np.float64)) @ n) * n
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    corners = [c + half * (sa * a + sb * b) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    return np.asarray(corners), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
+
+
 def _surface_faces(sim: Any) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(sim.surface_faces, dtype=np.uint32))
 
@@ -582,6 +606,8 @@ class Viewer:
         self._mesh_handle: Any = None
         self._mesh_handle_mode: str | None = None
         self._spring_handle: Any = None
+        self._obstacle_handles: list[Any] = []
+        self._obstacle_shown: list[np.ndarray | None] = []
         self._spring_key: tuple[int, ...] | None = None
         self._gui: dict[str, Any] = {}
         self._notifications: list[Any] = []
@@ -665,6 +691,7 @@ class Viewer:
         self._build_gui()
         self._apply_camera(initial=True)
         self._rebuild_mesh()
+        self._rebuild_obstacles()
         self._server.on_client_connect(self._on_client_connect)
         self._server.on_client_disconnect(self._on_client_disconnect)
         self._thread = threading.Thread(target=self._run, name="fem3d-view-sim", daemon=True)
@@ -1180,6 +1207,43 @@ class Viewer:
         handle.on_drag("left")(_on_drag)
         self._mesh_handle = handle
 
+    def _rebuild_obstacles(self) -> None:
+        """Draw the contact scene's obstacles (simulation thread only): planes as squares
+        three mesh diagonals wide, mesh obstacles at their current positions."""
+        for h in self._obstacle_handles:
+            h.remove()
+        self._obstacle_handles, self._obstacle_shown = [], []
+        contact = getattr(self._sim, "contact", None)
+        if contact is None:
+            return
+        q = np.asarray(self._sim.q, dtype=np.float64)
+        center = 0.5 * (q.min(axis=0) + q.max(axis=0))
+        half = 1.5 * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
+        for k, plane in enumerate(contact.contact.planes):
+            V, F = plane_quad(plane.point, plane.normal, center, half)
+            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
+                f"/fem3d/obstacles/plane_{k}", V, F, color=OBSTACLE_COLOR, opacity=0.5,
+                side="double", cast_shadow=False, receive_shadow=False))
+            self._obstacle_shown.append(None)  # static
+        for k, (_name, V, F) in enumerate(self._sim.obstacles()):
+            V = np.asarray(V, dtype=np.float64)
+            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
+                f"/fem3d/obstacles/mesh_{k}", V, np.asarray(F, dtype=np.uint32),
+                color=OBSTACLE_COLOR, flat_shading=True, side="double", cast_shadow=False,
+                receive_shadow=False))
+            self._obstacle_shown.append(V.copy())
+
+    def _update_obstacles(self) -> None:
+        """Move the mesh obstacles that moved (keyframed); inside ``atomic()``."""
+        moving = [i for i, v in enumerate(self._obstacle_shown) if v is not None]
+        if not moving:
+            return
+        for i, (_name, V, _F) in zip(moving, self._sim.obstacles(), strict=True):
+            V = np.asarray(V, dtype=np.float64)
+            if not np.array_equal(V, self._obstacle_shown[i]):
+                self._obstacle_handles[i].vertices = V.astype(np.float32)
+                self._obstacle_shown[i] = V.copy()
+
     def _update_spring(self, pull: PullState | None, q: np.ndarray) -> None:
         if pull is None or pull.generation != self._generation or pull.ids.size == 0:
             if self._spring_handle is not None:
@@ -1307,6 +1371,7 @@ class Viewer:
             self._pick_radius = float(self._sim.pick_radius)
         self._applied_pull_version = -1
         self._rebuild_mesh()
+        self._rebuild_obstacles()
         self._update_spring(None, sim.q)
         self._apply_camera()
         g = self._gui
@@ -1398,6 +1463,7 @@ class Viewer:
                 with self._server.atomic():
                     self._mesh_handle.vertices = verts.astype(np.float32)
                     self._update_spring(pull, q)
+                    self._update_obstacles()
                 self._request_acks(now)
                 self._shown, self._shown_q = shown, q.copy()
                 with self._lock:
