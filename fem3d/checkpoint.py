@@ -141,9 +141,12 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
             frames={s: (t, p) for s, t, p in zip(steps, times, paths, strict=True)},
             frame_count=int(d["frame_count"]), mesh_digest=str(d["mesh_digest"]),
         )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"incomplete run checkpoint ({type(exc).__name__}: {exc})",
+    except KeyError as exc:
+        raise InputError(f"incomplete run checkpoint: it has no saved {exc.args[0]!r}",
                          path=path) from None
+    except (TypeError, ValueError):
+        raise InputError("incomplete run checkpoint: a saved field has the wrong type or "
+                         "shape", path=path) from None
     q = snap["q"]
     if q.ndim != 2 or q.shape[1] != 3 or snap["v"].shape != q.shape:
         raise InputError(f"checkpoint state has bad shapes {q.shape}, {snap['v'].shape}",

@@ -863,8 +863,12 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
             out: dict[str, Any] = {k: z[k] for k in z.files if k != _META_KEY}
     except InputError:
         raise
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        raise InputError(f"cannot read checkpoint: {exc}", path=path) from None
+    except (zipfile.BadZipFile, EOFError, ValueError, KeyError):
+        # np.load's own words ("File is not a zip file", pickles, ...) say nothing to a user
+        raise InputError("not a readable checkpoint: not a complete .npz archive (truncated, "
+                         "or another kind of file)", path=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read checkpoint: {exc.strerror or exc}", path=path) from None
     if not isinstance(doc, dict) or doc.get("format") != _FORMAT:
         raise InputError("not a fem3d checkpoint (bad metadata)", path=path)
     if doc.get("version") != _VERSION:

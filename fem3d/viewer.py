@@ -53,6 +53,7 @@ __all__ = [
     "add_view_subcommand",
     "HOTKEYS",
     "camera_for_points",
+    "plane_quad",
     "energy_text",
     "format_energy",
     "format_status",
@@ -85,6 +86,8 @@ ENERGY_PLOTS = (
 #: Samples per energy plot (4 plots x 2 float32 arrays: 6.4 kB per update at 200).
 PLOT_POINTS = 200
 
+OBSTACLE_COLOR = (150, 150, 150)
+
 SKIN_COLOR = (236, 196, 150)
 SIM_COLOR = (90, 160, 230)
 SPRING_COLOR = (220, 40, 40)
@@ -108,6 +111,22 @@ def _make_simulation(scene: Any, integrator: str | None, backend: str | None) ->
     if integrator is not None:
         sim.integrator = integrator
     return sim
+
+
+def _material_names() -> list[str]:
+    try:
+        from fem3d.scene import material_names
+    except ImportError:  # pragma: no cover - runtime missing
+        return []
+    return [str(n) for n in material_names()]
+
+
+def _with_material(scene: Any, name: str) -> Any:
+    """``scene`` with every body's material model set to ``name`` (validated)."""
+    from fem3d.scene import apply_overrides
+
+    keys = {f"bodies[{i}].material.model": name for i in range(len(scene.bodies))}
+    return apply_overrides(scene, keys, source="the viewer's material menu")
 
 
 def _builtin_scene_names() -> list[str]:
@@ -452,6 +471,27 @@ def _check_port_free(host: str, port: int) -> None:
             ) from None
 
 
+def plane_quad(point: np.ndarray, normal: np.ndarray, center: np.ndarray,
+               half: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square piece of a plane for display: ``2 half`` wide, centred on ``center``'s
+    projection onto the plane.
+
+    Returns
+    -------
+    vertices : (4, 3) float64
+    faces : (2, 3) uint32
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    c = np.asarray(center, dtype=np.float64)
+    c = c - ((c - np.asarray(point, dtype=np.float64)) @ n) * n
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    corners = [c + half * (sa * a + sb * b) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    return np.asarray(corners), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
+
+
 def _surface_faces(sim: Any) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(sim.surface_faces, dtype=np.uint32))
 
@@ -566,6 +606,8 @@ class Viewer:
         self._mesh_handle: Any = None
         self._mesh_handle_mode: str | None = None
         self._spring_handle: Any = None
+        self._obstacle_handles: list[Any] = []
+        self._obstacle_shown: list[np.ndarray | None] = []
         self._spring_key: tuple[int, ...] | None = None
         self._gui: dict[str, Any] = {}
         self._notifications: list[Any] = []
@@ -649,6 +691,7 @@ class Viewer:
         self._build_gui()
         self._apply_camera(initial=True)
         self._rebuild_mesh()
+        self._rebuild_obstacles()
         self._server.on_client_connect(self._on_client_connect)
         self._server.on_client_disconnect(self._on_client_disconnect)
         self._thread = threading.Thread(target=self._run, name="fem3d-view-sim", daemon=True)
@@ -701,6 +744,11 @@ class Viewer:
     def reset(self) -> None:
         """Back to rest, t = 0; clears an error (``R``)."""
         self._post(self._do_reset)
+
+    def switch_material(self, name: str) -> None:
+        """Change every body's material model (a name of :func:`fem3d.materials.names`),
+        keeping the motion: positions, velocities and time carry over."""
+        self._post(lambda: self._do_switch_material(name))
 
     def switch_scene(self, name: str) -> None:
         """Load another scene (runs on the simulation thread)."""
@@ -824,6 +872,7 @@ class Viewer:
                 "pushes": self._pushes,
                 **stats,
                 "material": dict(self._material),
+                "material_model": self._material_model(),
                 "pull": pull,
                 "energy": [list(r) for r in self._history.rows()],
                 "drag_events": self._drag_events,
@@ -869,6 +918,11 @@ class Viewer:
         if self._scene_label not in names:
             names.append(self._scene_label)
         g["scene"] = gui.add_dropdown("Scene", tuple(names), initial_value=self._scene_label)
+        models = _material_names()
+        current = self._material_model()
+        if current not in models:
+            models.append(current)
+        g["material"] = gui.add_dropdown("Material", tuple(models), initial_value=current)
         E, nu, rho = self._material["E"], self._material["nu"], self._material["rho"]
         g["E_value"] = gui.add_number("Young's modulus E", initial_value=E, min=1e-12)
         g["E"] = gui.add_slider(
@@ -926,6 +980,12 @@ class Viewer:
                 self.set_material(rho=float(event.target.value))
 
         g["scene"].on_update(_on_scene)
+
+        def _on_material(event: Any) -> None:
+            if event.client is not None:
+                self.switch_material(str(event.target.value))
+
+        g["material"].on_update(_on_material)
         g["E"].on_update(_on_E)
         g["E_value"].on_update(_on_E_value)
         g["radius"].on_update(_on_radius)
@@ -1147,6 +1207,43 @@ class Viewer:
         handle.on_drag("left")(_on_drag)
         self._mesh_handle = handle
 
+    def _rebuild_obstacles(self) -> None:
+        """Draw the contact scene's obstacles (simulation thread only): planes as squares
+        three mesh diagonals wide, mesh obstacles at their current positions."""
+        for h in self._obstacle_handles:
+            h.remove()
+        self._obstacle_handles, self._obstacle_shown = [], []
+        contact = getattr(self._sim, "contact", None)
+        if contact is None:
+            return
+        q = np.asarray(self._sim.q, dtype=np.float64)
+        center = 0.5 * (q.min(axis=0) + q.max(axis=0))
+        half = 1.5 * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
+        for k, plane in enumerate(contact.contact.planes):
+            V, F = plane_quad(plane.point, plane.normal, center, half)
+            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
+                f"/fem3d/obstacles/plane_{k}", V, F, color=OBSTACLE_COLOR, opacity=0.5,
+                side="double", cast_shadow=False, receive_shadow=False))
+            self._obstacle_shown.append(None)  # static
+        for k, (_name, V, F) in enumerate(self._sim.obstacles()):
+            V = np.asarray(V, dtype=np.float64)
+            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
+                f"/fem3d/obstacles/mesh_{k}", V, np.asarray(F, dtype=np.uint32),
+                color=OBSTACLE_COLOR, flat_shading=True, side="double", cast_shadow=False,
+                receive_shadow=False))
+            self._obstacle_shown.append(V.copy())
+
+    def _update_obstacles(self) -> None:
+        """Move the mesh obstacles that moved (keyframed); inside ``atomic()``."""
+        moving = [i for i, v in enumerate(self._obstacle_shown) if v is not None]
+        if not moving:
+            return
+        for i, (_name, V, _F) in zip(moving, self._sim.obstacles(), strict=True):
+            V = np.asarray(V, dtype=np.float64)
+            if not np.array_equal(V, self._obstacle_shown[i]):
+                self._obstacle_handles[i].vertices = V.astype(np.float32)
+                self._obstacle_shown[i] = V.copy()
+
     def _update_spring(self, pull: PullState | None, q: np.ndarray) -> None:
         if pull is None or pull.generation != self._generation or pull.ids.size == 0:
             if self._spring_handle is not None:
@@ -1222,6 +1319,32 @@ class Viewer:
             self._sync_E_widgets(float(E))
         self._gui_dirty = True
 
+    def _material_model(self) -> str:
+        return str(self._scene.bodies[0].material.model)
+
+    def _do_switch_material(self, name: str) -> None:
+        if name == self._material_model():
+            return
+        old = self._sim
+        try:
+            scene = _with_material(self._scene, name)
+            sim = _make_simulation(scene, self._sim_integrator, self.backend)
+            sim.set_state(old.q, old.v, old.t, old.step_index)
+            with self._lock:
+                mat = dict(self._material)
+            if mat != self._scene_material():  # keep the panel's edits (body 0's values)
+                sim.set_material(E=mat["E"], nu=mat["nu"], rho=mat["rho"])
+        except Fem3dError as exc:
+            self._notify_all("Material not changed", str(exc), color="yellow", seconds=10.0)
+            self._gui["material"].value = self._material_model()
+            return
+        with self._lock:
+            self._scene, self._sim = scene, sim
+            self._error = None
+        self._applied_pull_version = -1  # re-apply an active pull to the new simulation
+        self._pacer.reset()
+        self._gui_dirty = True
+
     def _do_switch_scene(self, name: str) -> None:
         if name == self._scene_label:
             return
@@ -1248,6 +1371,7 @@ class Viewer:
             self._pick_radius = float(self._sim.pick_radius)
         self._applied_pull_version = -1
         self._rebuild_mesh()
+        self._rebuild_obstacles()
         self._update_spring(None, sim.q)
         self._apply_camera()
         g = self._gui
@@ -1256,6 +1380,9 @@ class Viewer:
         g["E"].min, g["E"].max, g["E"].step = E / 10.0, E * 10.0, E / 10.0
         g["E"].value = E
         g["E_value"].value = E
+        if self._material_model() not in g["material"].options:
+            g["material"].options = (*g["material"].options, self._material_model())
+        g["material"].value = self._material_model()
         lo, hi, r0 = self._radius_range()
         g["radius"].min, g["radius"].max, g["radius"].step = lo, hi, (hi - lo) / 200.0
         g["radius"].value = r0
@@ -1336,6 +1463,7 @@ class Viewer:
                 with self._server.atomic():
                     self._mesh_handle.vertices = verts.astype(np.float32)
                     self._update_spring(pull, q)
+                    self._update_obstacles()
                 self._request_acks(now)
                 self._shown, self._shown_q = shown, q.copy()
                 with self._lock:

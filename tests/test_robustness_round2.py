@@ -142,6 +142,22 @@ def test_parser_failures_describe_the_file(tmp_path: Path) -> None:
     assert not PY_INTERNALS.search(str(info.value))
 
 
+def test_bad_checkpoints_are_described_not_quoted(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert main(["run", ARMA, "--steps", "3", "--checkpoint-every", "3", "--out", str(out),
+                 "--no-preview", "--quiet"]) == 0
+    ck = out / CHECKPOINT_NAME
+    data = ck.read_bytes()
+    for bad, what in ((data[: len(data) // 2], "truncated"), (b"hello\n", "text"),
+                      (b"", "empty")):
+        ck.write_bytes(bad)
+        r = _cli("resume", str(out), "--steps", "5")
+        assert r.returncode == 2, (what, r.stderr)
+        line = _one_line_error(r.stderr)
+        assert str(ck) in line and "checkpoint" in line, line
+        assert not PY_INTERNALS.search(line) and "zip file" not in line, (what, line)
+
+
 # ---------------------------------------------------------------- outputs over inputs
 
 

@@ -315,4 +315,6 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
         finally:
             ctx.close()
     shutil.rmtree(profile, ignore_errors=True)
-    assert time.monotonic() - t_start < 90.0
+    # A guard against a silent stall, not a speed target: the shared 2-core machine has
+    # been seen at load 15, where this test takes ~140 s.
+    assert time.monotonic() - t_start < 300.0

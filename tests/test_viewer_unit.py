@@ -434,9 +434,12 @@ def test_concurrent_drags_and_mesh_swaps(viewer: Any) -> None:
         10,
         "the loop to keep stepping",
     )
-    snap = viewer.snapshot()
+    # Six toggles: the commands run before the next step (a step already under way when
+    # they were posted may finish first).
+    snap = wait_for(lambda: (lambda s: s if s["mesh_mode"] == "skin" else s["mesh_mode"])(
+        viewer.snapshot()), 20, "six toggles to be applied")
     assert snap["error"] is None, snap["error"]
-    assert snap["mesh_mode"] == "skin"  # six toggles
+    assert viewer.exceptions == [], viewer.exceptions
     assert viewer._thread.is_alive()
 
 
@@ -514,3 +517,85 @@ def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noq
         assert v.exceptions == [], v.exceptions
         with pytest.raises(ParameterError, match="radius"):
             v.set_pick_radius(0.0)
+
+
+@needs_viser
+def test_material_menu_switches_the_model_and_keeps_the_motion() -> None:
+    from fem3d.scene import material_names
+    from fem3d.viewer import Viewer
+
+    names = material_names()
+    other = next((n for n in names if n != "neo_hookean"), None)
+    if other is None:
+        pytest.skip("only one material is generated")
+    with Viewer("bunny", port=0, realtime=False, integrator="implicit", mesh_mode="sim") as v:
+        assert v.snapshot()["material_model"] == "neo_hookean"
+        assert tuple(v._gui["material"].options) == tuple(names)
+        q = v.positions()
+        v.begin_pull(q[0], q[0] + np.array([5.0, 0.0, 0.0]))
+        wait_for(lambda: v.snapshot()["steps"] > 3, 60, "steps")
+        t0 = v.snapshot()["t"]
+        v.switch_material(other)
+        snap = wait_for(lambda: (lambda s: s if s["material_model"] == other else None)(
+            v.snapshot()), 60, "the new material")
+        assert snap["t"] >= t0  # the motion carried over, no reset
+        wait_for(lambda: v.snapshot()["t"] > snap["t"] + 0.02, 60, "steps with the new model")
+        assert v._sim.scene.bodies[0].material.model == other
+        v.switch_material("no_such_material")  # refused with a notification
+        v.switch_material(other)  # a no-op
+        time.sleep(0.3)
+        s = v.snapshot()
+        assert s["material_model"] == other and s["error"] is None
+        assert v.exceptions == [], v.exceptions
+
+
+def test_plane_quad_lies_in_the_plane_around_the_centre() -> None:
+    from fem3d.viewer import plane_quad
+
+    point, normal = np.array([0.0, 1.0, 0.0]), np.array([0.0, 2.0, 0.0])
+    V, F = plane_quad(point, normal, np.array([3.0, 7.0, -1.0]), 2.0)
+    assert V.shape == (4, 3) and F.shape == (2, 3)
+    np.testing.assert_allclose(V[:, 1], 1.0)  # in the plane
+    np.testing.assert_allclose(V.mean(axis=0), [3.0, 1.0, -1.0])  # the centre's projection
+    np.testing.assert_allclose(np.linalg.norm(V[0] - V[2]), 4.0 * math.sqrt(2.0))
+    tilted = np.array([1.0, 1.0, 0.0]) / math.sqrt(2.0)
+    V, _ = plane_quad(np.zeros(3), tilted, np.array([1.0, 0.0, 0.0]), 1.0)
+    np.testing.assert_allclose(V @ tilted, 0.0, atol=1e-12)
+
+
+@needs_viser
+def test_obstacles_are_drawn_and_moving_ones_follow(tmp_path) -> None:  # noqa: ANN001
+    from pathlib import Path
+
+    from fem3d.viewer import Viewer
+
+    data = Path(__file__).resolve().parent.parent / "data"
+    scene = tmp_path / "obstacles.toml"
+    scene.write_text(f"""
+[simulation]
+integrator = "implicit"
+dt = 0.01
+gravity = [0.0, -9.81, 0.0]
+
+[[bodies]]
+mesh = "{data / 'contact_block.mesh'}"
+transform = {{ translate = [0.0, 0.3, 0.0] }}
+material = {{ model = "neo_hookean", E = 1e5, nu = 0.3, density = 1000.0 }}
+
+[contact]
+enabled = true
+
+[[obstacles]]
+plane = {{ point = [0.0, 0.0, 0.0], normal = [0.0, 1.0, 0.0] }}
+
+[[obstacles]]
+mesh = {{ path = "{data / 'coarser_bunny.obj'}", transform = {{ scale = 0.001, translate = [1.0, 0.0, 0.0] }}, motion = {{ keyframes = [{{ t = 0.0, translate = [0.0, 0.0, 0.0] }}, {{ t = 1.0, translate = [0.0, 0.5, 0.0] }}] }} }}
+""")  # noqa: E501
+    with Viewer(str(scene), port=0, realtime=False, mesh_mode="sim") as v:
+        wait_for(lambda: len(v._obstacle_handles) == 2 or None, 60, "the obstacles")
+        plane, mesh = v._obstacle_handles
+        assert np.allclose(np.asarray(plane.vertices)[:, 1], 0.0)  # the floor
+        y0 = float(np.asarray(mesh.vertices)[:, 1].min())
+        wait_for(lambda: float(np.asarray(mesh.vertices)[:, 1].min()) > y0 + 0.05 or None, 120,
+                 "the keyframed obstacle to move up on screen")
+        assert v.exceptions == [], v.exceptions
