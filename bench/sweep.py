@@ -10,7 +10,8 @@ swept over ``--cases`` values from 2e5 to 2e6) and times, as subprocesses, what 
 * ``fem3d sweep FILE --workers W --out DIR`` for each ``W`` (fresh ``DIR``: every case runs):
   wall time, cases per second, speed-up and scaling efficiency against 1 worker;
 * ``fem3d run SCENE --set ... --out DIR`` for the first ``--plain`` cases one by one (the
-  shell loop a sweep replaces): mean wall time per case.
+  shell loop a sweep replaces): mean wall time per case; half of them before the sweeps and
+  half after, so that a load that drifts during the benchmark hits both sides.
 
 Per-case overhead of the engine: ``T_sweep(1 worker) / cases - T_plain``: what a case costs
 in a 1-worker sweep beyond a plain run (negative: the sweep is cheaper, because a worker
@@ -89,6 +90,21 @@ def main(argv: list[str] | None = None) -> None:
     lines = ["| run | wall s | cases / s | speed-up | efficiency | CPU s per case |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
     print(*lines, sep="\n", flush=True)
+    plain: list[float] = []
+    plain_cpu: list[float] = []
+
+    def run_plain(indices: range) -> None:
+        for i in indices:
+            out = root / f"plain_{i}"
+            shutil.rmtree(out, ignore_errors=True)
+            wall, cpu = _fem3d(["run", args.scene, "--set", f"bodies[0].material.E={values[i]!r}",
+                                "--set", f"output.every={args.every}", "--steps",
+                                str(args.steps), "--no-preview", "--quiet", "--out", str(out)])
+            plain.append(wall)
+            plain_cpu.append(cpu)
+
+    n_plain = min(args.plain, args.cases)
+    run_plain(range(n_plain // 2))
     sweep_s: dict[int, float] = {}
     sweep_cpu: dict[int, float] = {}
     inside: dict[int, float] = {}
@@ -108,15 +124,7 @@ def main(argv: list[str] | None = None) -> None:
                      f"{args.cases / sweep_s[w]:.2f} | {ratio or ' | '} | "
                      f"{sweep_cpu[w] / args.cases:.2f} |")
         print(lines[-1], flush=True)
-    plain, plain_cpu = [], []
-    for i, E in enumerate(values[: args.plain]):
-        out = root / f"plain_{i}"
-        shutil.rmtree(out, ignore_errors=True)
-        wall, cpu = _fem3d(["run", args.scene, "--set", f"bodies[0].material.E={E!r}",
-                            "--set", f"output.every={args.every}", "--steps", str(args.steps),
-                            "--no-preview", "--quiet", "--out", str(out)])
-        plain.append(wall)
-        plain_cpu.append(cpu)
+    run_plain(range(n_plain // 2, n_plain))
     t_plain = sum(plain) / max(len(plain), 1)
     c_plain = sum(plain_cpu) / max(len(plain), 1)
     if plain:
