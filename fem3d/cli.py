@@ -89,7 +89,7 @@ RUN_FLAGS: tuple[tuple[str, str, str], ...] = (
     ("--newton-iterations", "newton_iterations", "simulation.newton.max_iterations"),
     ("--hessian", "hessian", "simulation.newton.hessian"),
     ("--newton-solver", "newton_solver", "simulation.newton.solver"),
-    ("--solver", "solver", "simulation.linear_solver"),
+    ("--linear-solver", "solver", "simulation.linear_solver"),
     ("--material", "material", "bodies[{body}].material.model"),
     ("--E", "E", "bodies[{body}].material.E"),
     ("--nu", "nu", "bodies[{body}].material.nu"),
@@ -150,7 +150,7 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--newton-solver", choices=("direct", "reuse"), default=None,
                    help="Newton linear solves: refactorize each iteration, or keep a "
                    "factorization as the CG preconditioner (simulation.newton.solver)")
-    p.add_argument("--solver", default=None,
+    p.add_argument("--linear-solver", "--solver", dest="solver", default=None,
                    help="sparse solver back end: auto, cholmod, pardiso, superlu, amg "
                    "(simulation.linear_solver)")
     p.add_argument("--material", default=None, metavar="NAME",
@@ -598,7 +598,7 @@ def run_scene(
     backend = _resolve_kernels(backend)
     sim = Simulation(scene, backend=backend, scripted=True)
     settings = {
-        "scene": scene.to_dict(), "kernels": backend, "solver": sim.system._solver.backend,
+        "scene": scene.to_dict(), "kernels": backend, "solver": sim.system.linear_backend,
         "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
     }
     out.mkdir(parents=True, exist_ok=True)

@@ -495,6 +495,12 @@ class Simulation:
         self._set_state(State(q=q, v=v, t=float(t), step=int(step)))
         self._injected = max(self._injected, self._energy_with_pull())
 
+    @property
+    def _keeps_solver_state(self) -> bool:
+        """Whether later steps reuse a factorization or AMG hierarchy (a checkpoint must
+        rebuild it for a bit-exact resume)."""
+        return self.newton_solver == "reuse" or self.system.linear_backend == "amg"
+
     def snapshot(self) -> dict:
         """Everything that determines the next steps, for a bit-exact :meth:`restore`.
 
@@ -507,12 +513,12 @@ class Simulation:
             ``pull_vertices`` (k,) int64, ``pull_targets`` (k, 3) float64
             and ``pull_k`` () or (k,) float64 (one stiffness or one per spring; ``k = 0`` and
             empty arrays: no pull),
-            ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` the reduced
+            ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` or AMG the reduced
             matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
         """
         pull = self._pull
-        kept = self.system.factorized_data if self.newton_solver == "reuse" else None
+        kept = self.system.factorized_data if self._keeps_solver_state else None
         return {
             "preconditioner": np.zeros(0) if kept is None else kept,
             "q": self._state.q, "v": self._state.v, "t": float(self._state.t),
@@ -557,7 +563,7 @@ class Simulation:
         keys = np.asarray(snap.get("pattern_keys", np.zeros(0, np.int64)), dtype=np.int64)
         self.system.restore_pattern(keys)
         saved = np.asarray(snap.get("preconditioner", np.zeros(0)), dtype=np.float64)
-        if self.newton_solver == "reuse" and saved.size:
+        if self._keeps_solver_state and saved.size:
             self.system.refactorize_saved(saved)
 
     def pick(self, point: np.ndarray, radius: float | None = None) -> np.ndarray:
