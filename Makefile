@@ -40,7 +40,8 @@ bench: install  ## benchmarks vs peers -> docs/benchmarks.md (pip install -e .[b
 	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --groups analyze,factor,solve
 	$(PYTHON) -m bench.kernel_throughput
 	$(PYTHON) -m bench.scenes
-	$(PYTHON) -m bench.newton_step --mesh arma --refine 0,1
+	$(PYTHON) -m bench.newton_step --mesh arma --refine 0,1 --modes direct,reuse
+	$(PYTHON) -m bench.newton_step --mesh box --tets 1e5 --steps 1 --swing 4 --repeats 1
 
 clean:
 	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache

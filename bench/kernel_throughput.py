@@ -5,8 +5,9 @@
 
 Random well-shaped tets deformed by random gradients (fibre directions random); parameters
 from ``E = 1e5, nu = 0.3`` through each material's mapping; median of repeats after one
-warm-up. The last column is the ratio to ``neo_hookean`` (the assignment's material) measured
-in the same run, which is what to compare on a shared machine. Not a test: figures depend on
+warm-up, the materials timed in interleaved rounds. The last column is the ratio to
+``neo_hookean`` (the assignment's material) measured in the same rounds, which is what to
+compare on a shared machine. Not a test: figures depend on
 the machine (print them, never assert them).
 """
 
@@ -46,16 +47,6 @@ def material_arguments(name: str, m: int, seed: int = 1) -> tuple[list[np.ndarra
     return inputs, np.array([values[p] for p in info.param_names])
 
 
-def median_seconds(function, repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--elements", type=int, default=100_000)
@@ -75,20 +66,34 @@ def main(argv: list[str] | None = None) -> None:
           f"(OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')})")
     print(f"{'material':<20} {'kernel':<12} {'backend':<6} {'ops':>6} {'seconds':>9} "
           f"{'elements/s':>12} {'vs ' + REFERENCE:>15}")
-    reference: dict[tuple[str, str], float] = {}
+    arguments = {}
     for name in names:
         inputs, params = material_arguments(name, m)
+        arguments[name] = (x_e, dphi, vol, *inputs, params)
+    rows = {}
+    for kernel in args.kernel:
+        for backend in backends:
+            functions = {n: getattr(material_kernels(n, backend), kernel) for n in names}
+            times: dict[str, list[float]] = {n: [] for n in names}
+            for n in names:  # warm-up
+                functions[n](*arguments[n])
+            # interleaved: each round times every material once, so that the load of a shared
+            # machine changes the ratios less than it changes the figures
+            for _ in range(args.repeats):
+                for n in names:
+                    start = time.perf_counter()
+                    functions[n](*arguments[n])
+                    times[n].append(time.perf_counter() - start)
+            for n in names:
+                rows[(n, kernel, backend)] = float(np.median(times[n]))
+    for name in names:
         for kernel in args.kernel:
             for backend in backends:
-                module = material_kernels(name, backend)
-                function = getattr(module, kernel)
-                arguments = (x_e, dphi, vol, *inputs, params)
-                t = median_seconds(lambda f=function, a=arguments: f(*a), args.repeats)
-                reference.setdefault((kernel, backend), t)
-                ratio = reference[(kernel, backend)] / t
-                ops = module.SIGNATURES[kernel]["op_count"]
+                t = rows[(name, kernel, backend)]
+                ratio = rows[(REFERENCE, kernel, backend)] / t
+                ops = material_kernels(name, backend).SIGNATURES[kernel]["op_count"]
                 print(f"{name:<20} {kernel:<12} {backend:<6} {ops:>6} {t:9.4f} {m / t:12.3e} "
-                      f"{ratio:14.2f}x", flush=True)
+                      f"{ratio:14.2f}x")
 
 
 if __name__ == "__main__":

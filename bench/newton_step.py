@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tets", type=float, default=2e4, help="box size")
     parser.add_argument("--steps", type=int, default=80)
     parser.add_argument("--swing", type=float, default=40.0, help="box velocity scale a")
-    parser.add_argument("--modes", default="direct,reuse",
+    parser.add_argument("--modes", default="direct,reuse,amg",
                         help="comma-separated: direct, reuse, amg")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
     parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")

@@ -29,7 +29,7 @@ GALLERY = ROOT / "docs" / "gallery"
 
 #: Gallery scenes (data/scenes/<name>.toml), in the order docs/scenes.md lists them.
 SCENES = ["cantilever", "twist", "bunny_surface", "armadillo_surface", "jelly_neo_hookean",
-          "jelly_stvk", "swing", "two_pulls"]
+          "jelly_stvk", "jelly_pair", "swing", "two_pulls"]
 
 #: name -> (cells (nx, ny, nz), size (x, y, z))
 BOXES = {

@@ -2,5 +2,14 @@
 
 from fem3d.errors import Fem3dError, InputError, ParameterError, SimulationError
 
-__all__ = ["Fem3dError", "InputError", "ParameterError", "SimulationError"]
+__all__ = ["Fem3dError", "InputError", "ParameterError", "SimulationError", "Scene"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``fem3d.Scene``: the scene description (:mod:`fem3d.scene`), imported on first use."""
+    if name == "Scene":
+        from fem3d.scene import Scene
+
+        return Scene
+    raise AttributeError(f"module 'fem3d' has no attribute {name!r}")

@@ -42,7 +42,6 @@ import copy
 import difflib
 import hashlib
 import json
-import math
 import os
 import re
 import tomllib
@@ -89,7 +88,6 @@ MESH_SCENE_DEFAULTS = {
     "pull_fraction": 0.15, "pull_duration": 0.3,
 }
 
-Float = StrictFloat
 Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
 Positive = Annotated[StrictFloat, Field(gt=0)]
@@ -227,7 +225,10 @@ class RegionSpec(_Spec):
 
 
 class MaterialSpec(_Spec):
-    """A generated material by name, with ``E``/``nu`` or its own ``params``, and density."""
+    """A generated material by name, with ``E``/``nu`` or its own ``params`` (those that keep
+    the small-strain response, e.g. Fung's ``b``, may go next to ``E``/``nu``), density,
+    ``regions`` (other values on the tets whose vertices a selector picks) and ``cell_fields``
+    (a parameter per tet from a cell-data array of the mesh file)."""
 
     model: StrictStr = "neo_hookean"
     density: Positive = 1000.0
@@ -249,10 +250,10 @@ class MaterialSpec(_Spec):
 
     @model_validator(mode="after")
     def _values(self) -> MaterialSpec:
-        if self.params and (self.E is not None or self.nu is not None):
-            raise ValueError("give E and nu, or params, not both")
-        if not self.params and (self.E is None or self.nu is None):
-            raise ValueError("give both E and nu (or the model's own params)")
+        if (self.E is None) != (self.nu is None):
+            raise ValueError("E and nu go together (or give the model's own params)")
+        if self.E is None and not self.params and not self.cell_fields:
+            raise ValueError("give E and nu, or the model's own params")
         return self
 
 
@@ -714,7 +715,7 @@ def apply_overrides(
     """
     if not overrides:
         return scene
-    d = scene.model_dump(mode="python")
+    d = scene.model_dump(mode="json")  # lists, not tuples: items settable by index
     for key, value in overrides.items():
         parts = _parse_key(str(key), source)
         if isinstance(value, tuple):
@@ -886,12 +887,14 @@ def load_scene(
     """
     key = str(name_or_path)
     p = Path(key)
+    named = scenes_dir() / f"{key}.toml"
     if p.suffix.lower() == ".toml":
         scene = read_scene_file(p)
+    elif not p.suffix and "/" not in key and named.is_file():
+        scene = read_scene_file(named)
     elif p.suffix or p.exists():
         scene = mesh_scene(p)
     else:
-        named = scenes_dir() / f"{key}.toml"
         if not named.is_file():
             names = scene_names()
             near = difflib.get_close_matches(key, names, n=1)
@@ -914,7 +917,3 @@ def scene_schema() -> dict[str, Any]:
         props.pop(k, None)
     return schema
 
-
-def is_finite_number(x: Any) -> bool:
-    """A real number (not bool) that is finite."""
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)

@@ -327,7 +327,9 @@ class Assembled:
     skin_identity : list of bool
         Bodies whose display vertices are their simulation vertices (no skin of their own).
     pick_radius, spring_k, height : float
-        Resolved interaction values; ``height`` the extent along y of the rest mesh.
+        Resolved interaction values (``spring_k`` None when it defaults to ``0.15 E h`` and
+        the first body gives no ``E``: the Simulation takes the model's); ``height`` the
+        extent along y of the rest mesh.
     mesh_paths : list of str
     """
 
@@ -343,7 +345,7 @@ class Assembled:
     skin_bodies: list[tuple[slice, slice]]
     skin_identity: list[bool]
     pick_radius: float
-    spring_k: float
+    spring_k: float | None
     height: float
     mesh_paths: list[str] = field(default_factory=list)
 
@@ -423,10 +425,7 @@ def assemble(scene: Scene) -> Assembled:
     if pick_radius is None:
         pick_radius = 0.01 * height
     spring_k = scene.interaction.spring_k
-    if spring_k is None:
-        if E0 is None:
-            raise scene.error("interaction.spring_k",
-                              "give it (it defaults to 0.15 E h, and bodies[0] has no E)")
+    if spring_k is None and E0 is not None:
         spring_k = 0.15 * E0 * height
         if not spring_k > 0:
             raise scene.error("interaction.spring_k", "the mesh has no height to derive it")
@@ -439,6 +438,9 @@ def assemble(scene: Scene) -> Assembled:
             off = np.asarray(p.offset, dtype=np.float64)
         else:
             off = np.asarray(p.target, dtype=np.float64) - Xb[ids].mean(axis=0)
+        if p.stiffness is None and spring_k is None:
+            raise scene.error(f"pulls[{j}].stiffness", "give it (interaction.spring_k, its "
+                              "default, is 0.15 E h and bodies[0] has no E)")
         pulls.append(ResolvedPull(
             vertices=ids + body_v[p.body].start, targets=Xb[ids] + off,
             k=float(spring_k if p.stiffness is None else p.stiffness),
@@ -446,6 +448,7 @@ def assemble(scene: Scene) -> Assembled:
     return Assembled(
         X=X, T=T, v0=v0, fixed=fixed_ids, pulls=pulls, body_vertices=body_v, body_tets=body_t,
         skin_V=skin_V, skin_F=skin_F, skin_bodies=skin_bodies, skin_identity=identity,
-        pick_radius=float(pick_radius), spring_k=float(spring_k), height=height,
+        pick_radius=float(pick_radius), spring_k=None if spring_k is None else float(spring_k),
+        height=height,
         mesh_paths=[m.path for m in meshes],
     )

@@ -71,17 +71,6 @@ class StepInfo:
 
 def _check_supported(scene: Scene) -> None:
     """Refuse, naming the key, the settings this build validates but cannot run yet."""
-    for i, b in enumerate(scene.bodies):
-        m = b.material
-        for key, val in (("params", m.params), ("regions", m.regions),
-                         ("cell_fields", m.cell_fields)):
-            if val:
-                raise scene.error(f"bodies[{i}].material.{key}", "needs build_model(groups=) "
-                                  "from the materials work, not in this build yet; give E, nu")
-        if i and m != scene.bodies[0].material:
-            raise scene.error(f"bodies[{i}].material", "bodies with different materials need "
-                              "build_model(groups=) from the materials work, not in this "
-                              "build yet; give every body the same material")
     if scene.obstacles and not scene.contact.enabled:
         raise scene.error("obstacles", "obstacles act through contact: set [contact] enabled "
                           "= true")
@@ -93,6 +82,103 @@ def _check_supported(scene: Scene) -> None:
 CONTACT_NEEDS_IMPLICIT = ("contact needs backward Euler (integrator = \"implicit\"): the "
                           "linearly-implicit scheme cannot keep IPC's no-intersection "
                           "guarantee")
+
+
+def _simple_material(m) -> bool:
+    return m.E is not None and not (m.params or m.regions or m.cell_fields)
+
+
+def _cell_field(scene: Scene, a, i: int, param: str, name: str) -> np.ndarray:
+    """Body ``i``'s per-tet values of cell-data array ``name`` from its mesh file."""
+    key = f"bodies[{i}].material.cell_fields.{param}"
+    path = scene.path(scene.bodies[i].mesh)
+    try:
+        import meshio
+
+        mesh = meshio.read(path)
+    except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
+        raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
+                          f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
+                          ) from None
+    blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
+    if name not in mesh.cell_data or not blocks:
+        have = ", ".join(sorted(mesh.cell_data)) or "none"
+        raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
+    vals = np.concatenate([np.asarray(mesh.cell_data[name][j], dtype=np.float64).reshape(-1)
+                           for j in blocks])
+    n = a.body_tets[i].stop - a.body_tets[i].start
+    if vals.shape != (n,):
+        raise scene.error(key, f"{path}: {name!r} has {vals.size} values for {n} tets")
+    return vals
+
+
+def _build_model(scene: Scene, a, backend: str | None) -> Model:
+    """The model of every body's material (one material form when there is one plain body,
+    else ``build_model(groups=)``: one group per body and per region)."""
+    from fem3d.model import MaterialGroup
+    from fem3d.scenes import select_vertices
+
+    bodies = scene.bodies
+    path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
+    try:
+        if len(bodies) == 1 and _simple_material(bodies[0].material):
+            m = bodies[0].material
+            return build_model(a.X, a.T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
+                               backend=backend, path=path)
+    except InputError as exc:
+        key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
+        raise scene.error(key, str(exc)) from None
+    groups, density = [], np.empty(a.T.shape[0])
+    for i, body in enumerate(bodies):
+        m = body.material
+        tets = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
+        density[tets] = m.density
+        base = dict(m.params)
+        if m.E is not None:
+            base.update(E=m.E, nu=m.nu)
+        for param, name in m.cell_fields.items():
+            base[param] = _cell_field(scene, a, i, param, name)
+        region = np.full(tets.size, -1)
+        if m.regions:
+            Xb = a.X[a.body_vertices[i]]
+            Tb = a.T[a.body_tets[i]] - a.body_vertices[i].start
+            for j, r in enumerate(m.regions):
+                ids = select_vertices(scene, Xb, r.select,
+                                      f"bodies[{i}].material.regions[{j}].select")
+                inside = np.isin(Tb, ids).all(axis=1)
+                if not inside.any():
+                    raise scene.error(f"bodies[{i}].material.regions[{j}].select",
+                                      "selects no whole tet (a region is the tets whose four "
+                                      "vertices are all selected)")
+                region[inside] = j
+        for j in range(-1, len(m.regions)):
+            mask = region == j
+            if not mask.any():
+                continue
+            values = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in base.items()}
+            if j >= 0:
+                r = m.regions[j]
+                values.update(r.params)
+                if r.E is not None:
+                    values["E"] = r.E
+                if r.nu is not None:
+                    values["nu"] = r.nu
+            groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
+                           MaterialGroup(m.model, tets[mask], values)))
+    rho = float(density[0]) if (density == density[0]).all() else density
+    try:
+        return build_model(a.X, a.T, groups=[g for _, g in groups], density=rho,
+                           backend=backend, path=path)
+    except ParameterError as exc:
+        # name the group the message is about when it says which (else the first body's)
+        import re
+
+        hit = re.search(r"material group (\d+)", str(exc))
+        key = groups[int(hit.group(1))][0] if hit and int(hit.group(1)) < len(groups) \
+            else groups[0][0]
+        raise scene.error(key, str(exc)) from None
+    except InputError as exc:
+        raise scene.error("bodies", str(exc)) from None
 
 
 def _stiffness(k) -> float | np.ndarray:
@@ -161,16 +247,7 @@ class Simulation:
         _check_supported(scene)
         a = assemble(scene)
         self.assembled = a
-        mat = scene.bodies[0].material
-        try:
-            self.model: Model = build_model(
-                a.X, a.T, E=mat.E, nu=mat.nu, rho=mat.density, material=mat.model,
-                backend=backend, path=a.mesh_paths[0] if len(a.mesh_paths) == 1 else None,
-            )
-        except InputError as exc:
-            if isinstance(exc, ParameterError):
-                raise scene.error("bodies[0].material", str(exc)) from None
-            raise scene.error("bodies[0].mesh", str(exc)) from None
+        self.model: Model = _build_model(scene, a, backend)
         if a.fixed.size == 0 and not scene.contact.enabled:
             raise scene.error(
                 "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
@@ -207,7 +284,8 @@ class Simulation:
         self.newton_hessian = sim.newton.hessian
         self.newton_solver = sim.newton.solver
         self.pick_radius = a.pick_radius
-        self.spring_k = a.spring_k
+        self.spring_k = (a.spring_k if a.spring_k is not None
+                         else 0.15 * float(self.model.E) * a.height)
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()

@@ -1052,9 +1052,10 @@ def add_sweep_subcommand(subparsers) -> argparse.ArgumentParser:
                    help="output folder (default out/<sweep name>)")
     p.add_argument("--retry-failed", action="store_true",
                    help="run the cases recorded as failed again")
-    p.add_argument("--metric", choices=METRICS, default=None,
-                   help="the results.csv column plotted in results.png (default: the sweep "
-                   "file's [results] metric, else max_displacement)")
+    p.add_argument("--metric", choices=METRICS, default=None, metavar="NAME",
+                   help="the results.csv column plotted in results.png: "
+                   f"{', '.join(METRICS)} (default: the sweep file's [results] metric, else "
+                   "max_displacement)")
     p.add_argument("--list", action="store_true", dest="list_cases",
                    help="print the cases (id, state, overrides) and run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -639,8 +639,8 @@ class Viewer:
             return dict(self._camera)
 
     def _scene_material(self) -> dict[str, float]:
-        m = self._scene.bodies[0].material
-        return {"E": float(m.E), "nu": float(m.nu), "rho": float(m.density)}
+        m = self._sim.model  # summary values (a scene may give its materials by params)
+        return {"E": float(m.E), "nu": float(m.nu), "rho": float(m.rho)}
 
     def _radius_range(self) -> tuple[float, float, float]:
         """(min, max, initial) of the grab-radius slider: 0.1 % to 20 % of the mesh's

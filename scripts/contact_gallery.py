@@ -25,12 +25,13 @@ sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
 def plane_patch(point, normal, center, half):
     """A square of half-width ``half`` on the plane, centred under ``center``."""
     n = np.asarray(normal, float) / np.linalg.norm(normal)
-    c = np.asarray(center, float) - ((np.asarray(center) - point) @ n) * n
+    # drawn a little below the plane: faces resting on it stay in front in the depth sort
+    c = np.asarray(center, float) - ((np.asarray(center) - point) @ n + 0.01 * half) * n
     a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
     a /= np.linalg.norm(a)
     b = np.cross(n, a)
-    # a 12 x 12 grid: small faces keep the painter's depth sort right around the bodies
-    k = 12
+    # a 40 x 40 grid: small faces keep the painter's depth sort right around the bodies
+    k = 40
     u = np.linspace(-half, half, k + 1)
     V = (c + u[:, None, None] * a + u[None, :, None] * b).reshape(-1, 3)
     i, j = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")

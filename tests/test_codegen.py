@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sympy as sp
+from fem3d._generated import MODULES
 
 from codegen.derive import reference_outputs
 from codegen.materials import MATERIALS
-from fem3d._generated import MODULES
 from fem3d.kernels import c_extension, kernel_module, material_kernels
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -113,10 +113,53 @@ def test_several_bodies_and_pulls():
     assert np.array_equal(sim.pull.stiffness, [1e5, 3e5])
     tgt = np.array([2.5, 0.5, 0.0])
     assert np.linalg.norm(sim.q[320] - tgt) < np.linalg.norm(a.X[320] - tgt)  # toward it
-    # different materials need the materials work's groups
-    t = apply_overrides(s, {"bodies[1].material.model": "stvk"})
-    with pytest.raises(InputError, match=r"bodies\[1\]\.material"):
-        Simulation(t)
+
+
+
+def test_materials_per_body_region_params_and_cell_fields(tmp_path):
+    import meshio
+
+    two = scene(bodies=[body(), body(transform={"translate": [2.0, 0.0, 0.0]},
+                                     material={"model": "stvk", "E": 1e5, "nu": 0.3,
+                                               "density": 0.2})])
+    sim = Simulation(two)
+    m = sim.model
+    assert m.material == "neo_hookean+stvk" and len(m.groups) == 2
+    assert m.density is not None and np.array_equal(m.density, np.r_[np.full(627, 0.1),
+                                                                      np.full(627, 0.2)])
+    sim.step()
+    # a region: the tets whose vertices are all above y = 0.5 get another E
+    reg = scene(bodies=[body(material=dict(MAT) | {"regions": [
+        {"select": {"half_space": {"point": [0.0, 0.5, 0.0], "normal": [0.0, 1.0, 0.0]}},
+         "E": 6e6}]})])
+    sim = Simulation(reg)
+    X, T = sim.model.X, sim.model.T
+    upper = (X[T][:, :, 1] >= 0.5).all(axis=1)
+    assert len(sim.model.groups) == 2 and 0 < upper.sum() < len(T)
+    groups = {tuple(g.elements.tolist()): g for g in sim.model.groups}
+    assert set(groups) == {tuple(np.flatnonzero(upper)), tuple(np.flatnonzero(~upper))}
+    # the model's own parameters instead of E, nu (stvk's mu, lam = E, nu's Lame values)
+    own = scene(bodies=[body(material={"model": "stvk", "params": {"mu": 2e5, "lam": 3e5},
+                                       "density": 0.1})])
+    (g,) = Simulation(own).model.groups
+    assert g.values == {"mu": 2e5, "lam": 3e5}
+    bad = scene(bodies=[body(material={"model": "stvk", "params": {"mu": 2e5}, "density": 0.1})])
+    with pytest.raises(InputError, match=r"bodies\[0\]\.material: .*missing: lam"):
+        Simulation(bad)
+    # a stiffness field from the mesh file's cell data
+    mesh = read_tet_mesh(ARMA)
+    field = np.linspace(1e5, 1e6, len(mesh.T))
+    vtu = tmp_path / "graded.vtu"
+    meshio.write(vtu, meshio.Mesh(mesh.X, [("tetra", mesh.T)], cell_data={"E": [field]}))
+    graded = scene(bodies=[body(mesh=str(vtu), material={
+        "model": "stvk", "E": 1.0, "nu": 0.3, "density": 0.1, "cell_fields": {"E": "E"}})])
+    (g,) = Simulation(graded).model.groups
+    from fem3d.materials import parameters_from
+
+    assert np.allclose(g.values["mu"], parameters_from("stvk", field, 0.3)["mu"])
+    missing = apply_overrides(graded, {"bodies[0].material.cell_fields": {"E": "stiff"}})
+    with pytest.raises(InputError, match=r"cell_fields\.E: .*no tet cell data 'stiff'"):
+        Simulation(missing)
 
 
 def test_gravity_and_damping():
