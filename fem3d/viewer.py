@@ -1274,7 +1274,11 @@ class Viewer:
 
     def _do_toggle_integrator(self) -> None:
         new = "implicit" if self._sim_integrator == "linear" else "linear"
-        self._sim.integrator = new
+        try:
+            self._sim.integrator = new
+        except Fem3dError as exc:  # e.g. a contact scene refuses the linearly-implicit scheme
+            self._notify_all("Integrator not switched", str(exc), color="yellow", seconds=8.0)
+            return
         self._gui_dirty = True
 
     def _do_set_paused(self, paused: bool) -> None:
