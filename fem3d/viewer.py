@@ -1625,9 +1625,11 @@ def add_view_subcommand(subparsers: Any) -> argparse.ArgumentParser:
         "view",
         help="interactive browser viewer (needs fem3d[view])",
         description="Run a scene in a browser viewer (viser): drag the mesh to pull it; "
-        "S toggles skinned/simulation mesh, N the integrator, space pauses, R resets.",
+        "M toggles skinned/simulation mesh, N the integrator, space pauses, R resets.",
     )
-    p.add_argument("scene", nargs="?", default="bunny", help="bunny | arma | path to a tet mesh")
+    p.add_argument("scene", nargs="?", default="bunny",
+                   help="bunny | arma | other name in data/scenes | FILE.toml | a tet mesh or "
+                   "closed surface")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
     p.add_argument(
