@@ -13,7 +13,6 @@ Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
 from __future__ import annotations
 
 import argparse
-import itertools
 import shutil
 import sys
 import tempfile
@@ -49,26 +48,9 @@ def box_mesh(cells, size) -> tuple[np.ndarray, np.ndarray]:
     X : (n, 3) float64
     T : (m, 4) int64
     """
-    nx, ny, nz = cells
-    g = np.stack(np.meshgrid(*(np.linspace(0.0, s, k + 1) for s, k in zip(size, cells,
-                                                                          strict=True)),
-                             indexing="ij"), axis=-1).reshape(-1, 3)
-    idx = np.arange(g.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    tets = []
-    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
-        for perm in itertools.permutations(range(3)):
-            c = np.array([i, j, k])
-            path = [c.copy()]
-            for a in perm:
-                c = c.copy()
-                c[a] += 1
-                path.append(c)
-            tets.append([idx[tuple(p)] for p in path])
-    T = np.array(tets, dtype=np.int64)
-    e = g[T[:, 1:]] - g[T[:, :1]]
-    neg = np.linalg.det(e) < 0
-    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
-    return g, T
+    from fem3d.mesh import box_tet_mesh
+
+    return box_tet_mesh(cells, size)
 
 
 def write_meshes() -> None:

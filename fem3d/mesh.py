@@ -54,6 +54,7 @@ __all__ = [
     "MeshWarning",
     "TetMesh",
     "boundary_faces",
+    "box_tet_mesh",
     "check_skin_inside",
     "check_skin_placement",
     "read_surface_mesh",
@@ -1308,3 +1309,49 @@ def check_skin_placement(
         )
     name = "display mesh" if path is None else f"display mesh {path}"
     return check_skin_inside(skin_V, X, warn_tol, T, name=name)
+
+
+def box_tet_mesh(
+    cells: Sequence[int] = (2, 2, 2),
+    size: Sequence[float] = (1.0, 1.0, 1.0),
+    origin: Sequence[float] = (0.0, 0.0, 0.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """A box split into grid cells of 6 Kuhn (Freudenthal) tets each, all positively oriented.
+
+    Every tet follows a monotone path from a cell's lowest corner to its highest, along the
+    axes in the order of one permutation, so neighbouring cells share faces (conforming).
+
+    Parameters
+    ----------
+    cells : (3,) int
+        Cells along x, y, z.
+    size : (3,) float
+        Box extents.
+    origin : (3,) float
+        Lowest corner.
+
+    Returns
+    -------
+    X : ((nx+1)(ny+1)(nz+1), 3) float64
+        Grid vertices, z fastest (``meshgrid(..., indexing="ij")`` order).
+    T : (6 nx ny nz, 4) int64
+        Tets, cell after cell (x slowest), the six permutations of (0, 1, 2) in
+        lexicographic order within a cell.
+    """
+    n = tuple(int(k) for k in cells)
+    axes = [np.linspace(0.0, float(s), k + 1) for s, k in zip(size, n, strict=True)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    X = X + np.asarray(origin, dtype=np.float64)
+    shape = tuple(k + 1 for k in n)
+    lowest = np.stack(np.meshgrid(*(np.arange(k) for k in n), indexing="ij"),
+                      axis=-1).reshape(-1, 1, 1, 3)
+    steps = np.zeros((6, 4, 3), dtype=np.int64)  # corner offsets along each permutation's path
+    for p, perm in enumerate(itertools.permutations(range(3))):
+        for i, axis in enumerate(perm):
+            steps[p, i + 1:, axis] += 1
+    corners = (lowest + steps).reshape(-1, 3)
+    T = np.ravel_multi_index(tuple(corners.T), shape).reshape(-1, 4).astype(np.int64)
+    e = X[T[:, 1:]] - X[T[:, :1]]
+    neg = np.linalg.det(e) < 0
+    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
+    return X, T

@@ -10,38 +10,18 @@
 
 from __future__ import annotations
 
-import itertools
 import sys
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
 
-from fem3d.mesh import TetMesh, write_tet_mesh  # noqa: E402
+from fem3d.mesh import TetMesh, box_tet_mesh, write_tet_mesh  # noqa: E402
 
 
 def box(n, size, origin=(0.0, 0.0, 0.0)):
     """Kuhn-subdivided box: 6 positively oriented tets per cell."""
-    g = np.stack(np.meshgrid(*(np.linspace(0, s, k + 1) for s, k in zip(size, n, strict=True)),
-                             indexing="ij"), axis=-1).reshape(-1, 3) + np.asarray(origin)
-    idx = np.arange(g.shape[0]).reshape(tuple(k + 1 for k in n))
-    tets = []
-    for cell in itertools.product(*(range(k) for k in n)):
-        for perm in itertools.permutations(range(3)):
-            c = np.array(cell)
-            path = [c.copy()]
-            for a in perm:
-                c = c.copy()
-                c[a] += 1
-                path.append(c)
-            tets.append([idx[tuple(p)] for p in path])
-    T = np.array(tets, dtype=np.int64)
-    e = g[T[:, 1:]] - g[T[:, :1]]
-    neg = np.linalg.det(e) < 0
-    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
-    return g, T
+    return box_tet_mesh(n, size, origin)
 
 
 def main() -> None:

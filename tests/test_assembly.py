@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -19,6 +17,7 @@ from fem3d.assembly import (
 )
 from fem3d.errors import InputError, ParameterError
 from fem3d.kernels import c_extension
+from fem3d.mesh import box_tet_mesh
 from fem3d.model import build_model, material_parameters
 
 BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
@@ -26,26 +25,7 @@ BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
 
 def box_mesh(nx: int = 2, ny: int = 2, nz: int = 2, size=(1.0, 1.0, 1.0)):
     """Kuhn-subdivided box: (nx+1)(ny+1)(nz+1) vertices, 6 nx ny nz positive tets."""
-    g = np.stack(
-        np.meshgrid(*(np.linspace(0, s, k + 1) for s, k in zip(size, (nx, ny, nz), strict=True)),
-                    indexing="ij"), axis=-1,
-    ).reshape(-1, 3)
-    idx = np.arange(g.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    tets = []
-    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
-        for perm in itertools.permutations(range(3)):
-            c = np.array([i, j, k])
-            path = [c.copy()]
-            for a in perm:
-                c = c.copy()
-                c[a] += 1
-                path.append(c)
-            tets.append([idx[tuple(p)] for p in path])
-    T = np.array(tets, dtype=np.int64)
-    e = g[T[:, 1:]] - g[T[:, :1]]
-    neg = np.linalg.det(e) < 0
-    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
-    return g, T
+    return box_tet_mesh((nx, ny, nz), size)
 
 
 def rotation(axis, angle):

@@ -7,37 +7,18 @@ intersection test at the returned step, and the body filter by the pairs it lets
 
 from __future__ import annotations
 
-import itertools
-
 import ipctk
 import numpy as np
 import pytest
 
 from fem3d.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.mesh import boundary_faces
+from fem3d.mesh import boundary_faces, box_tet_mesh
 
 
 def box_mesh(n=(2, 2, 2), size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):
     """Kuhn-subdivided box: 6 positively oriented tets per cell."""
-    g = np.stack(np.meshgrid(*(np.linspace(0, s, k + 1) for s, k in zip(size, n, strict=True)),
-                             indexing="ij"), axis=-1).reshape(-1, 3) + np.asarray(origin)
-    idx = np.arange(g.shape[0]).reshape(tuple(k + 1 for k in n))
-    tets = []
-    for cell in itertools.product(*(range(k) for k in n)):
-        for perm in itertools.permutations(range(3)):
-            c = np.array(cell)
-            path = [c.copy()]
-            for a in perm:
-                c = c.copy()
-                c[a] += 1
-                path.append(c)
-            tets.append([idx[tuple(p)] for p in path])
-    T = np.array(tets, dtype=np.int64)
-    e = g[T[:, 1:]] - g[T[:, :1]]
-    neg = np.linalg.det(e) < 0
-    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
-    return g, T
+    return box_tet_mesh(n, size, origin)
 
 
 def two_boxes(gap: float):

@@ -320,3 +320,17 @@ def test_medit_as_display_mesh(tmp_path: Path) -> None:
     p.write_text(text)
     V, F = read_surface_mesh(p)
     np.testing.assert_array_equal(F, [[0, 1, 2], [0, 1, 4], [0, 4, 2]])
+
+
+def test_box_tet_mesh_is_conforming_positive_and_fills_the_box() -> None:
+    from fem3d.mesh import boundary_faces, box_tet_mesh
+
+    X, T = box_tet_mesh((3, 2, 4), (0.3, 0.2, 0.8), origin=(1.0, -1.0, 0.5))
+    assert X.shape == (4 * 3 * 5, 3) and T.shape == (6 * 3 * 2 * 4, 4)
+    e = X[T[:, 1:]] - X[T[:, :1]]
+    vol = np.linalg.det(e) / 6.0
+    assert (vol > 0).all()
+    np.testing.assert_allclose(vol.sum(), 0.3 * 0.2 * 0.8, rtol=1e-12)
+    np.testing.assert_allclose(X.min(axis=0), [1.0, -1.0, 0.5])
+    # conforming: only the box's outer faces are boundary faces (2 triangles per cell face)
+    assert len(boundary_faces(T)) == 2 * 2 * (3 * 2 + 2 * 4 + 3 * 4)
