@@ -368,16 +368,7 @@ class ContactModel:
         if self.self_contact:
             return ipctk.make_static_obstacle_filter(self.n_surface)
         # ipctk's connected-components filter over synthetic faces chaining each group
-        tris = []
-        for g in np.unique(groups):
-            ids = np.flatnonzero(groups == g)
-            if ids.size >= 3:
-                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
-                                     axis=1))
-            elif ids.size == 2:
-                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
-        chain = np.ascontiguousarray(np.concatenate(tris), dtype=np.int32) if tris else \
-            np.zeros((0, 3), dtype=np.int32)
+        chain = self._chain(groups)
         return ipctk.make_connected_components_filter(chain)
 
     def set_kappa(self, kappa: float) -> None:
@@ -810,7 +801,9 @@ class ContactModel:
 
     @staticmethod
     def _chain(groups: np.ndarray) -> np.ndarray:
-        tris = []
+        """Synthetic triangles ``(k, 3) int32`` that connect each group's vertices (a fan; a
+        degenerate triangle for a pair): one connected component per group."""
+        tris = [np.zeros((0, 3), dtype=np.int64)]
         for g in np.unique(groups):
             ids = np.flatnonzero(groups == g)
             if ids.size >= 3:
