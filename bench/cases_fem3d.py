@@ -126,6 +126,39 @@ def _register_solver_rows(backend: str) -> None:
         return lambda: s.solve(b)
 
 
+def _register_amg_rows() -> None:
+    """fem3d.linsolve.AMGPreconditioner: hierarchy setup ("factor") and preconditioned CG to
+    a relative residual of 1e-8 from x = 0 ("solve"), on the same SPD system."""
+    lib = "fem3d-amg"
+    kw = dict(library=lib, requires=("pyamg",))
+    note = ("fem3d-amg: pyamg smoothed aggregation (rigid-body modes as B, 3x3 BSR, "
+            "fem3d.linsolve.AMG_OPTIONS); factor = hierarchy setup, solve = V-cycle "
+            "preconditioned CG to |r| <= 1e-8 |b|. No analysis phase.")
+
+    def amg(mesh: BenchMesh):
+        ls = _import_fem3d("linsolve")
+        free_vertices = mesh.system.free[::3] // 3
+        return ls.AMGPreconditioner(ls.rigid_body_modes(mesh.X[free_vertices])), mesh.system.A
+
+    @register(f"factor/{lib}", group="factor", note=note, **kw)
+    def _factor(mesh: BenchMesh):
+        pre, A = amg(mesh)
+        return lambda: pre.setup(A)
+
+    @register(f"solve/{lib}", group="solve", **kw)
+    def _solve(mesh: BenchMesh):
+        pre, A = amg(mesh)
+        pre.setup(A)
+        b = np.ones(A.shape[0])
+
+        def run():
+            result = pre.solve(A, b, rtol=1e-8, maxiter=500)
+            if not result.converged:
+                raise RuntimeError(f"AMG-preconditioned CG did not converge: {result}")
+            return result.x
+        return run
+
+
 # ------------------------------------------------------------------------------ integrators
 def _register_step_rows(backend: str) -> None:
     """One backward-Euler step of the clamped box from the deformed state (fem3d.integrators)."""
@@ -153,3 +186,4 @@ for _b in ("numpy", "c"):
     _register_step_rows(_b)
 for _s in ("cholmod", "pardiso", "superlu"):
     _register_solver_rows(_s)
+_register_amg_rows()
