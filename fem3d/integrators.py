@@ -259,8 +259,8 @@ class StepStats:
     shifted_factorizations : int
         Factorizations that needed a diagonal shift (indefinite Hessian).
     psd_fallbacks : int
-        Newton iterations whose exact Hessian no shift made positive definite, solved with
-        the PSD-projected Hessian instead.
+        Newton iterations whose exact Hessian no shift made positive definite (with
+        ``"reuse"``: that was indefinite), solved with the PSD-projected Hessian instead.
     gradient_tolerance : float
         The ``||g||`` Newton aimed for (implicit Euler); a converged step can end above it
         only where the line search met the objective's round-off.
@@ -1439,16 +1439,29 @@ def implicit_euler(
         replaced by the PSD-projected one for the rest of the step (``psd_fallbacks``).
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
-        (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
-        across iterations and steps, and refactorize when CG does not converge within
-        ``cg_maxiter`` iterations, meets negative curvature or returns a non-descent
-        direction, when the step's previous solve needed more than ``cg_maxiter / 2``
-        iterations (the preconditioner has aged), or when no factorization exists yet. An
-        inexact Newton: it converges to the same gradient tolerance.
+        (:class:`fem3d.linsolve.PreconditionedCG`), kept across iterations and steps, and
+        refactorize when CG does not converge within ``cg_maxiter`` iterations, meets
+        negative curvature or returns a non-descent direction, when the step's previous
+        solve needed more than ``cg_maxiter / 2`` iterations (the preconditioner has aged),
+        or when no factorization exists yet. An inexact Newton: it converges to the same
+        gradient tolerance. Its CG solves stop at the forcing term
+        ``max(cg_rtol, min(REUSE_FORCING_MAX, max(0.9 (|g_k| / |g_k-1|)^2, 0.5 tol /
+        |g_k|)))``: tight where Newton converges fast, loose where it crawls (far from the
+        solution) and never tighter than reaching the tolerance in this iteration needs.
+        Without objective terms, an iteration right after a full step solves with the
+        previous iterate's Newton matrix instead of assembling one when the step that
+        lagging leaves is estimated below :data:`REUSE_LAG_FRACTION` of the tolerance
+        (``lagged_matrices``). An iteration whose exact Hessian is indefinite (CG meets
+        negative curvature, or its factorization fails) factorizes the PSD-projected Hessian
+        instead of climbing the shift ladder (``psd_fallbacks``); after two such iterations in
+        a row the rest of the step assembles the PSD-projected one directly. The line search
+        judges round-off against the strain energy's scale ``E vol`` (``energy_scale`` of
+        :func:`newtons_method`).
         :attr:`System.factorized_data` records the factorized matrix so that a checkpoint
         can rebuild the same preconditioner.
     cg_rtol : float, optional
-        Relative residual of the CG solves with ``"reuse"``.
+        The tightest relative residual of the CG solves with ``"reuse"`` (see the forcing
+        term above).
     cg_maxiter : int, optional
         CG iterations per solve before refactorizing (default 16: about the cost of one
         factorization on armadillo-class meshes of 1e3 to 1e5 tets, where a factorization
