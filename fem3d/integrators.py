@@ -1549,13 +1549,17 @@ def implicit_euler(
         v = c.expand_zero(v_free)
         return v if pins.v_fixed is None else v + pins.v_fixed
 
+    kinetic_cache: list = [None, None]  # [v_free, M (v_free - v_t)] of the last energy
+
     def energy(v_free: np.ndarray) -> float:
         q = positions(v_free)
         if check_inversion and count_inverted(model, q):
             return math.inf
         if dv_fixed is None:
             dv = v_free - vt_free
-            e = 0.5 * float(dv @ (mass_free @ dv)) + potential_energy(model, q)
+            m_dv = mass_free @ dv
+            kinetic_cache[:] = [v_free, m_dv]  # the gradient at an accepted point reuses it
+            e = 0.5 * float(dv @ m_dv) + potential_energy(model, q)
         else:
             dv = c.expand_zero(v_free - vt_free) + dv_fixed
             e = 0.5 * float(dv @ (model.mass @ dv)) + potential_energy(model, q)
@@ -1578,7 +1582,10 @@ def implicit_euler(
         for term in terms if with_terms else ():
             gq += term.gradient(q)
         if dv_fixed is None:
-            g = mass_free @ (v_free - vt_free) + dt * gq[free]
+            cached, m_dv = kinetic_cache
+            if cached is not v_free:  # newtons_method never changes an iterate in place
+                m_dv = mass_free @ (v_free - vt_free)
+            g = m_dv + dt * gq[free]
         else:
             dv = c.expand_zero(v_free - vt_free) + dv_fixed
             g = (model.mass @ dv)[free] + dt * gq[free]
