@@ -23,7 +23,8 @@ energy's round-off, and are counted), from a fresh :class:`fem3d.integrators.Sys
 Newton iterations, factorizations, CG iterations, the largest final gradient norm, the
 largest deviation of the trajectory from the first mode's (relative to the mesh size), the
 speed-up over the first mode, and peak RSS, then where the time went (matrix assembly,
-factorizations, AMG setups, CG iterations, energies and gradients); first, the pieces of one
+factorizations, AMG setups, CG iterations, energies and gradients) and how many Newton
+iterations solved with the previous iterate's matrix (``reuse``); first, the pieces of one
 Newton iteration (assembly into the reduced pattern, factorization, solve; with ``amg``: one
 hierarchy setup and one V-cycle). Modes: ``direct`` and ``reuse`` on the default direct back
 end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), each forced whatever ``"auto"``
@@ -155,7 +156,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
     state = work.start
     seconds, trajectory = 0.0, []
     totals = dict(newton=0, factorizations=0, cg=0, psd_fallbacks=0, final_gradient=0.0,
-                  stopped_at_round_off=0, amg_setups=0, halvings=0)
+                  stopped_at_round_off=0, amg_setups=0, halvings=0, lagged=0)
     parts: dict[str, float] = {}
     cpu = 0.0
     for pull in work.pulls:
@@ -171,6 +172,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
         totals["psd_fallbacks"] += stats.psd_fallbacks
         totals["amg_setups"] += stats.amg_setups
         totals["halvings"] += stats.line_search_halvings
+        totals["lagged"] += stats.lagged_matrices
         for part, sec in stats.seconds.items():
             parts[part] = parts.get(part, 0.0) + sec
         norms = stats.gradient_norms
@@ -248,7 +250,8 @@ def main(argv: list[str] | None = None) -> None:
             print("          per step: " + ", ".join(
                 f"{k} {v * 1e3:.1f} ms" for k, v in sorted(parts.items()))
                 + f", other {other * 1e3:.1f} ms; AMG setups {best['amg_setups']}, line-search "
-                f"halvings {best['halvings']}", flush=True)
+                f"halvings {best['halvings']}, lagged Newton matrices {best['lagged']}",
+                flush=True)
             if args.jsonl:
                 record = {k: v for k, v in best.items() if k != "trajectory"}
                 record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,

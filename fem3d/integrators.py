@@ -259,8 +259,8 @@ class StepStats:
     shifted_factorizations : int
         Factorizations that needed a diagonal shift (indefinite Hessian).
     psd_fallbacks : int
-        Newton iterations whose exact Hessian no shift made positive definite, solved with
-        the PSD-projected Hessian instead.
+        Newton iterations whose exact Hessian no shift made positive definite (with
+        ``"reuse"``: that was indefinite), solved with the PSD-projected Hessian instead.
     gradient_tolerance : float
         The ``||g||`` Newton aimed for (implicit Euler); a converged step can end above it
         only where the line search met the objective's round-off.
@@ -268,6 +268,9 @@ class StepStats:
         Newton stopped on its tolerance (or at round-off), not on the iteration cap.
     amg_setups : int
         AMG hierarchies built during the step (``"amg"`` back end).
+    lagged_matrices : int
+        Newton iterations that solved with the previous iterate's Newton matrix instead of
+        assembling one (``"reuse"``).
     seconds : dict of str to float
         Wall time of the step's parts (implicit Euler): ``"matrix"`` (Newton-matrix
         assembly), ``"factorize"``, ``"cg"`` (CG iterations, preconditioner included),
@@ -284,6 +287,7 @@ class StepStats:
     psd_fallbacks: int = 0
     gradient_tolerance: float = 0.0
     amg_setups: int = 0
+    lagged_matrices: int = 0
     seconds: dict[str, float] = field(default_factory=dict)
 
     def add_seconds(self, part: str, seconds: float) -> None:
@@ -335,6 +339,14 @@ AMG_ROUNDOFF_RTOL = 1e-10
 #: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
 #: round-off (measured floors on the swinging box: 10-20 tolerances).
 ROUNDOFF_GRADIENT_FACTOR = 1e3
+
+#: ``"reuse"``: the loosest relative CG residual; a solve is never tighter than reaching the
+#: gradient tolerance in its Newton iteration needs (``0.5 tol / |g|``), nor looser than this.
+REUSE_FORCING_MAX = 0.1
+#: ``"reuse"``: a Newton iteration solves with the previous iterate's Newton matrix (no
+#: assembly) when the gradient that lagging is estimated to leave is below this fraction of
+#: the tolerance (:func:`implicit_euler`).
+REUSE_LAG_FRACTION = 0.1
 
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
@@ -403,6 +415,7 @@ class System:
             self._free_scatter.setflags(write=False)
         self._free_slot.setflags(write=False)
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
+        self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
         #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
         #: back end (:func:`fem3d.linsolve.choose_backend`: ``"auto"`` picks by size).
         self.linear_backend = choose_backend(solver_backend, constraints.n_free)
@@ -522,6 +535,16 @@ class System:
         cols = np.broadcast_to(d[:, None, :], (d.shape[0], 3, 3))
         return self.data_positions(rows.reshape(-1), cols.reshape(-1))
 
+    def _pull_free_slots(self, pull: Pull) -> np.ndarray:
+        """Reduced-data slots of :meth:`_pull_positions` (cached for the last vertex set: a
+        dragged pull keeps its vertices from step to step)."""
+        cached = self._pull_slots
+        if cached is None or not np.array_equal(cached[0], pull.vertices):
+            slots = self._free_slot[self._pull_positions(pull)]
+            cached = (np.array(pull.vertices), slots)
+            self._pull_slots = cached
+        return cached[1]
+
     def reduced(self, data: np.ndarray) -> sp.csr_matrix:
         """``P A P^T`` of the full-pattern matrix with ``data``."""
         return self.constraints.reduce_matrix(self.model.csr(data))
@@ -578,7 +601,7 @@ class System:
             del full
         if pull is not None and pull.vertices.size:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
-            slots = self._free_slot[self._pull_positions(pull)]
+            slots = self._pull_free_slots(pull)
             np.add.at(data, slots, (dt * dt) * pull.hessian_blocks(self.spring, q3).reshape(-1))
         if damping is not None:  # + dt D (backward Euler's dissipation dt/2 v^T D v)
             data[:nnz_free] += dt * damping[self._kept]
@@ -587,7 +610,8 @@ class System:
         A.has_sorted_indices = True
         return A
 
-    def factorize(self, A_free: sp.csr_matrix, *, shift_hint: float = 0.0) -> float:
+    def factorize(self, A_free: sp.csr_matrix, *, shift_hint: float = 0.0,
+                  shifts: bool = True) -> float:
         """Factorize an SPD reduced matrix; shift it when it is not positive definite.
 
         Strategy for an indefinite Newton Hessian: try ``A``; on
@@ -602,6 +626,9 @@ class System:
         shift_hint : float, optional
             ``> 0``: ``A`` is expected to be indefinite; start the ladder at this ``mu``
             instead of trying ``A`` itself (each failed attempt is a whole factorization).
+        shifts : bool, optional
+            False: try ``A`` itself only (no ladder; raises when it is not positive
+            definite).
 
         Returns
         -------
@@ -616,7 +643,9 @@ class System:
         """
         mu0, tries = SHIFT_LADDER_START, self.max_shift_tries
         mu_max = mu0 * SHIFT_LADDER_GROWTH ** (tries - 1)
-        if 0 < shift_hint <= mu_max:  # the rungs of the ladder from the hint up
+        if not shifts:
+            tries, shift_hint = 0, 0.0
+        elif 0 < shift_hint <= mu_max:  # the rungs of the ladder from the hint up
             tries = 1 + math.floor(math.log(mu_max / shift_hint, SHIFT_LADDER_GROWTH) + 1e-9)
             mu0 = shift_hint
         A_free = self.on_solver_pattern(A_free)
@@ -839,6 +868,40 @@ class _ExtendedPattern:
                           shape=self.pattern.shape, copy=False)
         A.has_sorted_indices = True
         return A
+
+
+@dataclass(eq=False)
+class _LaggedMatrix:
+    """A Newton matrix kept for the next iterates of one step (``"reuse"``).
+
+    Assembled at an iterate with gradient norm ``g_at``; ``expected`` is the iterate a full
+    step along the direction solved with it reaches. At the first iterate after it (norm
+    ``g_next``) Newton's quadratic model gives ``C = g_next / g_at^2`` (the next gradient of
+    a fresh Newton step, ``C |g|^2``) and the contraction of a step solved with this older
+    matrix: the matrix is off by about the step taken since, so such a step leaves about
+    ``rho |g| + C |g|^2`` with ``rho = 2 g_next / g_at``.
+    """
+
+    A: sp.csr_matrix
+    g_at: float
+    expected: np.ndarray
+    g_next: float = 0.0
+
+    def lag(self, x: np.ndarray, gn: float, target: float) -> bool:
+        """Whether to solve at ``x`` (gradient norm ``gn``) with this matrix: the last step
+        was full and a step solved with it is estimated to leave a gradient below
+        ``target``. (Lagging further, over more steps, does not pay: far from the solution
+        the estimates are too optimistic, and each extra Newton iteration costs about an
+        assembly.)"""
+        if not np.array_equal(x, self.expected):
+            return False  # the line search shortened the step: the estimates do not hold
+        if not self.g_next:
+            self.g_next = gn
+        if not 0.0 < self.g_next < self.g_at:
+            return False
+        c = self.g_next / (self.g_at * self.g_at)
+        rho = 2.0 * self.g_next / self.g_at
+        return rho * gn + c * gn * gn <= target
 
 
 def _hessian_into(model: Model, kernel: str, q: np.ndarray, vol: np.ndarray,
@@ -1101,11 +1164,13 @@ def newtons_method(
     c: float = 1e-8,
     max_halvings: int = 30,
     decrement_rtol: float = 1e-14,
+    energy_scale: float = 0.0,
     on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
     max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
     converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None,
     after_step: Callable[[np.ndarray], bool] | None = None,
     roundoff_rtol: float = 0.0,
+    f0: float | None = None,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -1129,10 +1194,14 @@ def newtons_method(
     max_halvings : int, optional
         Line-search trials before giving up.
     decrement_rtol : float, optional
-        When the Newton decrement ``-g.d`` is below ``decrement_rtol |E(x)|`` the decrease
-        left is at the objective's round-off, where Armijo tests are noise: the full step is
-        then taken if it is admissible and reduces ``||g||``; otherwise Newton stops
-        (converged at round-off).
+        When the Newton decrement ``-g.d`` is below ``decrement_rtol (|E(x)| +
+        energy_scale)`` the decrease left is at the objective's round-off, where Armijo tests
+        are noise: the full step is then taken if it is admissible and reduces ``||g||``;
+        otherwise Newton stops (converged at round-off).
+    energy_scale : float, optional
+        The magnitude of the objective's summands when it is a sum of terms that cancel (an
+        elastic energy near rest sums element energies whose own round-off is relative to
+        ``E vol``, not to their tiny total); default 0: ``|E(x)|`` alone sets the round-off.
     on_no_step : callable ``(x, d)``, optional
         Called when every trial point was inadmissible (``+inf``); expected to raise. When it
         is None or returns, Newton stops at the current ``x``.
@@ -1153,6 +1222,8 @@ def newtons_method(
         solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
         :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance, stop (converged at round-off)
         rather than halve through noise. 0 (default): plain backtracking.
+    f0 : float, optional
+        ``energy(x0)`` when the caller has it already (saves one evaluation).
 
     Returns
     -------
@@ -1161,7 +1232,7 @@ def newtons_method(
         has been reached: Newton stops there and reports ``converged=True``.
     """
     x = np.array(x0, dtype=np.float64)
-    fx = energy(x)
+    fx = energy(x) if f0 is None else float(f0)
     g = gradient(x)
     gn = _gradient_norm(g)
     norms = [gn]
@@ -1183,15 +1254,16 @@ def newtons_method(
             a0 = min(alpha, float(max_step(x, d)))
             if not a0 > 0.0:
                 return NewtonResult(x, it, norms, False, halvings)
-        if -slope <= decrement_rtol * abs(fx):
+        if -slope <= decrement_rtol * (abs(fx) + energy_scale):
             # The predicted decrease is below the objective's round-off, so Armijo tests are
             # noise: take the full step while it is admissible and shrinks the gradient.
             xt = x + d if a0 == 1.0 else x + a0 * d
-            gt = gradient(xt) if math.isfinite(energy(xt)) else None
+            ft = energy(xt)
+            gt = gradient(xt) if math.isfinite(ft) else None
             gtn = math.inf if gt is None or not np.isfinite(gt).all() else _gradient_norm(gt)
             if not gtn < gn:
                 return NewtonResult(x, it, norms, True, halvings)
-            x, fx, g, gn = xt, energy(xt), gt, gtn
+            x, fx, g, gn = xt, ft, gt, gtn
             norms.append(gn)
             it += 1
             continue
@@ -1367,16 +1439,29 @@ def implicit_euler(
         replaced by the PSD-projected one for the rest of the step (``psd_fallbacks``).
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
-        (:class:`fem3d.linsolve.PreconditionedCG`, relative residual ``cg_rtol``), kept
-        across iterations and steps, and refactorize when CG does not converge within
-        ``cg_maxiter`` iterations, meets negative curvature or returns a non-descent
-        direction, when the step's previous solve needed more than ``cg_maxiter / 2``
-        iterations (the preconditioner has aged), or when no factorization exists yet. An
-        inexact Newton: it converges to the same gradient tolerance.
+        (:class:`fem3d.linsolve.PreconditionedCG`), kept across iterations and steps, and
+        refactorize when CG does not converge within ``cg_maxiter`` iterations, meets
+        negative curvature or returns a non-descent direction, when the step's previous
+        solve needed more than ``cg_maxiter / 2`` iterations (the preconditioner has aged),
+        or when no factorization exists yet. An inexact Newton: it converges to the same
+        gradient tolerance. Its CG solves stop at the forcing term
+        ``max(cg_rtol, min(REUSE_FORCING_MAX, max(0.9 (|g_k| / |g_k-1|)^2, 0.5 tol /
+        |g_k|)))``: tight where Newton converges fast, loose where it crawls (far from the
+        solution) and never tighter than reaching the tolerance in this iteration needs.
+        Without objective terms, an iteration right after a full step solves with the
+        previous iterate's Newton matrix instead of assembling one when the step that
+        lagging leaves is estimated below :data:`REUSE_LAG_FRACTION` of the tolerance
+        (``lagged_matrices``). An iteration whose exact Hessian is indefinite (CG meets
+        negative curvature, or its factorization fails) factorizes the PSD-projected Hessian
+        instead of climbing the shift ladder (``psd_fallbacks``); after two such iterations in
+        a row the rest of the step assembles the PSD-projected one directly. The line search
+        judges round-off against the strain energy's scale ``E vol`` (``energy_scale`` of
+        :func:`newtons_method`).
         :attr:`System.factorized_data` records the factorized matrix so that a checkpoint
         can rebuild the same preconditioner.
     cg_rtol : float, optional
-        Relative residual of the CG solves with ``"reuse"``.
+        The tightest relative residual of the CG solves with ``"reuse"`` (see the forcing
+        term above).
     cg_maxiter : int, optional
         CG iterations per solve before refactorizing (default 16: about the cost of one
         factorization on armadillo-class meshes of 1e3 to 1e5 tets, where a factorization
@@ -1413,10 +1498,18 @@ def implicit_euler(
             getattr(t, "requires_convergence", False) for t in terms):
         max_iterations = max(max_iterations, converged_max_iterations)
     pcg = None
+    lag_matrices = linear_solver == "reuse" and not terms
     if linear_solver == "reuse":
         pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=cg_maxiter,
                                refactorize_on_stall=False)
     last_cg = [0]  # CG iterations of this step's last solve (0 after a factorization)
+    # reuse: the tolerance newtons_method aims for (set at the first direction), the last
+    # iterate's ||g||, and the last Newton matrix (lagging, see direction)
+    reuse_tol = [0.0, 0.0]
+    last_newton: list = [None]
+    # reuse: [the PSD-projected Hessian for the rest of the step, consecutive iterations
+    # whose exact Hessian was indefinite]
+    reuse_psd = [psd, 0]
     shift_hint = [0.0]  # where this step's next shift ladder starts (0: unshifted first)
     model, c, spring = system.model, system.constraints, system.spring
     check_inversion = not getattr(model, "allows_inversion", False)
@@ -1428,6 +1521,9 @@ def implicit_euler(
     stats = StepStats()
     L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
     atol = atol_factor * dt * model.E * L * L
+    # "reuse" (an inexact Newton) judges the line search's round-off by the strain energy's:
+    # its element terms cancel near rest to much less than their own size, about E vol each
+    energy_scale = model.E * float(model.vol.sum()) if linear_solver == "reuse" else 0.0
     pins = _pins(system, state, dt, fixed_positions)
     q_base = pins.q_base
     f_free = None if system.gravity_force is None else system.gravity_force[free]
@@ -1453,13 +1549,17 @@ def implicit_euler(
         v = c.expand_zero(v_free)
         return v if pins.v_fixed is None else v + pins.v_fixed
 
+    kinetic_cache: list = [None, None]  # [v_free, M (v_free - v_t)] of the last energy
+
     def energy(v_free: np.ndarray) -> float:
         q = positions(v_free)
         if check_inversion and count_inverted(model, q):
             return math.inf
         if dv_fixed is None:
             dv = v_free - vt_free
-            e = 0.5 * float(dv @ (mass_free @ dv)) + potential_energy(model, q)
+            m_dv = mass_free @ dv
+            kinetic_cache[:] = [v_free, m_dv]  # the gradient at an accepted point reuses it
+            e = 0.5 * float(dv @ m_dv) + potential_energy(model, q)
         else:
             dv = c.expand_zero(v_free - vt_free) + dv_fixed
             e = 0.5 * float(dv @ (model.mass @ dv)) + potential_energy(model, q)
@@ -1482,7 +1582,10 @@ def implicit_euler(
         for term in terms if with_terms else ():
             gq += term.gradient(q)
         if dv_fixed is None:
-            g = mass_free @ (v_free - vt_free) + dt * gq[free]
+            cached, m_dv = kinetic_cache
+            if cached is not v_free:  # newtons_method never changes an iterate in place
+                m_dv = mass_free @ (v_free - vt_free)
+            g = m_dv + dt * gq[free]
         else:
             dv = c.expand_zero(v_free - vt_free) + dv_fixed
             g = (model.mass @ dv)[free] + dt * gq[free]
@@ -1555,36 +1658,24 @@ def implicit_euler(
             last_per_decade[0] = math.inf  # rebuild on this matrix and try again
         return np.full_like(g, np.nan)  # newtons_method falls back to -g
 
-    def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
-        if use_amg:
-            return amg_direction(v_free, g)
-        q = positions(v_free)
-        A_free = matrix(q, psd)
-        if not np.isfinite(A_free.data).all():
-            return np.full_like(g, np.nan)  # newtons_method falls back to -g
-        # an aged preconditioner (the last solve needed over half the budget) is replaced now
-        # rather than after another long CG run
-        if pcg is not None and system.factorized_data is not None and \
-                last_cg[0] <= cg_maxiter // 2:
-            pcg.solver = system.solver  # an objective term may have widened the pattern
-            result = pcg.solve(A_free, -g)
-            stats.cg_iterations += result.iterations
-            last_cg[0] = result.iterations
-            # CG can converge on an indefinite A to a direction that is not a descent one;
-            # the (shifted) factorization below always gives one
-            if result.converged and float(g @ result.x) < 0.0:
-                return result.x
-            if result.negative_curvature:  # A is indefinite: do not try it unshifted
-                shift_hint[0] = max(shift_hint[0], SHIFT_LADDER_START)
+    def factorized_direction(q: np.ndarray, g: np.ndarray, A_free: sp.csr_matrix,
+                             psd_matrix: bool, ladder: bool):
+        """``-A^{-1} g`` by a fresh factorization; with ``ladder`` an indefinite ``A`` is
+        shifted up the ladder first, else replaced by the PSD-projected Hessian at once.
+        Returns the direction and the matrix factorized when it was not shifted (else None).
+        """
         t_factor = time.perf_counter()
         try:
-            mu = system.factorize(A_free, shift_hint=shift_hint[0])
+            mu = system.factorize(A_free, shift_hint=shift_hint[0], shifts=ladder)
         except SimulationError:
-            if psd:
+            if psd_matrix:
                 raise
             # no shift up to the ladder's end makes the exact Hessian positive definite (tets
             # close to inversion); the PSD-projected one always is
-            mu = system.factorize(matrix(q, True))
+            if not ladder:
+                indefinite()
+            A_free = matrix(q, True)
+            mu = system.factorize(A_free)
             stats.psd_fallbacks += 1
         # Levenberg-Marquardt memory: the next iteration starts one rung lower, back to the
         # exact Hessian once below the ladder (a failed attempt costs a whole factorization)
@@ -1595,6 +1686,92 @@ def implicit_euler(
         last_cg[0] = 0
         d = -system.solve(g)
         stats.add_seconds("factorize", time.perf_counter() - t_factor)
+        return d, (A_free if mu == 0.0 else None)
+
+    def direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        if use_amg:
+            return amg_direction(v_free, g)
+        if pcg is not None:
+            return reuse_direction(v_free, g)
+        q = positions(v_free)
+        A_free = matrix(q, psd)
+        if not np.isfinite(A_free.data).all():
+            return np.full_like(g, np.nan)  # newtons_method falls back to -g
+        return factorized_direction(q, g, A_free, psd, ladder=True)[0]
+
+    def indefinite() -> None:
+        """``"reuse"``: this iteration's exact Hessian is indefinite; after two iterations in
+        a row, the rest of the step assembles the PSD-projected one directly."""
+        reuse_psd[1] += 1
+        if reuse_psd[1] >= 2:
+            reuse_psd[0] = True
+
+    def reuse_cg(A_free: sp.csr_matrix, g: np.ndarray, eta: float):
+        """CG preconditioned by the kept factorization to the relative residual ``eta``:
+        the direction (None when CG fails) and whether it met negative curvature."""
+        t0 = time.perf_counter()
+        pcg.solver = system.solver  # an objective term may have widened the pattern
+        pcg.rtol = eta
+        result = pcg.solve(A_free, -g)
+        stats.add_seconds("cg", time.perf_counter() - t0)
+        stats.cg_iterations += result.iterations
+        last_cg[0] = result.iterations
+        # CG can converge on an indefinite A to a direction that is not a descent one;
+        # a factorization always gives one
+        if result.converged and float(g @ result.x) < 0.0:
+            return result.x, False
+        return None, result.negative_curvature
+
+    def reuse_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
+        q = positions(v_free)
+        gn = float(np.linalg.norm(g))
+        if not reuse_tol[0]:
+            reuse_tol[0] = max(atol, rtol * gn)
+        # forcing term: never tighter than reaching the tolerance in this iteration needs, and
+        # loose while Newton converges slowly (Eisenstat-Walker: the last iteration's gradient
+        # ratio squared), where a tight solve buys nothing
+        eta = cg_rtol
+        if gn > 0.0:
+            ew = 0.9 * (gn / reuse_tol[1]) ** 2 if reuse_tol[1] else 0.0
+            eta = max(cg_rtol, min(REUSE_FORCING_MAX, max(ew, 0.5 * reuse_tol[0] / gn)))
+        reuse_tol[1] = gn
+        # an aged preconditioner (the last solve needed over half the budget) is replaced now
+        # rather than after another long CG run
+        use_cg = system.factorized_data is not None and last_cg[0] <= cg_maxiter // 2
+        lagged, last_newton[0] = last_newton[0], None
+        if use_cg and lagged is not None and \
+                lagged.lag(v_free, gn, REUSE_LAG_FRACTION * reuse_tol[0]):
+            d, _ = reuse_cg(lagged.A, g, eta)
+            if d is not None:
+                stats.lagged_matrices += 1
+                lagged.expected = v_free + d
+                last_newton[0] = lagged
+                return d
+            use_cg = last_cg[0] <= cg_maxiter // 2
+        psd_matrix = reuse_psd[0]
+        A_free = matrix(q, psd_matrix)
+        if not np.isfinite(A_free.data).all():
+            return np.full_like(g, np.nan)  # newtons_method falls back to -g
+        if use_cg:
+            d, negative = reuse_cg(A_free, g, eta)
+            if d is not None:
+                if not psd_matrix:
+                    reuse_psd[1] = 0
+                if lag_matrices:
+                    last_newton[0] = _LaggedMatrix(A_free, gn, v_free + d)
+                return d
+            if negative and not psd_matrix:
+                # indefinite exact Hessian: the PSD-projected one for this iteration (a shift
+                # ladder costs a factorization per rung, and large shifts make Newton crawl)
+                indefinite()
+                stats.psd_fallbacks += 1
+                psd_matrix = True
+                A_free = matrix(q, True)
+        d, A_spd = factorized_direction(q, g, A_free, psd_matrix, ladder=False)
+        if not psd_matrix and A_spd is A_free:
+            reuse_psd[1] = 0
+        if lag_matrices and A_spd is not None:
+            last_newton[0] = _LaggedMatrix(A_spd, gn, v_free + d)
         return d
 
     def clamp(v_free: np.ndarray, d: np.ndarray) -> float:
@@ -1615,9 +1792,11 @@ def implicit_euler(
     x0 = vt_free.copy()
     if step_terms:  # the start must be reached without crossing anything (CCD from v = 0)
         x0 *= clamp(np.zeros_like(vt_free), vt_free)
-    if not math.isfinite(energy(x0)):
+    e0 = energy(x0)
+    if not math.isfinite(e0):
         x0 = np.zeros_like(vt_free)
-        if not math.isfinite(energy(x0)):
+        e0 = energy(x0)
+        if not math.isfinite(e0):
             raise SimulationError(
                 f"the current state is inadmissible ({count_inverted(model, q_base)} inverted "
                 "tets or a non-finite energy)", step=state.step,
@@ -1647,6 +1826,8 @@ def implicit_euler(
             converged_step=converged_step if converged_hooks else None,
             after_step=after_step if after_hooks else None,
             roundoff_rtol=AMG_ROUNDOFF_RTOL if use_amg else 0.0,
+            f0=None if init_stiffness else e0,  # the stiffness hooks change the objective
+            energy_scale=energy_scale,
         )
     except SimulationError as exc:
         if exc.step is not None:

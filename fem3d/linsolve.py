@@ -75,10 +75,13 @@ BACKENDS: tuple[str, ...] = ("cholmod", "pardiso", "superlu")
 #: CHOLMOD runs simplicial (not supernodal) when the matrix has at most
 #: :data:`SIMPLICIAL_MAX_N` rows and its factor costs fewer than this many flops per stored
 #: entry (``sum c_j^2 / sum c_j`` over the column counts ``c_j`` of ``L``). Measured on this
-#: project's 2-core machine with OpenBLAS: simplicial is 1.6x faster on the armadillo (ratio
-#: 32) and 1.7x on the bunny (68), supernodal 1.8x faster on a 2,700-DOF box (255); CHOLMOD's
-#: own switch (40) sends the bunny to the slower supernodal code.
-SIMPLICIAL_MAX_FLOPS_PER_ENTRY = 120.0
+#: project's 2-core machine with OpenBLAS (one thread, CPU time, best of 9): simplicial is
+#: 1.2-1.6x faster on the armadillo (ratio 32), as fast or 1.7x faster on the bunny (66) and
+#: as fast on a 300-DOF box (55); supernodal is 2.4x faster on a 540-DOF box (83), 3.0x on
+#: the armadillo refined x8 (3,813 DOFs, 102), 2.4x on an 880-DOF box (118) and 7x on the
+#: bunny refined x8 (266). The simplicial code slows down sharply once ``L`` leaves the cache.
+#: CHOLMOD's own switch (40) sends the bunny to the supernodal code.
+SIMPLICIAL_MAX_FLOPS_PER_ENTRY = 75.0
 #: Above this size the pattern is not probed: the factorization is supernodal.
 SIMPLICIAL_MAX_N = 5000
 
