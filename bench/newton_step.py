@@ -144,8 +144,8 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
         amg = system if system.linear_backend == "amg" else \
             integ.System(work.model, work.constraints, "amg")
         out["amg_setup"] = _best_seconds(lambda: amg.amg_setup(A), repeats)
-        out["vcycle"] = _best_seconds(lambda: amg.amg._M @ b, repeats)
-        out["amg_levels"] = [lvl.A.shape[0] for lvl in amg.amg.ml.levels]
+        out["vcycle"] = _best_seconds(lambda: amg.amg.apply(b), repeats)
+        out["amg_levels"] = amg.amg.level_sizes
     return out
 
 
