@@ -329,6 +329,10 @@ LEAN_ASSEMBLY_MIN_TETS = 250_000
 AMG_ITERATIONS_PER_DECADE = 8.0
 #: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
 FORCING_MAX = 0.1
+#: ``"amg"``: an iteration solves with the previous iteration's Newton matrix (no assembly)
+#: when that iteration cut ``|g|`` by a factor below this fraction of the forcing term: the
+#: Hessian's change is then far below the residual CG is asked for.
+AMG_MATRIX_REUSE_FACTOR = 0.1
 #: ``"amg"``: energy increases below this fraction of the objective are round-off in the line
 #: search (:func:`newtons_method`'s ``roundoff_rtol``).
 AMG_ROUNDOFF_RTOL = 1e-10
@@ -1182,7 +1186,9 @@ def newtons_method(
         ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
         at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
         solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
-        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance, stop (converged at round-off)
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance (where a step changes the energy by
+        less than its round-off, which scales with its terms rather than with ``|E|``), accept
+        it whenever it is finite and reduces ``||g||``, or else stop (converged at round-off)
         rather than halve through noise. 0 (default): plain backtracking.
 
     Returns
@@ -1239,16 +1245,19 @@ def newtons_method(
                     accepted = True
                     break
                 if roundoff_rtol and a == a0:
-                    if ft <= fx + roundoff_rtol * abs(fx):
+                    # near the tolerance a Newton step changes the energy by less than its
+                    # round-off, which scales with its terms (elastic, kinetic), not with |E|
+                    end_game = gn <= ROUNDOFF_GRADIENT_FACTOR * tol
+                    if end_game or ft <= fx + roundoff_rtol * abs(fx):
                         # the energy cannot tell the trial from x: judge by the gradient
                         gt = gradient(xt)
                         if np.isfinite(gt).all() and _gradient_norm(gt) < gn:
                             accepted = True
                             break
                         gt = None
-                    if gn <= ROUNDOFF_GRADIENT_FACTOR * tol:
-                        # near the tolerance a failed full step is the energy's and the
-                        # gradient's round-off: stop there rather than halve through noise
+                    if end_game:
+                        # a full step that does not shrink the gradient there is the
+                        # gradient's round-off: stop rather than halve through noise
                         return NewtonResult(x, it, norms, True, halvings)
             a *= p
             halvings += 1
@@ -1545,6 +1554,7 @@ def implicit_euler(
     g_first = [0.0]
     g_prev, eta_prev = [0.0], [forcing_max]  # the forcing term's memory
     last_per_decade = [0.0]
+    kept: list = [None, False]  # the last Newton matrix solved with, and whether it is PSD
 
     def amg_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
         q = positions(v_free)
@@ -1552,9 +1562,18 @@ def implicit_euler(
         if not g_first[0]:
             g_first[0] = gn
         tol = max(atol, rtol * g_first[0])
+        ratio = gn / g_prev[0] if g_prev[0] else math.inf
         eta = _forcing_term(gn, g_prev[0], eta_prev[0], tol, forcing_max)
         g_prev[0], eta_prev[0] = gn, eta
-        A_free = matrix(q, psd_now[0])
+        # A chord step: when the last iteration cut |g| by `ratio`, the Hessian moved by about
+        # that fraction along it, so the last matrix still solves to well within eta (the
+        # final iteration of a converging step: one assembly saved)
+        if kept[0] is not None and kept[1] == psd_now[0] and \
+                ratio <= AMG_MATRIX_REUSE_FACTOR * eta:
+            A_free = kept[0]
+        else:
+            A_free = matrix(q, psd_now[0])
+        kept[0] = None
         if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)
         amg = system.amg
@@ -1581,6 +1600,7 @@ def implicit_euler(
             if result.converged or (fresh and result.iterations and not
                                     result.negative_curvature):
                 # a fresh hierarchy's best effort is still a descent direction (CG from 0)
+                kept[:] = [A_free, psd_now[0]]
                 return result.x
             if fresh:  # negative curvature on the PSD matrix: only round-off can do that
                 break

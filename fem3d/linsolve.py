@@ -851,14 +851,21 @@ class _AMGPlan:
 
 @dataclass(frozen=True, eq=False)
 class _AMGLevel:
-    """One non-coarsest level: its matrix ``A = L + D + U`` (strictly lower blocks, diagonal
-    blocks, strictly upper) kept as ``LD = L + D`` and ``UD = U + D`` (BSR), the diagonal
-    blocks ``D`` (BSR) and their inverses ``Dinv`` (``(nb, k, k)``), P and R = P^T."""
+    """One non-coarsest level of the hierarchy.
+
+    Its matrix ``A = L + D + U`` (strictly lower blocks, diagonal blocks, strictly upper) is
+    kept as ``LD = L + D`` and ``UD = U + D`` in BSR, ``UD`` with the block order reversed
+    (``UD_rev = J UD J``, ``J`` reversing the blocks: a forward sweep on it is a backward
+    sweep on ``UD``, and pyamg's Gauss-Seidel runs 1.8x slower backward); ``D`` (BSR) and the
+    inverses of its blocks, ``Dinv`` and ``Dinv_rev`` (``(nb, k, k)``, in both orders); P and
+    R = P^T.
+    """
 
     LD: sp.bsr_matrix
-    UD: sp.bsr_matrix
+    UD_rev: sp.bsr_matrix
     D: sp.bsr_matrix
     Dinv: np.ndarray
+    Dinv_rev: np.ndarray
     P: sp.bsr_matrix
     R: sp.bsr_matrix
 
@@ -870,15 +877,28 @@ class _AMGLevel:
         nb = A.shape[0] // k
         rows = np.repeat(np.arange(nb), np.diff(A.indptr))
 
-        def part(keep: np.ndarray) -> sp.bsr_matrix:
+        def part(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             indptr = np.zeros(nb + 1, dtype=A.indptr.dtype)
             np.cumsum(np.bincount(rows[keep], minlength=nb), out=indptr[1:])
-            M = sp.bsr_matrix((A.data[keep], A.indices[keep], indptr), shape=A.shape)
+            return A.data[keep], A.indices[keep], indptr
+
+        def bsr(data, indices, indptr) -> sp.bsr_matrix:
+            M = sp.bsr_matrix((data, indices, indptr), shape=A.shape)
             M.has_sorted_indices = True
             return M
 
-        return _AMGLevel(part(A.indices <= rows), part(A.indices >= rows),
-                         part(A.indices == rows), Dinv, P, R)
+        data, indices, indptr = part(A.indices >= rows)
+        # reversing the block sequence reverses the rows and the order within each row
+        ud_rev = bsr(np.ascontiguousarray(data[::-1]),
+                     (nb - 1 - indices[::-1]).astype(indices.dtype),
+                     (indptr[-1] - indptr[::-1]).astype(indptr.dtype))
+        return _AMGLevel(bsr(*part(A.indices <= rows)), ud_rev, bsr(*part(A.indices == rows)),
+                         Dinv, np.ascontiguousarray(Dinv[::-1]), P, R)
+
+
+def _reversed_blocks(x: np.ndarray, k: int) -> np.ndarray:
+    """``J x``: the ``k``-blocks of ``x`` in reverse order (a new contiguous array)."""
+    return np.ascontiguousarray(x.reshape(-1, k)[::-1]).reshape(-1)
 
 
 def _block_pattern(indptr: np.ndarray, indices: np.ndarray, n: int
@@ -1111,18 +1131,19 @@ class AMGPreconditioner:
             xs.append(x)
             bs.append(b)
             r = lvl.D @ x
-            r -= lvl.UD @ x
+            r -= _reversed_blocks(lvl.UD_rev @ _reversed_blocks(x, k), k)
             b = lvl.R @ r
         x = self._coarse_solve(b)
         for lvl, xf, bf in zip(reversed(self._levels), reversed(xs), reversed(bs), strict=True):
-            UD, k = lvl.UD, lvl.Dinv.shape[1]
+            UD, k = lvl.UD_rev, lvl.Dinv.shape[1]
             xf += lvl.P @ x
             c = lvl.D @ xf
             c -= lvl.LD @ xf
             c += bf
-            gs(UD.indptr, UD.indices, UD.data.reshape(-1), xf, c, lvl.Dinv.reshape(-1),
-               UD.shape[0] // k - 1, -1, -1, k)
-            x = xf
+            x = _reversed_blocks(xf, k)
+            gs(UD.indptr, UD.indices, UD.data.reshape(-1), x, _reversed_blocks(c, k),
+               lvl.Dinv_rev.reshape(-1), 0, UD.shape[0] // k, 1, k)
+            x = _reversed_blocks(x, k)
         return x
 
     def solve(self, A: sp.spmatrix | sp.sparray, b: np.ndarray, *, rtol: float,
