@@ -1568,12 +1568,10 @@ def implicit_euler(
         # A chord step: when the last iteration cut |g| by `ratio`, the Hessian moved by about
         # that fraction along it, so the last matrix still solves to well within eta (the
         # final iteration of a converging step: one assembly saved)
-        if kept[0] is not None and kept[1] == psd_now[0] and \
-                ratio <= AMG_MATRIX_REUSE_FACTOR * eta:
-            A_free = kept[0]
-        else:
+        reuse = kept[1] == psd_now[0] and ratio <= AMG_MATRIX_REUSE_FACTOR * eta
+        A_free, kept[0] = kept[0] if reuse else None, None
+        if A_free is None:
             A_free = matrix(q, psd_now[0])
-        kept[0] = None
         if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)
         amg = system.amg

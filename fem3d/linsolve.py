@@ -828,7 +828,7 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
 #: vectors); one forward block Gauss-Seidel sweep before the coarse correction and one
 #: backward sweep after (a symmetric V-cycle at half the cost of symmetric sweeps, same
 #: iterations).
-AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=8)
+AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=6)
 
 
 @dataclass(frozen=True, eq=False)
@@ -854,16 +854,15 @@ class _AMGLevel:
     """One non-coarsest level of the hierarchy.
 
     Its matrix ``A = L + D + U`` (strictly lower blocks, diagonal blocks, strictly upper) is
-    kept as ``LD = L + D`` and ``UD = U + D`` in BSR, ``UD`` with the block order reversed
-    (``UD_rev = J UD J``, ``J`` reversing the blocks: a forward sweep on it is a backward
-    sweep on ``UD``, and pyamg's Gauss-Seidel runs 1.8x slower backward); ``D`` (BSR) and the
-    inverses of its blocks, ``Dinv`` and ``Dinv_rev`` (``(nb, k, k)``, in both orders); P and
+    kept as ``L`` and ``U`` in BSR (block Gauss-Seidel reads the diagonal blocks only through
+    their inverses ``Dinv``, ``(nb, k, k)``), ``U`` with the block order reversed (``U_rev =
+    J U J``, ``J`` reversing the blocks: a forward sweep on it is a backward sweep on ``U``,
+    and pyamg's Gauss-Seidel runs 1.8x slower backward; ``Dinv_rev`` likewise); P and
     R = P^T.
     """
 
-    LD: sp.bsr_matrix
-    UD_rev: sp.bsr_matrix
-    D: sp.bsr_matrix
+    L: sp.bsr_matrix
+    U_rev: sp.bsr_matrix
     Dinv: np.ndarray
     Dinv_rev: np.ndarray
     P: sp.bsr_matrix
@@ -887,18 +886,22 @@ class _AMGLevel:
             M.has_sorted_indices = True
             return M
 
-        data, indices, indptr = part(A.indices >= rows)
+        data, indices, indptr = part(A.indices > rows)
         # reversing the block sequence reverses the rows and the order within each row
-        ud_rev = bsr(np.ascontiguousarray(data[::-1]),
-                     (nb - 1 - indices[::-1]).astype(indices.dtype),
-                     (indptr[-1] - indptr[::-1]).astype(indptr.dtype))
-        return _AMGLevel(bsr(*part(A.indices <= rows)), ud_rev, bsr(*part(A.indices == rows)),
-                         Dinv, np.ascontiguousarray(Dinv[::-1]), P, R)
+        u_rev = bsr(np.ascontiguousarray(data[::-1]),
+                    (nb - 1 - indices[::-1]).astype(indices.dtype),
+                    (indptr[-1] - indptr[::-1]).astype(indptr.dtype))
+        return _AMGLevel(bsr(*part(A.indices < rows)), u_rev, Dinv,
+                         np.ascontiguousarray(Dinv[::-1]), P, R)
 
 
 def _reversed_blocks(x: np.ndarray, k: int) -> np.ndarray:
     """``J x``: the ``k``-blocks of ``x`` in reverse order (a new contiguous array)."""
     return np.ascontiguousarray(x.reshape(-1, k)[::-1]).reshape(-1)
+
+
+def _slot_dtype(slot: np.ndarray) -> type:
+    return np.int32 if slot.size == 0 or slot.max() < 2**31 else np.int64
 
 
 def _block_pattern(indptr: np.ndarray, indices: np.ndarray, n: int
@@ -920,14 +923,18 @@ def _block_pattern(indptr: np.ndarray, indices: np.ndarray, n: int
         t = np.arange(cols.size, dtype=np.int64) - np.asarray(indptr, dtype=np.int64)[rows]
         block = bsr_indptr[rows // 3].astype(np.int64) + t // 3
         if np.array_equal(bsr_indices[block].astype(np.int64) * 3 + t % 3, cols):
-            return bsr_indptr, bsr_indices, block * 9 + (rows % 3) * 3 + t % 3
+            slot = block * 9 + (rows % 3) * 3 + t % 3
+            return bsr_indptr, bsr_indices, slot.astype(_slot_dtype(slot))
     block_rows = np.repeat(np.arange(nb, dtype=np.int64), np.diff(bsr_indptr))
     block = np.searchsorted(block_rows * nb + bsr_indices, keys)
-    return bsr_indptr, bsr_indices, block * 9 + (rows % 3) * 3 + cols % 3
+    slot = block * 9 + (rows % 3) * 3 + cols % 3
+    return bsr_indptr, bsr_indices, slot.astype(_slot_dtype(slot))
 
 
 def _block_inverses(A: sp.bsr_matrix) -> np.ndarray:
-    """``(nb, k, k)`` pseudo-inverses of the diagonal blocks of a square-blocked BSR matrix."""
+    """``(nb, k, k)`` inverses of the diagonal blocks of a square-blocked BSR matrix:
+    pseudo-inverses where a block is singular (coarse levels: a candidate dropped in an
+    aggregate leaves a zero row and column). 3x3 blocks by their adjugates (vectorized)."""
     from pyamg import amg_core
 
     k = A.blocksize[0]
@@ -936,8 +943,33 @@ def _block_inverses(A: sp.bsr_matrix) -> np.ndarray:
     diag = np.flatnonzero(A.indices == rows)
     D = np.zeros((nb, k, k))
     D[rows[diag]] = A.data[diag]
-    amg_core.pinv_array(D.ravel(), nb, k, "T")  # in place, robust to singular blocks
-    return D
+    if k != 3:
+        amg_core.pinv_array(D.ravel(), nb, k, "T")  # in place, robust to singular blocks
+        return D
+    # adjugate / determinant; ill-conditioned blocks go to the pseudo-inverse
+    adj = np.empty_like(D)
+    for i in range(3):
+        for j in range(3):
+            r0, r1 = (j + 1) % 3, (j + 2) % 3
+            c0, c1 = (i + 1) % 3, (i + 2) % 3
+            adj[:, i, j] = D[:, r0, c0] * D[:, r1, c1] - D[:, r0, c1] * D[:, r1, c0]
+    det = np.einsum("bj,bj->b", D[:, 0, :], adj[:, :, 0])
+    scale = np.abs(D).reshape(nb, -1).max(axis=1)
+    bad = ~(np.abs(det) > 1e-10 * scale ** 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Dinv = adj / det[:, None, None]
+    if bad.any():
+        Db = np.ascontiguousarray(D[bad])
+        amg_core.pinv_array(Db.ravel(), Db.shape[0], 3, "T")
+        Dinv[bad] = Db
+    return Dinv
+
+
+def _block_diagonal(blocks: np.ndarray) -> sp.bsr_matrix:
+    """The BSR block-diagonal matrix of ``(nb, k, k)`` blocks."""
+    nb, k = blocks.shape[:2]
+    return sp.bsr_matrix((blocks, np.arange(nb, dtype=np.int32),
+                          np.arange(nb + 1, dtype=np.int32)), shape=(nb * k, nb * k))
 
 
 def _block_rows_times(Dinv: np.ndarray, M: sp.bsr_matrix) -> sp.bsr_matrix:
@@ -948,13 +980,14 @@ def _block_rows_times(Dinv: np.ndarray, M: sp.bsr_matrix) -> sp.bsr_matrix:
 
 def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int) -> float:
     """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector)."""
-    n, k = A.shape[0], Dinv.shape[1]
+    n = A.shape[0]
+    Dinv = _block_diagonal(Dinv)
     v = np.random.default_rng(12345).random(n)
     V = [v / np.linalg.norm(v)]
     H = np.zeros((iterations + 1, iterations))
     m = iterations
     for j in range(iterations):
-        w = np.matmul(Dinv, (A @ V[j]).reshape(-1, k, 1)).reshape(-1)
+        w = Dinv @ (A @ V[j])
         for i in range(j + 1):
             H[i, j] = float(w @ V[i])
             w -= H[i, j] * V[i]
@@ -1091,9 +1124,10 @@ class AMGPreconditioner:
             P = T - (omega / rho) * _block_rows_times(Dinv, Al @ T)
             P = sp.bsr_matrix(P, blocksize=T.blocksize)
             R = sp.bsr_matrix(P.T)
+            Ac = sp.bsr_matrix(R @ (Al @ P))  # (the product A P is the largest transient)
+            Ac.sort_indices()
             levels.append(_AMGLevel.make(Al, Dinv, P, R))
-            Al = sp.bsr_matrix(R @ (Al @ P))
-            Al.sort_indices()
+            Al = Ac
         Ac = Al.toarray()
         Ac = 0.5 * (Ac + Ac.T)
         try:
@@ -1101,7 +1135,7 @@ class AMGPreconditioner:
         except np.linalg.LinAlgError:  # not positive definite: a symmetric pseudo-inverse
             self._coarse = ("pinv", scipy.linalg.pinvh(Ac))
         self._levels = levels
-        self.level_sizes = [lvl.D.shape[0] for lvl in levels] + [Ac.shape[0]]
+        self.level_sizes = [lvl.P.shape[0] for lvl in levels] + [Ac.shape[0]]
         self.pattern_key = pattern_key
         self.setups += 1
         self.setup_seconds += time.perf_counter() - t0
@@ -1117,32 +1151,29 @@ class AMGPreconditioner:
 
         if self._coarse is None:
             raise RuntimeError("setup() must run before apply()")
-        # Forward Gauss-Seidel from x = 0 never reads the upper triangle (x is still 0 there),
-        # and leaves the residual b - A x = -U x; the backward sweep on x is one on U + D with
-        # b - L x (L x of the old x throughout). So each sweep touches half the blocks and
-        # each residual costs half a product: the same V-cycle as full sweeps on A.
+        # Forward Gauss-Seidel from x = 0 never reads the upper triangle (x is still 0 there)
+        # and leaves the residual b - A x = -U x; the backward sweep on x is one on U + D
+        # with b - L x (L x of the old x throughout). So each sweep touches half the blocks
+        # and each residual costs half a product: the same V-cycle as full sweeps on A.
         gs = amg_core.block_gauss_seidel
         xs, bs = [], []
         for lvl in self._levels:
-            LD, k = lvl.LD, lvl.Dinv.shape[1]
+            L, k = lvl.L, lvl.Dinv.shape[1]
             x = np.zeros_like(b)
-            gs(LD.indptr, LD.indices, LD.data.reshape(-1), x, b, lvl.Dinv.reshape(-1),
-               0, LD.shape[0] // k, 1, k)
+            gs(L.indptr, L.indices, L.data.reshape(-1), x, b, lvl.Dinv.reshape(-1),
+               0, L.shape[0] // k, 1, k)
             xs.append(x)
             bs.append(b)
-            r = lvl.D @ x
-            r -= _reversed_blocks(lvl.UD_rev @ _reversed_blocks(x, k), k)
-            b = lvl.R @ r
+            b = lvl.R @ _reversed_blocks(lvl.U_rev @ _reversed_blocks(x, k), k)
+            np.negative(b, out=b)
         x = self._coarse_solve(b)
         for lvl, xf, bf in zip(reversed(self._levels), reversed(xs), reversed(bs), strict=True):
-            UD, k = lvl.UD_rev, lvl.Dinv.shape[1]
+            U, k = lvl.U_rev, lvl.Dinv.shape[1]
             xf += lvl.P @ x
-            c = lvl.D @ xf
-            c -= lvl.LD @ xf
-            c += bf
+            c = bf - lvl.L @ xf
             x = _reversed_blocks(xf, k)
-            gs(UD.indptr, UD.indices, UD.data.reshape(-1), x, _reversed_blocks(c, k),
-               lvl.Dinv_rev.reshape(-1), 0, UD.shape[0] // k, 1, k)
+            gs(U.indptr, U.indices, U.data.reshape(-1), x, _reversed_blocks(c, k),
+               lvl.Dinv_rev.reshape(-1), 0, U.shape[0] // k, 1, k)
             x = _reversed_blocks(x, k)
         return x
 
