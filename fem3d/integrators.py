@@ -1238,6 +1238,8 @@ def newtons_method(
         gt = None
         for _ in range(max_halvings):
             xt = x + a * d
+            if not (xt != x).any():
+                break  # the step vanished in x's round-off: accepting it would loop forever
             ft = energy(xt)
             if math.isfinite(ft):
                 any_finite = True

@@ -809,8 +809,9 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
 #: setup and V-cycle):
 #:
 #: ``max_coarse``
-#:     Coarsen until a level has at most this many DOFs; it is solved densely (Cholesky, or a
-#:     pseudo-inverse when it is not positive definite).
+#:     Coarsen until a level has at most this many block rows (vertices, then aggregates of
+#:     six DOFs: pyamg's rule); it is solved densely (Cholesky, or a pseudo-inverse when it is
+#:     not positive definite).
 #: ``max_levels``
 #:     Cap on the hierarchy's depth.
 #: ``omega``
@@ -1085,7 +1086,8 @@ class AMGPreconditioner:
         B = self.B
         T = []
         size = n
-        while size > self.options["max_coarse"] and len(T) + 1 < self.options["max_levels"]:
+        while G.shape[0] > self.options["max_coarse"] and \
+                len(T) + 1 < self.options["max_levels"]:
             agg, _ = standard_aggregation(sp.csr_array(G))
             agg = sp.csr_matrix(agg)
             if agg.shape[1] == 0 or agg.shape[1] * B.shape[1] >= size:
