@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 pytest.importorskip("pyamg")
 
@@ -141,3 +144,163 @@ def test_linear_scheme_and_objective_terms_with_the_amg_back_end():
     new, stats = implicit_euler(system, start, 0.01, terms=[term], max_iterations=None)
     assert stats.converged and system.pattern_generation == 1 and stats.amg_setups >= 1
     assert system.amg_current
+
+
+def _newton_matrix(n=(5, 5, 5)):
+    model, c = clamped_box(n)
+    start = swinging(model, c)
+    system = System(model, c, "amg")
+    q = start.q.reshape(-1) + 0.01 * start.v.reshape(-1)
+    return system, system.newton_matrix(q, 0.01)
+
+
+def _textbook_v_cycle(amg, A, b):
+    """Forward block Gauss-Seidel, residual, restriction, recursion, exact coarsest solve,
+    prolongation, backward block Gauss-Seidel, on the full level matrices R A P."""
+    from pyamg.relaxation.relaxation import block_gauss_seidel
+
+    mats = [A.tobsr(blocksize=(3, 3))]
+    for lvl in amg._levels:
+        mats.append((lvl.R @ mats[-1] @ lvl.P).tobsr(blocksize=lvl.P.blocksize[::-1]))
+
+    def cycle(i, b):
+        if i == len(amg._levels):
+            return np.linalg.lstsq(mats[i].toarray(), b, rcond=None)[0]
+        Ai, k = mats[i], mats[i].blocksize[0]
+        x = np.zeros_like(b)
+        block_gauss_seidel(Ai, x, b, sweep="forward", blocksize=k)
+        x += amg._levels[i].P @ cycle(i + 1, amg._levels[i].R @ (b - Ai @ x))
+        block_gauss_seidel(Ai, x, b, sweep="backward", blocksize=k)
+        return x
+
+    return cycle(0, b)
+
+
+def test_v_cycle_is_the_textbook_symmetric_v_cycle():
+    """The V-cycle's half-triangle sweeps (and the reversed upper triangle) compute the plain
+    V-cycle of forward and backward block Gauss-Seidel, and the result is symmetric."""
+    system, A = _newton_matrix((8, 8, 8))
+    amg = linsolve.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg.setup(A)
+    assert len(amg.level_sizes) >= 3  # two coarse levels: 3x3 and 6x6 blocks both covered
+    rng = np.random.default_rng(3)
+    b1, b2 = rng.standard_normal((2, A.shape[0]))
+    z1 = amg.apply(b1)
+    ref = _textbook_v_cycle(amg, A, b1)
+    assert np.abs(z1 - ref).max() < 1e-10 * np.abs(ref).max()
+    assert abs(b2 @ z1 - b1 @ amg.apply(b2)) < 1e-12 * abs(b2 @ z1)
+    assert b1 @ z1 > 0
+
+
+def test_hierarchy_has_pyamg_smoothed_aggregation_structure():
+    """The structural aggregation (computed once per pattern) is pyamg's own: the same level
+    sizes and coarse block patterns as ``pyamg.smoothed_aggregation_solver`` with a zero
+    strength threshold."""
+    import pyamg
+
+    system, A = _newton_matrix((6, 6, 6))
+    amg = linsolve.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg.setup(A)
+    ml = pyamg.smoothed_aggregation_solver(
+        A.tobsr(blocksize=(3, 3)), B=system.amg.B, strength=("symmetric", {"theta": 0.0}),
+        improve_candidates=None, max_coarse=10, smooth=("jacobi", {"weighting": "block"}))
+    assert amg.level_sizes == [lvl.A.shape[0] for lvl in ml.levels]
+    for ours, theirs in zip(amg._levels, ml.levels[:-1], strict=True):
+        assert ours.P.nnz == theirs.P.nnz
+        # same smoothed prolongator up to pyamg's randomly started spectral estimate
+        assert abs(ours.P - theirs.P).max() < 0.05 * abs(theirs.P).max()
+
+
+def test_setup_analyzes_once_per_pattern_and_maps_partial_blocks():
+    """``analyze`` runs when a pattern is new (System does it at construction); a pattern
+    of partial 3x3 blocks (an objective term's per-axis springs) maps into BSR exactly."""
+    system, A = _newton_matrix((3, 3, 3))
+    amg = system.amg
+    plan = amg._plan
+    amg.setup(A)
+    assert amg._plan is plan  # the pattern analysed by System(...)
+    n = A.shape[0]
+    rng = np.random.default_rng(0)
+    extra = sp.coo_matrix((rng.random(40), (rng.integers(0, n, 40), rng.integers(0, n, 40))),
+                          shape=(n, n))
+    B = (A + extra + extra.T).tocsr()
+    B.sort_indices()
+    indptr, indices, slot = linsolve._block_pattern(B.indptr, B.indices, n)
+    data = np.zeros(indices.size * 9)
+    data[slot] = B.data
+    bsr = sp.bsr_matrix((data.reshape(-1, 3, 3), indices, indptr), shape=(n, n))
+    assert abs(bsr - B).max() == 0.0
+    amg.setup(B)
+    assert amg._plan is not plan and amg.ready
+
+
+def test_block_inverses_pseudo_invert_singular_blocks():
+    rng = np.random.default_rng(1)
+    blocks = rng.standard_normal((6, 3, 3))
+    blocks[2] = 0.0
+    blocks[4] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    D = sp.bsr_matrix((blocks, np.arange(6), np.arange(7)), shape=(18, 18))
+    inv = linsolve._block_inverses(D)
+    for i in range(6):
+        np.testing.assert_allclose(inv[i], np.linalg.pinv(blocks[i]), atol=1e-9)
+
+
+def test_forcing_term_tightens_with_convergence_but_not_past_the_tolerance():
+    from fem3d.integrators import _forcing_term
+
+    assert _forcing_term(5.0, 0.0, 0.1, 1e-8, 0.1) == 0.1  # first iteration
+    assert _forcing_term(0.5, 5.0, 0.1, 1e-8, 0.1) == pytest.approx(0.9 * 0.01)
+    assert _forcing_term(4.0, 5.0, 0.1, 1e-8, 0.1) == 0.1  # slow progress: capped
+    assert _forcing_term(1e-6, 1e-2, 1e-3, 1e-8, 0.1) == pytest.approx(0.5e-2)  # tol floor
+    assert _forcing_term(1e-3, 1e-2, 0.5, 1e-8, 0.1) == 0.1  # safeguard 0.9 eta^2 > 0.1
+
+
+def test_amg_steps_save_assemblies_and_keep_the_gradient_tolerance(monkeypatch):
+    """The chord step (the last iteration reuses the previous Newton matrix) saves assemblies;
+    every step still ends below the unchanged gradient tolerance."""
+    model, c = clamped_box((6, 6, 6))
+    system = System(model, c, "amg")
+    calls = [0]
+    newton_matrix = system.newton_matrix
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return newton_matrix(*args, **kwargs)
+
+    monkeypatch.setattr(system, "newton_matrix", counted)
+    _, stats = run(system, swinging(model, c), 4)
+    newton = sum(s.newton_iterations for s in stats)
+    assert calls[0] < newton
+    for s in stats:
+        assert s.gradient_norms[-1] <= s.gradient_tolerance
+
+
+def test_end_game_judges_noisy_energies_by_the_gradient():
+    """Near the tolerance an objective's round-off scales with its terms, not with |E|: a
+    step the energy cannot resolve is accepted when it shrinks the gradient (with
+    ``roundoff_rtol``), where plain backtracking halves through the noise and stalls above
+    the tolerance."""
+    from fem3d.integrators import newtons_method
+
+    rng = np.random.default_rng(1)
+    Q = rng.standard_normal((8, 8))
+    H = Q @ Q.T + 8.0 * np.eye(8)
+    x_star = rng.standard_normal(8)
+
+    def energy(x):  # tiny at the minimum, with round-off-like noise of 1e-15
+        e = x - x_star
+        return 1e-6 + 0.5 * float(e @ H @ e) + 1e-15 * math.sin(1e9 * float(x.sum()))
+
+    def gradient(x):
+        return H @ (x - x_star)
+
+    def direction(x, g):  # an inexact Newton direction (1e-3 relative residual)
+        return -np.linalg.solve(H, g) * (1.0 + 1e-3)
+
+    x0 = x_star + 1e-3 * rng.standard_normal(8)
+    kw = dict(max_iterations=20, rtol=0.0, atol=1e-10)
+    noisy = newtons_method(x0, energy, gradient, direction, roundoff_rtol=1e-10, **kw)
+    assert noisy.converged and noisy.gradient_norms[-1] <= 1e-10
+    assert noisy.line_search_halvings == 0 and noisy.iterations <= 4
+    plain = newtons_method(x0, energy, gradient, direction, **kw)
+    assert plain.gradient_norms[-1] > 1e-10 and plain.line_search_halvings > 20
