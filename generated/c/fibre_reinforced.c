@@ -3,7 +3,8 @@
 // fibre-reinforced (HGO fibre on Neo-Hookean), psi = NH(mu, lam) + k1/(2 k2) (exp(k2 (I4 - 1)^2) - 1 - k2 (I4 - 1)^2): C99 kernels; included by _ckernels.c.
 // Each kernel is one inlined per-element function, called by a loop over elements and, for
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
-#ifndef FEM3D_ELEMENT
+#ifndef FEM3D_MODULE_HELPERS
+#define FEM3D_MODULE_HELPERS
 // Forced inlining: gcc otherwise keeps larger element functions out of line, and the call
 // (the in/out pointer arrays, the result through memory) cost 10 % of the fused gradient.
 #if defined(__GNUC__)
@@ -11,6 +12,26 @@
 #else
 #define FEM3D_ELEMENT
 #endif
+
+#include <stdint.h>
+
+// x^(-1/3), the root every x^(p/3) of the kernels is printed with: a bit-level first guess
+// (3.4 % error) and four Newton steps y <- y (4/3 - x/3 y^3), no division; 1.5 ulp at most
+// (3.4e-16 relative), about 3x faster than cbrt. Outside (2^-1000, 2^1000) (zero, negative,
+// inf, NaN) the previous cbrt(x)^2 / x, the same value and the same non-finite results.
+static inline double fem3d_rcbrt(double x)
+{
+    if (!(x > 0x1p-1000 && x < 0x1p1000)) {
+        const double c = cbrt(x);
+        return c * c / x;
+    }
+    union { double d; uint64_t u; } v = { x };
+    v.u = 0x553ef00000000000ULL - v.u / 3;
+    double y = v.d;
+    const double third = x * (1.0 / 3.0);
+    for (int i = 0; i < 4; ++i) y = y * (4.0 / 3.0 - third * (y * y * y));
+    return y;
+}
 #endif
 
 // Strain energy density psi(F).

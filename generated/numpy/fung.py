@@ -40,43 +40,43 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("psi", ()), ),
-        "op_count": 46,
+        "op_count": 48,
     },
     "dpsi_dF": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("P", (3, 3)), ),
-        "op_count": 93,
+        "op_count": 94,
     },
     "d2psi_dF2": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("dP_dF", (9, 9)), ),
-        "op_count": 526,
+        "op_count": 523,
     },
     "energy": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("energy", ()), ),
-        "op_count": 110,
+        "op_count": 112,
     },
     "gradient": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("gradient", (12,)), ),
-        "op_count": 228,
+        "op_count": 229,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1552,
+        "op_count": 1549,
     },
     "hessian_psd": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "kappa", "b", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1552,
+        "op_count": 1549,
     },
 }
 
@@ -97,7 +97,7 @@ def psi(F, params):
     -------
     psi : (m) float64
 
-    Operation count per element: 46.
+    Operation count per element: 48.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -111,13 +111,14 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (6)
+    # intermediates (7)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    psi = (1/2)*kappa*((J - 1)**2) + (1/2)*mu*(numpy.exp(b*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3)) - 1)/b
+    psi = (1/2)*kappa*((J - 1)**2) + (1/2)*mu*(numpy.exp(b*(I1*(rcbrt_J*rcbrt_J) - 3)) - 1)/b
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
@@ -138,7 +139,7 @@ def dpsi_dF(F, params):
     -------
     P : (m, 3, 3) float64
 
-    Operation count per element: 93.
+    Operation count per element: 94.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -152,7 +153,7 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (24)
+    # intermediates (25)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -163,10 +164,11 @@ def dpsi_dF(F, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    s0 = (numpy.cbrt(J)/(J))
+    s0 = (rcbrt_J*rcbrt_J)
     s1 = mu*numpy.exp(b*(I1*s0 - 3))
-    dpsi_dJ = -1/3*I1*s1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + kappa*(J - 1)
+    dpsi_dJ = -1/3*I1*(rcbrt_J*rcbrt_J)*s1/J + kappa*(J - 1)
     dpsi_dI1 = s0*s1
     P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
@@ -205,7 +207,7 @@ def d2psi_dF2(F, params):
     -------
     dP_dF : (m, 9, 9) float64
 
-    Operation count per element: 526.
+    Operation count per element: 523.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -219,7 +221,7 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (120)
+    # intermediates (121)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -230,23 +232,24 @@ def d2psi_dF2(F, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = (numpy.cbrt(J)/(J))
+    h0 = (rcbrt_J*rcbrt_J)
     h1 = I1*h0
     h2 = numpy.exp(b*(h1 - 3))
     h3 = h2*mu
     h4 = h0*h3
     h5 = F_0_0*h3
-    h6 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h6 = rcbrt_J/J
     h7 = 3*b
-    h8 = (b*h1 + 1)/(numpy.cbrt(J))
+    h8 = rcbrt_J*(b*h1 + 1)
     h9 = F_0_0*h7 - dJ_0_0*h8
     h10 = h6*h9
-    h11 = (numpy.cbrt(J)/(J*J))
+    h11 = (rcbrt_J*rcbrt_J)/J
     h12 = 6*h11
     h13 = I1*h3
-    h14 = 6*b*h13/(numpy.cbrt(J)*J*J)
-    h15 = 2*(I1*I1)*b*h3/(numpy.cbrt(J)*J*J*J) + 9*kappa + 5*h13/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h14 = 6*b*h13*rcbrt_J/(J*J)
+    h15 = 2*(I1*I1)*b*h3*rcbrt_J/(J*J*J) + 9*kappa + 5*h13*(rcbrt_J*rcbrt_J)/(J*J)
     h16 = F_0_0*h14 - dJ_0_0*h15 + h12*h5
     h17 = F_0_1*h3
     h18 = 6*h10
@@ -444,7 +447,7 @@ def energy(x_e, dphi_dX, vol, params):
     -------
     energy : (m) float64
 
-    Operation count per element: 110.
+    Operation count per element: 112.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -474,7 +477,7 @@ def energy(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (15)
+    # intermediates (16)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -488,8 +491,9 @@ def energy(x_e, dphi_dX, vol, params):
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    psi = (1/2)*kappa*((J - 1)**2) + (1/2)*mu*(numpy.exp(b*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3)) - 1)/b
+    psi = (1/2)*kappa*((J - 1)**2) + (1/2)*mu*(numpy.exp(b*(I1*(rcbrt_J*rcbrt_J) - 3)) - 1)/b
     # outputs
     _out_energy = numpy.empty((1, m))
     _out_energy[0] = psi*vol
@@ -514,7 +518,7 @@ def gradient(x_e, dphi_dX, vol, params):
     -------
     gradient : (m, 12) float64
 
-    Operation count per element: 228.
+    Operation count per element: 229.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -544,7 +548,7 @@ def gradient(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (33)
+    # intermediates (34)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -564,10 +568,11 @@ def gradient(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    s0 = (numpy.cbrt(J)/(J))
+    s0 = (rcbrt_J*rcbrt_J)
     s1 = mu*numpy.exp(b*(I1*s0 - 3))
-    dpsi_dJ = -1/3*I1*s1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + kappa*(J - 1)
+    dpsi_dJ = -1/3*I1*(rcbrt_J*rcbrt_J)*s1/J + kappa*(J - 1)
     dpsi_dI1 = s0*s1
     P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
@@ -613,7 +618,7 @@ def hessian(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1552.
+    Operation count per element: 1549.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -643,7 +648,7 @@ def hessian(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (228)
+    # intermediates (229)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -663,23 +668,24 @@ def hessian(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = (numpy.cbrt(J)/(J))
+    h0 = (rcbrt_J*rcbrt_J)
     h1 = I1*h0
     h2 = numpy.exp(b*(h1 - 3))
     h3 = h2*mu
     h4 = h0*h3
     h5 = F_0_0*h3
-    h6 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h6 = rcbrt_J/J
     h7 = 3*b
-    h8 = (b*h1 + 1)/(numpy.cbrt(J))
+    h8 = rcbrt_J*(b*h1 + 1)
     h9 = F_0_0*h7 - dJ_0_0*h8
     h10 = h6*h9
-    h11 = (numpy.cbrt(J)/(J*J))
+    h11 = (rcbrt_J*rcbrt_J)/J
     h12 = 6*h11
     h13 = I1*h3
-    h14 = 6*b*h13/(numpy.cbrt(J)*J*J)
-    h15 = 2*(I1*I1)*b*h3/(numpy.cbrt(J)*J*J*J) + 9*kappa + 5*h13/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h14 = 6*b*h13*rcbrt_J/(J*J)
+    h15 = 2*(I1*I1)*b*h3*rcbrt_J/(J*J*J) + 9*kappa + 5*h13*(rcbrt_J*rcbrt_J)/(J*J)
     h16 = F_0_0*h14 - dJ_0_0*h15 + h12*h5
     h17 = F_0_1*h3
     h18 = 6*h10
@@ -1039,7 +1045,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1552.
+    Operation count per element: 1549.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
@@ -1069,7 +1075,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (229)
+    # intermediates (230)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -1089,23 +1095,24 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = (numpy.cbrt(J)/(J))
+    h0 = (rcbrt_J*rcbrt_J)
     h1 = I1*h0
     h2 = numpy.exp(b*(h1 - 3))
     h3 = h2*mu
     h4 = h0*h3
     h5 = F_0_0*h3
-    h6 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h6 = rcbrt_J/J
     h7 = 3*b
-    h8 = (b*h1 + 1)/(numpy.cbrt(J))
+    h8 = rcbrt_J*(b*h1 + 1)
     h9 = F_0_0*h7 - dJ_0_0*h8
     h10 = h6*h9
-    h11 = (numpy.cbrt(J)/(J*J))
+    h11 = (rcbrt_J*rcbrt_J)/J
     h12 = 6*h11
     h13 = I1*h3
-    h14 = 6*b*h13/(numpy.cbrt(J)*J*J)
-    h15 = 2*(I1*I1)*b*h3/(numpy.cbrt(J)*J*J*J) + 9*kappa + 5*h13/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h14 = 6*b*h13*rcbrt_J/(J*J)
+    h15 = 2*(I1*I1)*b*h3*rcbrt_J/(J*J*J) + 9*kappa + 5*h13*(rcbrt_J*rcbrt_J)/(J*J)
     h16 = F_0_0*h14 - dJ_0_0*h15 + h12*h5
     h17 = F_0_1*h3
     h18 = 6*h10

@@ -40,7 +40,7 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("psi", ()), ),
-        "op_count": 79,
+        "op_count": 80,
     },
     "dpsi_dF": {
         "inputs": (("F", (3, 3)), ),
@@ -52,13 +52,13 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("dP_dF", (9, 9)), ),
-        "op_count": 781,
+        "op_count": 778,
     },
     "energy": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("energy", ()), ),
-        "op_count": 143,
+        "op_count": 144,
     },
     "gradient": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
@@ -70,13 +70,13 @@ SIGNATURES = {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1807,
+        "op_count": 1804,
     },
     "hessian_psd": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1807,
+        "op_count": 1804,
     },
 }
 
@@ -97,7 +97,7 @@ def psi(F, params):
     -------
     psi : (m) float64
 
-    Operation count per element: 79.
+    Operation count per element: 80.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
@@ -111,7 +111,7 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (10)
+    # intermediates (11)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -119,9 +119,10 @@ def psi(F, params):
     eg4 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
     eg5 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = eg3 + eg4 + eg5
     I2 = (eg3*eg3) + (eg4*eg4) + (eg5*eg5) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2)
-    psi = -1/2*C01*(6 - ((I1*I1) - I2)/(numpy.cbrt(J)*J)) + C10*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3) + (1/2)*kappa*((J - 1)**2)
+    psi = -1/2*C01*(6 - rcbrt_J*((I1*I1) - I2)/J) + C10*(I1*(rcbrt_J*rcbrt_J) - 3) + (1/2)*kappa*((J - 1)**2)
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
@@ -156,7 +157,7 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (49)
+    # intermediates (50)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -191,12 +192,13 @@ def dpsi_dF(F, params):
     dI2_2_1 = sg10*sg17 + sg15*sg5 + sg16*sg9
     dI2_2_2 = sg10*sg16 + sg11*sg17 + sg15*sg7
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = sg11 + sg3 + sg9
     I2 = 2*(sg10*sg10) + (sg11*sg11) + (sg3*sg3) + 2*(sg5*sg5) + 2*(sg7*sg7) + (sg9*sg9)
-    s0 = (numpy.cbrt(J)/(J))
-    dpsi_dJ = -2/3*C01*((I1*I1) - I2)/(numpy.cbrt(J)*J*J) - 2/3*C10*I1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + kappa*(J - 1)
+    s0 = (rcbrt_J*rcbrt_J)
+    dpsi_dJ = -2/3*C01*rcbrt_J*((I1*I1) - I2)/(J*J) - 2/3*C10*I1*(rcbrt_J*rcbrt_J)/J + kappa*(J - 1)
     dpsi_dI1 = 2*s0*(C01*I1*s0 + C10)
-    dpsi_dI2 = -1/2*C01/(numpy.cbrt(J)*J)
+    dpsi_dI2 = -1/2*C01*rcbrt_J/J
     P_0_0 = F_0_0*dpsi_dI1 + dI2_0_0*dpsi_dI2 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dI2_0_1*dpsi_dI2 + dJ_0_1*dpsi_dJ
     P_0_2 = F_0_2*dpsi_dI1 + dI2_0_2*dpsi_dI2 + dJ_0_2*dpsi_dJ
@@ -234,7 +236,7 @@ def d2psi_dF2(F, params):
     -------
     dP_dF : (m, 9, 9) float64
 
-    Operation count per element: 781.
+    Operation count per element: 778.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
@@ -248,7 +250,7 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (173)
+    # intermediates (174)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -283,19 +285,20 @@ def d2psi_dF2(F, params):
     dI2_2_1 = hg10*hg17 + hg15*hg5 + hg16*hg9
     dI2_2_2 = hg10*hg16 + hg11*hg17 + hg15*hg7
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = hg11 + hg3 + hg9
     I2 = 2*(hg10*hg10) + (hg11*hg11) + (hg3*hg3) + 2*(hg5*hg5) + 2*(hg7*hg7) + (hg9*hg9)
-    h0 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J*J))
+    h0 = rcbrt_J/(J*J)
     h1 = C01*h0
     h2 = 6*h1
-    h3 = 2/(numpy.cbrt(J)*numpy.cbrt(J))
+    h3 = 2*(rcbrt_J*rcbrt_J)
     h4 = C01*I1
     h5 = C10 + h3*h4
-    h6 = (numpy.cbrt(J)/(J*J))
+    h6 = (rcbrt_J*rcbrt_J)/J
     h7 = 12*h5*h6
     h8 = C10*I1
     h9 = C01*((I1*I1) - I2)
-    h10 = 9*kappa + 10*h8/(numpy.cbrt(J)*numpy.cbrt(J)*J*J) + 14*h9/(numpy.cbrt(J)*J*J*J)
+    h10 = 9*kappa + 10*h8*(rcbrt_J*rcbrt_J)/(J*J) + 14*h9*rcbrt_J/(J*J*J)
     h11 = -1/9*F_0_0*h7 + (1/9)*dI2_0_0*h2 + (1/9)*dJ_0_0*h10
     h12 = (F_0_0*F_0_0)
     h13 = (F_0_1*F_0_1)
@@ -304,11 +307,11 @@ def d2psi_dF2(F, params):
     h16 = (F_0_2*F_0_2)
     h17 = (F_2_0*F_2_0)
     h18 = h16 + h17
-    h19 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h19 = rcbrt_J/J
     h20 = 2*h19
     h21 = C01*h20
     h22 = 3*C01
-    h23 = h5/(numpy.cbrt(J))
+    h23 = h5*rcbrt_J
     h24 = (4/3)*h19
     h25 = h24*(F_0_0*h22 - dJ_0_0*h23)
     h26 = (2/3)*h1
@@ -526,7 +529,7 @@ def energy(x_e, dphi_dX, vol, params):
     -------
     energy : (m) float64
 
-    Operation count per element: 143.
+    Operation count per element: 144.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
@@ -556,7 +559,7 @@ def energy(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (19)
+    # intermediates (20)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -573,9 +576,10 @@ def energy(x_e, dphi_dX, vol, params):
     eg4 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
     eg5 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = eg3 + eg4 + eg5
     I2 = (eg3*eg3) + (eg4*eg4) + (eg5*eg5) + 2*((F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1)**2) + 2*((F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2)**2) + 2*((F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2)**2)
-    psi = -1/2*C01*(6 - ((I1*I1) - I2)/(numpy.cbrt(J)*J)) + C10*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3) + (1/2)*kappa*((J - 1)**2)
+    psi = -1/2*C01*(6 - rcbrt_J*((I1*I1) - I2)/J) + C10*(I1*(rcbrt_J*rcbrt_J) - 3) + (1/2)*kappa*((J - 1)**2)
     # outputs
     _out_energy = numpy.empty((1, m))
     _out_energy[0] = psi*vol
@@ -630,7 +634,7 @@ def gradient(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (58)
+    # intermediates (59)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -674,12 +678,13 @@ def gradient(x_e, dphi_dX, vol, params):
     dI2_2_1 = sg10*sg17 + sg15*sg5 + sg16*sg9
     dI2_2_2 = sg10*sg16 + sg11*sg17 + sg15*sg7
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = sg11 + sg3 + sg9
     I2 = 2*(sg10*sg10) + (sg11*sg11) + (sg3*sg3) + 2*(sg5*sg5) + 2*(sg7*sg7) + (sg9*sg9)
-    s0 = (numpy.cbrt(J)/(J))
-    dpsi_dJ = -2/3*C01*((I1*I1) - I2)/(numpy.cbrt(J)*J*J) - 2/3*C10*I1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + kappa*(J - 1)
+    s0 = (rcbrt_J*rcbrt_J)
+    dpsi_dJ = -2/3*C01*rcbrt_J*((I1*I1) - I2)/(J*J) - 2/3*C10*I1*(rcbrt_J*rcbrt_J)/J + kappa*(J - 1)
     dpsi_dI1 = 2*s0*(C01*I1*s0 + C10)
-    dpsi_dI2 = -1/2*C01/(numpy.cbrt(J)*J)
+    dpsi_dI2 = -1/2*C01*rcbrt_J/J
     P_0_0 = F_0_0*dpsi_dI1 + dI2_0_0*dpsi_dI2 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dI2_0_1*dpsi_dI2 + dJ_0_1*dpsi_dJ
     P_0_2 = F_0_2*dpsi_dI1 + dI2_0_2*dpsi_dI2 + dJ_0_2*dpsi_dJ
@@ -724,7 +729,7 @@ def hessian(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1807.
+    Operation count per element: 1804.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
@@ -754,7 +759,7 @@ def hessian(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (281)
+    # intermediates (282)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -798,19 +803,20 @@ def hessian(x_e, dphi_dX, vol, params):
     dI2_2_1 = hg10*hg17 + hg15*hg5 + hg16*hg9
     dI2_2_2 = hg10*hg16 + hg11*hg17 + hg15*hg7
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = hg11 + hg3 + hg9
     I2 = 2*(hg10*hg10) + (hg11*hg11) + (hg3*hg3) + 2*(hg5*hg5) + 2*(hg7*hg7) + (hg9*hg9)
-    h0 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J*J))
+    h0 = rcbrt_J/(J*J)
     h1 = C01*h0
     h2 = 6*h1
-    h3 = 2/(numpy.cbrt(J)*numpy.cbrt(J))
+    h3 = 2*(rcbrt_J*rcbrt_J)
     h4 = C01*I1
     h5 = C10 + h3*h4
-    h6 = (numpy.cbrt(J)/(J*J))
+    h6 = (rcbrt_J*rcbrt_J)/J
     h7 = 12*h5*h6
     h8 = C10*I1
     h9 = C01*((I1*I1) - I2)
-    h10 = 9*kappa + 10*h8/(numpy.cbrt(J)*numpy.cbrt(J)*J*J) + 14*h9/(numpy.cbrt(J)*J*J*J)
+    h10 = 9*kappa + 10*h8*(rcbrt_J*rcbrt_J)/(J*J) + 14*h9*rcbrt_J/(J*J*J)
     h11 = -1/9*F_0_0*h7 + (1/9)*dI2_0_0*h2 + (1/9)*dJ_0_0*h10
     h12 = (F_0_0*F_0_0)
     h13 = (F_0_1*F_0_1)
@@ -819,11 +825,11 @@ def hessian(x_e, dphi_dX, vol, params):
     h16 = (F_0_2*F_0_2)
     h17 = (F_2_0*F_2_0)
     h18 = h16 + h17
-    h19 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h19 = rcbrt_J/J
     h20 = 2*h19
     h21 = C01*h20
     h22 = 3*C01
-    h23 = h5/(numpy.cbrt(J))
+    h23 = h5*rcbrt_J
     h24 = (4/3)*h19
     h25 = h24*(F_0_0*h22 - dJ_0_0*h23)
     h26 = (2/3)*h1
@@ -1203,7 +1209,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1807.
+    Operation count per element: 1804.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
@@ -1233,7 +1239,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (282)
+    # intermediates (283)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -1277,19 +1283,20 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dI2_2_1 = hg10*hg17 + hg15*hg5 + hg16*hg9
     dI2_2_2 = hg10*hg16 + hg11*hg17 + hg15*hg7
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = hg11 + hg3 + hg9
     I2 = 2*(hg10*hg10) + (hg11*hg11) + (hg3*hg3) + 2*(hg5*hg5) + 2*(hg7*hg7) + (hg9*hg9)
-    h0 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J*J))
+    h0 = rcbrt_J/(J*J)
     h1 = C01*h0
     h2 = 6*h1
-    h3 = 2/(numpy.cbrt(J)*numpy.cbrt(J))
+    h3 = 2*(rcbrt_J*rcbrt_J)
     h4 = C01*I1
     h5 = C10 + h3*h4
-    h6 = (numpy.cbrt(J)/(J*J))
+    h6 = (rcbrt_J*rcbrt_J)/J
     h7 = 12*h5*h6
     h8 = C10*I1
     h9 = C01*((I1*I1) - I2)
-    h10 = 9*kappa + 10*h8/(numpy.cbrt(J)*numpy.cbrt(J)*J*J) + 14*h9/(numpy.cbrt(J)*J*J*J)
+    h10 = 9*kappa + 10*h8*(rcbrt_J*rcbrt_J)/(J*J) + 14*h9*rcbrt_J/(J*J*J)
     h11 = -1/9*F_0_0*h7 + (1/9)*dI2_0_0*h2 + (1/9)*dJ_0_0*h10
     h12 = (F_0_0*F_0_0)
     h13 = (F_0_1*F_0_1)
@@ -1298,11 +1305,11 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     h16 = (F_0_2*F_0_2)
     h17 = (F_2_0*F_2_0)
     h18 = h16 + h17
-    h19 = (numpy.cbrt(J)*numpy.cbrt(J)/(J*J))
+    h19 = rcbrt_J/J
     h20 = 2*h19
     h21 = C01*h20
     h22 = 3*C01
-    h23 = h5/(numpy.cbrt(J))
+    h23 = h5*rcbrt_J
     h24 = (4/3)*h19
     h25 = h24*(F_0_0*h22 - dJ_0_0*h23)
     h26 = (2/3)*h1

@@ -39,43 +39,43 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("C", "D", ),
         "outputs": (("psi", ()), ),
-        "op_count": 40,
+        "op_count": 42,
     },
     "dpsi_dF": {
         "inputs": (("F", (3, 3)), ),
         "params": ("C", "D", ),
         "outputs": (("P", (3, 3)), ),
-        "op_count": 90,
+        "op_count": 92,
     },
     "d2psi_dF2": {
         "inputs": (("F", (3, 3)), ),
         "params": ("C", "D", ),
         "outputs": (("dP_dF", (9, 9)), ),
-        "op_count": 541,
+        "op_count": 543,
     },
     "energy": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C", "D", ),
         "outputs": (("energy", ()), ),
-        "op_count": 104,
+        "op_count": 106,
     },
     "gradient": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C", "D", ),
         "outputs": (("gradient", (12,)), ),
-        "op_count": 225,
+        "op_count": 227,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C", "D", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1567,
+        "op_count": 1569,
     },
     "hessian_psd": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("C", "D", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1567,
+        "op_count": 1569,
     },
 }
 
@@ -96,7 +96,7 @@ def psi(F, params):
     -------
     psi : (m) float64
 
-    Operation count per element: 40.
+    Operation count per element: 42.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -110,13 +110,14 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (6)
+    # intermediates (7)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    psi = C*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3) + D*((J - 1)**2)
+    psi = C*(I1*(rcbrt_J*rcbrt_J) - 3) + D*((J - 1)**2)
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
@@ -137,7 +138,7 @@ def dpsi_dF(F, params):
     -------
     P : (m, 3, 3) float64
 
-    Operation count per element: 90.
+    Operation count per element: 92.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -151,7 +152,7 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (22)
+    # intermediates (23)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -162,9 +163,10 @@ def dpsi_dF(F, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    dpsi_dJ = -2/3*C*I1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + 2*D*(J - 1)
-    dpsi_dI1 = 2*C/(numpy.cbrt(J)*numpy.cbrt(J))
+    dpsi_dJ = -2/3*C*I1*(rcbrt_J*rcbrt_J)/J + 2*D*(J - 1)
+    dpsi_dI1 = 2*C*(rcbrt_J*rcbrt_J)
     P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
     P_0_2 = F_0_2*dpsi_dI1 + dJ_0_2*dpsi_dJ
@@ -202,7 +204,7 @@ def d2psi_dF2(F, params):
     -------
     dP_dF : (m, 9, 9) float64
 
-    Operation count per element: 541.
+    Operation count per element: 543.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -216,7 +218,7 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (81)
+    # intermediates (82)
     dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
@@ -227,14 +229,15 @@ def d2psi_dF2(F, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = -C/(numpy.cbrt(J)*numpy.cbrt(J))
-    h1 = (numpy.cbrt(J)/(J*J))
+    h0 = -C*(rcbrt_J*rcbrt_J)
+    h1 = (rcbrt_J*rcbrt_J)/J
     h2 = C*h1
     h3 = (2/3)*h2
     h4 = 6*h2
     h5 = C*I1
-    h6 = 9*D + 5*h5/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h6 = 9*D + 5*h5*(rcbrt_J*rcbrt_J)/(J*J)
     h7 = F_0_0*h4 - dJ_0_0*h6
     h8 = F_0_1*h4
     h9 = F_0_2*h4
@@ -402,7 +405,7 @@ def energy(x_e, dphi_dX, vol, params):
     -------
     energy : (m) float64
 
-    Operation count per element: 104.
+    Operation count per element: 106.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -432,7 +435,7 @@ def energy(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (15)
+    # intermediates (16)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -446,8 +449,9 @@ def energy(x_e, dphi_dX, vol, params):
     dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
     dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    psi = C*(I1/(numpy.cbrt(J)*numpy.cbrt(J)) - 3) + D*((J - 1)**2)
+    psi = C*(I1*(rcbrt_J*rcbrt_J) - 3) + D*((J - 1)**2)
     # outputs
     _out_energy = numpy.empty((1, m))
     _out_energy[0] = psi*vol
@@ -472,7 +476,7 @@ def gradient(x_e, dphi_dX, vol, params):
     -------
     gradient : (m, 12) float64
 
-    Operation count per element: 225.
+    Operation count per element: 227.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -502,7 +506,7 @@ def gradient(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (31)
+    # intermediates (32)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -522,9 +526,10 @@ def gradient(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    dpsi_dJ = -2/3*C*I1/(numpy.cbrt(J)*numpy.cbrt(J)*J) + 2*D*(J - 1)
-    dpsi_dI1 = 2*C/(numpy.cbrt(J)*numpy.cbrt(J))
+    dpsi_dJ = -2/3*C*I1*(rcbrt_J*rcbrt_J)/J + 2*D*(J - 1)
+    dpsi_dI1 = 2*C*(rcbrt_J*rcbrt_J)
     P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
     P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
     P_0_2 = F_0_2*dpsi_dI1 + dJ_0_2*dpsi_dJ
@@ -569,7 +574,7 @@ def hessian(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1567.
+    Operation count per element: 1569.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -599,7 +604,7 @@ def hessian(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (189)
+    # intermediates (190)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -619,14 +624,15 @@ def hessian(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = -C/(numpy.cbrt(J)*numpy.cbrt(J))
-    h1 = (numpy.cbrt(J)/(J*J))
+    h0 = -C*(rcbrt_J*rcbrt_J)
+    h1 = (rcbrt_J*rcbrt_J)/J
     h2 = C*h1
     h3 = (2/3)*h2
     h4 = 6*h2
     h5 = C*I1
-    h6 = 9*D + 5*h5/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h6 = 9*D + 5*h5*(rcbrt_J*rcbrt_J)/(J*J)
     h7 = F_0_0*h4 - dJ_0_0*h6
     h8 = F_0_1*h4
     h9 = F_0_2*h4
@@ -956,7 +962,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1567.
+    Operation count per element: 1569.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     C, D, = _params(params, ('C', 'D'), m)
@@ -986,7 +992,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (190)
+    # intermediates (191)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -1006,14 +1012,15 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
     dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
     J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
     I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
-    h0 = -C/(numpy.cbrt(J)*numpy.cbrt(J))
-    h1 = (numpy.cbrt(J)/(J*J))
+    h0 = -C*(rcbrt_J*rcbrt_J)
+    h1 = (rcbrt_J*rcbrt_J)/J
     h2 = C*h1
     h3 = (2/3)*h2
     h4 = 6*h2
     h5 = C*I1
-    h6 = 9*D + 5*h5/(numpy.cbrt(J)*numpy.cbrt(J)*J*J)
+    h6 = 9*D + 5*h5*(rcbrt_J*rcbrt_J)/(J*J)
     h7 = F_0_0*h4 - dJ_0_0*h6
     h8 = F_0_1*h4
     h9 = F_0_2*h4
