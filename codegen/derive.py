@@ -85,6 +85,7 @@ def _invariant_steps(dec: Decomposition, exprs: list[sp.Expr], names: list[sp.Sy
 
 _DERIVATIVES = ("psi", "P", "dP_dF")
 _UPPER = tuple((a, b) for a in range(9) for b in range(a, 9))  # dP/dF is symmetric
+_PREFIX = {"psi": "e", "P": "s", "dP_dF": "h"}
 
 
 def _derivative_names(which: str) -> list[sp.Symbol]:
@@ -103,9 +104,6 @@ def direct_steps(name: str, which: str) -> tuple:
     exprs = {"psi": lambda: [d.psi], "P": lambda: flatten(d.P),
              "dP_dF": lambda: [d.dP_dF[a, b] for a, b in _UPPER]}[which]()
     return tuple(_cse_prelude(exprs, _derivative_names(which), _PREFIX[which]))
-
-
-_PREFIX = {"psi": "e", "P": "s", "dP_dF": "h"}
 
 
 @cache
