@@ -5,8 +5,10 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 #ifndef FEM3D_MODULE_HELPERS
 #define FEM3D_MODULE_HELPERS
-// Forced inlining: gcc otherwise keeps larger element functions out of line, and the call
-// (the in/out pointer arrays, the result through memory) cost 10 % of the fused gradient.
+// Forced inlining of the kernels with at most 12 outputs (energy, gradient, psi, P): gcc
+// otherwise keeps them out of line, and the call (the in/out pointer arrays, the result
+// through memory) cost 10 % of the fused gradient. The Hessians are left to gcc: forced,
+// StVK's element Hessian was 10 % slower.
 #if defined(__GNUC__)
 #define FEM3D_ELEMENT __attribute__((always_inline))
 #else
@@ -167,7 +169,7 @@ static PyObject *py_neo_hookean_lame_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 180
-static inline FEM3D_ELEMENT void neo_hookean_lame_d2psi_dF2_element(const double *const *in, const double *params,
+static inline void neo_hookean_lame_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -600,7 +602,7 @@ static PyObject *py_neo_hookean_lame_gradient_assemble(PyObject *self, PyObject 
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1206
-static inline FEM3D_ELEMENT void neo_hookean_lame_hessian_element(const double *const *in, const double *params,
+static inline void neo_hookean_lame_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -967,7 +969,7 @@ static PyObject *py_neo_hookean_lame_hessian_assemble(PyObject *self, PyObject *
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1206
-static inline FEM3D_ELEMENT void neo_hookean_lame_hessian_psd_element(const double *const *in, const double *params,
+static inline void neo_hookean_lame_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];

@@ -5,8 +5,10 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 #ifndef FEM3D_MODULE_HELPERS
 #define FEM3D_MODULE_HELPERS
-// Forced inlining: gcc otherwise keeps larger element functions out of line, and the call
-// (the in/out pointer arrays, the result through memory) cost 10 % of the fused gradient.
+// Forced inlining of the kernels with at most 12 outputs (energy, gradient, psi, P): gcc
+// otherwise keeps them out of line, and the call (the in/out pointer arrays, the result
+// through memory) cost 10 % of the fused gradient. The Hessians are left to gcc: forced,
+// StVK's element Hessian was 10 % slower.
 #if defined(__GNUC__)
 #define FEM3D_ELEMENT __attribute__((always_inline))
 #else
@@ -133,7 +135,7 @@ static PyObject *py_spring_gradient(PyObject *self, PyObject *args)
 // Spring Hessian (6x6).
 // inputs: x_a (m, 3), x_b (m, 3); params: (k), shared or per element
 // outputs: hessian (m, 6, 6); operation count per element: 1
-static inline FEM3D_ELEMENT void spring_hessian_element(const double *const *in, const double *params,
+static inline void spring_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double k = params[0];

@@ -5,8 +5,10 @@
 // element kernels, by a fused gather-compute-scatter loop (`*_assemble`).
 #ifndef FEM3D_MODULE_HELPERS
 #define FEM3D_MODULE_HELPERS
-// Forced inlining: gcc otherwise keeps larger element functions out of line, and the call
-// (the in/out pointer arrays, the result through memory) cost 10 % of the fused gradient.
+// Forced inlining of the kernels with at most 12 outputs (energy, gradient, psi, P): gcc
+// otherwise keeps them out of line, and the call (the in/out pointer arrays, the result
+// through memory) cost 10 % of the fused gradient. The Hessians are left to gcc: forced,
+// StVK's element Hessian was 10 % slower.
 #if defined(__GNUC__)
 #define FEM3D_ELEMENT __attribute__((always_inline))
 #else
@@ -37,7 +39,7 @@ static inline double fem3d_rcbrt(double x)
 // Shape-function gradients dphi/dX and signed volume of rest tets.
 // inputs: X_e (m, 4, 3); params: (), shared or per element
 // outputs: dphi_dX (m, 4, 3), volume (m); operation count per element: 152
-static inline FEM3D_ELEMENT void tet_rest_shape_element(const double *const *in, const double *params,
+static inline void tet_rest_shape_element(const double *const *in, const double *params,
     double *const *out)
 {
     (void)params;
@@ -228,7 +230,7 @@ static PyObject *py_tet_phi(PyObject *self, PyObject *args)
 // Exact consistent mass matrix rho * integral N^T N dV (12x12).
 // inputs: vol (m); params: (rho), shared or per element
 // outputs: mass (m, 12, 12); operation count per element: 3
-static inline FEM3D_ELEMENT void tet_mass_matrix_element(const double *const *in, const double *params,
+static inline void tet_mass_matrix_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double rho = params[0];
