@@ -6,6 +6,9 @@ Stages, each with a named input and output:
    (:mod:`codegen.materials`) and the linear tetrahedron (:mod:`codegen.tet`)
    -> exact SymPy expressions (``P = dpsi/dF``, ``dP/dF``, element energy, gradient,
    Hessian, shape functions, mass matrix) in the conventions of :mod:`codegen.conventions`.
+   Each derivative is taken twice, directly in the entries of ``F`` and by the chain rule
+   through the invariants (``J``, ``I1``, ...) that :mod:`codegen.invariants` finds in
+   ``psi``; the variant with fewer operations is kept.
 2. **spec** (:mod:`codegen.spec`): expressions -> a frozen :class:`~codegen.spec.KernelSpec`
    per kernel: inputs and their shapes, CSE'd intermediates, outputs, operation count.
    Back-end independent.

@@ -10,8 +10,9 @@ import sympy as sp
 
 from codegen import tet
 from codegen.conventions import deformation_gradient, flatten, symbol_matrix, symbol_vector
+from codegen.invariants import Decomposition, decompose
 from codegen.materials import MATERIALS
-from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection, make_kernel
+from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection, make_kernel, name_cube_roots
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,105 @@ def derive_material(name: str) -> MaterialDerivation:
     P_flat = flatten(P)
     dP_dF = sp.Matrix(9, 9, lambda a, b: sp.diff(P_flat[a], F_flat[b]))
     return MaterialDerivation(F, params, inputs, psi, P, dP_dF)
+
+
+@cache
+def material_decomposition(name: str) -> Decomposition | None:
+    """``psi`` of material ``name`` through its invariants (``None`` when it holds none)."""
+    d = derive_material(name)
+    return decompose(d.psi, d.F, d.inputs)
+
+
+def _steps_ops(steps: list) -> int:
+    steps, _ = name_cube_roots(list(steps), [])  # as make_kernel will emit them
+    return int(sum(sp.count_ops(s[1]) for s in steps if not isinstance(s, Projection)))
+
+
+def _invariant_steps(dec: Decomposition, exprs: list[sp.Expr], names: list[sp.Symbol],
+                     prefix: str, named: list | None = None) -> list:
+    """CSE'd steps computing ``names = exprs`` (in ``F``, the invariants and their named
+    gradients): first the invariants and gradients ``exprs`` need, in one CSE (``J`` shares
+    the cofactors of ``dJ/dF``), then ``exprs`` with those as atoms."""
+    named = named or []
+    used = set().union(*(e.free_symbols for e in [*exprs, *(v for _, v in named)]))
+    pre_exprs, pre_names = dec.prelude(used)
+    steps = []
+    if pre_exprs:
+        # no "basic" optimizations here: they would pull the signs out of the cofactors
+        replacements, reduced = sp.cse(pre_exprs, symbols=sp.numbered_symbols(prefix + "g"),
+                                       order="canonical")
+        # a named result that is a bare CSE symbol takes over that symbol (no alias steps)
+        rename = {}
+        for name, value in zip(pre_names, reduced, strict=True):
+            if isinstance(value, sp.Symbol) and value not in rename and \
+                    any(value == r for r, _ in replacements):
+                rename[value] = name
+        steps += [(rename.get(r, r), v.xreplace(rename)) for r, v in replacements]
+        steps += [(n, v.xreplace(rename)) for n, v in zip(pre_names, reduced, strict=True)
+                  if n not in rename.values()]
+    if named:
+        return steps + _cse_prelude([v for _, v in named] + exprs,
+                                    [n for n, _ in named] + names, prefix)
+    return steps + _cse_prelude(exprs, names, prefix)
+
+
+_DERIVATIVES = ("psi", "P", "dP_dF")
+_UPPER = tuple((a, b) for a in range(9) for b in range(a, 9))  # dP/dF is symmetric
+_PREFIX = {"psi": "e", "P": "s", "dP_dF": "h"}
+
+
+def _derivative_names(which: str) -> list[sp.Symbol]:
+    if which == "psi":
+        return [sp.Symbol("psi")]
+    if which == "P":
+        return flatten(symbol_matrix("P", 3, 3))
+    return [sp.Symbol(f"A_{a}_{b}") for a, b in _UPPER]
+
+
+@cache
+def direct_steps(name: str, which: str) -> tuple:
+    """CSE'd steps computing ``which`` (``psi``, ``P`` as ``P_i_j`` or the upper triangle of
+    ``dP/dF`` as ``A_a_b``) from ``F``, differentiated directly in the entries of ``F``."""
+    d = derive_material(name)
+    exprs = {"psi": lambda: [d.psi], "P": lambda: flatten(d.P),
+             "dP_dF": lambda: [d.dP_dF[a, b] for a, b in _UPPER]}[which]()
+    return tuple(_cse_prelude(exprs, _derivative_names(which), _PREFIX[which]))
+
+
+@cache
+def chain_steps(name: str, which: str) -> tuple | None:
+    """Like :func:`direct_steps`, by the chain rule through the invariants found in ``psi``
+    (:mod:`codegen.invariants`); ``None`` when ``psi`` holds none."""
+    dec = material_decomposition(name)
+    if dec is None:
+        return None
+    F_flat = flatten(derive_material(name).F)
+    names, prefix = _derivative_names(which), _PREFIX[which]
+    if which == "psi":
+        return tuple(_invariant_steps(dec, [dec.psi_tilde], names, prefix))
+    if which == "P":
+        w_steps, P = dec.stress(F_flat)
+        return tuple(_invariant_steps(dec, P, names, prefix, w_steps))
+    P = [dec.total_diff(dec.psi_tilde, f) for f in F_flat]
+    A = [dec.total_diff(P[a], F_flat[b]) for a, b in _UPPER]
+    return tuple(_invariant_steps(dec, A, names, prefix))
+
+
+def steps_op_count(steps) -> int:
+    """Operations in a list of steps, as :attr:`codegen.spec.KernelSpec.op_count` counts."""
+    return _steps_ops(list(steps))
+
+
+def derivative_steps(name: str) -> tuple[list, list, list]:
+    """CSE'd steps computing ``psi``, ``P`` (``P_i_j``) and the upper triangle of ``dP/dF``
+    (``A_a_b``) from ``F``: each the direct derivation or the chain rule through the
+    invariants, whichever has fewer operations (ties: the direct one)."""
+    chosen = []
+    for which in _DERIVATIVES:
+        direct, chain = direct_steps(name, which), chain_steps(name, which)
+        better = chain is not None and steps_op_count(chain) < steps_op_count(direct)
+        chosen.append(list(chain if better else direct))
+    return chosen[0], chosen[1], chosen[2]
 
 
 def element_inputs(name: str) -> tuple[tuple[str, tuple[int, ...]], ...]:
@@ -149,11 +249,7 @@ def material_module(name: str) -> ModuleSpec:
     # and the element kernel (which computes F from x_e first): the CSE is the slow stage.
     psi_sym, P_sym = sp.Symbol("psi"), symbol_matrix("P", 3, 3)
     A_sym = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
-    upper = [(a, b) for a in range(9) for b in range(a, 9)]  # dP/dF is symmetric
-    psi_steps = _cse_prelude([d.psi], [psi_sym], "e")
-    P_steps = _cse_prelude(flatten(d.P), flatten(P_sym), "s")
-    A_steps = _cse_prelude([d.dP_dF[a, b] for a, b in upper], [A_sym[a, b] for a, b in upper],
-                           "h")
+    psi_steps, P_steps, A_steps = derivative_steps(name)
     kernels: list[KernelSpec] = [
         make_kernel(name, "psi", "Strain energy density psi(F).", F_args, params,
                     [("psi", (), [psi_sym], False)], psi_steps),

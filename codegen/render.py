@@ -43,7 +43,7 @@ class _PowerMixin:
         factors = []
         if part:
             root = f"{self._sqrt if exp.q == 2 else self._cbrt}({self._print(base)})"
-            factors.append(self._integer_power(root, part, True))
+            factors.append(self._integer_power(root, part, False))  # one root call
         if whole > 0:
             factors.append(self._integer_power(b, whole, atomic))
         text = "*".join(factors) if factors else "1.0"
@@ -65,12 +65,43 @@ class NumPyExpressionPrinter(_PowerMixin, NumPyPrinter):
 
 
 class CExpressionPrinter(_PowerMixin, C99CodePrinter):
-    """C99 expressions over doubles; compound bases use the inline ``fem3d_powi``."""
+    """C99 expressions over doubles; compound bases use the inline ``fem3d_powi``.
+
+    Negative thirds go through ``fem3d_rcbrt(x) = x^(-1/3)`` (no cbrt, no division):
+    ``x^(-k/3) = rcbrt(x)^(k mod 3) / x^(k div 3)``, ``J^(-2/3)`` is ``rcbrt(J)*rcbrt(J)``.
+    """
 
     def _integer_power(self, base: str, n: int, atomic: bool) -> str:
         if atomic or n == 1:
             return "*".join([base] * n)
         return f"fem3d_powi({base}, {n})"
+
+    @staticmethod
+    def _negative_third(expr: sp.Expr) -> bool:
+        return bool(expr.is_Pow and expr.exp.is_Rational and expr.exp.q == 3
+                    and expr.exp.p < 0)
+
+    def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
+        if not self._negative_third(expr):
+            return super()._print_Pow(expr, rational)
+        base = expr.base
+        atomic = base.is_Atom
+        b = self.parenthesize(base, 100) if atomic else f"({self._print(base)})"
+        whole, part = divmod(-int(expr.exp.p), 3)
+        text = self._integer_power(f"fem3d_rcbrt({self._print(base)})", part, True) if part \
+            else "1.0"
+        if whole:
+            text = f"{text}/({self._integer_power(b, whole, atomic)})"
+        return f"({text})"
+
+    def _print_Mul(self, expr: sp.Mul) -> str:
+        # SymPy prints a negative power as a division by the positive one (C/J^(2/3)):
+        # print negative thirds as factors instead, so they keep fem3d_rcbrt
+        if any(self._negative_third(f) for f in expr.args):
+            factors = [sp.Symbol(self._print_Pow(f)) if self._negative_third(f) else f
+                       for f in expr.args]
+            return super()._print_Mul(sp.Mul(*factors, evaluate=False))
+        return super()._print_Mul(expr)
 
 
 @dataclass(frozen=True)

@@ -143,15 +143,56 @@ def make_kernel(
             for k2 in mirror:
                 full[k2] = value
         outs.append(Output(probe.name, probe.shape, tuple(full), probe.symmetric))
+    steps, outs = name_cube_roots(list(prelude) + list(replacements), outs)
     return KernelSpec(
         module=module,
         name=name,
         doc=doc,
         inputs=tuple(inputs),
         params=tuple(params),
-        intermediates=_live(list(prelude) + list(replacements), outs),
+        intermediates=_live(steps, outs),
         outputs=tuple(outs),
     )
+
+
+def name_cube_roots(steps: list[Step], outputs: list[Output]) -> tuple[list[Step],
+                                                                        list[Output]]:
+    """Compute each symbol's cube root once: every ``b^(p/3)`` becomes ``r^n b^m`` with the
+    step ``r = b^(-1/3)`` (``p = 3 m - n``, ``n`` in 0..2), so ``J^(-2/3)`` and ``J^(-5/3)``
+    share one root (``r^2``, ``r^2 / J``) where they were separate powers."""
+    def thirds(expr: sp.Expr) -> set[sp.Pow]:
+        return {e for e in sp.preorder_traversal(expr) if e.is_Pow and e.base.is_Symbol
+                and e.exp.is_Rational and e.exp.q == 3}
+
+    found: set[sp.Pow] = set()
+    for step in steps:
+        if not isinstance(step, Projection):
+            found |= thirds(step[1])
+    for out in outputs:
+        for _, e, _ in out.entries():
+            found |= thirds(e)
+    bases = sorted({p.base for p in found}, key=str)
+    if not bases:
+        return steps, outputs
+    roots = {b: sp.Symbol(f"rcbrt_{b}", real=True) for b in bases}
+    rewrite = {}
+    for power in found:
+        m = -(-int(power.exp.p) // 3)  # ceil(p / 3)
+        n = 3 * m - int(power.exp.p)
+        rewrite[power] = roots[power.base] ** n * power.base ** m
+    new_steps: list[Step] = [(roots[b], b ** sp.Rational(-1, 3)) for b in bases
+                             if not any(not isinstance(s, Projection) and s[0] == b
+                                        for s in steps)]
+    for step in steps:
+        if isinstance(step, Projection):
+            new_steps.append(step)
+            continue
+        new_steps.append((step[0], step[1].xreplace(rewrite)))
+        if step[0] in roots:
+            new_steps.append((roots[step[0]], step[0] ** sp.Rational(-1, 3)))
+    new_outputs = [Output(o.name, o.shape, tuple(e.xreplace(rewrite) for e in o.exprs),
+                          o.symmetric) for o in outputs]
+    return new_steps, new_outputs
 
 
 def _live(steps: list[Step], outputs: list[Output]) -> tuple[Step, ...]:

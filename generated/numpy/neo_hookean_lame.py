@@ -39,43 +39,43 @@ SIGNATURES = {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("psi", ()), ),
-        "op_count": 44,
+        "op_count": 41,
     },
     "dpsi_dF": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("P", (3, 3)), ),
-        "op_count": 88,
+        "op_count": 63,
     },
     "d2psi_dF2": {
         "inputs": (("F", (3, 3)), ),
         "params": ("mu", "lam", ),
         "outputs": (("dP_dF", (9, 9)), ),
-        "op_count": 363,
+        "op_count": 180,
     },
     "energy": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("energy", ()), ),
-        "op_count": 108,
+        "op_count": 105,
     },
     "gradient": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("gradient", (12,)), ),
-        "op_count": 223,
+        "op_count": 198,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1389,
+        "op_count": 1206,
     },
     "hessian_psd": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
         "outputs": (("hessian", (12, 12)), ),
-        "op_count": 1389,
+        "op_count": 1206,
     },
 }
 
@@ -96,7 +96,7 @@ def psi(F, params):
     -------
     psi : (m) float64
 
-    Operation count per element: 44.
+    Operation count per element: 41.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -110,9 +110,14 @@ def psi(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (2)
-    e0 = numpy.log(F_0_0*F_1_1*F_2_2 - F_0_0*F_1_2*F_2_1 - F_0_1*F_1_0*F_2_2 + F_0_1*F_1_2*F_2_0 + F_0_2*F_1_0*F_2_1 - F_0_2*F_1_1*F_2_0)
-    psi = (1/2)*(e0*e0)*lam - e0*mu + (1/2)*mu*((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2) - 3)
+    # intermediates (7)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    e0 = numpy.log(J)
+    psi = (1/2)*(e0*e0)*lam - e0*mu + (1/2)*mu*(I1 - 3)
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
@@ -133,7 +138,7 @@ def dpsi_dF(F, params):
     -------
     P : (m, 3, 3) float64
 
-    Operation count per element: 88.
+    Operation count per element: 63.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -147,35 +152,28 @@ def dpsi_dF(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (28)
-    s0 = F_1_1*F_2_2
-    s1 = F_1_2*F_2_1
-    s2 = s0 - s1
-    s3 = F_1_2*F_2_0
-    s4 = F_1_0*F_2_1
-    s5 = F_1_0*F_2_2
-    s6 = F_1_1*F_2_0
-    s7 = F_0_0*s0 - F_0_0*s1 + F_0_1*s3 - F_0_1*s5 + F_0_2*s4 - F_0_2*s6
-    s8 = (1.0/(s7))
-    s9 = mu*s8
-    s10 = lam*s8*numpy.log(s7)
-    s11 = -s3 + s5
-    s12 = s4 - s6
-    s13 = F_0_1*F_2_2 - F_0_2*F_2_1
-    s14 = F_0_0*F_2_2 - F_0_2*F_2_0
-    s15 = F_0_0*F_2_1 - F_0_1*F_2_0
-    s16 = F_0_1*F_1_2 - F_0_2*F_1_1
-    s17 = F_0_0*F_1_2 - F_0_2*F_1_0
-    s18 = F_0_0*F_1_1 - F_0_1*F_1_0
-    P_0_0 = F_0_0*mu + s10*s2 - s2*s9
-    P_0_1 = F_0_1*mu - s10*s11 + s11*s9
-    P_0_2 = F_0_2*mu + s10*s12 - s12*s9
-    P_1_0 = F_1_0*mu - s10*s13 + s13*s9
-    P_1_1 = F_1_1*mu + s10*s14 - s14*s9
-    P_1_2 = F_1_2*mu - s10*s15 + s15*s9
-    P_2_0 = F_2_0*mu + s10*s16 - s16*s9
-    P_2_1 = F_2_1*mu - s10*s17 + s17*s9
-    P_2_2 = F_2_2*mu + s10*s18 - s18*s9
+    # intermediates (21)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    dpsi_dJ = (lam*numpy.log(J) - mu)/J
+    dpsi_dI1 = mu
+    P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
+    P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
+    P_0_2 = F_0_2*dpsi_dI1 + dJ_0_2*dpsi_dJ
+    P_1_0 = F_1_0*dpsi_dI1 + dJ_1_0*dpsi_dJ
+    P_1_1 = F_1_1*dpsi_dI1 + dJ_1_1*dpsi_dJ
+    P_1_2 = F_1_2*dpsi_dI1 + dJ_1_2*dpsi_dJ
+    P_2_0 = F_2_0*dpsi_dI1 + dJ_2_0*dpsi_dJ
+    P_2_1 = F_2_1*dpsi_dI1 + dJ_2_1*dpsi_dJ
+    P_2_2 = F_2_2*dpsi_dI1 + dJ_2_2*dpsi_dJ
     # outputs
     _out_P = numpy.empty((9, m))
     _out_P[0] = P_0_0
@@ -204,7 +202,7 @@ def d2psi_dF2(F, params):
     -------
     dP_dF : (m, 9, 9) float64
 
-    Operation count per element: 363.
+    Operation count per element: 180.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -218,139 +216,86 @@ def d2psi_dF2(F, params):
     F_2_0 = _in_F[6]
     F_2_1 = _in_F[7]
     F_2_2 = _in_F[8]
-    # intermediates (132)
-    h0 = F_1_1*F_2_2
-    h1 = F_1_2*F_2_1
-    h2 = h0 - h1
-    h3 = F_1_2*F_2_0
-    h4 = F_1_0*F_2_1
-    h5 = F_1_0*F_2_2
-    h6 = F_1_1*F_2_0
-    h7 = F_0_0*h0 - F_0_0*h1 + F_0_1*h3 - F_0_1*h5 + F_0_2*h4 - F_0_2*h6
-    h8 = (1.0/(h7*h7))
-    h9 = (h2*h2)*h8
-    h10 = numpy.log(h7)
-    h11 = h10*lam
-    h12 = -h3 + h5
-    h13 = -h10*lam + lam + mu
-    h14 = -h13
-    h15 = h2*h8
-    h16 = h14*h15
-    h17 = h4 - h6
-    h18 = h13*h15
-    h19 = F_0_1*F_2_2 - F_0_2*F_2_1
-    h20 = (1.0/(h7))
-    h21 = F_2_2*mu
-    h22 = F_2_2*h11
-    h23 = F_0_0*F_2_2 - F_0_2*F_2_0
-    h24 = h2*h20
-    h25 = h23*h24
-    h26 = F_2_1*mu
-    h27 = F_2_1*h11
-    h28 = F_0_0*F_2_1 - F_0_1*F_2_0
-    h29 = h24*h28
-    h30 = F_0_1*F_1_2 - F_0_2*F_1_1
-    h31 = F_1_2*mu
-    h32 = F_1_2*h11
-    h33 = F_0_0*F_1_2 - F_0_2*F_1_0
-    h34 = h24*h33
-    h35 = F_1_1*mu
-    h36 = F_1_1*h11
-    h37 = F_0_0*F_1_1 - F_0_1*F_1_0
-    h38 = h24*h37
-    h39 = (h12*h12)*h8
-    h40 = h12*h8
-    h41 = h14*h40
-    h42 = h12*h20
-    h43 = h19*h42
-    h44 = F_2_0*mu
-    h45 = F_2_0*h11
-    h46 = h28*h42
-    h47 = h30*h42
-    h48 = F_1_0*mu
-    h49 = F_1_0*h11
-    h50 = h37*h42
-    h51 = (h17*h17)*h8
-    h52 = h17*h20
-    h53 = h19*h52
-    h54 = h23*h52
-    h55 = h17*h8
-    h56 = h14*h28
-    h57 = h30*h52
-    h58 = h33*h52
-    h59 = h13*h37
-    h60 = (h19*h19)*h8
-    h61 = h19*h8
-    h62 = h14*h61
-    h63 = F_0_2*mu
-    h64 = F_0_2*h11
-    h65 = h19*h20
-    h66 = h33*h65
-    h67 = F_0_1*mu
-    h68 = F_0_1*h11
-    h69 = h37*h65
-    h70 = (h23*h23)*h8
-    h71 = h23*h8
-    h72 = h20*h23
-    h73 = h30*h72
-    h74 = h14*h33
-    h75 = F_0_0*mu
-    h76 = F_0_0*h11
-    h77 = h37*h72
-    h78 = (h28*h28)*h8
-    h79 = h20*h28
-    h80 = h30*h79
-    h81 = h33*h79
-    h82 = h37*h8
-    h83 = (h30*h30)*h8
-    h84 = h30*h8
-    h85 = (h33*h33)*h8
-    h86 = (h37*h37)*h8
-    A_0_0 = -h11*h9 + h9*lam + h9*mu + mu
-    A_0_1 = h12*h16
-    A_0_2 = h17*h18
-    A_0_3 = h16*h19
-    A_0_4 = h20*(-h11*h25 - h21 + h22 + h25*lam + h25*mu)
-    A_0_5 = h20*(h10*h2*h20*h28*lam + h26 - h27 - h29*lam - h29*mu)
-    A_0_6 = h18*h30
-    A_0_7 = h20*(h10*h2*h20*h33*lam + h31 - h32 - h34*lam - h34*mu)
-    A_0_8 = h20*(-h11*h38 - h35 + h36 + h38*lam + h38*mu)
-    A_1_1 = -h11*h39 + h39*lam + h39*mu + mu
-    A_1_2 = h17*h41
-    A_1_3 = h20*(-h11*h43 + h21 - h22 + h43*lam + h43*mu)
-    A_1_4 = h23*h41
-    A_1_5 = h20*(-h11*h46 - h44 + h45 + h46*lam + h46*mu)
-    A_1_6 = h20*(h10*h12*h20*h30*lam - h31 + h32 - h47*lam - h47*mu)
-    A_1_7 = h13*h33*h40
-    A_1_8 = h20*(h10*h12*h20*h37*lam + h48 - h49 - h50*lam - h50*mu)
-    A_2_2 = -h11*h51 + h51*lam + h51*mu + mu
-    A_2_3 = h20*(h10*h17*h19*h20*lam - h26 + h27 - h53*lam - h53*mu)
-    A_2_4 = h20*(-h11*h54 + h44 - h45 + h54*lam + h54*mu)
-    A_2_5 = h55*h56
-    A_2_6 = h20*(-h11*h57 + h35 - h36 + h57*lam + h57*mu)
-    A_2_7 = h20*(h10*h17*h20*h33*lam - h48 + h49 - h58*lam - h58*mu)
-    A_2_8 = h55*h59
-    A_3_3 = -h11*h60 + h60*lam + h60*mu + mu
-    A_3_4 = h23*h62
-    A_3_5 = h13*h28*h61
-    A_3_6 = h30*h62
-    A_3_7 = h20*(-h11*h66 - h63 + h64 + h66*lam + h66*mu)
-    A_3_8 = h20*(h10*h19*h20*h37*lam + h67 - h68 - h69*lam - h69*mu)
-    A_4_4 = -h11*h70 + h70*lam + h70*mu + mu
-    A_4_5 = h56*h71
-    A_4_6 = h20*(-h11*h73 + h63 - h64 + h73*lam + h73*mu)
-    A_4_7 = h71*h74
-    A_4_8 = h20*(-h11*h77 - h75 + h76 + h77*lam + h77*mu)
-    A_5_5 = -h11*h78 + h78*lam + h78*mu + mu
-    A_5_6 = h20*(h10*h20*h28*h30*lam - h67 + h68 - h80*lam - h80*mu)
-    A_5_7 = h20*(-h11*h81 + h75 - h76 + h81*lam + h81*mu)
-    A_5_8 = h56*h82
-    A_6_6 = -h11*h83 + h83*lam + h83*mu + mu
-    A_6_7 = h74*h84
-    A_6_8 = h59*h84
-    A_7_7 = -h11*h85 + h85*lam + h85*mu + mu
-    A_7_8 = h74*h82
-    A_8_8 = -h11*h86 + h86*lam + h86*mu + mu
+    # intermediates (79)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    h0 = lam*numpy.log(J)
+    h1 = -h0 + lam + mu
+    h2 = h1/(J*J)
+    h3 = dJ_0_0*h2
+    h4 = (1.0/(J))
+    h5 = h0 - mu
+    h6 = F_2_2*h5
+    h7 = h1*h4
+    h8 = dJ_0_0*h7
+    h9 = F_2_1*h5
+    h10 = F_1_2*h5
+    h11 = F_1_1*h5
+    h12 = dJ_0_1*h2
+    h13 = F_2_0*h5
+    h14 = dJ_0_1*h7
+    h15 = F_1_0*h5
+    h16 = dJ_0_2*h7
+    h17 = dJ_0_2*h2
+    h18 = dJ_1_0*h2
+    h19 = F_0_2*h5
+    h20 = F_0_1*h5
+    h21 = dJ_1_1*h2
+    h22 = F_0_0*h5
+    h23 = dJ_2_2*h2
+    A_0_0 = (dJ_0_0*dJ_0_0)*h2 + mu
+    A_0_1 = dJ_0_1*h3
+    A_0_2 = dJ_0_2*h3
+    A_0_3 = dJ_1_0*h3
+    A_0_4 = h4*(dJ_1_1*h8 + h6)
+    A_0_5 = h4*(dJ_0_0*dJ_1_2*h1*h4 - h9)
+    A_0_6 = dJ_2_0*h3
+    A_0_7 = h4*(dJ_0_0*dJ_2_1*h1*h4 - h10)
+    A_0_8 = h4*(dJ_2_2*h8 + h11)
+    A_1_1 = (dJ_0_1*dJ_0_1)*h2 + mu
+    A_1_2 = dJ_0_2*h12
+    A_1_3 = h4*(dJ_0_1*dJ_1_0*h1*h4 - h6)
+    A_1_4 = dJ_1_1*h12
+    A_1_5 = h4*(dJ_1_2*h14 + h13)
+    A_1_6 = h4*(dJ_2_0*h14 + h10)
+    A_1_7 = dJ_2_1*h12
+    A_1_8 = h4*(dJ_0_1*dJ_2_2*h1*h4 - h15)
+    A_2_2 = (dJ_0_2*dJ_0_2)*h2 + mu
+    A_2_3 = h4*(dJ_1_0*h16 + h9)
+    A_2_4 = h4*(dJ_0_2*dJ_1_1*h1*h4 - h13)
+    A_2_5 = dJ_1_2*h17
+    A_2_6 = h4*(dJ_0_2*dJ_2_0*h1*h4 - h11)
+    A_2_7 = h4*(dJ_2_1*h16 + h15)
+    A_2_8 = dJ_2_2*h17
+    A_3_3 = (dJ_1_0*dJ_1_0)*h2 + mu
+    A_3_4 = dJ_1_1*h18
+    A_3_5 = dJ_1_2*h18
+    A_3_6 = dJ_2_0*h18
+    A_3_7 = h4*(dJ_1_0*dJ_2_1*h7 + h19)
+    A_3_8 = h4*(dJ_1_0*dJ_2_2*h1*h4 - h20)
+    A_4_4 = (dJ_1_1*dJ_1_1)*h2 + mu
+    A_4_5 = dJ_1_2*h21
+    A_4_6 = h4*(dJ_1_1*dJ_2_0*h1*h4 - h19)
+    A_4_7 = dJ_2_1*h21
+    A_4_8 = h4*(dJ_1_1*dJ_2_2*h7 + h22)
+    A_5_5 = (dJ_1_2*dJ_1_2)*h2 + mu
+    A_5_6 = h4*(dJ_1_2*dJ_2_0*h7 + h20)
+    A_5_7 = h4*(dJ_1_2*dJ_2_1*h1*h4 - h22)
+    A_5_8 = dJ_1_2*h23
+    A_6_6 = (dJ_2_0*dJ_2_0)*h2 + mu
+    A_6_7 = dJ_2_0*dJ_2_1*h2
+    A_6_8 = dJ_2_0*h23
+    A_7_7 = (dJ_2_1*dJ_2_1)*h2 + mu
+    A_7_8 = dJ_2_1*h23
+    A_8_8 = (dJ_2_2*dJ_2_2)*h2 + mu
     # outputs
     _out_dP_dF = numpy.empty((81, m))
     _out_dP_dF[0] = A_0_0
@@ -455,7 +400,7 @@ def energy(x_e, dphi_dX, vol, params):
     -------
     energy : (m) float64
 
-    Operation count per element: 108.
+    Operation count per element: 105.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -485,7 +430,7 @@ def energy(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (11)
+    # intermediates (16)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -495,8 +440,13 @@ def energy(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    e0 = numpy.log(F_0_0*F_1_1*F_2_2 - F_0_0*F_1_2*F_2_1 - F_0_1*F_1_0*F_2_2 + F_0_1*F_1_2*F_2_0 + F_0_2*F_1_0*F_2_1 - F_0_2*F_1_1*F_2_0)
-    psi = (1/2)*(e0*e0)*lam - e0*mu + (1/2)*mu*((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2) - 3)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    e0 = numpy.log(J)
+    psi = (1/2)*(e0*e0)*lam - e0*mu + (1/2)*mu*(I1 - 3)
     # outputs
     _out_energy = numpy.empty((1, m))
     _out_energy[0] = psi*vol
@@ -521,7 +471,7 @@ def gradient(x_e, dphi_dX, vol, params):
     -------
     gradient : (m, 12) float64
 
-    Operation count per element: 223.
+    Operation count per element: 198.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -551,7 +501,7 @@ def gradient(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (37)
+    # intermediates (30)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -561,34 +511,27 @@ def gradient(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    s0 = F_1_1*F_2_2
-    s1 = F_1_2*F_2_1
-    s2 = s0 - s1
-    s3 = F_1_2*F_2_0
-    s4 = F_1_0*F_2_1
-    s5 = F_1_0*F_2_2
-    s6 = F_1_1*F_2_0
-    s7 = F_0_0*s0 - F_0_0*s1 + F_0_1*s3 - F_0_1*s5 + F_0_2*s4 - F_0_2*s6
-    s8 = (1.0/(s7))
-    s9 = mu*s8
-    s10 = lam*s8*numpy.log(s7)
-    s11 = -s3 + s5
-    s12 = s4 - s6
-    s13 = F_0_1*F_2_2 - F_0_2*F_2_1
-    s14 = F_0_0*F_2_2 - F_0_2*F_2_0
-    s15 = F_0_0*F_2_1 - F_0_1*F_2_0
-    s16 = F_0_1*F_1_2 - F_0_2*F_1_1
-    s17 = F_0_0*F_1_2 - F_0_2*F_1_0
-    s18 = F_0_0*F_1_1 - F_0_1*F_1_0
-    P_0_0 = F_0_0*mu + s10*s2 - s2*s9
-    P_0_1 = F_0_1*mu - s10*s11 + s11*s9
-    P_0_2 = F_0_2*mu + s10*s12 - s12*s9
-    P_1_0 = F_1_0*mu - s10*s13 + s13*s9
-    P_1_1 = F_1_1*mu + s10*s14 - s14*s9
-    P_1_2 = F_1_2*mu - s10*s15 + s15*s9
-    P_2_0 = F_2_0*mu + s10*s16 - s16*s9
-    P_2_1 = F_2_1*mu - s10*s17 + s17*s9
-    P_2_2 = F_2_2*mu + s10*s18 - s18*s9
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    dpsi_dJ = (lam*numpy.log(J) - mu)/J
+    dpsi_dI1 = mu
+    P_0_0 = F_0_0*dpsi_dI1 + dJ_0_0*dpsi_dJ
+    P_0_1 = F_0_1*dpsi_dI1 + dJ_0_1*dpsi_dJ
+    P_0_2 = F_0_2*dpsi_dI1 + dJ_0_2*dpsi_dJ
+    P_1_0 = F_1_0*dpsi_dI1 + dJ_1_0*dpsi_dJ
+    P_1_1 = F_1_1*dpsi_dI1 + dJ_1_1*dpsi_dJ
+    P_1_2 = F_1_2*dpsi_dI1 + dJ_1_2*dpsi_dJ
+    P_2_0 = F_2_0*dpsi_dI1 + dJ_2_0*dpsi_dJ
+    P_2_1 = F_2_1*dpsi_dI1 + dJ_2_1*dpsi_dJ
+    P_2_2 = F_2_2*dpsi_dI1 + dJ_2_2*dpsi_dJ
     # outputs
     _out_gradient = numpy.empty((12, m))
     _out_gradient[0] = vol*(P_0_0*dphi_0_0 + P_0_1*dphi_0_1 + P_0_2*dphi_0_2)
@@ -624,7 +567,7 @@ def hessian(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1389.
+    Operation count per element: 1206.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -654,7 +597,7 @@ def hessian(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (240)
+    # intermediates (187)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -664,138 +607,85 @@ def hessian(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    h0 = F_1_1*F_2_2
-    h1 = F_1_2*F_2_1
-    h2 = h0 - h1
-    h3 = F_1_2*F_2_0
-    h4 = F_1_0*F_2_1
-    h5 = F_1_0*F_2_2
-    h6 = F_1_1*F_2_0
-    h7 = F_0_0*h0 - F_0_0*h1 + F_0_1*h3 - F_0_1*h5 + F_0_2*h4 - F_0_2*h6
-    h8 = (1.0/(h7*h7))
-    h9 = (h2*h2)*h8
-    h10 = numpy.log(h7)
-    h11 = h10*lam
-    h12 = -h3 + h5
-    h13 = -h10*lam + lam + mu
-    h14 = -h13
-    h15 = h2*h8
-    h16 = h14*h15
-    h17 = h4 - h6
-    h18 = h13*h15
-    h19 = F_0_1*F_2_2 - F_0_2*F_2_1
-    h20 = (1.0/(h7))
-    h21 = F_2_2*mu
-    h22 = F_2_2*h11
-    h23 = F_0_0*F_2_2 - F_0_2*F_2_0
-    h24 = h2*h20
-    h25 = h23*h24
-    h26 = F_2_1*mu
-    h27 = F_2_1*h11
-    h28 = F_0_0*F_2_1 - F_0_1*F_2_0
-    h29 = h24*h28
-    h30 = F_0_1*F_1_2 - F_0_2*F_1_1
-    h31 = F_1_2*mu
-    h32 = F_1_2*h11
-    h33 = F_0_0*F_1_2 - F_0_2*F_1_0
-    h34 = h24*h33
-    h35 = F_1_1*mu
-    h36 = F_1_1*h11
-    h37 = F_0_0*F_1_1 - F_0_1*F_1_0
-    h38 = h24*h37
-    h39 = (h12*h12)*h8
-    h40 = h12*h8
-    h41 = h14*h40
-    h42 = h12*h20
-    h43 = h19*h42
-    h44 = F_2_0*mu
-    h45 = F_2_0*h11
-    h46 = h28*h42
-    h47 = h30*h42
-    h48 = F_1_0*mu
-    h49 = F_1_0*h11
-    h50 = h37*h42
-    h51 = (h17*h17)*h8
-    h52 = h17*h20
-    h53 = h19*h52
-    h54 = h23*h52
-    h55 = h17*h8
-    h56 = h14*h28
-    h57 = h30*h52
-    h58 = h33*h52
-    h59 = h13*h37
-    h60 = (h19*h19)*h8
-    h61 = h19*h8
-    h62 = h14*h61
-    h63 = F_0_2*mu
-    h64 = F_0_2*h11
-    h65 = h19*h20
-    h66 = h33*h65
-    h67 = F_0_1*mu
-    h68 = F_0_1*h11
-    h69 = h37*h65
-    h70 = (h23*h23)*h8
-    h71 = h23*h8
-    h72 = h20*h23
-    h73 = h30*h72
-    h74 = h14*h33
-    h75 = F_0_0*mu
-    h76 = F_0_0*h11
-    h77 = h37*h72
-    h78 = (h28*h28)*h8
-    h79 = h20*h28
-    h80 = h30*h79
-    h81 = h33*h79
-    h82 = h37*h8
-    h83 = (h30*h30)*h8
-    h84 = h30*h8
-    h85 = (h33*h33)*h8
-    h86 = (h37*h37)*h8
-    A_0_0 = -h11*h9 + h9*lam + h9*mu + mu
-    A_0_1 = h12*h16
-    A_0_2 = h17*h18
-    A_0_3 = h16*h19
-    A_0_4 = h20*(-h11*h25 - h21 + h22 + h25*lam + h25*mu)
-    A_0_5 = h20*(h10*h2*h20*h28*lam + h26 - h27 - h29*lam - h29*mu)
-    A_0_6 = h18*h30
-    A_0_7 = h20*(h10*h2*h20*h33*lam + h31 - h32 - h34*lam - h34*mu)
-    A_0_8 = h20*(-h11*h38 - h35 + h36 + h38*lam + h38*mu)
-    A_1_1 = -h11*h39 + h39*lam + h39*mu + mu
-    A_1_2 = h17*h41
-    A_1_3 = h20*(-h11*h43 + h21 - h22 + h43*lam + h43*mu)
-    A_1_4 = h23*h41
-    A_1_5 = h20*(-h11*h46 - h44 + h45 + h46*lam + h46*mu)
-    A_1_6 = h20*(h10*h12*h20*h30*lam - h31 + h32 - h47*lam - h47*mu)
-    A_1_7 = h13*h33*h40
-    A_1_8 = h20*(h10*h12*h20*h37*lam + h48 - h49 - h50*lam - h50*mu)
-    A_2_2 = -h11*h51 + h51*lam + h51*mu + mu
-    A_2_3 = h20*(h10*h17*h19*h20*lam - h26 + h27 - h53*lam - h53*mu)
-    A_2_4 = h20*(-h11*h54 + h44 - h45 + h54*lam + h54*mu)
-    A_2_5 = h55*h56
-    A_2_6 = h20*(-h11*h57 + h35 - h36 + h57*lam + h57*mu)
-    A_2_7 = h20*(h10*h17*h20*h33*lam - h48 + h49 - h58*lam - h58*mu)
-    A_2_8 = h55*h59
-    A_3_3 = -h11*h60 + h60*lam + h60*mu + mu
-    A_3_4 = h23*h62
-    A_3_5 = h13*h28*h61
-    A_3_6 = h30*h62
-    A_3_7 = h20*(-h11*h66 - h63 + h64 + h66*lam + h66*mu)
-    A_3_8 = h20*(h10*h19*h20*h37*lam + h67 - h68 - h69*lam - h69*mu)
-    A_4_4 = -h11*h70 + h70*lam + h70*mu + mu
-    A_4_5 = h56*h71
-    A_4_6 = h20*(-h11*h73 + h63 - h64 + h73*lam + h73*mu)
-    A_4_7 = h71*h74
-    A_4_8 = h20*(-h11*h77 - h75 + h76 + h77*lam + h77*mu)
-    A_5_5 = -h11*h78 + h78*lam + h78*mu + mu
-    A_5_6 = h20*(h10*h20*h28*h30*lam - h67 + h68 - h80*lam - h80*mu)
-    A_5_7 = h20*(-h11*h81 + h75 - h76 + h81*lam + h81*mu)
-    A_5_8 = h56*h82
-    A_6_6 = -h11*h83 + h83*lam + h83*mu + mu
-    A_6_7 = h74*h84
-    A_6_8 = h59*h84
-    A_7_7 = -h11*h85 + h85*lam + h85*mu + mu
-    A_7_8 = h74*h82
-    A_8_8 = -h11*h86 + h86*lam + h86*mu + mu
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    h0 = lam*numpy.log(J)
+    h1 = -h0 + lam + mu
+    h2 = h1/(J*J)
+    h3 = dJ_0_0*h2
+    h4 = (1.0/(J))
+    h5 = h0 - mu
+    h6 = F_2_2*h5
+    h7 = h1*h4
+    h8 = dJ_0_0*h7
+    h9 = F_2_1*h5
+    h10 = F_1_2*h5
+    h11 = F_1_1*h5
+    h12 = dJ_0_1*h2
+    h13 = F_2_0*h5
+    h14 = dJ_0_1*h7
+    h15 = F_1_0*h5
+    h16 = dJ_0_2*h7
+    h17 = dJ_0_2*h2
+    h18 = dJ_1_0*h2
+    h19 = F_0_2*h5
+    h20 = F_0_1*h5
+    h21 = dJ_1_1*h2
+    h22 = F_0_0*h5
+    h23 = dJ_2_2*h2
+    A_0_0 = (dJ_0_0*dJ_0_0)*h2 + mu
+    A_0_1 = dJ_0_1*h3
+    A_0_2 = dJ_0_2*h3
+    A_0_3 = dJ_1_0*h3
+    A_0_4 = h4*(dJ_1_1*h8 + h6)
+    A_0_5 = h4*(dJ_0_0*dJ_1_2*h1*h4 - h9)
+    A_0_6 = dJ_2_0*h3
+    A_0_7 = h4*(dJ_0_0*dJ_2_1*h1*h4 - h10)
+    A_0_8 = h4*(dJ_2_2*h8 + h11)
+    A_1_1 = (dJ_0_1*dJ_0_1)*h2 + mu
+    A_1_2 = dJ_0_2*h12
+    A_1_3 = h4*(dJ_0_1*dJ_1_0*h1*h4 - h6)
+    A_1_4 = dJ_1_1*h12
+    A_1_5 = h4*(dJ_1_2*h14 + h13)
+    A_1_6 = h4*(dJ_2_0*h14 + h10)
+    A_1_7 = dJ_2_1*h12
+    A_1_8 = h4*(dJ_0_1*dJ_2_2*h1*h4 - h15)
+    A_2_2 = (dJ_0_2*dJ_0_2)*h2 + mu
+    A_2_3 = h4*(dJ_1_0*h16 + h9)
+    A_2_4 = h4*(dJ_0_2*dJ_1_1*h1*h4 - h13)
+    A_2_5 = dJ_1_2*h17
+    A_2_6 = h4*(dJ_0_2*dJ_2_0*h1*h4 - h11)
+    A_2_7 = h4*(dJ_2_1*h16 + h15)
+    A_2_8 = dJ_2_2*h17
+    A_3_3 = (dJ_1_0*dJ_1_0)*h2 + mu
+    A_3_4 = dJ_1_1*h18
+    A_3_5 = dJ_1_2*h18
+    A_3_6 = dJ_2_0*h18
+    A_3_7 = h4*(dJ_1_0*dJ_2_1*h7 + h19)
+    A_3_8 = h4*(dJ_1_0*dJ_2_2*h1*h4 - h20)
+    A_4_4 = (dJ_1_1*dJ_1_1)*h2 + mu
+    A_4_5 = dJ_1_2*h21
+    A_4_6 = h4*(dJ_1_1*dJ_2_0*h1*h4 - h19)
+    A_4_7 = dJ_2_1*h21
+    A_4_8 = h4*(dJ_1_1*dJ_2_2*h7 + h22)
+    A_5_5 = (dJ_1_2*dJ_1_2)*h2 + mu
+    A_5_6 = h4*(dJ_1_2*dJ_2_0*h7 + h20)
+    A_5_7 = h4*(dJ_1_2*dJ_2_1*h1*h4 - h22)
+    A_5_8 = dJ_1_2*h23
+    A_6_6 = (dJ_2_0*dJ_2_0)*h2 + mu
+    A_6_7 = dJ_2_0*dJ_2_1*h2
+    A_6_8 = dJ_2_0*h23
+    A_7_7 = (dJ_2_1*dJ_2_1)*h2 + mu
+    A_7_8 = dJ_2_1*h23
+    A_8_8 = (dJ_2_2*dJ_2_2)*h2 + mu
     T_0_0 = A_0_0*dphi_0_0 + A_0_1*dphi_0_1 + A_0_2*dphi_0_2
     T_0_1 = A_0_3*dphi_0_0 + A_0_4*dphi_0_1 + A_0_5*dphi_0_2
     T_0_2 = A_0_6*dphi_0_0 + A_0_7*dphi_0_1 + A_0_8*dphi_0_2
@@ -1062,7 +952,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     -------
     hessian : (m, 12, 12) float64
 
-    Operation count per element: 1389.
+    Operation count per element: 1206.
     """
     m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
     mu, lam, = _params(params, ('mu', 'lam'), m)
@@ -1092,7 +982,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     dphi_3_1 = _in_dphi_dX[10]
     dphi_3_2 = _in_dphi_dX[11]
     vol = _in_vol[0]
-    # intermediates (241)
+    # intermediates (188)
     F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
     F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
     F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
@@ -1102,138 +992,85 @@ def hessian_psd(x_e, dphi_dX, vol, params):
     F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
     F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
     F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
-    h0 = F_1_1*F_2_2
-    h1 = F_1_2*F_2_1
-    h2 = h0 - h1
-    h3 = F_1_2*F_2_0
-    h4 = F_1_0*F_2_1
-    h5 = F_1_0*F_2_2
-    h6 = F_1_1*F_2_0
-    h7 = F_0_0*h0 - F_0_0*h1 + F_0_1*h3 - F_0_1*h5 + F_0_2*h4 - F_0_2*h6
-    h8 = (1.0/(h7*h7))
-    h9 = (h2*h2)*h8
-    h10 = numpy.log(h7)
-    h11 = h10*lam
-    h12 = -h3 + h5
-    h13 = -h10*lam + lam + mu
-    h14 = -h13
-    h15 = h2*h8
-    h16 = h14*h15
-    h17 = h4 - h6
-    h18 = h13*h15
-    h19 = F_0_1*F_2_2 - F_0_2*F_2_1
-    h20 = (1.0/(h7))
-    h21 = F_2_2*mu
-    h22 = F_2_2*h11
-    h23 = F_0_0*F_2_2 - F_0_2*F_2_0
-    h24 = h2*h20
-    h25 = h23*h24
-    h26 = F_2_1*mu
-    h27 = F_2_1*h11
-    h28 = F_0_0*F_2_1 - F_0_1*F_2_0
-    h29 = h24*h28
-    h30 = F_0_1*F_1_2 - F_0_2*F_1_1
-    h31 = F_1_2*mu
-    h32 = F_1_2*h11
-    h33 = F_0_0*F_1_2 - F_0_2*F_1_0
-    h34 = h24*h33
-    h35 = F_1_1*mu
-    h36 = F_1_1*h11
-    h37 = F_0_0*F_1_1 - F_0_1*F_1_0
-    h38 = h24*h37
-    h39 = (h12*h12)*h8
-    h40 = h12*h8
-    h41 = h14*h40
-    h42 = h12*h20
-    h43 = h19*h42
-    h44 = F_2_0*mu
-    h45 = F_2_0*h11
-    h46 = h28*h42
-    h47 = h30*h42
-    h48 = F_1_0*mu
-    h49 = F_1_0*h11
-    h50 = h37*h42
-    h51 = (h17*h17)*h8
-    h52 = h17*h20
-    h53 = h19*h52
-    h54 = h23*h52
-    h55 = h17*h8
-    h56 = h14*h28
-    h57 = h30*h52
-    h58 = h33*h52
-    h59 = h13*h37
-    h60 = (h19*h19)*h8
-    h61 = h19*h8
-    h62 = h14*h61
-    h63 = F_0_2*mu
-    h64 = F_0_2*h11
-    h65 = h19*h20
-    h66 = h33*h65
-    h67 = F_0_1*mu
-    h68 = F_0_1*h11
-    h69 = h37*h65
-    h70 = (h23*h23)*h8
-    h71 = h23*h8
-    h72 = h20*h23
-    h73 = h30*h72
-    h74 = h14*h33
-    h75 = F_0_0*mu
-    h76 = F_0_0*h11
-    h77 = h37*h72
-    h78 = (h28*h28)*h8
-    h79 = h20*h28
-    h80 = h30*h79
-    h81 = h33*h79
-    h82 = h37*h8
-    h83 = (h30*h30)*h8
-    h84 = h30*h8
-    h85 = (h33*h33)*h8
-    h86 = (h37*h37)*h8
-    A_0_0 = -h11*h9 + h9*lam + h9*mu + mu
-    A_0_1 = h12*h16
-    A_0_2 = h17*h18
-    A_0_3 = h16*h19
-    A_0_4 = h20*(-h11*h25 - h21 + h22 + h25*lam + h25*mu)
-    A_0_5 = h20*(h10*h2*h20*h28*lam + h26 - h27 - h29*lam - h29*mu)
-    A_0_6 = h18*h30
-    A_0_7 = h20*(h10*h2*h20*h33*lam + h31 - h32 - h34*lam - h34*mu)
-    A_0_8 = h20*(-h11*h38 - h35 + h36 + h38*lam + h38*mu)
-    A_1_1 = -h11*h39 + h39*lam + h39*mu + mu
-    A_1_2 = h17*h41
-    A_1_3 = h20*(-h11*h43 + h21 - h22 + h43*lam + h43*mu)
-    A_1_4 = h23*h41
-    A_1_5 = h20*(-h11*h46 - h44 + h45 + h46*lam + h46*mu)
-    A_1_6 = h20*(h10*h12*h20*h30*lam - h31 + h32 - h47*lam - h47*mu)
-    A_1_7 = h13*h33*h40
-    A_1_8 = h20*(h10*h12*h20*h37*lam + h48 - h49 - h50*lam - h50*mu)
-    A_2_2 = -h11*h51 + h51*lam + h51*mu + mu
-    A_2_3 = h20*(h10*h17*h19*h20*lam - h26 + h27 - h53*lam - h53*mu)
-    A_2_4 = h20*(-h11*h54 + h44 - h45 + h54*lam + h54*mu)
-    A_2_5 = h55*h56
-    A_2_6 = h20*(-h11*h57 + h35 - h36 + h57*lam + h57*mu)
-    A_2_7 = h20*(h10*h17*h20*h33*lam - h48 + h49 - h58*lam - h58*mu)
-    A_2_8 = h55*h59
-    A_3_3 = -h11*h60 + h60*lam + h60*mu + mu
-    A_3_4 = h23*h62
-    A_3_5 = h13*h28*h61
-    A_3_6 = h30*h62
-    A_3_7 = h20*(-h11*h66 - h63 + h64 + h66*lam + h66*mu)
-    A_3_8 = h20*(h10*h19*h20*h37*lam + h67 - h68 - h69*lam - h69*mu)
-    A_4_4 = -h11*h70 + h70*lam + h70*mu + mu
-    A_4_5 = h56*h71
-    A_4_6 = h20*(-h11*h73 + h63 - h64 + h73*lam + h73*mu)
-    A_4_7 = h71*h74
-    A_4_8 = h20*(-h11*h77 - h75 + h76 + h77*lam + h77*mu)
-    A_5_5 = -h11*h78 + h78*lam + h78*mu + mu
-    A_5_6 = h20*(h10*h20*h28*h30*lam - h67 + h68 - h80*lam - h80*mu)
-    A_5_7 = h20*(-h11*h81 + h75 - h76 + h81*lam + h81*mu)
-    A_5_8 = h56*h82
-    A_6_6 = -h11*h83 + h83*lam + h83*mu + mu
-    A_6_7 = h74*h84
-    A_6_8 = h59*h84
-    A_7_7 = -h11*h85 + h85*lam + h85*mu + mu
-    A_7_8 = h74*h82
-    A_8_8 = -h11*h86 + h86*lam + h86*mu + mu
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    h0 = lam*numpy.log(J)
+    h1 = -h0 + lam + mu
+    h2 = h1/(J*J)
+    h3 = dJ_0_0*h2
+    h4 = (1.0/(J))
+    h5 = h0 - mu
+    h6 = F_2_2*h5
+    h7 = h1*h4
+    h8 = dJ_0_0*h7
+    h9 = F_2_1*h5
+    h10 = F_1_2*h5
+    h11 = F_1_1*h5
+    h12 = dJ_0_1*h2
+    h13 = F_2_0*h5
+    h14 = dJ_0_1*h7
+    h15 = F_1_0*h5
+    h16 = dJ_0_2*h7
+    h17 = dJ_0_2*h2
+    h18 = dJ_1_0*h2
+    h19 = F_0_2*h5
+    h20 = F_0_1*h5
+    h21 = dJ_1_1*h2
+    h22 = F_0_0*h5
+    h23 = dJ_2_2*h2
+    A_0_0 = (dJ_0_0*dJ_0_0)*h2 + mu
+    A_0_1 = dJ_0_1*h3
+    A_0_2 = dJ_0_2*h3
+    A_0_3 = dJ_1_0*h3
+    A_0_4 = h4*(dJ_1_1*h8 + h6)
+    A_0_5 = h4*(dJ_0_0*dJ_1_2*h1*h4 - h9)
+    A_0_6 = dJ_2_0*h3
+    A_0_7 = h4*(dJ_0_0*dJ_2_1*h1*h4 - h10)
+    A_0_8 = h4*(dJ_2_2*h8 + h11)
+    A_1_1 = (dJ_0_1*dJ_0_1)*h2 + mu
+    A_1_2 = dJ_0_2*h12
+    A_1_3 = h4*(dJ_0_1*dJ_1_0*h1*h4 - h6)
+    A_1_4 = dJ_1_1*h12
+    A_1_5 = h4*(dJ_1_2*h14 + h13)
+    A_1_6 = h4*(dJ_2_0*h14 + h10)
+    A_1_7 = dJ_2_1*h12
+    A_1_8 = h4*(dJ_0_1*dJ_2_2*h1*h4 - h15)
+    A_2_2 = (dJ_0_2*dJ_0_2)*h2 + mu
+    A_2_3 = h4*(dJ_1_0*h16 + h9)
+    A_2_4 = h4*(dJ_0_2*dJ_1_1*h1*h4 - h13)
+    A_2_5 = dJ_1_2*h17
+    A_2_6 = h4*(dJ_0_2*dJ_2_0*h1*h4 - h11)
+    A_2_7 = h4*(dJ_2_1*h16 + h15)
+    A_2_8 = dJ_2_2*h17
+    A_3_3 = (dJ_1_0*dJ_1_0)*h2 + mu
+    A_3_4 = dJ_1_1*h18
+    A_3_5 = dJ_1_2*h18
+    A_3_6 = dJ_2_0*h18
+    A_3_7 = h4*(dJ_1_0*dJ_2_1*h7 + h19)
+    A_3_8 = h4*(dJ_1_0*dJ_2_2*h1*h4 - h20)
+    A_4_4 = (dJ_1_1*dJ_1_1)*h2 + mu
+    A_4_5 = dJ_1_2*h21
+    A_4_6 = h4*(dJ_1_1*dJ_2_0*h1*h4 - h19)
+    A_4_7 = dJ_2_1*h21
+    A_4_8 = h4*(dJ_1_1*dJ_2_2*h7 + h22)
+    A_5_5 = (dJ_1_2*dJ_1_2)*h2 + mu
+    A_5_6 = h4*(dJ_1_2*dJ_2_0*h7 + h20)
+    A_5_7 = h4*(dJ_1_2*dJ_2_1*h1*h4 - h22)
+    A_5_8 = dJ_1_2*h23
+    A_6_6 = (dJ_2_0*dJ_2_0)*h2 + mu
+    A_6_7 = dJ_2_0*dJ_2_1*h2
+    A_6_8 = dJ_2_0*h23
+    A_7_7 = (dJ_2_1*dJ_2_1)*h2 + mu
+    A_7_8 = dJ_2_1*h23
+    A_8_8 = (dJ_2_2*dJ_2_2)*h2 + mu
     Ap_0_0, Ap_0_1, Ap_0_2, Ap_0_3, Ap_0_4, Ap_0_5, Ap_0_6, Ap_0_7, Ap_0_8, Ap_1_0, Ap_1_1, Ap_1_2, Ap_1_3, Ap_1_4, Ap_1_5, Ap_1_6, Ap_1_7, Ap_1_8, Ap_2_0, Ap_2_1, Ap_2_2, Ap_2_3, Ap_2_4, Ap_2_5, Ap_2_6, Ap_2_7, Ap_2_8, Ap_3_0, Ap_3_1, Ap_3_2, Ap_3_3, Ap_3_4, Ap_3_5, Ap_3_6, Ap_3_7, Ap_3_8, Ap_4_0, Ap_4_1, Ap_4_2, Ap_4_3, Ap_4_4, Ap_4_5, Ap_4_6, Ap_4_7, Ap_4_8, Ap_5_0, Ap_5_1, Ap_5_2, Ap_5_3, Ap_5_4, Ap_5_5, Ap_5_6, Ap_5_7, Ap_5_8, Ap_6_0, Ap_6_1, Ap_6_2, Ap_6_3, Ap_6_4, Ap_6_5, Ap_6_6, Ap_6_7, Ap_6_8, Ap_7_0, Ap_7_1, Ap_7_2, Ap_7_3, Ap_7_4, Ap_7_5, Ap_7_6, Ap_7_7, Ap_7_8, Ap_8_0, Ap_8_1, Ap_8_2, Ap_8_3, Ap_8_4, Ap_8_5, Ap_8_6, Ap_8_7, Ap_8_8, = _project_psd(m, 9, (A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8, ))
     T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2
     T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2
