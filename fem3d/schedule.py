@@ -30,9 +30,11 @@ from fem3d.kernels import c_extension
 
 __all__ = ["PARALLEL_MIN_TETS", "Schedule", "build_schedule", "schedule_for"]
 
-#: Meshes with fewer tets use the serial loop (today's element order, bit for bit). Measured
-#: (bench/assembly_threads.py): below about this size the fork/join and the colour-by-colour
-#: passes cost more than a second thread gains on a shared 2-core machine.
+#: Meshes with fewer tets use the serial loop (today's element order, bit for bit, so the
+#: classic scenes are unchanged). Measured on the shared 2-core machine
+#: (``python -m bench.assembly_threads --below-threshold``): two threads gain 1.8-1.9x from
+#: 4e4 tets, only 1.4x on the gradient at 1e4, and fall to 0.05-0.5x below 1e4 whenever other
+#: processes hold the cores (each barrier then waits for a descheduled thread).
 PARALLEL_MIN_TETS = 32768
 #: Blocks per mesh at most, and elements per block at least (fixed: not the thread count, so
 #: that the summation order does not depend on it).

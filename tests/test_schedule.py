@@ -9,7 +9,7 @@ from fem3d import assembly
 from fem3d.kernels import c_extension
 from fem3d.mesh import box_tet_mesh
 from fem3d.model import build_model
-from fem3d.schedule import PARALLEL_MIN_TETS, build_schedule, schedule_for
+from fem3d.schedule import PARALLEL_MIN_TETS, Schedule, build_schedule, schedule_for
 
 pytestmark = pytest.mark.skipif(c_extension() is None, reason="C extension not built")
 
@@ -96,7 +96,8 @@ def test_schedules_are_race_free_and_cover_every_element(big) -> None:
         assert np.array_equal(np.sort(s.order), np.arange(model.n_tets))
         assert s.n_colours <= 8 and s.n_blocks >= 2 * s.n_colours
         assert _race_free(s, index)
-        # the CSR map's schedule also keeps blocks of one colour vertex-disjoint
+        assert not _race_free(Schedule(s.order, s.blocks, np.array([0, s.n_blocks])), index)
+    # the CSR map's schedule also keeps blocks of one colour vertex-disjoint
     s = build_schedule(model.T, model.scatter, model.nnz)
     colour, block = s.element_colours(), s.element_blocks()
     for c in range(s.n_colours):
