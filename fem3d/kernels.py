@@ -171,7 +171,12 @@ def _numpy_wrapper(function: Callable[..., object], module: str, kernel: str):
 
 def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     """``kernel_assemble(q, T, *inputs, params, index, out)``: adds every element's output into
-    ``out[index[e]]``, gathering ``x_e = q[T[e]]`` itself (one pass, one thread, fixed order).
+    ``out[index[e]]``, gathering ``x_e = q[T[e]]`` itself (one pass, no temporaries).
+
+    Meshes of at least :data:`fem3d.schedule.PARALLEL_MIN_TETS` tets whose ``T`` and
+    ``index`` are read-only (a model's) run on OpenMP's threads along a race-free schedule
+    built on the first call (:func:`fem3d.schedule.schedule_for`): the result does not depend
+    on the thread count. Other calls run serially in element order.
 
     Parameters
     ----------
@@ -187,16 +192,21 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     out : (N,) float64
         Accumulated into (not cleared) and returned.
     """
+    from fem3d.schedule import schedule_for
 
     def call(q, T, *rest):
         *inputs, params, index, out = rest
+        T = np.ascontiguousarray(T, dtype=np.int64)
+        index = _as_index32(index)
+        schedule = schedule_for(T, index, out.size) if isinstance(out, np.ndarray) else None
         fused(
             np.ascontiguousarray(q, dtype=np.float64),
-            np.ascontiguousarray(T, dtype=np.int64),
+            T,
             *(np.ascontiguousarray(a, dtype=np.float64) for a in inputs),
             np.ascontiguousarray(np.atleast_1d(np.asarray(params, dtype=np.float64))),
-            _as_index32(index),
+            index,
             out,
+            *(schedule.arrays() if schedule is not None else ()),
         )
         return out
 

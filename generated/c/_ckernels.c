@@ -23,6 +23,12 @@
 
 #define FEM3D_MAX_ARGS 16
 
+#ifdef _OPENMP
+#define FEM3D_PRAGMA(text) _Pragma(text)
+#else
+#define FEM3D_PRAGMA(text)
+#endif
+
 // Integer power of a compound expression, evaluated once (gcc unrolls it at -O3).
 static inline double fem3d_powi(double x, int n)
 {
@@ -203,28 +209,147 @@ static int is_int32(const Py_buffer *view)
     return strcmp(f, "i") == 0;
 }
 
-// A fused kernel returns 0, or the first bad element e as -(e + 1) for a vertex index outside
-// [0, n) and as e + 1 for a destination outside [0, len(out)). The bounds are checked in the
-// element loop itself: a separate validation pass would read T and index once more per call.
-typedef Py_ssize_t (*assemble_fn)(Py_ssize_t, Py_ssize_t, const double *, const long long *,
-                                  const double *const *, const double *, Py_ssize_t, const int *,
-                                  Py_ssize_t, double *);
+// A fused kernel's element loop, `<kernel>_assemble_range(job, order, begin, end, out)`,
+// returns 0, or the first bad element e as -(e + 1) for a vertex index outside [0, n) and as
+// e + 1 for a destination outside [0, len(out)), or FEM3D_BAD_ORDER for an element number of
+// a schedule outside [0, m). The bounds are checked in the element loop itself: a separate
+// validation pass would read T and index once more per call.
+#define FEM3D_BAD_ORDER PY_SSIZE_T_MIN
 
-// Arguments of every fused element kernel: (q, T, rest inputs..., params, index, out) with
-// q (n*3) float64, T (m*4) int64 in [0, n), each rest input m*size float64, params n_params
-// or m*n_params float64 (shared or per element), index (m*out_size) int32 in [0, len(out)),
-// out float64 (added to, not overwritten).
-static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, int n_rest,
+// Outputs of at most this many entries (the energy's one) are summed per block of a schedule
+// and the block sums added in block order; larger outputs are written colour by colour.
+#define FEM3D_PRIVATE_MAX_OUT 64
+
+typedef struct {
+    Py_ssize_t m, n_vertices, param_stride, n_out;
+    const double *q;
+    const long long *T;
+    const double *const *rest;
+    const double *params;
+    const int *index;
+} fem3d_assembly;
+
+typedef Py_ssize_t (*assemble_range_fn)(const fem3d_assembly *, const long long *, Py_ssize_t,
+                                        Py_ssize_t, double *);
+
+// A race-free schedule (built by fem3d.schedule): block b holds the elements
+// order[blocks[b]:blocks[b + 1]]; colour c the blocks colours[c] ... colours[c + 1] - 1,
+// no two of which write one entry of out. Blocks run in parallel within a colour, colours
+// one after the other, each block's elements in order: every entry of out receives its terms
+// in the same order whatever the number of threads.
+typedef struct {
+    Py_ssize_t n_blocks, n_colours;
+    const long long *order, *blocks, *colours;
+} fem3d_schedule;
+
+// The status of blocks [b0, b1) naming the lowest bad element (0 if none failed).
+static Py_ssize_t fem3d_first_error(const Py_ssize_t *status, Py_ssize_t b0, Py_ssize_t b1)
+{
+    Py_ssize_t best = 0, best_e = PY_SSIZE_T_MAX;
+    for (Py_ssize_t b = b0; b < b1; ++b) {
+        const Py_ssize_t s = status[b];
+        if (s == 0) continue;
+        const Py_ssize_t e = s == FEM3D_BAD_ORDER ? -1 : s < 0 ? -s - 1 : s - 1;
+        if (e < best_e) {
+            best_e = e;
+            best = s;
+        }
+    }
+    return best;
+}
+
+// Run a fused kernel over the mesh: serially in element order (schedule NULL) or over the
+// blocks of a schedule on the OpenMP threads. status (n_blocks) and, for a small out,
+// partial (n_blocks * stride zeros) are the caller's scratch. Returns as the range function.
+static Py_ssize_t fem3d_run_assemble(assemble_range_fn fn, const fem3d_assembly *job,
+                                     const fem3d_schedule *s, Py_ssize_t *status, double *partial,
+                                     Py_ssize_t stride, double *out)
+{
+    if (s == NULL) return fn(job, NULL, 0, job->m, out);
+    const Py_ssize_t n_blocks = s->n_blocks;
+    const int private_out = job->n_out <= FEM3D_PRIVATE_MAX_OUT;
+    FEM3D_PRAGMA("omp parallel if (n_blocks > 1)")
+    {
+        if (private_out) {
+            FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
+            for (Py_ssize_t b = 0; b < n_blocks; ++b)
+                status[b] = fn(job, s->order, s->blocks[b], s->blocks[b + 1], partial + stride * b);
+        } else {
+            for (Py_ssize_t c = 0; c < s->n_colours; ++c) {
+                FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
+                for (Py_ssize_t b = s->colours[c]; b < s->colours[c + 1]; ++b)
+                    status[b] = fn(job, s->order, s->blocks[b], s->blocks[b + 1], out);
+                // after the loop's barrier every thread sees the same statuses
+                if (fem3d_first_error(status, s->colours[c], s->colours[c + 1]) != 0) break;
+            }
+        }
+    }
+    const Py_ssize_t bad = fem3d_first_error(status, 0, n_blocks);
+    if (private_out && bad == 0)
+        for (Py_ssize_t b = 0; b < n_blocks; ++b)
+            for (Py_ssize_t j = 0; j < job->n_out; ++j) out[j] += partial[stride * b + j];
+    return bad;
+}
+
+// The schedule arguments (order, blocks, colours) at args[first:first + 3], checked.
+static int get_schedule(PyObject *args, int first, const char *name, Py_ssize_t m,
+                        Py_buffer *views, int *n_views, fem3d_schedule *s)
+{
+    static const char *names[] = {"order", "blocks", "colours"};
+    for (int i = 0; i < 3; ++i) {
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(args, first + i), &views[i],
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) != 0) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_ValueError, "%s: schedule %s must be a C-contiguous array", name,
+                         names[i]);
+            return -1;
+        }
+        ++*n_views;
+        if (!is_int64(&views[i])) {
+            PyErr_Format(PyExc_ValueError, "%s: schedule %s must have dtype int64", name,
+                         names[i]);
+            return -1;
+        }
+    }
+    s->order = (const long long *)views[0].buf;
+    s->blocks = (const long long *)views[1].buf;
+    s->colours = (const long long *)views[2].buf;
+    s->n_blocks = views[1].len / 8 - 1;
+    s->n_colours = views[2].len / 8 - 1;
+    int ok = views[0].len / 8 == m && s->n_blocks >= 1 && s->n_colours >= 1 &&
+             s->blocks[0] == 0 && s->blocks[s->n_blocks] == m && s->colours[0] == 0 &&
+             s->colours[s->n_colours] == s->n_blocks;
+    for (Py_ssize_t b = 0; ok && b < s->n_blocks; ++b) ok = s->blocks[b] <= s->blocks[b + 1];
+    for (Py_ssize_t c = 0; ok && c < s->n_colours; ++c) ok = s->colours[c] <= s->colours[c + 1];
+    if (!ok) {
+        PyErr_Format(PyExc_ValueError, "%s: the schedule does not fit %zd elements (order: m "
+                     "entries; blocks, colours: rising offsets from 0 to m, to len(blocks) - 1)",
+                     name, m);
+        return -1;
+    }
+    return 0;
+}
+
+// Arguments of every fused element kernel: (q, T, rest inputs..., params, index, out
+// [, order, blocks, colours]) with q (n*3) float64, T (m*4) int64 in [0, n), each rest input
+// m*size float64, params n_params or m*n_params float64 (shared or per element), index
+// (m*out_size) int32 in [0, len(out)), out float64 (added to, not overwritten); the optional
+// int64 schedule (see fem3d_schedule; fem3d.schedule builds it) runs the elements on threads.
+static PyObject *run_assemble(PyObject *args, const char *name, assemble_range_fn fn, int n_rest,
                               const Py_ssize_t *rest_sizes, int n_params, Py_ssize_t out_size)
 {
-    Py_buffer views[FEM3D_MAX_ARGS];
+    Py_buffer views[FEM3D_MAX_ARGS + 3];
     const double *rest[FEM3D_MAX_ARGS];
     const int n_args = n_rest + 5;
     int n_views = 0;
     PyObject *result = NULL;
-    if (PyTuple_GET_SIZE(args) != n_args) {
+    Py_ssize_t *status = NULL;
+    double *partial = NULL;
+    const Py_ssize_t given = PyTuple_GET_SIZE(args);
+    if (given != n_args && given != n_args + 3) {
         PyErr_Format(PyExc_TypeError, "%s takes %d arguments (q, T, %d inputs, params, index, out)"
-                     ", got %zd", name, n_args, n_rest, PyTuple_GET_SIZE(args));
+                     " or %d (and order, blocks, colours), got %zd", name, n_args, n_rest,
+                     n_args + 3, given);
         return NULL;
     }
     for (int i = 0; i < n_args; ++i) {
@@ -267,20 +392,45 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
                          name, n_params, n_params);
             goto done;
         }
-        const Py_ssize_t param_stride = n_given == n_params ? 0 : n_params;
         if (views[n_args - 2].len / 4 != m * out_size) {
             PyErr_Format(PyExc_ValueError, "%s: index must have m * %zd entries", name, out_size);
             goto done;
         }
-        const double *q = (const double *)views[0].buf;
-        const long long *T = (const long long *)views[1].buf;
-        const double *params = (const double *)views[2 + n_rest].buf;
-        const int *index = (const int *)views[n_args - 2].buf;
+        fem3d_schedule schedule;
+        const fem3d_schedule *s = NULL;
+        Py_ssize_t stride = 0;
+        if (given > n_args) {
+            if (get_schedule(args, n_args, name, m, views + n_args, &n_views, &schedule) != 0)
+                goto done;
+            s = &schedule;
+            status = PyMem_Calloc((size_t)schedule.n_blocks, sizeof(Py_ssize_t));
+            if (n_out <= FEM3D_PRIVATE_MAX_OUT) {  // one cache line per block: no false sharing
+                stride = (n_out + 7) / 8 * 8;
+                partial = PyMem_Calloc((size_t)(schedule.n_blocks * (stride > 0 ? stride : 1)),
+                                       sizeof(double));
+            }
+            if (status == NULL || (n_out <= FEM3D_PRIVATE_MAX_OUT && partial == NULL)) {
+                PyErr_NoMemory();
+                goto done;
+            }
+        }
+        const fem3d_assembly job = {
+            .m = m, .n_vertices = n / 3, .param_stride = n_given == n_params ? 0 : n_params,
+            .n_out = n_out, .q = (const double *)views[0].buf,
+            .T = (const long long *)views[1].buf, .rest = rest,
+            .params = (const double *)views[2 + n_rest].buf,
+            .index = (const int *)views[n_args - 2].buf,
+        };
         double *out = (double *)views[n_args - 1].buf;
         Py_ssize_t bad;
         Py_BEGIN_ALLOW_THREADS
-        bad = fn(m, n / 3, q, T, rest, params, param_stride, index, n_out, out);
+        bad = fem3d_run_assemble(fn, &job, s, status, partial, stride, out);
         Py_END_ALLOW_THREADS
+        if (bad == FEM3D_BAD_ORDER) {
+            PyErr_Format(PyExc_ValueError, "%s: the schedule's order has an element outside "
+                         "[0, %zd) (out is partly updated)", name, m);
+            goto done;
+        }
         if (bad < 0) {
             PyErr_Format(PyExc_ValueError, "%s: T has a vertex index outside [0, %zd) in element "
                          "%zd (out is partly updated)", name, n / 3, -bad - 1);
@@ -294,6 +444,101 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_fn fn, 
     }
     result = Py_NewRef(Py_None);
 done:
+    PyMem_Free(status);
+    PyMem_Free(partial);
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// colour_blocks(index, order, blocks, n_out, colour) -> number of colours, or -1 when more
+// than 32 are needed: greedy colouring of the blocks order[blocks[b]:blocks[b + 1]] so that
+// no two blocks of one colour share an entry of index (int32 (m*k) in [0, n_out)); writes
+// colour (int32, n_blocks). Runtime support of fem3d.schedule, one pass over index.
+static PyObject *py_colour_blocks(PyObject *self, PyObject *args)
+{
+    PyObject *objects[4];
+    Py_ssize_t n_out;
+    Py_buffer views[4];
+    int n_views = 0;
+    PyObject *result = NULL;
+    unsigned int *used = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOnO:colour_blocks", &objects[0], &objects[1], &objects[2],
+                          &n_out, &objects[3]))
+        return NULL;
+    static const char *names[] = {"index", "order", "blocks", "colour"};
+    for (int i = 0; i < 4; ++i) {
+        const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i == 3 ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(objects[i], &views[i], flags) != 0) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_ValueError, "colour_blocks: %s must be a C-contiguous%s array",
+                         names[i], i == 3 ? " writable" : "");
+            goto done;
+        }
+        ++n_views;
+        if (!(i == 0 || i == 3 ? is_int32(&views[i]) : is_int64(&views[i]))) {
+            PyErr_Format(PyExc_ValueError, "colour_blocks: %s must have dtype %s", names[i],
+                         i == 0 || i == 3 ? "int32" : "int64");
+            goto done;
+        }
+    }
+    {
+        const int *index = (const int *)views[0].buf;
+        const long long *order = (const long long *)views[1].buf;
+        const long long *blocks = (const long long *)views[2].buf;
+        int *colour = (int *)views[3].buf;
+        const Py_ssize_t m = views[1].len / 8, n_blocks = views[2].len / 8 - 1;
+        if (m == 0 || views[0].len / 4 % m != 0 || n_blocks < 1 || views[3].len / 4 != n_blocks
+            || blocks[0] != 0 || blocks[n_blocks] != m || n_out < 1) {
+            PyErr_SetString(PyExc_ValueError, "colour_blocks: index must hold m * k entries, "
+                            "blocks n_blocks + 1 offsets from 0 to m, colour n_blocks");
+            goto done;
+        }
+        for (Py_ssize_t b = 0; b < n_blocks; ++b) {
+            if (blocks[b] > blocks[b + 1]) {
+                PyErr_SetString(PyExc_ValueError, "colour_blocks: blocks must not decrease");
+                goto done;
+            }
+        }
+        const Py_ssize_t k = views[0].len / 4 / m;
+        used = PyMem_Calloc((size_t)n_out, sizeof(unsigned int));
+        if (used == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        int n_colours = 0, bad = 0;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t b = 0; b < n_blocks && !bad && n_colours >= 0; ++b) {
+            unsigned int taken = 0;
+            for (Py_ssize_t i = blocks[b]; i < blocks[b + 1] && !bad; ++i) {
+                const long long e = order[i];
+                if ((unsigned long long)e >= (unsigned long long)m) { bad = 1; break; }
+                for (Py_ssize_t j = 0; j < k; ++j) {
+                    const int slot = index[k * e + j];
+                    if ((unsigned int)slot >= (size_t)n_out) { bad = 2; break; }
+                    taken |= used[slot];
+                }
+            }
+            if (bad) break;
+            if (taken == 0xffffffffu) { n_colours = -1; break; }
+            int c = 0;
+            while (taken & (1u << c)) ++c;
+            colour[b] = c;
+            if (c + 1 > n_colours) n_colours = c + 1;
+            for (Py_ssize_t i = blocks[b]; i < blocks[b + 1]; ++i)
+                for (Py_ssize_t j = 0; j < k; ++j) used[index[k * order[i] + j]] |= 1u << c;
+        }
+        Py_END_ALLOW_THREADS
+        if (bad) {
+            PyErr_Format(PyExc_ValueError, "colour_blocks: %s", bad == 1
+                         ? "order has an element outside [0, m)"
+                         : "index has an entry outside [0, n_out)");
+            goto done;
+        }
+        result = PyLong_FromLong(n_colours);
+    }
+done:
+    PyMem_Free(used);
     for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
     return result;
 }
@@ -318,6 +563,21 @@ static PyObject *py_max_threads(PyObject *self, PyObject *unused)
 #else
     return PyLong_FromLong(1);
 #endif
+}
+
+static PyObject *py_set_max_threads(PyObject *self, PyObject *arg)
+{
+    (void)self;
+    const long n = PyLong_AsLong(arg);
+    if (n == -1 && PyErr_Occurred()) return NULL;
+    if (n < 1) {
+        PyErr_SetString(PyExc_ValueError, "set_max_threads: need at least one thread");
+        return NULL;
+    }
+#ifdef _OPENMP
+    omp_set_num_threads((int)n);
+#endif
+    return Py_NewRef(Py_None);
 }
 
 static PyMethodDef methods[] = {
@@ -453,7 +713,11 @@ static PyMethodDef methods[] = {
     {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stvk_hessian_psd_assemble", py_stvk_hessian_psd_assemble, METH_VARARGS,
      "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+    {"colour_blocks", py_colour_blocks, METH_VARARGS,
+     "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
     {"max_threads", py_max_threads, METH_NOARGS, "OpenMP threads the kernels use (1 without OpenMP)."},
+    {"set_max_threads", py_set_max_threads, METH_O,
+     "set_max_threads(n): OpenMP threads of later kernel calls from this thread (no-op without OpenMP)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -464,7 +728,9 @@ static struct PyModuleDef module_def = {
 PyMODINIT_FUNC PyInit__ckernels(void)
 {
     PyObject *module = PyModule_Create(&module_def);
-    if (module != NULL && PyModule_AddIntConstant(module, "OPENMP", FEM3D_OPENMP) != 0) {
+    if (module != NULL && (PyModule_AddIntConstant(module, "OPENMP", FEM3D_OPENMP) != 0 ||
+                           PyModule_AddIntConstant(module, "PRIVATE_MAX_OUT",
+                                                   FEM3D_PRIVATE_MAX_OUT) != 0)) {
         Py_DECREF(module);
         return NULL;
     }

@@ -425,29 +425,34 @@ static PyObject *py_stable_neo_hookean_energy(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Parameters
-// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
-// vertex (-(e + 1)) or destination (e + 1).
-static Py_ssize_t stable_neo_hookean_energy_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
-    const double *q, const long long *T, const double *const *rest, const double *params,
-    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t stable_neo_hookean_energy_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
-    for (Py_ssize_t e = 0; e < m; ++e) {
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
         for (int v = 0; v < 4; ++v) {
             const long long t = T[4 * e + v];
-            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
-        in[1] = rest[0] + 12 * e;
-        in[2] = rest[1] + 1 * e;
-        stable_neo_hookean_energy_element(in, params + param_stride * e, result);
-        const int *slot = index + 1 * e;
-        for (int i = 0; i < 1; ++i) {
-            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
-            out[slot[i]] += local[i];
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        stable_neo_hookean_energy_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 1 * e;
+        for (int j = 0; j < 1; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
         }
     }
     return 0;
@@ -457,7 +462,7 @@ static PyObject *py_stable_neo_hookean_energy_assemble(PyObject *self, PyObject 
 {
     static const Py_ssize_t rest_sizes[] = { 12, 1, };
     (void)self;
-    return run_assemble(args, "stable_neo_hookean_energy_assemble", stable_neo_hookean_energy_assemble,
+    return run_assemble(args, "stable_neo_hookean_energy_assemble", stable_neo_hookean_energy_assemble_range,
                         2, rest_sizes, 2,
                         1);
 }
@@ -570,29 +575,34 @@ static PyObject *py_stable_neo_hookean_gradient(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Parameters
-// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
-// vertex (-(e + 1)) or destination (e + 1).
-static Py_ssize_t stable_neo_hookean_gradient_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
-    const double *q, const long long *T, const double *const *rest, const double *params,
-    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t stable_neo_hookean_gradient_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
-    for (Py_ssize_t e = 0; e < m; ++e) {
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
         for (int v = 0; v < 4; ++v) {
             const long long t = T[4 * e + v];
-            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
-        in[1] = rest[0] + 12 * e;
-        in[2] = rest[1] + 1 * e;
-        stable_neo_hookean_gradient_element(in, params + param_stride * e, result);
-        const int *slot = index + 12 * e;
-        for (int i = 0; i < 12; ++i) {
-            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
-            out[slot[i]] += local[i];
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        stable_neo_hookean_gradient_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 12 * e;
+        for (int j = 0; j < 12; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
         }
     }
     return 0;
@@ -602,7 +612,7 @@ static PyObject *py_stable_neo_hookean_gradient_assemble(PyObject *self, PyObjec
 {
     static const Py_ssize_t rest_sizes[] = { 12, 1, };
     (void)self;
-    return run_assemble(args, "stable_neo_hookean_gradient_assemble", stable_neo_hookean_gradient_assemble,
+    return run_assemble(args, "stable_neo_hookean_gradient_assemble", stable_neo_hookean_gradient_assemble_range,
                         2, rest_sizes, 2,
                         12);
 }
@@ -941,29 +951,34 @@ static PyObject *py_stable_neo_hookean_hessian(PyObject *self, PyObject *args)
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Parameters
-// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
-// vertex (-(e + 1)) or destination (e + 1).
-static Py_ssize_t stable_neo_hookean_hessian_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
-    const double *q, const long long *T, const double *const *rest, const double *params,
-    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t stable_neo_hookean_hessian_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
-    for (Py_ssize_t e = 0; e < m; ++e) {
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
         for (int v = 0; v < 4; ++v) {
             const long long t = T[4 * e + v];
-            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
-        in[1] = rest[0] + 12 * e;
-        in[2] = rest[1] + 1 * e;
-        stable_neo_hookean_hessian_element(in, params + param_stride * e, result);
-        const int *slot = index + 144 * e;
-        for (int i = 0; i < 144; ++i) {
-            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
-            out[slot[i]] += local[i];
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        stable_neo_hookean_hessian_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 144 * e;
+        for (int j = 0; j < 144; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
         }
     }
     return 0;
@@ -973,7 +988,7 @@ static PyObject *py_stable_neo_hookean_hessian_assemble(PyObject *self, PyObject
 {
     static const Py_ssize_t rest_sizes[] = { 12, 1, };
     (void)self;
-    return run_assemble(args, "stable_neo_hookean_hessian_assemble", stable_neo_hookean_hessian_assemble,
+    return run_assemble(args, "stable_neo_hookean_hessian_assemble", stable_neo_hookean_hessian_assemble_range,
                         2, rest_sizes, 2,
                         144);
 }
@@ -1395,29 +1410,34 @@ static PyObject *py_stable_neo_hookean_hessian_psd(PyObject *self, PyObject *arg
 }
 
 // Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
-// element after element (one thread: no write conflicts, fixed summation order). Parameters
-// are shared (param_stride 0) or per element. Returns 0, or the first element with a bad
-// vertex (-(e + 1)) or destination (e + 1).
-static Py_ssize_t stable_neo_hookean_hessian_psd_assemble(Py_ssize_t m, Py_ssize_t n_vertices,
-    const double *q, const long long *T, const double *const *rest, const double *params,
-    Py_ssize_t param_stride, const int *index, Py_ssize_t n_out, double *out)
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t stable_neo_hookean_hessian_psd_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
     const double *in[] = { x, NULL, NULL, };
     double *result[] = { local };
-    for (Py_ssize_t e = 0; e < m; ++e) {
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
         for (int v = 0; v < 4; ++v) {
             const long long t = T[4 * e + v];
-            if ((unsigned long long)t >= (unsigned long long)n_vertices) return -(e + 1);
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
             for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
         }
-        in[1] = rest[0] + 12 * e;
-        in[2] = rest[1] + 1 * e;
-        stable_neo_hookean_hessian_psd_element(in, params + param_stride * e, result);
-        const int *slot = index + 144 * e;
-        for (int i = 0; i < 144; ++i) {
-            if ((unsigned int)slot[i] >= (size_t)n_out) return e + 1;
-            out[slot[i]] += local[i];
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        stable_neo_hookean_hessian_psd_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 144 * e;
+        for (int j = 0; j < 144; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
         }
     }
     return 0;
@@ -1427,7 +1447,7 @@ static PyObject *py_stable_neo_hookean_hessian_psd_assemble(PyObject *self, PyOb
 {
     static const Py_ssize_t rest_sizes[] = { 12, 1, };
     (void)self;
-    return run_assemble(args, "stable_neo_hookean_hessian_psd_assemble", stable_neo_hookean_hessian_psd_assemble,
+    return run_assemble(args, "stable_neo_hookean_hessian_psd_assemble", stable_neo_hookean_hessian_psd_assemble_range,
                         2, rest_sizes, 2,
                         144);
 }
