@@ -3,10 +3,12 @@
 ``tests/data/classic_reference.npz`` holds ``q`` every 10th step of 100 steps of the bunny
 (linearly-implicit Euler, its scripted pull) and the armadillo (backward Euler, its scripted
 pull), recorded from the hard-coded scenes at commit 1b46a81. The kernels may change under
-other work, so the check is a tolerance, not bit for bit: 1e-9 of the mesh size. Newton stops
-each backward-Euler step at a gradient 1e-10 relative, so a kernel that changes P by round-off
-moves the armadillo by that much per step (1.4e-10 of its size after 100 steps when P went
-through the invariants J, I1; the bunny's linearly-implicit steps move by 5e-16).
+other work, so the check is a tolerance, not bit for bit: 1e-8 of the mesh size. Newton stops
+each backward-Euler step at a gradient 1e-10 relative, so a kernel or line search that changes
+round-off moves the armadillo by up to that much per step: 1.4e-10 of its size after 100 steps
+when P went through the invariants J, I1; 6.4e-9 at step 70 (1.5e-10 at step 90) when the line
+search judged round-off by the strain energy's scale E vol, which took one Newton iteration
+fewer after the release. The bunny's linearly-implicit steps move by 5e-16.
 """
 
 from __future__ import annotations
@@ -41,4 +43,4 @@ def test_classic_scene_files_reproduce_the_recorded_trajectory(name, integrator)
     moved = np.abs(ref[f"{name}_q"] - X).max()
     assert moved > 0.1 * (X[:, 1].max() - X[:, 1].min())  # the reference does move
     err = np.abs(got - ref[f"{name}_q"]).max()
-    assert err <= 1e-9 * size, (err, size)
+    assert err <= 1e-8 * size, (err, size)
