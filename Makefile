@@ -35,13 +35,8 @@ run: install  ## the main job on the built-in bunny scene
 view: install  ## the interactive viewer on the bunny: open http://127.0.0.1:8080
 	$(PYTHON) -m fem3d view bunny
 
-bench: install  ## benchmarks vs peers -> docs/benchmarks.md (pip install -e .[bench] for the peers)
-	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --threads 1 --groups energy,gradient,hessian_elements,hessian_csr,step
-	$(PYTHON) -m bench --sizes 1e3,1e4,1e5 --groups analyze,factor,solve
-	$(PYTHON) -m bench.kernel_throughput
-	$(PYTHON) -m bench.scenes
-	$(PYTHON) -m bench.newton_step --mesh arma --refine 0,1 --modes direct,reuse
-	$(PYTHON) -m bench.newton_step --mesh box --tets 1e5 --steps 1 --swing 4 --repeats 1
+bench: install  ## every figure of docs/benchmarks.md in one run (~35 min; pip install -e .[bench] for the peers)
+	bash bench/all.sh PYTHON=$(PYTHON)
 
 clean:
 	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache

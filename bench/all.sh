@@ -5,7 +5,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${PYTHON:-python3}"
+for arg in "$@"; do case "$arg" in PYTHON=*) PYTHON="${arg#PYTHON=}";; esac; done
 R=bench/results
+TIMED=()  # the 1e6 step's peak RSS and wall time as the OS sees them, where GNU time exists
+[ -x /usr/bin/time ] && TIMED=(/usr/bin/time -v)
 : > "$R/newton_step.jsonl"
 "$PYTHON" -m bench --fresh --sizes 1e3,1e4,1e5 --repeats 5 --threads 1 --stat min \
     --groups energy,gradient,hessian_elements,hessian_csr,step
@@ -23,7 +26,7 @@ R=bench/results
       --repeats 1 --jsonl "$R/newton_step.jsonl"
   "$PYTHON" -m bench.newton_step --mesh box --tets 1e5 --steps 1 --swing 4 \
       --modes direct,reuse,amg --repeats 2 --jsonl "$R/newton_step.jsonl"
-  /usr/bin/time -v "$PYTHON" -m bench.newton_step --mesh box --tets 1e6 --steps 1 --swing 4 \
+  "${TIMED[@]}" "$PYTHON" -m bench.newton_step --mesh box --tets 1e6 --steps 1 --swing 4 \
       --modes amg --repeats 1 --jsonl "$R/newton_step.jsonl"
 } 2>&1 | tee "$R/newton_step.txt"
 "$PYTHON" -m bench --report-only --stat min

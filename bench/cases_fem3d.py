@@ -127,22 +127,29 @@ def _register_solver_rows(backend: str) -> None:
 
 
 def _register_amg_rows() -> None:
-    """fem3d.linsolve.AMGPreconditioner: hierarchy setup ("factor") and preconditioned CG to
-    a relative residual of 1e-8 from x = 0 ("solve"), on the same SPD system."""
+    """fem3d.linsolve.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
+    hierarchy setup ("factor") and preconditioned CG to a relative residual of 1e-8 from
+    x = 0 ("solve"), on the same SPD system."""
     lib = "fem3d-amg"
     kw = dict(library=lib, requires=("pyamg",))
     note = ("fem3d-amg: pyamg smoothed aggregation (rigid-body modes as B, 3x3 BSR, "
-            "fem3d.linsolve.AMG_OPTIONS); factor = hierarchy setup, solve = V-cycle "
-            "preconditioned CG to |r| <= 1e-8 |b|. No analysis phase.")
+            "fem3d.linsolve); analyze = aggregation (structure only), factor = numeric "
+            "hierarchy setup, solve = V-cycle preconditioned CG to |r| <= 1e-8 |b|.")
 
     def amg(mesh: BenchMesh):
         ls = _import_fem3d("linsolve")
         free_vertices = mesh.system.free[::3] // 3
         return ls.AMGPreconditioner(ls.rigid_body_modes(mesh.X[free_vertices])), mesh.system.A
 
-    @register(f"factor/{lib}", group="factor", note=note, **kw)
+    @register(f"analyze/{lib}", group="analyze", note=note, **kw)
+    def _analyze(mesh: BenchMesh):
+        pre, A = amg(mesh)
+        return lambda: pre.analyze(A)
+
+    @register(f"factor/{lib}", group="factor", **kw)
     def _factor(mesh: BenchMesh):
         pre, A = amg(mesh)
+        pre.analyze(A)
         return lambda: pre.setup(A)
 
     @register(f"solve/{lib}", group="solve", **kw)
