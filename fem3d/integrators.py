@@ -925,6 +925,31 @@ def _hessian_into(model: Model, kernel: str, q: np.ndarray, vol: np.ndarray,
         out += np.bincount(scatter, weights=H.reshape(-1), minlength=out.size)
 
 
+@dataclass
+class _NewtonProgress:
+    """The gradient norms one backward-Euler step's Newton directions see: the first sets the
+    tolerance ``newtons_method`` aims for (``max(atol, rtol |g_0|)``), the last one the
+    Eisenstat-Walker ratio of the next iteration."""
+
+    atol: float
+    rtol: float
+    tol: float = 0.0
+    previous: float = 0.0
+
+    def observe(self, gn: float) -> float:
+        """Record ``|g_k|``; returns ``|g_k-1|`` (0 at the first iteration)."""
+        if not self.tol:
+            self.tol = max(self.atol, self.rtol * gn)
+        previous, self.previous = self.previous, gn
+        return previous
+
+
+def _eisenstat_walker(gn: float, gn_prev: float) -> float:
+    """Eisenstat and Walker's choice 2 (``gamma = 0.9``, ``alpha = 2``): ``0.9 (|g_k| /
+    |g_k-1|)^2``; 0 without a previous iteration."""
+    return 0.9 * (gn / gn_prev) ** 2 if gn_prev > 0.0 else 0.0
+
+
 def _forcing_term(gn: float, gn_prev: float, eta_prev: float, tol: float,
                   forcing_max: float) -> float:
     """The relative CG residual of an inexact Newton iteration (Eisenstat and Walker's choice
@@ -942,7 +967,7 @@ def _forcing_term(gn: float, gn_prev: float, eta_prev: float, tol: float,
     if gn <= 0.0:
         return forcing_max
     if gn_prev > 0.0:
-        eta = 0.9 * (gn / gn_prev) ** 2
+        eta = _eisenstat_walker(gn, gn_prev)
         floor = 0.9 * eta_prev * eta_prev
         if floor > 0.1:
             eta = max(eta, floor)
@@ -1546,9 +1571,7 @@ def implicit_euler(
         pcg = PreconditionedCG(system.solver, rtol=cg_rtol, maxiter=cg_maxiter,
                                refactorize_on_stall=False)
     last_cg = [0]  # CG iterations of this step's last solve (0 after a factorization)
-    # reuse: the tolerance newtons_method aims for (set at the first direction), the last
-    # iterate's ||g||, and the last Newton matrix (lagging, see direction)
-    reuse_tol = [0.0, 0.0]
+    # reuse: the last Newton matrix (lagging, see reuse_direction)
     last_newton: list = [None]
     # reuse: [the PSD-projected Hessian for the rest of the step, consecutive iterations
     # whose exact Hessian was indefinite]
@@ -1564,6 +1587,7 @@ def implicit_euler(
     stats = StepStats()
     L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
     atol = atol_factor * dt * model.E * L * L
+    progress = _NewtonProgress(atol, rtol)  # the gradient norms the directions see
     # The direct and "reuse" line searches judge round-off by the strain energy's scale: its
     # element terms cancel near rest to much less than their own size, about E vol each (by
     # |E| alone, the direct Newton on the dragged armadillo x8 stalled at 5x the tolerance
@@ -1658,20 +1682,18 @@ def implicit_euler(
         return call
 
     psd_now = [psd]  # AMG: switched to the PSD-projected Hessian for the rest of the step
-    g_first = [0.0]
-    g_prev, eta_prev = [0.0], [forcing_max]  # the forcing term's memory
+    eta_prev = [forcing_max]  # the forcing term's memory
     last_per_decade = [0.0]
     kept: list = [None, False]  # the last Newton matrix solved with, and whether it is PSD
 
     def amg_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
         q = positions(v_free)
         gn = float(np.linalg.norm(g))
-        if not g_first[0]:
-            g_first[0] = gn
-        tol = max(atol, rtol * g_first[0])
-        ratio = gn / g_prev[0] if g_prev[0] else math.inf
-        eta = _forcing_term(gn, g_prev[0], eta_prev[0], tol, forcing_max)
-        g_prev[0], eta_prev[0] = gn, eta
+        gn_prev = progress.observe(gn)
+        tol = progress.tol
+        ratio = gn / gn_prev if gn_prev else math.inf
+        eta = _forcing_term(gn, gn_prev, eta_prev[0], tol, forcing_max)
+        eta_prev[0] = eta
         # A chord step: when the last iteration cut |g| by `ratio`, the Hessian moved by about
         # that fraction along it, so the last matrix still solves to well within eta (the
         # final iteration of a converging step: one assembly saved)
@@ -1779,22 +1801,20 @@ def implicit_euler(
     def reuse_direction(v_free: np.ndarray, g: np.ndarray) -> np.ndarray:
         q = positions(v_free)
         gn = float(np.linalg.norm(g))
-        if not reuse_tol[0]:
-            reuse_tol[0] = max(atol, rtol * gn)
+        gn_prev = progress.observe(gn)
         # forcing term: never tighter than reaching the tolerance in this iteration needs, and
         # loose while Newton converges slowly (Eisenstat-Walker: the last iteration's gradient
         # ratio squared), where a tight solve buys nothing
         eta = cg_rtol
         if gn > 0.0:
-            ew = 0.9 * (gn / reuse_tol[1]) ** 2 if reuse_tol[1] else 0.0
-            eta = max(cg_rtol, min(REUSE_FORCING_MAX, max(ew, 0.5 * reuse_tol[0] / gn)))
-        reuse_tol[1] = gn
+            ew = _eisenstat_walker(gn, gn_prev)
+            eta = max(cg_rtol, min(REUSE_FORCING_MAX, max(ew, 0.5 * progress.tol / gn)))
         # an aged preconditioner (the last solve needed over half the budget) is replaced now
         # rather than after another long CG run
         use_cg = system.factorized_data is not None and last_cg[0] <= cg_maxiter // 2
         lagged, last_newton[0] = last_newton[0], None
         if use_cg and lagged is not None and \
-                lagged.lag(v_free, gn, REUSE_LAG_FRACTION * reuse_tol[0]):
+                lagged.lag(v_free, gn, REUSE_LAG_FRACTION * progress.tol):
             d, _ = reuse_cg(lagged.A, g, eta)
             if d is not None:
                 stats.lagged_matrices += 1
