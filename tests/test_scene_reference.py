@@ -3,8 +3,8 @@
 ``tests/data/classic_reference.npz`` holds ``q`` every 10th step of 100 steps of the bunny
 (linearly-implicit Euler, its scripted pull) and the armadillo (backward Euler, its scripted
 pull), recorded from the hard-coded scenes at commit 1b46a81. The kernels may change under
-other work, so the check is a tolerance, not bit for bit: 1e-8 of the mesh size. Newton stops
-each backward-Euler step at a gradient 1e-10 relative, so a kernel or line search that changes
+other work, so the check is a tolerance, not bit for bit: 1e-13 of the mesh size for the bunny,
+1e-8 for the armadillo. Newton stops each backward-Euler step at a gradient 1e-10 relative, so a kernel or line search that changes
 round-off moves the armadillo by up to that much per step: 1.4e-10 of its size after 100 steps
 when P went through the invariants J, I1; 6.4e-9 at step 70 (1.5e-10 at step 90) when the line
 search judged round-off by the strain energy's scale E vol, which took one Newton iteration
@@ -24,8 +24,12 @@ from fem3d.simulation import Simulation
 REF = Path(__file__).resolve().parent / "data" / "classic_reference.npz"
 
 
-@pytest.mark.parametrize("name, integrator", [("bunny", "linear"), ("arma", "implicit")])
-def test_classic_scene_files_reproduce_the_recorded_trajectory(name, integrator):
+# The bunny's linearly-implicit steps solve one linear system each: nothing but round-off
+# separates it from the recording. The armadillo's backward-Euler steps end wherever Newton's
+# stopping rule lets them (see the module docstring).
+@pytest.mark.parametrize("name, integrator, rel_tol", [("bunny", "linear", 1e-13),
+                                                       ("arma", "implicit", 1e-8)])
+def test_classic_scene_files_reproduce_the_recorded_trajectory(name, integrator, rel_tol):
     ref = np.load(REF)
     scene = load_scene(name)
     assert scene.simulation.integrator == integrator
@@ -43,4 +47,4 @@ def test_classic_scene_files_reproduce_the_recorded_trajectory(name, integrator)
     moved = np.abs(ref[f"{name}_q"] - X).max()
     assert moved > 0.1 * (X[:, 1].max() - X[:, 1].min())  # the reference does move
     err = np.abs(got - ref[f"{name}_q"]).max()
-    assert err <= 1e-8 * size, (err, size)
+    assert err <= rel_tol * size, (err, size)
