@@ -4,11 +4,12 @@
 (linearly-implicit Euler, its scripted pull) and the armadillo (backward Euler, its scripted
 pull), recorded from the hard-coded scenes at commit 1b46a81. The kernels may change under
 other work, so the check is a tolerance, not bit for bit: 1e-13 of the mesh size for the bunny,
-1e-8 for the armadillo. Newton stops each backward-Euler step at a gradient 1e-10 relative, so a kernel or line search that changes
-round-off moves the armadillo by up to that much per step: 1.4e-10 of its size after 100 steps
-when P went through the invariants J, I1; 6.4e-9 at step 70 (1.5e-10 at step 90) when the line
-search judged round-off by the strain energy's scale E vol, which took one Newton iteration
-fewer after the release. The bunny's linearly-implicit steps move by 5e-16.
+1e-8 for the armadillo. Newton stops each backward-Euler step at a gradient 1e-10 relative,
+so a kernel or line search that changes round-off moves the armadillo by up to that much per
+step: 1.4e-10 of its size after 100 steps when P went through the invariants J, I1; 6.4e-9 at
+step 70 (1.5e-10 at step 90) when the line search judged round-off by the strain energy's
+scale E vol, which took one Newton iteration fewer after the release. The bunny's
+linearly-implicit steps move by 5e-16.
 """
 
 from __future__ import annotations
