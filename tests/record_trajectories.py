@@ -1,0 +1,75 @@
+"""Record the trajectories of the gallery scenes and the Newton/linear-solver variants.
+
+Written once before the restructuring of issue 19 (subpackages, objective terms, a small
+integrator) so a test can prove the new code takes bit for bit the same steps:
+``tests/data/trajectories_before_restructure.npz`` holds, per case, the SHA-256 of q and v
+after every step and the final q, v. Run ``python tests/record_trajectories.py`` only to
+re-record on purpose (a deliberate change of behaviour), never to make a failing test pass.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+
+import numpy as np
+
+# (case name, scene name, steps, --set overrides; "_backend" picks the kernel back end)
+CASES: list[tuple[str, str, int, dict]] = [
+    ("bunny", "bunny", 100, {}),
+    ("arma", "arma", 100, {}),
+    ("arma_reuse", "arma", 100, {"simulation.newton.solver": "reuse"}),
+    ("arma_psd", "arma", 40, {"simulation.newton.hessian": "psd"}),
+    ("arma_numpy", "arma", 60, {"_backend": "numpy"}),
+    ("bunny_implicit", "bunny", 40, {"simulation.integrator": "implicit"}),
+    ("cantilever", "cantilever", 40, {}),
+    ("cantilever_amg", "cantilever", 20, {"simulation.linear_solver": "amg"}),
+    ("twist", "twist", 40, {}),
+    ("swing", "swing", 40, {}),
+    ("two_pulls", "two_pulls", 120, {}),
+    ("jelly_pair", "jelly_pair", 40, {}),
+    ("jelly_stvk", "jelly_stvk", 30, {}),
+    ("jelly_neo_hookean", "jelly_neo_hookean", 30, {}),
+    ("bunny_surface", "bunny_surface", 20, {}),
+    ("armadillo_surface", "armadillo_surface", 20, {}),
+    ("contact_bunny_drop", "contact_bunny_drop", 80, {}),
+    ("contact_bunny_drop_reuse", "contact_bunny_drop", 80, {"simulation.newton.solver": "reuse"}),
+    ("contact_incline", "contact_incline", 80, {}),
+    ("contact_stack", "contact_stack", 120, {}),
+    ("contact_twisted_bar", "contact_twisted_bar", 300, {}),
+]
+
+
+def digest(a: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float64).tobytes()).hexdigest()
+
+
+def run_case(scene_name: str, steps: int, overrides: dict):
+    """The q, v digests after each step and the final q, v of one case."""
+    from fem3d.scene import apply_overrides, load_scene
+    from fem3d.simulation import Simulation
+
+    overrides = dict(overrides)
+    backend = overrides.pop("_backend", None)
+    scene = apply_overrides(load_scene(scene_name), overrides)
+    sim = Simulation(scene, scripted=True, backend=backend)
+    digests = []
+    for _ in range(steps):
+        sim.step()
+        digests.append(digest(sim.q) + digest(sim.v))
+    return digests, sim.q.copy(), sim.v.copy()
+
+
+def main(out: str) -> None:
+    arrays = {}
+    for name, scene_name, steps, overrides in CASES:
+        digests, q, v = run_case(scene_name, steps, overrides)
+        arrays[f"{name}__digests"] = np.array(digests)
+        arrays[f"{name}__q"] = q
+        arrays[f"{name}__v"] = v
+        print(name, steps, digests[-1][:16], flush=True)
+    np.savez_compressed(out, **arrays)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1] if len(sys.argv) > 1 else "tests/data/trajectories_before_restructure.npz")

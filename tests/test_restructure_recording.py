@@ -1,0 +1,77 @@
+"""The restructured code takes bit for bit the steps the code before it took.
+
+``tests/data/trajectories_before_restructure.npz`` was recorded by
+``tests/record_trajectories.py`` at commit 6cbcdd9, before the subpackages, objective terms and
+the small integrator (issue 19): the SHA-256 of q and v after every step of every gallery
+scene, the classic bunny and armadillo, and the Newton variants (``reuse``, the PSD Hessian,
+AMG, the NumPy kernels). Any change of round-off fails here, naming the first step that moved.
+``tests/data/checkpoints_before_restructure/`` holds two checkpoints written by that code; they
+resume under the new code to the recorded final state of the uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from record_trajectories import CASES, digest, run_case  # tests/ is on sys.path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RECORDING = HERE / "data" / "trajectories_before_restructure.npz"
+CHECKPOINTS = HERE / "data" / "checkpoints_before_restructure"
+RECORDED_ROOT = "/work/main"  # the checkout the checkpoints were written in
+
+
+@pytest.fixture(scope="module")
+def recording():
+    return np.load(RECORDING)
+
+
+@pytest.mark.parametrize("name, scene_name, steps, overrides", CASES, ids=[c[0] for c in CASES])
+def test_trajectory_is_bit_identical_to_the_recording(recording, name, scene_name, steps,
+                                                      overrides):
+    digests, q, v = run_case(scene_name, steps, overrides)
+    want = recording[f"{name}__digests"]
+    assert len(digests) == len(want) == steps
+    moved = [i for i, (a, b) in enumerate(zip(digests, want, strict=True)) if a != b]
+    err = float(np.abs(q - recording[f"{name}__q"]).max())
+    assert not moved, f"{name}: first differing step {moved[0] + 1}, final |dq| {err:.3g}"
+    assert np.array_equal(q, recording[f"{name}__q"])
+    assert np.array_equal(v, recording[f"{name}__v"])
+
+
+def _relocated_checkpoint(src: Path, dst: Path) -> None:
+    """``src`` with the recording checkout's absolute paths pointed at this checkout."""
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = bytes(arrays["__fem3d_metadata__"]).decode()
+    meta = meta.replace(json.dumps(RECORDED_ROOT)[1:-1], json.dumps(str(ROOT))[1:-1])
+    arrays["__fem3d_metadata__"] = np.frombuffer(meta.encode(), dtype=np.uint8)
+    with open(dst, "wb") as f:
+        np.savez(f, **arrays)
+
+
+@pytest.mark.parametrize("file, case, final_step", [
+    ("arma_step50.npz", "arma", 100),
+    ("contact_bunny_drop_reuse_step40.npz", "contact_bunny_drop_reuse", 80),
+])
+def test_checkpoint_written_before_resumes_to_the_recorded_state(tmp_path, recording, file,
+                                                                 case, final_step):
+    run = tmp_path / "run"
+    run.mkdir()
+    _relocated_checkpoint(CHECKPOINTS / file, run / "checkpoint.npz")
+    proc = subprocess.run([sys.executable, "-m", "fem3d", "resume", str(run), "--steps",
+                           str(final_step), "--quiet", "--no-preview"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert f"-> {final_step} ->" in proc.stderr + proc.stdout
+    with np.load(run / "checkpoint.npz", allow_pickle=False) as z:
+        q, v = z["state_q"], z["state_v"]
+    assert digest(q) + digest(v) == recording[f"{case}__digests"][final_step - 1]
+    shutil.rmtree(run)
