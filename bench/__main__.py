@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
                 write_jsonl(jsonl, merge(records, new))  # keep what is done if interrupted
         records = merge(records, new)
     try:
-        from fem3d.linsolve import default_backend
+        from fem3d.solve.linear import default_backend
 
         solver = default_backend()
     except Exception:  # noqa: BLE001 - the report still renders

@@ -4,7 +4,7 @@
                                      [--wait-idle 20]
 
 For each size and kernel, alternating in one process (the machine is shared): the serial loop
-(no schedule: today's path, below ``fem3d.schedule.PARALLEL_MIN_TETS``), the scheduled loop
+(no schedule: today's path, below ``fem3d.kernels.schedule.PARALLEL_MIN_TETS``), the scheduled loop
 on one thread and on two (``--below-threshold``: scheduled below the threshold too, to see
 where it should lie). Prints the best wall time of ``--repeats`` calls and the CPU time
 (``time.process_time``) of that call, the 2-thread speed-up over one thread and over the
@@ -63,15 +63,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", default="1e5,1e6")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--below-threshold", action="store_true",
-                        help="build schedules below fem3d.schedule.PARALLEL_MIN_TETS too")
+                        help="build schedules below fem3d.kernels.schedule.PARALLEL_MIN_TETS too")
     parser.add_argument("--wait-idle", type=float, default=None, metavar="PCT",
                         help="start each round once the CPUs are less than PCT%% busy")
     args = parser.parse_args(argv)
 
     from bench import BenchMesh
-    from fem3d.kernels import c_extension
-    from fem3d.model import build_model
-    from fem3d.schedule import build_schedule, schedule_for
+    from fem3d.kernels.dispatch import c_extension
+    from fem3d.kernels.schedule import build_schedule, schedule_for
+    from fem3d.physics.model import build_model
 
     ext = c_extension()
     if ext is None:

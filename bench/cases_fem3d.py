@@ -27,7 +27,8 @@ def _import_fem3d(what: str):
 
 
 def _fem3d_model(mesh: BenchMesh, backend: str):
-    """``fem3d.model.build_model`` for the mesh with the kernel back end (Skip if absent)."""
+    """``fem3d.physics.model.build_model`` for the mesh with the kernel back end (Skip if
+    absent)."""
     kernels = _import_fem3d("kernels")
     try:
         kernels.material_kernels("neo_hookean", backend=backend)
@@ -42,12 +43,12 @@ def _fem3d_model(mesh: BenchMesh, backend: str):
 def _register_kernel_rows(backend: str) -> None:
     """Energy, gradient, element Hessians and CSR Hessian with the generated kernels.
 
-    The assembly is fem3d.assembly's: ``np.bincount`` over the scatter maps precomputed in
-    ``fem3d.model.Model`` (fixed CSR pattern, no COO -> CSR per call).
+    The assembly is fem3d.physics.assembly's: ``np.bincount`` over the scatter maps precomputed in
+    ``fem3d.physics.model.Model`` (fixed CSR pattern, no COO -> CSR per call).
     """
     lib = f"fem3d-{backend}"
-    note = (f"{lib}: generated {backend} kernels (`fem3d.kernels.material_kernels"
-            f"(\"neo_hookean\", backend=\"{backend}\")`) + fem3d.assembly (fixed pattern).")
+    note = (f"{lib}: generated {backend} kernels (`fem3d.kernels.dispatch.material_kernels"
+            f"(\"neo_hookean\", backend=\"{backend}\")`) + fem3d.physics.assembly (fixed pattern).")
 
     @register(f"energy/{lib}", group="energy", library=lib, note=note)
     def _energy(mesh: BenchMesh):
@@ -87,7 +88,7 @@ _SOLVER_REQUIRES = {"cholmod": ("sksparse",), "pardiso": ("pypardiso",), "superl
 
 
 def _register_solver_rows(backend: str) -> None:
-    """fem3d.linsolve.SparseSPDSolver: analysis, numeric factorization, solve."""
+    """fem3d.solve.linear.SparseSPDSolver: analysis, numeric factorization, solve."""
     lib = f"fem3d-linsolve-{backend}"
     kw = dict(library=lib, requires=_SOLVER_REQUIRES[backend], max_tets=_SOLVER_LIMITS[backend])
     notes = {
@@ -103,7 +104,7 @@ def _register_solver_rows(backend: str) -> None:
     def solver(mesh: BenchMesh):
         ls = _import_fem3d("linsolve")
         if backend not in ls.available_backends():
-            raise Skip(f"fem3d.linsolve back end {backend!r} not installed")
+            raise Skip(f"fem3d.solve.linear back end {backend!r} not installed")
         A = mesh.system.A
         return ls.SparseSPDSolver(A, backend=backend), A
 
@@ -127,13 +128,13 @@ def _register_solver_rows(backend: str) -> None:
 
 
 def _register_amg_rows() -> None:
-    """fem3d.linsolve.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
+    """fem3d.solve.linear.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
     hierarchy setup ("factor") and preconditioned CG to a relative residual of 1e-8 from
     x = 0 ("solve"), on the same SPD system."""
     lib = "fem3d-amg"
     kw = dict(library=lib, requires=("pyamg",))
     note = ("fem3d-amg: pyamg smoothed aggregation (rigid-body modes as B, 3x3 BSR, "
-            "fem3d.linsolve); analyze = aggregation (structure only), factor = numeric "
+            "fem3d.solve.linear); analyze = aggregation (structure only), factor = numeric "
             "hierarchy setup, solve = V-cycle preconditioned CG to |r| <= 1e-8 |b|.")
 
     def amg(mesh: BenchMesh):
@@ -167,13 +168,14 @@ def _register_amg_rows() -> None:
 
 
 # ------------------------------------------------------------------------------ integrators
-def _register_step_rows(backend: str) -> None:
-    """One backward-Euler step of the clamped box from the deformed state (fem3d.integrators)."""
+def _register_step_rows(backend: str) ->
+None:
+    """One backward-Euler step of the clamped box from the deformed state (fem3d.solve.integrators)."""
     lib = f"fem3d-{backend}"
 
     @register(f"step/{lib}-implicit", group="step", library=f"{lib} implicit Euler",
               max_tets=1.1e5,
-              note="step: fem3d.integrators.implicit_euler, box clamped at z = 0, starting "
+              note="step: fem3d.solve.integrators.implicit_euler, box clamped at z = 0, starting "
                    "at rest with velocity 10 (q - X), 5 Newton iterations at most.")
     def _step(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)

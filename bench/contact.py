@@ -85,11 +85,11 @@ class Timers:
 
 def build_case(name: str, refine: int, narrow_phase: str):
     """(model, system, contact term, initial state, dt) of a case."""
-    from fem3d.constraints import Constraints
-    from fem3d.contact import ContactModel, ContactTerm, PlaneObstacle
-    from fem3d.integrators import State, System
-    from fem3d.mesh import read_tet_mesh
-    from fem3d.model import build_model
+    from fem3d.mesh.formats import read_tet_mesh
+    from fem3d.physics.constraints import Constraints
+    from fem3d.physics.contact import ContactModel, ContactTerm, PlaneObstacle
+    from fem3d.physics.model import build_model
+    from fem3d.solve.integrators import State, System
 
     m = read_tet_mesh(ROOT / "data" / "coarser_bunny.mesh")
     X0, T0 = m.X, m.T
@@ -119,8 +119,8 @@ def build_case(name: str, refine: int, narrow_phase: str):
 
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
              newton_solver: str = "direct", contact: bool = True) -> dict:
-    import fem3d.integrators as integ
-    from fem3d.contact import ContactModel
+    import fem3d.solve.integrators as integ
+    from fem3d.physics.contact import ContactModel
 
     model, system, term, state, dt = build_case(name, refine, narrow_phase)
     timers = Timers()

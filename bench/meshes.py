@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.model import element_dofs  # the one definition of the DOF layout
+from fem3d.physics.model import element_dofs  # the one definition of the DOF layout
 
 # The six tets of the Kuhn (Freudenthal) subdivision of the unit cube: each follows a monotone
 # path 000 -> 111 along the axes in the order of one permutation. Corner index = x + 2 y + 4 z.

@@ -18,7 +18,8 @@ are printed.
 
 Each mode runs every step's Newton iteration to the same gradient tolerance (no iteration
 cap: equal accuracy; a few steps of either mode stop earlier, where the line search meets the
-energy's round-off, and are counted), from a fresh :class:`fem3d.integrators.System`; the best of
+energy's round-off, and are counted), from a fresh :class:`fem3d.solve.integrators.System`; the
+best of
 ``--repeats`` runs is reported (the machine is shared). Printed per mode: time per step,
 Newton iterations, factorizations, CG iterations, the largest final gradient norm, the
 largest deviation of the trajectory from the first mode's (relative to the mesh size), the
@@ -43,10 +44,10 @@ from pathlib import Path
 import numpy as np
 
 from bench.meshes import box_mesh, refine_tets
-from fem3d import integrators as integ
-from fem3d.constraints import Constraints, pick_nearest_vertices
-from fem3d.linsolve import default_backend
-from fem3d.model import Model, build_model
+from fem3d.physics.constraints import Constraints, pick_nearest_vertices
+from fem3d.physics.model import Model, build_model
+from fem3d.solve import integrators as integ
+from fem3d.solve.linear import default_backend
 
 
 @dataclass
@@ -67,9 +68,9 @@ class Workload:
 
 def armadillo(level: int, steps: int) -> Workload:
     """The armadillo scene refined ``level`` times, its hand dragged for ``steps - 20`` steps."""
-    from fem3d.constraints import fixed_vertices_lowest_y
-    from fem3d.scene import load_scene
-    from fem3d.scenes import assemble
+    from fem3d.physics.constraints import fixed_vertices_lowest_y
+    from fem3d.scene.build import assemble
+    from fem3d.scene.spec import load_scene
 
     scene = load_scene("arma")
     a = assemble(scene)

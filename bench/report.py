@@ -160,7 +160,7 @@ def render_markdown(records: list[dict], meta: dict, stat: str = "median") -> st
     if commits:
         lines.append(f"- measured at commit(s): {', '.join(commits)}")
     if default_solver:
-        lines.append(f"- fem3d.linsolve default (`auto`) back end here: **{default_solver}**")
+        lines.append(f"- fem3d.solve.linear default (`auto`) back end here: **{default_solver}**")
     cmds = sorted({r.get("command", "") for r in records if r.get("command")})
     for c in cmds:
         lines.append(f"- command: `{c}`")

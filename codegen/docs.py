@@ -45,7 +45,7 @@ def render_docs(modules: list[ModuleSpec]) -> str:
         "Every material is one file `codegen/materials/<name>.py` (its `psi(F, params)`, "
         "parameters, mapping from `E, nu` and behaviour at `J <= 0`) plus one line in the "
         "registry `codegen/materials/__init__.py`; the generator derives the stress and "
-        "Hessian and renders NumPy and C kernels. At run time: `fem3d.materials.names()`, "
+        "Hessian and renders NumPy and C kernels. At run time: `fem3d.physics.materials.names()`, "
         "`info(name)`, `parameters_from(name, E=, nu=, params=)`; "
         "`python -m codegen show <name>` prints the formulas below.",
         "",

@@ -5,9 +5,9 @@ Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
 * ``data/scenes/meshes/*.mesh``: Kuhn-subdivided boxes (6 positive tets per cell) written once
   (:func:`box_mesh`), e.g. the cantilever's 1 x 0.1 x 0.1 beam of 40 x 4 x 4 cells.
 * ``docs/gallery/<scene>.gif``: each gallery scene run headless through
-  :func:`fem3d.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
-  :func:`fem3d.output.render_preview`; the printed line per scene is its
-  :class:`~fem3d.cli.RunSummary`.
+  :func:`fem3d.app.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
+  :func:`fem3d.io.output.render_preview`; the printed line per scene is its
+  :class:`~fem3d.app.cli.RunSummary`.
 """
 
 from __future__ import annotations
@@ -48,14 +48,14 @@ def box_mesh(cells, size) -> tuple[np.ndarray, np.ndarray]:
     X : (n, 3) float64
     T : (m, 4) int64
     """
-    from fem3d.mesh import box_tet_mesh
+    from fem3d.mesh.formats import box_tet_mesh
 
     return box_tet_mesh(cells, size)
 
 
 def write_meshes() -> None:
     """The box meshes of the gallery (skipped when present)."""
-    from fem3d.mesh import TetMesh, write_tet_mesh
+    from fem3d.mesh.formats import TetMesh, write_tet_mesh
 
     MESHES.mkdir(parents=True, exist_ok=True)
     for name, (cells, size) in BOXES.items():
@@ -74,8 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     write_meshes()
     if args.meshes_only:
         return 0
-    from fem3d.cli import run_scene
-    from fem3d.scene import load_scene
+    from fem3d.app.cli import run_scene
+    from fem3d.scene.spec import load_scene
 
     GALLERY.mkdir(parents=True, exist_ok=True)
     status = 0

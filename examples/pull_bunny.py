@@ -13,8 +13,8 @@ import argparse
 
 import numpy as np
 
-from fem3d.scene import load_scene
-from fem3d.scenes import assemble
+from fem3d.scene.build import assemble
+from fem3d.scene.spec import load_scene
 from fem3d.simulation import Simulation
 
 

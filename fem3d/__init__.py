@@ -7,9 +7,9 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """``fem3d.Scene``: the scene description (:mod:`fem3d.scene`), imported on first use."""
+    """``fem3d.Scene``: the scene description (:mod:`fem3d.scene.spec`), imported on first use."""
     if name == "Scene":
-        from fem3d.scene import Scene
+        from fem3d.scene.spec import Scene
 
         return Scene
     raise AttributeError(f"module 'fem3d' has no attribute {name!r}")

@@ -2,6 +2,6 @@
 
 import sys
 
-from fem3d.cli import main
+from fem3d.app.cli import main
 
 sys.exit(main())

@@ -4,7 +4,8 @@ For readers who know the CSC417 linear-tetrahedron assignment: each function bel
 assignment's name and computes the same quantity, vectorized over elements (a leading ``m``
 axis) instead of one element at a time, and returning its result instead of filling an
 output argument. Nothing here is derived by hand: material and spring derivatives come from
-the SymPy-generated kernels (:mod:`fem3d.kernels`), assembly from :mod:`fem3d.assembly`.
+the SymPy-generated kernels (:mod:`fem3d.kernels.dispatch`), assembly from
+:mod:`fem3d.physics.assembly`.
 
 Conventions: ``X_e``/``x_e`` are ``(m, 4, 3)`` rest/deformed tet corners; element DOFs are
 vertex-major (12); ``F`` is flattened row-major (9). ``C, D`` are the Neo-Hookean parameters
@@ -18,11 +19,11 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d import assembly as _assembly
-from fem3d.constraints import fixed_point_constraints, pick_nearest_vertices
-from fem3d.integrators import implicit_euler, linearly_implicit_euler, newtons_method
-from fem3d.model import Model
-from fem3d.skinning import build_skinning_matrix
+from fem3d.mesh.skin import build_skinning_matrix
+from fem3d.physics import assembly as _assembly
+from fem3d.physics.constraints import fixed_point_constraints, pick_nearest_vertices
+from fem3d.physics.model import Model
+from fem3d.solve.integrators import implicit_euler, linearly_implicit_euler, newtons_method
 
 __all__ = [
     "phi_linear_tetrahedron",
@@ -51,19 +52,19 @@ __all__ = [
 
 
 def _nh(backend: str | None = None):
-    from fem3d.kernels import material_kernels
+    from fem3d.kernels.dispatch import material_kernels
 
     return material_kernels("neo_hookean", backend=backend)
 
 
 def _geo(backend: str | None = None):
-    from fem3d.kernels import geometry_kernels
+    from fem3d.kernels.dispatch import geometry_kernels
 
     return geometry_kernels(backend=backend)
 
 
 def _spring(backend: str | None = None):
-    from fem3d.kernels import spring_kernels
+    from fem3d.kernels.dispatch import spring_kernels
 
     return spring_kernels(backend=backend)
 

@@ -2,7 +2,7 @@
 
 Used by the headless ``fem3d run``, the viewer and the benchmarks::
 
-    from fem3d.scene import load_scene
+    from fem3d.scene.spec import load_scene
     from fem3d.simulation import Simulation
 
     sim = Simulation(load_scene("bunny"))          # everything from data/scenes/bunny.toml
@@ -24,13 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fem3d.assembly import kinetic_energy, potential_energy
-from fem3d.constraints import Constraints, pick_nearest_vertices
 from fem3d.errors import InputError, ParameterError, SimulationError
-from fem3d.integrators import INTEGRATORS, Pull, State, StepStats, System
-from fem3d.mesh import boundary_faces
-from fem3d.model import Model, build_model, validate_dt
-from fem3d.scene import Scene
+from fem3d.mesh.formats import boundary_faces
+from fem3d.physics.assembly import kinetic_energy, potential_energy
+from fem3d.physics.constraints import Constraints, pick_nearest_vertices
+from fem3d.physics.model import Model, build_model, validate_dt
+from fem3d.scene.spec import Scene
+from fem3d.solve.integrators import INTEGRATORS, Pull, State, StepStats, System
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 
@@ -115,8 +115,8 @@ def _cell_field(scene: Scene, a, i: int, param: str, name: str) -> np.ndarray:
 def _build_model(scene: Scene, a, backend: str | None) -> Model:
     """The model of every body's material (one material form when there is one plain body,
     else ``build_model(groups=)``: one group per body and per region)."""
-    from fem3d.model import MaterialGroup
-    from fem3d.scenes import select_vertices
+    from fem3d.physics.model import MaterialGroup
+    from fem3d.scene.build import select_vertices
 
     bodies = scene.bodies
     path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
@@ -205,8 +205,8 @@ class Simulation:
 
     Parameters
     ----------
-    scene : fem3d.scene.Scene
-        Everything about the run (from :func:`fem3d.scene.load_scene`); read here, once.
+    scene : fem3d.scene.spec.Scene
+        Everything about the run (from :func:`fem3d.scene.spec.load_scene`); read here, once.
     backend : {None, "numpy", "c"}, optional
         Kernel back end (None: C if built).
     scripted : bool, optional
@@ -222,7 +222,7 @@ class Simulation:
     Attributes
     ----------
     scene : Scene
-    assembled : fem3d.scenes.Assembled
+    assembled : fem3d.scene.build.Assembled
         The scene in arrays (rest positions, tets, pins, pulls, display mesh).
     model : Model
         Frozen model (replaced by :meth:`set_material`).
@@ -241,7 +241,7 @@ class Simulation:
 
     def __init__(self, scene: Scene, *, backend: str | None = None,
                  scripted: bool = False) -> None:
-        from fem3d.scenes import assemble
+        from fem3d.scene.build import assemble
 
         self.scene = scene
         _check_supported(scene)
@@ -264,10 +264,10 @@ class Simulation:
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = self._pin_motions()
-        #: The IPC contact term (:class:`fem3d.contact.ContactTerm`) of a contact scene.
+        #: The IPC contact term (:class:`fem3d.physics.contact.ContactTerm`) of a contact scene.
         self.contact = None
         if scene.contact.enabled:
-            from fem3d.contact import contact_from_scene
+            from fem3d.physics.contact import contact_from_scene
 
             self.contact = contact_from_scene(scene, a)
             try:
@@ -309,8 +309,8 @@ class Simulation:
 
     def _pin_motions(self) -> list:
         """``(slots into fixed_vertices, rest positions, Keyframes)`` of each moving pin."""
-        from fem3d.motion import Keyframes
-        from fem3d.scenes import select_vertices
+        from fem3d.physics.motion import Keyframes
+        from fem3d.scene.build import select_vertices
 
         a, scene = self.assembled, self.scene
         fixed = self.constraints.fixed_vertices
@@ -426,7 +426,7 @@ class Simulation:
         if self._W is None and a.skin_V is not None:
             import scipy.sparse as sp
 
-            from fem3d.skinning import build_skinning_matrix
+            from fem3d.mesh.skin import build_skinning_matrix
 
             blocks = []
             for i, (vs, _) in enumerate(a.skin_bodies):

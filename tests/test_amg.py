@@ -12,10 +12,10 @@ pytest.importorskip("pyamg")
 
 from test_assembly import box_mesh  # noqa: E402
 
-from fem3d import linsolve  # noqa: E402
-from fem3d.constraints import Constraints  # noqa: E402
-from fem3d.integrators import State, System, implicit_euler, linearly_implicit_euler  # noqa: E402
-from fem3d.model import build_model  # noqa: E402
+from fem3d.physics.constraints import Constraints  # noqa: E402
+from fem3d.physics.model import build_model  # noqa: E402
+from fem3d.solve import linear as linsolve  # noqa: E402
+from fem3d.solve.integrators import State, System, implicit_euler, linearly_implicit_euler  # noqa: E402
 
 
 def clamped_box(n=(6, 6, 6), E=6e5, rho=100.0):
@@ -90,7 +90,7 @@ def test_amg_falls_back_to_the_psd_hessian_on_an_indefinite_system():
 
 
 def test_rigid_body_modes_are_the_null_space_of_the_rest_stiffness():
-    from fem3d.assembly import hessian_data
+    from fem3d.physics.assembly import hessian_data
 
     model, _ = clamped_box((3, 3, 3))
     B = linsolve.rigid_body_modes(model.X)
@@ -246,7 +246,7 @@ def test_block_inverses_pseudo_invert_singular_blocks():
 
 
 def test_forcing_term_tightens_with_convergence_but_not_past_the_tolerance():
-    from fem3d.integrators import _forcing_term
+    from fem3d.solve.integrators import _forcing_term
 
     assert _forcing_term(5.0, 0.0, 0.1, 1e-8, 0.1) == 0.1  # first iteration
     assert _forcing_term(0.5, 5.0, 0.1, 1e-8, 0.1) == pytest.approx(0.9 * 0.01)
@@ -280,7 +280,7 @@ def test_end_game_judges_noisy_energies_by_the_gradient():
     step the energy cannot resolve is accepted when it shrinks the gradient (with
     ``roundoff_rtol``), where plain backtracking halves through the noise and stalls above
     the tolerance."""
-    from fem3d.integrators import newtons_method
+    from fem3d.solve.integrators import newtons_method
 
     rng = np.random.default_rng(1)
     Q = rng.standard_normal((8, 8))

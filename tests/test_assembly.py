@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fem3d.assembly import (
+from fem3d.errors import InputError, ParameterError
+from fem3d.kernels.dispatch import c_extension
+from fem3d.mesh.formats import box_tet_mesh
+from fem3d.physics.assembly import (
     assemble_forces,
     assemble_gradient,
     assemble_hessian,
@@ -15,10 +18,7 @@ from fem3d.assembly import (
     mass_matrix_mesh,
     potential_energy,
 )
-from fem3d.errors import InputError, ParameterError
-from fem3d.kernels import c_extension
-from fem3d.mesh import box_tet_mesh
-from fem3d.model import build_model, material_parameters
+from fem3d.physics.model import build_model, material_parameters
 
 BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
 

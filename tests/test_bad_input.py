@@ -32,7 +32,7 @@ from conftest_mesh_helpers import (  # noqa: E402
 )
 
 from fem3d.errors import InputError  # noqa: E402
-from fem3d.mesh import (  # noqa: E402
+from fem3d.mesh.formats import (  # noqa: E402
     MeshWarning,
     TetMesh,
     read_surface_mesh,

@@ -1,4 +1,4 @@
-"""Tests of fem3d.constraints."""
+"""Tests of fem3d.physics.constraints."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from fem3d.constraints import (
+from fem3d.errors import InputError, ParameterError
+from fem3d.physics.constraints import (
     Constraints,
     fixed_point_constraints,
     fixed_vertices_lowest_y,
     pick_nearest_vertices,
 )
-from fem3d.errors import InputError, ParameterError
 
 
 def _random_spd(N: int, rng: np.random.Generator, density: float = 0.05) -> sp.csr_matrix:

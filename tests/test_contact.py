@@ -1,4 +1,5 @@
-"""fem3d.contact: the IPC barrier, lagged friction, CCD and intersection checks on fem3d DOFs.
+"""fem3d.physics.contact: the IPC barrier, lagged friction, CCD and intersection checks on
+fem3d DOFs.
 
 Derivatives are checked against central finite differences of the energies (not against
 ipctk's own derivatives), the PSD projection by eigenvalues, CCD by an independent
@@ -11,9 +12,9 @@ import ipctk
 import numpy as np
 import pytest
 
-from fem3d.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.mesh import boundary_faces, box_tet_mesh
+from fem3d.mesh.formats import boundary_faces, box_tet_mesh
+from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 
 
 def box_mesh(n=(2, 2, 2), size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):

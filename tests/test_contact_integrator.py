@@ -1,4 +1,4 @@
-"""Backward Euler with IPC contact (fem3d.contact.ContactTerm in implicit_euler).
+"""Backward Euler with IPC contact (fem3d.physics.contact.ContactTerm in implicit_euler).
 
 Physics checked against theory and against code that does not use the solver's contact set:
 no vertex ever below a plane, no triangle intersection between bodies (a fresh ipctk mesh),
@@ -13,13 +13,13 @@ import ipctk
 import numpy as np
 import pytest
 
-from fem3d.assembly import kinetic_energy, potential_energy
-from fem3d.constraints import Constraints
-from fem3d.contact import ContactModel, ContactTerm, PlaneObstacle
 from fem3d.errors import SimulationError
-from fem3d.integrators import State, System, implicit_euler
-from fem3d.mesh import boundary_faces
-from fem3d.model import build_model
+from fem3d.mesh.formats import boundary_faces
+from fem3d.physics.assembly import kinetic_energy, potential_energy
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.contact import ContactModel, ContactTerm, PlaneObstacle
+from fem3d.physics.model import build_model
+from fem3d.solve.integrators import State, System, implicit_euler
 from tests.test_contact import box_mesh
 
 G = np.array([0.0, -9.81, 0.0])

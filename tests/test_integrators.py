@@ -9,15 +9,15 @@ import pytest
 from test_assembly import box_mesh
 
 from fem3d.errors import SimulationError
-from fem3d.integrators import (
+from fem3d.scene.spec import Scene, load_scene, scene_from_arrays
+from fem3d.simulation import Simulation
+from fem3d.solve.integrators import (
     NewtonResult,
     State,
     implicit_euler,
     linearly_implicit_euler,
     newtons_method,
 )
-from fem3d.scene import Scene, load_scene, scene_from_arrays
-from fem3d.simulation import Simulation
 
 _BOX_KEYS = {"E": "bodies[0].material.E", "nu": "bodies[0].material.nu",
              "rho": "bodies[0].material.density", "dt": "simulation.dt",
@@ -255,7 +255,7 @@ def test_implicit_armadillo_is_stable_with_the_same_pull():
 
 def test_indefinite_hessian_uses_shifted_factorization():
     """A strongly compressed box: M + dt^2 H is indefinite, Newton still converges."""
-    from fem3d.assembly import count_inverted
+    from fem3d.physics.assembly import count_inverted
 
     sim = Simulation(box_scene(rho=1.0, dt=0.1))
     X = sim.model.X
@@ -377,7 +377,7 @@ def test_reuse_lags_the_newton_matrix_and_keeps_the_tolerance():
     tight one buys nothing, and every step still ends below its gradient tolerance, on the
     trajectory of refactorizing every iteration."""
     from bench.newton_step import armadillo
-    from fem3d.integrators import System
+    from fem3d.solve.integrators import System
 
     work = armadillo(1, 36)
     assert System(work.model, work.constraints).solver.cholmod_mode in (None, "supernodal")
@@ -403,9 +403,9 @@ def test_reuse_lags_the_newton_matrix_and_keeps_the_tolerance():
 @pytest.mark.parametrize("backend", ["numpy", "c"])
 @pytest.mark.parametrize("psd", [False, True])
 def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
-    from fem3d.assembly import hessian_data
-    from fem3d.integrators import Pull
-    from fem3d.kernels import c_extension
+    from fem3d.kernels.dispatch import c_extension
+    from fem3d.physics.assembly import hessian_data
+    from fem3d.solve.integrators import Pull
 
     if backend == "c" and c_extension() is None:
         pytest.skip("C extension not built")
@@ -441,15 +441,15 @@ G = np.array([0.0, -9.81, 0.0])
 
 
 def small_model(nx=2, ny=2, nz=2, size=(1.0, 1.0, 1.0), E=1e5, nu=0.35, rho=1000.0):
-    from fem3d.model import build_model
+    from fem3d.physics.model import build_model
 
     X, T = box_mesh(nx, ny, nz, size=size)
     return build_model(X, T, E=E, nu=nu, rho=rho)
 
 
 def make_system(model, fixed=(), **physics):
-    from fem3d.constraints import Constraints
-    from fem3d.integrators import System
+    from fem3d.physics.constraints import Constraints
+    from fem3d.solve.integrators import System
 
     c = Constraints.from_fixed_vertices(model.X, np.asarray(fixed, dtype=np.int64))
     return System(model, c, **physics)
@@ -485,7 +485,7 @@ def test_pinned_cantilever_settles_at_the_static_solution():
     problem, solved separately by plain Newton on ``dV/dq - f_g = 0``)."""
     import scipy.sparse.linalg as spla
 
-    from fem3d.assembly import assemble_gradient, hessian_data
+    from fem3d.physics.assembly import assemble_gradient, hessian_data
 
     model = small_model(4, 1, 1, size=(2.0, 0.5, 0.5), E=1e7, rho=500.0)
     fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
@@ -535,7 +535,7 @@ def test_mass_damping_decays_a_translation_at_the_discrete_rate(integrator):
 def test_rayleigh_damping_decays_energy_monotonically(integrator):
     """A swinging clamped box: with ``alpha M + beta K`` the total energy never increases and
     ends well below the undamped run's."""
-    from fem3d.assembly import kinetic_energy, potential_energy
+    from fem3d.physics.assembly import kinetic_energy, potential_energy
 
     model = small_model(2, 3, 2, size=(1.0, 1.5, 1.0))
     fixed = np.flatnonzero(model.X[:, 1] <= 1e-12)
@@ -601,7 +601,7 @@ def test_zero_gravity_and_damping_are_the_plain_step():
 def test_moving_pins_reach_their_keyframes_and_carry_the_body(integrator):
     """The clamped end follows a keyframed rotation + translation exactly; the body, damped,
     ends close to the rigidly moved rest shape."""
-    from fem3d.motion import Keyframes
+    from fem3d.physics.motion import Keyframes
 
     model = small_model(3, 1, 1, size=(1.5, 0.5, 0.5), E=1e8)
     fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
@@ -628,7 +628,7 @@ def test_moving_pins_reach_their_keyframes_and_carry_the_body(integrator):
 
 def test_moving_pins_agree_between_the_schemes_for_a_small_step():
     """The same keyframed drive through both schemes: trajectories agree to O(dt)."""
-    from fem3d.motion import Keyframes
+    from fem3d.physics.motion import Keyframes
 
     model = small_model(3, 1, 1, size=(1.5, 0.5, 0.5))
     fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
@@ -648,7 +648,7 @@ def test_moving_pins_agree_between_the_schemes_for_a_small_step():
 
 
 def test_pull_with_per_spring_stiffness_and_combined_pulls():
-    from fem3d.integrators import Pull
+    from fem3d.solve.integrators import Pull
 
     model = small_model()
     system = make_system(model, [0])
@@ -722,7 +722,7 @@ def test_objective_term_outside_the_pattern_widens_it_once():
     v = np.zeros_like(model.X)
     v[far[0]] = [0.0, 0.0, 2.0]
     state = State(q=state.q, v=v)
-    from fem3d.assembly import assemble_gradient
+    from fem3d.physics.assembly import assemble_gradient
 
     for mode in ("direct", "reuse"):
         s = state

@@ -1,4 +1,4 @@
-"""Tests of fem3d.linsolve: every back end that is installed, SuperLU always."""
+"""Tests of fem3d.solve.linear: every back end that is installed, SuperLU always."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fem3d.errors import Fem3dError
-from fem3d.linsolve import (
+from fem3d.solve.linear import (
     BACKENDS,
     NotPositiveDefinite,
     PreconditionedCG,
@@ -201,7 +201,7 @@ def test_bad_pattern_input() -> None:
 
 @pytest.mark.skipif("cholmod" not in AVAILABLE, reason="CHOLMOD not installed")
 def test_cholmod_auto_mode_follows_the_factor_cost() -> None:
-    from fem3d import linsolve
+    from fem3d.solve import linear as linsolve
 
     small = grid_laplacian(4)  # 192 rows, short columns of L
     assert SparseSPDSolver(small, "cholmod").cholmod_mode == "simplicial"

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fem3d import materials
 from fem3d.errors import ParameterError
-from fem3d.kernels import c_extension, kernel_module, material_kernels
+from fem3d.kernels.dispatch import c_extension, kernel_module, material_kernels
+from fem3d.physics import materials
 
 BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(
     c_extension() is None, reason="C extension not built"))]

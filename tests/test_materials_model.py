@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from test_assembly import box_mesh
 
-from fem3d import materials
-from fem3d.assembly import assemble_gradient, hessian_data, potential_energy
 from fem3d.errors import ParameterError
-from fem3d.kernels import c_extension
-from fem3d.model import GROUP_PARAMS, MaterialGroup, build_model
+from fem3d.kernels.dispatch import c_extension
+from fem3d.physics import materials
+from fem3d.physics.assembly import assemble_gradient, hessian_data, potential_energy
+from fem3d.physics.model import GROUP_PARAMS, MaterialGroup, build_model
 
 BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
 
@@ -64,7 +64,7 @@ def test_groups_sum_their_materials(mesh, backend) -> None:
         H = model.csr(hessian_data(model, q, psd=psd)).toarray()
         if not psd:
             np.testing.assert_allclose(H, H_ref, rtol=1e-10, atol=1e-10 * np.abs(H_ref).max())
-    # the same arrays through model.mat, as fem3d.integrators calls it (scaled volumes and a
+    # the same arrays through model.mat, as fem3d.solve.integrators calls it (scaled volumes and a
     # scatter of its own)
     vol = model.vol * 0.5
     vol.setflags(write=False)
@@ -193,10 +193,10 @@ def test_bad_groups_name_the_group_and_parameter(mesh) -> None:
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_backward_euler_steps_a_grouped_model(mesh, backend) -> None:
-    """fem3d.integrators takes a model with groups through model.mat / model.params (its
+    """fem3d.solve.integrators takes a model with groups through model.mat / model.params (its
     Newton matrix with scaled volumes and its own scatter) unchanged."""
-    from fem3d.constraints import Constraints, fixed_vertices_lowest_y
-    from fem3d.integrators import State, System, implicit_euler
+    from fem3d.physics.constraints import Constraints, fixed_vertices_lowest_y
+    from fem3d.solve.integrators import State, System, implicit_euler
 
     X, T = mesh
     groups = [MaterialGroup("stable_neo_hookean", np.arange(0, len(T), 3), {"E": 2e4, "nu": 0.3}),

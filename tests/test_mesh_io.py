@@ -26,7 +26,7 @@ from conftest_mesh_helpers import (  # noqa: E402
 )
 
 from fem3d.errors import InputError  # noqa: E402
-from fem3d.mesh import (  # noqa: E402
+from fem3d.mesh.formats import (  # noqa: E402
     MeshWarning,
     TetMesh,
     boundary_faces,
@@ -323,7 +323,7 @@ def test_medit_as_display_mesh(tmp_path: Path) -> None:
 
 
 def test_box_tet_mesh_is_conforming_positive_and_fills_the_box() -> None:
-    from fem3d.mesh import boundary_faces, box_tet_mesh
+    from fem3d.mesh.formats import boundary_faces, box_tet_mesh
 
     X, T = box_tet_mesh((3, 2, 4), (0.3, 0.2, 0.8), origin=(1.0, -1.0, 0.5))
     assert X.shape == (4 * 3 * 5, 3) and T.shape == (6 * 3 * 2 * 4, 4)

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fem3d.errors import ParameterError
-from fem3d.motion import Keyframes
+from fem3d.physics.motion import Keyframes
 
 
 def points() -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of fem3d.output: atomic writes, frames, energy log, GIF preview, checkpoints."""
+"""Tests of fem3d.io.output: atomic writes, frames, energy log, GIF preview, checkpoints."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from PIL import Image, ImageSequence
 
 from fem3d.errors import InputError, SimulationError
-from fem3d.output import (
+from fem3d.io.output import (
     EnergyLog,
     FrameWriter,
     _cluster_decimate,

@@ -22,15 +22,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import fem3d.integrators as integrators
-from fem3d.assembly import count_inverted
-from fem3d.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.cli import main
+import fem3d.solve.integrators as integrators
+from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
-from fem3d.integrators import State, implicit_euler, linearly_implicit_euler
-from fem3d.output import read_energy_csv
-from fem3d.scene import apply_overrides, load_scene, scene_from_arrays
+from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
+from fem3d.io.output import read_energy_csv
+from fem3d.physics.assembly import count_inverted
+from fem3d.scene.spec import apply_overrides, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
+from fem3d.solve.integrators import State, implicit_euler, linearly_implicit_euler
 
 ROOT = Path(__file__).resolve().parent.parent
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
@@ -46,7 +46,7 @@ def _env() -> dict[str, str]:
 
 def _leftovers(out: Path) -> list[str]:
     """Temporary or hidden files anywhere under ``out`` (atomic writes leave none; the
-    folder's lock file ``.fem3d.lock`` stays on purpose, see fem3d.rundir)."""
+    folder's lock file ``.fem3d.lock`` stays on purpose, see fem3d.io.rundir)."""
     return [str(p) for p in out.rglob("*")
             if (p.name.startswith(".") or ".tmp" in p.name) and p.name != ".fem3d.lock"]
 
@@ -378,7 +378,7 @@ def test_api_parameter_errors():
 
 
 def test_newton_refuses_a_non_finite_gradient_and_survives_a_huge_one():
-    from fem3d.integrators import newtons_method
+    from fem3d.solve.integrators import newtons_method
 
     def energy(x):
         return float(x @ x)

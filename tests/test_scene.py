@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.cli import RunSummary, main, run_scene
+from fem3d.app.cli import RunSummary, main, run_scene
 from fem3d.errors import InputError
-from fem3d.scene import Scene, apply_overrides, load_scene, scene_names, scene_schema
+from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
+from fem3d.scene.spec import Scene, apply_overrides, load_scene, scene_names, scene_schema
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -111,7 +111,7 @@ def test_apply_overrides():
 
 
 def test_material_by_name_no_special_case():
-    from fem3d.kernels import available_materials
+    from fem3d.kernels.dispatch import available_materials
 
     for name in available_materials():
         s = load_scene("arma", {"bodies[0].material.model": name})

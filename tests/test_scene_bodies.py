@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.cli import main, run_scene
+from fem3d.app.cli import main, run_scene
 from fem3d.errors import InputError
-from fem3d.mesh import read_tet_mesh, write_surface_mesh
-from fem3d.scene import Scene, apply_overrides, load_scene
-from fem3d.scenes import assemble, rotation_matrix, select_vertices
+from fem3d.mesh.formats import read_tet_mesh, write_surface_mesh
+from fem3d.scene.build import assemble, rotation_matrix, select_vertices
+from fem3d.scene.spec import Scene, apply_overrides, load_scene
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -79,7 +79,7 @@ def test_every_selector_kind(tmp_path):
         "nearest_to": ({"nearest_to": {"point": list(X[61] + 0.001), "radius": 0.1}},
                        np.linalg.norm(X - X[61], axis=1) <= 0.1),
     }
-    from fem3d.scene import Selector
+    from fem3d.scene.spec import Selector
 
     for kind, (sel, mask) in cases.items():
         got = select_vertices(s, X, Selector.model_validate(sel), "k")
@@ -154,7 +154,7 @@ def test_materials_per_body_region_params_and_cell_fields(tmp_path):
     graded = scene(bodies=[body(mesh=str(vtu), material={
         "model": "stvk", "E": 1.0, "nu": 0.3, "density": 0.1, "cell_fields": {"E": "E"}})])
     (g,) = Simulation(graded).model.groups
-    from fem3d.materials import parameters_from
+    from fem3d.physics.materials import parameters_from
 
     assert np.allclose(g.values["mu"], parameters_from("stvk", field, 0.3)["mu"])
     missing = apply_overrides(graded, {"bodies[0].material.cell_fields": {"E": "stiff"}})
@@ -192,7 +192,7 @@ def test_gravity_and_damping():
 
 
 def test_moving_pins_follow_their_keyframes():
-    from fem3d.motion import Keyframes
+    from fem3d.physics.motion import Keyframes
 
     motion = {"keyframes": [{"t": 0.0}, {"t": 0.05, "translate": [0.0, 0.0, 0.05],
                                          "rotate_deg": [0.0, 20.0, 0.0]}],

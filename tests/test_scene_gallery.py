@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.cli import main
-from fem3d.mesh import TetMesh, write_tet_mesh
-from fem3d.scene import load_scene, scene_names
-from fem3d.scenes import is_surface_file
+from fem3d.app.cli import main
+from fem3d.mesh.formats import TetMesh, write_tet_mesh
+from fem3d.scene.build import is_surface_file
+from fem3d.scene.spec import load_scene, scene_names
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent

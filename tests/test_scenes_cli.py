@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.cli import SUBCOMMANDS, build_parser, main
+from fem3d.app.cli import SUBCOMMANDS, build_parser, main
 from fem3d.errors import InputError
-from fem3d.scene import load_scene
-from fem3d.scenes import SCENES, assemble, hand_vertex, top_vertex
+from fem3d.scene.build import SCENES, assemble, hand_vertex, top_vertex
+from fem3d.scene.spec import load_scene
 from fem3d.simulation import Simulation, StepInfo
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -164,7 +164,7 @@ def test_cli_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
 
 
 def test_cli_subcommand_registry():
-    assert SUBCOMMANDS[0] == "fem3d.cli:add_run_subcommand"
+    assert SUBCOMMANDS[0] == "fem3d.app.cli:add_run_subcommand"
     parser = build_parser()
     args = parser.parse_args(["run", "bunny", "--steps", "3", "--debug"])
     assert args.steps == 3 and args.debug and args.func is not None

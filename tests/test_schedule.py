@@ -1,15 +1,16 @@
-"""Threaded fused assembly (fem3d.schedule): race-free, deterministic, equal to the serial loop."""
+"""Threaded fused assembly (fem3d.kernels.schedule): race-free, deterministic, equal to the
+serial loop."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fem3d import assembly
-from fem3d.kernels import c_extension
-from fem3d.mesh import box_tet_mesh
-from fem3d.model import build_model
-from fem3d.schedule import PARALLEL_MIN_TETS, Schedule, build_schedule, schedule_for
+from fem3d.kernels.dispatch import c_extension
+from fem3d.kernels.schedule import PARALLEL_MIN_TETS, Schedule, build_schedule, schedule_for
+from fem3d.mesh.formats import box_tet_mesh
+from fem3d.physics import assembly
+from fem3d.physics.model import build_model
 
 pytestmark = pytest.mark.skipif(c_extension() is None, reason="C extension not built")
 

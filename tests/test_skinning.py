@@ -1,4 +1,4 @@
-"""Tests of fem3d.skinning.build_skinning_matrix."""
+"""Tests of fem3d.mesh.skin.build_skinning_matrix."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 import scipy.sparse as sp
 
 from fem3d.errors import InputError
-from fem3d.skinning import build_skinning_matrix
+from fem3d.mesh.skin import build_skinning_matrix
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA_DIRS = [ROOT / "data", ROOT.parent / "shared" / "reference-meshes"]

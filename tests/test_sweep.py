@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.cli import main
-from fem3d.dataset import load_case, load_sweep, read_run_frames
+from fem3d.app.cli import main
+from fem3d.io.dataset import load_case, load_sweep, read_run_frames
 
 ROOT = Path(__file__).resolve().parent.parent
 MESH = ROOT / "data" / "arma_6.node"

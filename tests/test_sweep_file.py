@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from pydantic import BaseModel, ConfigDict
 
-from fem3d.cli import main
+from fem3d.app.cli import main
+from fem3d.app.sweep.sweep import check_key_path, expand_cases, load_sweep_file
 from fem3d.errors import InputError
-from fem3d.sweep import check_key_path, expand_cases, load_sweep_file
 
 ROOT = Path(__file__).resolve().parent.parent
 

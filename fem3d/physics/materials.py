@@ -44,7 +44,7 @@ class MaterialInfo:
         tets); declared by the material file.
     per_element_inputs : dict of str -> tuple of int
         Inputs every element carries besides its parameters (e.g. ``{"a": (3,)}``, a fibre
-        direction); a :class:`fem3d.model.MaterialGroup` gives them as ``(k, *shape)`` or as
+        direction); a :class:`fem3d.physics.model.MaterialGroup` gives them as ``(k, *shape)`` or as
         one ``shape`` value for all its elements.
     doc : str
         The material file's docstring (formula, source, notes).
@@ -215,7 +215,7 @@ def small_strain_lame(name: str, values: Mapping[str, float | np.ndarray],
     """Effective small-strain Lame parameters ``(mu, lambda)`` of a material with parameter
     ``values``, read from its generated ``d2psi_dF2`` at ``F = I`` (``mu = dP_12/dF_12``,
     ``lambda = dP_11/dF_22``; fibres along x do not enter either)."""
-    from fem3d.kernels import material_kernels
+    from fem3d.kernels.dispatch import material_kernels
 
     material = info(name)
     columns = [np.asarray(values[p], dtype=np.float64) for p in material.param_names]

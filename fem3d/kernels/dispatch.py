@@ -173,9 +173,10 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     """``kernel_assemble(q, T, *inputs, params, index, out)``: adds every element's output into
     ``out[index[e]]``, gathering ``x_e = q[T[e]]`` itself (one pass, no temporaries).
 
-    Meshes of at least :data:`fem3d.schedule.PARALLEL_MIN_TETS` tets whose ``T`` and
+    Meshes of at least :data:`fem3d.kernels.schedule.PARALLEL_MIN_TETS` tets whose ``T`` and
     ``index`` are read-only (a model's) run on OpenMP's threads along a race-free schedule
-    built on the first call (:func:`fem3d.schedule.schedule_for`): the result does not depend
+    built on the first call (:func:`fem3d.kernels.schedule.schedule_for`): the result does not
+    depend
     on the thread count. Other calls run serially in element order.
 
     Parameters
@@ -192,7 +193,7 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     out : (N,) float64
         Accumulated into (not cleared) and returned.
     """
-    from fem3d.schedule import schedule_for
+    from fem3d.kernels.schedule import schedule_for
 
     def call(q, T, *rest):
         *inputs, params, index, out = rest

@@ -4,7 +4,7 @@ sub-commands other modules register.
 ``fem3d run NAME|FILE.toml|MESH [--steps N] [--dt DT] [--integrator linear|implicit]
 [--material NAME] [--E E] [--nu NU] [--rho RHO] [--format vtu|obj|usd] [--frame-every K]
 [--set KEY=VALUE ...] [--out DIR] [--kernels numpy|c] [--checkpoint-every N] [--debug]`` runs
-a scene (:mod:`fem3d.scene`: a name of ``data/scenes``, a scene file, or a one-body scene
+a scene (:mod:`fem3d.scene.spec`: a name of ``data/scenes``, a scene file, or a one-body scene
 around a mesh file) with its scripted pulls. Every flag but ``--out``, ``--kernels``,
 ``--checkpoint-every``, ``--no-preview`` and ``--quiet`` overrides one field of the scene
 (:data:`RUN_FLAGS`; ``--set`` any field by its key path). It writes into ``DIR``:
@@ -14,7 +14,7 @@ around a mesh file) with its scripted pulls. Every flag but ``--out``, ``--kerne
 * ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
 * ``preview.gif`` - a shaded offscreen animation;
 * ``checkpoint.npz`` - with ``--checkpoint-every N`` every N steps and at the end, and always
-  on SIGINT / SIGTERM (see :mod:`fem3d.checkpoint`). It holds the whole scene.
+  on SIGINT / SIGTERM (see :mod:`fem3d.io.checkpoint`). It holds the whole scene.
 
 ``fem3d resume DIR [--steps N]`` continues a run from ``DIR/checkpoint.npz`` up to step ``N``
 (default: the run's) with the saved scene, in the same folder: frames keep their numbering,
@@ -58,19 +58,19 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from fem3d import rundir
 from fem3d.errors import InputError, ParameterError, SimulationError
+from fem3d.io import rundir
 
 __all__ = ["main", "build_parser", "run_scene", "resume_run", "scene_from_args", "RunSummary",
            "SUBCOMMANDS", "RUN_FLAGS"]
 
 #: Sub-command registrars, ``"module:function"``, in ``--help`` order.
 SUBCOMMANDS: list[str] = [
-    "fem3d.cli:add_run_subcommand",
-    "fem3d.viewer:add_view_subcommand",
-    "fem3d.cli:add_resume_subcommand",
-    "fem3d.cli:add_schema_subcommand",
-    "fem3d.sweep:add_sweep_subcommand",
+    "fem3d.app.cli:add_run_subcommand",
+    "fem3d.app.viewer.viewer:add_view_subcommand",
+    "fem3d.app.cli:add_resume_subcommand",
+    "fem3d.app.cli:add_schema_subcommand",
+    "fem3d.app.sweep.sweep:add_sweep_subcommand",
 ]
 
 #: Frames kept in memory for the GIF preview (evenly spaced).
@@ -103,7 +103,7 @@ RUN_FLAGS: tuple[tuple[str, str, str], ...] = (
 
 def _material_help() -> str:
     try:
-        from fem3d.scene import material_names
+        from fem3d.scene.spec import material_names
 
         return ", ".join(material_names())
     except Exception:  # pragma: no cover - kernels missing
@@ -249,7 +249,7 @@ def scene_from_args(args: argparse.Namespace):
     InputError
         ``FILE: key.path: ...`` from the scene, or ``--flag: key.path: ...`` from a flag.
     """
-    from fem3d.scene import apply_overrides, load_scene
+    from fem3d.scene.spec import apply_overrides, load_scene
 
     scene = load_scene(args.scene)
     for flag, dest, key in RUN_FLAGS:
@@ -374,8 +374,8 @@ def _drive(
     import numpy as np
     from tqdm import tqdm
 
-    from fem3d import output
-    from fem3d.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
+    from fem3d.io import output
+    from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 
     steps, frame_every = scene.n_steps, scene.output.every
     every = settings["checkpoint_every"]
@@ -539,7 +539,7 @@ def _summary(sim, status, message, wall, iterations, max_disp, log, out) -> RunS
 
 def _resolve_kernels(name: str | None) -> str:
     try:
-        from fem3d.kernels import resolve_backend
+        from fem3d.kernels.dispatch import resolve_backend
 
         return resolve_backend(name)
     except (ImportError, ValueError) as exc:
@@ -564,7 +564,7 @@ def run_scene(
 
     Parameters
     ----------
-    scene : fem3d.scene.Scene
+    scene : fem3d.scene.spec.Scene
     out : Path
         Output folder (created; nothing is written before the scene is set up).
     quiet : bool
@@ -622,8 +622,8 @@ def resume_run(args: argparse.Namespace) -> int:
     InputError
         No or a bad checkpoint, a mesh changed since, or a bad ``--steps``.
     """
-    from fem3d.checkpoint import CHECKPOINT_NAME, load_run_checkpoint, mesh_digest
-    from fem3d.scene import Scene, apply_overrides
+    from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint, mesh_digest
+    from fem3d.scene.spec import Scene, apply_overrides
     from fem3d.simulation import Simulation
 
     out = Path(args.dir)
@@ -691,8 +691,8 @@ def _resume_command(args: argparse.Namespace) -> int:
 def _schema_command(args: argparse.Namespace) -> int:
     import json
 
-    from fem3d.output import atomic_write
-    from fem3d.scene import scene_schema
+    from fem3d.io.output import atomic_write
+    from fem3d.scene.spec import scene_schema
 
     text = json.dumps(scene_schema(), indent=2) + "\n"
     if args.out:

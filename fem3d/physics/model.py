@@ -5,7 +5,7 @@ A :class:`Model` is built once per mesh (:func:`build_model`) and holds
 * the rest shape: ``X``, ``T``, the shape-function gradients ``dphi_dX`` and volumes ``vol``
   (from the generated geometry kernels);
 * the material: one or several :class:`MaterialGroup` (a registered material on a subset of
-  the elements, its parameters per group or per element, see :mod:`fem3d.materials`), a
+  the elements, its parameters per group or per element, see :mod:`fem3d.physics.materials`), a
   density per mesh or per element, and the summary values ``E``, ``nu``, ``rho``;
 * the exact consistent mass matrix (generated ``mass_matrix`` kernel, assembled);
 * the sparsity pattern of the ``3n x 3n`` system and two precomputed scatter maps:
@@ -97,10 +97,10 @@ def material_parameters(material: str, E: float, nu: float, param_names: tuple[s
     Returns
     -------
     (n_params,) float64
-        ``fem3d.materials.parameters_from(material, E, nu)`` in ``param_names`` order (for
+        ``fem3d.physics.materials.parameters_from(material, E, nu)`` in ``param_names`` order (for
         ``neo_hookean``: ``C = 0.5 E / (2 (1 + nu))``, ``D = 0.5 E nu / ((1 + nu)(1 - 2 nu))``).
     """
-    from fem3d.materials import parameters_from
+    from fem3d.physics.materials import parameters_from
 
     values = parameters_from(material, E=E, nu=nu)
     return np.array([values[p] for p in param_names], dtype=np.float64)
@@ -190,11 +190,11 @@ class MaterialGroup:
     Parameters
     ----------
     material : str
-        Registered material name (:func:`fem3d.materials.names`).
+        Registered material name (:func:`fem3d.physics.materials.names`).
     elements : (k,) int64, optional
         The tets of this group; None: every tet no other group lists (at most one group).
     params : mapping, optional
-        ``E`` and ``nu`` (mapped by :func:`fem3d.materials.parameters_from`) and/or the
+        ``E`` and ``nu`` (mapped by :func:`fem3d.physics.materials.parameters_from`) and/or the
         material's own parameters, each a number or a per-element ``(k,)`` array (a
         stiffness field), plus the material's per-element inputs (e.g. a fibre direction
         ``a``: one ``(3,)`` value or ``(k, 3)``; a missing one defaults to the first unit
@@ -236,7 +236,7 @@ class GroupData:
     @property
     def allows_inversion(self) -> bool:
         """Whether this group's material is defined for ``J <= 0``."""
-        from fem3d.materials import info
+        from fem3d.physics.materials import info
 
         return info(self.material).allows_inversion
 
@@ -279,7 +279,7 @@ GROUP_PARAMS = _GroupToken()
 
 class GroupedKernels:
     """``model.mat`` of a model with several material groups, per-element parameters or
-    per-element inputs: the kernels of :class:`fem3d.kernels.KernelModule` with the same
+    per-element inputs: the kernels of :class:`fem3d.kernels.dispatch.KernelModule` with the same
     arguments over the whole mesh, evaluated group by group.
 
     Element arrays (``x_e``, ``dphi_dX``, ``vol``, the fused kernels' ``T`` and ``index``) are
@@ -356,7 +356,7 @@ class GroupedKernels:
 def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
                     path: str | None) -> tuple[GroupData, ...]:
     """Check the groups against a mesh of ``m`` tets and resolve their parameters."""
-    from fem3d.materials import info
+    from fem3d.physics.materials import info
 
     if not groups:
         raise ParameterError("build_model needs at least one material group")
@@ -407,8 +407,8 @@ def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None
 
 def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
                    backend: str | None) -> GroupData:
-    from fem3d.kernels import material_kernels
-    from fem3d.materials import info, parameters_from
+    from fem3d.kernels.dispatch import material_kernels
+    from fem3d.physics.materials import info, parameters_from
 
     material = info(g.material)
     k = m if el is None else el.size
@@ -460,7 +460,7 @@ def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
 def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
     """Volume-weighted mean small-strain ``E`` and ``nu`` of the groups (for scales, such as
     the Newton tolerance, and the viewer's sliders)."""
-    from fem3d.materials import lame_to_E_nu, small_strain_lame
+    from fem3d.physics.materials import lame_to_E_nu, small_strain_lame
 
     total_E = total_nu = total_vol = 0.0
     for g in groups:
@@ -500,7 +500,7 @@ class Model:
         Kernel parameters in the material's ``PARAM_NAMES`` order (one group with shared
         parameters), else the token :data:`GROUP_PARAMS` that :class:`GroupedKernels` takes.
     mat : object
-        Material kernels: ``fem3d.kernels.material_kernels`` (one group with shared
+        Material kernels: ``fem3d.kernels.dispatch.material_kernels`` (one group with shared
         parameters) or :class:`GroupedKernels`; both take ``(..., model.params)``.
     geo : object
         Geometry kernels.
@@ -676,7 +676,7 @@ class Model:
 
 def _with_E_nu(g: GroupData, E: float, nu: float) -> GroupData:
     """Group ``g`` with the parameters of ``E, nu`` (scalar shape parameters kept)."""
-    from fem3d.materials import info, parameters_from
+    from fem3d.physics.materials import info, parameters_from
 
     material = info(g.material)
     shape = {p: g.values[p] for p in material.shape_params if np.ndim(g.values[p]) == 0}
@@ -743,7 +743,7 @@ def build_model(
     InputError
         Bad arrays, a vertex index out of range, or a tet with non-positive volume.
     """
-    from fem3d.kernels import geometry_kernels
+    from fem3d.kernels.dispatch import geometry_kernels
 
     if rho is not None and density is not None:
         raise ParameterError("give the density once: rho= or density=, not both")

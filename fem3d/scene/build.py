@@ -1,7 +1,7 @@
-"""From a scene description (:mod:`fem3d.scene`) to arrays: meshes, selections, pulls.
+"""From a scene description (:mod:`fem3d.scene.spec`) to arrays: meshes, selections, pulls.
 
 :func:`assemble` reads every body's mesh (a tet mesh, or a closed surface tetrahedralized by
-:mod:`fem3d.tetrahedralize`), applies its transform, evaluates its selectors on the
+:mod:`fem3d.mesh.tetrahedralize`), applies its transform, evaluates its selectors on the
 transformed rest positions and concatenates the bodies into one mesh. It is the one place
 where a scene's settings turn into numbers; :class:`fem3d.simulation.Simulation` takes the
 result.
@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.mesh import check_skin_placement
-from fem3d.rundir import check_input_file
-from fem3d.scene import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
+from fem3d.io.rundir import check_input_file
+from fem3d.mesh.formats import check_skin_placement
+from fem3d.scene.spec import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
 __all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
            "select_vertices", "transform_points", "rotation_matrix", "data_dir", "load_scene",
@@ -37,7 +37,7 @@ def data_dir() -> Path:
     env = os.environ.get("FEM3D_DATA")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent / "data"
+    return Path(__file__).resolve().parents[2] / "data"
 
 
 class _Names(Sequence):
@@ -90,7 +90,7 @@ def rotation_matrix(rotate_deg: Sequence[float]) -> np.ndarray:
 
 
 def transform_points(X: np.ndarray, transform) -> np.ndarray:
-    """``R (scale X) + translate`` (:class:`fem3d.scene.TransformSpec`); the identity
+    """``R (scale X) + translate`` (:class:`fem3d.scene.spec.TransformSpec`); the identity
     transform returns ``X`` unchanged, bit for bit."""
     X = np.asarray(X, dtype=np.float64)
     s, rot, tr = float(transform.scale), tuple(transform.rotate_deg), tuple(transform.translate)
@@ -132,14 +132,14 @@ def _stat_key(p: Path) -> tuple[str, int, int]:
 
 @lru_cache(maxsize=16)
 def _read_tet(key: tuple[str, int, int]):
-    from fem3d.mesh import read_tet_mesh
+    from fem3d.mesh.formats import read_tet_mesh
 
     return read_tet_mesh(key[0])
 
 
 @lru_cache(maxsize=16)
 def _read_surface(key: tuple[str, int, int]):
-    from fem3d.mesh import read_surface_mesh
+    from fem3d.mesh.formats import read_surface_mesh
 
     return read_surface_mesh(key[0])
 
@@ -168,7 +168,7 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
     skin_V = skin_F = None
     try:
         if is_surface_file(path):
-            from fem3d.tetrahedralize import tetrahedralize_file
+            from fem3d.mesh.tetrahedralize import tetrahedralize_file
 
             X, T, tet_path = tetrahedralize_file(
                 path, edge_length=body.tetrahedralize.edge_length,
@@ -258,7 +258,7 @@ def select_vertices(scene: Scene, X: np.ndarray, sel: Selector, key: str) -> np.
             raise scene.error(f"{key}.{kind}", f"vertex id {int(bad[0])} out of range [0, {n})")
         info = "the list is empty"
     elif kind == "nearest_to":
-        from fem3d.constraints import pick_nearest_vertices
+        from fem3d.physics.constraints import pick_nearest_vertices
 
         nt = sel.nearest_to
         p = np.asarray(nt.point, dtype=np.float64)
@@ -270,7 +270,7 @@ def select_vertices(scene: Scene, X: np.ndarray, sel: Selector, key: str) -> np.
         if nv.vertex >= n:
             raise scene.error(f"{key}.near_vertex.vertex",
                               f"vertex {nv.vertex} out of range [0, {n})")
-        from fem3d.constraints import pick_nearest_vertices
+        from fem3d.physics.constraints import pick_nearest_vertices
 
         ids = pick_nearest_vertices(X, X[nv.vertex], nv.radius)
         info = ""
@@ -351,7 +351,7 @@ class Assembled:
 
 
 def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    from fem3d.mesh import boundary_faces
+    from fem3d.mesh.formats import boundary_faces
 
     return np.arange(n), boundary_faces(T)
 

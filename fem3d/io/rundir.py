@@ -14,7 +14,7 @@
   (mesh, skin, scene file, ...). ``fem3d resume`` passes the checkpoint it resumes as
   ``allow`` (it replaces it atomically, on purpose).
 * **Temp cleanup**: the hidden ``.<name>.tmp*`` files that only a killed writer leaves
-  behind (:func:`fem3d.output.atomic_path`) are removed once the lock is held.
+  behind (:func:`fem3d.io.output.atomic_path`) are removed once the lock is held.
 
 :func:`check_input_file` is what every reader calls first: it refuses FIFOs, devices and
 sockets (reading one would block forever), symlink loops and folders with one clear line.

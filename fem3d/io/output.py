@@ -852,7 +852,7 @@ def load_checkpoint(path: PathLike) -> dict[str, Any]:
     InputError
         Missing file, not a fem3d checkpoint, or unreadable.
     """
-    from fem3d.rundir import check_input_file
+    from fem3d.io.rundir import check_input_file
 
     path = check_input_file(path, "checkpoint")
     try:

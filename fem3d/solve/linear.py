@@ -160,7 +160,7 @@ AMG_AUTO_MIN_FREE_DOFS = 10000
 
 
 def choose_backend(backend: str | None, n_free_dofs: int) -> str:
-    """The linear back end a :class:`fem3d.integrators.System` uses.
+    """The linear back end a :class:`fem3d.solve.integrators.System` uses.
 
     Parameters
     ----------

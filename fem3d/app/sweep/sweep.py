@@ -2,8 +2,8 @@
 
 A sweep file names a base scene and the fields to vary, as dotted key paths of the scene
 (``bodies[0].material.E``, ``simulation.dt``); every combination is one *case*: the base
-scene with those overrides (:func:`fem3d.scene.apply_overrides`), run by the code of
-``fem3d run`` (:func:`fem3d.cli.run_scene`) as one Dask task in a worker process. See
+scene with those overrides (:func:`fem3d.scene.spec.apply_overrides`), run by the code of
+``fem3d run`` (:func:`fem3d.app.cli.run_scene`) as one Dask task in a worker process. See
 ``docs/sweeps.md`` for the file format, the output layout and cluster use.
 
 Stages
@@ -14,7 +14,7 @@ Stages
    rows of ``[zip]``, of ``[sample]`` (seeded random, Latin hypercube, Sobol, Halton) and of
    ``[[cases]]``; each non-empty part is one factor of the product.
 3. :func:`plan_sweep` - resolved scenes and case ids (the first 16 hex digits of the resolved
-   scene's :meth:`~fem3d.scene.Scene.digest`), which cases are already complete.
+   scene's :meth:`~fem3d.scene.spec.Scene.digest`), which cases are already complete.
 4. :func:`run_sweep` - the Dask part: one task per case to run (embedded ``LocalCluster``
    with single-threaded worker processes, or an existing scheduler), a progress bar, fault
    tolerance (a worker that dies has its case rescheduled elsewhere by the scheduler), then
@@ -24,7 +24,7 @@ Output folder ``DIR``
 ---------------------
 ``DIR/sweep.json`` (the sweep and its case list), ``DIR/results.csv``, ``DIR/results.png``,
 and per case ``DIR/cases/<id>/``: ``scene.json`` (the resolved scene), what ``fem3d run``
-writes (frames, ``energy.csv``), ``trajectory.npz`` in dataset mode (:mod:`fem3d.dataset`),
+writes (frames, ``energy.csv``), ``trajectory.npz`` in dataset mode (:mod:`fem3d.io.dataset`),
 ``started.json`` (which worker, process and attempt) and, written last by an atomic rename,
 ``summary.json``: a case folder holding ``summary.json`` is complete; any other is partial
 and is cleared and run again by the next invocation.
@@ -156,7 +156,7 @@ class ResultsSpec(_Spec):
 
 
 class DatasetSpec(_Spec):
-    """``[dataset]``: write ``trajectory.npz`` per case (see :mod:`fem3d.dataset`)."""
+    """``[dataset]``: write ``trajectory.npz`` per case (see :mod:`fem3d.io.dataset`)."""
 
     enabled: bool = True
     dtype: Literal["float32", "float64"] = "float32"
@@ -556,29 +556,29 @@ class SweepPlan:
 
 
 # --------------------------------------------------------------------------------------
-# glue to the scenes layer (fem3d.scene / fem3d.cli.run_scene): every use is here
+# glue to the scenes layer (fem3d.scene.spec / fem3d.app.cli.run_scene): every use is here
 
 
 def _load_base(spec: SweepFile) -> Any:
-    from fem3d.scene import load_scene
+    from fem3d.scene.spec import load_scene
 
     return load_scene(spec.scene, dict(spec.set) or None)
 
 
 def _resolve(base: Any, overrides: Mapping[str, Any], source: str) -> Any:
-    from fem3d.scene import apply_overrides
+    from fem3d.scene.spec import apply_overrides
 
     return apply_overrides(base, dict(overrides), source=source) if overrides else base
 
 
 def _scene_schema() -> dict[str, Any]:
-    from fem3d.scene import scene_schema
+    from fem3d.scene.spec import scene_schema
 
     return scene_schema()
 
 
 def _scene_from_dict(d: Mapping[str, Any]) -> Any:
-    from fem3d.scene import Scene
+    from fem3d.scene.spec import Scene
 
     return Scene.from_dict(dict(d))
 
@@ -589,7 +589,7 @@ def _frame_format(scene_dict: Mapping[str, Any]) -> Any:
 
 def _run_scene(scene: Any, out: Path) -> dict[str, Any]:
     """Run ``scene`` into ``out`` with the code of ``fem3d run``; the RunSummary as a dict."""
-    from fem3d.cli import run_scene
+    from fem3d.app.cli import run_scene
 
     summary = run_scene(scene, out, quiet=True, preview=False)
     return dataclasses.asdict(summary)
@@ -669,7 +669,7 @@ def plan_sweep(spec: SweepFile, out: Path, *, retry_failed: bool = False,
 
 
 def _write_json(path: Path, data: Any) -> None:
-    from fem3d.output import atomic_write
+    from fem3d.io.output import atomic_write
 
     atomic_write(path, json.dumps(data, indent=1, allow_nan=False, default=str) + "\n")
 
@@ -732,7 +732,7 @@ def run_case(task: Mapping[str, Any]) -> dict[str, Any]:
                 contextlib.redirect_stderr(log), contextlib.redirect_stdout(log):
             record.update(_run_scene(scene, case_dir))
         if task.get("dataset") and record.get("status") == "ok":
-            from fem3d.dataset import write_case_trajectory
+            from fem3d.io.dataset import write_case_trajectory
 
             write_case_trajectory(case_dir, dtype=task["dataset"]["dtype"],
                                   meta={"id": task["id"], "params": task["params"]})
@@ -959,7 +959,7 @@ def _cell(value: Any) -> str:
 def write_results(out: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]]) -> None:
     """``out/results.csv`` (one row per case) and ``out/results.png`` (the metric against
     each swept parameter), both written atomically."""
-    from fem3d.output import atomic_write
+    from fem3d.io.output import atomic_write
 
     columns = ["case", "id", *spec.swept_keys, "status", "message", *METRICS, "worker",
                "attempt"]
@@ -984,7 +984,7 @@ def plot_results(path: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]])
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from fem3d.output import atomic_write
+    from fem3d.io.output import atomic_write
 
     metric = spec.results.metric
     keys = spec.swept_keys or ["case"]

@@ -10,7 +10,7 @@ A scene body whose ``mesh`` is a surface (OBJ/STL/PLY/OFF) is tetrahedralized he
   knob) and ``epsilon`` (envelope: how far the tet boundary may deviate from the surface,
   relative to the diagonal: the fidelity knob), ``stop_quality`` (fTetWild's max-AMIPS energy
   it optimises down to: the quality knob; larger is faster and worse).
-* It runs in a child process (``python -m fem3d.tetrahedralize``): fTetWild prints its log
+* It runs in a child process (``python -m fem3d.mesh.tetrahedralize``): fTetWild prints its log
   straight to the C++ streams, can take long and can crash on pathological input. The log
   goes to ``<cache>/tetwild/<key>.log``, a time limit applies (``$FEM3D_TETWILD_TIMEOUT``
   seconds, default 900), and a crash is an :class:`~fem3d.errors.InputError`.
@@ -125,7 +125,7 @@ def tetrahedralize_file(
     Parameters
     ----------
     path : path
-        OBJ/STL/PLY/OFF surface (:func:`fem3d.mesh.read_surface_mesh`).
+        OBJ/STL/PLY/OFF surface (:func:`fem3d.mesh.formats.read_surface_mesh`).
     edge_length, epsilon : float
         Relative to the bounding-box diagonal (see the module docstring).
     stop_quality : float
@@ -135,7 +135,7 @@ def tetrahedralize_file(
     -------
     X : (n, 3) float64
     T : (m, 4) int64
-        Positively oriented (read back through :func:`fem3d.mesh.read_tet_mesh`).
+        Positively oriented (read back through :func:`fem3d.mesh.formats.read_tet_mesh`).
     mesh_path : str
         The cached ``.mesh``.
 
@@ -145,9 +145,9 @@ def tetrahedralize_file(
         Unreadable surface, no binding, fTetWild failed or timed out, or a surface it could
         not turn into a solid (naming ``path``).
     """
-    from fem3d.mesh import read_surface_mesh, read_tet_mesh
-    from fem3d.output import atomic_write
-    from fem3d.scene import cache_dir
+    from fem3d.io.output import atomic_write
+    from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
+    from fem3d.scene.spec import cache_dir
 
     path = Path(path)
     V, F = read_surface_mesh(path)
@@ -161,7 +161,7 @@ def tetrahedralize_file(
                              "pip install wildmeshing", path=path)
         log = folder / f"{key[:40]}.log"
         tmp = folder / f".{key[:40]}.{os.getpid()}.npz"
-        cmd = [sys.executable, "-m", "fem3d.tetrahedralize", str(path.resolve()), str(tmp),
+        cmd = [sys.executable, "-m", "fem3d.mesh.tetrahedralize", str(path.resolve()), str(tmp),
                repr(float(edge_length)), repr(float(epsilon)), repr(float(stop_quality))]
         t0 = time.perf_counter()
         work = Path(tempfile.mkdtemp(dir=folder, prefix=".work"))  # fTetWild writes into cwd
@@ -184,7 +184,7 @@ def tetrahedralize_file(
             X, T = d["X"], d["T"]
         tmp.unlink(missing_ok=True)
         _check_solid(path, V, F, X, T)
-        from fem3d.mesh import TetMesh, write_tet_mesh
+        from fem3d.mesh.formats import TetMesh, write_tet_mesh
 
         atomic_write(out, lambda p: write_tet_mesh(p, TetMesh(X, T)))
         meta = {"source": str(path.resolve()), "edge_length": edge_length, "epsilon": epsilon,
@@ -198,7 +198,7 @@ def tetrahedralize_file(
 
 def _child_env() -> dict[str, str]:
     env = dict(os.environ)
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(Path(__file__).resolve().parents[2])  # the folder holding the fem3d package
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
@@ -222,8 +222,8 @@ def _check_solid(path: Path, V: np.ndarray, F: np.ndarray, X: np.ndarray, T: np.
 
 
 def _main(argv: list[str]) -> int:
-    """Child process: ``python -m fem3d.tetrahedralize IN OUT.npz EDGE EPS QUALITY``."""
-    from fem3d.mesh import read_surface_mesh
+    """Child process: ``python -m fem3d.mesh.tetrahedralize IN OUT.npz EDGE EPS QUALITY``."""
+    from fem3d.mesh.formats import read_surface_mesh
 
     src, dst, edge, eps, quality = argv
     V, F = read_surface_mesh(src)

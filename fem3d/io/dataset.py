@@ -144,7 +144,7 @@ def write_trajectory(
     meta : dict, optional
         Extra JSON-safe entries of ``meta``.
     """
-    from fem3d.output import atomic_write
+    from fem3d.io.output import atomic_write
 
     if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")

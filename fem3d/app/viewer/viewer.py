@@ -99,7 +99,7 @@ SPRING_COLOR = (220, 40, 40)
 
 
 def _load_scene(name: str | Path) -> Any:
-    from fem3d.scenes import load_scene
+    from fem3d.scene.build import load_scene
 
     return load_scene(str(name))
 
@@ -115,7 +115,7 @@ def _make_simulation(scene: Any, integrator: str | None, backend: str | None) ->
 
 def _material_names() -> list[str]:
     try:
-        from fem3d.scene import material_names
+        from fem3d.scene.spec import material_names
     except ImportError:  # pragma: no cover - runtime missing
         return []
     return [str(n) for n in material_names()]
@@ -123,7 +123,7 @@ def _material_names() -> list[str]:
 
 def _with_material(scene: Any, name: str) -> Any:
     """``scene`` with every body's material model set to ``name`` (validated)."""
-    from fem3d.scene import apply_overrides
+    from fem3d.scene.spec import apply_overrides
 
     keys = {f"bodies[{i}].material.model": name for i in range(len(scene.bodies))}
     return apply_overrides(scene, keys, source="the viewer's material menu")
@@ -131,14 +131,14 @@ def _with_material(scene: Any, name: str) -> Any:
 
 def _builtin_scene_names() -> list[str]:
     try:
-        from fem3d.scenes import SCENES
+        from fem3d.scene.build import SCENES
     except ImportError:  # pragma: no cover - runtime missing
         return ["bunny", "arma"]
     return [str(name) for name in SCENES]
 
 
 def _pick(positions: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray:
-    from fem3d.constraints import pick_nearest_vertices
+    from fem3d.physics.constraints import pick_nearest_vertices
 
     return pick_nearest_vertices(positions, point, radius, nearest_if_empty=True)
 
@@ -746,7 +746,7 @@ class Viewer:
         self._post(self._do_reset)
 
     def switch_material(self, name: str) -> None:
-        """Change every body's material model (a name of :func:`fem3d.materials.names`),
+        """Change every body's material model (a name of :func:`fem3d.physics.materials.names`),
         keeping the motion: positions, velocities and time carry over."""
         self._post(lambda: self._do_switch_material(name))
 

@@ -1,7 +1,7 @@
 """Time integrators: linearly-implicit Euler and backward (implicit) Euler with Newton's method.
 
 Both work on the free DOFs ``q_free = P q`` (fixed vertices removed with the selection
-matrix of :class:`fem3d.constraints.Constraints`); fixed DOFs keep their rest position and a
+matrix of :class:`fem3d.physics.constraints.Constraints`); fixed DOFs keep their rest position and a
 zero velocity. A state is immutable (:class:`State`); an integrator is
 ``step(system, state, dt, pull) -> (State, StepStats)``, where :class:`System` caches what
 does not change between steps (model, constraints, reduced sparsity, the sparse solver with
@@ -35,15 +35,16 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.assembly import (
+from fem3d.errors import SimulationError
+from fem3d.physics.assembly import (
     assemble_gradient,
     count_inverted,
     kinetic_energy,
     potential_energy,
 )
-from fem3d.constraints import Constraints
-from fem3d.errors import SimulationError
-from fem3d.linsolve import (
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.model import Model, validate_dt
+from fem3d.solve.linear import (
     AMGPreconditioner,
     NotPositiveDefinite,
     PreconditionedCG,
@@ -52,7 +53,6 @@ from fem3d.linsolve import (
     iterations_per_decade,
     rigid_body_modes,
 )
-from fem3d.model import Model, validate_dt
 
 __all__ = [
     "State",
@@ -366,7 +366,7 @@ class System:
     constraints : Constraints
         Fixed vertices.
     solver_backend : str, optional
-        Passed to :class:`fem3d.linsolve.SparseSPDSolver` (default ``"auto"``).
+        Passed to :class:`fem3d.solve.linear.SparseSPDSolver` (default ``"auto"``).
 
     Attributes
     ----------
@@ -421,7 +421,7 @@ class System:
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
         #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
-        #: back end (:func:`fem3d.linsolve.choose_backend`: ``"auto"`` picks by size).
+        #: back end (:func:`fem3d.solve.linear.choose_backend`: ``"auto"`` picks by size).
         self.linear_backend = choose_backend(solver_backend, constraints.n_free)
         self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
         self._solver: SparseSPDSolver | None = None
@@ -430,7 +430,7 @@ class System:
             self._solver = self._new_direct_solver(self.pattern_free)
         elif constraints.n_free:  # the AMG's aggregation: once per pattern, like an analysis
             self.amg.analyze(self.pattern_free)
-        from fem3d.kernels import spring_kernels
+        from fem3d.kernels.dispatch import spring_kernels
 
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
@@ -1402,7 +1402,7 @@ class ObjectiveTerm(Protocol):
         True: the step runs Newton to its tolerance instead of stopping at the iteration cap
         (``converged_max_iterations`` caps it).
 
-    Per-step hooks (contact, :class:`fem3d.contact.ContactTerm`):
+    Per-step hooks (contact, :class:`fem3d.physics.contact.ContactTerm`):
 
     ``begin_step(q_t, v_t, q_base, t, dt, step=)``
         Called once before Newton (lag friction, place obstacles, check the pins' motion).
@@ -1494,9 +1494,9 @@ def implicit_euler(
     linear_solver : {"direct", "reuse", "amg"}, optional
         How the Newton systems are solved; a :class:`System` whose back end is ``"amg"``
         (``System(..., "amg")``, or ``"auto"`` above
-        :data:`fem3d.linsolve.AMG_AUTO_MIN_FREE_DOFS` free DOFs) always uses ``"amg"``.
+        :data:`fem3d.solve.linear.AMG_AUTO_MIN_FREE_DOFS` free DOFs) always uses ``"amg"``.
         ``"amg"``: an inexact Newton: CG preconditioned by a smoothed-aggregation AMG
-        V-cycle (:class:`fem3d.linsolve.AMGPreconditioner`), solved to the forcing term
+        V-cycle (:class:`fem3d.solve.linear.AMGPreconditioner`), solved to the forcing term
         ``eta_k = min(forcing_max, 0.9 (|g_k| / |g_k-1|)^2)`` (Eisenstat-Walker: loose early,
         tighter as Newton converges; never tighter than needed to reach the gradient
         tolerance, whose value is unchanged; :func:`_forcing_term`). The hierarchy is kept
@@ -1507,7 +1507,7 @@ def implicit_euler(
         PSD-projected one for the rest of the step (``psd_fallbacks``).
         ``"direct"`` (default): factorize ``M + dt^2 H`` at every Newton iteration.
         ``"reuse"``: solve by conjugate gradients preconditioned with the last factorization
-        (:class:`fem3d.linsolve.PreconditionedCG`), kept across iterations and steps, and
+        (:class:`fem3d.solve.linear.PreconditionedCG`), kept across iterations and steps, and
         refactorize when CG does not converge within ``cg_maxiter`` iterations, meets
         negative curvature or returns a non-descent direction, when the step's previous
         solve needed more than ``cg_maxiter / 2`` iterations (the preconditioner has aged),

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fem3d.kernels import c_extension
+from fem3d.kernels.dispatch import c_extension
 
 __all__ = ["PARALLEL_MIN_TETS", "Schedule", "build_schedule", "schedule_for"]
 

@@ -7,7 +7,7 @@ known one) and is frozen; paths are relative to the scene file's folder (``base_
 
 ::
 
-    from fem3d.scene import load_scene, apply_overrides
+    from fem3d.scene.spec import load_scene, apply_overrides
     scene = load_scene("bunny")                            # data/scenes/bunny.toml
     scene = load_scene("my_scene.toml")                    # a scene file
     scene = load_scene("beam.msh")                         # a one-body scene around a mesh
@@ -258,13 +258,13 @@ class MaterialSpec(_Spec):
 
 
 def material_names() -> list[str]:
-    """Names of the generated materials (:func:`fem3d.kernels.available_materials`)."""
+    """Names of the generated materials (:func:`fem3d.kernels.dispatch.available_materials`)."""
     try:
-        from fem3d.materials import names  # the materials helper's registry, once on main
+        from fem3d.physics.materials import names  # the materials helper's registry, once on main
 
         return list(names())
     except ImportError:
-        from fem3d.kernels import available_materials
+        from fem3d.kernels.dispatch import available_materials
 
         return list(available_materials())
 
@@ -440,7 +440,7 @@ class InteractionSpec(_Spec):
 
 
 class Scene(_Spec):
-    """Everything a run needs, as data (see :mod:`fem3d.scene`)."""
+    """Everything a run needs, as data (see :mod:`fem3d.scene.spec`)."""
 
     name: StrictStr = "scene"
     base_dir: StrictStr = "."
@@ -499,7 +499,7 @@ class Scene(_Spec):
 
     def check_files(self) -> None:
         """Every referenced file exists (else ``FILE: key: no such file PATH``)."""
-        from fem3d.rundir import check_input_file
+        from fem3d.io.rundir import check_input_file
 
         for key, p in self.files():
             if not (p.exists() or p.is_symlink()):
@@ -743,7 +743,7 @@ def scenes_dir() -> Path:
     env = os.environ.get("FEM3D_SCENES")
     if env:
         return Path(env)
-    from fem3d.scenes import data_dir
+    from fem3d.scene.build import data_dir
 
     return data_dir() / "scenes"
 
@@ -758,7 +758,7 @@ def scene_names() -> list[str]:
 
 def read_scene_file(path: str | os.PathLike[str]) -> Scene:
     """Parse and validate one TOML scene file (relative paths: relative to its folder)."""
-    from fem3d.rundir import check_input_file
+    from fem3d.io.rundir import check_input_file
 
     path = check_input_file(path, "scene file")
     try:
@@ -791,15 +791,15 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
     :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
     ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
     ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
-    from fem3d.rundir import check_input_file
-    from fem3d.scenes import is_surface_file, rest_positions
+    from fem3d.io.rundir import check_input_file
+    from fem3d.scene.build import is_surface_file, rest_positions
 
     p = check_input_file(path, "mesh")
     dflt = MESH_SCENE_DEFAULTS
     body = {"mesh": str(p.resolve()), "material": {
         "model": "neo_hookean", "E": dflt["E"], "nu": dflt["nu"], "density": dflt["density"]}}
     if is_surface_file(p):  # the surface's own extent: no tetrahedralization here
-        from fem3d.mesh import read_surface_mesh
+        from fem3d.mesh.formats import read_surface_mesh
 
         X = read_surface_mesh(p)[0]
     else:
@@ -848,8 +848,8 @@ def scene_from_arrays(X: Any, T: Any, overrides: Mapping[str, Any] | None = None
     """
     import numpy as np
 
-    from fem3d.mesh import TetMesh, write_tet_mesh
-    from fem3d.output import atomic_write
+    from fem3d.io.output import atomic_write
+    from fem3d.mesh.formats import TetMesh, write_tet_mesh
 
     X = np.ascontiguousarray(X, dtype=np.float64)
     T = np.ascontiguousarray(T, dtype=np.int64)

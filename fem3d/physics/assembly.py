@@ -9,7 +9,7 @@ Sign convention (the assignment's): with ``V(q) = sum_e vol_e psi(F_e(q))``,
 
 Every derivative comes from the generated kernels (``model.mat.gradient`` /
 ``model.mat.hessian``); this module only scatters element arrays into global ones, each with
-one ``np.bincount`` over the maps precomputed in :class:`fem3d.model.Model`.
+one ``np.bincount`` over the maps precomputed in :class:`fem3d.physics.model.Model`.
 
 Positions ``q`` may be given as ``(n, 3)`` or flattened vertex-major ``(3n,)``.
 """
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.model import Model
+from fem3d.physics.model import Model
 
 __all__ = [
     "element_positions",

@@ -5,7 +5,7 @@ continuous collision detection (CCD) — comes from ``ipctk``; this module owns 
 fem3d's degrees of freedom and how it enters backward Euler's objective.
 
 Collision mesh
-    The boundary surface of the simulation mesh (:func:`fem3d.mesh.boundary_faces`; interior
+    The boundary surface of the simulation mesh (:func:`fem3d.mesh.formats.boundary_faces`; interior
     vertices are not in it), followed by the vertices and triangles of the triangle-mesh
     obstacles (static, or kinematic: their positions are a function of time), in one
     ``ipctk.CollisionMesh``; plane obstacles are ``ipctk`` planes (point + normal). Collision
@@ -57,7 +57,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.mesh import boundary_faces
+from fem3d.mesh.formats import boundary_faces
 
 __all__ = [
     "PlaneObstacle",
@@ -130,7 +130,8 @@ class MeshObstacle:
         Rest positions (the motion's reference).
     faces : (f, 3) int64
     motion : callable ``(rest (k, 3), t) -> (k, 3)``, optional
-        Positions at time ``t`` (for example ``fem3d.motion.Keyframes.apply``); None: static.
+        Positions at time ``t`` (for example ``fem3d.physics.motion.Keyframes.apply``); None:
+        static.
     name : str
     """
 
@@ -895,7 +896,8 @@ class ContactModel:
 
 
 class ContactTerm:
-    """A :class:`ContactModel` as an objective term of :func:`fem3d.integrators.implicit_euler`.
+    """A :class:`ContactModel` as an objective term of backward Euler
+    (:func:`fem3d.solve.integrators.implicit_euler`).
 
     Implements the integrator's ``ObjectiveTerm`` protocol in positions ``q`` (barrier +
     lagged friction energy, gradient, PSD-projected Hessian, ``max_step`` by CCD) and the
@@ -1093,14 +1095,14 @@ def contact_from_scene(scene, assembled) -> ContactTerm:
 
     ``dhat`` is relative to the diagonal of the scene's bounding box at rest (bodies and
     mesh obstacles), ``eps_v`` and ``tolerance`` to that diagonal per second; a mesh
-    obstacle is a surface file (OBJ, STL, ... read by :func:`fem3d.mesh.read_surface_mesh`)
+    obstacle is a surface file (OBJ, STL, ... read by :func:`fem3d.mesh.formats.read_surface_mesh`)
     under its ``transform``, moving by its keyframed ``motion`` (as moving pins do; the pivot
     defaults to the obstacle's vertex centroid).
 
     Parameters
     ----------
-    scene : fem3d.scene.Scene
-    assembled : fem3d.scenes.Assembled
+    scene : fem3d.scene.spec.Scene
+    assembled : fem3d.scene.build.Assembled
 
     Raises
     ------
@@ -1108,9 +1110,9 @@ def contact_from_scene(scene, assembled) -> ContactTerm:
         ``FILE: key.path: ...`` for a bad obstacle file or motion.
     """
     from fem3d.errors import InputError
-    from fem3d.mesh import read_surface_mesh
-    from fem3d.motion import Keyframes
-    from fem3d.scenes import transform_points
+    from fem3d.mesh.formats import read_surface_mesh
+    from fem3d.physics.motion import Keyframes
+    from fem3d.scene.build import transform_points
 
     spec = scene.contact
     planes, meshes = [], []

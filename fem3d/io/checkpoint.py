@@ -1,13 +1,13 @@
 """Run checkpoints of ``fem3d run`` / ``fem3d resume``: everything needed to continue a run.
 
-A checkpoint is one ``.npz`` written atomically by :func:`fem3d.output.save_checkpoint`
+A checkpoint is one ``.npz`` written atomically by :func:`fem3d.io.output.save_checkpoint`
 (``DIR/checkpoint.npz``). It holds
 
 * the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
   velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pulls' state (which
   are attached, the springs) and the energy put in so far (the linearly-implicit runaway
   bound);
-* ``settings``: ``scene`` - the whole scene (:meth:`fem3d.scene.Scene.to_dict`: every path
+* ``settings``: ``scene`` - the whole scene (:meth:`fem3d.scene.spec.Scene.to_dict`: every path
   absolute, the target step count in ``simulation.steps``), so ``fem3d resume DIR`` needs
   nothing else - and the run's own options: ``kernels`` and ``solver`` (the resolved back
   ends), ``checkpoint_every``, ``preview``;
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.output import PathLike, load_checkpoint, save_checkpoint
+from fem3d.io.output import PathLike, load_checkpoint, save_checkpoint
 
 __all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_checkpoint",
            "mesh_digest"]
@@ -63,7 +63,7 @@ class RunCheckpoint:
     Attributes
     ----------
     settings : dict
-        JSON-able options of the run (see :mod:`fem3d.cli`).
+        JSON-able options of the run (see :mod:`fem3d.app.cli`).
     snapshot : dict
         :meth:`fem3d.simulation.Simulation.snapshot`.
     energy : (n_rows, 4) float64

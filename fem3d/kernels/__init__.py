@@ -1,0 +1,2 @@
+"""Generated kernels at run time: the back-end choice and dispatch (:mod:`.dispatch`) and the
+race-free thread schedule of the fused C assemblies (:mod:`.schedule`)."""

@@ -1,0 +1,1 @@
+"""Solving: time integrators, Newton's method, Newton directions and linear solvers."""
