@@ -29,12 +29,12 @@ def _import_fem3d(what: str):
 def _fem3d_model(mesh: BenchMesh, backend: str):
     """``fem3d.physics.model.build_model`` for the mesh with the kernel back end (Skip if
     absent)."""
-    kernels = _import_fem3d("kernels")
+    kernels = _import_fem3d("kernels.dispatch")
     try:
         kernels.material_kernels("neo_hookean", backend=backend)
     except Exception as err:  # noqa: BLE001 - e.g. the C extension is not built
         raise Skip(f"fem3d kernels backend {backend!r} unavailable: {err}") from err
-    model_mod = _import_fem3d("model")
+    model_mod = _import_fem3d("physics.model")
     return model_mod.build_model(mesh.X, mesh.T, E=mesh.E, nu=mesh.nu, rho=mesh.rho,
                                  backend=backend)
 
@@ -53,19 +53,19 @@ def _register_kernel_rows(backend: str) -> None:
     @register(f"energy/{lib}", group="energy", library=lib, note=note)
     def _energy(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)
-        asm = _import_fem3d("assembly")
+        asm = _import_fem3d("physics.assembly")
         return lambda: asm.potential_energy(model, mesh.q)
 
     @register(f"gradient/{lib}", group="gradient", library=lib)
     def _gradient(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)
-        asm = _import_fem3d("assembly")
+        asm = _import_fem3d("physics.assembly")
         return lambda: asm.assemble_gradient(model, mesh.q)
 
     @register(f"hessian_elements/{lib}", group="hessian_elements", library=lib)
     def _hess_e(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)
-        asm = _import_fem3d("assembly")
+        asm = _import_fem3d("physics.assembly")
         # one output buffer reused across calls, as the Warp row reuses its (m, 12, 12) array
         out = np.empty((model.n_tets, 12, 12))
 
@@ -78,7 +78,7 @@ def _register_kernel_rows(backend: str) -> None:
     @register(f"hessian_csr/{lib}", group="hessian_csr", library=lib)
     def _hess_csr(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)
-        asm = _import_fem3d("assembly")
+        asm = _import_fem3d("physics.assembly")
         return lambda: asm.assemble_hessian(model, mesh.q)
 
 
@@ -102,7 +102,7 @@ def _register_solver_rows(backend: str) -> None:
     }
 
     def solver(mesh: BenchMesh):
-        ls = _import_fem3d("linsolve")
+        ls = _import_fem3d("solve.linear")
         if backend not in ls.available_backends():
             raise Skip(f"fem3d.solve.linear back end {backend!r} not installed")
         A = mesh.system.A
@@ -110,7 +110,7 @@ def _register_solver_rows(backend: str) -> None:
 
     @register(f"analyze/{lib}", group="analyze", note=notes[backend], **kw)
     def _analyze(mesh: BenchMesh):
-        ls = _import_fem3d("linsolve")
+        ls = _import_fem3d("solve.linear")
         _, A = solver(mesh)
         return lambda: ls.SparseSPDSolver(A, backend=backend)
 
@@ -138,7 +138,7 @@ def _register_amg_rows() -> None:
             "hierarchy setup, solve = V-cycle preconditioned CG to |r| <= 1e-8 |b|.")
 
     def amg(mesh: BenchMesh):
-        ls = _import_fem3d("linsolve")
+        ls = _import_fem3d("solve.linear")
         free_vertices = mesh.system.free[::3] // 3
         return ls.AMGPreconditioner(ls.rigid_body_modes(mesh.X[free_vertices])), mesh.system.A
 
@@ -168,9 +168,9 @@ def _register_amg_rows() -> None:
 
 
 # ------------------------------------------------------------------------------ integrators
-def _register_step_rows(backend: str) ->
-None:
-    """One backward-Euler step of the clamped box from the deformed state (fem3d.solve.integrators)."""
+def _register_step_rows(backend: str) -> None:
+    """One backward-Euler step of the clamped box from the deformed state
+    (fem3d.solve.integrators)."""
     lib = f"fem3d-{backend}"
 
     @register(f"step/{lib}-implicit", group="step", library=f"{lib} implicit Euler",
@@ -179,8 +179,8 @@ None:
                    "at rest with velocity 10 (q - X), 5 Newton iterations at most.")
     def _step(mesh: BenchMesh):
         model = _fem3d_model(mesh, backend)
-        integ = _import_fem3d("integrators")
-        cons = _import_fem3d("constraints")
+        integ = _import_fem3d("solve.integrators")
+        cons = _import_fem3d("physics.constraints")
         fixed = np.flatnonzero(mesh.X[:, 2] <= mesh.X[:, 2].min() + 1e-12)
         c = cons.Constraints.from_fixed_vertices(mesh.X, fixed)
         system = integ.System(model, c)
