@@ -29,8 +29,9 @@ from fem3d.mesh.formats import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model, validate_dt
+from fem3d.physics.springs import Pull
 from fem3d.scene.spec import Scene
-from fem3d.solve.integrators import INTEGRATORS, Pull, State, StepStats, System
+from fem3d.solve.integrators import INTEGRATORS, State, StepStats, System
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 

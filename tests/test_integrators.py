@@ -405,7 +405,7 @@ def test_reuse_lags_the_newton_matrix_and_keeps_the_tolerance():
 def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
     from fem3d.kernels.dispatch import c_extension
     from fem3d.physics.assembly import hessian_data
-    from fem3d.solve.integrators import Pull
+    from fem3d.physics.springs import Pull
 
     if backend == "c" and c_extension() is None:
         pytest.skip("C extension not built")
@@ -648,7 +648,7 @@ def test_moving_pins_agree_between_the_schemes_for_a_small_step():
 
 
 def test_pull_with_per_spring_stiffness_and_combined_pulls():
-    from fem3d.solve.integrators import Pull
+    from fem3d.physics.springs import Pull
 
     model = small_model()
     system = make_system(model, [0])
