@@ -28,6 +28,7 @@ __all__ = [
     "assemble_gradient",
     "assemble_forces",
     "hessian_data",
+    "add_element_hessians",
     "assemble_hessian",
     "assemble_stiffness",
     "mass_matrix_mesh",
@@ -127,6 +128,32 @@ def hessian_data(model: Model, q: np.ndarray, *, psd: bool = False) -> np.ndarra
     H = getattr(model.mat, name)(element_positions(model, q), model.dphi_dX, model.vol,
                                  model.params)
     return model.assemble_blocks(H)
+
+
+def add_element_hessians(model: Model, kernel: str, q: np.ndarray, vol: np.ndarray,
+                         scatter: np.ndarray, out: np.ndarray) -> None:
+    """Add the element Hessians into ``out[scatter]`` in place.
+
+    Parameters
+    ----------
+    model : Model
+    kernel : {"hessian", "hessian_psd"}
+        The exact or the PSD-projected element Hessian.
+    q : (n, 3) or (3n,) float64
+    vol : (m,) float64
+        Element volumes with any per-element scale folded in (``dt^2 vol``, ``beta vol``).
+    scatter : (m, 144) int
+        Slot in ``out`` of every element-matrix entry (the model's, or a reduced pattern's).
+    out : (k,) float64
+        Accumulated into.
+    """
+    if model.mat.has_assemble(kernel):
+        getattr(model.mat, f"{kernel}_assemble")(
+            q, model.T, model.dphi_dX, vol, model.params, scatter, out)
+    else:
+        x_e = np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), model.T, axis=0)
+        H = getattr(model.mat, kernel)(x_e, model.dphi_dX, vol, model.params)
+        out += np.bincount(scatter, weights=H.reshape(-1), minlength=out.size)
 
 
 def assemble_hessian(model: Model, q: np.ndarray) -> sp.csr_matrix:

@@ -1,0 +1,208 @@
+"""The interface every term of a time step's objective shares, and the step's unknowns.
+
+A time step minimises one objective ``E(x)`` over its unknowns ``x`` (backward Euler: the free
+velocities). :class:`StepMap` says how ``x`` gives the positions and velocities of every
+DOF; a :class:`Term` is one summand of ``E``, written either in the positions ``q(x)``
+(``variable = "position"``: elasticity, pull springs, contact; an integrator applies the
+chain rule ``dq/dx``) or in the unknowns themselves (``variable = "velocity"``: inertia,
+gravity's work, Rayleigh dissipation). An integrator sums terms; it knows none by name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+
+from fem3d.physics.constraints import Constraints
+
+__all__ = ["StepMap", "Term", "HessianSink", "PositionTerm", "as_term", "overrides"]
+
+
+@dataclass(frozen=True, eq=False)
+class StepMap:
+    """The affine map from one step's unknowns ``x`` (free DOFs) to positions and velocities.
+
+    ``q(x) = q_base + h P^T x`` and ``v(x) = P^T x + v_prescribed``, with ``P`` the selection
+    of the free DOFs; the inertia term measures ``v(x) - v_hat``. Backward Euler: ``h = dt``,
+    ``q_base = q_t`` with the pins at their end-of-step positions, ``v_hat = v_t``.
+
+    Attributes
+    ----------
+    constraints : Constraints
+    h : float
+        ``dq / dx`` on the free DOFs.
+    dt : float
+        The time step.
+    t : float
+        Time at the start of the step.
+    step : int
+        Index of the step (steps taken before it).
+    q_t, v_t : (3n,) float64
+        Positions and velocities at the start of the step.
+    q_base : (3n,) float64
+        ``q(0)``: the positions with the free DOFs' unknowns at zero.
+    v_hat_free : (n_free,) float64
+        The inertia term's target velocity on the free DOFs.
+    v_prescribed : (3n,) float64 or None
+        Velocity of the fixed DOFs (moving pins; zero on free DOFs); None: pins at rest.
+    dv_prescribed : (3n,) float64 or None
+        Their velocity change over the step (``v_prescribed - v_t`` on fixed DOFs).
+    """
+
+    constraints: Constraints
+    h: float
+    dt: float
+    t: float
+    step: int
+    q_t: np.ndarray
+    v_t: np.ndarray
+    q_base: np.ndarray
+    v_hat_free: np.ndarray
+    v_prescribed: np.ndarray | None = None
+    dv_prescribed: np.ndarray | None = None
+
+    def positions(self, x: np.ndarray) -> np.ndarray:
+        """``q(x)``, ``(3n,)``."""
+        return self.q_base + self.h * self.constraints.expand_zero(x)
+
+    def velocity(self, x: np.ndarray) -> np.ndarray:
+        """``v(x)``, ``(3n,)``."""
+        v = self.constraints.expand_zero(x)
+        return v if self.v_prescribed is None else v + self.v_prescribed
+
+    def position_change(self, dx: np.ndarray) -> np.ndarray:
+        """``dq`` of a change ``dx`` of the unknowns, ``(3n,)``."""
+        return self.h * self.constraints.expand_zero(dx)
+
+
+class HessianSink(Protocol):
+    """Where a term adds its Hessian (:class:`fem3d.solve.system.NewtonMatrixBuilder`).
+
+    ``position_scale`` is ``h^2`` (the chain rule of a position term); ``psd`` asks for the
+    PSD-projected element Hessians. Position terms add ``position_scale`` times their
+    Hessian in positions, velocity terms their Hessian in the unknowns.
+    """
+
+    position_scale: float
+    psd: bool
+
+    def add_elements(self, model: Any, kernel: str, q: np.ndarray) -> None: ...
+
+    def add_vertex_blocks(self, vertices: np.ndarray, blocks: np.ndarray,
+                          scale: float) -> None: ...
+
+    def add_pattern_values(self, values: np.ndarray, scale: float) -> None: ...
+
+    def add_reduced_values(self, values: np.ndarray) -> None: ...
+
+    def add_entries(self, H: Any, scale: float) -> None: ...
+
+
+class Term:
+    """One summand of a time step's objective; subclasses override what they have.
+
+    ``u`` below is what the term is written in: the positions ``q (3n,)`` for
+    ``variable = "position"``, the step's unknowns ``x`` for ``variable = "velocity"``.
+    Velocity terms read the step's :class:`StepMap` from :meth:`begin_step`.
+
+    Attributes
+    ----------
+    name : str
+        What statistics and error messages call it.
+    variable : {"position", "velocity"}
+    requires_convergence : bool
+        The step runs Newton to its tolerance instead of the iteration cap (contact).
+    allows_lagged_matrix : bool
+        A Newton matrix of one iterate may serve the next (False where the term changes
+        between iterates, e.g. an adaptive barrier stiffness).
+    active : bool
+        Whether the term takes part in the next step (checked once per step).
+    energy_scale : float
+        The size of the term's summands when they cancel (the elastic energy near rest sums
+        element energies of about ``E vol`` each to much less): the line search judges
+        round-off against it.
+    """
+
+    name: ClassVar[str] = "term"
+    variable: ClassVar[str] = "position"
+    requires_convergence: ClassVar[bool] = False
+    allows_lagged_matrix: ClassVar[bool] = True
+    energy_scale: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        """Whether the term takes part in the next step (e.g. a pull term without springs
+        does not); checked once per step."""
+        return True
+
+    def energy(self, u: np.ndarray) -> float:
+        """The term's value (``+inf``: an inadmissible point)."""
+        raise NotImplementedError
+
+    def gradient(self, u: np.ndarray) -> np.ndarray:
+        """``dE/du``: ``(3n,)`` for a position term, ``(n_free,)`` for a velocity term."""
+        raise NotImplementedError
+
+    def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
+        """Add the term's Hessian to the Newton matrix (default: none, a linear term)."""
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """Largest admissible fraction of the position change ``dq`` from ``q`` (CCD)."""
+        return 1.0
+
+    def begin_step(self, step: StepMap) -> None:
+        """Called once before each step's Newton iterations (lagging, per-step data)."""
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """Called at the Newton start with the gradient of the rest of the objective (in
+        positions, per unit ``h``)."""
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        """Called at every accepted iterate; True when the term's energy changed there."""
+        return False
+
+    def newton_converged(self, dq: np.ndarray) -> bool | None:
+        """A further stopping rule on a Newton step's position change ``dq`` (None: the
+        term has none)."""
+        return None
+
+    def with_model(self, model: Any) -> Term:
+        """The term for a model with new material values (default: itself)."""
+        return self
+
+
+class PositionTerm(Term):
+    """A plain object with ``energy(q)``, ``gradient(q)`` and optionally ``hessian(q)``,
+    ``max_step(q, dq)``, ``begin_step(step)``, ``after_iteration(q)``,
+    ``newton_converged(dq)``, ``initialize_stiffness(...)`` and ``requires_convergence``,
+    as a position :class:`Term` (the protocol user terms and tests write)."""
+
+    def __init__(self, obj: Any) -> None:
+        self.obj = obj
+        self.name = type(obj).__name__
+        self.requires_convergence = bool(getattr(obj, "requires_convergence", False))
+        self.allows_lagged_matrix = False  # nothing known about how it changes
+        self.energy = obj.energy
+        self.gradient = obj.gradient
+        for hook in ("max_step", "begin_step", "initialize_stiffness", "after_iteration",
+                     "newton_converged"):
+            if callable(getattr(obj, hook, None)):
+                setattr(self, hook, getattr(obj, hook))
+
+    def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
+        hessian = getattr(self.obj, "hessian", None)
+        if callable(hessian):
+            sink.add_entries(hessian(q), sink.position_scale)
+
+
+def overrides(term: Term, hook: str) -> bool:
+    """Whether ``term`` has its own ``hook`` (not :class:`Term`'s default)."""
+    return hook in vars(term) or getattr(type(term), hook) is not getattr(Term, hook)
+
+
+def as_term(obj: Any) -> Term:
+    """``obj`` itself when it is a :class:`Term`, else wrapped as a :class:`PositionTerm`."""
+    return obj if isinstance(obj, Term) else PositionTerm(obj)

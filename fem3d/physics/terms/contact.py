@@ -1,0 +1,212 @@
+"""IPC contact (barrier and lagged friction of :mod:`fem3d.physics.contact`) as an objective
+term."""
+
+from __future__ import annotations
+
+import math
+
+import ipctk
+import numpy as np
+
+from fem3d.errors import ParameterError, SimulationError
+from fem3d.physics.contact import ContactModel
+from fem3d.physics.terms.base import HessianSink, StepMap, Term
+
+__all__ = ["ContactTerm"]
+
+
+class ContactTerm(Term):
+    """IPC contact as a term of a step's objective: a :class:`ContactModel`'s barrier plus
+    lagged friction, in positions ``q``.
+
+    Barrier and friction share one contact set, one adaptive stiffness and one lagging per
+    step, so they enter the objective as one sum (energy, gradient, PSD-projected Hessian;
+    ``max_step`` by CCD), with the hooks:
+
+    * :meth:`begin_step` — obstacles to their end-of-step positions, friction lagged at the
+      step's start, the moving pins' and obstacles' own motion checked by CCD, IPC's initial
+      ``kappa`` when contact first appears;
+    * :meth:`after_iteration` — IPC's adaptive ``kappa`` update (True when the objective
+      changed);
+    * :meth:`newton_converged` — IPC's velocity-based stopping: the Newton step's largest
+      position change divided by ``dt`` is below ``tolerance * bbox_diagonal`` (per second).
+
+    Parameters
+    ----------
+    contact : ContactModel
+    tolerance : float, optional
+        IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
+    pattern_margin : float, optional
+        The solver's pattern is widened, at each step's start, by the blocks of the
+        mesh-mesh pairs closer than ``pattern_margin * dhat`` (0: only by the active ones,
+        re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
+    """
+
+    name = "contact"
+    #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
+    requires_convergence = True
+    #: the adaptive stiffness changes the objective between iterates
+    allows_lagged_matrix = False
+
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
+                 pattern_margin: float = 4.0) -> None:
+        tolerance = float(tolerance)
+        if not (math.isfinite(tolerance) and tolerance > 0):
+            raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
+                                 f"{tolerance}")
+        self.contact = contact
+        self.tolerance = tolerance
+        self._dt = 1.0
+        self._had_contact = False
+        self._lag: tuple[np.ndarray, float, float] | None = None
+        self.pattern_margin = float(pattern_margin)
+        self._hint: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial = self.state_array()
+
+    # -- the term -----------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + lagged friction at ``q``."""
+        return self.contact.energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Its gradient, ``(3n,)``."""
+        return self.contact.gradient(q)
+
+    def hessian(self, q: np.ndarray):
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
+        explicit zeros on the blocks of the pairs within the step's pattern margin (see
+        :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
+        H = self.contact.hessian(q)
+        if self._hint is None:
+            return H.row, H.col, H.data
+        r, c = self._hint
+        return (np.concatenate([H.row, r]), np.concatenate([H.col, c]),
+                np.concatenate([H.data, np.zeros(r.size)]))
+
+    def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
+        sink.add_entries(self.hessian(q), sink.position_scale)
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """CCD: the largest collision-free fraction of ``dq``."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
+
+    # -- per-step hooks -----------------------------------------------------------------------
+    def begin_step(self, step_map: StepMap) -> None:
+        """Prepare a step from ``(q_t, v_t)`` at time ``t`` whose Newton start is ``q_base``
+        (``q_t`` with the pins at their end-of-step positions).
+
+        Raises
+        ------
+        SimulationError
+            A kinematic obstacle or the moving pins would pass through a body within the
+            step (the message says which), or the start is not intersection-free.
+        """
+        cm = self.contact
+        t, dt, step, v_t = step_map.t, step_map.dt, step_map.step, step_map.v_t
+        self._dt = float(dt)
+        q_t = np.asarray(step_map.q_t, dtype=np.float64).reshape(-1)
+        q_base = np.asarray(step_map.q_base, dtype=np.float64).reshape(-1)
+        # the obstacles' motion over the step, the bodies held at q_t
+        if cm.obstacle_step(q_t, t, t + dt) < 1.0:
+            moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)
+            raise SimulationError(f"contact: the moving obstacle ({moving}) would pass through "
+                                  "a body within one step (it may advance by less than its "
+                                  "gap to the bodies per step); use a smaller dt or a slower "
+                                  "motion", step=step)
+        cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
+        self._lag = (q_t, t, dt)
+        cm.set_time(t + dt)
+        v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
+        self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
+        if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
+            raise SimulationError("contact: the moving pins would drive the surface through "
+                                  "itself or an obstacle within one step; use a smaller dt",
+                                  step=step)
+
+    def _pattern_hint(self, q: np.ndarray, reach: float):
+        """``(rows, cols)`` of the Hessian blocks of the mesh-mesh pairs closer than the
+        margin ``pattern_margin * dhat + reach`` at ``q`` (None without mesh-mesh contact;
+        ``reach``: how far two vertices may approach each other within the step). The
+        solver's pattern is the union of the elastic one and every block seen so far, and is
+        re-analysed only when a block appears that was never seen: asking for the pairs
+        within a margin now makes that rare."""
+        cm = self.contact
+        parts = cm._parts
+        if not parts or self.pattern_margin <= 0:
+            return None
+        V = cm.collision_vertices(q)
+        margin = self.pattern_margin * cm.dhat + reach
+        rows, cols = [], []
+        for part in parts:
+            Vp = part.view(V)
+            cands = ipctk.Candidates()
+            cands.build(part.mesh, Vp, 0.5 * margin, broad_phase=cm._broad_phase)
+            col = ipctk.NormalCollisions()
+            col.build(cands, part.mesh, Vp, margin)
+            if not len(col):
+                continue
+            H = ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)
+            full = cm._to_full_matrix([H])
+            rows.append(full.row)
+            cols.append(full.col)
+        if not rows:
+            return None
+        return np.concatenate(rows), np.concatenate(cols)
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """IPC's initial ``kappa`` (adaptive stiffness only), from the gradient of the rest of
+        the objective in positions (``grad_rest``, ``(3n,)``; fixed DOFs zeroed) and the mean
+        vertex mass. In fem3d's objective (energy units, ``1/(2 dt^2) |x - x~|_M^2 + ...``)
+        IPC's mass-based bounds scale with ``average_mass / dt^2``."""
+        cm = self.contact
+        if not cm.adaptive:
+            return
+        active = cm.n_active(q) > 0
+        # once at the start, and again when contact (re)appears, as IPC does
+        if not cm._stiffness_initialized or (active and not self._had_contact):
+            before = cm.kappa
+            cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
+            if cm.kappa != before and cm.mu > 0 and self._lag is not None:
+                # the lagged normal forces scale with kappa: lag again with the new one
+                q_t, t, dt = self._lag
+                cm.lag_friction(q_t, dt, t_start=t)
+        self._had_contact = active
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        """IPC's adaptive ``kappa`` update after a Newton iteration; True when it changed."""
+        before = self.contact.kappa
+        return self.contact.update_stiffness(q) != before
+
+    def newton_converged(self, dq: np.ndarray) -> bool:
+        """IPC's stopping rule on the Newton step's position change ``dq`` (``(3n,)``)."""
+        dq = np.asarray(dq)
+        if dq.size == 0:
+            return True
+        return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Back to the adaptive state at construction (a :meth:`Simulation.reset`)."""
+        self.load_state_array(self._initial)
+
+    def state_array(self) -> np.ndarray:
+        """:meth:`snapshot` as a ``(5,) float64`` array (for ``.npz`` checkpoints):
+        ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
+        cm = self.contact
+        prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
+        return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
+                         float(self._had_contact)], dtype=np.float64)
+
+    def load_state_array(self, a: np.ndarray) -> None:
+        """Undo to a :meth:`state_array`."""
+        a = np.asarray(a, dtype=np.float64).reshape(-1)
+        if a.shape != (5,):
+            raise ValueError(f"contact state must have 5 values, got {a.shape}")
+        cm = self.contact
+        cm.set_kappa(float(a[0]))
+        cm.max_kappa = float(a[1])
+        cm._stiffness_initialized = bool(a[2])
+        cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
+        self._had_contact = bool(a[4])

@@ -1,0 +1,222 @@
+"""Newton's method with a backtracking (Armijo) line search, on any objective."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fem3d.errors import SimulationError
+
+__all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT_FACTOR"]
+
+#: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
+#: round-off (measured floors on the swinging box: 10-20 tolerances).
+ROUNDOFF_GRADIENT_FACTOR = 1e3
+
+
+@dataclass
+class NewtonResult:
+    """Result of :func:`newtons_method`.
+
+    Attributes
+    ----------
+    x : (N,) float64
+        Final iterate.
+    iterations : int
+        Newton steps taken.
+    gradient_norms : list of float
+        ``||g||`` at each iterate visited, including the last.
+    converged : bool
+        Stopped because ``||g|| <= tol`` or the line search stalled at round-off.
+    line_search_halvings : int
+        Total halvings.
+    """
+
+    x: np.ndarray
+    iterations: int
+    gradient_norms: list[float]
+    converged: bool
+    line_search_halvings: int
+
+
+def gradient_norm(g: np.ndarray) -> float:
+    """``||g||`` without overflow for finite ``g``; raises on a non-finite gradient."""
+    if not np.isfinite(g).all():
+        raise SimulationError(
+            "Newton's method: the gradient is not finite (forces overflow: parameters or "
+            "state out of range)"
+        )
+    s = float(np.abs(g).max()) if g.size else 0.0
+    n = s * float(np.linalg.norm(g / s)) if s > 0 else 0.0
+    if not math.isfinite(n):
+        raise SimulationError("Newton's method: the gradient norm overflows")
+    return n
+
+
+
+def newtons_method(
+    x0: np.ndarray,
+    energy: Callable[[np.ndarray], float],
+    gradient: Callable[[np.ndarray], np.ndarray],
+    newton_direction: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    *,
+    max_iterations: int | None = 5,
+    rtol: float = 1e-10,
+    atol: float = 0.0,
+    alpha: float = 1.0,
+    p: float = 0.5,
+    c: float = 1e-8,
+    max_halvings: int = 30,
+    decrement_rtol: float = 1e-14,
+    energy_scale: float = 0.0,
+    on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
+    max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+    after_step: Callable[[np.ndarray], bool] | None = None,
+    roundoff_rtol: float = 0.0,
+    f0: float | None = None,
+) -> NewtonResult:
+    """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
+
+    Parameters
+    ----------
+    x0 : (N,) float64
+        Start; ``energy(x0)`` must be finite.
+    energy : callable ``(N,) -> float``
+        Objective; ``+inf`` marks an inadmissible point (e.g. an inverted tet).
+    gradient : callable ``(N,) -> (N,)``
+    newton_direction : callable ``(x, g) -> d``
+        Solves ``H(x) d = -g`` with an SPD (possibly shifted) Hessian.
+    max_iterations : int or None, optional
+        Cap on Newton steps (default 5, the assignment's); None: no cap (stops at tolerance
+        or round-off).
+    rtol, atol : float, optional
+        Stop when ``||g|| <= max(atol, rtol ||g(x0)||)``.
+    alpha, p, c : float, optional
+        Initial step, shrink factor and Armijo constant: accept ``x + a d`` when
+        ``E(x + a d) <= E(x) + c a g.d``; otherwise ``a *= p``.
+    max_halvings : int, optional
+        Line-search trials before giving up.
+    decrement_rtol : float, optional
+        When the Newton decrement ``-g.d`` is below ``decrement_rtol (|E(x)| +
+        energy_scale)`` the decrease left is at the objective's round-off, where Armijo tests
+        are noise: the full step is then taken if it is admissible and reduces ``||g||``;
+        otherwise Newton stops (converged at round-off).
+    energy_scale : float, optional
+        The magnitude of the objective's summands when it is a sum of terms that cancel (an
+        elastic energy near rest sums element energies whose own round-off is relative to
+        ``E vol``, not to their tiny total); default 0: ``|E(x)|`` alone sets the round-off.
+    on_no_step : callable ``(x, d)``, optional
+        Called when every trial point was inadmissible (``+inf``); expected to raise. When it
+        is None or returns, Newton stops at the current ``x``.
+    max_step : callable ``(x, d) -> float``, optional
+        Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
+        the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
+        A non-positive value stops Newton at ``x`` (not converged).
+    converged_step : callable ``(x, d) -> bool``, optional
+        A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
+        from the second iteration on (the first step is always taken): True stops Newton at
+        ``x``, converged.
+    after_step : callable ``(x) -> bool``, optional
+        Called at every accepted iterate; True means the objective itself changed there
+        (IPC's adaptive barrier stiffness), so its value is re-evaluated.
+    roundoff_rtol : float, optional
+        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
+        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
+        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance (where a step changes the energy by
+        less than its round-off, which scales with its terms rather than with ``|E|``), accept
+        it whenever it is finite and reduces ``||g||``, or else stop (converged at round-off)
+        rather than halve through noise. 0 (default): plain backtracking.
+    f0 : float, optional
+        ``energy(x0)`` when the caller has it already (saves one evaluation).
+
+    Returns
+    -------
+    NewtonResult
+        A line search that finds only finite, non-decreasing trial points means round-off
+        has been reached: Newton stops there and reports ``converged=True``.
+    """
+    x = np.array(x0, dtype=np.float64)
+    fx = energy(x) if f0 is None else float(f0)
+    g = gradient(x)
+    gn = gradient_norm(g)
+    norms = [gn]
+    tol = max(atol, rtol * gn)
+    halvings = 0
+    it = 0
+    while max_iterations is None or it < max_iterations:
+        if gn <= tol:
+            return NewtonResult(x, it, norms, True, halvings)
+        d = newton_direction(x, g)
+        slope = float(g @ d)
+        if not (slope < 0 and np.isfinite(d).all()):  # not a descent direction: fall back
+            d = -g
+            slope = -gn * gn
+        if converged_step is not None and it > 0 and converged_step(x, d):
+            return NewtonResult(x, it, norms, True, halvings)
+        a0 = alpha
+        if max_step is not None:
+            a0 = min(alpha, float(max_step(x, d)))
+            if not a0 > 0.0:
+                return NewtonResult(x, it, norms, False, halvings)
+        if -slope <= decrement_rtol * (abs(fx) + energy_scale):
+            # The predicted decrease is below the objective's round-off, so Armijo tests are
+            # noise: take the full step while it is admissible and shrinks the gradient.
+            xt = x + d if a0 == 1.0 else x + a0 * d
+            ft = energy(xt)
+            gt = gradient(xt) if math.isfinite(ft) else None
+            gtn = math.inf if gt is None or not np.isfinite(gt).all() else gradient_norm(gt)
+            if not gtn < gn:
+                return NewtonResult(x, it, norms, True, halvings)
+            x, fx, g, gn = xt, ft, gt, gtn
+            norms.append(gn)
+            it += 1
+            continue
+        a = a0
+        accepted = False
+        any_finite = False
+        gt = None
+        for _ in range(max_halvings):
+            xt = x + a * d
+            if not (xt != x).any():
+                break  # the step vanished in x's round-off: accepting it would loop forever
+            ft = energy(xt)
+            if math.isfinite(ft):
+                any_finite = True
+                if ft <= fx + c * a * slope:
+                    accepted = True
+                    break
+                if roundoff_rtol and a == a0:
+                    # near the tolerance a Newton step changes the energy by less than its
+                    # round-off, which scales with its terms (elastic, kinetic), not with |E|
+                    end_game = gn <= ROUNDOFF_GRADIENT_FACTOR * tol
+                    if end_game or ft <= fx + roundoff_rtol * abs(fx):
+                        # the energy cannot tell the trial from x: judge by the gradient
+                        gt = gradient(xt)
+                        if np.isfinite(gt).all() and gradient_norm(gt) < gn:
+                            accepted = True
+                            break
+                        gt = None
+                    if end_game:
+                        # a full step that does not shrink the gradient there is the
+                        # gradient's round-off: stop rather than halve through noise
+                        return NewtonResult(x, it, norms, True, halvings)
+            a *= p
+            halvings += 1
+        if not accepted:
+            if not any_finite and on_no_step is not None:
+                on_no_step(x, d)
+            return NewtonResult(x, it, norms, any_finite, halvings)
+        x, fx = xt, ft
+        if after_step is not None and after_step(x):
+            fx = energy(x)  # the objective changed at x (barrier stiffness)
+            gt = None
+        g = gradient(x) if gt is None else gt
+        gn = gradient_norm(g)
+        norms.append(gn)
+        it += 1
+    return NewtonResult(x, it, norms, gn <= tol, halvings)

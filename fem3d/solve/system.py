@@ -1,0 +1,651 @@
+"""What the integrators reuse between steps for one model and constraint set.
+
+:class:`System` holds the reduced sparsity (one symbolic analysis per run), the sparse direct
+solver or the AMG hierarchy, the model's loads (gravity and Rayleigh damping as terms), and
+the extension of the solver's pattern by terms whose Hessian entries fall outside the mesh's.
+:class:`NewtonMatrixBuilder` is where the terms add their Hessians into a reduced Newton
+matrix.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.errors import SimulationError
+from fem3d.kernels.dispatch import spring_kernels
+from fem3d.physics.assembly import add_element_hessians
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.model import Model
+from fem3d.physics.springs import Pull
+from fem3d.physics.terms.base import Term
+from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
+from fem3d.physics.terms.gravity import Gravity, check_gravity
+from fem3d.solve.amg import AMGPreconditioner, rigid_body_modes
+from fem3d.solve.linear import NotPositiveDefinite, SparseSPDSolver, choose_backend
+
+__all__ = ["System", "NewtonMatrixBuilder", "LEAN_ASSEMBLY_MIN_TETS", "SHIFT_LADDER_START",
+           "SHIFT_LADDER_GROWTH"]
+
+#: From this many tets :class:`System` keeps no element-to-reduced-slot map (4 bytes per
+#: element-matrix entry) and assembles Newton matrices on the full pattern, then gathers.
+LEAN_ASSEMBLY_MIN_TETS = 250_000
+
+#: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
+SHIFT_LADDER_START = 1e-4
+SHIFT_LADDER_GROWTH = 10.0
+
+
+class System:
+    """What the integrators reuse between steps for one model and constraint set.
+
+    Parameters
+    ----------
+    model : Model
+    constraints : Constraints
+        Fixed vertices.
+    solver_backend : str, optional
+        Passed to :class:`fem3d.solve.linear.SparseSPDSolver` (default ``"auto"``).
+
+    Attributes
+    ----------
+    pattern_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        Sparsity of the reduced system ``P A P^T`` (fixed for the whole run: one symbolic
+        analysis).
+    mass_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        ``P M P^T``.
+
+    Notes
+    -----
+    Newton matrices (:class:`NewtonMatrixBuilder`, :meth:`newton_matrix`) assemble
+    ``P (M + dt^2 H) P^T`` directly on the reduced pattern:
+    each element Hessian entry goes straight to its reduced CSR slot (entries on fixed DOFs
+    to a discarded sink slot), with ``dt^2`` folded into the element volumes, so no full
+    ``3n x 3n`` matrix is built and reduced per Newton iteration.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        constraints: Constraints,
+        solver_backend: str = "auto",
+        *,
+        gravity=None,
+        rayleigh_alpha=0.0,
+        rayleigh_beta=0.0,
+    ):
+        if constraints.n_dofs != model.n_dofs:
+            raise ValueError("constraints and model have different DOF counts")
+        self.model = model
+        self.gravity = check_gravity(gravity)
+        self.rayleigh_alpha = check_coefficient(rayleigh_alpha, "rayleigh_alpha",
+                                                model.n_vertices, "vertex")
+        self.rayleigh_beta = check_coefficient(rayleigh_beta, "rayleigh_beta", model.n_tets,
+                                               "tet")
+        self.constraints = constraints
+        self.free = constraints.free_dofs
+        self.solver_backend = solver_backend
+        self.mass_free = constraints.reduce_matrix(model.mass)
+        self.pattern_free = constraints.reduce_matrix(model.pattern)
+        self.pattern_free.data.setflags(write=False)
+        # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
+        nnz_free = self.pattern_free.nnz
+        kept = constraints.kept_entries(model.pattern)
+        self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
+        self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
+        self._kept = kept
+        # element entry -> reduced slot (4 bytes per element-matrix entry: 576 MB at 1e6 tets);
+        # large meshes assemble on the full pattern and gather instead (the same sums)
+        self._free_scatter = None
+        if model.n_tets < LEAN_ASSEMBLY_MIN_TETS:
+            self._free_scatter = self._free_slot[model.scatter]
+            self._free_scatter.setflags(write=False)
+        self._free_slot.setflags(write=False)
+        self._scaled_volumes: tuple[float, np.ndarray] | None = None
+        self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
+        #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
+        #: back end (:func:`fem3d.solve.linear.choose_backend`: ``"auto"`` picks by size).
+        self.linear_backend = choose_backend(solver_backend, constraints.n_free)
+        self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
+        self._solver: SparseSPDSolver | None = None
+        self._amg: AMGPreconditioner | None = None
+        if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
+            self._solver = self._new_direct_solver(self.pattern_free)
+        elif constraints.n_free:  # the AMG's aggregation: once per pattern, like an analysis
+            self.amg.analyze(self.pattern_free)
+        self.spring = spring_kernels(backend=model.backend)
+        self._keys: np.ndarray | None = None
+        self.factorized_data: np.ndarray | None = None
+        #: Shifted attempts of :meth:`factorize` (``mu = 1e-4 ... 1e8``) before giving up.
+        self.max_shift_tries = 13
+        # objective terms' Hessian entries outside pattern_free widen the solver's pattern
+        self._ext: _ExtendedPattern | None = None
+        #: Incremented whenever objective terms widen the solver's pattern (preconditioners
+        #: built on an older pattern are stale).
+        self.pattern_generation = 0
+        self._base_keys: np.ndarray | None = None
+        self._physics_cache()
+
+    def with_model(self, model: Model) -> System:
+        """Same constraints and solver (the pattern is shared), new material values."""
+        new = object.__new__(System)
+        new.__dict__.update(self.__dict__)
+        new.model = model
+        new.mass_free = self.constraints.reduce_matrix(model.mass)
+        new._physics_cache()
+        return new
+
+    # -- the model's loads as terms -----------------------------------------------------------
+    def _physics_cache(self) -> None:
+        """The gravity and Rayleigh damping terms of the current model (None: absent)."""
+        model = self.model
+        self.gravity_term = None if self.gravity is None else Gravity(model, self.gravity)
+        damping = RayleighDamping(model, self.rayleigh_alpha, self.rayleigh_beta)
+        self.damping_term = damping if damping.active else None
+
+    def load_terms(self) -> list[Term]:
+        """The model's gravity and damping terms (those present), in objective order."""
+        return [t for t in (self.gravity_term, self.damping_term) if t is not None]
+
+    @property
+    def gravity_force(self) -> np.ndarray | None:
+        """``M g`` (read-only), or None without gravity."""
+        return None if self.gravity_term is None else self.gravity_term.force
+
+    @property
+    def has_damping(self) -> bool:
+        """Whether ``D = alpha M + beta K`` is non-zero."""
+        return self.damping_term is not None
+
+    def damping_data(self, q: np.ndarray) -> np.ndarray | None:
+        """CSR ``data`` on ``model.pattern`` of the Rayleigh damping matrix at ``q``
+        (:meth:`fem3d.physics.terms.damping.RayleighDamping.matrix_data`; None without)."""
+        return None if self.damping_term is None else self.damping_term.matrix_data(q)
+
+    def gravity_energy(self, q: np.ndarray) -> float:
+        """Gravity's potential ``-f_g . (q - X)`` (zero at rest; ``f_g = M g``)."""
+        return 0.0 if self.gravity_term is None else self.gravity_term.potential(q)
+
+    # -- helpers ------------------------------------------------------------------------------
+    def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Positions in ``model.pattern.data`` of entries ``(rows, cols)`` (must exist)."""
+        pat = self.model.pattern
+        if self._keys is None:
+            r = np.repeat(np.arange(pat.shape[0], dtype=np.int64), np.diff(pat.indptr))
+            self._keys = r * pat.shape[1] + pat.indices
+        want = np.asarray(rows, np.int64) * pat.shape[1] + np.asarray(cols, np.int64)
+        pos = np.searchsorted(self._keys, want)
+        found = self._keys[np.minimum(pos, self._keys.size - 1)] == want
+        if not np.all(found & (pos < self._keys.size)):
+            raise ValueError("entry not in the sparsity pattern")
+        return pos
+
+    def vertex_block_positions(self, vertices: np.ndarray) -> np.ndarray:
+        """Full-pattern ``data`` positions of the vertices' 3x3 diagonal blocks."""
+        d = 3 * vertices[:, None] + np.arange(3)
+        rows = np.broadcast_to(d[:, :, None], (d.shape[0], 3, 3))
+        cols = np.broadcast_to(d[:, None, :], (d.shape[0], 3, 3))
+        return self.data_positions(rows.reshape(-1), cols.reshape(-1))
+
+    def vertex_block_slots(self, vertices: np.ndarray) -> np.ndarray:
+        """Reduced-data slots of :meth:`vertex_block_positions` (the sink slot for fixed
+        DOFs; cached for the last vertex set: a dragged pull keeps its vertices from step to
+        step)."""
+        cached = self._pull_slots
+        if cached is None or not np.array_equal(cached[0], vertices):
+            slots = self._free_slot[self.vertex_block_positions(vertices)]
+            cached = (np.array(vertices), slots)
+            self._pull_slots = cached
+        return cached[1]
+
+    def reduced(self, data: np.ndarray) -> sp.csr_matrix:
+        """``P A P^T`` of the full-pattern matrix with ``data``."""
+        return self.constraints.reduce_matrix(self.model.csr(data))
+
+    def _volumes_times(self, scale: float) -> np.ndarray:
+        """``model.vol * scale`` (cached for the last ``scale``: it is ``dt^2``, fixed)."""
+        cached = self._scaled_volumes
+        if cached is None or cached[0] != scale or cached[1].shape != self.model.vol.shape:
+            cached = (scale, self.model.vol * scale)
+            cached[1].setflags(write=False)
+            self._scaled_volumes = cached
+        return cached[1]
+
+    def newton_matrix(
+        self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False,
+        damping: np.ndarray | None = None,
+    ) -> sp.csr_matrix:
+        """``P (M + dt^2 (H(q) + H_pull(q)) + dt D) P^T`` on :attr:`pattern_free`, assembled
+        directly.
+
+        Parameters
+        ----------
+        q : (3n,) or (n, 3) float64
+            Positions where the Hessian ``H = d2V/dq2`` is evaluated.
+        dt : float
+            Time step.
+        pull : Pull, optional
+            Pull springs whose Hessian is added (the target is not a DOF).
+        psd : bool, optional
+            Use the generated ``hessian_psd`` kernel (``dP/dF`` projected per element).
+        damping : (model.nnz,) float64, optional
+            The damping matrix ``D`` on ``model.pattern`` (:meth:`damping_data`), added as
+            ``dt D``.
+
+        Returns
+        -------
+        (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+            A new matrix (its data is not reused by later calls); may hold non-finite values
+            when ``q`` is out of range.
+        """
+        builder = NewtonMatrixBuilder(self, dt * dt, psd)
+        builder.add_pattern_values(self.model.mass.data)
+        builder.add_elements(self.model, "hessian_psd" if psd else "hessian", q)
+        if pull is not None and pull.vertices.size:
+            q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+            builder.add_vertex_blocks(pull.vertices, pull.hessian_blocks(self.spring, q3),
+                                      dt * dt)
+        if damping is not None:  # + dt D (backward Euler's dissipation dt/2 v^T D v)
+            builder.add_pattern_values(damping, dt)
+        return builder.matrix()
+
+    def factorize(self, A_free: sp.csr_matrix, *, shift_hint: float = 0.0,
+                  shifts: bool = True) -> float:
+        """Factorize an SPD reduced matrix; shift it when it is not positive definite.
+
+        Strategy for an indefinite Newton Hessian: try ``A``; on
+        :class:`NotPositiveDefinite` factorize ``A + mu M`` (``M`` the reduced consistent mass
+        matrix, ``mu = 1e-4, 1e-3, ...``; :meth:`SparseSPDSolver.factorize_shifted`), a
+        Levenberg-Marquardt shift toward the mass-scaled gradient-descent direction, which is
+        always a descent direction.
+
+        Parameters
+        ----------
+        A_free : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+        shift_hint : float, optional
+            ``> 0``: ``A`` is expected to be indefinite; start the ladder at this ``mu``
+            instead of trying ``A`` itself (each failed attempt is a whole factorization).
+        shifts : bool, optional
+            False: try ``A`` itself only (no ladder; raises when it is not positive
+            definite).
+
+        Returns
+        -------
+        float
+            The shift ``mu`` used (0.0: ``A`` itself).
+
+        Raises
+        ------
+        SimulationError
+            No shift up to ``mu = 1e8`` (:attr:`max_shift_tries`) works (e.g. a non-finite
+            matrix, or tets close to inversion).
+        """
+        mu0, tries = SHIFT_LADDER_START, self.max_shift_tries
+        mu_max = mu0 * SHIFT_LADDER_GROWTH ** (tries - 1)
+        if not shifts:
+            tries, shift_hint = 0, 0.0
+        elif 0 < shift_hint <= mu_max:  # the rungs of the ladder from the hint up
+            tries = 1 + math.floor(math.log(mu_max / shift_hint, SHIFT_LADDER_GROWTH) + 1e-9)
+            mu0 = shift_hint
+        A_free = self.on_solver_pattern(A_free)
+        mass = self.on_solver_pattern(self.mass_free)
+        try:
+            mu = self.solver.factorize_shifted(
+                A_free, mass, mu0=mu0, growth=SHIFT_LADDER_GROWTH, max_tries=tries,
+                try_unshifted=mu0 == SHIFT_LADDER_START and shift_hint <= 0,
+            )
+        except NotPositiveDefinite as exc:
+            raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
+        # the matrix actually factorized: a checkpoint rebuilds exactly this factor
+        self.factorized_data = A_free.data + mu * mass.data if mu else np.array(A_free.data)
+        return mu
+
+    # -- objective terms' Hessian entries -----------------------------------------------------
+    def on_solver_pattern(self, A: sp.csr_matrix) -> sp.csr_matrix:
+        """``A`` (on :attr:`pattern_free` or the solver's pattern) on the solver's pattern."""
+        ext = self._ext
+        if ext is None or A.nnz == ext.pattern.nnz:
+            return A
+        if A.nnz != self.pattern_free.nnz:
+            raise ValueError("matrix is on neither the reduced nor the extended pattern")
+        data = np.zeros(ext.pattern.nnz)
+        data[ext.base_pos] = A.data
+        return ext.csr(data)
+
+    def add_hessian(self, A: sp.csr_matrix, H, scale: float = 1.0) -> sp.csr_matrix:
+        """``A + scale P H P^T``: an objective term's Hessian added to a reduced matrix.
+
+        Parameters
+        ----------
+        A : (n_free_dofs, n_free_dofs) scipy.sparse.csr_matrix
+            On :attr:`pattern_free` or the solver's current (extended) pattern.
+        H : None, (3n, 3n) scipy.sparse matrix, or (rows, cols, values)
+            The term's Hessian in full-DOF indices (duplicates are summed; entries on fixed
+            DOFs are dropped). A matrix on ``model.pattern`` itself is added directly.
+        scale : float
+            ``dt^2`` for a position-space term in backward Euler's velocity unknowns.
+
+        Returns
+        -------
+        scipy.sparse.csr_matrix
+            On :attr:`pattern_free` when every entry falls inside it; otherwise on an extended
+            pattern (``pattern_free`` plus the term's entries, made structurally symmetric).
+            A new extended pattern replaces the solver (one symbolic analysis) and drops the
+            kept factorization; the pattern only grows, so a term whose entries come and go
+            (contact pairs) re-analyses only when an entry appears that was never seen.
+        """
+        if H is None:
+            return A
+        pat = self.model.pattern
+        if sp.issparse(H):
+            H = sp.csr_matrix(H)
+            if H.shape != pat.shape:
+                raise ValueError(f"term Hessian has shape {H.shape}, expected {pat.shape}")
+            if H.nnz == pat.nnz and np.array_equal(H.indptr, pat.indptr) and \
+                    np.array_equal(H.indices, pat.indices):
+                A = self.on_solver_pattern(A)
+                data = np.array(A.data)
+                if self._ext is None:
+                    data += scale * H.data[self._kept]
+                else:
+                    data[self._ext.base_pos] += scale * H.data[self._kept]
+                return self._like(A, data)
+            H = H.tocoo()
+            rows, cols, vals = H.row, H.col, H.data
+        else:
+            rows, cols, vals = H
+        new = self.constraints._new_index
+        rows = new[np.asarray(rows, dtype=np.int64)]
+        cols = new[np.asarray(cols, dtype=np.int64)]
+        vals = scale * np.asarray(vals, dtype=np.float64)
+        keep = (rows >= 0) & (cols >= 0)
+        if not keep.all():
+            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+        if rows.size == 0:
+            return A
+        nf = self.constraints.n_free
+        keys = rows * nf + cols
+        if self._ext is None:
+            base = self._base_key_array()
+            pos = np.minimum(np.searchsorted(base, keys), base.size - 1)
+            if np.array_equal(base[pos], keys):
+                data = np.array(A.data)
+                np.add.at(data, pos, vals)
+                return self._like(A, data)
+        ext = self._ext
+        if ext is None or not np.array_equal(
+                ext.keys[np.minimum(np.searchsorted(ext.keys, keys), ext.keys.size - 1)], keys):
+            ext = self._extend(keys)
+        A = self.on_solver_pattern(A)
+        data = np.array(A.data)
+        np.add.at(data, np.searchsorted(ext.keys, keys), vals)
+        return ext.csr(data)
+
+    def _like(self, A: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
+        B = sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape, copy=False)
+        B.has_sorted_indices = True
+        return B
+
+    def _base_key_array(self) -> np.ndarray:
+        if self._base_keys is None:
+            pf = self.pattern_free
+            r = np.repeat(np.arange(pf.shape[0], dtype=np.int64), np.diff(pf.indptr))
+            self._base_keys = r * pf.shape[1] + pf.indices
+        return self._base_keys
+
+    def _extend(self, keys: np.ndarray) -> _ExtendedPattern:
+        """Widen the solver's pattern by ``keys`` (and their transposes); new analysis."""
+        nf = self.constraints.n_free
+        old = self._base_key_array() if self._ext is None else self._ext.keys
+        r, c = np.divmod(keys, nf)
+        union = np.union1d(old, np.concatenate([keys, c * nf + r]))
+        rows, cols = np.divmod(union, nf)
+        indptr = np.zeros(nf + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=nf), out=indptr[1:])
+        pattern = sp.csr_matrix((np.zeros(union.size), cols.astype(np.int32), indptr),
+                                shape=(nf, nf))
+        pattern.has_sorted_indices = True
+        ext = _ExtendedPattern(pattern=pattern, keys=union,
+                               base_pos=np.searchsorted(union, self._base_key_array()))
+        self._ext = ext
+        self._solver = None if self.linear_backend == "amg" else \
+            self._new_direct_solver(pattern)
+        self.factorized_data = None
+        self.pattern_generation += 1
+        return ext
+
+    def pattern_keys(self) -> np.ndarray:
+        """Keys (``row * n_free + col``) of the solver's pattern when objective terms have
+        widened it, else empty: what a checkpoint needs to rebuild the same pattern (and so
+        the same fill-reducing ordering, bit for bit)."""
+        return np.zeros(0, np.int64) if self._ext is None else self._ext.keys
+
+    def restore_pattern(self, keys: np.ndarray) -> None:
+        """Widen the solver's pattern to the saved :meth:`pattern_keys` (no-op when empty or
+        already equal)."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if keys.size == 0 or (self._ext is not None and np.array_equal(self._ext.keys, keys)):
+            return
+        self._extend(keys)
+
+    def refactorize_saved(self, data: np.ndarray) -> None:
+        """Factorize the reduced matrix whose ``data`` :attr:`factorized_data` recorded (a
+        checkpoint's preconditioner): the same matrix gives the same factor, so a resumed
+        run that reuses factorizations across steps stays bit for bit identical."""
+        data = np.asarray(data, dtype=np.float64)
+        pat = self.pattern_free if self._ext is None else self._ext.pattern
+        if data.shape != (pat.nnz,):
+            raise ValueError(f"saved factorization data has shape {data.shape}, the reduced "
+                             f"pattern {pat.nnz} entries")
+        A = sp.csr_matrix((data.copy(), pat.indices, pat.indptr), shape=pat.shape)
+        if self.linear_backend == "amg":
+            self.amg_setup(A)
+        else:
+            self.factorize(A)
+
+    def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
+        solver = SparseSPDSolver(pattern, backend=self._direct_backend)
+        if solver.backend == "superlu" and pattern is self.pattern_free and \
+                self.mass_free.shape[0]:
+            # SuperLU orders on its first factorization and takes another code path (explicit
+            # permutation, natural order) afterwards. Factorizing once here makes every step
+            # take the same path, so a fresh System (a run resumed from a checkpoint) computes
+            # bit for bit what a long-lived one does.
+            solver.factorize(self.mass_free)
+        return solver
+
+    @property
+    def solver(self) -> SparseSPDSolver:
+        """The sparse direct solver holding the last factorization (made on first use with
+        the ``"amg"`` back end: the linearly-implicit scheme factorizes)."""
+        if self._solver is None:
+            pat = self.pattern_free if self._ext is None else self._ext.pattern
+            self._solver = self._new_direct_solver(pat)
+        return self._solver
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the last factorization."""
+        return np.asarray(self.solver.solve(b)).reshape(-1)
+
+    @property
+    def amg(self) -> AMGPreconditioner:
+        """The AMG hierarchy holder (near-nullspace: rigid-body modes of the free vertices at
+        rest, so a hierarchy depends on its matrix alone)."""
+        if self._amg is None:
+            free_vertices = self.free[0::3] // 3
+            self._amg = AMGPreconditioner(rigid_body_modes(self.model.X[free_vertices]))
+        return self._amg
+
+    def amg_setup(self, A_free: sp.csr_matrix) -> None:
+        """Build the AMG hierarchy from ``A_free`` (on the solver's pattern);
+        :attr:`factorized_data` records the matrix (a checkpoint rebuilds the same one)."""
+        A_free = self.on_solver_pattern(A_free)
+        self.amg.setup(A_free, pattern_key=self.pattern_generation)
+        data = A_free.data.view()  # Newton matrices are new arrays: kept, not copied
+        data.setflags(write=False)
+        self.factorized_data = data
+
+    @property
+    def amg_current(self) -> bool:
+        """A hierarchy exists for the solver's current pattern."""
+        return self._amg is not None and self._amg.ready and \
+            self._amg.pattern_key == self.pattern_generation
+
+
+@dataclass(frozen=True, eq=False)
+class _ExtendedPattern:
+    """``pattern_free`` widened by objective terms' entries (``keys = row * n + col``)."""
+
+    pattern: sp.csr_matrix
+    keys: np.ndarray
+    base_pos: np.ndarray
+
+    def csr(self, data: np.ndarray) -> sp.csr_matrix:
+        A = sp.csr_matrix((data, self.pattern.indices, self.pattern.indptr),
+                          shape=self.pattern.shape, copy=False)
+        A.has_sorted_indices = True
+        return A
+
+
+class NewtonMatrixBuilder:
+    """A reduced Newton matrix ``P A P^T`` on :attr:`System.pattern_free`, built from the
+    terms' contributions in the order they come.
+
+    Each element-matrix entry goes straight to its reduced CSR slot (entries on fixed DOFs
+    to a discarded sink slot), with ``position_scale`` folded into the element volumes, so
+    no full ``3n x 3n`` matrix is built and reduced per Newton iteration. From
+    :data:`LEAN_ASSEMBLY_MIN_TETS` tets (no element-to-reduced-slot map) the contributions on
+    the mesh's pattern accumulate on the full pattern and are gathered once: every kept entry
+    gets the same contributions in the same order either way. Entries outside the mesh's
+    pattern (contact pairs) widen the solver's pattern (:meth:`System.add_hessian`).
+
+    Parameters
+    ----------
+    system : System
+    position_scale : float
+        ``h^2``: what position terms' Hessians are scaled by (the chain rule).
+    psd : bool
+        Terms add their PSD-projected Hessians.
+    """
+
+    def __init__(self, system: System, position_scale: float, psd: bool) -> None:
+        self.system = system
+        self.position_scale = position_scale
+        self.psd = psd
+        nnz = system.pattern_free.nnz
+        self._nnz = nnz
+        self._data = np.empty(nnz + 1)  # the last slot is the sink of fixed-DOF entries
+        self._data[nnz] = 0.0
+        self._empty = True  # nothing added to _data yet
+        self._lean = system._free_scatter is None
+        self._full: np.ndarray | None = None  # lean: the full-pattern sum before the gather
+        self._gathered = False
+        self._matrix: sp.csr_matrix | None = None  # once entries outside the pattern came
+
+    def _reduced(self) -> np.ndarray:
+        """``_data`` with every contribution so far (gathers a lean full-pattern sum)."""
+        if self._full is not None:
+            np.take(self._full, self.system._kept, out=self._data[:self._nnz])
+            self._full = None
+            self._empty = False
+        elif self._empty:
+            self._data[:self._nnz] = 0.0
+            self._empty = False
+        self._gathered = True
+        return self._data
+
+    def _full_pattern(self) -> bool:
+        """Whether mesh-pattern contributions still accumulate on the full pattern."""
+        return self._lean and not self._gathered and self._matrix is None
+
+    def add_pattern_values(self, values: np.ndarray, scale: float | None = None) -> None:
+        """Add ``scale * values`` (``(model.nnz,)``, CSR data on ``model.pattern``; no scale:
+        the values as they are)."""
+        if self._matrix is not None:
+            v = values if scale is None else scale * values
+            self._matrix = self.system.add_hessian(self._matrix, self.system.model.csr(v))
+        elif self._full_pattern():
+            if self._full is None:
+                self._full = np.array(values) if scale is None else scale * values
+            else:
+                self._full += values if scale is None else scale * values
+        elif self._empty:
+            kept = values[self.system._kept]
+            self._data[:self._nnz] = kept if scale is None else scale * kept
+            self._empty = False
+        else:
+            kept = values[self.system._kept]
+            self._data[:self._nnz] += kept if scale is None else scale * kept
+
+    def add_elements(self, model: Model, kernel: str, q: np.ndarray) -> None:
+        """Add the element Hessians (``kernel``: ``"hessian"`` or ``"hessian_psd"``) at
+        ``q``, scaled by :attr:`position_scale`."""
+        system = self.system
+        vol = system._volumes_times(self.position_scale)
+        if self._matrix is not None:
+            full = np.zeros(model.nnz)
+            add_element_hessians(model, kernel, q, vol, model.scatter, full)
+            self._matrix = system.add_hessian(self._matrix, model.csr(full))
+        elif self._full_pattern():
+            if self._full is None:
+                self._full = np.zeros(model.nnz)
+            add_element_hessians(model, kernel, q, vol, model.scatter, self._full)
+        else:
+            data = self._reduced() if self._empty or self._lean else self._data
+            scatter = system._free_scatter
+            if scatter is None:  # lean, after a gather: through a full-pattern buffer
+                full = np.zeros(model.nnz)
+                add_element_hessians(model, kernel, q, vol, model.scatter, full)
+                data[:self._nnz] += full[system._kept]
+            else:
+                add_element_hessians(model, kernel, q, vol, scatter, data)
+
+    def add_vertex_blocks(self, vertices: np.ndarray, blocks: np.ndarray,
+                          scale: float) -> None:
+        """Add ``scale * blocks`` (``(k, 3, 3)``) on the diagonal blocks of ``vertices``
+        (repeats summed in order)."""
+        if self._matrix is not None:
+            d = 3 * np.asarray(vertices)[:, None] + np.arange(3)
+            rows = np.broadcast_to(d[:, :, None], (d.shape[0], 3, 3)).reshape(-1)
+            cols = np.broadcast_to(d[:, None, :], (d.shape[0], 3, 3)).reshape(-1)
+            self.add_entries((rows, cols, blocks.reshape(-1)), scale)
+            return
+        data = self._reduced()
+        np.add.at(data, self.system.vertex_block_slots(vertices), scale * blocks.reshape(-1))
+
+    def add_reduced_values(self, values: np.ndarray) -> None:
+        """Add ``values`` given on :attr:`System.pattern_free` itself."""
+        if self._matrix is not None:
+            A = self.system.on_solver_pattern(self._matrix)
+            data = np.array(A.data)
+            ext = self.system._ext
+            if ext is None:
+                data += values
+            else:
+                data[ext.base_pos] += values
+            self._matrix = self.system._like(A, data)
+            return
+        if self._empty and not self._full_pattern():
+            self._data[:self._nnz] = values
+            self._empty = False
+        else:
+            self._reduced()[:self._nnz] += values
+
+    def add_entries(self, H, scale: float) -> None:
+        """Add ``scale * H`` given in full-DOF indices (``(3n, 3n)`` sparse matrix or ``(rows,
+        cols, values)``; see :meth:`System.add_hessian`): may widen the solver's pattern."""
+        self._matrix = self.system.add_hessian(self.matrix(), H, scale)
+
+    def matrix(self) -> sp.csr_matrix:
+        """The matrix so far, on :attr:`System.pattern_free` or the solver's pattern."""
+        if self._matrix is not None:
+            return self._matrix
+        data = self._reduced()
+        pf = self.system.pattern_free
+        A = sp.csr_matrix((data[:self._nnz], pf.indices, pf.indptr), shape=pf.shape,
+                          copy=False)
+        A.has_sorted_indices = True
+        return A
