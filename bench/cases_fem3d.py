@@ -128,17 +128,17 @@ def _register_solver_rows(backend: str) -> None:
 
 
 def _register_amg_rows() -> None:
-    """fem3d.solve.linear.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
+    """fem3d.solve.amg.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
     hierarchy setup ("factor") and preconditioned CG to a relative residual of 1e-8 from
     x = 0 ("solve"), on the same SPD system."""
     lib = "fem3d-amg"
     kw = dict(library=lib, requires=("pyamg",))
     note = ("fem3d-amg: pyamg smoothed aggregation (rigid-body modes as B, 3x3 BSR, "
-            "fem3d.solve.linear); analyze = aggregation (structure only), factor = numeric "
+            "fem3d.solve.amg); analyze = aggregation (structure only), factor = numeric "
             "hierarchy setup, solve = V-cycle preconditioned CG to |r| <= 1e-8 |b|.")
 
     def amg(mesh: BenchMesh):
-        ls = _import_fem3d("solve.linear")
+        ls = _import_fem3d("solve.amg")
         free_vertices = mesh.system.free[::3] // 3
         return ls.AMGPreconditioner(ls.rigid_body_modes(mesh.X[free_vertices])), mesh.system.A
 

@@ -121,6 +121,7 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
              newton_solver: str = "direct", contact: bool = True) -> dict:
     import fem3d.solve.integrators as integ
     from fem3d.physics.contact import ContactModel
+    from fem3d.solve.krylov import PreconditionedCG
 
     model, system, term, state, dt = build_case(name, refine, narrow_phase)
     timers = Timers()
@@ -131,7 +132,7 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     timers.wrap(integ.System, "add_hessian", "pattern")
     timers.wrap(integ.System, "factorize", "solve")
     timers.wrap(integ.System, "solve", "solve")
-    timers.wrap(integ.PreconditionedCG, "solve", "solve")
+    timers.wrap(PreconditionedCG, "solve", "solve")
     timers.wrap(ContactModel, "max_step", "ccd")
     timers.wrap(ContactModel, "obstacle_step", "ccd")
     for fn in ("energy", "gradient", "hessian", "lag_friction", "n_active",

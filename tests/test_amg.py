@@ -14,6 +14,7 @@ from test_assembly import box_mesh  # noqa: E402
 
 from fem3d.physics.constraints import Constraints  # noqa: E402
 from fem3d.physics.model import build_model  # noqa: E402
+from fem3d.solve import amg as solve_amg  # noqa: E402
 from fem3d.solve import linear as linsolve  # noqa: E402
 from fem3d.solve.integrators import State, System, implicit_euler, linearly_implicit_euler  # noqa: E402
 
@@ -93,7 +94,7 @@ def test_rigid_body_modes_are_the_null_space_of_the_rest_stiffness():
     from fem3d.physics.assembly import hessian_data
 
     model, _ = clamped_box((3, 3, 3))
-    B = linsolve.rigid_body_modes(model.X)
+    B = solve_amg.rigid_body_modes(model.X)
     H = model.csr(hessian_data(model, model.X))
     assert B.shape == (model.n_dofs, 6)
     assert np.abs(H @ B).max() < 1e-9 * np.abs(H.data).max()
@@ -180,7 +181,7 @@ def test_v_cycle_is_the_textbook_symmetric_v_cycle():
     """The V-cycle's half-triangle sweeps (and the reversed upper triangle) compute the plain
     V-cycle of forward and backward block Gauss-Seidel, and the result is symmetric."""
     system, A = _newton_matrix((8, 8, 8))
-    amg = linsolve.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg = solve_amg.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
     amg.setup(A)
     assert len(amg.level_sizes) >= 3  # two coarse levels: 3x3 and 6x6 blocks both covered
     rng = np.random.default_rng(3)
@@ -199,7 +200,7 @@ def test_hierarchy_has_pyamg_smoothed_aggregation_structure():
     import pyamg
 
     system, A = _newton_matrix((6, 6, 6))
-    amg = linsolve.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg = solve_amg.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
     amg.setup(A)
     ml = pyamg.smoothed_aggregation_solver(
         A.tobsr(blocksize=(3, 3)), B=system.amg.B, strength=("symmetric", {"theta": 0.0}),
@@ -225,7 +226,7 @@ def test_setup_analyzes_once_per_pattern_and_maps_partial_blocks():
                           shape=(n, n))
     B = (A + extra + extra.T).tocsr()
     B.sort_indices()
-    indptr, indices, slot = linsolve._block_pattern(B.indptr, B.indices, n)
+    indptr, indices, slot = solve_amg._block_pattern(B.indptr, B.indices, n)
     data = np.zeros(indices.size * 9)
     data[slot] = B.data
     bsr = sp.bsr_matrix((data.reshape(-1, 3, 3), indices, indptr), shape=(n, n))
@@ -240,7 +241,7 @@ def test_block_inverses_pseudo_invert_singular_blocks():
     blocks[2] = 0.0
     blocks[4] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
     D = sp.bsr_matrix((blocks, np.arange(6), np.arange(7)), shape=(18, 18))
-    inv = linsolve._block_inverses(D)
+    inv = solve_amg._block_inverses(D)
     for i in range(6):
         np.testing.assert_allclose(inv[i], np.linalg.pinv(blocks[i]), atol=1e-9)
 

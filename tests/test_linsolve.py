@@ -1,4 +1,5 @@
-"""Tests of fem3d.solve.linear: every back end that is installed, SuperLU always."""
+"""Tests of fem3d.solve.linear and fem3d.solve.krylov: every back end that is installed, SuperLU
+always."""
 
 from __future__ import annotations
 
@@ -8,10 +9,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fem3d.errors import Fem3dError
+from fem3d.solve.krylov import PreconditionedCG
 from fem3d.solve.linear import (
     BACKENDS,
     NotPositiveDefinite,
-    PreconditionedCG,
     SparseSPDSolver,
     available_backends,
 )
