@@ -46,6 +46,7 @@ import numpy as np
 from bench.meshes import box_mesh, refine_tets
 from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
+from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
 from fem3d.solve.linear import default_backend
 
@@ -59,7 +60,7 @@ class Workload:
     constraints: Constraints
     start: integ.State
     dt: float
-    pulls: list[integ.Pull | None]
+    pulls: list[Pull | None]
 
     @property
     def size(self) -> float:
@@ -86,11 +87,11 @@ def armadillo(level: int, steps: int) -> Workload:
     picked = pick_nearest_vertices(X, hand, pull.select.near_vertex.radius,
                                    nearest_if_empty=True)
     h = float(np.ptp(X[:, 1]))
-    pulls: list[integ.Pull | None] = []
+    pulls: list[Pull | None] = []
     for i in range(steps):
         out, angle = min(1.0, i / 30), 0.1 * max(0, i - 30)
         target = hand + h * np.array([0.1 * np.sin(angle), 0.05 * (1 - np.cos(angle)), 0.2 * out])
-        pulls.append(integ.Pull.make(picked, target, pull.stiffness, model.n_vertices)
+        pulls.append(Pull.make(picked, target, pull.stiffness, model.n_vertices)
                      if i < steps - 20 else None)
     return Workload(f"armadillo x{8 ** level} ({len(T)} tets)", model, constraints,
                     integ.State.at_rest(model), scene.simulation.dt, pulls)

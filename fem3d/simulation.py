@@ -31,6 +31,7 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.scene.spec import Scene
+from fem3d.solve.backward_euler import backward_euler, model_terms, newton_options
 from fem3d.solve.integrators import INTEGRATORS, State, StepStats, System
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
@@ -650,6 +651,12 @@ class Simulation:
             self.clear_pull()
         self._script_active = active
 
+    def objective_terms(self) -> list:
+        """The terms backward Euler minimises this step, in order: the model's (inertia,
+        elasticity, the current pull, gravity, damping) and contact."""
+        extra = [] if self.contact is None else [self.contact]
+        return [*model_terms(self.system, self._pull), *extra]
+
     def step(self) -> StepInfo:
         """Advance one time step with the current integrator.
 
@@ -677,11 +684,10 @@ class Simulation:
                 fixed_positions=fixed,
             )
         else:
-            new, stats = INTEGRATORS["implicit"](
-                self.system, self._state, self._dt, self._pull,
-                max_iterations=self.max_newton_iterations, hessian=self.newton_hessian,
-                linear_solver=self.newton_solver, fixed_positions=fixed,
-                terms=() if self.contact is None else (self.contact,),
+            new, stats = backward_euler(
+                self.system, self.objective_terms(), self._state, self._dt,
+                max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
+                options=newton_options(self.newton_hessian), fixed_positions=fixed,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)

@@ -247,7 +247,7 @@ def test_block_inverses_pseudo_invert_singular_blocks():
 
 
 def test_forcing_term_tightens_with_convergence_but_not_past_the_tolerance():
-    from fem3d.solve.integrators import _forcing_term
+    from fem3d.solve.directions import forcing_term as _forcing_term
 
     assert _forcing_term(5.0, 0.0, 0.1, 1e-8, 0.1) == 0.1  # first iteration
     assert _forcing_term(0.5, 5.0, 0.1, 1e-8, 0.1) == pytest.approx(0.9 * 0.01)
@@ -281,7 +281,7 @@ def test_end_game_judges_noisy_energies_by_the_gradient():
     step the energy cannot resolve is accepted when it shrinks the gradient (with
     ``roundoff_rtol``), where plain backtracking halves through the noise and stalls above
     the tolerance."""
-    from fem3d.solve.integrators import newtons_method
+    from fem3d.solve.newton import newtons_method
 
     rng = np.random.default_rng(1)
     Q = rng.standard_normal((8, 8))

@@ -12,12 +12,11 @@ from fem3d.errors import SimulationError
 from fem3d.scene.spec import Scene, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import (
-    NewtonResult,
     State,
     implicit_euler,
     linearly_implicit_euler,
-    newtons_method,
 )
+from fem3d.solve.newton import NewtonResult, newtons_method
 
 _BOX_KEYS = {"E": "bodies[0].material.E", "nu": "bodies[0].material.nu",
              "rho": "bodies[0].material.density", "dt": "simulation.dt",

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import fem3d.solve.integrators as integrators
+import fem3d.solve.backward_euler as backward_euler
+import fem3d.solve.linearly_implicit as linearly_implicit
 from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
@@ -31,6 +32,7 @@ from fem3d.physics.assembly import count_inverted
 from fem3d.scene.spec import apply_overrides, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import State, implicit_euler, linearly_implicit_euler
+from fem3d.solve.state import new_state
 
 ROOT = Path(__file__).resolve().parent.parent
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
@@ -272,8 +274,14 @@ def test_flat_tet_is_inadmissible():
 # non-finite states
 
 
+def _patch_new_state(monkeypatch, corrupted) -> None:
+    """``new_state`` replaced where both integrators call it."""
+    for module in (backward_euler, linearly_implicit):
+        monkeypatch.setattr(module, "new_state", corrupted)
+
+
 def _nan_after(step: int):
-    real = integrators._new_state
+    real = new_state
 
     def corrupted(system, state, v_free, dt, *rest):
         new = real(system, state, v_free, dt, *rest)
@@ -289,7 +297,7 @@ def _nan_after(step: int):
 @pytest.mark.parametrize("integrator", [linearly_implicit_euler, implicit_euler])
 def test_integrators_check_for_non_finite_state(monkeypatch, integrator):
     sim = Simulation(load_scene(ARMA))
-    monkeypatch.setattr(integrators, "_new_state", _nan_after(0))
+    _patch_new_state(monkeypatch, _nan_after(0))
     state = State.at_rest(sim.model)
     state = State(q=state.q, v=state.v, step=4)
     with pytest.raises(SimulationError, match="non-finite") as info:
@@ -300,7 +308,7 @@ def test_integrators_check_for_non_finite_state(monkeypatch, integrator):
 @pytest.mark.parametrize("integrator", ["linear", "implicit"])
 def test_cli_stops_on_non_finite_state_without_writing_nan(tmp_path, capsys, monkeypatch,
                                                            integrator):
-    monkeypatch.setattr(integrators, "_new_state", _nan_after(6))
+    _patch_new_state(monkeypatch, _nan_after(6))
     out = tmp_path / "nan"
     status = main(["run", ARMA, "--integrator", integrator, "--steps", "20", "--frame-every",
                    "2", "--checkpoint-every", "4", "--out", str(out), "--quiet"])
@@ -378,7 +386,7 @@ def test_api_parameter_errors():
 
 
 def test_newton_refuses_a_non_finite_gradient_and_survives_a_huge_one():
-    from fem3d.solve.integrators import newtons_method
+    from fem3d.solve.newton import newtons_method
 
     def energy(x):
         return float(x @ x)

@@ -23,7 +23,9 @@ from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.base import Term
 from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
+from fem3d.physics.terms.elasticity import Elasticity
 from fem3d.physics.terms.gravity import Gravity, check_gravity
+from fem3d.physics.terms.inertia import Inertia
 from fem3d.solve.amg import AMGPreconditioner, rigid_body_modes
 from fem3d.solve.linear import NotPositiveDefinite, SparseSPDSolver, choose_backend
 
@@ -140,11 +142,17 @@ class System:
 
     # -- the model's loads as terms -----------------------------------------------------------
     def _physics_cache(self) -> None:
-        """The gravity and Rayleigh damping terms of the current model (None: absent)."""
+        """The terms of the current model: inertia and elasticity, gravity and Rayleigh
+        damping (None: absent)."""
         model = self.model
+        self._model_terms = (Inertia(model, self.mass_free), Elasticity(model))
         self.gravity_term = None if self.gravity is None else Gravity(model, self.gravity)
         damping = RayleighDamping(model, self.rayleigh_alpha, self.rayleigh_beta)
         self.damping_term = damping if damping.active else None
+
+    def model_terms(self) -> tuple[Term, Term]:
+        """The model's inertia and elasticity terms."""
+        return self._model_terms
 
     def load_terms(self) -> list[Term]:
         """The model's gravity and damping terms (those present), in objective order."""

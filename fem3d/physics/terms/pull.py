@@ -20,13 +20,15 @@ class PullSprings(Term):
     model : Model
     pull : Pull, optional
         The springs; :attr:`pull` may be replaced between steps (a drag moves its target).
+    spring : optional
+        The model back end's generated spring kernels (made when not given).
     """
 
     name = "pull"
 
-    def __init__(self, model: Model, pull: Pull | None = None) -> None:
+    def __init__(self, model: Model, pull: Pull | None = None, *, spring=None) -> None:
         self.model = model
-        self.spring = spring_kernels(backend=model.backend)
+        self.spring = spring_kernels(backend=model.backend) if spring is None else spring
         self.pull = pull
 
     @property
@@ -48,4 +50,4 @@ class PullSprings(Term):
                                    sink.position_scale)
 
     def with_model(self, model: Model) -> PullSprings:
-        return PullSprings(model, self.pull)
+        return PullSprings(model, self.pull, spring=self.spring)

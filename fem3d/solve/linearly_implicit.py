@@ -1,0 +1,141 @@
+"""Linearly-implicit Euler: one linear solve per step.
+
+``(M - dt^2 K(q_t) + dt D) v+ = M v_t + dt (f(q_t) + M g)``, ``q+ = q_t + dt v+`` (``K = -H``
+the stiffness of the assignment, ``f = -dV/dq``). The pull springs' force is part of ``f`` and
+their stiffness part of ``K`` (the whole force is linearised). The assignment's main program
+linearises only the elastic force and adds the spring force explicitly; with the scenes'
+spring stiffness (``k dt^2`` far above a vertex mass) that explicit term alone makes the
+scheme explode on the first step of a scripted pull, on either mesh.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fem3d.errors import SimulationError
+from fem3d.physics.assembly import (
+    add_element_hessians,
+    assemble_gradient,
+    count_inverted,
+    kinetic_energy,
+    potential_energy,
+)
+from fem3d.physics.model import validate_dt
+from fem3d.physics.springs import Pull
+from fem3d.solve.state import (
+    State,
+    StepStats,
+    check_finite,
+    new_state,
+    pins_over_step,
+    place_pins,
+)
+from fem3d.solve.system import System
+
+__all__ = ["linearly_implicit_euler"]
+
+
+def linearly_implicit_euler(
+    system: System,
+    state: State,
+    dt: float,
+    pull: Pull | None = None,
+    *,
+    energy_bound: float | None = None,
+    linearize_pull: bool = True,
+    fixed_positions: np.ndarray | None = None,
+) -> tuple[State, StepStats]:
+    """One linearly-implicit Euler step.
+
+    Solves ``(M - dt^2 K(q_t) + dt D) v+ = M v_t + dt (f(q_t) + M g)`` on the free DOFs
+    (``K = -H``, ``D`` the Rayleigh damping :meth:`System.damping_data` at ``q_t``, ``g``
+    gravity) and sets ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their
+    stiffness part of ``K``. Moving pins: the fixed DOFs' velocity ``v_c = (p - q_t) / dt``
+    is known, so the free rows solve ``A_ff v_f = rhs_f - A_fc v_c``.
+
+    Parameters
+    ----------
+    system : System
+    state : State
+        ``q, v`` of shape ``(n, 3)``.
+    dt : float
+        Time step (> 0).
+    pull : Pull, optional
+        Active pull springs.
+    energy_bound : float, optional
+        Runaway threshold: if the new total energy (kinetic + strain + pull) exceeds it, raise.
+        :class:`fem3d.simulation.Simulation` passes 1000 x the energy put in so far.
+    linearize_pull : bool, optional
+        Include the pull springs' stiffness in the matrix (default True). False gives the
+        assignment's variant (spring force explicit), which explodes for the scenes' pulls.
+    fixed_positions : (n_fixed, 3) float64, optional
+        Positions of the fixed vertices at the end of the step (moving pins; None: they stay
+        where they are). The fixed vertices land on them exactly.
+
+    Returns
+    -------
+    (State, StepStats)
+
+    Raises
+    ------
+    SimulationError
+        ``"... exploded ..."``: non-finite state, inverted tets (non-finite energy) or energy
+        above ``energy_bound``. The input ``state`` is untouched.
+    """
+    dt = validate_dt(dt)
+    model, c = system.model, system.constraints
+    qf, vf = state.q.reshape(-1), state.v.reshape(-1)
+    pins = pins_over_step(c, state, dt, fixed_positions)
+    f = -assemble_gradient(model, qf)
+    if pull is not None:
+        f -= pull.gradient(system.spring, state.q)
+    if system.gravity_force is not None:
+        f += system.gravity_force
+    damping = system.damping_data(qf)
+    A = system.newton_matrix(qf, dt, pull if linearize_pull else None, damping=damping)
+    rhs = model.mass @ vf + dt * f
+    if pins.v_fixed is not None:  # move A_fc v_c to the right-hand side
+        vc = pins.v_fixed
+        Avc = model.mass @ vc
+        hdata = np.zeros(model.nnz)
+        add_element_hessians(model, "hessian", qf, system._volumes_times(dt * dt),
+                             model.scatter, hdata)
+        Avc += model.csr(hdata) @ vc
+        if damping is not None:
+            Avc += dt * (model.csr(damping) @ vc)
+        rhs = rhs - Avc
+    stats = StepStats(newton_iterations=1)
+    if not (np.isfinite(A.data).all() and np.isfinite(rhs).all()):
+        raise SimulationError(
+            "linearly-implicit Euler exploded: non-finite forces or stiffness", step=state.step
+        )
+    try:
+        stats.shifted_factorizations = int(system.factorize(A) > 0)
+    except SimulationError as exc:
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
+        ) from exc
+    v_free = system.solve(c.restrict(rhs))
+    new = place_pins(c, new_state(c, state, v_free, dt), pins)
+    check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
+    total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
+    if pull is not None:
+        total += pull.energy(system.spring, new.q)
+    if system.gravity_force is not None:
+        total += system.gravity_energy(new.q)
+    if not math.isfinite(total):
+        n_inv = count_inverted(model, new.q)
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: the energy is not finite ({n_inv} of "
+            f"{model.n_tets} tets inverted); try --integrator implicit or a smaller dt",
+            step=state.step,
+        )
+    if energy_bound is not None and total > energy_bound:
+        raise SimulationError(
+            f"linearly-implicit Euler exploded: total energy {total:.3g} exceeds the runaway "
+            f"bound {energy_bound:.3g}; try --integrator implicit or a smaller dt",
+            step=state.step,
+        )
+    return new, stats
