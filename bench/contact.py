@@ -87,8 +87,9 @@ def build_case(name: str, refine: int, narrow_phase: str):
     """(model, system, contact term, initial state, dt) of a case."""
     from fem3d.mesh.formats import read_tet_mesh
     from fem3d.physics.constraints import Constraints
-    from fem3d.physics.contact import ContactModel, ContactTerm, PlaneObstacle
+    from fem3d.physics.contact import ContactModel, PlaneObstacle
     from fem3d.physics.model import build_model
+    from fem3d.physics.terms.contact import ContactTerm
     from fem3d.solve.integrators import State, System
 
     m = read_tet_mesh(ROOT / "data" / "coarser_bunny.mesh")

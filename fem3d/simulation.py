@@ -266,7 +266,8 @@ class Simulation:
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = self._pin_motions()
-        #: The IPC contact term (:class:`fem3d.physics.contact.ContactTerm`) of a contact scene.
+        #: The IPC contact term of a contact scene
+        #: (:class:`fem3d.physics.terms.contact.ContactTerm`).
         self.contact = None
         if scene.contact.enabled:
             from fem3d.physics.contact import contact_from_scene

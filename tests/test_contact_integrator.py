@@ -1,4 +1,4 @@
-"""Backward Euler with IPC contact (fem3d.physics.contact.ContactTerm in implicit_euler).
+"""Backward Euler with IPC contact (fem3d.physics.terms.contact.ContactTerm in implicit_euler).
 
 Physics checked against theory and against code that does not use the solver's contact set:
 no vertex ever below a plane, no triangle intersection between bodies (a fresh ipctk mesh),
@@ -17,8 +17,9 @@ from fem3d.errors import SimulationError
 from fem3d.mesh.formats import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
-from fem3d.physics.contact import ContactModel, ContactTerm, PlaneObstacle
+from fem3d.physics.contact import ContactModel, PlaneObstacle
 from fem3d.physics.model import build_model
+from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.integrators import State, System, implicit_euler
 from tests.test_contact import box_mesh
 
