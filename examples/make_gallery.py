@@ -6,7 +6,7 @@ Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
   (:func:`box_mesh`), e.g. the cantilever's 1 x 0.1 x 0.1 beam of 40 x 4 x 4 cells.
 * ``docs/gallery/<scene>.gif``: each gallery scene run headless through
   :func:`fem3d.app.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
-  :func:`fem3d.io.output.render_preview`; the printed line per scene is its
+  :func:`fem3d.io.preview.render_preview`; the printed line per scene is its
   :class:`~fem3d.app.cli.RunSummary`.
 """
 

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.rundir import check_input_file
+from fem3d.io.files import check_input_file
 
 __all__ = [
     "MeshWarning",

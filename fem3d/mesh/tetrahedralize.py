@@ -145,7 +145,7 @@ def tetrahedralize_file(
         Unreadable surface, no binding, fTetWild failed or timed out, or a surface it could
         not turn into a solid (naming ``path``).
     """
-    from fem3d.io.output import atomic_write
+    from fem3d.io.files import atomic_write
     from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
     from fem3d.scene.spec import cache_dir
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.rundir import check_input_file
+from fem3d.io.files import check_input_file
 from fem3d.mesh.formats import check_skin_placement
 from fem3d.scene.spec import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
