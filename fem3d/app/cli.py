@@ -541,7 +541,7 @@ def _summary(sim, status, message, wall, iterations, max_disp, log, out) -> RunS
 
 def _resolve_kernels(name: str | None) -> str:
     try:
-        from fem3d.kernels.dispatch import resolve_backend
+        from fem3d.kernels.backend import resolve_backend
 
         return resolve_backend(name)
     except (ImportError, ValueError) as exc:
