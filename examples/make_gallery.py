@@ -48,14 +48,15 @@ def box_mesh(cells, size) -> tuple[np.ndarray, np.ndarray]:
     X : (n, 3) float64
     T : (m, 4) int64
     """
-    from fem3d.mesh.formats import box_tet_mesh
+    from fem3d.mesh.tetmesh import box_tet_mesh
 
     return box_tet_mesh(cells, size)
 
 
 def write_meshes() -> None:
     """The box meshes of the gallery (skipped when present)."""
-    from fem3d.mesh.formats import TetMesh, write_tet_mesh
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh
 
     MESHES.mkdir(parents=True, exist_ok=True)
     for name, (cells, size) in BOXES.items():

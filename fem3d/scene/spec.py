@@ -849,7 +849,8 @@ def scene_from_arrays(X: Any, T: Any, overrides: Mapping[str, Any] | None = None
     import numpy as np
 
     from fem3d.io.files import atomic_write
-    from fem3d.mesh.formats import TetMesh, write_tet_mesh
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh
 
     X = np.ascontiguousarray(X, dtype=np.float64)
     T = np.ascontiguousarray(T, dtype=np.int64)
