@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     from bench import BenchMesh
-    from fem3d.kernels.dispatch import c_extension
+    from fem3d.kernels.backend import c_extension
     from fem3d.kernels.schedule import build_schedule, schedule_for
     from fem3d.physics.model import build_model
 

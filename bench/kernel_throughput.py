@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from fem3d.kernels.dispatch import c_extension, geometry_kernels, material_kernels
+from fem3d.kernels.backend import c_extension
+from fem3d.kernels.dispatch import geometry_kernels, material_kernels
 from fem3d.physics import materials
 
 KERNELS = ("energy", "gradient", "hessian", "hessian_psd")

@@ -6,7 +6,7 @@ Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
   (:func:`box_mesh`), e.g. the cantilever's 1 x 0.1 x 0.1 beam of 40 x 4 x 4 cells.
 * ``docs/gallery/<scene>.gif``: each gallery scene run headless through
   :func:`fem3d.app.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
-  :func:`fem3d.io.output.render_preview`; the printed line per scene is its
+  :func:`fem3d.io.preview.render_preview`; the printed line per scene is its
   :class:`~fem3d.app.cli.RunSummary`.
 """
 
@@ -48,14 +48,15 @@ def box_mesh(cells, size) -> tuple[np.ndarray, np.ndarray]:
     X : (n, 3) float64
     T : (m, 4) int64
     """
-    from fem3d.mesh.formats import box_tet_mesh
+    from fem3d.mesh.tetmesh import box_tet_mesh
 
     return box_tet_mesh(cells, size)
 
 
 def write_meshes() -> None:
     """The box meshes of the gallery (skipped when present)."""
-    from fem3d.mesh.formats import TetMesh, write_tet_mesh
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh
 
     MESHES.mkdir(parents=True, exist_ok=True)
     for name, (cells, size) in BOXES.items():

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fem3d.errors import InputError, ParameterError, SimulationError
-from fem3d.mesh.formats import boundary_faces
+from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model, validate_dt

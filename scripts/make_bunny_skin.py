@@ -3,7 +3,7 @@
 The original CSC417 bunny skin is not available, so we make one from the finer bunny tet
 mesh ``data/coarse_bunny.mesh`` (699 vertices):
 
-1. take its outward boundary surface (``fem3d.mesh.formats.boundary_faces``) and drop the interior
+1. take its outward boundary surface (``fem3d.mesh.tetmesh.boundary_faces``) and drop the interior
    vertices;
 2. apply ``--levels`` (default 2) steps of Loop subdivision (own vectorized implementation,
    closed manifold surfaces only), which smooths the faceted surface;
@@ -34,12 +34,9 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run from a checkout without installing fem3d
     sys.path.insert(0, str(ROOT))
 
-from fem3d.mesh.formats import (  # noqa: E402
-    boundary_faces,
-    read_tet_mesh,
-    skin_outside_distance,
-    write_surface_mesh,
-)
+from fem3d.mesh.formats import read_tet_mesh, write_surface_mesh  # noqa: E402
+from fem3d.mesh.skin import skin_outside_distance  # noqa: E402
+from fem3d.mesh.tetmesh import boundary_faces  # noqa: E402
 
 
 def compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

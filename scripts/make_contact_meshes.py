@@ -16,7 +16,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # this checkout's fem3d, not an installed one
 
-from fem3d.mesh.formats import TetMesh, box_tet_mesh, write_tet_mesh  # noqa: E402
+from fem3d.mesh.formats import write_tet_mesh  # noqa: E402
+from fem3d.mesh.tetmesh import TetMesh, box_tet_mesh  # noqa: E402
 
 
 def box(n, size, origin=(0.0, 0.0, 0.0)):

@@ -7,8 +7,8 @@ import pytest
 import scipy.sparse as sp
 
 from fem3d.errors import InputError, ParameterError
-from fem3d.kernels.dispatch import c_extension
-from fem3d.mesh.formats import box_tet_mesh
+from fem3d.kernels.backend import c_extension
+from fem3d.mesh.tetmesh import box_tet_mesh
 from fem3d.physics.assembly import (
     assemble_forces,
     assemble_gradient,

@@ -33,13 +33,12 @@ from conftest_mesh_helpers import (  # noqa: E402
 
 from fem3d.errors import InputError  # noqa: E402
 from fem3d.mesh.formats import (  # noqa: E402
-    MeshWarning,
-    TetMesh,
     read_surface_mesh,
     read_tet_mesh,
     write_surface_mesh,
     write_tet_mesh,
 )
+from fem3d.mesh.tetmesh import MeshWarning, TetMesh  # noqa: E402
 
 F2 = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # one tet's surface
 

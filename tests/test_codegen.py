@@ -15,7 +15,8 @@ from fem3d._generated import MODULES
 
 from codegen.derive import reference_outputs
 from codegen.materials import MATERIALS
-from fem3d.kernels.dispatch import c_extension, kernel_module, material_kernels
+from fem3d.kernels.backend import c_extension
+from fem3d.kernels.dispatch import kernel_module, material_kernels
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(
@@ -394,7 +395,7 @@ def test_every_registered_material_is_generated() -> None:
 
 
 def test_backend_can_be_forced_by_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    from fem3d.kernels.dispatch import resolve_backend
+    from fem3d.kernels.backend import resolve_backend
 
     monkeypatch.setenv("FEM3D_KERNELS", "numpy")
     assert resolve_backend() == "numpy"

@@ -16,7 +16,8 @@ from codegen.derive import (
 )
 from codegen.invariants import Decomposition, check_decomposition
 from codegen.materials import MATERIALS
-from fem3d.kernels.dispatch import c_extension, material_kernels
+from fem3d.kernels.backend import c_extension
+from fem3d.kernels.dispatch import material_kernels
 
 # The invariants each psi is found to be a function of (an empty set: none, direct derivation).
 EXPECTED = {

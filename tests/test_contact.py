@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.mesh.formats import boundary_faces, box_tet_mesh
+from fem3d.mesh.tetmesh import boundary_faces, box_tet_mesh
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 
 

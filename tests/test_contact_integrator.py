@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from fem3d.errors import SimulationError
-from fem3d.mesh.formats import boundary_faces
+from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.contact import ContactModel, PlaneObstacle

@@ -402,7 +402,7 @@ def test_reuse_lags_the_newton_matrix_and_keeps_the_tolerance():
 @pytest.mark.parametrize("backend", ["numpy", "c"])
 @pytest.mark.parametrize("psd", [False, True])
 def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
-    from fem3d.kernels.dispatch import c_extension
+    from fem3d.kernels.backend import c_extension
     from fem3d.physics.assembly import hessian_data
     from fem3d.physics.springs import Pull
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from fem3d.errors import ParameterError
-from fem3d.kernels.dispatch import c_extension, kernel_module, material_kernels
+from fem3d.kernels.backend import c_extension
+from fem3d.kernels.dispatch import kernel_module, material_kernels
 from fem3d.physics import materials
 
 BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(

@@ -27,15 +27,17 @@ from conftest_mesh_helpers import (  # noqa: E402
 
 from fem3d.errors import InputError  # noqa: E402
 from fem3d.mesh.formats import (  # noqa: E402
+    read_surface_mesh,
+    read_tet_mesh,
+    write_surface_mesh,
+    write_tet_mesh,
+)
+from fem3d.mesh.skin import check_skin_inside  # noqa: E402
+from fem3d.mesh.tetmesh import (  # noqa: E402
     MeshWarning,
     TetMesh,
     boundary_faces,
-    check_skin_inside,
-    read_surface_mesh,
-    read_tet_mesh,
     tet_signed_volumes,
-    write_surface_mesh,
-    write_tet_mesh,
 )
 
 SHIPPED_TET = [
@@ -323,7 +325,7 @@ def test_medit_as_display_mesh(tmp_path: Path) -> None:
 
 
 def test_box_tet_mesh_is_conforming_positive_and_fills_the_box() -> None:
-    from fem3d.mesh.formats import boundary_faces, box_tet_mesh
+    from fem3d.mesh.tetmesh import boundary_faces, box_tet_mesh
 
     X, T = box_tet_mesh((3, 2, 4), (0.3, 0.2, 0.8), origin=(1.0, -1.0, 0.5))
     assert X.shape == (4 * 3 * 5, 3) and T.shape == (6 * 3 * 2 * 4, 4)

@@ -11,18 +11,11 @@ import pytest
 from PIL import Image, ImageSequence
 
 from fem3d.errors import InputError, SimulationError
-from fem3d.io.output import (
-    EnergyLog,
-    FrameWriter,
-    _cluster_decimate,
-    atomic_path,
-    atomic_write,
-    load_checkpoint,
-    plot_energy,
-    read_energy_csv,
-    render_preview,
-    save_checkpoint,
-)
+from fem3d.io.checkpoint import load_checkpoint, save_checkpoint
+from fem3d.io.energy import EnergyLog, read_energy_csv
+from fem3d.io.files import atomic_path, atomic_write
+from fem3d.io.frames import FrameWriter
+from fem3d.io.preview import _cluster_decimate, plot_energy, render_preview
 
 
 def torus(nu: int = 24, nv: int = 12, R: float = 1.0, r: float = 0.35):

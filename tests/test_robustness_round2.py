@@ -31,7 +31,8 @@ from fem3d.app.cli import main
 from fem3d.errors import InputError
 from fem3d.io import rundir
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.mesh.formats import TetMesh, read_surface_mesh, read_tet_mesh, write_tet_mesh
+from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh, write_tet_mesh
+from fem3d.mesh.tetmesh import TetMesh
 
 ROOT = Path(__file__).resolve().parent.parent
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
@@ -65,8 +66,8 @@ def _one_line_error(stderr: str) -> str:
 
 READERS = """
 import sys
-from fem3d.mesh.formats import read_tet_mesh, read_surface_mesh
-from fem3d.io.output import load_checkpoint
+from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
+from fem3d.io.checkpoint import load_checkpoint
 from fem3d.errors import InputError
 for name, fn in (("mesh", read_tet_mesh), ("msh", read_tet_mesh), ("vtu", read_tet_mesh),
                  ("node", read_tet_mesh), ("obj", read_surface_mesh), ("npz", load_checkpoint),
@@ -258,7 +259,7 @@ def test_lock_is_released_after_a_run(tmp_path: Path) -> None:
 def test_disk_full_names_the_file_and_keeps_the_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import fem3d.io.output as output
+    import fem3d.io.frames as output
 
     out = tmp_path / "full"
     real = output.FrameWriter.write

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fem3d.kernels.dispatch import c_extension
+from fem3d.kernels.backend import c_extension
 from fem3d.kernels.schedule import PARALLEL_MIN_TETS, Schedule, build_schedule, schedule_for
-from fem3d.mesh.formats import box_tet_mesh
+from fem3d.mesh.tetmesh import box_tet_mesh
 from fem3d.physics import assembly
 from fem3d.physics.model import build_model
 

@@ -374,24 +374,26 @@ def _drive(
     import numpy as np
     from tqdm import tqdm
 
-    from fem3d.io import output
     from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
+    from fem3d.io.energy import EnergyLog
+    from fem3d.io.frames import make_frame_writer
+    from fem3d.io.preview import plot_energy, render_preview
 
     steps, frame_every = scene.n_steps, scene.output.every
     every = settings["checkpoint_every"]
     preview_on = bool(settings["preview"])
     digest = mesh_digest(sim.model.X, sim.model.T)
     faces = sim.display_faces
-    writer = output.make_frame_writer(out, faces, scene.output.format,
-                                      bodies=_display_bodies(scene, sim), dt=sim.dt)
+    writer = make_frame_writer(out, faces, scene.output.format,
+                               bodies=_display_bodies(scene, sim), dt=sim.dt)
     n_frames = steps // frame_every + 1
     preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
     preview: list[np.ndarray] = []
     frame_count = 0
     if ckpt is None:
-        log = output.EnergyLog(out / "energy.csv")
+        log = EnergyLog(out / "energy.csv")
     else:  # resume: the saved energy rows and frame list; frames after the checkpoint go
-        log = output.EnergyLog.from_array(ckpt.energy, out / "energy.csv")
+        log = EnergyLog.from_array(ckpt.energy, out / "energy.csv")
         writer.restore(ckpt.frames, ckpt.step)
         frame_count = ckpt.frame_count
         log.write()
@@ -490,11 +492,11 @@ def _drive(
     if status == "ok" and every:
         save_checkpoint()
     if len(log):
-        output.plot_energy(log, out / "energy.png", title=f"{scene.name} ({sim.integrator})")
+        plot_energy(log, out / "energy.png", title=f"{scene.name} ({sim.integrator})")
     if preview_on and preview:
         cam = scene.output.preview
-        output.render_preview(preview, faces, out / "preview.gif", elev=cam.elev,
-                              azim=cam.azim, view_bounds=cam.bounds)
+        render_preview(preview, faces, out / "preview.gif", elev=cam.elev,
+                       azim=cam.azim, view_bounds=cam.bounds)
     if step_seconds:
         print(
             f"fem3d {command}: {len(step_seconds)} steps in {wall:.2f} s; "
@@ -539,7 +541,7 @@ def _summary(sim, status, message, wall, iterations, max_disp, log, out) -> RunS
 
 def _resolve_kernels(name: str | None) -> str:
     try:
-        from fem3d.kernels.dispatch import resolve_backend
+        from fem3d.kernels.backend import resolve_backend
 
         return resolve_backend(name)
     except (ImportError, ValueError) as exc:
@@ -691,7 +693,7 @@ def _resume_command(args: argparse.Namespace) -> int:
 def _schema_command(args: argparse.Namespace) -> int:
     import json
 
-    from fem3d.io.output import atomic_write
+    from fem3d.io.files import atomic_write
     from fem3d.scene.spec import scene_schema
 
     text = json.dumps(scene_schema(), indent=2) + "\n"

@@ -1,7 +1,12 @@
-"""Run checkpoints of ``fem3d run`` / ``fem3d resume``: everything needed to continue a run.
+"""Checkpoints: ``.npz`` files of arrays and JSON metadata; the run checkpoints of ``fem3d run``
+/ ``fem3d resume``, which hold everything needed to continue a run.
 
-A checkpoint is one ``.npz`` written atomically by :func:`fem3d.io.output.save_checkpoint`
-(``DIR/checkpoint.npz``). It holds
+:func:`save_checkpoint` / :func:`load_checkpoint` write and read one ``.npz`` (atomically)
+holding arrays bit for bit and every other item in one JSON document stored inside the file
+(the array ``__fem3d_metadata__``, with ``format`` and ``version``).
+
+A run checkpoint is one such file (``DIR/checkpoint.npz``, :func:`save_run_checkpoint`). It
+holds
 
 * the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
   velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pulls' state (which
@@ -23,6 +28,9 @@ trip is exact), so a resumed run computes bit for bit what an uninterrupted one 
 from __future__ import annotations
 
 import hashlib
+import json
+import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,10 +38,108 @@ from typing import Any
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.output import PathLike, load_checkpoint, save_checkpoint
+from fem3d.io.files import PathLike, atomic_write, check_input_file
 
 __all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_checkpoint",
-           "mesh_digest"]
+           "mesh_digest", "save_checkpoint", "load_checkpoint"]
+
+# --------------------------------------------------------------------------------------
+# .npz with JSON metadata
+
+_META_KEY = "__fem3d_metadata__"
+_FORMAT = "fem3d-checkpoint"
+_VERSION = 1
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def save_checkpoint(path: PathLike, **items: Any) -> Path:
+    """Save arrays and metadata atomically into one ``.npz``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Target file (used as given; no ``.npz`` is appended).
+    **items
+        ``numpy.ndarray`` values are stored as arrays (bit-exact, any numeric dtype; object
+        arrays are refused); everything else (numbers, strings, bools, None, lists and
+        dicts of those, NumPy scalars) goes into a JSON document stored inside the file.
+
+    Returns
+    -------
+    Path
+    """
+    if _META_KEY in items:
+        raise ValueError(f"{_META_KEY!r} is reserved")
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict[str, Any] = {}
+    for key, value in items.items():
+        if isinstance(value, np.ndarray):
+            if value.dtype.hasobject:
+                raise ValueError(f"checkpoint item {key!r}: object arrays are not supported")
+            arrays[key] = value
+        else:
+            meta[key] = _jsonable(value)
+    try:
+        doc = json.dumps({"format": _FORMAT, "version": _VERSION, "metadata": meta}, allow_nan=True)
+    except TypeError as exc:
+        raise ValueError(f"checkpoint metadata is not JSON-serializable: {exc}") from None
+    arrays[_META_KEY] = np.frombuffer(doc.encode("utf-8"), dtype=np.uint8)
+
+    def _write(p: Path) -> None:
+        with open(p, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    return atomic_write(path, _write)
+
+
+def load_checkpoint(path: PathLike) -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Returns
+    -------
+    dict
+        Arrays and metadata under the names they were saved with.
+
+    Raises
+    ------
+    InputError
+        Missing file, not a fem3d checkpoint, or unreadable.
+    """
+    path = check_input_file(path, "checkpoint")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if _META_KEY not in z.files:
+                raise InputError("not a fem3d checkpoint (no metadata)", path=path)
+            doc = json.loads(bytes(z[_META_KEY]).decode("utf-8"))
+            out: dict[str, Any] = {k: z[k] for k in z.files if k != _META_KEY}
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, EOFError, ValueError, KeyError):
+        # np.load's own words ("File is not a zip file", pickles, ...) say nothing to a user
+        raise InputError("not a readable checkpoint: not a complete .npz archive (truncated, "
+                         "or another kind of file)", path=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read checkpoint: {exc.strerror or exc}", path=path) from None
+    if not isinstance(doc, dict) or doc.get("format") != _FORMAT:
+        raise InputError("not a fem3d checkpoint (bad metadata)", path=path)
+    if doc.get("version") != _VERSION:
+        raise InputError(f"unsupported checkpoint version {doc.get('version')!r}", path=path)
+    out.update(doc.get("metadata", {}))
+    return out
+
+# --------------------------------------------------------------------------------------
+# run checkpoints
 
 #: File name of the checkpoint in a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"

@@ -34,9 +34,11 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import meshio
 import numpy as np
 
 from fem3d.errors import InputError
+from fem3d.io.files import atomic_write
 
 __all__ = [
     "FORMAT",
@@ -77,8 +79,6 @@ def read_run_frames(run_dir: str | Path) -> tuple[np.ndarray, np.ndarray, np.nda
     InputError
         No frames, or frames of different sizes.
     """
-    import meshio
-
     run_dir = Path(run_dir)
     entries: list[tuple[int, float | None, Path]] = []
     pvd = run_dir / "frames.pvd"
@@ -144,8 +144,6 @@ def write_trajectory(
     meta : dict, optional
         Extra JSON-safe entries of ``meta``.
     """
-    from fem3d.io.output import atomic_write
-
     if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
     P = np.asarray(positions, dtype=np.float64)

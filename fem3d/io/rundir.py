@@ -1,4 +1,4 @@
-"""The output folder of a run: lock, overwrite check, temp-file cleanup; input-file checks.
+"""The output folder of a run: lock, overwrite check, temp-file cleanup.
 
 ``fem3d run`` and ``fem3d resume`` hold :func:`claim` for the run's lifetime::
 
@@ -14,19 +14,20 @@
   (mesh, skin, scene file, ...). ``fem3d resume`` passes the checkpoint it resumes as
   ``allow`` (it replaces it atomically, on purpose).
 * **Temp cleanup**: the hidden ``.<name>.tmp*`` files that only a killed writer leaves
-  behind (:func:`fem3d.io.output.atomic_path`) are removed once the lock is held.
+  behind (:func:`fem3d.io.files.atomic_path`) in ``DIR`` and ``DIR/frames`` are removed once
+  the lock is held (:func:`fem3d.io.files.clean_temp_files`).
 
-:func:`check_input_file` is what every reader calls first: it refuses FIFOs, devices and
-sockets (reading one would block forever), symlink loops and folders with one clear line.
+The checks every reader makes (:func:`fem3d.io.files.check_input_file`) and the atomic writes
+live in :mod:`fem3d.io.files`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import socket
-import stat
 import sys
 import time
 import warnings
@@ -34,59 +35,13 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from fem3d.errors import InputError
+from fem3d.io.files import clean_temp_files
 
-__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "check_input_file", "claim", "clean_temp_files",
-           "check_overwrite", "warnings_as_lines"]
+__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "claim", "check_overwrite", "warnings_as_lines"]
 
 LOCK_NAME = ".fem3d.lock"
 #: Files a run writes into its output folder (``frames/`` is written as a whole).
 OUTPUT_NAMES = ("frames.pvd", "energy.csv", "energy.png", "preview.gif", "checkpoint.npz")
-
-
-def check_input_file(path: str | os.PathLike[str], what: str = "file") -> Path:
-    """Refuse what cannot be read as a regular file, with one line naming the path.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    what : str
-        What the file is for (``"mesh"``, ``"scene file"``), used in the message.
-
-    Returns
-    -------
-    Path
-
-    Raises
-    ------
-    InputError
-        Missing, a symlink loop, a folder, a FIFO, a device or a socket.
-    """
-    p = Path(path)
-    try:
-        st = os.stat(p)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise InputError(f"symbolic link loop: the {what} path never reaches a file",
-                             path=p) from None
-        if exc.errno == errno.ENOENT:
-            if p.is_symlink():
-                raise InputError(f"broken symbolic link (its target {os.readlink(p)!r} "
-                                 f"does not exist)", path=p) from None
-            raise InputError("file not found", path=p) from None
-        if exc.errno == errno.ENOTDIR:
-            raise InputError("file not found (a parent of it is not a folder)",
-                             path=p) from None
-        raise InputError(f"cannot read {what}: {exc.strerror}", path=p) from None
-    mode = st.st_mode
-    if stat.S_ISREG(mode):
-        return p
-    if stat.S_ISDIR(mode):
-        raise InputError(f"is a directory, not a {what} file", path=p)
-    kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
-            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
-            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
-    raise InputError(f"is {kind}, not a regular {what} file; fem3d reads regular files only",
-                     path=p)
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -136,24 +91,6 @@ def check_overwrite(
             )
 
 
-def clean_temp_files(out: str | os.PathLike[str]) -> list[Path]:
-    """Remove the ``.<name>.tmp*`` files a killed writer left in ``out`` and ``out/frames``.
-
-    Call only while holding the folder's lock (:func:`claim`): then no live writer owns
-    them. Returns the removed paths.
-    """
-    removed = []
-    for folder in (Path(out), Path(out) / "frames"):
-        if not folder.is_dir():
-            continue
-        for f in folder.iterdir():
-            if f.name.startswith(".") and ".tmp" in f.name and f.is_file():
-                with contextlib.suppress(FileNotFoundError):
-                    f.unlink()
-                    removed.append(f)
-    return removed
-
-
 def _owner_text(lock: Path) -> str:
     try:
         text = lock.read_text(encoding="utf-8", errors="replace").strip()
@@ -182,8 +119,6 @@ def claim(
         An input would be overwritten (:func:`check_overwrite`), or another live process
         holds the folder (named in the message).
     """
-    import fcntl
-
     out = Path(out)
     check_overwrite(out, inputs or {}, allow=allow)
     out.mkdir(parents=True, exist_ok=True)
@@ -204,7 +139,7 @@ def claim(
                 f"since={time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         os.ftruncate(fd, 0)
         os.pwrite(fd, info.encode("utf-8"), 0)
-        clean_temp_files(out)
+        clean_temp_files(out, out / "frames")
         try:
             yield out
         finally:

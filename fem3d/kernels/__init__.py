@@ -1,2 +1,3 @@
-"""Generated kernels at run time: the back-end choice and dispatch (:mod:`.dispatch`) and the
-race-free thread schedule of the fused C assemblies (:mod:`.schedule`)."""
+"""Generated kernels at run time: the back-end choice and C extension loading
+(:mod:`.backend`), dispatch (:mod:`.dispatch`) and the race-free thread schedule of the fused C
+assemblies (:mod:`.schedule`)."""

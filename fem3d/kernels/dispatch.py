@@ -1,8 +1,9 @@
 """Dispatch to the generated kernels: the C extension when built, NumPy otherwise.
 
 Both back ends are rendered from the same kernel specs (see ``codegen``); this module only
-chooses one, validates arguments and allocates outputs. Choose explicitly with the
-``backend`` argument or the ``FEM3D_KERNELS`` environment variable (``numpy`` or ``c``).
+validates arguments, allocates outputs and calls the back end :mod:`fem3d.kernels.backend`
+chooses. Choose explicitly with the ``backend`` argument or the ``FEM3D_KERNELS``
+environment variable (``numpy`` or ``c``).
 
 Examples
 --------
@@ -13,39 +14,14 @@ Examples
 from __future__ import annotations
 
 import importlib
-import os
 from collections.abc import Callable, Sequence
 from functools import cache
-from types import ModuleType
 
 import numpy as np
 
 from fem3d._generated import MATERIALS, MODULES
-
-BACKENDS = ("numpy", "c")
-
-
-def c_extension() -> ModuleType | None:
-    """The compiled extension ``fem3d._ckernels``, or ``None`` when it is not built."""
-    try:
-        return importlib.import_module("fem3d._ckernels")
-    except ImportError:
-        return None
-
-
-def resolve_backend(backend: str | None = None) -> str:
-    """``backend``, else ``$FEM3D_KERNELS``, else ``"c"`` when built, else ``"numpy"``."""
-    choice = backend or os.environ.get("FEM3D_KERNELS") or None
-    if choice is None:
-        return "c" if c_extension() is not None else "numpy"
-    if choice not in BACKENDS:
-        raise ValueError(f"unknown kernel back end {choice!r}; choose one of {BACKENDS}")
-    if choice == "c" and c_extension() is None:
-        raise ImportError(
-            "the C kernels (fem3d._ckernels) are not built; run `pip install -e .` with a C "
-            "compiler, or use FEM3D_KERNELS=numpy"
-        )
-    return choice
+from fem3d.kernels.backend import c_extension, resolve_backend
+from fem3d.kernels.schedule import schedule_for
 
 
 class KernelModule:
@@ -193,8 +169,6 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
     out : (N,) float64
         Accumulated into (not cleared) and returned.
     """
-    from fem3d.kernels.schedule import schedule_for
-
     def call(q, T, *rest):
         *inputs, params, index, out = rest
         T = np.ascontiguousarray(T, dtype=np.int64)
@@ -257,14 +231,11 @@ def available_materials() -> Sequence[str]:
 
 
 __all__ = [
-    "BACKENDS",
     "MATERIALS",
     "KernelModule",
     "available_materials",
-    "c_extension",
     "geometry_kernels",
     "kernel_module",
     "material_kernels",
-    "resolve_backend",
     "spring_kernels",
 ]

@@ -25,8 +25,10 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from fem3d.kernels.dispatch import c_extension
+from fem3d.kernels.backend import c_extension
 
 __all__ = ["PARALLEL_MIN_TETS", "Schedule", "build_schedule", "schedule_for"]
 
@@ -100,9 +102,6 @@ def _block_starts(m: int) -> np.ndarray:
 def _rcm_order(T: np.ndarray) -> np.ndarray:
     """Elements sorted by their first vertex in reverse Cuthill-McKee order (a banded sweep
     through the mesh whatever its numbering)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
-
     n = int(T.max()) + 1
     rows = np.repeat(T, 4, axis=1).reshape(-1)
     cols = np.tile(T, (1, 4)).reshape(-1)

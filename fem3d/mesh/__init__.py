@@ -1,2 +1,3 @@
-"""Tet meshes: formats (:mod:`.formats`), display-mesh skinning (:mod:`.skin`) and surfaces
-tetrahedralized by fTetWild (:mod:`.tetrahedralize`)."""
+"""Tet meshes: the mesh itself and its checks (:mod:`.tetmesh`), file formats
+(:mod:`.formats`), display-mesh skinning (:mod:`.skin`) and surfaces tetrahedralized by
+fTetWild (:mod:`.tetrahedralize`)."""

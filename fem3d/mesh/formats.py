@@ -1,4 +1,4 @@
-"""Mesh input/output and validation.
+"""Mesh file formats: the readers and writers of tet meshes and triangle surfaces.
 
 Readers
 -------
@@ -22,14 +22,9 @@ OBJ reader cannot read the shipped ``armadillo.obj`` at all (it has 51986 ``vn``
 26002 vertices); the own OBJ parser reads it in about 0.2 s and handles ``f a/b/c`` forms,
 polygons and negative (relative) indices.
 
-Orientation
------------
-Tetrahedra are returned positively oriented: ``det([X1-X0, X2-X0, X3-X0]) > 0``. Negatively
-oriented rest tets are *re-oriented* (two vertices swapped) with a :class:`MeshWarning`
-rather than rejected: the vertex order of a tet is a file-format convention (MEDIT, TetGen
-and Gmsh do not agree on it), not a physical inversion, because a rest configuration cannot
-be "inverted" relative to itself. Zero-volume tets, on the other hand, are an error: they
-have no rest shape at all.
+The checks every reader applies (:func:`fem3d.mesh.tetmesh.validate_tet_mesh`,
+:func:`fem3d.mesh.tetmesh.validate_surface_mesh`) and the orientation convention (tets come
+back positively oriented) are in :mod:`fem3d.mesh.tetmesh`.
 """
 
 from __future__ import annotations
@@ -40,393 +35,30 @@ import itertools
 import struct
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from os import PathLike
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import meshio
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.rundir import check_input_file
+from fem3d.io.files import check_input_file, read_text_file
+from fem3d.mesh.tetmesh import (
+    PathArg,
+    TetMesh,
+    _more,
+    boundary_faces,
+    validate_surface_mesh,
+    validate_tet_mesh,
+)
 
 __all__ = [
-    "MeshWarning",
-    "TetMesh",
-    "boundary_faces",
-    "box_tet_mesh",
-    "check_skin_inside",
-    "check_skin_placement",
     "read_surface_mesh",
     "read_tet_mesh",
-    "skin_outside_distance",
-    "tet_signed_volumes",
-    "validate_surface_mesh",
-    "validate_tet_mesh",
     "write_surface_mesh",
     "write_tet_mesh",
 ]
-
-PathArg = str | PathLike[str]
-
-#: A tet is degenerate when ``|6 V| <= DEGENERATE_RTOL * h**3`` with ``h`` its longest edge
-#: (a regular tet has ``6 V = h**3 / sqrt(2)``). Scale-invariant, so the 165-unit bunny and
-#: the 1-unit armadillo are judged alike. The shipped meshes' worst ratio is about 0.03.
-DEGENERATE_RTOL = 1e-8
-
-#: Local vertex indices of the 4 faces of a positively oriented tet, each ordered so its
-#: right-hand normal points away from the tet's remaining (opposite) vertex.
-TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
-
-
-class MeshWarning(UserWarning):
-    """A mesh was usable but something about it was fixed or looks suspicious."""
-
-
-@dataclass(frozen=True, eq=False)
-class TetMesh:
-    """A validated linear tetrahedral mesh.
-
-    Attributes
-    ----------
-    X : (n_vertices, 3) float64
-        Rest positions (read-only array).
-    T : (n_tets, 4) int64
-        0-based vertex indices, positively oriented (read-only array).
-    path : str or None
-        The file the mesh was read from.
-    """
-
-    X: np.ndarray
-    T: np.ndarray
-    path: str | None = None
-
-    def __post_init__(self) -> None:
-        X = np.array(self.X, dtype=np.float64, order="C")
-        T = np.array(self.T, dtype=np.int64, order="C")
-        X.flags.writeable = False
-        T.flags.writeable = False
-        object.__setattr__(self, "X", X)
-        object.__setattr__(self, "T", T)
-
-    @property
-    def n_vertices(self) -> int:
-        """Number of vertices."""
-        return int(self.X.shape[0])
-
-    @property
-    def n_tets(self) -> int:
-        """Number of tetrahedra."""
-        return int(self.T.shape[0])
-
-    def volumes(self) -> np.ndarray:
-        """Rest volumes, ``(n_tets,) float64``, all positive."""
-        return tet_signed_volumes(self.X, self.T)
-
-    def __repr__(self) -> str:
-        return f"TetMesh({self.n_vertices} vertices, {self.n_tets} tets, path={self.path!r})"
-
-
-# --------------------------------------------------------------------------------------
-# geometry helpers
-# --------------------------------------------------------------------------------------
-
-
-def tet_signed_volumes(X: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Signed volumes of tetrahedra.
-
-    Parameters
-    ----------
-    X : (n_vertices, 3) float64
-    T : (n_tets, 4) int64
-
-    Returns
-    -------
-    vol : (n_tets,) float64
-        ``det([X1-X0, X2-X0, X3-X0]) / 6``.
-    """
-    e = X[T]
-    a, b, c = e[:, 1] - e[:, 0], e[:, 2] - e[:, 0], e[:, 3] - e[:, 0]
-    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-
-
-def _face_keys(faces: np.ndarray) -> np.ndarray:
-    """Orientation-independent integer keys of triangles, ``(f,) int64`` (or ``(f, 3)``)."""
-    s = np.sort(faces, axis=1)
-    n = int(s.max()) + 1 if s.size else 1
-    if n < 2_000_000:  # n**3 < 2**63
-        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]
-    return s
-
-
-def boundary_faces(T: np.ndarray) -> np.ndarray:
-    """Boundary triangles of a tet mesh, oriented outward.
-
-    A face is on the boundary when exactly one tet has it. Its vertex order makes the
-    right-hand normal point away from that tet's fourth (opposite) vertex, i.e. outward
-    when ``T`` is positively oriented.
-
-    Parameters
-    ----------
-    T : (n_tets, 4) int64
-        Positively oriented tets.
-
-    Returns
-    -------
-    F : (n_faces, 3) int64
-        Boundary triangles, in the order of the tets they belong to.
-    """
-    T = np.asarray(T, dtype=np.int64)
-    if T.ndim != 2 or T.shape[1] != 4:
-        raise ValueError(f"T must be (n_tets, 4), got {T.shape}")
-    faces = T[:, TET_FACES].reshape(-1, 3)
-    if faces.shape[0] == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    keys = _face_keys(faces)
-    axis = None if keys.ndim == 1 else 0
-    _, inverse, counts = np.unique(keys, axis=axis, return_inverse=True, return_counts=True)
-    return np.ascontiguousarray(faces[counts[inverse.reshape(-1)] == 1])
-
-
-# --------------------------------------------------------------------------------------
-# validation
-# --------------------------------------------------------------------------------------
-
-
-def _where(lines: np.ndarray | None, i: int) -> int | None:
-    return None if lines is None else int(lines[i])
-
-
-def _more(k: int) -> str:
-    return f" (and {k - 1} more)" if k > 1 else ""
-
-
-def validate_tet_mesh(
-    X: np.ndarray,
-    T: np.ndarray,
-    *,
-    path: PathArg | None = None,
-    vertex_lines: np.ndarray | None = None,
-    tet_lines: np.ndarray | None = None,
-    index_base: int = 0,
-    rtol: float = DEGENERATE_RTOL,
-) -> TetMesh:
-    """Check a tet mesh and return it as a positively oriented :class:`TetMesh`.
-
-    Raises :class:`InputError` for: no vertices, non-finite coordinates, no tets, indices out
-    of range or negative, tets with repeated vertices, duplicate tets, faces shared by more
-    than two tets, zero-volume tets. Warns (:class:`MeshWarning`) and fixes: negatively
-    oriented tets (two vertices swapped) and vertices no tet uses (removed, the others
-    renumbered; they would have no mass and make the system singular).
-
-    Parameters
-    ----------
-    X : (n_vertices, 3) float
-        Vertex positions.
-    T : (n_tets, 4) int
-        0-based vertex indices.
-    path : str or PathLike, optional
-        The file, for messages.
-    vertex_lines, tet_lines : (n_vertices,) / (n_tets,) int, optional
-        1-based line number of each vertex / tet in ``path``, for messages.
-    index_base : int
-        What the file's indices start at (``T + index_base`` is what the file says).
-    rtol : float
-        Degeneracy tolerance, see :data:`DEGENERATE_RTOL`.
-
-    Returns
-    -------
-    TetMesh
-    """
-    X = np.asarray(X, dtype=np.float64)
-    T = np.asarray(T)
-    if X.ndim != 2 or X.shape[1] != 3:
-        raise InputError(f"vertices must be 3-D points, got an array of shape {X.shape}", path=path)
-    n = X.shape[0]
-    if n == 0:
-        raise InputError("mesh has no vertices", path=path)
-    bad = np.flatnonzero(~np.isfinite(X).all(axis=1))
-    if bad.size:
-        i = int(bad[0])
-        raise InputError(
-            f"vertex {i + index_base} has a non-finite coordinate {X[i].tolist()}{_more(bad.size)}",
-            path=path, line=_where(vertex_lines, i), element=i,
-        )
-    if T.ndim != 2 or T.shape[1] != 4:
-        raise InputError(f"tets must have 4 vertices, got an array of shape {T.shape}", path=path)
-    m = T.shape[0]
-    if m == 0:
-        raise InputError("mesh has no tetrahedra", path=path)
-    T = T.astype(np.int64, copy=True)
-
-    neg = np.flatnonzero((T < 0).any(axis=1))
-    big = np.flatnonzero((T >= n).any(axis=1))
-    if neg.size or big.size:
-        j = int(min(neg[0] if neg.size else m, big[0] if big.size else m))
-        v = T[j] + index_base
-        what = (
-            f"index out of range: tet {j} refers to vertex {v.tolist()}, valid indices are "
-            f"{index_base}..{n - 1 + index_base}"
-        )
-        if (T[j] < 0).any() and index_base == 1 and (v == 0).any():
-            what += " (this file format is 1-based)"
-        raise InputError(what + _more(neg.size + big.size), path=path,
-                         line=_where(tet_lines, j), element=j)
-
-    S = np.sort(T, axis=1)
-    rep = np.flatnonzero((S[:, 1:] == S[:, :-1]).any(axis=1))
-    if rep.size:
-        j = int(rep[0])
-        raise InputError(
-            f"tet {j} has a repeated vertex {(T[j] + index_base).tolist()}{_more(rep.size)}",
-            path=path, line=_where(tet_lines, j), element=j,
-        )
-    _, first, counts = np.unique(S, axis=0, return_index=True, return_counts=True)
-    if (counts > 1).any():
-        dup_rows = np.flatnonzero((S == S[first[np.argmax(counts > 1)]]).all(axis=1))
-        j = int(dup_rows[1])
-        raise InputError(
-            f"tet {j} duplicates tet {int(dup_rows[0])} (vertices {(T[j] + index_base).tolist()})",
-            path=path, line=_where(tet_lines, j), element=j,
-        )
-
-    # the degeneracy test is scale-invariant: evaluate it on each tet translated to its
-    # first vertex and divided by its largest edge-vector component (no overflow or
-    # underflow for any finite coordinates); report sizes in the file's units
-    with np.errstate(all="ignore"):
-        e = X[T]
-        rel = e[:, [1, 2, 3, 2, 3, 3]] - e[:, [0, 0, 0, 1, 1, 2]]
-        scale = np.abs(rel).max(axis=(1, 2))
-        edges = rel / np.where(scale > 0, scale, 1.0)[:, None, None]
-        h = np.sqrt(np.einsum("mij,mij->mi", edges, edges).max(axis=1))
-        det = np.einsum("ij,ij->i", edges[:, 0], np.cross(edges[:, 1], edges[:, 2]))
-    degen = np.flatnonzero(~(np.abs(det) > rtol * h**3))
-    if degen.size:
-        j = int(degen[0])
-        with np.errstate(all="ignore"):
-            vol_j = det[j] / 6 * scale[j] ** 3 if det[j] != 0 else 0.0
-            h_j = h[j] * scale[j]
-        raise InputError(
-            f"tet {j} (vertices {(T[j] + index_base).tolist()}) is degenerate: volume "
-            f"{vol_j:.3g} for longest edge {h_j:.3g}{_more(degen.size)}",
-            path=path, line=_where(tet_lines, j), element=j,
-        )
-    with np.errstate(all="ignore"):
-        vol = det / 6 * scale**3
-    badsize = np.flatnonzero(~((np.abs(vol) > 1e-250) & (np.abs(vol) < 1e250)))
-    if badsize.size:
-        j = int(badsize[0])
-        raise InputError(
-            f"tet {j} (vertices {(T[j] + index_base).tolist()}) has volume {vol[j]:.3g}, "
-            "which double precision cannot work with: rescale the mesh"
-            f"{_more(badsize.size)}", path=path, line=_where(tet_lines, j), element=j,
-        )
-
-    faces = T[:, TET_FACES].reshape(-1, 3)
-    keys = _face_keys(faces)
-    fax = None if keys.ndim == 1 else 0
-    _, finv, fcounts = np.unique(keys, axis=fax, return_inverse=True, return_counts=True)
-    finv = finv.reshape(-1)
-    over = np.flatnonzero(fcounts[finv] > 2)
-    if over.size:
-        sharing = np.flatnonzero(finv == finv[over[0]])
-        j = int(sharing[-1] // 4)
-        others = ", ".join(str(int(i // 4)) for i in sharing[:-1])
-        raise InputError(
-            f"tet {j} has face {(faces[sharing[-1]] + index_base).tolist()} that tets {others} "
-            "already share (overlapping / non-conforming mesh)",
-            path=path, line=_where(tet_lines, j), element=j,
-        )
-
-    inverted = det < 0
-    if inverted.any():
-        k = int(inverted.sum())
-        warnings.warn(
-            f"{path or 'mesh'}: re-oriented {k} of {m} negatively oriented tets (swapped their "
-            f"last two vertices; first: tet {int(np.argmax(inverted))})",
-            MeshWarning, stacklevel=3,
-        )
-        T[inverted] = T[inverted][:, [0, 1, 3, 2]]
-
-    used = np.zeros(n, dtype=bool)
-    used[T.reshape(-1)] = True
-    if not used.all():
-        k = int((~used).sum())
-        warnings.warn(
-            f"{path or 'mesh'}: removed {k} vertices that no tet uses (first: vertex "
-            f"{int(np.argmax(~used)) + index_base}); the others were renumbered",
-            MeshWarning, stacklevel=3,
-        )
-        new_index = np.cumsum(used) - 1
-        X = X[used]
-        T = new_index[T]
-    return TetMesh(X=X, T=T, path=None if path is None else str(path))
-
-
-def validate_surface_mesh(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    path: PathArg | None = None,
-    vertex_lines: np.ndarray | None = None,
-    face_lines: np.ndarray | None = None,
-    index_base: int = 0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Check a triangle (display) mesh.
-
-    Raises :class:`InputError` for no vertices, non-finite coordinates, no faces and
-    indices out of range; drops faces with a repeated vertex with a :class:`MeshWarning`.
-
-    Parameters
-    ----------
-    V : (n_vertices, 3) float
-    F : (n_faces, 3) int, 0-based
-    path, vertex_lines, face_lines, index_base
-        As for :func:`validate_tet_mesh`.
-
-    Returns
-    -------
-    V : (n_vertices, 3) float64
-    F : (n_faces, 3) int64
-    """
-    V = np.ascontiguousarray(V, dtype=np.float64)
-    F = np.asarray(F)
-    if V.ndim != 2 or V.shape[1] != 3:
-        raise InputError(f"vertices must be 3-D points, got an array of shape {V.shape}", path=path)
-    n = V.shape[0]
-    if n == 0:
-        raise InputError("display mesh has no vertices", path=path)
-    bad = np.flatnonzero(~np.isfinite(V).all(axis=1))
-    if bad.size:
-        i = int(bad[0])
-        raise InputError(
-            f"vertex {i + index_base} has a non-finite coordinate {V[i].tolist()}{_more(bad.size)}",
-            path=path, line=_where(vertex_lines, i), element=i,
-        )
-    if F.ndim != 2 or F.shape[1] != 3:
-        raise InputError(f"faces must be triangles, got an array of shape {F.shape}", path=path)
-    if F.shape[0] == 0:
-        raise InputError("display mesh has no faces", path=path)
-    F = np.ascontiguousarray(F, dtype=np.int64)
-    out = np.flatnonzero(((F < 0) | (F >= n)).any(axis=1))
-    if out.size:
-        j = int(out[0])
-        raise InputError(
-            f"index out of range: face {j} refers to vertex {(F[j] + index_base).tolist()}, "
-            f"valid indices are {index_base}..{n - 1 + index_base}{_more(out.size)}",
-            path=path, line=_where(face_lines, j), element=j,
-        )
-    rep = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
-    if rep.any():
-        warnings.warn(
-            f"{path or 'display mesh'}: dropped {int(rep.sum())} faces with a repeated vertex "
-            f"(first: face {int(np.argmax(rep))})",
-            MeshWarning, stacklevel=3,
-        )
-        F = F[~rep]
-        if F.shape[0] == 0:
-            raise InputError("display mesh has no faces", path=path)
-    return V, F
 
 
 # --------------------------------------------------------------------------------------
@@ -439,7 +71,7 @@ class _Tokens:
 
     def __init__(self, path: Path, comment: str = "#") -> None:
         self.path = path
-        text = _read_text(path)
+        text = read_text_file(path, "mesh")
         lines = text.split("\n")
         if comment in text:
             lines = [ln.split(comment, 1)[0] for ln in lines]
@@ -531,27 +163,6 @@ class _Tokens:
         lines = self.line[a:b:width] if width else np.zeros(0, dtype=np.int64)
         return values, lines
 
-
-def _read_text(path: Path) -> str:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, not a mesh file", path=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read file: {exc.strerror or exc}", path=path) from None
-    if not data.strip():
-        raise InputError("empty file", path=path)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        # e.g. Latin-1 comments or names: decode anyway, numbers are ASCII in any case
-        text = data.decode("latin-1")
-    if "\x00" in text:
-        raise InputError("not a text file (contains NUL bytes)", path=path,
-                         line=text.count("\n", 0, text.index("\x00")) + 1)
-    return text
 
 
 # --------------------------------------------------------------------------------------
@@ -765,15 +376,13 @@ def _tetgen_tet_mesh(path: Path) -> TetMesh:
 
 def _meshio_extensions() -> set[str]:
     try:
-        from meshio._helpers import extension_to_filetypes
+        from meshio._helpers import extension_to_filetypes  # private API: guarded, see below
     except ImportError:  # pragma: no cover - meshio layout changed
         return {".msh", ".vtu", ".vtk", ".xdmf", ".inp", ".off", ".ply", ".stl"}
     return set(extension_to_filetypes)
 
 
 def _meshio_read(path: Path):  # -> meshio.Mesh
-    import meshio
-
     check_input_file(path, "mesh")
     try:
         size = path.stat().st_size
@@ -828,7 +437,7 @@ def _parser_failure(exc: BaseException, meshio: Any, path: Path) -> str:
 def _meshio_read_quietly(meshio, path: Path):  # -> meshio.Mesh
     """meshio.read without its ``print`` + ``sys.exit(1)`` on a ReadError (meshio 5.3)."""
     try:
-        from meshio._helpers import _filetypes_from_path, reader_map
+        from meshio._helpers import _filetypes_from_path, reader_map  # private API: guarded
     except ImportError:  # pragma: no cover - meshio layout changed
         try:
             return meshio.read(path)
@@ -913,7 +522,7 @@ def read_tet_mesh(path: PathArg) -> TetMesh:
 
 
 def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    text = _read_text(path)
+    text = read_text_file(path, "mesh")
     v_rows: list[list[str]] = []
     v_lines: list[int] = []
     f_rows: list[list[str]] = []
@@ -1100,8 +709,6 @@ def write_tet_mesh(path: PathArg, mesh: TetMesh) -> None:
             fh.write(f"{len(T)} 4 0\n")
             np.savetxt(fh, np.column_stack([np.arange(len(T)), T]), fmt="%d")
         return
-    import meshio
-
     kwargs = {"file_format": "gmsh22", "binary": False} if suffix == ".msh" else {}
     meshio.write(p, meshio.Mesh(X, [("tetra", T)]), **kwargs)
 
@@ -1125,233 +732,4 @@ def write_surface_mesh(path: PathArg, V: np.ndarray, F: np.ndarray, header: str 
             np.savetxt(fh, np.asarray(V, np.float64), fmt="v %.9g %.9g %.9g")
             np.savetxt(fh, np.asarray(F, np.int64) + 1, fmt="f %d %d %d")
         return
-    import meshio
-
     meshio.write(p, meshio.Mesh(np.asarray(V, np.float64), [("triangle", np.asarray(F))]))
-
-
-# --------------------------------------------------------------------------------------
-# skin vs simulation mesh
-# --------------------------------------------------------------------------------------
-
-
-def _point_triangle_distance(P: np.ndarray, A: np.ndarray, B: np.ndarray,
-                             C: np.ndarray) -> np.ndarray:
-    """Exact distances from points to triangles, all ``(k, 3)`` -> ``(k,)`` (Ericson 5.1.5)."""
-    ab, ac, ap = B - A, C - A, P - A
-    d1 = np.einsum("ij,ij->i", ab, ap)
-    d2 = np.einsum("ij,ij->i", ac, ap)
-    bp = P - B
-    d3 = np.einsum("ij,ij->i", ab, bp)
-    d4 = np.einsum("ij,ij->i", ac, bp)
-    cp = P - C
-    d5 = np.einsum("ij,ij->i", ab, cp)
-    d6 = np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = vb / denom
-        w = vc / denom
-        Q = A + ab * v[:, None] + ac * w[:, None]  # interior
-        # edge regions
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    edge_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    edge_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    edge_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    Q = np.where(edge_bc[:, None], B + (C - B) * t_bc[:, None], Q)
-    Q = np.where(edge_ac[:, None], A + ac * t_ac[:, None], Q)
-    Q = np.where(edge_ab[:, None], A + ab * t_ab[:, None], Q)
-    Q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], C, Q)
-    Q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], B, Q)
-    Q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], A, Q)
-    Q = np.where(np.isfinite(Q).all(axis=1)[:, None], Q, A)  # degenerate triangle
-    return np.linalg.norm(P - Q, axis=1)
-
-
-def skin_outside_distance(skin_V: np.ndarray, X: np.ndarray,
-                          T: np.ndarray | None = None, k: int = 16) -> np.ndarray:
-    """How far each display vertex lies outside the simulation mesh.
-
-    Parameters
-    ----------
-    skin_V : (n_skin, 3) float64
-    X : (n_vertices, 3) float64
-    T : (n_tets, 4) int64, optional
-        Without it the distance is to the bounding box of ``X``.
-    k : int
-        Candidate tets / boundary faces looked at per vertex (nearest by centroid).
-
-    Returns
-    -------
-    d : (n_skin,) float64
-        0 for vertices inside (a tet of) the mesh, else the distance to its boundary
-        (an upper bound when the true closest face is not among the ``k`` candidates).
-    """
-    from scipy.spatial import cKDTree
-
-    P = np.asarray(skin_V, np.float64)
-    X = np.asarray(X, np.float64)
-    lo, hi = X.min(axis=0), X.max(axis=0)
-    d_box = np.linalg.norm(np.maximum(0.0, np.maximum(lo - P, P - hi)), axis=1)
-    if T is None:
-        return d_box
-    T = np.asarray(T, np.int64)
-    d = d_box.copy()
-    cand = np.flatnonzero(d_box == 0)
-    if cand.size:
-        E = X[T]
-        D = np.stack([E[:, 1] - E[:, 0], E[:, 2] - E[:, 0], E[:, 3] - E[:, 0]], axis=-1)
-        Dinv = np.linalg.inv(D)
-        kk = min(k, T.shape[0])
-        _, nearest = cKDTree(E.mean(axis=1)).query(P[cand], k=kk)
-        nearest = nearest.reshape(len(cand), kk)
-        rel = P[cand][:, None, :] - E[nearest, 0]
-        lam = np.einsum("pkij,pkj->pki", Dinv[nearest], rel)
-        lam_all = np.concatenate([1 - lam.sum(-1, keepdims=True), lam], axis=-1)
-        inside = (lam_all.min(axis=-1) >= -1e-9).any(axis=1)
-        d[cand[~inside]] = -1.0  # inside the box but in no tet: measure below
-    todo = np.flatnonzero(d != 0)
-    if todo.size:
-        F = boundary_faces(T)
-        kf = min(k, F.shape[0])
-        _, nf = cKDTree(X[F].mean(axis=1)).query(P[todo], k=kf)
-        tri = F[nf.reshape(-1)]
-        Pr = np.repeat(P[todo], kf, axis=0)
-        dist = _point_triangle_distance(Pr, X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]])
-        d[todo] = dist.reshape(len(todo), kf).min(axis=1)
-    return d
-
-
-def check_skin_inside(skin_V: np.ndarray, X: np.ndarray, tol: float = 0.05,
-                      T: np.ndarray | None = None, *, name: str = "display mesh") -> np.ndarray:
-    """Warn when display vertices lie well outside the simulation mesh.
-
-    Skinning extrapolates vertices outside every tet from the nearest tet, which distorts
-    them more the farther out they are.
-
-    Parameters
-    ----------
-    skin_V : (n_skin, 3) float64
-    X : (n_vertices, 3) float64
-        Simulation rest positions.
-    tol : float
-        Allowed distance, as a fraction of the diagonal of ``X``'s bounding box.
-    T : (n_tets, 4) int64, optional
-        Simulation tets: measure to the mesh itself, not just its bounding box.
-    name : str
-        What to call the display mesh in the warning.
-
-    Returns
-    -------
-    d : (n_skin,) float64
-        Distance of each display vertex outside the simulation mesh (0 inside).
-    """
-    X = np.asarray(X, np.float64)
-    diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
-    d = skin_outside_distance(skin_V, X, T)
-    far = d > tol * diag
-    if far.any():
-        what = "surface" if T is not None else "bounding box"
-        warnings.warn(
-            f"{name}: {int(far.sum())} of {len(d)} vertices lie farther than {tol:g} x the "
-            f"simulation mesh's bounding-box diagonal ({tol * diag:.4g}) outside its {what} "
-            f"(max {d.max():.4g} = {d.max() / diag:.3g} x diagonal)",
-            MeshWarning, stacklevel=2,
-        )
-    return d
-
-
-def check_skin_placement(
-    skin_V: np.ndarray,
-    X: np.ndarray,
-    T: np.ndarray | None = None,
-    *,
-    path: PathArg | None = None,
-    warn_tol: float = 0.05,
-    refuse_tol: float = 0.5,
-) -> np.ndarray:
-    """Refuse a display mesh far outside the simulation mesh; warn when it sticks out.
-
-    A display mesh half a bounding-box diagonal or more outside the simulation mesh is in
-    another frame (other units, an offset): skinning would extrapolate it into nonsense.
-
-    Parameters
-    ----------
-    skin_V, X, T : as :func:`check_skin_inside`
-    path : the display mesh's file, named in the message
-    warn_tol, refuse_tol : float
-        Distances outside, as fractions of the simulation mesh's bounding-box diagonal.
-
-    Returns
-    -------
-    d : (n_skin,) float64
-        Distance of each display vertex outside the simulation mesh.
-
-    Raises
-    ------
-    InputError
-        Some display vertex lies more than ``refuse_tol`` diagonals outside.
-    """
-    X = np.asarray(X, np.float64)
-    diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
-    d = skin_outside_distance(skin_V, X, T)
-    far = d > refuse_tol * diag
-    if far.any():
-        raise InputError(
-            f"display mesh lies far outside the simulation mesh: {int(far.sum())} of {len(d)} "
-            f"vertices are more than {refuse_tol:g} x its bounding-box diagonal outside (max "
-            f"{d.max() / diag:.3g} x); is it in the same frame (units, offset)?",
-            path=path,
-        )
-    name = "display mesh" if path is None else f"display mesh {path}"
-    return check_skin_inside(skin_V, X, warn_tol, T, name=name)
-
-
-def box_tet_mesh(
-    cells: Sequence[int] = (2, 2, 2),
-    size: Sequence[float] = (1.0, 1.0, 1.0),
-    origin: Sequence[float] = (0.0, 0.0, 0.0),
-) -> tuple[np.ndarray, np.ndarray]:
-    """A box split into grid cells of 6 Kuhn (Freudenthal) tets each, all positively oriented.
-
-    Every tet follows a monotone path from a cell's lowest corner to its highest, along the
-    axes in the order of one permutation, so neighbouring cells share faces (conforming).
-
-    Parameters
-    ----------
-    cells : (3,) int
-        Cells along x, y, z.
-    size : (3,) float
-        Box extents.
-    origin : (3,) float
-        Lowest corner.
-
-    Returns
-    -------
-    X : ((nx+1)(ny+1)(nz+1), 3) float64
-        Grid vertices, z fastest (``meshgrid(..., indexing="ij")`` order).
-    T : (6 nx ny nz, 4) int64
-        Tets, cell after cell (x slowest), the six permutations of (0, 1, 2) in
-        lexicographic order within a cell.
-    """
-    n = tuple(int(k) for k in cells)
-    axes = [np.linspace(0.0, float(s), k + 1) for s, k in zip(size, n, strict=True)]
-    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    X = X + np.asarray(origin, dtype=np.float64)
-    shape = tuple(k + 1 for k in n)
-    lowest = np.stack(np.meshgrid(*(np.arange(k) for k in n), indexing="ij"),
-                      axis=-1).reshape(-1, 1, 1, 3)
-    steps = np.zeros((6, 4, 3), dtype=np.int64)  # corner offsets along each permutation's path
-    for p, perm in enumerate(itertools.permutations(range(3))):
-        for i, axis in enumerate(perm):
-            steps[p, i + 1:, axis] += 1
-    corners = (lowest + steps).reshape(-1, 3)
-    T = np.ravel_multi_index(tuple(corners.T), shape).reshape(-1, 4).astype(np.int64)
-    e = X[T[:, 1:]] - X[T[:, :1]]
-    neg = np.linalg.det(e) < 0
-    T[neg, 2], T[neg, 3] = T[neg, 3].copy(), T[neg, 2].copy()
-    return X, T

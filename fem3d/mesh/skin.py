@@ -15,13 +15,17 @@ still follows the tet's affine motion exactly.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from fem3d.errors import InputError
+from fem3d.mesh.tetmesh import MeshWarning, PathArg, boundary_faces
 
-__all__ = ["build_skinning_matrix", "barycentric_in_tets"]
+__all__ = ["build_skinning_matrix", "barycentric_in_tets", "check_skin_inside",
+           "check_skin_placement", "skin_outside_distance"]
 
 #: Candidate counts tried in turn for the vertices not yet placed (capped at the tet count).
 _CANDIDATE_ROUNDS = (8, 32, 128)
@@ -165,3 +169,182 @@ def build_skinning_matrix(
     W = sp.csr_matrix((bary.reshape(-1), cols.reshape(-1), indptr), shape=(k, n))
     W.sum_duplicates()  # only changes anything for tets with repeated vertices
     return W
+
+
+# --------------------------------------------------------------------------------------
+# skin vs simulation mesh
+# --------------------------------------------------------------------------------------
+
+
+def _point_triangle_distance(P: np.ndarray, A: np.ndarray, B: np.ndarray,
+                             C: np.ndarray) -> np.ndarray:
+    """Exact distances from points to triangles, all ``(k, 3)`` -> ``(k,)`` (Ericson 5.1.5)."""
+    ab, ac, ap = B - A, C - A, P - A
+    d1 = np.einsum("ij,ij->i", ab, ap)
+    d2 = np.einsum("ij,ij->i", ac, ap)
+    bp = P - B
+    d3 = np.einsum("ij,ij->i", ab, bp)
+    d4 = np.einsum("ij,ij->i", ac, bp)
+    cp = P - C
+    d5 = np.einsum("ij,ij->i", ab, cp)
+    d6 = np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v = vb / denom
+        w = vc / denom
+        Q = A + ab * v[:, None] + ac * w[:, None]  # interior
+        # edge regions
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    edge_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    edge_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    edge_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    Q = np.where(edge_bc[:, None], B + (C - B) * t_bc[:, None], Q)
+    Q = np.where(edge_ac[:, None], A + ac * t_ac[:, None], Q)
+    Q = np.where(edge_ab[:, None], A + ab * t_ab[:, None], Q)
+    Q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], C, Q)
+    Q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], B, Q)
+    Q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], A, Q)
+    Q = np.where(np.isfinite(Q).all(axis=1)[:, None], Q, A)  # degenerate triangle
+    return np.linalg.norm(P - Q, axis=1)
+
+
+def skin_outside_distance(skin_V: np.ndarray, X: np.ndarray,
+                          T: np.ndarray | None = None, k: int = 16) -> np.ndarray:
+    """How far each display vertex lies outside the simulation mesh.
+
+    Parameters
+    ----------
+    skin_V : (n_skin, 3) float64
+    X : (n_vertices, 3) float64
+    T : (n_tets, 4) int64, optional
+        Without it the distance is to the bounding box of ``X``.
+    k : int
+        Candidate tets / boundary faces looked at per vertex (nearest by centroid).
+
+    Returns
+    -------
+    d : (n_skin,) float64
+        0 for vertices inside (a tet of) the mesh, else the distance to its boundary
+        (an upper bound when the true closest face is not among the ``k`` candidates).
+    """
+    P = np.asarray(skin_V, np.float64)
+    X = np.asarray(X, np.float64)
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    d_box = np.linalg.norm(np.maximum(0.0, np.maximum(lo - P, P - hi)), axis=1)
+    if T is None:
+        return d_box
+    T = np.asarray(T, np.int64)
+    d = d_box.copy()
+    cand = np.flatnonzero(d_box == 0)
+    if cand.size:
+        E = X[T]
+        D = np.stack([E[:, 1] - E[:, 0], E[:, 2] - E[:, 0], E[:, 3] - E[:, 0]], axis=-1)
+        Dinv = np.linalg.inv(D)
+        kk = min(k, T.shape[0])
+        _, nearest = cKDTree(E.mean(axis=1)).query(P[cand], k=kk)
+        nearest = nearest.reshape(len(cand), kk)
+        rel = P[cand][:, None, :] - E[nearest, 0]
+        lam = np.einsum("pkij,pkj->pki", Dinv[nearest], rel)
+        lam_all = np.concatenate([1 - lam.sum(-1, keepdims=True), lam], axis=-1)
+        inside = (lam_all.min(axis=-1) >= -1e-9).any(axis=1)
+        d[cand[~inside]] = -1.0  # inside the box but in no tet: measure below
+    todo = np.flatnonzero(d != 0)
+    if todo.size:
+        F = boundary_faces(T)
+        kf = min(k, F.shape[0])
+        _, nf = cKDTree(X[F].mean(axis=1)).query(P[todo], k=kf)
+        tri = F[nf.reshape(-1)]
+        Pr = np.repeat(P[todo], kf, axis=0)
+        dist = _point_triangle_distance(Pr, X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]])
+        d[todo] = dist.reshape(len(todo), kf).min(axis=1)
+    return d
+
+
+def check_skin_inside(skin_V: np.ndarray, X: np.ndarray, tol: float = 0.05,
+                      T: np.ndarray | None = None, *, name: str = "display mesh") -> np.ndarray:
+    """Warn when display vertices lie well outside the simulation mesh.
+
+    Skinning extrapolates vertices outside every tet from the nearest tet, which distorts
+    them more the farther out they are.
+
+    Parameters
+    ----------
+    skin_V : (n_skin, 3) float64
+    X : (n_vertices, 3) float64
+        Simulation rest positions.
+    tol : float
+        Allowed distance, as a fraction of the diagonal of ``X``'s bounding box.
+    T : (n_tets, 4) int64, optional
+        Simulation tets: measure to the mesh itself, not just its bounding box.
+    name : str
+        What to call the display mesh in the warning.
+
+    Returns
+    -------
+    d : (n_skin,) float64
+        Distance of each display vertex outside the simulation mesh (0 inside).
+    """
+    X = np.asarray(X, np.float64)
+    diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    d = skin_outside_distance(skin_V, X, T)
+    far = d > tol * diag
+    if far.any():
+        what = "surface" if T is not None else "bounding box"
+        warnings.warn(
+            f"{name}: {int(far.sum())} of {len(d)} vertices lie farther than {tol:g} x the "
+            f"simulation mesh's bounding-box diagonal ({tol * diag:.4g}) outside its {what} "
+            f"(max {d.max():.4g} = {d.max() / diag:.3g} x diagonal)",
+            MeshWarning, stacklevel=2,
+        )
+    return d
+
+
+def check_skin_placement(
+    skin_V: np.ndarray,
+    X: np.ndarray,
+    T: np.ndarray | None = None,
+    *,
+    path: PathArg | None = None,
+    warn_tol: float = 0.05,
+    refuse_tol: float = 0.5,
+) -> np.ndarray:
+    """Refuse a display mesh far outside the simulation mesh; warn when it sticks out.
+
+    A display mesh half a bounding-box diagonal or more outside the simulation mesh is in
+    another frame (other units, an offset): skinning would extrapolate it into nonsense.
+
+    Parameters
+    ----------
+    skin_V, X, T : as :func:`check_skin_inside`
+    path : the display mesh's file, named in the message
+    warn_tol, refuse_tol : float
+        Distances outside, as fractions of the simulation mesh's bounding-box diagonal.
+
+    Returns
+    -------
+    d : (n_skin,) float64
+        Distance of each display vertex outside the simulation mesh.
+
+    Raises
+    ------
+    InputError
+        Some display vertex lies more than ``refuse_tol`` diagonals outside.
+    """
+    X = np.asarray(X, np.float64)
+    diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    d = skin_outside_distance(skin_V, X, T)
+    far = d > refuse_tol * diag
+    if far.any():
+        raise InputError(
+            f"display mesh lies far outside the simulation mesh: {int(far.sum())} of {len(d)} "
+            f"vertices are more than {refuse_tol:g} x its bounding-box diagonal outside (max "
+            f"{d.max() / diag:.3g} x); is it in the same frame (units, offset)?",
+            path=path,
+        )
+    name = "display mesh" if path is None else f"display mesh {path}"
+    return check_skin_inside(skin_V, X, warn_tol, T, name=name)

@@ -15,8 +15,9 @@ A scene body whose ``mesh`` is a surface (OBJ/STL/PLY/OFF) is tetrahedralized he
   goes to ``<cache>/tetwild/<key>.log``, a time limit applies (``$FEM3D_TETWILD_TIMEOUT``
   seconds, default 900), and a crash is an :class:`~fem3d.errors.InputError`.
 * The result is cached in ``<cache>/tetwild/<key>.mesh`` (MEDIT), ``<key>`` the sha256 of the
-  input file's bytes, the options and the wildmeshing version; ``<cache>`` is
-  ``$FEM3D_CACHE`` or ``~/.cache/fem3d``. The second run reads the cached mesh.
+  input file's bytes, the options and the wildmeshing version; ``<cache>`` is the folder the
+  caller passes, by default :func:`fem3d.io.files.cache_dir` (``$FEM3D_CACHE`` or
+  ``~/.cache/fem3d``). The second run reads the cached mesh.
 * A surface that is not closed is first checked for boundary edges; fTetWild's winding-number
   filter repairs small holes. When what comes back has no tets, or a volume far from the
   surface's enclosed volume (an open sheet, not a solid), the surface is refused with one line
@@ -34,11 +35,15 @@ import subprocess
 import sys
 import tempfile
 import time
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 
 from fem3d.errors import InputError
+from fem3d.io.files import atomic_write, cache_dir
+from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh, write_tet_mesh
+from fem3d.mesh.tetmesh import TetMesh
 
 __all__ = ["tetrahedralize_file", "tetrahedralize_arrays", "cache_key", "boundary_edge_count",
            "enclosed_volume", "TETWILD_VERSION"]
@@ -46,8 +51,6 @@ __all__ = ["tetrahedralize_file", "tetrahedralize_arrays", "cache_key", "boundar
 
 def _wildmeshing_version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("wildmeshing")
     except Exception:  # pragma: no cover - not installed
         return "missing"
@@ -92,7 +95,7 @@ def tetrahedralize_arrays(V: np.ndarray, F: np.ndarray, *, edge_length: float = 
     T : (m, 4) int64
         Interior tets only (winding-number filter); possibly empty.
     """
-    import wildmeshing as wm
+    import wildmeshing as wm  # optional (fem3d[scenes]); only surface bodies need it
 
     if threads is None:  # 0: all cores
         threads = int(os.environ.get("FEM3D_TETWILD_THREADS", "0") or 0)
@@ -118,7 +121,7 @@ def _timeout() -> float:
 
 def tetrahedralize_file(
     path: str | os.PathLike[str], *, edge_length: float = 0.05, epsilon: float = 1e-3,
-    stop_quality: float = 10.0,
+    stop_quality: float = 10.0, cache: str | os.PathLike[str] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """The tet mesh of a closed surface file, from the cache or made by fTetWild.
 
@@ -130,6 +133,9 @@ def tetrahedralize_file(
         Relative to the bounding-box diagonal (see the module docstring).
     stop_quality : float
         fTetWild's target max-AMIPS energy.
+    cache : path, optional
+        The cache folder; the meshes go to ``<cache>/tetwild/``. Default:
+        :func:`fem3d.io.files.cache_dir`.
 
     Returns
     -------
@@ -145,14 +151,10 @@ def tetrahedralize_file(
         Unreadable surface, no binding, fTetWild failed or timed out, or a surface it could
         not turn into a solid (naming ``path``).
     """
-    from fem3d.io.output import atomic_write
-    from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
-    from fem3d.scene.spec import cache_dir
-
     path = Path(path)
     V, F = read_surface_mesh(path)
     key = cache_key(path, edge_length, epsilon, stop_quality)
-    folder = cache_dir() / "tetwild"
+    folder = (cache_dir() if cache is None else Path(cache)) / "tetwild"
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / f"{key[:40]}.mesh"
     if not out.is_file():
@@ -184,8 +186,6 @@ def tetrahedralize_file(
             X, T = d["X"], d["T"]
         tmp.unlink(missing_ok=True)
         _check_solid(path, V, F, X, T)
-        from fem3d.mesh.formats import TetMesh, write_tet_mesh
-
         atomic_write(out, lambda p: write_tet_mesh(p, TetMesh(X, T)))
         meta = {"source": str(path.resolve()), "edge_length": edge_length, "epsilon": epsilon,
                 "stop_quality": stop_quality, "tetwild": TETWILD_VERSION,
@@ -223,8 +223,6 @@ def _check_solid(path: Path, V: np.ndarray, F: np.ndarray, X: np.ndarray, T: np.
 
 def _main(argv: list[str]) -> int:
     """Child process: ``python -m fem3d.mesh.tetrahedralize IN OUT.npz EDGE EPS QUALITY``."""
-    from fem3d.mesh.formats import read_surface_mesh
-
     src, dst, edge, eps, quality = argv
     V, F = read_surface_mesh(src)
     X, T = tetrahedralize_arrays(V, F, edge_length=float(edge), epsilon=float(eps),

@@ -57,7 +57,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.mesh.formats import boundary_faces
+from fem3d.mesh.tetmesh import boundary_faces
 
 __all__ = [
     "PlaneObstacle",

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.rundir import check_input_file
-from fem3d.mesh.formats import check_skin_placement
+from fem3d.io.files import check_input_file
+from fem3d.mesh.skin import check_skin_placement
 from fem3d.scene.spec import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
 
 __all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
@@ -351,7 +351,7 @@ class Assembled:
 
 
 def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    from fem3d.mesh.formats import boundary_faces
+    from fem3d.mesh.tetmesh import boundary_faces
 
     return np.arange(n), boundary_faces(T)
 

@@ -499,7 +499,7 @@ class Scene(_Spec):
 
     def check_files(self) -> None:
         """Every referenced file exists (else ``FILE: key: no such file PATH``)."""
-        from fem3d.io.rundir import check_input_file
+        from fem3d.io.files import check_input_file
 
         for key, p in self.files():
             if not (p.exists() or p.is_symlink()):
@@ -758,7 +758,7 @@ def scene_names() -> list[str]:
 
 def read_scene_file(path: str | os.PathLike[str]) -> Scene:
     """Parse and validate one TOML scene file (relative paths: relative to its folder)."""
-    from fem3d.io.rundir import check_input_file
+    from fem3d.io.files import check_input_file
 
     path = check_input_file(path, "scene file")
     try:
@@ -791,7 +791,7 @@ def mesh_scene(path: str | os.PathLike[str]) -> Scene:
     :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
     ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
     ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
-    from fem3d.io.rundir import check_input_file
+    from fem3d.io.files import check_input_file
     from fem3d.scene.build import is_surface_file, rest_positions
 
     p = check_input_file(path, "mesh")
@@ -848,8 +848,9 @@ def scene_from_arrays(X: Any, T: Any, overrides: Mapping[str, Any] | None = None
     """
     import numpy as np
 
-    from fem3d.io.output import atomic_write
-    from fem3d.mesh.formats import TetMesh, write_tet_mesh
+    from fem3d.io.files import atomic_write
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh
 
     X = np.ascontiguousarray(X, dtype=np.float64)
     T = np.ascontiguousarray(T, dtype=np.int64)

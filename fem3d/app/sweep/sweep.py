@@ -669,7 +669,7 @@ def plan_sweep(spec: SweepFile, out: Path, *, retry_failed: bool = False,
 
 
 def _write_json(path: Path, data: Any) -> None:
-    from fem3d.io.output import atomic_write
+    from fem3d.io.files import atomic_write
 
     atomic_write(path, json.dumps(data, indent=1, allow_nan=False, default=str) + "\n")
 
@@ -959,7 +959,7 @@ def _cell(value: Any) -> str:
 def write_results(out: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]]) -> None:
     """``out/results.csv`` (one row per case) and ``out/results.png`` (the metric against
     each swept parameter), both written atomically."""
-    from fem3d.io.output import atomic_write
+    from fem3d.io.files import atomic_write
 
     columns = ["case", "id", *spec.swept_keys, "status", "message", *METRICS, "worker",
                "attempt"]
@@ -984,7 +984,7 @@ def plot_results(path: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]])
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from fem3d.io.output import atomic_write
+    from fem3d.io.files import atomic_write
 
     metric = spec.results.metric
     keys = spec.swept_keys or ["case"]

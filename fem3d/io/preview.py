@@ -1,0 +1,290 @@
+"""Pictures of a run, drawn offscreen (Agg, no display): the energy plot and the preview GIF.
+
+- :func:`plot_energy` - kinetic, potential and total energy against time, as a PNG.
+- :func:`render_preview` - a shaded animation of a triangle mesh, as a GIF.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from PIL import Image
+
+from fem3d.io.energy import energy_columns
+from fem3d.io.files import PathLike, atomic_write
+from fem3d.io.frames import check_faces, check_vertices
+
+__all__ = ["plot_energy", "render_preview"]
+
+
+def plot_energy(data: Any, png_path: PathLike, *, title: str | None = None) -> Path:
+    """Plot kinetic, potential and total energy against time into a PNG (Agg, no display).
+
+    Parameters
+    ----------
+    data : path of an energy CSV, EnergyLog, mapping with keys t/kinetic/potential/total,
+        or (n_rows, 4) array
+    png_path : str or PathLike
+    title : str, optional
+    """
+    # matplotlib is imported where used: only pictures need it, and it takes ~0.3 s to import
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    cols = energy_columns(data)
+    fig = Figure(figsize=(7, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(cols["t"], cols["kinetic"], label="kinetic")
+    ax.plot(cols["t"], cols["potential"], label="potential")
+    ax.plot(cols["t"], cols["total"], label="total", color="k", linewidth=1.5)
+    ax.set_xlabel("time t [s]")
+    ax.set_ylabel("energy")
+    if title:
+        ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return atomic_write(png_path, lambda p: fig.savefig(p, format="png"))
+
+
+# --------------------------------------------------------------------------------------
+# preview GIF
+
+
+def _cluster_decimate(V0: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[Any, np.ndarray]:
+    """Vertex-clustering decimation on a uniform grid at the rest shape.
+
+    Returns a sparse ``(n_clusters, n_vertices)`` averaging matrix ``A`` and the faces on the
+    clusters, so every frame decimates as ``A @ V``. Closed surfaces stay closed (no holes,
+    unlike drawing a subset of faces); orientation is kept.
+    """
+    lo, hi = V0.min(axis=0), V0.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    used = np.unique(faces)
+    res = max(4.0, np.sqrt(max_faces / 2.0))  # cells along the diagonal; refined below
+    best = None
+    for _ in range(8):
+        cell = diag / res
+        key = np.floor((V0[used] - lo) / cell).astype(np.int64)
+        _, cl_used = np.unique(key, axis=0, return_inverse=True)
+        cl = np.full(V0.shape[0], -1, dtype=np.int64)
+        cl[used] = cl_used.reshape(-1)
+        Fc = cl[faces]
+        ok = (Fc[:, 0] != Fc[:, 1]) & (Fc[:, 1] != Fc[:, 2]) & (Fc[:, 0] != Fc[:, 2])
+        Fc = Fc[ok]
+        Fc = Fc[np.unique(np.sort(Fc, axis=1), axis=0, return_index=True)[1]]
+        if Fc.shape[0] <= max_faces:
+            best = (cl, Fc)
+            if Fc.shape[0] >= 0.7 * max_faces:
+                break
+            res *= min(2.0, np.sqrt(max_faces / max(Fc.shape[0], 1)) * 0.95)
+        else:
+            res *= max(0.5, np.sqrt(max_faces / Fc.shape[0]) * 0.95)
+    if best is None:
+        best = (cl, Fc)
+    cl, Fc = best
+    n_cl = int(cl.max()) + 1
+    rows = cl[used]
+    counts = np.bincount(rows, minlength=n_cl).astype(np.float64)
+    A = sp.csr_matrix((1.0 / counts[rows], (rows, used)), shape=(n_cl, V0.shape[0]))
+    return A, Fc
+
+
+def _camera(elev_deg: float, azim_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal camera axes (right, up, toward-viewer) for a y-up world."""
+    e, a = np.radians(elev_deg), np.radians(azim_deg)
+    toward = np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
+    right = np.cross([0.0, 1.0, 0.0], toward)
+    norm = np.linalg.norm(right)
+    if norm < 1e-9:  # looking straight down or up: any horizontal axis will do
+        right, norm = np.array([np.cos(a), 0.0, -np.sin(a)]), 1.0
+    right /= norm
+    up = np.cross(toward, right)
+    return right, up, toward
+
+
+def render_preview(
+    frames: Sequence[np.ndarray],
+    faces: np.ndarray,
+    path_gif: PathLike,
+    fps: float = 20.0,
+    *,
+    max_frames: int = 60,
+    max_faces: int = 12000,
+    size: int = 400,
+    elev: float = 15.0,
+    azim: float = 30.0,
+    color: tuple[float, float, float] = (0.78, 0.72, 0.62),
+    margin: float = 0.15,
+    view_bounds: str = "first",
+    first_frame_png: PathLike | None = None,
+) -> Path:
+    """Render a shaded animation of a triangle mesh offscreen and save it as a GIF.
+
+    Orthographic camera from ``elev`` / ``azim`` (degrees, ``y`` up), fixed for the whole
+    clip, with the view box from the first frame (or all frames, ``view_bounds``) plus
+    ``margin``, and equal aspect.
+    Faces are depth-sorted (painter's algorithm) and drawn as a 2-D matplotlib
+    ``PolyCollection`` on an Agg canvas, shaded per face with two-sided Lambert lighting
+    from the face normals (light from the upper left of the camera).
+
+    Parameters
+    ----------
+    frames : sequence of (n_vertices, 3) float64
+        Vertex positions over time; at most ``max_frames`` evenly spaced ones are drawn
+        (first and last included).
+    faces : (n_faces, 3) int
+    path_gif : str or PathLike
+    fps : float
+        Playback rate of the GIF.
+    max_frames : int
+    max_faces : int
+        Meshes with more faces are decimated once (vertex clustering on a grid at the first
+        frame, applied to every frame as a sparse average), keeping the surface closed.
+    size : int
+        Image width and height in pixels.
+    elev, azim : float
+        Camera elevation and azimuth in degrees (``azim = 0`` looks along ``-z``).
+    color : (3,) float
+        Base RGB colour.
+    margin : float
+        Relative padding around the projected bounding box.
+    view_bounds : {"first", "all"}
+        Fit the (fixed) view to the first frame, or to every drawn frame (nothing leaves
+        the picture, e.g. a pulled arm).
+    first_frame_png : str or PathLike, optional
+        Also save the first rendered frame as a PNG (to look at).
+
+    Returns
+    -------
+    Path
+        ``path_gif``.
+
+    Notes
+    -----
+    Cost is dominated by Agg drawing, about 6-8 microseconds per face per frame on one core
+    (the full 52k-face armadillo skin: 0.4 s a frame, 24 s for 60 frames). Meshes above
+    ``max_faces`` (12k by default) are therefore decimated: the armadillo skin then takes
+    about 4 s for 60 frames at 400 px; the sim surface (a few hundred faces) renders at
+    well over 20 frames per second. Pillow merges consecutive identical frames (summing
+    their durations), so a GIF of a still shape has fewer frames than were drawn.
+    The armadillo faces ``-z``: pass ``azim=210`` to see its front.
+    """
+    faces = check_faces(faces)
+    if len(frames) == 0:
+        raise ValueError("render_preview needs at least one frame")
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round())
+    seq = [check_vertices(frames[int(i)], faces, int(i)) for i in pick]
+
+    if faces.shape[0] > max_faces:
+        A, F = _cluster_decimate(seq[0], faces, max_faces)
+        seq = [A @ V for V in seq]
+    else:
+        F = faces
+
+    right, up, toward = _camera(elev, azim)
+    proj = np.stack([right, up, toward], axis=1)  # world -> (u, v, depth toward viewer)
+    light = 0.55 * toward + 0.45 * up - 0.35 * right
+    light /= np.linalg.norm(light)
+    base = np.asarray(color, dtype=np.float64)
+
+    if view_bounds not in ("first", "all"):
+        raise ValueError(f"view_bounds must be 'first' or 'all', got {view_bounds!r}")
+    P0 = seq[0] @ proj if view_bounds == "first" else np.vstack(seq) @ proj
+    umin, vmin = P0[:, 0].min(), P0[:, 1].min()
+    umax, vmax = P0[:, 0].max(), P0[:, 1].max()
+    half = 0.5 * max(umax - umin, vmax - vmin, 1e-300) * (1.0 + 2.0 * margin)
+    cu, cv = 0.5 * (umin + umax), 0.5 * (vmin + vmax)
+
+    images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half))
+    if first_frame_png is not None:
+        atomic_write(first_frame_png, lambda p: images[0].save(p, format="PNG"))
+    return _save_gif(images, path_gif, fps)
+
+
+def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
+                 light: np.ndarray, base: np.ndarray, size: int,
+                 box: tuple[float, float, float]) -> list[Image.Image]:
+    """Draw every frame of ``seq`` on one Agg canvas (see :func:`render_preview`).
+
+    Parameters
+    ----------
+    seq : sequence of (n_vertices, 3) float64
+    F : (n_faces, 3) int
+    proj : (3, 3) float64
+        World -> (u, v, depth toward the viewer).
+    light : (3,) float64
+        Unit direction toward the light.
+    base : (3,) float64
+        Base RGB colour.
+    size : int
+        Image width and height in pixels.
+    box : (cu, cv, half)
+        Centre and half width of the (square) view in the image plane.
+
+    Returns
+    -------
+    list of PIL.Image.Image
+        RGB images.
+    """
+    # matplotlib is imported where used: only pictures need it, and it takes ~0.3 s to import
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PolyCollection
+    from matplotlib.figure import Figure
+
+    cu, cv, half = box
+    dpi = 100
+    fig = Figure(figsize=(size / dpi, size / dpi), dpi=dpi, facecolor="white")
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(cu - half, cu + half)
+    ax.set_ylim(cv - half, cv + half)
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    coll = PolyCollection([], closed=True, linewidths=0.25, antialiaseds=False)
+    ax.add_collection(coll)
+
+    images: list[Image.Image] = []
+    for V in seq:
+        tri = V[F]  # (f, 3, 3)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nn = np.linalg.norm(n, axis=1, keepdims=True)
+        n = np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
+        shade = 0.25 + 0.75 * np.abs(n @ light)
+        rgb = np.clip(shade[:, None] * base[None, :], 0.0, 1.0)
+        P = V @ proj
+        order = np.argsort(P[F, 2].mean(axis=1), kind="stable")  # far first
+        coll.set_verts(P[F[order]][:, :, :2])
+        coll.set_facecolor(rgb[order])
+        coll.set_edgecolor(rgb[order])  # hides hairline seams between faces
+        canvas.draw()
+        rgba = np.asarray(canvas.buffer_rgba())
+        images.append(Image.fromarray(rgba[:, :, :3].copy()))
+    return images
+
+
+def _save_gif(images: Sequence[Image.Image], path_gif: PathLike, fps: float) -> Path:
+    """Write ``images`` atomically as a looping GIF on the first image's palette."""
+    pal = images[0].quantize(colors=255, method=Image.Quantize.MEDIANCUT)
+    pimgs = [pal] + [im.quantize(palette=pal, dither=Image.Dither.NONE) for im in images[1:]]
+    duration = max(20, int(round(1000.0 / fps)))
+    return atomic_write(
+        path_gif,
+        lambda p: pimgs[0].save(
+            p,
+            format="GIF",
+            save_all=True,
+            append_images=pimgs[1:],
+            duration=duration,
+            loop=0,
+            optimize=False,
+            disposal=1,
+        ),
+    )
