@@ -147,7 +147,7 @@ def tetrahedralize_file(
     """
     from fem3d.io.output import atomic_write
     from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
-    from fem3d.scene.spec import cache_dir
+    from fem3d.scene.load import cache_dir
 
     path = Path(path)
     V, F = read_surface_mesh(path)
