@@ -70,11 +70,11 @@ class Workload:
 def armadillo(level: int, steps: int) -> Workload:
     """The armadillo scene refined ``level`` times, its hand dragged for ``steps - 20`` steps."""
     from fem3d.physics.constraints import fixed_vertices_lowest_y
-    from fem3d.scene.build import assemble
-    from fem3d.scene.spec import load_scene
+    from fem3d.scene import load_scene
+    from fem3d.scene.arrays import build_arrays
 
     scene = load_scene("arma")
-    a = assemble(scene)
+    a = build_arrays(scene)
     body, pull = scene.bodies[0], scene.pulls[0]
     X, T = a.X, a.T
     for _ in range(level):

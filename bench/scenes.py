@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from fem3d.errors import SimulationError
-from fem3d.scene.spec import load_scene
+from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 
 #: (scene, integrator, Newton's linear solver); the scenes' own integrators come first.

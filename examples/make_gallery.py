@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.meshes_only:
         return 0
     from fem3d.app.cli import run_scene
-    from fem3d.scene.spec import load_scene
+    from fem3d.scene import load_scene
 
     GALLERY.mkdir(parents=True, exist_ok=True)
     status = 0

@@ -13,8 +13,8 @@ import argparse
 
 import numpy as np
 
-from fem3d.scene.build import assemble
-from fem3d.scene.spec import load_scene
+from fem3d.scene import load_scene
+from fem3d.scene.arrays import build_arrays
 from fem3d.simulation import Simulation
 
 
@@ -24,7 +24,7 @@ def max_ear_displacement(steps: int = 40, integrator: str | None = None) -> floa
     scene = load_scene("bunny", overrides)  # data/scenes/bunny.toml
     sim = Simulation(scene, scripted=True)
     ear = scene.pulls[0].select.near_vertex.vertex
-    X = assemble(scene).X
+    X = build_arrays(scene).X
     worst = 0.0
     for _ in range(steps):
         sim.step()

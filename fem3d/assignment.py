@@ -23,7 +23,8 @@ from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.physics import assembly as _assembly
 from fem3d.physics.constraints import fixed_point_constraints, pick_nearest_vertices
 from fem3d.physics.model import Model
-from fem3d.solve.integrators import implicit_euler, linearly_implicit_euler, newtons_method
+from fem3d.solve.integrators import implicit_euler, linearly_implicit_euler
+from fem3d.solve.newton import newtons_method
 
 __all__ = [
     "phi_linear_tetrahedron",

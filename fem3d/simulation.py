@@ -2,7 +2,7 @@
 
 Used by the headless ``fem3d run``, the viewer and the benchmarks::
 
-    from fem3d.scene.spec import load_scene
+    from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
 
     sim = Simulation(load_scene("bunny"))          # everything from data/scenes/bunny.toml
@@ -24,12 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fem3d.errors import InputError, ParameterError, SimulationError
+from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
-from fem3d.physics.constraints import Constraints, pick_nearest_vertices
-from fem3d.physics.model import Model, build_model, validate_dt
+from fem3d.physics.constraints import pick_nearest_vertices
+from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
+from fem3d.scene.build import build
 from fem3d.scene.spec import Scene
 from fem3d.solve.backward_euler import backward_euler, model_terms, newton_options
 from fem3d.solve.integrators import INTEGRATORS, State, StepStats, System
@@ -86,120 +87,9 @@ CONTACT_NEEDS_IMPLICIT = ("contact needs backward Euler (integrator = \"implicit
                           "guarantee")
 
 
-def _simple_material(m) -> bool:
-    return m.E is not None and not (m.params or m.regions or m.cell_fields)
-
-
-def _cell_field(scene: Scene, a, i: int, param: str, name: str) -> np.ndarray:
-    """Body ``i``'s per-tet values of cell-data array ``name`` from its mesh file."""
-    key = f"bodies[{i}].material.cell_fields.{param}"
-    path = scene.path(scene.bodies[i].mesh)
-    try:
-        import meshio
-
-        mesh = meshio.read(path)
-    except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
-        raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
-                          f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
-                          ) from None
-    blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
-    if name not in mesh.cell_data or not blocks:
-        have = ", ".join(sorted(mesh.cell_data)) or "none"
-        raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
-    vals = np.concatenate([np.asarray(mesh.cell_data[name][j], dtype=np.float64).reshape(-1)
-                           for j in blocks])
-    n = a.body_tets[i].stop - a.body_tets[i].start
-    if vals.shape != (n,):
-        raise scene.error(key, f"{path}: {name!r} has {vals.size} values for {n} tets")
-    return vals
-
-
-def _build_model(scene: Scene, a, backend: str | None) -> Model:
-    """The model of every body's material (one material form when there is one plain body,
-    else ``build_model(groups=)``: one group per body and per region)."""
-    from fem3d.physics.model import MaterialGroup
-    from fem3d.scene.build import select_vertices
-
-    bodies = scene.bodies
-    path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
-    try:
-        if len(bodies) == 1 and _simple_material(bodies[0].material):
-            m = bodies[0].material
-            return build_model(a.X, a.T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
-                               backend=backend, path=path)
-    except InputError as exc:
-        key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
-        raise scene.error(key, str(exc)) from None
-    groups, density = [], np.empty(a.T.shape[0])
-    for i, body in enumerate(bodies):
-        m = body.material
-        tets = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
-        density[tets] = m.density
-        base = dict(m.params)
-        if m.E is not None:
-            base.update(E=m.E, nu=m.nu)
-        for param, name in m.cell_fields.items():
-            base[param] = _cell_field(scene, a, i, param, name)
-        region = np.full(tets.size, -1)
-        if m.regions:
-            Xb = a.X[a.body_vertices[i]]
-            Tb = a.T[a.body_tets[i]] - a.body_vertices[i].start
-            for j, r in enumerate(m.regions):
-                ids = select_vertices(scene, Xb, r.select,
-                                      f"bodies[{i}].material.regions[{j}].select")
-                inside = np.isin(Tb, ids).all(axis=1)
-                if not inside.any():
-                    raise scene.error(f"bodies[{i}].material.regions[{j}].select",
-                                      "selects no whole tet (a region is the tets whose four "
-                                      "vertices are all selected)")
-                region[inside] = j
-        for j in range(-1, len(m.regions)):
-            mask = region == j
-            if not mask.any():
-                continue
-            values = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in base.items()}
-            if j >= 0:
-                r = m.regions[j]
-                values.update(r.params)
-                if r.E is not None:
-                    values["E"] = r.E
-                if r.nu is not None:
-                    values["nu"] = r.nu
-            groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
-                           MaterialGroup(m.model, tets[mask], values)))
-    rho = float(density[0]) if (density == density[0]).all() else density
-    try:
-        return build_model(a.X, a.T, groups=[g for _, g in groups], density=rho,
-                           backend=backend, path=path)
-    except ParameterError as exc:
-        # name the group the message is about when it says which (else the first body's)
-        import re
-
-        hit = re.search(r"material group (\d+)", str(exc))
-        key = groups[int(hit.group(1))][0] if hit and int(hit.group(1)) < len(groups) \
-            else groups[0][0]
-        raise scene.error(key, str(exc)) from None
-    except InputError as exc:
-        raise scene.error("bodies", str(exc)) from None
-
-
 def _stiffness(k) -> float | np.ndarray:
     a = np.asarray(k, dtype=np.float64)
     return float(a) if a.ndim == 0 else a
-
-
-def _damping(scene: Scene, a) -> tuple:
-    """Rayleigh ``alpha`` (scalar or per vertex) and ``beta`` (scalar or per tet)."""
-    alphas = [b.damping.rayleigh_mass for b in scene.bodies]
-    betas = [b.damping.rayleigh_stiffness for b in scene.bodies]
-    if len(set(alphas)) == 1 and len(set(betas)) == 1:
-        return float(alphas[0]), float(betas[0])
-    alpha = np.zeros(a.X.shape[0])
-    beta = np.zeros(a.T.shape[0])
-    for i in range(len(scene.bodies)):
-        alpha[a.body_vertices[i]] = alphas[i]
-        beta[a.body_tets[i]] = betas[i]
-    return alpha, beta
 
 
 class Simulation:
@@ -208,7 +98,7 @@ class Simulation:
     Parameters
     ----------
     scene : fem3d.scene.spec.Scene
-        Everything about the run (from :func:`fem3d.scene.spec.load_scene`); read here, once.
+        Everything about the run (from :func:`fem3d.scene.load.load_scene`); read here, once.
     backend : {None, "numpy", "c"}, optional
         Kernel back end (None: C if built).
     scripted : bool, optional
@@ -224,7 +114,7 @@ class Simulation:
     Attributes
     ----------
     scene : Scene
-    assembled : fem3d.scene.build.Assembled
+    assembled : fem3d.scene.arrays.SceneArrays
         The scene in arrays (rest positions, tets, pins, pulls, display mesh).
     model : Model
         Frozen model (replaced by :meth:`set_material`).
@@ -243,21 +133,15 @@ class Simulation:
 
     def __init__(self, scene: Scene, *, backend: str | None = None,
                  scripted: bool = False) -> None:
-        from fem3d.scene.build import assemble
-
         self.scene = scene
         _check_supported(scene)
-        a = assemble(scene)
+        built = build(scene, backend=backend)  # arrays, model, pins, motions, contact
+        a = built.arrays
         self.assembled = a
-        self.model: Model = _build_model(scene, a, backend)
-        if a.fixed.size == 0 and not scene.contact.enabled:
-            raise scene.error(
-                "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
-                "[{ select = { lowest_y = { tol = 0.0 } } }])")
-        self.constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
+        self.model: Model = built.model
+        self.constraints = built.constraints
         sim = scene.simulation
-        gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
-        alpha, beta = _damping(scene, a)
+        gravity, alpha, beta = built.gravity, built.rayleigh_alpha, built.rayleigh_beta
         try:
             self.system = System(self.model, self.constraints, sim.linear_solver,
                                  gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta)
@@ -265,14 +149,11 @@ class Simulation:
             raise scene.error("simulation", str(exc)) from None
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
-        self._motions = self._pin_motions()
+        self._motions = built.motions
         #: The IPC contact term of a contact scene
         #: (:class:`fem3d.physics.terms.contact.ContactTerm`).
-        self.contact = None
-        if scene.contact.enabled:
-            from fem3d.physics.contact import contact_from_scene
-
-            self.contact = contact_from_scene(scene, a)
+        self.contact = built.contact
+        if self.contact is not None:
             try:
                 self.contact.contact.check_admissible(self._initial_positions())
             except SimulationError as exc:
@@ -286,9 +167,8 @@ class Simulation:
         self.max_newton_iterations = sim.newton.max_iterations
         self.newton_hessian = sim.newton.hessian
         self.newton_solver = sim.newton.solver
-        self.pick_radius = a.pick_radius
-        self.spring_k = (a.spring_k if a.spring_k is not None
-                         else 0.15 * float(self.model.E) * a.height)
+        self.pick_radius = built.pick_radius
+        self.spring_k = built.spring_k
         self._W = None
         self.last_stats: StepStats | None = None
         self.reset()
@@ -309,38 +189,6 @@ class Simulation:
             return []
         t = self.t if t is None else t
         return [(m.name, m.positions(t), m.faces) for m in self.contact.contact.meshes]
-
-    def _pin_motions(self) -> list:
-        """``(slots into fixed_vertices, rest positions, Keyframes)`` of each moving pin."""
-        from fem3d.physics.motion import Keyframes
-        from fem3d.scene.build import select_vertices
-
-        a, scene = self.assembled, self.scene
-        fixed = self.constraints.fixed_vertices
-        out, taken = [], np.zeros(fixed.size, dtype=bool)
-        for i, body in enumerate(scene.bodies):
-            off = a.body_vertices[i].start
-            for j, pin in enumerate(body.pins):
-                if pin.motion is None:
-                    continue
-                key = f"bodies[{i}].pins[{j}]"
-                ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
-                                      f"{key}.select") + off
-                slots = np.searchsorted(fixed, ids)
-                if taken[slots].any():
-                    raise scene.error(f"{key}.select", "shares pinned vertices with another "
-                                      "moving pin; a vertex can follow one motion only")
-                taken[slots] = True
-                m = pin.motion
-                rest = a.X[ids]
-                pivot = rest.mean(axis=0) if m.pivot is None else np.asarray(m.pivot)
-                try:
-                    kf = Keyframes([k.t for k in m.keyframes], [k.translate for k in m.keyframes],
-                                   [k.rotate_deg for k in m.keyframes], pivot, m.interpolation)
-                except ParameterError as exc:
-                    raise scene.error(f"{key}.motion", str(exc)) from None
-                out.append((slots, rest, kf))
-        return out
 
     def fixed_positions(self, t: float) -> np.ndarray | None:
         """Positions of the pinned vertices at time ``t`` (None: no moving pin).
@@ -642,12 +490,9 @@ class Simulation:
         if active == self._script_active:
             return
         if len(active) == 1:
-            p = pulls[active[0]]
-            self.set_pull(p.vertices, p.targets, p.k)
+            self._attach(pulls[active[0]].pull)
         elif active:  # every spring of every active pull (a vertex may carry several)
-            n = self.model.n_vertices
-            self._attach(Pull.combine([Pull.make(pulls[j].vertices, pulls[j].targets,
-                                                 pulls[j].k, n) for j in active], n))
+            self._attach(Pull.combine([pulls[j].pull for j in active], self.model.n_vertices))
         else:
             self.clear_pull()
         self._script_active = active

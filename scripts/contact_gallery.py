@@ -43,7 +43,7 @@ def plane_patch(point, normal, center, half):
 
 def render(name: str, out_dir: Path, frames_wanted: int = 60) -> None:
     from fem3d.io.preview import render_preview
-    from fem3d.scene.spec import DEFAULT_STEPS, load_scene
+    from fem3d.scene import DEFAULT_STEPS, load_scene
     from fem3d.simulation import Simulation
 
     scene = load_scene(name)

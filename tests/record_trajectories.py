@@ -46,7 +46,7 @@ def digest(a: np.ndarray) -> str:
 
 def run_case(scene_name: str, steps: int, overrides: dict):
     """The q, v digests after each step and the final q, v of one case."""
-    from fem3d.scene.spec import apply_overrides, load_scene
+    from fem3d.scene import apply_overrides, load_scene
     from fem3d.simulation import Simulation
 
     overrides = dict(overrides)

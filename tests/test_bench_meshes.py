@@ -12,7 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.meshes import refine_tets  # noqa: E402
 from fem3d.mesh.formats import read_tet_mesh  # noqa: E402
-from fem3d.scene.build import data_dir  # noqa: E402
+from fem3d.scene.load import data_dir  # noqa: E402
 
 
 def signed_volumes(X: np.ndarray, T: np.ndarray) -> np.ndarray:

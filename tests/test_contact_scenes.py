@@ -14,7 +14,7 @@ from fem3d.errors import InputError, ParameterError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
 from fem3d.mesh.tetmesh import boundary_faces
-from fem3d.scene.spec import load_scene
+from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from tests.conftest_mesh_helpers import medit_text
 from tests.test_contact import box_mesh

@@ -9,7 +9,7 @@ import pytest
 from test_assembly import box_mesh
 
 from fem3d.errors import SimulationError
-from fem3d.scene.spec import Scene, load_scene, scene_from_arrays
+from fem3d.scene import Scene, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import (
     State,

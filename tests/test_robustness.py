@@ -29,7 +29,7 @@ from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
 from fem3d.physics.assembly import count_inverted
-from fem3d.scene.spec import apply_overrides, load_scene, scene_from_arrays
+from fem3d.scene import apply_overrides, load_scene, scene_from_arrays
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import State, implicit_euler, linearly_implicit_euler
 from fem3d.solve.state import new_state

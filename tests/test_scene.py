@@ -13,7 +13,7 @@ import pytest
 from fem3d.app.cli import RunSummary, main, run_scene
 from fem3d.errors import InputError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.scene.spec import Scene, apply_overrides, load_scene, scene_names, scene_schema
+from fem3d.scene import Scene, apply_overrides, load_scene, scene_names, scene_schema
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,8 +12,9 @@ import pytest
 from fem3d.app.cli import main, run_scene
 from fem3d.errors import InputError
 from fem3d.mesh.formats import read_tet_mesh, write_surface_mesh
-from fem3d.scene.build import assemble, rotation_matrix, select_vertices
-from fem3d.scene.spec import Scene, apply_overrides, load_scene
+from fem3d.scene import Scene, apply_overrides, load_scene
+from fem3d.scene.arrays import build_arrays as assemble
+from fem3d.scene.arrays import rotation_matrix, select_vertices
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent

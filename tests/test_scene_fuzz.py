@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fem3d.errors import InputError
-from fem3d.scene.spec import Scene, read_scene_file
+from fem3d.scene import Scene, read_scene_file
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "data" / "scenes"

@@ -12,8 +12,8 @@ import pytest
 from fem3d.app.cli import main
 from fem3d.mesh.formats import write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh
-from fem3d.scene.build import is_surface_file
-from fem3d.scene.spec import load_scene, scene_names
+from fem3d.scene import load_scene, scene_names
+from fem3d.scene.arrays import is_surface_file
 from fem3d.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.scene.spec import load_scene
+from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 
 REF = Path(__file__).resolve().parent / "data" / "classic_reference.npz"

@@ -13,8 +13,9 @@ import pytest
 
 from fem3d.app.cli import SUBCOMMANDS, build_parser, main
 from fem3d.errors import InputError
-from fem3d.scene.build import SCENES, assemble, hand_vertex, top_vertex
-from fem3d.scene.spec import load_scene
+from fem3d.scene.arrays import build_arrays as assemble
+from fem3d.scene.arrays import hand_vertex, top_vertex
+from fem3d.scene.load import SCENES, load_scene
 from fem3d.simulation import Simulation, StepInfo
 
 ROOT = Path(__file__).resolve().parent.parent

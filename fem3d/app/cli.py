@@ -249,7 +249,7 @@ def scene_from_args(args: argparse.Namespace):
     InputError
         ``FILE: key.path: ...`` from the scene, or ``--flag: key.path: ...`` from a flag.
     """
-    from fem3d.scene.spec import apply_overrides, load_scene
+    from fem3d.scene.load import apply_overrides, load_scene
 
     scene = load_scene(args.scene)
     for flag, dest, key in RUN_FLAGS:
@@ -625,7 +625,8 @@ def resume_run(args: argparse.Namespace) -> int:
         No or a bad checkpoint, a mesh changed since, or a bad ``--steps``.
     """
     from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint, mesh_digest
-    from fem3d.scene.spec import Scene, apply_overrides
+    from fem3d.scene.load import apply_overrides
+    from fem3d.scene.spec import Scene
     from fem3d.simulation import Simulation
 
     out = Path(args.dir)

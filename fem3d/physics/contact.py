@@ -892,72 +892,195 @@ class ContactModel:
 
 
 # ---------------------------------------------------------------------------------------------
-# from a scene
+# the objective term of backward Euler
 
 
-def contact_from_scene(scene, assembled):
-    """The :class:`ContactTerm` of a scene (``scene.contact``, ``scene.obstacles``).
+class ContactTerm:
+    """A :class:`ContactModel` as an objective term of backward Euler
+    (:func:`fem3d.solve.integrators.implicit_euler`).
 
-    ``dhat`` is relative to the diagonal of the scene's bounding box at rest (bodies and
-    mesh obstacles), ``eps_v`` and ``tolerance`` to that diagonal per second; a mesh
-    obstacle is a surface file (OBJ, STL, ... read by :func:`fem3d.mesh.formats.read_surface_mesh`)
-    under its ``transform``, moving by its keyframed ``motion`` (as moving pins do; the pivot
-    defaults to the obstacle's vertex centroid).
+    Implements the integrator's ``ObjectiveTerm`` protocol in positions ``q`` (barrier +
+    lagged friction energy, gradient, PSD-projected Hessian, ``max_step`` by CCD) and the
+    per-step hooks backward Euler calls when present:
+
+    * :meth:`begin_step` — obstacles to their end-of-step positions, friction lagged at the
+      step's start, the moving pins' and obstacles' own motion checked by CCD, IPC's initial
+      ``kappa`` when contact first appears;
+    * :meth:`after_iteration` — IPC's adaptive ``kappa`` update (True when the objective
+      changed);
+    * :meth:`newton_converged` — IPC's velocity-based stopping: the Newton step's largest
+      position change divided by ``dt`` is below ``tolerance * bbox_diagonal`` (per second).
 
     Parameters
     ----------
-    scene : fem3d.scene.spec.Scene
-    assembled : fem3d.scene.build.Assembled
-
-    Raises
-    ------
-    InputError
-        ``FILE: key.path: ...`` for a bad obstacle file or motion.
+    contact : ContactModel
+    tolerance : float, optional
+        IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
+    pattern_margin : float, optional
+        The solver's pattern is widened, at each step's start, by the blocks of the
+        mesh-mesh pairs closer than ``pattern_margin * dhat`` (0: only by the active ones,
+        re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
     """
-    from fem3d.errors import InputError
-    from fem3d.mesh.formats import read_surface_mesh
-    from fem3d.physics.motion import Keyframes
-    from fem3d.physics.terms.contact import ContactTerm
-    from fem3d.scene.build import transform_points
 
-    spec = scene.contact
-    planes, meshes = [], []
-    for i, ob in enumerate(scene.obstacles):
-        key = f"obstacles[{i}]"
-        if ob.plane is not None:
-            planes.append(PlaneObstacle(ob.plane.point, ob.plane.normal, name=f"{key} (plane)"))
-            continue
-        m = ob.mesh
-        path = scene.path(m.path)
-        if not path.is_file():
-            raise scene.error(f"{key}.mesh.path", f"no such file {path}")
-        try:
-            V, F = read_surface_mesh(path)
-        except InputError as exc:
-            raise scene.error(f"{key}.mesh.path", str(exc)) from None
-        V = transform_points(V, m.transform)
-        motion = None
-        if m.motion is not None:
-            mo = m.motion
-            pivot = V.mean(axis=0) if mo.pivot is None else np.asarray(mo.pivot, float)
-            try:
-                kf = Keyframes([k.t for k in mo.keyframes], [k.translate for k in mo.keyframes],
-                               [k.rotate_deg for k in mo.keyframes], pivot, mo.interpolation)
-            except ParameterError as exc:
-                raise scene.error(f"{key}.mesh.motion", str(exc)) from None
-            motion = kf.apply
-        try:
-            meshes.append(MeshObstacle(V, F, motion=motion, name=f"{key} ({path.name})"))
-        except ParameterError as exc:
-            raise scene.error(f"{key}.mesh", str(exc)) from None
-    a = assembled
-    body_ids = np.zeros(a.X.shape[0], dtype=np.int64)
-    for b, sl in enumerate(a.body_vertices):
-        body_ids[sl] = b
-    names = [f"bodies[{b}] ({body.label})" for b, body in enumerate(scene.bodies)]
-    pts = np.concatenate([a.X] + [m.vertices for m in meshes])
-    L = float(np.linalg.norm(np.ptp(pts, axis=0)))
-    cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
-                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa, mu=spec.mu,
-                      eps_v=spec.eps_v * L, self_contact=spec.self_contact)
-    return ContactTerm(cm, tolerance=spec.tolerance)
+    #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
+    requires_convergence = True
+
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
+                 pattern_margin: float = 4.0) -> None:
+        tolerance = float(tolerance)
+        if not (math.isfinite(tolerance) and tolerance > 0):
+            raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
+                                 f"{tolerance}")
+        self.contact = contact
+        self.tolerance = tolerance
+        self._dt = 1.0
+        self._had_contact = False
+        self._lag: tuple[np.ndarray, float, float] | None = None
+        self.pattern_margin = float(pattern_margin)
+        self._hint: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial = self.state_array()
+
+    # -- ObjectiveTerm ------------------------------------------------------------------------
+    def energy(self, q: np.ndarray) -> float:
+        """Barrier + lagged friction at ``q``."""
+        return self.contact.energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """Its gradient, ``(3n,)``."""
+        return self.contact.gradient(q)
+
+    def hessian(self, q: np.ndarray):
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
+        explicit zeros on the blocks of the pairs within the step's pattern margin (see
+        :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
+        H = self.contact.hessian(q)
+        if self._hint is None:
+            return H.row, H.col, H.data
+        r, c = self._hint
+        return (np.concatenate([H.row, r]), np.concatenate([H.col, c]),
+                np.concatenate([H.data, np.zeros(r.size)]))
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """CCD: the largest collision-free fraction of ``dq``."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
+
+    # -- per-step hooks -----------------------------------------------------------------------
+    def begin_step(self, q_t: np.ndarray, v_t: np.ndarray, q_base: np.ndarray, t: float,
+                   dt: float, *, step: int | None = None) -> None:
+        """Prepare a step from ``(q_t, v_t)`` at time ``t`` whose Newton start is ``q_base``
+        (``q_t`` with the pins at their end-of-step positions).
+
+        Raises
+        ------
+        SimulationError
+            A kinematic obstacle or the moving pins would pass through a body within the
+            step (the message says which), or the start is not intersection-free.
+        """
+        cm = self.contact
+        self._dt = float(dt)
+        q_t = np.asarray(q_t, dtype=np.float64).reshape(-1)
+        q_base = np.asarray(q_base, dtype=np.float64).reshape(-1)
+        # the obstacles' motion over the step, the bodies held at q_t
+        if cm.obstacle_step(q_t, t, t + dt) < 1.0:
+            moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)
+            raise SimulationError(f"contact: the moving obstacle ({moving}) would pass through "
+                                  "a body within one step (it may advance by less than its "
+                                  "gap to the bodies per step); use a smaller dt or a slower "
+                                  "motion", step=step)
+        cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
+        self._lag = (q_t, t, dt)
+        cm.set_time(t + dt)
+        v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
+        self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
+        if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
+            raise SimulationError("contact: the moving pins would drive the surface through "
+                                  "itself or an obstacle within one step; use a smaller dt",
+                                  step=step)
+
+    def _pattern_hint(self, q: np.ndarray, reach: float):
+        """``(rows, cols)`` of the Hessian blocks of the mesh-mesh pairs closer than the
+        margin ``pattern_margin * dhat + reach`` at ``q`` (None without mesh-mesh contact;
+        ``reach``: how far two vertices may approach each other within the step). The
+        solver's pattern is the union of the elastic one and every block seen so far, and is
+        re-analysed only when a block appears that was never seen: asking for the pairs
+        within a margin now makes that rare."""
+        cm = self.contact
+        parts = cm._parts
+        if not parts or self.pattern_margin <= 0:
+            return None
+        V = cm.collision_vertices(q)
+        margin = self.pattern_margin * cm.dhat + reach
+        rows, cols = [], []
+        for part in parts:
+            Vp = part.view(V)
+            cands = ipctk.Candidates()
+            cands.build(part.mesh, Vp, 0.5 * margin, broad_phase=cm._broad_phase)
+            col = ipctk.NormalCollisions()
+            col.build(cands, part.mesh, Vp, margin)
+            if not len(col):
+                continue
+            H = ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)
+            full = cm._to_full_matrix([H])
+            rows.append(full.row)
+            cols.append(full.col)
+        if not rows:
+            return None
+        return np.concatenate(rows), np.concatenate(cols)
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """IPC's initial ``kappa`` (adaptive stiffness only), from the gradient of the rest of
+        the objective in positions (``grad_rest``, ``(3n,)``; fixed DOFs zeroed) and the mean
+        vertex mass. In fem3d's objective (energy units, ``1/(2 dt^2) |x - x~|_M^2 + ...``)
+        IPC's mass-based bounds scale with ``average_mass / dt^2``."""
+        cm = self.contact
+        if not cm.adaptive:
+            return
+        active = cm.n_active(q) > 0
+        # once at the start, and again when contact (re)appears, as IPC does
+        if not cm._stiffness_initialized or (active and not self._had_contact):
+            before = cm.kappa
+            cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
+            if cm.kappa != before and cm.mu > 0 and self._lag is not None:
+                # the lagged normal forces scale with kappa: lag again with the new one
+                q_t, t, dt = self._lag
+                cm.lag_friction(q_t, dt, t_start=t)
+        self._had_contact = active
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        """IPC's adaptive ``kappa`` update after a Newton iteration; True when it changed."""
+        before = self.contact.kappa
+        return self.contact.update_stiffness(q) != before
+
+    def newton_converged(self, dq: np.ndarray) -> bool:
+        """IPC's stopping rule on the Newton step's position change ``dq`` (``(3n,)``)."""
+        dq = np.asarray(dq)
+        if dq.size == 0:
+            return True
+        return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Back to the adaptive state at construction (a :meth:`Simulation.reset`)."""
+        self.load_state_array(self._initial)
+
+    def state_array(self) -> np.ndarray:
+        """:meth:`snapshot` as a ``(5,) float64`` array (for ``.npz`` checkpoints):
+        ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
+        cm = self.contact
+        prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
+        return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
+                         float(self._had_contact)], dtype=np.float64)
+
+    def load_state_array(self, a: np.ndarray) -> None:
+        """Undo to a :meth:`state_array`."""
+        a = np.asarray(a, dtype=np.float64).reshape(-1)
+        if a.shape != (5,):
+            raise ValueError(f"contact state must have 5 values, got {a.shape}")
+        cm = self.contact
+        cm.set_kappa(float(a[0]))
+        cm.max_kappa = float(a[1])
+        cm._stiffness_initialized = bool(a[2])
+        cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
+        self._had_contact = bool(a[4])

@@ -1,454 +1,377 @@
-"""From a scene description (:mod:`fem3d.scene.spec`) to arrays: meshes, selections, pulls.
+"""The one place a scene is built: from its description to the objects a run steps.
 
-:func:`assemble` reads every body's mesh (a tet mesh, or a closed surface tetrahedralized by
-:mod:`fem3d.mesh.tetrahedralize`), applies its transform, evaluates its selectors on the
-transformed rest positions and concatenates the bodies into one mesh. It is the one place
-where a scene's settings turn into numbers; :class:`fem3d.simulation.Simulation` takes the
-result.
+:func:`build` turns a :class:`~fem3d.scene.spec.Scene` into a :class:`Built`: the scene in
+arrays (:func:`fem3d.scene.arrays.build_arrays`: meshes, selections, scripted pulls), the
+frozen :class:`~fem3d.physics.model.Model` of every body's material (regions, cell fields),
+the pinned vertices, the moving pins' :class:`~fem3d.physics.motion.Keyframes`, gravity,
+Rayleigh damping, the obstacles and the IPC contact term, and the resolved interaction values
+(picking radius, pull-spring stiffness). :class:`fem3d.simulation.Simulation` takes a
+``Built`` and adds what is not the scene's: the linear system, the integrator, the state.
 
-The built-in scenes are files: ``data/scenes/bunny.toml`` and ``data/scenes/arma.toml`` (the
-assignment's two scenes: see their comments). :func:`top_vertex` and :func:`hand_vertex` are
-the rules their scripted pulls' vertices were chosen by.
+Why one function returning one dataclass (and not a Simulation calling a few builders): the
+stages depend on each other in one order (arrays, then the model, the pins, the motions, the
+obstacles and contact), and that order also decides which error a scene with several
+problems reports first; in one function it is written once, and every caller (the
+simulation, tests, benchmarks) gets the same objects from the same call. The stages stay
+public functions (:func:`model_from_scene`, :func:`pin_motions`, :func:`contact_from_scene`,
+...) for a caller that needs one piece.
+
+Errors are :class:`~fem3d.errors.InputError` ``FILE: key.path: what is wrong``, naming the
+scene's key (a bad mesh, a selector that selects nothing, a bad motion or obstacle file).
 """
 
 from __future__ import annotations
 
-import math
-import os
-from collections.abc import Sequence
-from dataclasses import dataclass, field
-from functools import lru_cache
-from pathlib import Path
+import re
+from dataclasses import dataclass
+from typing import NamedTuple
 
+import meshio
 import numpy as np
 
-from fem3d.errors import InputError
-from fem3d.io.files import check_input_file
-from fem3d.mesh.skin import check_skin_placement
-from fem3d.scene.spec import SURFACE_SUFFIXES, BodySpec, Scene, Selector, load_scene, scene_names
+from fem3d.errors import InputError, ParameterError
+from fem3d.mesh.formats import read_surface_mesh
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
+from fem3d.physics.model import MaterialGroup, Model, build_model
+from fem3d.physics.motion import Keyframes
+from fem3d.physics.terms.contact import ContactTerm
+from fem3d.scene.arrays import (
+    SceneArrays,
+    build_arrays,
+    default_spring_k,
+    select_vertices,
+    transform_points,
+)
+from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
-__all__ = ["Assembled", "BodyMesh", "ResolvedPull", "assemble", "body_mesh", "rest_positions",
-           "select_vertices", "transform_points", "rotation_matrix", "data_dir", "load_scene",
-           "scene_names", "SCENES", "top_vertex", "hand_vertex", "is_surface_file"]
-
-
-def data_dir() -> Path:
-    """Folder of the shipped meshes: ``$FEM3D_DATA`` if set, else the checkout's ``data/``."""
-    env = os.environ.get("FEM3D_DATA")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[2] / "data"
-
-
-class _Names(Sequence):
-    """The named scenes, listed from ``data/scenes`` each time (``for name in SCENES``)."""
-
-    def __getitem__(self, i):
-        return scene_names()[i]
-
-    def __len__(self) -> int:
-        return len(scene_names())
-
-    def __contains__(self, name: object) -> bool:
-        return name in scene_names()
-
-    def __repr__(self) -> str:
-        return repr(scene_names())
+__all__ = ["Built", "PinMotion", "build", "model_from_scene", "damping_from_scene",
+           "pin_motions", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 
-#: Names of the scenes in ``data/scenes`` (a live view: ``list(SCENES)``).
-SCENES = _Names()
-
-
-def top_vertex(X: np.ndarray) -> int:
-    """Index of the vertex with the largest y (ties: lowest index)."""
-    return int(np.argmax(X[:, 1]))
-
-
-def hand_vertex(X: np.ndarray) -> int:
-    """The vertex with the largest x among those above mid-height (the armadillo's hand)."""
-    y = X[:, 1]
-    upper = np.flatnonzero(y > 0.5 * (y.min() + y.max()))
-    return int(upper[np.argmax(X[upper, 0])])
-
-
-def is_surface_file(path: str | os.PathLike[str]) -> bool:
-    """Whether a body mesh file is a surface to tetrahedralize (by its suffix)."""
-    return Path(path).suffix.lower() in SURFACE_SUFFIXES
-
-
-# ------------------------------------------------------------------------------ geometry
-def rotation_matrix(rotate_deg: Sequence[float]) -> np.ndarray:
-    """``Rz Ry Rx`` for angles in degrees about x, y, z, ``(3, 3) float64``."""
-    ax, ay, az = (math.radians(float(a)) for a in rotate_deg)
-    cx, sx, cy, sy, cz, sz = (math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay),
-                              math.cos(az), math.sin(az))
-    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
-
-
-def transform_points(X: np.ndarray, transform) -> np.ndarray:
-    """``R (scale X) + translate`` (:class:`fem3d.scene.spec.TransformSpec`); the identity
-    transform returns ``X`` unchanged, bit for bit."""
-    X = np.asarray(X, dtype=np.float64)
-    s, rot, tr = float(transform.scale), tuple(transform.rotate_deg), tuple(transform.translate)
-    out = X
-    if s != 1.0:
-        out = out * s
-    if any(a != 0 for a in rot):
-        out = out @ rotation_matrix(rot).T
-    if any(c != 0 for c in tr):
-        out = out + np.asarray(tr, dtype=np.float64)
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class BodyMesh:
-    """One body's meshes in its own (untransformed) frame.
+class PinMotion(NamedTuple):
+    """A moving pin: which pinned vertices, where they rest, how they move.
 
     Attributes
     ----------
-    X : (n, 3) float64
-    T : (m, 4) int64
-    skin_V : (k, 3) float64 or None
-    skin_F : (f, 3) int64 or None
-    path : str
-        The tet mesh actually read (for a surface: the cached fTetWild output).
+    slots : (k,) int64
+        Indices into :attr:`Constraints.fixed_vertices`.
+    rest : (k, 3) float64
+        Rest positions of those vertices.
+    keyframes : Keyframes
+        Their motion (``keyframes.apply(rest, t)``).
     """
 
-    X: np.ndarray
-    T: np.ndarray
-    skin_V: np.ndarray | None
-    skin_F: np.ndarray | None
-    path: str
+    slots: np.ndarray
+    rest: np.ndarray
+    keyframes: Keyframes
 
 
-def _stat_key(p: Path) -> tuple[str, int, int]:
-    st = p.stat()
-    return (str(p.resolve()), st.st_mtime_ns, st.st_size)
+@dataclass(frozen=True, eq=False)
+class Built:
+    """A scene built (:func:`build`).
 
-
-@lru_cache(maxsize=16)
-def _read_tet(key: tuple[str, int, int]):
-    from fem3d.mesh.formats import read_tet_mesh
-
-    return read_tet_mesh(key[0])
-
-
-@lru_cache(maxsize=16)
-def _read_surface(key: tuple[str, int, int]):
-    from fem3d.mesh.formats import read_surface_mesh
-
-    return read_surface_mesh(key[0])
-
-
-def _in_key(scene: Scene, key: str, exc: InputError) -> InputError:
-    return scene.error(key, str(exc))
-
-
-def body_mesh(scene: Scene, i: int) -> BodyMesh:
-    """Read (or tetrahedralize, cached) body ``i``'s meshes.
-
-    Raises
-    ------
-    InputError
-        ``FILE: bodies[i].mesh: ...`` naming the mesh file's own problem.
+    Attributes
+    ----------
+    arrays : SceneArrays
+        The scene in arrays (rest positions, tets, pins, scripted pulls, display mesh).
+    model : Model
+        Every body's material, frozen.
+    constraints : Constraints
+        The pinned vertices.
+    gravity : (3,) tuple of float or None
+        ``simulation.gravity``; None when it is zero.
+    rayleigh_alpha, rayleigh_beta : float or ndarray
+        Rayleigh damping ``alpha M + beta K`` (:func:`damping_from_scene`).
+    motions : list of PinMotion
+        The moving pins (empty: every pin is fixed).
+    contact : ContactTerm or None
+        The IPC contact term of a contact scene (:func:`contact_from_scene`).
+    pick_radius, spring_k : float
+        Interaction values: ``interaction.pick_radius`` / ``spring_k``, or their defaults
+        ``0.01 h`` / ``0.15 E h`` (``E`` the first body's, else the model's).
     """
-    body: BodySpec = scene.bodies[i]
-    path = scene.path(body.mesh)
-    key = f"bodies[{i}].mesh"
-    if not (path.exists() or path.is_symlink()):
-        raise scene.error(key, f"no such file {path}")
-    try:  # a FIFO or device (would block), a folder, a symlink loop
-        check_input_file(path, "mesh")
-    except InputError as exc:
-        raise scene.error(key, f"{path}: {exc.reason}") from None
-    skin_V = skin_F = None
-    try:
-        if is_surface_file(path):
-            from fem3d.mesh.tetrahedralize import tetrahedralize_file
 
-            X, T, tet_path = tetrahedralize_file(
-                path, edge_length=body.tetrahedralize.edge_length,
-                epsilon=body.tetrahedralize.epsilon,
-                stop_quality=body.tetrahedralize.stop_quality)
-            skin_V, skin_F = _read_surface(_stat_key(path))
-        else:
-            mesh = _read_tet(_stat_key(path))
-            X, T, tet_path = mesh.X, mesh.T, str(mesh.path)
-    except InputError as exc:
-        raise _in_key(scene, key, exc) from None
-    if body.skin is not None:
-        skin_path = scene.path(body.skin)
-        try:
-            skin_V, skin_F = _read_surface(_stat_key(skin_path))
-        except FileNotFoundError:
-            raise scene.error(f"bodies[{i}].skin", f"no such file {skin_path}") from None
-        except InputError as exc:
-            raise _in_key(scene, f"bodies[{i}].skin", exc) from None
-        try:  # a display mesh in another frame would be skinned into nonsense
-            check_skin_placement(skin_V, X, T, path=skin_path)
-        except InputError as exc:
-            raise _in_key(scene, f"bodies[{i}].skin", exc) from None
-    return BodyMesh(X=X, T=T, skin_V=skin_V, skin_F=skin_F, path=str(tet_path))
+    arrays: SceneArrays
+    model: Model
+    constraints: Constraints
+    gravity: tuple[float, float, float] | None
+    rayleigh_alpha: float | np.ndarray
+    rayleigh_beta: float | np.ndarray
+    motions: list[PinMotion]
+    contact: ContactTerm | None
+    pick_radius: float
+    spring_k: float
 
 
-def rest_positions(scene: Scene, i: int) -> np.ndarray:
-    """Body ``i``'s rest positions after its transform, ``(n_i, 3) float64``."""
-    return transform_points(body_mesh(scene, i).X, scene.bodies[i].transform)
+def build(scene: Scene, *, backend: str | None = None) -> Built:
+    """Everything a run of ``scene`` needs that the scene decides.
 
-
-def _read_ids(path: Path, scene: Scene, key: str) -> np.ndarray:
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise scene.error(key, f"cannot read {path} ({exc.strerror or exc})") from None
-    words = []
-    for line in text.splitlines():
-        words += line.split("#", 1)[0].replace(",", " ").split()
-    try:
-        ids = np.array([int(w) for w in words], dtype=np.int64)
-    except ValueError:
-        raise scene.error(key, f"{path} must hold whitespace-separated vertex ids") from None
-    return ids
-
-
-def select_vertices(scene: Scene, X: np.ndarray, sel: Selector, key: str) -> np.ndarray:
-    """Vertices of one body (rest positions ``X (n, 3)``, transformed) chosen by ``sel``.
+    Parameters
+    ----------
+    scene : Scene
+    backend : {None, "numpy", "c"}, optional
+        Kernel back end of the model (None: C if built).
 
     Returns
     -------
-    (k,) int64
-        Sorted, unique, never empty.
+    Built
 
     Raises
     ------
     InputError
-        ``FILE: key: selects no vertex ...`` or an id out of range.
+        ``FILE: key.path: ...``: a bad mesh, a selector that selects nothing, no pinned
+        vertex in a scene without contact, a bad material, motion or obstacle.
     """
-    n = X.shape[0]
-    kind = sel.kind
-    if kind == "lowest_y":
-        y0 = float(X[:, 1].min())
-        ids = np.flatnonzero(X[:, 1] <= y0 + sel.lowest_y.tol)
-        info = f"lowest y {y0:.6g}"
-    elif kind == "box":
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in sel.box)
-        ids = np.flatnonzero(((X >= lo) & (X <= hi)).all(axis=1))
-        info = "bounding box " + _bbox(X)
-    elif kind == "half_space":
-        p, nrm = (np.asarray(a, dtype=np.float64) for a in
-                  (sel.half_space.point, sel.half_space.normal))
-        ids = np.flatnonzero((X - p) @ nrm >= 0)
-        info = "bounding box " + _bbox(X)
-    elif kind == "sphere":
-        c = np.asarray(sel.sphere.center, dtype=np.float64)
-        d2 = ((X - c) ** 2).sum(axis=1)
-        ids = np.flatnonzero(d2 <= sel.sphere.radius ** 2)
-        info = f"the nearest vertex is {math.sqrt(float(d2.min())):.4g} away"
-    elif kind in ("vertices", "vertices_file"):
-        if kind == "vertices":
-            ids = np.asarray(sel.vertices, dtype=np.int64)
-        else:
-            ids = _read_ids(scene.path(sel.vertices_file), scene, f"{key}.vertices_file")
-        bad = ids[(ids < 0) | (ids >= n)]
-        if bad.size:
-            raise scene.error(f"{key}.{kind}", f"vertex id {int(bad[0])} out of range [0, {n})")
-        info = "the list is empty"
-    elif kind == "nearest_to":
-        from fem3d.physics.constraints import pick_nearest_vertices
-
-        nt = sel.nearest_to
-        p = np.asarray(nt.point, dtype=np.float64)
-        centre = int(np.argmin(((X - p) ** 2).sum(axis=1)))
-        ids = pick_nearest_vertices(X, X[centre], nt.radius)
-        info = ""
-    else:  # near_vertex
-        nv = sel.near_vertex
-        if nv.vertex >= n:
-            raise scene.error(f"{key}.near_vertex.vertex",
-                              f"vertex {nv.vertex} out of range [0, {n})")
-        from fem3d.physics.constraints import pick_nearest_vertices
-
-        ids = pick_nearest_vertices(X, X[nv.vertex], nv.radius)
-        info = ""
-    ids = np.unique(np.asarray(ids, dtype=np.int64))
-    if ids.size == 0:
-        raise scene.error(f"{key}.{kind}", f"selects no vertex ({info})")
-    return ids
+    a = build_arrays(scene)
+    model = model_from_scene(scene, a, backend)
+    if a.fixed.size == 0 and not scene.contact.enabled:
+        raise scene.error(
+            "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
+            "[{ select = { lowest_y = { tol = 0.0 } } }])")
+    constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
+    sim = scene.simulation
+    gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
+    alpha, beta = damping_from_scene(scene, a)
+    motions = pin_motions(scene, a, constraints.fixed_vertices)
+    contact = contact_from_scene(scene, a) if scene.contact.enabled else None
+    spring_k = (a.spring_k if a.spring_k is not None
+                else default_spring_k(float(model.E), a.height))
+    return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
+                 rayleigh_alpha=alpha, rayleigh_beta=beta, motions=motions, contact=contact,
+                 pick_radius=a.pick_radius, spring_k=spring_k)
 
 
-def _bbox(X: np.ndarray) -> str:
-    lo, hi = X.min(axis=0), X.max(axis=0)
-    return "[" + ", ".join(f"{a:.4g}" for a in lo) + "] - [" + ", ".join(
-        f"{b:.4g}" for b in hi) + "]"
+# ------------------------------------------------------------------------------ materials
+def _simple_material(m: MaterialSpec) -> bool:
+    return m.E is not None and not (m.params or m.regions or m.cell_fields)
 
 
-@dataclass(frozen=True, eq=False)
-class ResolvedPull:
-    """A scripted pull in numbers: global vertex ids, spring targets, stiffness, timing."""
+def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> np.ndarray:
+    """Body ``i``'s per-tet values of cell-data array ``name`` from its mesh file."""
+    key = f"bodies[{i}].material.cell_fields.{param}"
+    path = scene.path(scene.bodies[i].mesh)
+    try:
+        mesh = meshio.read(path)
+    except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
+        raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
+                          f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
+                          ) from None
+    blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
+    if name not in mesh.cell_data or not blocks:
+        have = ", ".join(sorted(mesh.cell_data)) or "none"
+        raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
+    vals = np.concatenate([np.asarray(mesh.cell_data[name][j], dtype=np.float64).reshape(-1)
+                           for j in blocks])
+    n = a.body_tets[i].stop - a.body_tets[i].start
+    if vals.shape != (n,):
+        raise scene.error(key, f"{path}: {name!r} has {vals.size} values for {n} tets")
+    return vals
 
-    vertices: np.ndarray
-    targets: np.ndarray
-    k: float
-    start: float
-    duration: float
 
-    def active(self, t: float, dt: float) -> bool:
-        """Whether the pull acts during the step that starts at ``t``."""
-        eps = 1e-9 * dt
-        return self.start - eps <= t < self.start + self.duration - eps
+def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -> Model:
+    """The model of every body's material (one material form when there is one plain body,
+    else ``build_model(groups=)``: one group per body and per region)."""
+    bodies = scene.bodies
+    path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
+    try:
+        if len(bodies) == 1 and _simple_material(bodies[0].material):
+            m = bodies[0].material
+            return build_model(a.X, a.T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
+                               backend=backend, path=path)
+    except InputError as exc:
+        key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
+        raise scene.error(key, str(exc)) from None
+    groups, density = [], np.empty(a.T.shape[0])
+    for i, body in enumerate(bodies):
+        m = body.material
+        tets = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
+        density[tets] = m.density
+        base = dict(m.params)
+        if m.E is not None:
+            base.update(E=m.E, nu=m.nu)
+        for param, name in m.cell_fields.items():
+            base[param] = _cell_field(scene, a, i, param, name)
+        region = np.full(tets.size, -1)
+        if m.regions:
+            Xb = a.X[a.body_vertices[i]]
+            Tb = a.T[a.body_tets[i]] - a.body_vertices[i].start
+            for j, r in enumerate(m.regions):
+                ids = select_vertices(scene, Xb, r.select,
+                                      f"bodies[{i}].material.regions[{j}].select")
+                inside = np.isin(Tb, ids).all(axis=1)
+                if not inside.any():
+                    raise scene.error(f"bodies[{i}].material.regions[{j}].select",
+                                      "selects no whole tet (a region is the tets whose four "
+                                      "vertices are all selected)")
+                region[inside] = j
+        for j in range(-1, len(m.regions)):
+            mask = region == j
+            if not mask.any():
+                continue
+            values = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in base.items()}
+            if j >= 0:
+                r = m.regions[j]
+                values.update(r.params)
+                if r.E is not None:
+                    values["E"] = r.E
+                if r.nu is not None:
+                    values["nu"] = r.nu
+            groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
+                           MaterialGroup(m.model, tets[mask], values)))
+    rho = float(density[0]) if (density == density[0]).all() else density
+    try:
+        return build_model(a.X, a.T, groups=[g for _, g in groups], density=rho,
+                           backend=backend, path=path)
+    except ParameterError as exc:
+        # name the group the message is about when it says which (else the first body's)
+        hit = re.search(r"material group (\d+)", str(exc))
+        key = groups[int(hit.group(1))][0] if hit and int(hit.group(1)) < len(groups) \
+            else groups[0][0]
+        raise scene.error(key, str(exc)) from None
+    except InputError as exc:
+        raise scene.error("bodies", str(exc)) from None
 
 
-@dataclass(frozen=True, eq=False)
-class Assembled:
-    """A scene in arrays (all bodies concatenated).
+def damping_from_scene(scene: Scene, a: SceneArrays) -> tuple:
+    """Rayleigh ``alpha`` (scalar or per vertex) and ``beta`` (scalar or per tet)."""
+    alphas = [b.damping.rayleigh_mass for b in scene.bodies]
+    betas = [b.damping.rayleigh_stiffness for b in scene.bodies]
+    if len(set(alphas)) == 1 and len(set(betas)) == 1:
+        return float(alphas[0]), float(betas[0])
+    alpha = np.zeros(a.X.shape[0])
+    beta = np.zeros(a.T.shape[0])
+    for i in range(len(scene.bodies)):
+        alpha[a.body_vertices[i]] = alphas[i]
+        beta[a.body_tets[i]] = betas[i]
+    return alpha, beta
 
-    Attributes
+
+# ------------------------------------------------------------------------------ motions
+def keyframes_from_spec(scene: Scene, spec: MotionSpec, rest: np.ndarray,
+                        key: str) -> Keyframes:
+    """The :class:`Keyframes` of a motion spec, a moving pin's or a mesh obstacle's.
+
+    Parameters
     ----------
-    X : (n, 3) float64
-        Rest positions (transformed).
-    T : (m, 4) int64
-    v0 : (n, 3) float64
-        Initial velocities (linear + angular about each body's vertex centroid).
-    fixed : (n_fixed,) int64
-        Pinned vertices (sorted).
-    pulls : list of ResolvedPull
-    body_vertices, body_tets : list of slice
-        Each body's range of vertices / tets.
-    skin_V : (k, 3) float64 or None
-        Display mesh (rest), None when no body has a skin (then the display is the tet
-        mesh's boundary).
-    skin_F : (f, 3) int64 or None
-    skin_bodies : list of (slice, slice)
-        Each body's range of display vertices and faces.
-    skin_identity : list of bool
-        Bodies whose display vertices are their simulation vertices (no skin of their own).
-    pick_radius, spring_k, height : float
-        Resolved interaction values (``spring_k`` None when it defaults to ``0.15 E h`` and
-        the first body gives no ``E``: the Simulation takes the model's); ``height`` the
-        extent along y of the rest mesh.
-    mesh_paths : list of str
-    """
-
-    X: np.ndarray
-    T: np.ndarray
-    v0: np.ndarray
-    fixed: np.ndarray
-    pulls: list[ResolvedPull]
-    body_vertices: list[slice]
-    body_tets: list[slice]
-    skin_V: np.ndarray | None
-    skin_F: np.ndarray | None
-    skin_bodies: list[tuple[slice, slice]]
-    skin_identity: list[bool]
-    pick_radius: float
-    spring_k: float | None
-    height: float
-    mesh_paths: list[str] = field(default_factory=list)
-
-
-def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    from fem3d.mesh.tetmesh import boundary_faces
-
-    return np.arange(n), boundary_faces(T)
-
-
-def assemble(scene: Scene) -> Assembled:
-    """Every body's mesh, selection and pull of ``scene`` in numbers.
+    scene : Scene
+    spec : MotionSpec
+    rest : (k, 3) float64
+        Rest positions of what moves: the pivot defaults to their centroid.
+    key : str
+        Key path of ``spec`` (for the error message).
 
     Raises
     ------
     InputError
-        ``FILE: key.path: ...`` for a missing or bad mesh, a selector that selects nothing,
-        a vertex id out of range.
+        ``FILE: key: ...`` when the keyframes are invalid.
     """
-    Xs, Ts, v0s, fixed, skins = [], [], [], [], []
-    body_v, body_t = [], []
-    nv = nt = 0
-    meshes = []
+    pivot = rest.mean(axis=0) if spec.pivot is None else np.asarray(spec.pivot, float)
+    try:
+        return Keyframes([k.t for k in spec.keyframes], [k.translate for k in spec.keyframes],
+                         [k.rotate_deg for k in spec.keyframes], pivot, spec.interpolation)
+    except ParameterError as exc:
+        raise scene.error(key, str(exc)) from None
+
+
+def pin_motions(scene: Scene, a: SceneArrays, fixed: np.ndarray) -> list[PinMotion]:
+    """The moving pins of every body.
+
+    Parameters
+    ----------
+    scene : Scene
+    a : SceneArrays
+    fixed : (n_fixed,) int64
+        The pinned vertices, sorted (:attr:`Constraints.fixed_vertices`).
+
+    Raises
+    ------
+    InputError
+        A vertex that two moving pins select, invalid keyframes.
+    """
+    out, taken = [], np.zeros(fixed.size, dtype=bool)
     for i, body in enumerate(scene.bodies):
-        bm = body_mesh(scene, i)
-        meshes.append(bm)
-        X = transform_points(bm.X, body.transform)
-        T = np.asarray(bm.T, dtype=np.int64)
-        v = np.broadcast_to(np.asarray(body.velocity, dtype=np.float64), X.shape).copy()
-        if any(w != 0 for w in body.angular_velocity):
-            w = np.asarray(body.angular_velocity, dtype=np.float64)
-            v += np.cross(w, X - X.mean(axis=0))
+        off = a.body_vertices[i].start
         for j, pin in enumerate(body.pins):
-            ids = select_vertices(scene, X, pin.select, f"bodies[{i}].pins[{j}].select")
-            fixed.append(ids + nv)
-        skin = None
-        if bm.skin_V is not None:
-            skin = (transform_points(bm.skin_V, body.transform),
-                    np.asarray(bm.skin_F, dtype=np.int64))
-        skins.append(skin)
-        Xs.append(X)
-        Ts.append(T + nv)
-        v0s.append(v)
-        body_v.append(slice(nv, nv + X.shape[0]))
-        body_t.append(slice(nt, nt + T.shape[0]))
-        nv += X.shape[0]
-        nt += T.shape[0]
-    X = Xs[0] if len(Xs) == 1 else np.concatenate(Xs)
-    T = Ts[0] if len(Ts) == 1 else np.concatenate(Ts)
-    v0 = np.concatenate(v0s)
-    fixed_ids = (np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, np.int64))
-    height = float(X[:, 1].max() - X[:, 1].min())
+            if pin.motion is None:
+                continue
+            key = f"bodies[{i}].pins[{j}]"
+            ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
+                                  f"{key}.select") + off
+            slots = np.searchsorted(fixed, ids)
+            if taken[slots].any():
+                raise scene.error(f"{key}.select", "shares pinned vertices with another "
+                                  "moving pin; a vertex can follow one motion only")
+            taken[slots] = True
+            rest = a.X[ids]
+            out.append(PinMotion(slots, rest,
+                                 keyframes_from_spec(scene, pin.motion, rest, f"{key}.motion")))
+    return out
 
-    # display mesh: bodies' skins, or (for a body without one) its own boundary
-    skin_V = skin_F = None
-    skin_bodies: list[tuple[slice, slice]] = []
-    identity = [s is None for s in skins]
-    if not all(identity):
-        Vs, Fs = [], []
-        kv = kf = 0
-        for i, s in enumerate(skins):
-            if s is None:
-                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0])
-                s = (Xs[i][idx], F)
-            Vs.append(s[0])
-            Fs.append(s[1] + kv)
-            skin_bodies.append((slice(kv, kv + s[0].shape[0]), slice(kf, kf + s[1].shape[0])))
-            kv += s[0].shape[0]
-            kf += s[1].shape[0]
-        skin_V = Vs[0] if len(Vs) == 1 else np.concatenate(Vs)
-        skin_F = Fs[0] if len(Fs) == 1 else np.concatenate(Fs)
-    else:
-        skin_bodies = [(body_v[i], body_t[i]) for i in range(len(Xs))]
 
-    E0 = scene.bodies[0].material.E
-    pick_radius = scene.interaction.pick_radius
-    if pick_radius is None:
-        pick_radius = 0.01 * height
-    spring_k = scene.interaction.spring_k
-    if spring_k is None and E0 is not None:
-        spring_k = 0.15 * E0 * height
-        if not spring_k > 0:
-            raise scene.error("interaction.spring_k", "the mesh has no height to derive it")
+# ------------------------------------------------------------------------------ contact
+def obstacles_from_scene(scene: Scene) -> tuple[list[PlaneObstacle], list[MeshObstacle]]:
+    """The runtime obstacles of ``scene.obstacles``: planes, and mesh obstacles (a surface
+    file, OBJ, STL, ... read by :func:`fem3d.mesh.formats.read_surface_mesh`, under its
+    ``transform``, moving by its keyframed ``motion`` as moving pins do; the pivot defaults
+    to the obstacle's vertex centroid).
 
-    pulls = []
-    for j, p in enumerate(scene.pulls):
-        Xb = Xs[p.body]
-        ids = select_vertices(scene, Xb, p.select, f"pulls[{j}].select")
-        if p.offset is not None:
-            off = np.asarray(p.offset, dtype=np.float64)
-        else:
-            off = np.asarray(p.target, dtype=np.float64) - Xb[ids].mean(axis=0)
-        if p.stiffness is None and spring_k is None:
-            raise scene.error(f"pulls[{j}].stiffness", "give it (interaction.spring_k, its "
-                              "default, is 0.15 E h and bodies[0] has no E)")
-        pulls.append(ResolvedPull(
-            vertices=ids + body_v[p.body].start, targets=Xb[ids] + off,
-            k=float(spring_k if p.stiffness is None else p.stiffness),
-            start=float(p.start), duration=float(p.duration)))
-    return Assembled(
-        X=X, T=T, v0=v0, fixed=fixed_ids, pulls=pulls, body_vertices=body_v, body_tets=body_t,
-        skin_V=skin_V, skin_F=skin_F, skin_bodies=skin_bodies, skin_identity=identity,
-        pick_radius=float(pick_radius), spring_k=None if spring_k is None else float(spring_k),
-        height=height,
-        mesh_paths=[m.path for m in meshes],
-    )
+    Raises
+    ------
+    InputError
+        ``FILE: obstacles[i]...: ...`` for a bad obstacle file or motion.
+    """
+    planes, meshes = [], []
+    for i, ob in enumerate(scene.obstacles):
+        key = f"obstacles[{i}]"
+        if ob.plane is not None:
+            planes.append(PlaneObstacle(ob.plane.point, ob.plane.normal, name=f"{key} (plane)"))
+            continue
+        m = ob.mesh
+        path = scene.path(m.path)
+        if not path.is_file():
+            raise scene.error(f"{key}.mesh.path", f"no such file {path}")
+        try:
+            V, F = read_surface_mesh(path)
+        except InputError as exc:
+            raise scene.error(f"{key}.mesh.path", str(exc)) from None
+        V = transform_points(V, m.transform)
+        motion = None
+        if m.motion is not None:
+            motion = keyframes_from_spec(scene, m.motion, V, f"{key}.mesh.motion").apply
+        try:
+            meshes.append(MeshObstacle(V, F, motion=motion, name=f"{key} ({path.name})"))
+        except ParameterError as exc:
+            raise scene.error(f"{key}.mesh", str(exc)) from None
+    return planes, meshes
+
+
+def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
+    """The :class:`ContactTerm` of a scene (``scene.contact``, ``scene.obstacles``).
+
+    ``dhat`` is relative to the diagonal of the scene's bounding box at rest (bodies and
+    mesh obstacles), ``eps_v`` and ``tolerance`` to that diagonal per second; the obstacles
+    are :func:`obstacles_from_scene`'s.
+
+    Parameters
+    ----------
+    scene : Scene
+    a : SceneArrays
+
+    Raises
+    ------
+    InputError
+        ``FILE: key.path: ...`` for a bad obstacle file or motion.
+    """
+    spec = scene.contact
+    planes, meshes = obstacles_from_scene(scene)
+    body_ids = np.zeros(a.X.shape[0], dtype=np.int64)
+    for b, sl in enumerate(a.body_vertices):
+        body_ids[sl] = b
+    names = [f"bodies[{b}] ({body.label})" for b, body in enumerate(scene.bodies)]
+    pts = np.concatenate([a.X] + [m.vertices for m in meshes])
+    L = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
+                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa, mu=spec.mu,
+                      eps_v=spec.eps_v * L, self_contact=spec.self_contact)
+    return ContactTerm(cm, tolerance=spec.tolerance)

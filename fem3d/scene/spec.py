@@ -4,10 +4,12 @@ A scene file is TOML (read with :mod:`tomllib`) checked against the pydantic v2 
 which are the single source of truth: ``fem3d schema`` prints them as JSON Schema
 (:func:`scene_schema`). Every model forbids unknown keys (the error suggests the nearest
 known one) and is frozen; paths are relative to the scene file's folder (``base_dir``).
+Reading a scene (by name, from a file, around a mesh) and changing it by key paths is
+:mod:`fem3d.scene.load`; turning it into arrays and runtime objects is :mod:`fem3d.scene.build`.
 
 ::
 
-    from fem3d.scene.spec import load_scene, apply_overrides
+    from fem3d.scene import load_scene, apply_overrides
     scene = load_scene("bunny")                            # data/scenes/bunny.toml
     scene = load_scene("my_scene.toml")                    # a scene file
     scene = load_scene("beam.msh")                         # a one-body scene around a mesh
@@ -15,7 +17,7 @@ known one) and is frozen; paths are relative to the scene file's folder (``base_
     scene.digest()                                         # sha256: settings + mesh contents
 
 Errors are :class:`~fem3d.errors.InputError` with one line ``FILE: key.path: what is wrong``
-(``override`` instead of ``FILE`` for :func:`apply_overrides`).
+(``override`` instead of ``FILE`` for :func:`~fem3d.scene.load.apply_overrides`).
 
 Conventions
 -----------
@@ -31,20 +33,19 @@ Conventions
 * A pull's ``offset`` moves each selected vertex's target by ``offset`` from its rest
   position; ``target`` moves the selection's centroid to ``target`` (the same offset for all).
 * ``simulation.steps`` or ``simulation.duration`` (steps = round(duration / dt)); neither:
-  :data:`DEFAULT_STEPS`. Setting one by :func:`apply_overrides` clears the other.
+  :data:`DEFAULT_STEPS`. Setting one by :func:`~fem3d.scene.load.apply_overrides` clears
+  the other.
 * ``interaction.pick_radius`` / ``spring_k`` left out: ``0.01 h`` and ``0.15 E h`` (``h`` the
   height of the rest mesh along y, ``E`` the first body's Young's modulus).
 """
 
 from __future__ import annotations
 
-import copy
 import difflib
 import hashlib
 import json
 import os
 import re
-import tomllib
 import types
 import typing
 from collections.abc import Mapping
@@ -65,14 +66,16 @@ from pydantic import (
 )
 
 from fem3d.errors import InputError
+from fem3d.io.files import check_input_file
+from fem3d.physics.materials import names as material_names
+from fem3d.scene.keys import format_key, parse_key, set_path
 
 __all__ = [
     "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
     "Selector", "PinSpec", "MotionSpec", "Keyframe", "PullSpec", "ContactSpec",
-    "ObstacleSpec", "OutputSpec", "InteractionSpec", "TransformSpec", "TetrahedralizeSpec",
-    "DampingSpec", "load_scene", "apply_overrides", "scene_schema", "scenes_dir",
-    "scene_names", "scene_from_arrays", "mesh_scene", "cache_dir", "DEFAULT_STEPS",
-    "MESH_SCENE_DEFAULTS", "SURFACE_SUFFIXES",
+    "ObstacleSpec", "PlaneObstacleSpec", "MeshObstacleSpec", "OutputSpec", "PreviewSpec",
+    "InteractionSpec", "TransformSpec", "TetrahedralizeSpec", "DampingSpec", "scene_schema",
+    "material_names", "DEFAULT_STEPS", "SURFACE_SUFFIXES",
 ]
 
 #: Steps of a run whose scene gives neither ``steps`` nor ``duration``.
@@ -80,13 +83,6 @@ DEFAULT_STEPS = 100
 
 #: Closed-surface file types a body's ``mesh`` may be (tetrahedralized with fTetWild).
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
-
-#: What ``load_scene(MESH)`` puts around a bare mesh (lengths as fractions of its height).
-MESH_SCENE_DEFAULTS = {
-    "E": 6e5, "nu": 0.4, "density": 0.1, "dt": 0.01, "integrator": "implicit",
-    "fix_fraction": 0.02, "pick_fraction": 0.01, "spring_fraction": 0.15,
-    "pull_fraction": 0.15, "pull_duration": 0.3,
-}
 
 Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -257,18 +253,6 @@ class MaterialSpec(_Spec):
         return self
 
 
-def material_names() -> list[str]:
-    """Names of the generated materials (:func:`fem3d.kernels.dispatch.available_materials`)."""
-    try:
-        from fem3d.physics.materials import names  # the materials helper's registry, once on main
-
-        return list(names())
-    except ImportError:
-        from fem3d.kernels.dispatch import available_materials
-
-        return list(available_materials())
-
-
 class TransformSpec(_Spec):
     """``x' = Rz Ry Rx (scale x) + translate`` (degrees)."""
 
@@ -382,7 +366,7 @@ class ContactSpec(_Spec):
     tolerance: Positive = 1e-2
 
 
-class PlaneObstacle(_Spec):
+class PlaneObstacleSpec(_Spec):
     """An infinite plane; the free side is the one the normal points to."""
 
     point: Vec3
@@ -394,7 +378,7 @@ class PlaneObstacle(_Spec):
         return _nonzero(v, "normal")
 
 
-class MeshObstacle(_Spec):
+class MeshObstacleSpec(_Spec):
     """A rigid surface mesh, optionally moving like a keyframed pin."""
 
     path: StrictStr
@@ -405,8 +389,8 @@ class MeshObstacle(_Spec):
 class ObstacleSpec(_Spec):
     """Exactly one of ``plane``, ``mesh``."""
 
-    plane: PlaneObstacle | None = None
-    mesh: MeshObstacle | None = None
+    plane: PlaneObstacleSpec | None = None
+    mesh: MeshObstacleSpec | None = None
 
     @model_validator(mode="after")
     def _one(self) -> ObstacleSpec:
@@ -499,8 +483,6 @@ class Scene(_Spec):
 
     def check_files(self) -> None:
         """Every referenced file exists (else ``FILE: key: no such file PATH``)."""
-        from fem3d.io.files import check_input_file
-
         for key, p in self.files():
             if not (p.exists() or p.is_symlink()):
                 raise self.error(key, f"no such file {p}")
@@ -514,7 +496,7 @@ class Scene(_Spec):
         """JSON-safe dict; every path absolute (so the dict means the same anywhere)."""
         d = self.model_dump(mode="json")
         for key, p in self.files():
-            _set_path(d, _parse_key(key), str(p.resolve()))
+            set_path(d, parse_key(key), str(p.resolve()))
         d["base_dir"] = str(Path(self.base_dir).resolve())
         return d
 
@@ -560,16 +542,6 @@ def _file_sha256(path: Path) -> str:
 
 
 # ------------------------------------------------------------------------------ errors
-def _key_path(loc: tuple) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(top level)"
-
-
 def _unwrap_models(ann: Any) -> list[type[BaseModel]]:
     """Pydantic model classes inside an annotation (through Optional, list, tuple, ...)."""
     if isinstance(ann, type) and issubclass(ann, BaseModel):
@@ -597,7 +569,8 @@ def _model_at(loc: tuple) -> type[BaseModel] | None:
     return cls
 
 
-def _message(err: dict) -> str:
+def describe_error(err: dict) -> str:
+    """The text after ``key.path:`` for one pydantic error (``ValidationError.errors()``)."""
     kind = err["type"]
     loc = tuple(err["loc"])
     if kind == "extra_forbidden":
@@ -632,280 +605,10 @@ def _validate(d: Any, source: str) -> Scene:
         # report the error nearest to the file's own words: the first one
         err = errors[0]
         more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise InputError(f"{_key_path(tuple(err['loc']))}: {_message(err)}{more}",
+        raise InputError(f"{format_key(tuple(err['loc']))}: {describe_error(err)}{more}",
                          path=source) from None
     except (TypeError, ValueError, RecursionError) as exc:  # pragma: no cover - defensive
         raise InputError(f"invalid scene ({type(exc).__name__}: {exc})", path=source) from None
-
-
-# ------------------------------------------------------------------------------ key paths
-_PART = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)|\[(-?\d+)\]")
-
-
-def _parse_key(key: str, source: str = "override") -> list[str | int]:
-    """``"bodies[0].material.E"`` -> ``["bodies", 0, "material", "E"]``."""
-    parts: list[str | int] = []
-    pos = 0
-    key = key.strip()
-    while pos < len(key):
-        if key[pos] == "." and parts and pos + 1 < len(key):
-            pos += 1
-        m = _PART.match(key, pos)
-        if m is None:
-            raise InputError(f"{key}: not a key path (like bodies[0].material.E)", path=source)
-        parts.append(m.group(1) if m.group(1) is not None else int(m.group(2)))
-        pos = m.end()
-    if not parts or not isinstance(parts[0], str):
-        raise InputError(f"{key}: not a key path (like bodies[0].material.E)", path=source)
-    return parts
-
-
-def _set_path(d: Any, parts: list[str | int], value: Any, key: str = "",
-              source: str = "override") -> None:
-    node = d
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        here = _key_path(tuple(parts[: i + 1]))
-        if isinstance(part, int):
-            if not isinstance(node, list):
-                raise InputError(f"{key or here}: {_key_path(tuple(parts[:i]))} is not a list",
-                                 path=source)
-            if not -len(node) <= part < len(node):
-                raise InputError(f"{key or here}: index {part} out of range (there are "
-                                 f"{len(node)})", path=source)
-        else:
-            if not isinstance(node, dict):
-                raise InputError(f"{key or here}: {_key_path(tuple(parts[:i])) or 'scene'} is "
-                                 f"not a table", path=source)
-        if last:
-            node[part] = value
-            return
-        nxt = node[part] if isinstance(part, int) else node.get(part)
-        if nxt is None:
-            nxt = [] if isinstance(parts[i + 1], int) else {}
-            node[part] = nxt
-        node = nxt
-
-
-def apply_overrides(
-    scene: Scene, overrides: Mapping[str, Any] | None, *, source: str = "override"
-) -> Scene:
-    """A copy of ``scene`` with fields changed by dotted key paths, validated again.
-
-    Parameters
-    ----------
-    scene : Scene
-    overrides : mapping of str to value
-        ``{"bodies[0].material.E": 1e5, "simulation.dt": 0.005, "pulls": []}``. Setting
-        ``simulation.steps`` clears ``simulation.duration`` and vice versa. Values are what
-        the scene file would hold (TOML types); ``None`` removes an optional value.
-
-    source : str, optional
-        What error messages name (``"--dt"`` for a command-line flag).
-
-    Returns
-    -------
-    Scene
-
-    Raises
-    ------
-    InputError
-        ``SOURCE: key.path: what is wrong`` (the scene's own file when the error is
-        elsewhere).
-    """
-    if not overrides:
-        return scene
-    d = scene.model_dump(mode="json")  # lists, not tuples: items settable by index
-    for key, value in overrides.items():
-        parts = _parse_key(str(key), source)
-        if isinstance(value, tuple):
-            value = list(value)
-        _set_path(d, parts, copy.deepcopy(value), str(key), source)
-        if parts == ["simulation", "steps"] and value is not None:
-            d["simulation"]["duration"] = None
-        elif parts == ["simulation", "duration"] and value is not None:
-            d["simulation"]["steps"] = None
-    try:
-        return Scene.model_validate(d)
-    except ValidationError as exc:
-        errors = exc.errors(include_url=False)
-        err = errors[0]
-        loc = _key_path(tuple(err["loc"]))
-        given = [_key_path(tuple(_parse_key(str(k), source))) for k in overrides]
-        src = source if any(loc.startswith(k) or k.startswith(loc) for k in given) \
-            else scene.where
-        raise InputError(f"{loc}: {_message(err)}", path=src) from None
-
-
-# ------------------------------------------------------------------------------ loading
-def scenes_dir() -> Path:
-    """Folder of the named scenes: ``$FEM3D_SCENES``, else the checkout's ``data/scenes``."""
-    env = os.environ.get("FEM3D_SCENES")
-    if env:
-        return Path(env)
-    from fem3d.scene.build import data_dir
-
-    return data_dir() / "scenes"
-
-
-def scene_names() -> list[str]:
-    """Names ``load_scene`` accepts (the ``*.toml`` files of :func:`scenes_dir`), sorted,
-    the classic ``bunny`` and ``arma`` first."""
-    names = sorted(p.stem for p in scenes_dir().glob("*.toml"))
-    first = [n for n in ("bunny", "arma") if n in names]
-    return first + [n for n in names if n not in first]
-
-
-def read_scene_file(path: str | os.PathLike[str]) -> Scene:
-    """Parse and validate one TOML scene file (relative paths: relative to its folder)."""
-    from fem3d.io.files import check_input_file
-
-    path = check_input_file(path, "scene file")
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read scene file ({exc.strerror or exc})", path=path) from None
-    try:
-        text = raw.decode("utf-8")
-        data = tomllib.loads(text)
-    except UnicodeDecodeError as exc:
-        raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})",
-                         path=path) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"not valid TOML: {exc}", path=path) from None
-    data.setdefault("name", path.stem)
-    if "base_dir" in data:
-        raise InputError("base_dir: set by the loader (the file's folder), not in the file",
-                         path=path)
-    if "source" in data:
-        raise InputError("source: set by the loader, not in the file", path=path)
-    data["base_dir"] = str(path.resolve().parent)
-    data["source"] = str(path)
-    scene = _validate(data, str(path))
-    scene.check_files()
-    return scene
-
-
-def mesh_scene(path: str | os.PathLike[str]) -> Scene:
-    """A one-body scene around a tet mesh or closed surface file (see
-    :data:`MESH_SCENE_DEFAULTS`): lowest-y pins within ``0.02 h``, the vertices within
-    ``0.01 h`` of the top-most vertex pulled ``0.15 h`` along +x for 0.3 s by springs of
-    ``interaction.spring_k`` (``0.15 E h``), picking radius ``0.01 h``."""
-    from fem3d.io.files import check_input_file
-    from fem3d.scene.build import is_surface_file, rest_positions
-
-    p = check_input_file(path, "mesh")
-    dflt = MESH_SCENE_DEFAULTS
-    body = {"mesh": str(p.resolve()), "material": {
-        "model": "neo_hookean", "E": dflt["E"], "nu": dflt["nu"], "density": dflt["density"]}}
-    if is_surface_file(p):  # the surface's own extent: no tetrahedralization here
-        from fem3d.mesh.formats import read_surface_mesh
-
-        X = read_surface_mesh(p)[0]
-    else:
-        draft = _validate({"name": p.stem, "source": str(p), "bodies": [body]}, str(p))
-        X = rest_positions(draft, 0)
-    h = float(X[:, 1].max() - X[:, 1].min())
-    if not h > 0:
-        raise InputError("mesh has no extent along y", path=p)
-    top = int(X[:, 1].argmax())
-    pick = dflt["pick_fraction"] * h
-    select = ({"nearest_to": {"point": [float(c) for c in X[top]], "radius": pick}}
-              if is_surface_file(p) else {"near_vertex": {"vertex": top, "radius": pick}})
-    body["pins"] = [{"select": {"lowest_y": {"tol": dflt["fix_fraction"] * h}}}]
-    d = {
-        "name": p.stem, "base_dir": str(p.resolve().parent), "source": str(p),
-        "simulation": {"integrator": dflt["integrator"], "dt": dflt["dt"]},
-        "bodies": [body],
-        "pulls": [{"select": select, "offset": [dflt["pull_fraction"] * h, 0.0, 0.0],
-                   "duration": dflt["pull_duration"]}],
-    }  # interaction left out: 0.01 h and 0.15 E h (E as overridden)
-    return _validate(d, str(p))
-
-
-def cache_dir() -> Path:
-    """fem3d's cache folder: ``$FEM3D_CACHE``, else ``~/.cache/fem3d`` (created)."""
-    env = os.environ.get("FEM3D_CACHE")
-    d = (Path(env) if env else Path.home() / ".cache" / "fem3d").expanduser().resolve()
-    d.mkdir(parents=True, exist_ok=True)
-    return d
-
-
-def scene_from_arrays(X: Any, T: Any, overrides: Mapping[str, Any] | None = None, *,
-                      name: str = "arrays") -> Scene:
-    """A one-body scene (:func:`mesh_scene`) around a tet mesh given as arrays.
-
-    The mesh is stored once in :func:`cache_dir` ``/arrays/<sha256>.mesh`` (named by its
-    content), so the scene stays data: a path, serialisable and digestible.
-
-    Parameters
-    ----------
-    X : (n, 3) float64
-    T : (m, 4) int
-    overrides : mapping, optional
-        :func:`apply_overrides` on the result (``{"bodies[0].material.E": 1e5}``).
-    name : str
-    """
-    import numpy as np
-
-    from fem3d.io.files import atomic_write
-    from fem3d.mesh.formats import write_tet_mesh
-    from fem3d.mesh.tetmesh import TetMesh
-
-    X = np.ascontiguousarray(X, dtype=np.float64)
-    T = np.ascontiguousarray(T, dtype=np.int64)
-    h = hashlib.sha256(repr((X.shape, T.shape)).encode() + X.tobytes() + T.tobytes())
-    folder = cache_dir() / "arrays"
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{h.hexdigest()[:32]}.mesh"
-    if not path.is_file():
-        atomic_write(path, lambda p: write_tet_mesh(p, TetMesh(X, T)))
-    scene = mesh_scene(path)
-    return apply_overrides(apply_overrides(scene, {"name": name}), overrides)
-
-
-def load_scene(
-    name_or_path: str | os.PathLike[str], overrides: Mapping[str, Any] | None = None
-) -> Scene:
-    """A scene by name (``data/scenes/<name>.toml``), from a ``.toml`` file, or around a mesh.
-
-    Parameters
-    ----------
-    name_or_path : str or PathLike
-        A name of :func:`scene_names`, a scene file, or a tet mesh / closed surface file
-        (then a one-body scene, :func:`mesh_scene`).
-    overrides : mapping, optional
-        Passed to :func:`apply_overrides`.
-
-    Returns
-    -------
-    Scene
-
-    Raises
-    ------
-    InputError
-        Unknown name, unreadable or invalid file (``FILE: key.path: what is wrong``).
-    """
-    key = str(name_or_path)
-    p = Path(key)
-    named = scenes_dir() / f"{key}.toml"
-    if p.suffix.lower() == ".toml":
-        scene = read_scene_file(p)
-    elif not p.suffix and "/" not in key and named.is_file():
-        scene = read_scene_file(named)
-    elif p.suffix or p.exists():
-        scene = mesh_scene(p)
-    else:
-        if not named.is_file():
-            names = scene_names()
-            near = difflib.get_close_matches(key, names, n=1)
-            hint = f"; did you mean {near[0]!r}?" if near else ""
-            raise InputError(f"unknown scene {key!r}{hint} (use one of {', '.join(names)}, a "
-                             f".toml scene file or a mesh file)")
-        scene = read_scene_file(named)
-    scene = apply_overrides(scene, overrides)
-    scene.check_files()
-    return scene
 
 
 def scene_schema() -> dict[str, Any]:

@@ -2,7 +2,7 @@
 
 A sweep file names a base scene and the fields to vary, as dotted key paths of the scene
 (``bodies[0].material.E``, ``simulation.dt``); every combination is one *case*: the base
-scene with those overrides (:func:`fem3d.scene.spec.apply_overrides`), run by the code of
+scene with those overrides (:func:`fem3d.scene.load.apply_overrides`), run by the code of
 ``fem3d run`` (:func:`fem3d.app.cli.run_scene`) as one Dask task in a worker process. See
 ``docs/sweeps.md`` for the file format, the output layout and cluster use.
 
@@ -560,13 +560,13 @@ class SweepPlan:
 
 
 def _load_base(spec: SweepFile) -> Any:
-    from fem3d.scene.spec import load_scene
+    from fem3d.scene.load import load_scene
 
     return load_scene(spec.scene, dict(spec.set) or None)
 
 
 def _resolve(base: Any, overrides: Mapping[str, Any], source: str) -> Any:
-    from fem3d.scene.spec import apply_overrides
+    from fem3d.scene.load import apply_overrides
 
     return apply_overrides(base, dict(overrides), source=source) if overrides else base
 

@@ -99,7 +99,7 @@ SPRING_COLOR = (220, 40, 40)
 
 
 def _load_scene(name: str | Path) -> Any:
-    from fem3d.scene.build import load_scene
+    from fem3d.scene.load import load_scene
 
     return load_scene(str(name))
 
@@ -123,7 +123,7 @@ def _material_names() -> list[str]:
 
 def _with_material(scene: Any, name: str) -> Any:
     """``scene`` with every body's material model set to ``name`` (validated)."""
-    from fem3d.scene.spec import apply_overrides
+    from fem3d.scene.load import apply_overrides
 
     keys = {f"bodies[{i}].material.model": name for i in range(len(scene.bodies))}
     return apply_overrides(scene, keys, source="the viewer's material menu")
@@ -131,7 +131,7 @@ def _with_material(scene: Any, name: str) -> Any:
 
 def _builtin_scene_names() -> list[str]:
     try:
-        from fem3d.scene.build import SCENES
+        from fem3d.scene.load import SCENES
     except ImportError:  # pragma: no cover - runtime missing
         return ["bunny", "arma"]
     return [str(name) for name in SCENES]
