@@ -69,7 +69,7 @@ SUBCOMMANDS: list[str] = [
     "fem3d.app.viewer.viewer:add_view_subcommand",
     "fem3d.app.cli:add_resume_subcommand",
     "fem3d.app.cli:add_schema_subcommand",
-    "fem3d.app.sweep.sweep:add_sweep_subcommand",
+    "fem3d.app.sweep.cli:add_sweep_subcommand",
 ]
 
 #: ``fem3d run`` flags that set one scene field: (flag, dest, key path; ``{body}`` = every body).
