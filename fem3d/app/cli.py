@@ -66,7 +66,7 @@ __all__ = ["main", "build_parser", "scene_from_args", "SUBCOMMANDS", "RUN_FLAGS"
 #: Sub-command registrars, ``"module:function"``, in ``--help`` order.
 SUBCOMMANDS: list[str] = [
     "fem3d.app.cli:add_run_subcommand",
-    "fem3d.app.viewer.viewer:add_view_subcommand",
+    "fem3d.app.viewer.app:add_view_subcommand",
     "fem3d.app.cli:add_resume_subcommand",
     "fem3d.app.cli:add_schema_subcommand",
     "fem3d.app.sweep.cli:add_sweep_subcommand",
