@@ -5,9 +5,9 @@ Run:  python examples/make_gallery.py [--only NAME ...] [--meshes-only]
 * ``data/scenes/meshes/*.mesh``: Kuhn-subdivided boxes (6 positive tets per cell) written once
   (:func:`box_mesh`), e.g. the cantilever's 1 x 0.1 x 0.1 beam of 40 x 4 x 4 cells.
 * ``docs/gallery/<scene>.gif``: each gallery scene run headless through
-  :func:`fem3d.app.cli.run_scene` (the code path of ``fem3d run``) with its preview rendered by
+  :func:`fem3d.app.run.run_scene` (the code path of ``fem3d run``) with its preview rendered by
   :func:`fem3d.io.preview.render_preview`; the printed line per scene is its
-  :class:`~fem3d.app.cli.RunSummary`.
+  :class:`~fem3d.app.run.RunSummary`.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     write_meshes()
     if args.meshes_only:
         return 0
-    from fem3d.app.cli import run_scene
+    from fem3d.app.run import run_scene
     from fem3d.scene import load_scene
 
     GALLERY.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.app.cli import RunSummary, main, run_scene
+from fem3d.app.cli import main
+from fem3d.app.run import RunSummary, run_scene
 from fem3d.errors import InputError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.scene import Scene, apply_overrides, load_scene, scene_names, scene_schema

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fem3d.app.cli import main, run_scene
+from fem3d.app.cli import main
+from fem3d.app.run import run_scene
 from fem3d.errors import InputError
 from fem3d.mesh.formats import read_tet_mesh, write_surface_mesh
 from fem3d.scene import Scene, apply_overrides, load_scene

@@ -10,7 +10,8 @@ import pytest
 from pydantic import BaseModel, ConfigDict
 
 from fem3d.app.cli import main
-from fem3d.app.sweep.sweep import check_key_path, expand_cases, load_sweep_file
+from fem3d.app.sweep.plan import check_key_path, expand_cases
+from fem3d.app.sweep.spec import load_sweep_file
 from fem3d.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent

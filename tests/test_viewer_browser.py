@@ -160,7 +160,7 @@ def _drag(page: Any, x0: float, y0: float, dx: float) -> None:
 
 @pytest.fixture
 def viewer():
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     # Start on the small simulation mesh and push at 10 Hz: WebGL runs in software.
     # Backward Euler: the linearly-implicit integrator may (legitimately) blow up under a
@@ -262,7 +262,7 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             # Hotkeys: M toggles the mesh (S is viser's camera key), N the integrator.
             mode0 = viewer.snapshot()["mesh_mode"]
             integ0 = viewer.snapshot()["integrator"]
-            from fem3d.app.viewer.viewer import HOTKEYS
+            from fem3d.app.viewer.logic import HOTKEYS
 
             page.keyboard.press(HOTKEYS["mesh"].lower())
             wait_for(lambda: viewer.snapshot()["mesh_mode"] != mode0, 10, "M to switch the mesh")

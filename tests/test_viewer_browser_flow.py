@@ -247,7 +247,7 @@ class Faults:
 
 def _hotkey(name: str) -> str:
     """The viewer's hotkey for ``name`` (today's code: the S/N/space/R of the issue)."""
-    import fem3d.app.viewer.viewer as fv
+    import fem3d.app.viewer.logic as fv
 
     keys = getattr(fv, "HOTKEYS", {"mesh": "S", "integrator": "N", "pause": "space", "reset": "R"})
     k = keys[name]
@@ -388,7 +388,7 @@ def _select_scene(page: Any, name: str) -> None:
 
 @pytest.fixture
 def viewer() -> Any:
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     v = Viewer("bunny", port=0, integrator="implicit", mesh_mode="sim")
     v.start()

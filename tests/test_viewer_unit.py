@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fem3d.app.viewer.viewer import (
+from fem3d.app.viewer.app import add_view_subcommand
+from fem3d.app.viewer.logic import (
     EnergyHistory,
     RealtimePacer,
-    add_view_subcommand,
     camera_for_points,
     energy_text,
     format_energy,
@@ -238,7 +238,7 @@ def test_cli_view_serves_and_stops_on_ctrl_c() -> None:
 def test_cli_registration_does_not_import_viser() -> None:
     code = (
         "import argparse, sys\n"
-        "from fem3d.app.viewer.viewer import add_view_subcommand\n"
+        "from fem3d.app.viewer.app import add_view_subcommand\n"
         "p = argparse.ArgumentParser(); add_view_subcommand(p.add_subparsers())\n"
         "p.parse_args(['view'])\n"
         "assert 'viser' not in sys.modules, 'viser imported'\n"
@@ -247,7 +247,7 @@ def test_cli_registration_does_not_import_viser() -> None:
 
 
 def test_bad_viewer_arguments() -> None:
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     with pytest.raises(ParameterError, match="integrator"):
         Viewer("bunny", integrator="rk4")
@@ -262,7 +262,7 @@ def test_bad_viewer_arguments() -> None:
 
 @pytest.fixture
 def viewer():
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     v = Viewer("bunny", port=0, realtime=False, push_hz=30.0)
     v.start()
@@ -445,7 +445,7 @@ def test_concurrent_drags_and_mesh_swaps(viewer: Any) -> None:
 
 @needs_viser
 def test_switch_scene() -> None:
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     with Viewer("bunny", port=0, realtime=False, mesh_mode="sim") as v:
         wait_for(lambda: v.snapshot()["steps"] > 3, 30, "steps")
@@ -477,7 +477,7 @@ def test_port_in_use_is_refused_in_one_line_and_port_0_is_free() -> None:
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
         assert len(lines) == 1, r.stderr
         assert f"port {port} on 127.0.0.1 is in use" in lines[0] and "--port 0" in lines[0]
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     with Viewer("bunny", port=0, realtime=False, mesh_mode="sim") as v:
         assert v.server.get_port() != 0 and v.url.endswith(f":{v.server.get_port()}")
@@ -489,7 +489,7 @@ def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noq
     freeze of issue 12) and a scene switch keep mesh updates going, with no exception."""
     from pathlib import Path
 
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     toml = Path(__file__).resolve().parent.parent / "data" / "scenes" / "arma.toml"
     with Viewer(str(toml), port=0, realtime=False, mesh_mode="skin") as v:
@@ -521,7 +521,7 @@ def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noq
 
 @needs_viser
 def test_material_menu_switches_the_model_and_keeps_the_motion() -> None:
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
     from fem3d.scene.spec import material_names
 
     names = material_names()
@@ -550,7 +550,7 @@ def test_material_menu_switches_the_model_and_keeps_the_motion() -> None:
 
 
 def test_plane_quad_lies_in_the_plane_around_the_centre() -> None:
-    from fem3d.app.viewer.viewer import plane_quad
+    from fem3d.app.viewer.logic import plane_quad
 
     point, normal = np.array([0.0, 1.0, 0.0]), np.array([0.0, 2.0, 0.0])
     V, F = plane_quad(point, normal, np.array([3.0, 7.0, -1.0]), 2.0)
@@ -567,7 +567,7 @@ def test_plane_quad_lies_in_the_plane_around_the_centre() -> None:
 def test_obstacles_are_drawn_and_moving_ones_follow(tmp_path) -> None:  # noqa: ANN001
     from pathlib import Path
 
-    from fem3d.app.viewer.viewer import Viewer
+    from fem3d.app.viewer.app import Viewer
 
     data = Path(__file__).resolve().parent.parent / "data"
     scene = tmp_path / "obstacles.toml"

@@ -32,8 +32,9 @@ message says at which step; every frame and energy up to the last good step is w
 no output file ever holds a NaN); 2 bad input or parameters (one line on stderr naming the
 file and key path, a traceback only with ``--debug``; nothing written); 130 interrupted.
 
-:func:`run_scene` is the same code path for Python callers (sweeps): a scene in, a
-:class:`RunSummary` out.
+The run loop itself is :mod:`fem3d.app.run` (:func:`~fem3d.app.run.run_scene` is the same code
+path for Python callers, e.g. sweeps: a scene in, a :class:`~fem3d.app.run.RunSummary` out);
+this module parses arguments and dispatches the sub-commands.
 
 Adding a sub-command: append ``"module:function"`` to :data:`SUBCOMMANDS`; ``function``
 receives the ``argparse`` sub-parser collection, adds its parser and sets ``func`` (a
@@ -45,40 +46,31 @@ built; one that fails to import (a missing optional dependency) is left out with
 from __future__ import annotations
 
 import argparse
-import contextlib
-import dataclasses
 import importlib
-import math
-import signal
+import json
 import sys
-import threading
-import time
+import tomllib
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fem3d.app.run import resume_run, run_scene
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
+from fem3d.io.files import atomic_write
+from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 
-__all__ = ["main", "build_parser", "run_scene", "resume_run", "scene_from_args", "RunSummary",
-           "SUBCOMMANDS", "RUN_FLAGS"]
+__all__ = ["main", "build_parser", "scene_from_args", "SUBCOMMANDS", "RUN_FLAGS"]
 
 #: Sub-command registrars, ``"module:function"``, in ``--help`` order.
 SUBCOMMANDS: list[str] = [
     "fem3d.app.cli:add_run_subcommand",
-    "fem3d.app.viewer.viewer:add_view_subcommand",
+    "fem3d.app.viewer.app:add_view_subcommand",
     "fem3d.app.cli:add_resume_subcommand",
     "fem3d.app.cli:add_schema_subcommand",
-    "fem3d.app.sweep.sweep:add_sweep_subcommand",
+    "fem3d.app.sweep.cli:add_sweep_subcommand",
 ]
-
-#: Frames kept in memory for the GIF preview (evenly spaced).
-PREVIEW_FRAMES = 60
-
-#: Exit status of an interrupted run (128 + SIGINT).
-EXIT_INTERRUPTED = 130
-
 
 #: ``fem3d run`` flags that set one scene field: (flag, dest, key path; ``{body}`` = every body).
 RUN_FLAGS: tuple[tuple[str, str, str], ...] = (
@@ -103,8 +95,6 @@ RUN_FLAGS: tuple[tuple[str, str, str], ...] = (
 
 def _material_help() -> str:
     try:
-        from fem3d.scene.spec import material_names
-
         return ", ".join(material_names())
     except Exception:  # pragma: no cover - kernels missing
         return "see fem3d schema"
@@ -233,8 +223,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _parse_value(text: str) -> Any:
     """A ``--set`` value: TOML syntax (``1e5``, ``"stvk"``, ``[0, -9.81, 0]``, ``{...}``), or
     the bare text as a string."""
-    import tomllib
-
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -249,8 +237,6 @@ def scene_from_args(args: argparse.Namespace):
     InputError
         ``FILE: key.path: ...`` from the scene, or ``--flag: key.path: ...`` from a flag.
     """
-    from fem3d.scene.load import apply_overrides, load_scene
-
     scene = load_scene(args.scene)
     for flag, dest, key in RUN_FLAGS:
         value = getattr(args, dest, None)
@@ -269,404 +255,6 @@ def scene_from_args(args: argparse.Namespace):
     if args.no_pull:
         scene = apply_overrides(scene, {"pulls": []}, source="--no-pull")
     return scene
-
-
-def _check_writable(out: Path) -> None:
-    """Refuse an output folder that cannot be created or written, before any setup (writes
-    nothing)."""
-    import os
-
-    p = out
-    while not p.exists():
-        if p.parent == p:
-            break
-        p = p.parent
-    if p.exists() and (not p.is_dir() or not os.access(p, os.W_OK | os.X_OK)):
-        what = "not a folder" if not p.is_dir() else "not writable"
-        raise InputError(f"output folder: {p} is {what}", path=out)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunSummary:
-    """What :func:`run_scene` did.
-
-    Attributes
-    ----------
-    status : {"ok", "failed", "interrupted"}
-    message : str
-        Empty when ok; the failure or interruption otherwise.
-    steps : int
-        Index of the last good step.
-    wall_seconds : float
-        Wall time of the stepping loop.
-    newton_iterations : int
-        Total over the steps taken here.
-    max_displacement : float
-        Largest ``|q - X|`` of a simulation-mesh vertex over the steps taken here.
-    kinetic, potential, total : float
-        Energies of the last good state.
-    max_total : float
-        Largest total energy logged (over the whole run, resumed parts included).
-    out : str
-        Output folder.
-    """
-
-    status: str
-    message: str
-    steps: int
-    wall_seconds: float
-    newton_iterations: int
-    max_displacement: float
-    kinetic: float
-    potential: float
-    total: float
-    max_total: float
-    out: str = ""
-
-    @property
-    def exit_status(self) -> int:
-        """0 ok, 1 failed, 130 interrupted."""
-        return {"ok": 0, "failed": 1}.get(self.status, EXIT_INTERRUPTED)
-
-
-class _Interrupts:
-    """SIGINT / SIGTERM while stepping: remember the first, abandon the step on a second."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.in_step = False
-
-    def __call__(self, signum: int, frame: Any) -> None:
-        first = self.signum is None
-        self.signum = signum
-        if not first and self.in_step:
-            raise KeyboardInterrupt
-
-    @property
-    def name(self) -> str:
-        return signal.Signals(self.signum).name if self.signum is not None else ""
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[_Interrupts]:
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signals are delivered to the main thread only
-            return
-        old = {s: signal.signal(s, self) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield self
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
-
-
-def _drive(
-    scene,
-    sim,
-    out: Path,
-    settings: dict[str, Any],
-    *,
-    quiet: bool,
-    debug: bool,
-    ckpt=None,
-    command: str = "run",
-) -> RunSummary:
-    """Step ``sim`` up to ``scene.n_steps``, writing outputs (and checkpoints) to ``out``."""
-    import numpy as np
-    from tqdm import tqdm
-
-    from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
-    from fem3d.io.energy import EnergyLog
-    from fem3d.io.frames import make_frame_writer
-    from fem3d.io.preview import plot_energy, render_preview
-
-    steps, frame_every = scene.n_steps, scene.output.every
-    every = settings["checkpoint_every"]
-    preview_on = bool(settings["preview"])
-    digest = mesh_digest(sim.model.X, sim.model.T)
-    faces = sim.display_faces
-    writer = make_frame_writer(out, faces, scene.output.format,
-                               bodies=_display_bodies(scene, sim), dt=sim.dt)
-    n_frames = steps // frame_every + 1
-    preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
-    preview: list[np.ndarray] = []
-    frame_count = 0
-    if ckpt is None:
-        log = EnergyLog(out / "energy.csv")
-    else:  # resume: the saved energy rows and frame list; frames after the checkpoint go
-        log = EnergyLog.from_array(ckpt.energy, out / "energy.csv")
-        writer.restore(ckpt.frames, ckpt.step)
-        frame_count = ckpt.frame_count
-        log.write()
-        if preview_on:
-            for i, (_, V) in enumerate(writer.read_frames()):
-                if i % preview_stride == 0:
-                    preview.append(V)
-
-    def record(step: int, t: float, kinetic: float, potential: float, total: float) -> None:
-        nonlocal frame_count
-        if not all(math.isfinite(x) for x in (t, kinetic, potential, total)):
-            raise SimulationError("non-finite energy (nothing written for this step)", step=step)
-        if step % frame_every == 0:
-            V = sim.skin_positions()
-            writer.write(step, t, V)  # refuses non-finite coordinates
-            if frame_count % preview_stride == 0:
-                preview.append(V)
-            frame_count += 1
-        log.append(t, kinetic, potential, total)
-
-    def save_checkpoint() -> Path:
-        log.write()  # energy.csv and the checkpoint agree
-        writer.flush()
-        return save_run_checkpoint(out / CHECKPOINT_NAME, RunCheckpoint(
-            settings=settings, snapshot=sim.snapshot(), energy=log.as_array(),
-            frames=dict(writer.frames), frame_count=frame_count, mesh_digest=digest,
-        ))
-
-    if ckpt is None:
-        e = sim.energies()
-        record(0, sim.t, e["kinetic"], e["potential"], e["total"])
-    start = sim.step_index
-    print(
-        f"fem3d {command} {scene.name}: {sim.model.n_vertices} vertices, {sim.model.n_tets} "
-        f"tets, {sim.constraints.fixed_vertices.size} fixed, integrator {sim.integrator}, "
-        f"material {sim.model.material}, dt {sim.dt:g}, kernels {sim.model.mat.backend}, "
-        f"steps {start} -> {steps} -> {out}",
-        file=sys.stderr,
-    )
-    status, message = "ok", ""
-    step_seconds: list[float] = []
-    iterations: list[int] = []
-    max_disp = 0.0
-    X0 = sim.model.X
-    t_start = time.perf_counter()
-    bar = tqdm(total=steps, initial=start, unit="step", disable=quiet or None, file=sys.stderr,
-               dynamic_ncols=True)
-    intr = _Interrupts()
-    try:
-        with intr.installed():
-            while sim.step_index < steps and intr.signum is None:
-                before = sim.snapshot()
-                intr.in_step = True
-                try:
-                    info = sim.step()
-                except KeyboardInterrupt:  # a second signal: abandon this step
-                    intr.in_step = False
-                    sim.restore(before)
-                    break
-                finally:
-                    intr.in_step = False
-                step_seconds.append(info.seconds)
-                iterations.append(info.newton_iterations)
-                record(sim.step_index, info.t, info.kinetic, info.potential, info.total)
-                max_disp = max(max_disp, float(np.abs(sim.q - X0).max()))
-                bar.update(1)
-                bar.set_postfix_str(f"t={info.t:.2f} E={info.total:.3g}", refresh=False)
-                if every and sim.step_index % every == 0:
-                    save_checkpoint()
-                elif sim.step_index % 50 == 0:
-                    log.write()
-            if intr.signum is not None:  # stop before any slow output
-                bar.close()
-                path = save_checkpoint()
-                message = (f"interrupted by {intr.name} at step {sim.step_index} "
-                           f"(t = {sim.t:.4g}); checkpoint {path}; continue with: "
-                           f"fem3d resume {out}")
-                print(f"fem3d {command}: {message}", file=sys.stderr)
-                return _summary(sim, "interrupted", message, time.perf_counter() - t_start,
-                                iterations, max_disp, log, out)
-    except SimulationError as exc:
-        status, message = "failed", str(exc)
-        bar.close()
-        print(
-            f"fem3d {command}: simulation failed: {exc}\n"
-            f"  output up to the last good step ({sim.step_index}, t = {sim.t:.4g}) is in {out}",
-            file=sys.stderr,
-        )
-        if debug:
-            traceback.print_exc()
-    finally:
-        bar.close()
-        log.write()
-        writer.flush()
-    wall = time.perf_counter() - t_start
-    if status == "ok" and every:
-        save_checkpoint()
-    if len(log):
-        plot_energy(log, out / "energy.png", title=f"{scene.name} ({sim.integrator})")
-    if preview_on and preview:
-        cam = scene.output.preview
-        render_preview(preview, faces, out / "preview.gif", elev=cam.elev,
-                       azim=cam.azim, view_bounds=cam.bounds)
-    if step_seconds:
-        print(
-            f"fem3d {command}: {len(step_seconds)} steps in {wall:.2f} s; "
-            f"{1e3 * float(np.mean(step_seconds)):.2f} ms/step "
-            f"({float(np.mean(iterations)):.2f} Newton iterations/step); "
-            f"{frame_count} frames in {out}",
-            file=sys.stderr,
-        )
-    return _summary(sim, status, message, wall, iterations, max_disp, log, out)
-
-
-def _display_bodies(scene, sim) -> list[tuple[str, slice, slice]]:
-    """``(name, display vertex range, face range)`` of each body (USD prims)."""
-    a = sim.assembled
-    if a.skin_V is None and len(scene.bodies) > 1:
-        # one boundary over the concatenated mesh: split its faces by body
-        import numpy as np
-
-        F = sim.surface_faces
-        out = []
-        for b, (vs, _) in zip(scene.bodies, a.skin_bodies, strict=True):
-            rows = np.flatnonzero((F[:, 0] >= vs.start) & (F[:, 0] < vs.stop))
-            out.append((b.label, vs, slice(int(rows[0]), int(rows[-1]) + 1) if rows.size
-                        else slice(0, 0)))
-        return out
-    if a.skin_V is None:
-        return [(scene.bodies[0].label, slice(0, a.X.shape[0]),
-                 slice(0, sim.surface_faces.shape[0]))]
-    return [(b.label, vs, fs) for b, (vs, fs) in zip(scene.bodies, a.skin_bodies, strict=True)]
-
-
-def _summary(sim, status, message, wall, iterations, max_disp, log, out) -> RunSummary:
-    e = sim.energies()
-    rows = log.as_array()
-    return RunSummary(
-        status=status, message=message, steps=int(sim.step_index), wall_seconds=float(wall),
-        newton_iterations=int(sum(iterations)), max_displacement=float(max_disp),
-        kinetic=float(e["kinetic"]), potential=float(e["potential"]), total=float(e["total"]),
-        max_total=float(rows[:, 3].max()) if rows.size else float(e["total"]), out=str(out),
-    )
-
-
-def _resolve_kernels(name: str | None) -> str:
-    try:
-        from fem3d.kernels.backend import resolve_backend
-
-        return resolve_backend(name)
-    except (ImportError, ValueError) as exc:
-        raise InputError(f"--kernels {name}: {exc}") from None
-
-
-def run_scene(
-    scene,
-    out: Path,
-    *,
-    quiet: bool = True,
-    checkpoint_every: int = 0,
-    preview: bool = False,
-    backend: str | None = None,
-    debug: bool = False,
-) -> RunSummary:
-    """Run ``scene`` headless into ``out``: the code path of ``fem3d run``.
-
-    Writes the frames (``scene.output``), ``energy.csv``, ``energy.png``, ``preview.gif``
-    (``preview``) and ``checkpoint.npz`` (every ``checkpoint_every`` steps, at the end, and
-    on SIGINT/SIGTERM).
-
-    Parameters
-    ----------
-    scene : fem3d.scene.spec.Scene
-    out : Path
-        Output folder (created; nothing is written before the scene is set up).
-    quiet : bool
-        No progress bar.
-    checkpoint_every : int
-        0: checkpoints only on a signal.
-    preview : bool
-        Render ``preview.gif``.
-    backend : {None, "numpy", "c"}
-        Kernel back end.
-    debug : bool
-        Print a traceback when the simulation fails.
-
-    Returns
-    -------
-    RunSummary
-
-    Raises
-    ------
-    InputError
-        A bad scene (``FILE: key.path: ...``) or output folder; nothing is written.
-    """
-    from fem3d.simulation import Simulation
-
-    if checkpoint_every < 0:
-        raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
-    out = Path(out)
-    _check_writable(out)
-    inputs = _scene_inputs(scene)
-    rundir.check_overwrite(out, inputs)  # before any expensive setup
-    backend = _resolve_kernels(backend)
-    sim = Simulation(scene, backend=backend, scripted=True)
-    settings = {
-        "scene": scene.to_dict(), "kernels": backend, "solver": sim.system.linear_backend,
-        "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
-        return _drive(scene, sim, out, settings, quiet=quiet, debug=debug)
-
-
-def _scene_inputs(scene) -> dict[str, Any]:
-    """Every file a run of ``scene`` reads, by role (for the overwrite check)."""
-    inputs: dict[str, Any] = dict(scene.files())
-    if scene.source:
-        inputs["scene file"] = scene.source
-    return inputs
-
-
-def resume_run(args: argparse.Namespace) -> int:
-    """Run ``fem3d resume DIR``: continue from ``DIR/checkpoint.npz``; returns the exit status.
-
-    Raises
-    ------
-    InputError
-        No or a bad checkpoint, a mesh changed since, or a bad ``--steps``.
-    """
-    from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint, mesh_digest
-    from fem3d.scene.load import apply_overrides
-    from fem3d.scene.spec import Scene
-    from fem3d.simulation import Simulation
-
-    out = Path(args.dir)
-    ckpt = load_run_checkpoint(out / CHECKPOINT_NAME)
-    settings = dict(ckpt.settings)
-    where = str(out / CHECKPOINT_NAME)
-    if not isinstance(settings.get("scene"), dict):
-        raise InputError("checkpoint holds no scene (made by an older fem3d)", path=where)
-    scene = Scene.from_dict(settings["scene"], source=where)
-    if scene.simulation.linear_solver == "auto":  # the back end the run actually used
-        scene = apply_overrides(scene, {"simulation.linear_solver": settings["solver"]},
-                                source=where)
-    if args.steps is not None:
-        if args.steps < ckpt.step:
-            raise ParameterError(
-                f"--steps {args.steps} is below the checkpoint's step {ckpt.step}"
-            )
-        scene = apply_overrides(scene, {"simulation.steps": int(args.steps)}, source="--steps")
-        settings["scene"] = scene.to_dict()
-    if args.checkpoint_every is not None:
-        if args.checkpoint_every < 0:
-            raise ParameterError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
-        settings["checkpoint_every"] = int(args.checkpoint_every)
-    if args.no_preview:
-        settings["preview"] = False
-    settings["kernels"] = _resolve_kernels(settings["kernels"])
-    sim = Simulation(scene, backend=settings["kernels"], scripted=True)
-    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
-    ck = out / CHECKPOINT_NAME
-    inputs = {**_scene_inputs(scene), "checkpoint": ck}
-    with rundir.claim(out, inputs=inputs, allow=(ck,)):
-        summary = _drive(scene, sim, out, settings, quiet=args.quiet,
-                         debug=getattr(args, "debug", False), ckpt=ckpt, command="resume")
-    return summary.exit_status
 
 
 def _run_command(args: argparse.Namespace) -> int:
@@ -692,11 +280,6 @@ def _resume_command(args: argparse.Namespace) -> int:
 
 
 def _schema_command(args: argparse.Namespace) -> int:
-    import json
-
-    from fem3d.io.files import atomic_write
-    from fem3d.scene.spec import scene_schema
-
     text = json.dumps(scene_schema(), indent=2) + "\n"
     if args.out:
         atomic_write(Path(args.out), text)
@@ -741,3 +324,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
+

@@ -1,0 +1,505 @@
+"""The headless run loop: :func:`run_scene` (``fem3d run``), :func:`resume_run`
+(``fem3d resume``) and the :class:`RunLoop` that steps a simulation and writes its outputs.
+
+:func:`run_scene` is the same code path for Python callers (sweeps, the gallery): a scene
+in, a :class:`RunSummary` out. It writes into its output folder:
+
+* the display mesh per frame (``scene.output``: ``frames/*.vtu`` + ``frames.pvd``,
+  ``frames/*.obj``, or one ``frames.usdc``);
+* ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
+* ``preview.gif`` - a shaded offscreen animation;
+* ``checkpoint.npz`` - every N steps and at the end, and always on SIGINT / SIGTERM (see
+  :mod:`fem3d.io.checkpoint`). It holds the whole scene.
+
+SIGINT (Ctrl-C) or SIGTERM during the steps: the current step is finished (a second signal
+abandons it; the state stays at the last finished step), a checkpoint is saved, energy.csv and
+the frames are complete up to that step, one line says how to continue, exit status 130.
+
+The argument parsing of ``fem3d run`` / ``fem3d resume`` is in :mod:`fem3d.app.cli`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from fem3d.errors import InputError, ParameterError, SimulationError
+from fem3d.io import rundir
+from fem3d.io.checkpoint import (
+    CHECKPOINT_NAME,
+    RunCheckpoint,
+    load_run_checkpoint,
+    mesh_digest,
+    save_run_checkpoint,
+)
+from fem3d.io.energy import EnergyLog
+from fem3d.io.frames import make_frame_writer
+from fem3d.io.preview import plot_energy, render_preview
+from fem3d.kernels.dispatch import resolve_backend
+from fem3d.scene import Scene, apply_overrides
+from fem3d.simulation import Simulation
+
+__all__ = ["run_scene", "resume_run", "RunSummary", "RunLoop", "PREVIEW_FRAMES",
+           "EXIT_INTERRUPTED"]
+
+#: Frames kept in memory for the GIF preview (evenly spaced).
+PREVIEW_FRAMES = 60
+
+#: Exit status of an interrupted run (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse an output folder that cannot be created or written, before any setup (writes
+    nothing)."""
+    p = out
+    while not p.exists():
+        if p.parent == p:
+            break
+        p = p.parent
+    if p.exists() and (not p.is_dir() or not os.access(p, os.W_OK | os.X_OK)):
+        what = "not a folder" if not p.is_dir() else "not writable"
+        raise InputError(f"output folder: {p} is {what}", path=out)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSummary:
+    """What :func:`run_scene` did.
+
+    Attributes
+    ----------
+    status : {"ok", "failed", "interrupted"}
+    message : str
+        Empty when ok; the failure or interruption otherwise.
+    steps : int
+        Index of the last good step.
+    wall_seconds : float
+        Wall time of the stepping loop.
+    newton_iterations : int
+        Total over the steps taken here.
+    max_displacement : float
+        Largest ``|q - X|`` of a simulation-mesh vertex over the steps taken here.
+    kinetic, potential, total : float
+        Energies of the last good state.
+    max_total : float
+        Largest total energy logged (over the whole run, resumed parts included).
+    out : str
+        Output folder.
+    """
+
+    status: str
+    message: str
+    steps: int
+    wall_seconds: float
+    newton_iterations: int
+    max_displacement: float
+    kinetic: float
+    potential: float
+    total: float
+    max_total: float
+    out: str = ""
+
+    @property
+    def exit_status(self) -> int:
+        """0 ok, 1 failed, 130 interrupted."""
+        return {"ok": 0, "failed": 1}.get(self.status, EXIT_INTERRUPTED)
+
+
+class _Interrupts:
+    """SIGINT / SIGTERM while stepping: remember the first, abandon the step on a second."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.in_step = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        first = self.signum is None
+        self.signum = signum
+        if not first and self.in_step:
+            raise KeyboardInterrupt
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum is not None else ""
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[_Interrupts]:
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signals are delivered to the main thread only
+            return
+        old = {s: signal.signal(s, self) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield self
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+
+
+class RunLoop:
+    """Step ``sim`` up to ``scene.n_steps``, writing outputs (and checkpoints) to ``out``.
+
+    Construction sets up the frame writer and the energy log (on a resume: restores the
+    saved energy rows and frame list); :meth:`run` steps and writes.
+
+    Parameters
+    ----------
+    scene : fem3d.scene.spec.Scene
+    sim : fem3d.simulation.Simulation
+    out : Path
+        Output folder (exists and is claimed by the caller).
+    settings : dict
+        JSON-able options of the run, saved in its checkpoints (``checkpoint_every``,
+        ``preview``, ...).
+    quiet : bool
+        No progress bar.
+    debug : bool
+        Print a traceback when the simulation fails.
+    ckpt : fem3d.io.checkpoint.RunCheckpoint, optional
+        The checkpoint a resume continues from.
+    command : str
+        ``"run"`` or ``"resume"`` (in the messages).
+    """
+
+    def __init__(
+        self,
+        scene,
+        sim,
+        out: Path,
+        settings: dict[str, Any],
+        *,
+        quiet: bool,
+        debug: bool,
+        ckpt=None,
+        command: str = "run",
+    ) -> None:
+        self.scene, self.sim, self.out, self.settings = scene, sim, out, settings
+        self.quiet, self.debug, self.ckpt, self.command = quiet, debug, ckpt, command
+        self.steps, self.frame_every = scene.n_steps, scene.output.every
+        self.every = settings["checkpoint_every"]
+        self.preview_on = bool(settings["preview"])
+        self.digest = mesh_digest(sim.model.X, sim.model.T)
+        self.faces = sim.display_faces
+        self.writer = make_frame_writer(out, self.faces, scene.output.format,
+                                               bodies=_display_bodies(scene, sim), dt=sim.dt)
+        n_frames = self.steps // self.frame_every + 1
+        self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
+        self.preview: list[np.ndarray] = []
+        self.frame_count = 0
+        if ckpt is None:
+            self.log = EnergyLog(out / "energy.csv")
+        else:  # resume: the saved energy rows and frame list; frames after the checkpoint go
+            self.log = EnergyLog.from_array(ckpt.energy, out / "energy.csv")
+            self.writer.restore(ckpt.frames, ckpt.step)
+            self.frame_count = ckpt.frame_count
+            self.log.write()
+            if self.preview_on:
+                for i, (_, V) in enumerate(self.writer.read_frames()):
+                    if i % self.preview_stride == 0:
+                        self.preview.append(V)
+        # per-step statistics of this invocation
+        self.step_seconds: list[float] = []
+        self.iterations: list[int] = []
+        self.max_disp = 0.0
+
+    def record(self, step: int, t: float, kinetic: float, potential: float,
+               total: float) -> None:
+        """Log one step's energies and write its frame (every ``output.every`` steps).
+
+        Raises
+        ------
+        SimulationError
+            A non-finite energy (nothing written for this step).
+        """
+        if not all(math.isfinite(x) for x in (t, kinetic, potential, total)):
+            raise SimulationError("non-finite energy (nothing written for this step)", step=step)
+        if step % self.frame_every == 0:
+            V = self.sim.skin_positions()
+            self.writer.write(step, t, V)  # refuses non-finite coordinates
+            if self.frame_count % self.preview_stride == 0:
+                self.preview.append(V)
+            self.frame_count += 1
+        self.log.append(t, kinetic, potential, total)
+
+    def save_checkpoint(self) -> Path:
+        """Write ``energy.csv``, flush the frames and save ``checkpoint.npz``; its path."""
+        self.log.write()  # energy.csv and the checkpoint agree
+        self.writer.flush()
+        return save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
+            settings=self.settings, snapshot=self.sim.snapshot(), energy=self.log.as_array(),
+            frames=dict(self.writer.frames), frame_count=self.frame_count,
+            mesh_digest=self.digest,
+        ))
+
+    def run(self) -> RunSummary:
+        """Step to the end (or a signal, or a failure) and write the outputs."""
+        sim, out, command = self.sim, self.out, self.command
+        if self.ckpt is None:
+            e = sim.energies()
+            self.record(0, sim.t, e["kinetic"], e["potential"], e["total"])
+        start = sim.step_index
+        scene = self.scene
+        print(
+            f"fem3d {command} {scene.name}: {sim.model.n_vertices} vertices, {sim.model.n_tets} "
+            f"tets, {sim.constraints.fixed_vertices.size} fixed, integrator {sim.integrator}, "
+            f"material {sim.model.material}, dt {sim.dt:g}, kernels {sim.model.mat.backend}, "
+            f"steps {start} -> {self.steps} -> {out}",
+            file=sys.stderr,
+        )
+        status, message = "ok", ""
+        t_start = time.perf_counter()
+        bar = tqdm(total=self.steps, initial=start, unit="step",
+                   disable=self.quiet or None, file=sys.stderr, dynamic_ncols=True)
+        intr = _Interrupts()
+        try:
+            with intr.installed():
+                self._step_all(bar, intr)
+                if intr.signum is not None:  # stop before any slow output
+                    bar.close()
+                    return self._interrupted(intr, t_start)
+        except SimulationError as exc:
+            status, message = "failed", str(exc)
+            bar.close()
+            print(
+                f"fem3d {command}: simulation failed: {exc}\n"
+                f"  output up to the last good step ({sim.step_index}, t = {sim.t:.4g}) is in "
+                f"{out}",
+                file=sys.stderr,
+            )
+            if self.debug:
+                traceback.print_exc()
+        finally:
+            bar.close()
+            self.log.write()
+            self.writer.flush()
+        wall = time.perf_counter() - t_start
+        self._write_outputs(status, wall)
+        return self._summary(status, message, wall)
+
+    def _step_all(self, bar, intr: _Interrupts) -> None:
+        """Step until ``scene.n_steps`` or a signal; a second signal abandons the step."""
+        sim = self.sim
+        X0 = sim.model.X
+        while sim.step_index < self.steps and intr.signum is None:
+            before = sim.snapshot()
+            intr.in_step = True
+            try:
+                info = sim.step()
+            except KeyboardInterrupt:  # a second signal: abandon this step
+                intr.in_step = False
+                sim.restore(before)
+                break
+            finally:
+                intr.in_step = False
+            self.step_seconds.append(info.seconds)
+            self.iterations.append(info.newton_iterations)
+            self.record(sim.step_index, info.t, info.kinetic, info.potential, info.total)
+            self.max_disp = max(self.max_disp, float(np.abs(sim.q - X0).max()))
+            bar.update(1)
+            bar.set_postfix_str(f"t={info.t:.2f} E={info.total:.3g}", refresh=False)
+            if self.every and sim.step_index % self.every == 0:
+                self.save_checkpoint()
+            elif sim.step_index % 50 == 0:
+                self.log.write()
+
+    def _interrupted(self, intr: _Interrupts, t_start: float) -> RunSummary:
+        """Save a checkpoint and say how to continue (no slow outputs)."""
+        sim, out = self.sim, self.out
+        path = self.save_checkpoint()
+        message = (f"interrupted by {intr.name} at step {sim.step_index} "
+                   f"(t = {sim.t:.4g}); checkpoint {path}; continue with: "
+                   f"fem3d resume {out}")
+        print(f"fem3d {self.command}: {message}", file=sys.stderr)
+        return self._summary("interrupted", message, time.perf_counter() - t_start)
+
+    def _write_outputs(self, status: str, wall: float) -> None:
+        """The end of a run: a checkpoint (with ``checkpoint_every``), ``energy.png``,
+        ``preview.gif`` and the timing line."""
+        sim, out, scene = self.sim, self.out, self.scene
+        if status == "ok" and self.every:
+            self.save_checkpoint()
+        if len(self.log):
+            plot_energy(self.log, out / "energy.png",
+                               title=f"{scene.name} ({sim.integrator})")
+        if self.preview_on and self.preview:
+            cam = scene.output.preview
+            render_preview(self.preview, self.faces, out / "preview.gif",
+                                  elev=cam.elev, azim=cam.azim, view_bounds=cam.bounds)
+        if self.step_seconds:
+            print(
+                f"fem3d {self.command}: {len(self.step_seconds)} steps in {wall:.2f} s; "
+                f"{1e3 * float(np.mean(self.step_seconds)):.2f} ms/step "
+                f"({float(np.mean(self.iterations)):.2f} Newton iterations/step); "
+                f"{self.frame_count} frames in {out}",
+                file=sys.stderr,
+            )
+
+    def _summary(self, status: str, message: str, wall: float) -> RunSummary:
+        return _summary(self.sim, status, message, wall, self.iterations, self.max_disp,
+                        self.log, self.out)
+
+
+def _display_bodies(scene, sim) -> list[tuple[str, slice, slice]]:
+    """``(name, display vertex range, face range)`` of each body (USD prims)."""
+    a = sim.assembled
+    if a.skin_V is None and len(scene.bodies) > 1:
+        # one boundary over the concatenated mesh: split its faces by body
+        F = sim.surface_faces
+        out = []
+        for b, (vs, _) in zip(scene.bodies, a.skin_bodies, strict=True):
+            rows = np.flatnonzero((F[:, 0] >= vs.start) & (F[:, 0] < vs.stop))
+            out.append((b.label, vs, slice(int(rows[0]), int(rows[-1]) + 1) if rows.size
+                        else slice(0, 0)))
+        return out
+    if a.skin_V is None:
+        return [(scene.bodies[0].label, slice(0, a.X.shape[0]),
+                 slice(0, sim.surface_faces.shape[0]))]
+    return [(b.label, vs, fs) for b, (vs, fs) in zip(scene.bodies, a.skin_bodies, strict=True)]
+
+
+def _summary(sim, status, message, wall, iterations, max_disp, log, out) -> RunSummary:
+    e = sim.energies()
+    rows = log.as_array()
+    return RunSummary(
+        status=status, message=message, steps=int(sim.step_index), wall_seconds=float(wall),
+        newton_iterations=int(sum(iterations)), max_displacement=float(max_disp),
+        kinetic=float(e["kinetic"]), potential=float(e["potential"]), total=float(e["total"]),
+        max_total=float(rows[:, 3].max()) if rows.size else float(e["total"]), out=str(out),
+    )
+
+
+def _resolve_kernels(name: str | None) -> str:
+    try:
+        return resolve_backend(name)
+    except (ImportError, ValueError) as exc:
+        raise InputError(f"--kernels {name}: {exc}") from None
+
+
+def run_scene(
+    scene,
+    out: Path,
+    *,
+    quiet: bool = True,
+    checkpoint_every: int = 0,
+    preview: bool = False,
+    backend: str | None = None,
+    debug: bool = False,
+) -> RunSummary:
+    """Run ``scene`` headless into ``out``: the code path of ``fem3d run``.
+
+    Writes the frames (``scene.output``), ``energy.csv``, ``energy.png``, ``preview.gif``
+    (``preview``) and ``checkpoint.npz`` (every ``checkpoint_every`` steps, at the end, and
+    on SIGINT/SIGTERM).
+
+    Parameters
+    ----------
+    scene : fem3d.scene.spec.Scene
+    out : Path
+        Output folder (created; nothing is written before the scene is set up).
+    quiet : bool
+        No progress bar.
+    checkpoint_every : int
+        0: checkpoints only on a signal.
+    preview : bool
+        Render ``preview.gif``.
+    backend : {None, "numpy", "c"}
+        Kernel back end.
+    debug : bool
+        Print a traceback when the simulation fails.
+
+    Returns
+    -------
+    RunSummary
+
+    Raises
+    ------
+    InputError
+        A bad scene (``FILE: key.path: ...``) or output folder; nothing is written.
+    """
+    if checkpoint_every < 0:
+        raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
+    out = Path(out)
+    _check_writable(out)
+    inputs = _scene_inputs(scene)
+    rundir.check_overwrite(out, inputs)  # before any expensive setup
+    backend = _resolve_kernels(backend)
+    sim = Simulation(scene, backend=backend, scripted=True)
+    settings = {
+        "scene": scene.to_dict(), "kernels": backend, "solver": sim.system.linear_backend,
+        "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
+        return RunLoop(scene, sim, out, settings, quiet=quiet, debug=debug).run()
+
+
+def _scene_inputs(scene) -> dict[str, Any]:
+    """Every file a run of ``scene`` reads, by role (for the overwrite check)."""
+    inputs: dict[str, Any] = dict(scene.files())
+    if scene.source:
+        inputs["scene file"] = scene.source
+    return inputs
+
+
+def resume_run(args: argparse.Namespace) -> int:
+    """Run ``fem3d resume DIR``: continue from ``DIR/checkpoint.npz``; returns the exit status.
+
+    Raises
+    ------
+    InputError
+        No or a bad checkpoint, a mesh changed since, or a bad ``--steps``.
+    """
+    out = Path(args.dir)
+    ckpt = load_run_checkpoint(out / CHECKPOINT_NAME)
+    settings = dict(ckpt.settings)
+    where = str(out / CHECKPOINT_NAME)
+    if not isinstance(settings.get("scene"), dict):
+        raise InputError("checkpoint holds no scene (made by an older fem3d)", path=where)
+    scene = Scene.from_dict(settings["scene"], source=where)
+    if scene.simulation.linear_solver == "auto":  # the back end the run actually used
+        scene = apply_overrides(scene, {"simulation.linear_solver": settings["solver"]},
+                                source=where)
+    if args.steps is not None:
+        if args.steps < ckpt.step:
+            raise ParameterError(
+                f"--steps {args.steps} is below the checkpoint's step {ckpt.step}"
+            )
+        scene = apply_overrides(scene, {"simulation.steps": int(args.steps)}, source="--steps")
+        settings["scene"] = scene.to_dict()
+    if args.checkpoint_every is not None:
+        if args.checkpoint_every < 0:
+            raise ParameterError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+        settings["checkpoint_every"] = int(args.checkpoint_every)
+    if args.no_preview:
+        settings["preview"] = False
+    settings["kernels"] = _resolve_kernels(settings["kernels"])
+    sim = Simulation(scene, backend=settings["kernels"], scripted=True)
+    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
+        raise InputError("the mesh differs from the one the checkpoint was made with",
+                         path=sim.assembled.mesh_paths[0])
+    try:
+        sim.restore(ckpt.snapshot)
+    except (ParameterError, KeyError) as exc:
+        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
+    ck = out / CHECKPOINT_NAME
+    inputs = {**_scene_inputs(scene), "checkpoint": ck}
+    with rundir.claim(out, inputs=inputs, allow=(ck,)):
+        summary = RunLoop(scene, sim, out, settings, quiet=args.quiet,
+                          debug=getattr(args, "debug", False), ckpt=ckpt,
+                          command="resume").run()
+    return summary.exit_status
+
