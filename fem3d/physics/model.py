@@ -694,6 +694,45 @@ def _kernels_of(groups: Sequence[GroupData]) -> tuple[Any, Any]:
     return GroupedKernels(groups), GROUP_PARAMS
 
 
+def _mesh_arrays(X, T, path: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Own C-ordered copies of the rest positions ``(n, 3)`` and tets ``(m, 4) int64``,
+    checked (InputError names the vertex or tet)."""
+    X = np.array(X, dtype=np.float64, order="C")  # own copy: it is made read-only
+    T = np.array(T, order="C")
+    if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
+        raise InputError(f"X must have shape (n >= 4, 3), got {X.shape}", path=path)
+    if not np.isfinite(X).all():
+        bad = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
+        raise InputError("vertex has a non-finite coordinate", path=path, element=bad)
+    if T.ndim != 2 or T.shape[1] != 4 or T.shape[0] < 1:
+        raise InputError(f"T must have shape (m >= 1, 4), got {T.shape}", path=path)
+    if not np.issubdtype(T.dtype, np.integer):
+        raise InputError(f"T must hold integers, got {T.dtype}", path=path)
+    T = T.astype(np.int64, copy=False)
+    out = (T < 0) | (T >= X.shape[0])
+    if out.any():
+        e = int(np.flatnonzero(out.any(axis=1))[0])
+        raise InputError(
+            f"tet refers to vertex {int(T[e][out[e]][0])}, outside [0, {X.shape[0]})",
+            path=path, element=e,
+        )
+    return X, T
+
+
+def _element_density(density, vol: np.ndarray) -> np.ndarray:
+    """A per-tet density ``(m,)``, checked and read-only."""
+    rho_e = np.array(density, dtype=np.float64)
+    if rho_e.shape != vol.shape:
+        raise ParameterError(f"density must be a number or one value per tet "
+                             f"({vol.shape[0]}), got shape {rho_e.shape}")
+    bad = ~(np.isfinite(rho_e) & (rho_e > 0))
+    if bad.any():
+        raise ParameterError(f"density of tet {int(bad.argmax())} must be a finite number "
+                             f"> 0, got {rho_e[bad.argmax()]}")
+    _readonly(rho_e)
+    return rho_e
+
+
 def build_model(
     X: np.ndarray,
     T: np.ndarray,
@@ -764,25 +803,7 @@ def build_model(
         rho = 1.0 if per_element_density else float(density)
         if not per_element_density:
             validate_material(1.0, 0.0, rho)
-    X = np.array(X, dtype=np.float64, order="C")  # own copy: it is made read-only
-    T = np.array(T, order="C")
-    if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
-        raise InputError(f"X must have shape (n >= 4, 3), got {X.shape}", path=path)
-    if not np.isfinite(X).all():
-        bad = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
-        raise InputError("vertex has a non-finite coordinate", path=path, element=bad)
-    if T.ndim != 2 or T.shape[1] != 4 or T.shape[0] < 1:
-        raise InputError(f"T must have shape (m >= 1, 4), got {T.shape}", path=path)
-    if not np.issubdtype(T.dtype, np.integer):
-        raise InputError(f"T must hold integers, got {T.dtype}", path=path)
-    T = T.astype(np.int64, copy=False)
-    out = (T < 0) | (T >= X.shape[0])
-    if out.any():
-        e = int(np.flatnonzero(out.any(axis=1))[0])
-        raise InputError(
-            f"tet refers to vertex {int(T[e][out[e]][0])}, outside [0, {X.shape[0]})",
-            path=path, element=e,
-        )
+    X, T = _mesh_arrays(X, T, path)
 
     geo = geometry_kernels(backend=backend)
     dphi_dX, vol = geo.rest_shape(X[T])
@@ -797,19 +818,10 @@ def build_model(
         )
     resolved = _resolve_groups(groups, T.shape[0], backend, path)
     mat, params = _kernels_of(resolved)
+    rho_e = None
     if per_element_density:
-        rho_e = np.array(density, dtype=np.float64)
-        if rho_e.shape != (T.shape[0],):
-            raise ParameterError(f"density must be a number or one value per tet "
-                                 f"({T.shape[0]}), got shape {rho_e.shape}")
-        bad = ~(np.isfinite(rho_e) & (rho_e > 0))
-        if bad.any():
-            raise ParameterError(f"density of tet {int(bad.argmax())} must be a finite number "
-                                 f"> 0, got {rho_e[bad.argmax()]}")
+        rho_e = _element_density(density, vol)
         rho = float((rho_e * vol).sum() / vol.sum())
-        _readonly(rho_e)
-    else:
-        rho_e = None
     if given_E_nu is None:
         E, nu = _summary_E_nu(resolved, vol)
 

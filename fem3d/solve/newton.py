@@ -176,41 +176,17 @@ def newtons_method(
             norms.append(gn)
             it += 1
             continue
-        a = a0
-        accepted = False
-        any_finite = False
-        gt = None
-        for _ in range(max_halvings):
-            xt = x + a * d
-            if not (xt != x).any():
-                break  # the step vanished in x's round-off: accepting it would loop forever
-            ft = energy(xt)
-            if math.isfinite(ft):
-                any_finite = True
-                if ft <= fx + c * a * slope:
-                    accepted = True
-                    break
-                if roundoff_rtol and a == a0:
-                    # near the tolerance a Newton step changes the energy by less than its
-                    # round-off, which scales with its terms (elastic, kinetic), not with |E|
-                    end_game = gn <= ROUNDOFF_GRADIENT_FACTOR * tol
-                    if end_game or ft <= fx + roundoff_rtol * abs(fx):
-                        # the energy cannot tell the trial from x: judge by the gradient
-                        gt = gradient(xt)
-                        if np.isfinite(gt).all() and gradient_norm(gt) < gn:
-                            accepted = True
-                            break
-                        gt = None
-                    if end_game:
-                        # a full step that does not shrink the gradient there is the
-                        # gradient's round-off: stop rather than halve through noise
-                        return NewtonResult(x, it, norms, True, halvings)
-            a *= p
-            halvings += 1
-        if not accepted:
-            if not any_finite and on_no_step is not None:
+        search = _backtrack(x, fx, gn, d, slope, a0, energy, gradient, p=p, c=c,
+                            max_halvings=max_halvings, roundoff_rtol=roundoff_rtol,
+                            end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * tol)
+        halvings += search.halvings
+        if search.outcome == "round-off":
+            return NewtonResult(x, it, norms, True, halvings)
+        if search.outcome == "failed":
+            if not search.any_finite and on_no_step is not None:
                 on_no_step(x, d)
-            return NewtonResult(x, it, norms, any_finite, halvings)
+            return NewtonResult(x, it, norms, search.any_finite, halvings)
+        xt, ft, gt = search.x, search.f, search.g
         x, fx = xt, ft
         if after_step is not None and after_step(x):
             fx = energy(x)  # the objective changed at x (barrier stiffness)
@@ -220,3 +196,57 @@ def newtons_method(
         norms.append(gn)
         it += 1
     return NewtonResult(x, it, norms, gn <= tol, halvings)
+
+
+@dataclass
+class _Search:
+    """What one backtracking line search found.
+
+    ``outcome``: ``"accepted"`` (``x``, ``f`` and, when it was evaluated, ``g`` at the
+    accepted point), ``"failed"`` (no trial accepted; ``any_finite`` whether any was
+    admissible) or ``"round-off"`` (the end game's full step did not shrink the gradient:
+    converged at round-off).
+    """
+
+    outcome: str
+    halvings: int
+    any_finite: bool = False
+    x: np.ndarray | None = None
+    f: float = math.nan
+    g: np.ndarray | None = None
+
+
+def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float, a0: float,
+               energy: Callable[[np.ndarray], float],
+               gradient: Callable[[np.ndarray], np.ndarray], *, p: float, c: float,
+               max_halvings: int, roundoff_rtol: float, end_game: bool) -> _Search:
+    """Armijo backtracking from the step ``a0`` along ``d`` (see :func:`newtons_method`'s
+    ``alpha, p, c``, ``max_halvings`` and ``roundoff_rtol``; ``end_game``: ``||g||`` within
+    :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance)."""
+    a = a0
+    any_finite = False
+    halvings = 0
+    for _ in range(max_halvings):
+        xt = x + a * d
+        if not (xt != x).any():
+            break  # the step vanished in x's round-off: accepting it would loop forever
+        ft = energy(xt)
+        if math.isfinite(ft):
+            any_finite = True
+            if ft <= fx + c * a * slope:
+                return _Search("accepted", halvings, True, xt, ft)
+            if roundoff_rtol and a == a0:
+                # near the tolerance a Newton step changes the energy by less than its
+                # round-off, which scales with its terms (elastic, kinetic), not with |E|
+                if end_game or ft <= fx + roundoff_rtol * abs(fx):
+                    # the energy cannot tell the trial from x: judge by the gradient
+                    gt = gradient(xt)
+                    if np.isfinite(gt).all() and gradient_norm(gt) < gn:
+                        return _Search("accepted", halvings, True, xt, ft, gt)
+                if end_game:
+                    # a full step that does not shrink the gradient there is the
+                    # gradient's round-off: stop rather than halve through noise
+                    return _Search("round-off", halvings, True)
+        a *= p
+        halvings += 1
+    return _Search("failed", halvings, any_finite)

@@ -1,0 +1,10 @@
+"""Deprecated alias of :mod:`fem3d.app.sweep.spec`.
+
+Moved in the restructuring of fem3d 0.2; the alias goes in 0.3 (see docs/architecture.md).
+"""
+
+from fem3d._deprecated import forward
+
+__getattr__ = forward(__name__, (
+    "fem3d.app.sweep.spec, fem3d.app.sweep.plan, fem3d.app.sweep.run, fem3d.app.sweep.results, "
+    "fem3d.app.sweep.cli"))
