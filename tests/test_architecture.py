@@ -74,7 +74,10 @@ MAX_MODULE_LINES = 900
 #: Exceptions to the size limits: ``"fem3d/x/y.py"`` (a module) or ``"fem3d/x/y.py::Class.f"``
 #: (a function or method by qualified name) -> the one-line reason it stays larger. An entry
 #: that is no longer over its limit fails the test too, so the list only shrinks.
-SIZE_ALLOWED: dict[str, str] = {}
+SIZE_ALLOWED: dict[str, str] = {
+    "fem3d/solve/newton.py::newtons_method":
+        "its docstring documents the line search's 18 parameters (76 lines); the body is 63",
+}
 
 
 @dataclass(frozen=True)
@@ -519,7 +522,7 @@ def test_checker_finds_planted_forbidden_imports(tmp_path):
             "fem3d.physics.terms: 'physics' may import only errors, kernels, mesh, io, not "
             "'app'") in text
     assert ("fem3d/kernels/dispatch.py:1 (import of fem3d.scene.spec) in fem3d.kernels.dispatch:"
-            " 'kernels' may import only errors, not 'scene'") in text
+            " 'kernels' may import only errors, _deprecated, not 'scene'") in text
     assert "fem3d/mesh/io.py:1 (import of fem3d) in fem3d.mesh.io: 'mesh' imports Scene from " \
         "the fem3d package itself" in text
     assert "fem3d/widgets.py: part 'widgets' of fem3d is not in the layering table" in text
