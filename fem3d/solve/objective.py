@@ -112,7 +112,8 @@ class Objective:
     def step_converged(self, x: np.ndarray, dx: np.ndarray) -> bool:
         """Every term with a stopping rule accepts the Newton step ``dx``."""
         dq = self.step.position_change(dx)
-        return all([bool(t.newton_converged(dq)) for t in self._stopping])
+        votes = [t.newton_converged(dq) for t in self._stopping]
+        return all([v is None or bool(v) for v in votes])
 
     @property
     def changes_between_iterates(self) -> bool:

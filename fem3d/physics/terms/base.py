@@ -10,14 +10,16 @@ gravity's work, Rayleigh dissipation). An integrator sums terms; it knows none b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
+import scipy.sparse as sp
 
 from fem3d.physics.constraints import Constraints
 
-__all__ = ["StepMap", "Term", "HessianSink", "PositionTerm", "as_term", "overrides"]
+__all__ = ["StepMap", "Term", "HessianSink", "PositionTerm", "TermGroup", "as_term", "overrides"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,8 +167,8 @@ class Term:
         return False
 
     def newton_converged(self, dq: np.ndarray) -> bool | None:
-        """A further stopping rule on a Newton step's position change ``dq`` (None: the
-        term has none)."""
+        """A further stopping rule on a Newton step's position change ``dq`` (None: no
+        opinion)."""
         return None
 
     def with_model(self, model: Any) -> Term:
@@ -196,6 +198,120 @@ class PositionTerm(Term):
         hessian = getattr(self.obj, "hessian", None)
         if callable(hessian):
             sink.add_entries(hessian(q), sink.position_scale)
+
+
+class TermGroup(Term):
+    """Terms that enter the objective as one summand: their energies and gradients are
+    added among themselves first, in order, and their Hessian entries outside the mesh's
+    pattern are added in one go (one widening of the solver's pattern). Members that share
+    state (a contact set and its stiffness: barrier and friction) form a group; every member
+    keeps its own hooks, called in order.
+
+    Parameters
+    ----------
+    terms : sequence of Term
+        All of one ``variable``.
+    """
+
+    name = "group"
+
+    def __init__(self, terms) -> None:
+        self.terms = list(terms)
+        variables = {t.variable for t in self.terms}
+        if len(variables) != 1:
+            raise ValueError(f"a term group needs one variable, got {sorted(variables)}")
+        self.variable = variables.pop()
+        self.requires_convergence = any(t.requires_convergence for t in self.terms)
+        self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
+        self.energy_scale = sum(t.energy_scale for t in self.terms)
+
+    @property
+    def active(self) -> bool:
+        return any(t.active for t in self.terms)
+
+    def energy(self, u: np.ndarray) -> float:
+        e = 0.0
+        for term in self.terms:
+            e += float(term.energy(u))
+            if not math.isfinite(e):
+                return math.inf
+        return e
+
+    def gradient(self, u: np.ndarray) -> np.ndarray:
+        g = np.array(self.terms[0].gradient(u), dtype=np.float64)
+        for term in self.terms[1:]:
+            g += term.gradient(u)
+        return g
+
+    def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
+        gathered = _GatheredEntries(sink)
+        for term in self.terms:
+            term.add_hessian(u, gathered)
+        gathered.flush()
+
+    def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
+        return min([1.0] + [float(t.max_step(q, dq)) for t in self.terms
+                            if overrides(t, "max_step")])
+
+    def begin_step(self, step: StepMap) -> None:
+        for term in self.terms:
+            term.begin_step(step)
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        for term in self.terms:
+            term.initialize_stiffness(q, grad_rest, average_mass)
+
+    def after_iteration(self, q: np.ndarray) -> bool:
+        return any([t.after_iteration(q) for t in self.terms])
+
+    def newton_converged(self, dq: np.ndarray) -> bool | None:
+        votes = [t.newton_converged(dq) for t in self.terms if overrides(t, "newton_converged")]
+        return None if not votes else all(v is None or bool(v) for v in votes)
+
+    def with_model(self, model: Any) -> TermGroup:
+        terms = [t.with_model(model) for t in self.terms]
+        if all(a is b for a, b in zip(terms, self.terms, strict=True)):
+            return self
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.terms = terms
+        return new
+
+
+class _GatheredEntries:
+    """A Hessian sink that passes everything through except ``add_entries``, which it keeps
+    to add once (:meth:`flush`): concatenated triplets, each pre-scaled."""
+
+    def __init__(self, sink: HessianSink) -> None:
+        self._sink = sink
+        self.position_scale = sink.position_scale
+        self.psd = sink.psd
+        self._entries: list[tuple[Any, float]] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sink, name)
+
+    def add_entries(self, H: Any, scale: float) -> None:
+        self._entries.append((H, scale))
+
+    def flush(self) -> None:
+        if len(self._entries) == 1:
+            self._sink.add_entries(*self._entries[0])
+        elif self._entries:
+            rows, cols, vals = [], [], []
+            for H, scale in self._entries:
+                if H is None:
+                    continue
+                if sp.issparse(H):
+                    H = sp.coo_matrix(H)
+                    H = (H.row, H.col, H.data)
+                rows.append(np.asarray(H[0]))
+                cols.append(np.asarray(H[1]))
+                vals.append(scale * np.asarray(H[2], dtype=np.float64))
+            self._sink.add_entries((np.concatenate(rows), np.concatenate(cols),
+                                    np.concatenate(vals)), 1.0)
+        self._entries = []
 
 
 def overrides(term: Term, hook: str) -> bool:

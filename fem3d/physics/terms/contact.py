@@ -1,5 +1,10 @@
-"""IPC contact (barrier and lagged friction of :mod:`fem3d.physics.contact`) as an objective
-term."""
+"""IPC contact as objective terms: the barrier and the lagged friction of a
+:class:`~fem3d.physics.contact.ContactModel`, and the group they form.
+
+Barrier and friction share one contact set, one adaptive stiffness and one lagging per step,
+so :class:`ContactTerm` groups them (:class:`~fem3d.physics.terms.base.TermGroup`): they
+enter the objective as one sum, with each one's own hooks.
+"""
 
 from __future__ import annotations
 
@@ -10,22 +15,18 @@ import numpy as np
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.contact import ContactModel
-from fem3d.physics.terms.base import HessianSink, StepMap, Term
+from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
 
-__all__ = ["ContactTerm"]
+__all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm"]
 
 
-class ContactTerm(Term):
-    """IPC contact as a term of a step's objective: a :class:`ContactModel`'s barrier plus
-    lagged friction, in positions ``q``.
+class BarrierTerm(Term):
+    """IPC's log barrier over the contact pairs within ``dhat``, in positions ``q``
+    (PSD-projected Hessian; ``max_step`` by CCD), with the hooks:
 
-    Barrier and friction share one contact set, one adaptive stiffness and one lagging per
-    step, so they enter the objective as one sum (energy, gradient, PSD-projected Hessian;
-    ``max_step`` by CCD), with the hooks:
-
-    * :meth:`begin_step` — obstacles to their end-of-step positions, friction lagged at the
-      step's start, the moving pins' and obstacles' own motion checked by CCD, IPC's initial
-      ``kappa`` when contact first appears;
+    * :meth:`begin_step` — obstacles to their end-of-step positions, the moving pins' and
+      obstacles' own motion checked by CCD, the pattern hint;
+    * :meth:`initialize_stiffness` — IPC's initial ``kappa`` when contact first appears;
     * :meth:`after_iteration` — IPC's adaptive ``kappa`` update (True when the objective
       changed);
     * :meth:`newton_converged` — IPC's velocity-based stopping: the Newton step's largest
@@ -42,7 +43,7 @@ class ContactTerm(Term):
         re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
     """
 
-    name = "contact"
+    name = "barrier"
     #: Newton runs to convergence (not to the contact-free scenes' 5-iteration cap).
     requires_convergence = True
     #: the adaptive stiffness changes the objective between iterates
@@ -56,27 +57,22 @@ class ContactTerm(Term):
                                  f"{tolerance}")
         self.contact = contact
         self.tolerance = tolerance
+        self.pattern_margin = float(pattern_margin)
         self._dt = 1.0
         self._had_contact = False
-        self._lag: tuple[np.ndarray, float, float] | None = None
-        self.pattern_margin = float(pattern_margin)
         self._hint: tuple[np.ndarray, np.ndarray] | None = None
-        self._initial = self.state_array()
 
-    # -- the term -----------------------------------------------------------------------------
     def energy(self, q: np.ndarray) -> float:
-        """Barrier + lagged friction at ``q``."""
-        return self.contact.energy(q)
+        return self.contact.barrier_energy(q)
 
     def gradient(self, q: np.ndarray) -> np.ndarray:
-        """Its gradient, ``(3n,)``."""
-        return self.contact.gradient(q)
+        return self.contact.barrier_gradient(q)
 
     def hessian(self, q: np.ndarray):
         """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
         explicit zeros on the blocks of the pairs within the step's pattern margin (see
         :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
-        H = self.contact.hessian(q)
+        H = self.contact.barrier_hessian(q)
         if self._hint is None:
             return H.row, H.col, H.data
         r, c = self._hint
@@ -91,7 +87,6 @@ class ContactTerm(Term):
         q = np.asarray(q, dtype=np.float64).reshape(-1)
         return self.contact.max_step(q, q + np.asarray(dq, dtype=np.float64).reshape(-1))
 
-    # -- per-step hooks -----------------------------------------------------------------------
     def begin_step(self, step_map: StepMap) -> None:
         """Prepare a step from ``(q_t, v_t)`` at time ``t`` whose Newton start is ``q_base``
         (``q_t`` with the pins at their end-of-step positions).
@@ -100,7 +95,7 @@ class ContactTerm(Term):
         ------
         SimulationError
             A kinematic obstacle or the moving pins would pass through a body within the
-            step (the message says which), or the start is not intersection-free.
+            step (the message says which).
         """
         cm = self.contact
         t, dt, step, v_t = step_map.t, step_map.dt, step_map.step, step_map.v_t
@@ -114,8 +109,6 @@ class ContactTerm(Term):
                                   "a body within one step (it may advance by less than its "
                                   "gap to the bodies per step); use a smaller dt or a slower "
                                   "motion", step=step)
-        cm.lag_friction(q_t, dt, t_start=t)  # obstacles at t for the lagged contacts
-        self._lag = (q_t, t, dt)
         cm.set_time(t + dt)
         v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
         self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
@@ -166,12 +159,7 @@ class ContactTerm(Term):
         active = cm.n_active(q) > 0
         # once at the start, and again when contact (re)appears, as IPC does
         if not cm._stiffness_initialized or (active and not self._had_contact):
-            before = cm.kappa
             cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
-            if cm.kappa != before and cm.mu > 0 and self._lag is not None:
-                # the lagged normal forces scale with kappa: lag again with the new one
-                q_t, t, dt = self._lag
-                cm.lag_friction(q_t, dt, t_start=t)
         self._had_contact = active
 
     def after_iteration(self, q: np.ndarray) -> bool:
@@ -186,18 +174,90 @@ class ContactTerm(Term):
             return True
         return float(np.abs(dq).max()) / self._dt < self.tolerance * self.contact.bbox_diagonal
 
+
+class FrictionTerm(Term):
+    """IPC's lagged friction (smoothed Coulomb, ``mu``, static below ``eps_v dt`` of slip):
+    normal forces and tangent bases fixed at the step's start (:meth:`begin_step`), lagged
+    again when the barrier's stiffness is set at Newton's start (the normal forces scale with
+    it)."""
+
+    name = "friction"
+    allows_lagged_matrix = False
+
+    def __init__(self, contact: ContactModel) -> None:
+        self.contact = contact
+        self._lag: tuple[np.ndarray, float, float] | None = None
+        self._kappa_at_lag = math.nan
+
+    def energy(self, q: np.ndarray) -> float:
+        return self.contact.friction_energy(q)
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        return self.contact.friction_gradient(q)
+
+    def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
+        if self.contact.n_friction_pairs:
+            H = self.contact.friction_hessian(q)
+            sink.add_entries((H.row, H.col, H.data), sink.position_scale)
+
+    def begin_step(self, step_map: StepMap) -> None:
+        """Lag the friction at the step's start (obstacles where they are at ``t``)."""
+        q_t = np.asarray(step_map.q_t, dtype=np.float64).reshape(-1)
+        self._lag = (q_t, step_map.t, step_map.dt)
+        self._relag()
+
+    def _relag(self) -> None:
+        q_t, t, dt = self._lag
+        self.contact.lag_friction(q_t, dt, t_start=t)
+        self._kappa_at_lag = self.contact.kappa
+
+    def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
+                             average_mass: float) -> None:
+        """Lag again when the barrier's stiffness changed since this step's lagging."""
+        cm = self.contact
+        if self._lag is not None and cm.mu > 0 and cm.kappa != self._kappa_at_lag:
+            self._relag()
+
+
+class ContactTerm(TermGroup):
+    """IPC contact: :class:`BarrierTerm` and :class:`FrictionTerm` of one
+    :class:`ContactModel`, as one group (the objective sees barrier + friction); the
+    checkpoint state of the adaptive stiffness.
+
+    Parameters
+    ----------
+    contact : ContactModel
+    tolerance, pattern_margin : float, optional
+        The barrier's (:class:`BarrierTerm`).
+    """
+
+    name = "contact"
+
+    def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
+                 pattern_margin: float = 4.0) -> None:
+        self.contact = contact
+        self.barrier = BarrierTerm(contact, tolerance=tolerance, pattern_margin=pattern_margin)
+        self.friction = FrictionTerm(contact)
+        super().__init__([self.barrier, self.friction])
+        self._initial = self.state_array()
+
+    @property
+    def tolerance(self) -> float:
+        """IPC's Newton tolerance (the barrier's)."""
+        return self.barrier.tolerance
+
     # -- checkpoints ----------------------------------------------------------------------------
     def reset(self) -> None:
         """Back to the adaptive state at construction (a :meth:`Simulation.reset`)."""
         self.load_state_array(self._initial)
 
     def state_array(self) -> np.ndarray:
-        """:meth:`snapshot` as a ``(5,) float64`` array (for ``.npz`` checkpoints):
+        """The adaptive stiffness as a ``(5,) float64`` array (for ``.npz`` checkpoints):
         ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
         cm = self.contact
         prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
         return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
-                         float(self._had_contact)], dtype=np.float64)
+                         float(self.barrier._had_contact)], dtype=np.float64)
 
     def load_state_array(self, a: np.ndarray) -> None:
         """Undo to a :meth:`state_array`."""
@@ -209,4 +269,4 @@ class ContactTerm(Term):
         cm.max_kappa = float(a[1])
         cm._stiffness_initialized = bool(a[2])
         cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
-        self._had_contact = bool(a[4])
+        self.barrier._had_contact = bool(a[4])
