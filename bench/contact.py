@@ -120,23 +120,26 @@ def build_case(name: str, refine: int, narrow_phase: str):
 
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
              newton_solver: str = "direct", contact: bool = True) -> dict:
+    import fem3d.physics.terms.elasticity as elasticity
     import fem3d.solve.integrators as integ
     from fem3d.physics.contact import ContactModel
     from fem3d.solve.krylov import PreconditionedCG
+    from fem3d.solve.system import NewtonMatrixBuilder
 
     model, system, term, state, dt = build_case(name, refine, narrow_phase)
     timers = Timers()
-    timers.wrap(integ, "assemble_gradient", "elastic")
-    timers.wrap(integ, "potential_energy", "elastic")
-    timers.wrap(integ, "count_inverted", "elastic")
-    timers.wrap(integ.System, "newton_matrix", "elastic")
+    timers.wrap(elasticity, "assemble_gradient", "elastic")
+    timers.wrap(elasticity, "potential_energy", "elastic")
+    timers.wrap(elasticity, "count_inverted", "elastic")
+    timers.wrap(NewtonMatrixBuilder, "add_elements", "elastic")
     timers.wrap(integ.System, "add_hessian", "pattern")
     timers.wrap(integ.System, "factorize", "solve")
     timers.wrap(integ.System, "solve", "solve")
     timers.wrap(PreconditionedCG, "solve", "solve")
     timers.wrap(ContactModel, "max_step", "ccd")
     timers.wrap(ContactModel, "obstacle_step", "ccd")
-    for fn in ("energy", "gradient", "hessian", "lag_friction", "n_active",
+    for fn in ("barrier_energy", "barrier_gradient", "barrier_hessian", "friction_energy",
+               "friction_gradient", "friction_hessian", "lag_friction", "n_active",
                "minimum_distance", "initialize_stiffness"):
         timers.wrap(ContactModel, fn, "contact")
     newton = factorizations = 0
