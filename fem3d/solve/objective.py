@@ -44,6 +44,8 @@ class Objective:
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
+        self._positional = [t for t in self.terms if t.variable == "position"]
+        self._velocity = [t for t in self.terms if t.variable != "position"]
         self._clamping = [t for t in self.terms if overrides(t, "max_step")]
         self._stopping = [t for t in self.terms if overrides(t, "newton_converged")]
         self._changing = [t for t in self.terms if overrides(t, "after_iteration")]
@@ -66,19 +68,19 @@ class Objective:
 
     def gradient(self, x: np.ndarray, *, without: Iterable[Term] = ()) -> np.ndarray:
         """``dE/dx``, ``(n_free,)`` (``without``: terms left out)."""
-        skip = {id(t) for t in without}
-        terms = [t for t in self.terms if id(t) not in skip]
+        positional, velocity = self._positional, self._velocity
+        if without:
+            skip = {id(t) for t in without}
+            positional = [t for t in positional if id(t) not in skip]
+            velocity = [t for t in velocity if id(t) not in skip]
         g = None
-        positional = [t for t in terms if t.variable == "position"]
         if positional:
             q = self.positions(x)
             gq = np.array(positional[0].gradient(q), dtype=np.float64)
             for term in positional[1:]:
                 gq += term.gradient(q)
             g = self.step.h * gq[self.step.constraints.free_dofs]
-        for term in terms:
-            if term.variable == "position":
-                continue
+        for term in velocity:
             g = np.array(term.gradient(x), dtype=np.float64) if g is None else \
                 g + term.gradient(x)
         return g

@@ -250,7 +250,7 @@ class System:
             when ``q`` is out of range.
         """
         builder = NewtonMatrixBuilder(self, dt * dt, psd)
-        builder.add_pattern_values(self.model.mass.data)
+        builder.add_pattern_values(self.model.mass.data, reduced=self.mass_free.data)
         builder.add_elements(self.model, "hessian_psd" if psd else "hessian", q)
         if pull is not None and pull.vertices.size:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
@@ -569,9 +569,15 @@ class NewtonMatrixBuilder:
         """Whether mesh-pattern contributions still accumulate on the full pattern."""
         return self._lean and not self._gathered and self._matrix is None
 
-    def add_pattern_values(self, values: np.ndarray, scale: float | None = None) -> None:
+    def add_pattern_values(self, values: np.ndarray, scale: float | None = None, *,
+                           reduced: np.ndarray | None = None) -> None:
         """Add ``scale * values`` (``(model.nnz,)``, CSR data on ``model.pattern``; no scale:
-        the values as they are)."""
+        the values as they are; ``reduced``: ``values`` gathered to :attr:`System.pattern_free`
+        already, e.g. ``mass_free.data``)."""
+        if reduced is not None and scale is None and not self._full_pattern() and \
+                self._matrix is None:
+            self.add_reduced_values(reduced)
+            return
         if self._matrix is not None:
             v = values if scale is None else scale * values
             self._matrix = self.system.add_hessian(self._matrix, self.system.model.csr(v))

@@ -61,4 +61,4 @@ class Inertia(Term):
         return (self.model.mass @ self._dv_full(x))[step.constraints.free_dofs]
 
     def add_hessian(self, x: np.ndarray, sink: HessianSink) -> None:
-        sink.add_reduced_values(self.mass_free.data)
+        sink.add_pattern_values(self.model.mass.data, reduced=self.mass_free.data)
