@@ -1,4 +1,4 @@
-"""Tests of fem3d.io.output: atomic writes, frames, energy log, GIF preview, checkpoints."""
+"""Tests of fem3d.io: atomic writes, frames, energy log, GIF preview, checkpoints."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 The viewer runs in-process (a thread) on a free port; the test loads the page in headless
 chromium (WebGL in software through SwiftShader), drags the bunny with the mouse, presses
-hotkeys, and checks the viewer's server-side state (:meth:`fem3d.app.viewer.viewer.Viewer.snapshot`)
+hotkeys, and checks the viewer's server-side state (:meth:`fem3d.app.viewer.app.Viewer.snapshot`)
 with polling waits. Screenshots are checked to be non-blank and to change.
 
 Needs ``/usr/bin/chromium`` (``bash scripts/install_chromium.sh``; override the path with

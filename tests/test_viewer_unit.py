@@ -1,6 +1,6 @@
 """Tests of the viewer's logic without a browser.
 
-The pure helpers are tested directly; the :class:`fem3d.app.viewer.viewer.Viewer` tests start a real
+The pure helpers are tested directly; the :class:`fem3d.app.viewer.app.Viewer` tests start a real
 viser server (no client connected) on a free port with the real simulation and drive it
 through the same methods the GUI callbacks call.
 """

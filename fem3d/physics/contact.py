@@ -5,7 +5,7 @@ continuous collision detection (CCD) — comes from ``ipctk``; this module owns 
 fem3d's degrees of freedom and how it enters backward Euler's objective.
 
 Collision mesh
-    The boundary surface of the simulation mesh (:func:`fem3d.mesh.formats.boundary_faces`; interior
+    The boundary surface of the simulation mesh (:func:`fem3d.mesh.tetmesh.boundary_faces`; interior
     vertices are not in it), followed by the vertices and triangles of the triangle-mesh
     obstacles (static, or kinematic: their positions are a function of time), in one
     ``ipctk.CollisionMesh``; plane obstacles are ``ipctk`` planes (point + normal). Collision

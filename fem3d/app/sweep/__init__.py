@@ -2,7 +2,7 @@
 
 A sweep file names a base scene and the fields to vary, as dotted key paths of the scene
 (``bodies[0].material.E``, ``simulation.dt``); every combination is one *case*: the base
-scene with those overrides (:func:`fem3d.scene.spec.apply_overrides`), run by the code of
+scene with those overrides (:func:`fem3d.scene.load.apply_overrides`), run by the code of
 ``fem3d run`` (:func:`fem3d.app.run.run_scene`) as one Dask task in a worker process. See
 ``docs/sweeps.md`` for the file format, the output layout and cluster use.
 
