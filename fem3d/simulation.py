@@ -32,8 +32,8 @@ from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.scene.build import build
 from fem3d.scene.spec import Scene
-from fem3d.solve.backward_euler import backward_euler, model_terms, newton_options
-from fem3d.solve.integrators import INTEGRATORS, State, StepStats, System
+from fem3d.solve.backward_euler import model_terms, newton_options
+from fem3d.solve.integrators import INTEGRATORS, TERM_INTEGRATORS, State, StepStats, System
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 
@@ -79,12 +79,41 @@ def _check_supported(scene: Scene) -> None:
                           "= true")
     if scene.contact.enabled and scene.simulation.integrator == "linear":
         raise scene.error("simulation.integrator", CONTACT_NEEDS_IMPLICIT)
+    if scene.simulation.integrator == "static":
+        for i, body in enumerate(scene.bodies):
+            if any(body.velocity) or any(body.angular_velocity):
+                raise scene.error(f"bodies[{i}].velocity", "the static integrator has no "
+                                  "velocities (an equilibrium per step): remove the initial "
+                                  "velocity or choose a dynamic integrator")
+
+
+def _check_static_support(sim) -> None:
+    """Refuse ``static`` where a body has neither pins nor contact to hold it (its
+    equilibrium is not unique: a rigid motion costs nothing)."""
+    if sim.integrator != "static" or sim.contact is not None:
+        return
+    fixed = np.zeros(sim.model.n_vertices, dtype=bool)
+    fixed[sim.constraints.fixed_vertices] = True
+    for i, vs in enumerate(sim.assembled.body_vertices):
+        if not fixed[vs].any():
+            raise sim.scene.error(
+                "simulation.integrator", f"static needs every body held by pins or contact: "
+                f"body {i} ({sim.scene.bodies[i].label}) has neither, so it has no unique "
+                "equilibrium")
 
 
 #: Why the linearly-implicit scheme refuses contact scenes (one line, CLI and viewer).
 CONTACT_NEEDS_IMPLICIT = ("contact needs backward Euler (integrator = \"implicit\"): the "
                           "linearly-implicit scheme cannot keep IPC's no-intersection "
                           "guarantee")
+
+
+#: The state's history fields a checkpoint keeps (``State.q_prev``, ...).
+HISTORY = ("q_prev", "v_prev", "a")
+
+
+def _or_empty(a: np.ndarray | None) -> np.ndarray:
+    return np.zeros(0) if a is None else a
 
 
 def _stiffness(k) -> float | np.ndarray:
@@ -163,6 +192,7 @@ class Simulation:
         self._dt = validate_dt(sim.dt)
         self._integrator = ""
         self.integrator = sim.integrator
+        _check_static_support(self)
         self.scripted = scripted
         self.max_newton_iterations = sim.newton.max_iterations
         self.newton_hessian = sim.newton.hessian
@@ -213,7 +243,8 @@ class Simulation:
     # ------------------------------------------------------------------ properties
     @property
     def integrator(self) -> str:
-        """``"linear"`` (linearly-implicit Euler) or ``"implicit"`` (backward Euler)."""
+        """``"linear"`` (linearly-implicit Euler), ``"implicit"`` (backward Euler),
+        ``"bdf2"``, ``"newmark"`` or ``"static"`` (``docs/integrators.md``)."""
         return self._integrator
 
     @integrator.setter
@@ -314,8 +345,9 @@ class Simulation:
 
     # ------------------------------------------------------------------ state changes
     def _set_state(self, state: State) -> None:
-        state.q.setflags(write=False)
-        state.v.setflags(write=False)
+        for a in (state.q, state.v, state.q_prev, state.v_prev, state.a):
+            if a is not None:
+                a.setflags(write=False)
         self._state = state
 
     def reset(self) -> None:
@@ -364,6 +396,8 @@ class Simulation:
             ``pull_vertices`` (k,) int64, ``pull_targets`` (k, 3) float64
             and ``pull_k`` () or (k,) float64 (one stiffness or one per spring; ``k = 0`` and
             empty arrays: no pull),
+            ``history_q_prev``, ``history_v_prev``, ``history_a`` (n, 3) float64 or empty:
+            the multi-step schemes' history (BDF2's previous state, Newmark's acceleration),
             ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` or AMG the reduced
             matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
@@ -380,6 +414,7 @@ class Simulation:
             "pull_k": np.asarray(0.0 if pull is None else pull.k, dtype=np.float64),
             "contact": (np.zeros(0) if self.contact is None else self.contact.state_array()),
             "pattern_keys": self.system.pattern_keys(),
+            **{f"history_{k}": _or_empty(getattr(self._state, k)) for k in HISTORY},
         }
 
     def restore(self, snap: dict) -> None:
@@ -403,7 +438,15 @@ class Simulation:
         if verts.size:
             pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
                              _stiffness(snap["pull_k"]), self.model.n_vertices)
-        self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"])))
+        history = {}
+        for k in HISTORY:
+            a = np.array(snap.get(f"history_{k}", np.zeros(0)), dtype=np.float64)
+            if a.size:
+                if a.shape != self.model.X.shape or not np.isfinite(a).all():
+                    raise ParameterError(f"saved {k} has shape {a.shape} or is not finite")
+                history[k] = a
+        self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"]),
+                              **history))
         self._pull = pull
         self._script_active = tuple(
             int(i) for i in np.asarray(snap["script_active"], dtype=np.int64).reshape(-1))
@@ -530,7 +573,7 @@ class Simulation:
                 fixed_positions=fixed,
             )
         else:
-            new, stats = backward_euler(
+            new, stats = TERM_INTEGRATORS[self._integrator](
                 self.system, self.objective_terms(), self._state, self._dt,
                 max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
                 options=newton_options(self.newton_hessian), fixed_positions=fixed,

@@ -1,7 +1,7 @@
 """Command line: ``fem3d run`` (headless main job), ``fem3d resume``, ``fem3d schema`` and the
 sub-commands other modules register.
 
-``fem3d run NAME|FILE.toml|MESH [--steps N] [--dt DT] [--integrator linear|implicit]
+``fem3d run NAME|FILE.toml|MESH [--steps N] [--dt DT] [--integrator NAME]
 [--material NAME] [--E E] [--nu NU] [--rho RHO] [--format vtu|obj|usd] [--frame-every K]
 [--set KEY=VALUE ...] [--out DIR] [--kernels numpy|c] [--checkpoint-every N] [--debug]`` runs
 a scene (:mod:`fem3d.scene.spec`: a name of ``data/scenes``, a scene file, or a one-body scene
@@ -113,8 +113,9 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("scene", help="bunny | arma | other name in data/scenes | FILE.toml | a tet "
                    "mesh (.mesh, .node/.ele, .msh, ...) or closed surface (.obj, .stl, ...)")
-    p.add_argument("--integrator", choices=("linear", "implicit"), default=None,
-                   help="linearly-implicit or backward Euler (simulation.integrator)")
+    p.add_argument("--integrator", default=None, metavar="NAME",
+                   help="linear | implicit | bdf2 | newmark | static (simulation.integrator; "
+                   "docs/integrators.md)")
     p.add_argument("--steps", type=int, default=None,
                    help="number of time steps (simulation.steps; default the scene's, else 100)")
     p.add_argument("--duration", type=float, default=None,

@@ -11,7 +11,8 @@ holds
 * the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
   velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pulls' state (which
   are attached, the springs) and the energy put in so far (the linearly-implicit runaway
-  bound);
+  bound), and the multi-step schemes' history (BDF2's previous state, Newmark's
+  acceleration; empty for one-step schemes and in checkpoints written before 0.3);
 * ``settings``: ``scene`` - the whole scene (:meth:`fem3d.scene.spec.Scene.to_dict`: every path
   absolute, the target step count in ``simulation.steps``), so ``fem3d resume DIR`` needs
   nothing else - and the run's own options: ``kernels`` and ``solver`` (the resolved back
@@ -147,9 +148,11 @@ CHECKPOINT_NAME = "checkpoint.npz"
 _KIND = "fem3d-run"
 _SNAPSHOT_SCALARS = ("t", "step", "injected")
 _SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "pull_k", "preconditioner",
-                    "script_active", "contact", "pattern_keys")
+                    "script_active", "contact", "pattern_keys", "history_q_prev",
+                    "history_v_prev", "history_a")
 #: Snapshot arrays that older checkpoints do not have (restored as empty).
-_SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys")
+_SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys", "history_q_prev",
+                      "history_v_prev", "history_a")
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:

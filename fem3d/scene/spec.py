@@ -311,7 +311,7 @@ class NewtonSpec(_Spec):
 class SimulationSpec(_Spec):
     """Time stepping."""
 
-    integrator: Literal["linear", "implicit"] = "implicit"
+    integrator: Literal["linear", "implicit", "bdf2", "newmark", "static"] = "implicit"
     dt: Positive = 0.01
     steps: Annotated[StrictInt, Field(ge=0)] | None = None
     duration: NonNegative | None = None

@@ -65,7 +65,7 @@ from fem3d.solve.state import (
 from fem3d.solve.system import System
 
 __all__ = ["implicit_euler", "backward_euler", "model_terms", "newton_options",
-           "AMG_ROUNDOFF_RTOL"]
+           "minimise_step", "check_linear_solver", "step_map", "AMG_ROUNDOFF_RTOL"]
 
 #: ``"amg"``: energy increases below this fraction of the objective are round-off in the line
 #: search (:func:`newtons_method`'s ``roundoff_rtol``).
@@ -144,19 +144,85 @@ def backward_euler(
     """
     dt = validate_dt(dt)
     options = NewtonOptions() if options is None else options
+    linear_solver = check_linear_solver(system, linear_solver)
+    c = system.constraints
+    pins = pins_over_step(c, state, dt, fixed_positions)
+    x, stats = minimise_step(
+        system, terms, state, step_map(system, state, dt, pins),
+        max_iterations=max_iterations, rtol=rtol, atol_factor=atol_factor,
+        linear_solver=linear_solver, options=options,
+        converged_max_iterations=converged_max_iterations)
+    new = place_pins(c, new_state(c, state, x, dt), pins)
+    check_finite(new.q, new.v, state.step, "backward Euler")
+    return new, stats
+
+
+def check_linear_solver(system: System, linear_solver: str) -> str:
+    """The Newton direction's name (``"amg"`` whenever the system's back end is AMG).
+
+    Raises
+    ------
+    ValueError
+        Not ``"direct"``, ``"reuse"`` or ``"amg"``.
+    """
     if linear_solver not in DIRECTIONS:
         raise ValueError(
             f"linear_solver must be 'direct', 'reuse' or 'amg', got {linear_solver!r}")
     if system.linear_backend == "amg":
         linear_solver = "amg"
-    model, c = system.model, system.constraints
-    pins = pins_over_step(c, state, dt, fixed_positions)
-    objective = Objective(system, terms, step_map(system, state, dt, pins))
+    return linear_solver
+
+
+def minimise_step(
+    system: System,
+    terms: Sequence,
+    state: State,
+    step: StepMap,
+    *,
+    max_iterations: int | None,
+    rtol: float,
+    atol_factor: float,
+    linear_solver: str,
+    options: NewtonOptions,
+    converged_max_iterations: int,
+    scheme: str = "backward Euler",
+) -> tuple[np.ndarray, StepStats]:
+    """Minimise the sum of ``terms`` over one step's unknowns (every implicit scheme's core).
+
+    Parameters
+    ----------
+    system : System
+    terms : sequence of Term
+    state : State
+        The state at the start of the step (its ``step`` index names errors).
+    step : StepMap
+        The scheme's unknowns (``h``, ``q_base``, ``v_hat``); Newton starts at ``v_hat``
+        (clamped by the terms' CCD from ``x_start``).
+    max_iterations, rtol, atol_factor, converged_max_iterations
+        As in :func:`backward_euler`; the absolute tolerance is ``atol_factor h E L^2``.
+    linear_solver : str
+        :func:`check_linear_solver`'s answer.
+    options : NewtonOptions
+    scheme : str, optional
+        The scheme's name in error messages.
+
+    Returns
+    -------
+    (x, StepStats)
+        The minimiser ``(n_free,)`` and the step's statistics.
+
+    Raises
+    ------
+    SimulationError
+        No acceptable Newton step or an inadmissible start.
+    """
+    model = system.model
+    objective = Objective(system, terms, step)
     if max_iterations is not None and objective.requires_convergence:
         max_iterations = max(max_iterations, converged_max_iterations)
     stats = StepStats()
     L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
-    atol = atol_factor * dt * model.E * L * L
+    atol = atol_factor * step.h * model.E * L * L
     progress = NewtonProgress(atol, rtol)  # the gradient norms the directions see
     extra = {"lag_matrices": objective.allows_lagged_matrix} \
         if DIRECTIONS[linear_solver] is ReuseDirection else {}
@@ -168,7 +234,7 @@ def backward_euler(
     def no_step(x: np.ndarray, d: np.ndarray) -> None:
         n_inv = count_inverted(model, objective.positions(x + d))
         raise SimulationError(
-            f"backward Euler found no acceptable Newton step: the full step inverts {n_inv} "
+            f"{scheme} found no acceptable Newton step: the full step inverts {n_inv} "
             f"of {model.n_tets} tets and every shorter trial also inverts tets or is not "
             "finite (try a smaller dt or softer pull)", step=state.step)
 
@@ -187,31 +253,37 @@ def backward_euler(
     except SimulationError as exc:
         if exc.step is not None:
             raise
-        raise SimulationError(f"backward Euler: {exc.reason}", step=state.step) from exc
+        raise SimulationError(f"{scheme}: {exc.reason}", step=state.step) from exc
     stats.newton_iterations = res.iterations
     stats.gradient_norms = res.gradient_norms
     stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])
     stats.line_search_halvings = res.line_search_halvings
     stats.converged = res.converged
-    new = place_pins(c, new_state(c, state, res.x, dt), pins)
-    check_finite(new.q, new.v, state.step, "backward Euler")
-    return new, stats
+    return res.x, stats
 
 
 def _start(objective: Objective, state: State) -> tuple[np.ndarray, float]:
-    """Newton's start and its energy: ``v_t`` (clamped by the terms' ``max_step`` from
-    ``v = 0``: a start that tunnelled through an obstacle would be finite but wrong), or
-    ``v = 0`` (``q_t`` itself) when that is inadmissible."""
-    vt_free = objective.step.v_hat_free
-    x0 = vt_free.copy()
-    if objective.clamps:
-        x0 *= objective.max_step(np.zeros_like(vt_free), vt_free)
+    """Newton's start and its energy: ``v_hat`` (clamped by the terms' ``max_step`` from
+    ``x_start``, where the free DOFs are at ``q_t``: a start that tunnelled through an
+    obstacle would be finite but wrong), or ``x_start`` itself when that is inadmissible
+    (backward Euler: ``v_t`` clamped from ``v = 0``)."""
+    step = objective.step
+    vt_free = step.v_hat_free
+    if step.x_start is None:
+        x0 = vt_free.copy()
+        if objective.clamps:
+            x0 *= objective.max_step(np.zeros_like(vt_free), vt_free)
+    else:
+        x0 = vt_free.copy()
+        if objective.clamps:
+            d = vt_free - step.x_start
+            x0 = step.x_start + objective.max_step(step.x_start, d) * d
     e0 = objective.energy(x0)
     if not math.isfinite(e0):
-        x0 = np.zeros_like(vt_free)
+        x0 = np.zeros_like(vt_free) if step.x_start is None else step.x_start.copy()
         e0 = objective.energy(x0)
         if not math.isfinite(e0):
-            n_inv = count_inverted(objective.system.model, objective.step.q_base)
+            n_inv = count_inverted(objective.system.model, step.start_positions())
             raise SimulationError(
                 f"the current state is inadmissible ({n_inv} inverted tets or a non-finite "
                 "energy)", step=state.step)

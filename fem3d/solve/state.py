@@ -30,12 +30,20 @@ class State:
         Time.
     step : int
         Number of steps taken to get here.
+    q_prev, v_prev : (n, 3) float64 or None
+        Positions and velocities one step earlier (BDF2's history; None: no history, the
+        next BDF2 step is a backward-Euler start-up step).
+    a : (n, 3) float64 or None
+        Acceleration (Newmark's; None: the next Newmark step computes ``M a = f(q)``).
     """
 
     q: np.ndarray
     v: np.ndarray
     t: float = 0.0
     step: int = 0
+    q_prev: np.ndarray | None = None
+    v_prev: np.ndarray | None = None
+    a: np.ndarray | None = None
 
     @classmethod
     def at_rest(cls, model: Model) -> State:
@@ -72,6 +80,9 @@ class StepStats:
     lagged_matrices : int
         Newton iterations that solved with the previous iterate's Newton matrix instead of
         assembling one (``"reuse"``).
+    load_increments : int
+        ``static``: the equilibrium solves of the step (1: the whole load at once; more: the
+        load was applied in smaller increments after a Newton failure).
     seconds : dict of str to float
         Wall time of the step's parts (implicit Euler): ``"matrix"`` (Newton-matrix
         assembly), ``"factorize"``, ``"cg"`` (CG iterations, preconditioner included),
@@ -89,6 +100,7 @@ class StepStats:
     gradient_tolerance: float = 0.0
     amg_setups: int = 0
     lagged_matrices: int = 0
+    load_increments: int = 0
     seconds: dict[str, float] = field(default_factory=dict)
 
     def add_seconds(self, part: str, seconds: float) -> None:

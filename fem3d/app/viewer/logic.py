@@ -28,6 +28,7 @@ from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.scene import apply_overrides, material_names
 from fem3d.scene.load import SCENES, load_scene
 from fem3d.simulation import Simulation
+from fem3d.solve.integrators import DYNAMIC_INTEGRATORS
 
 __all__ = [
     "EnergyHistory",
@@ -43,7 +44,9 @@ __all__ = [
     "spring_segments",
 ]
 
-INTEGRATOR_LABELS = {"linear": "linearly-implicit Euler", "implicit": "backward Euler"}
+INTEGRATOR_LABELS = {"linear": "linearly-implicit Euler", "implicit": "backward Euler",
+                     "bdf2": "BDF2", "newmark": "Newmark (average acceleration)",
+                     "static": "static equilibrium"}
 MESH_MODE_LABELS = {"skin": "skinned display mesh", "sim": "simulation mesh"}
 
 #: Hotkeys. S is not used: viser's camera moves with W/A/S/D (and Q/E), so the mesh
@@ -720,14 +723,18 @@ class ViewerState:
             self.mesh_mode = "sim" if self.mesh_mode == "skin" else "skin"
 
     def toggle_integrator(self) -> None:
-        """Switch linearly-implicit / backward Euler.
+        """Cycle through the dynamic integrators (:data:`DYNAMIC_INTEGRATORS`: linear,
+        implicit, BDF2, Newmark), skipping the linearly-implicit one in a contact scene.
 
         Raises
         ------
         Fem3dError
-            The simulation refuses (e.g. a contact scene, the linearly-implicit scheme).
+            The simulation refuses.
         """
-        new = "implicit" if self.integrator == "linear" else "linear"
+        names = [n for n in DYNAMIC_INTEGRATORS
+                 if not (n == "linear" and getattr(self.sim, "contact", None) is not None)]
+        now = self.integrator
+        new = names[(names.index(now) + 1) % len(names)] if now in names else names[0]
         self.sim.integrator = new
         self.gui_dirty = True
 

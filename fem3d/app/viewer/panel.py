@@ -55,7 +55,7 @@ class Panel:
         g: dict[str, Any] = {}
         g["status"] = gui.add_markdown("starting…")
         g["mesh"] = gui.add_button(f"Mesh: skinned ⇄ simulation ({HOTKEYS['mesh']})")
-        g["integrator"] = gui.add_button("Integrator: linear ⇄ backward Euler (N)")
+        g["integrator"] = gui.add_button("Integrator: next dynamic scheme (N)")
         g["pause"] = gui.add_button("Pause / resume (space)")
         g["reset"] = gui.add_button("Reset (R)")
         names = list(scenes)
@@ -98,7 +98,7 @@ class Panel:
         self._wire_inputs(g)
         for label, key, action in (
             ("Toggle skinned / simulation mesh", HOTKEYS["mesh"], v.toggle_mesh_mode),
-            ("Toggle linearly-implicit / backward Euler", HOTKEYS["integrator"],
+            ("Next integrator (linear, implicit, BDF2, Newmark)", HOTKEYS["integrator"],
              v.toggle_integrator),
             ("Pause / resume", HOTKEYS["pause"], v._gui_toggle_pause),
             ("Reset", HOTKEYS["reset"], v.reset),

@@ -50,7 +50,11 @@ class StepMap:
     v_prescribed : (3n,) float64 or None
         Velocity of the fixed DOFs (moving pins; zero on free DOFs); None: pins at rest.
     dv_prescribed : (3n,) float64 or None
-        Their velocity change over the step (``v_prescribed - v_t`` on fixed DOFs).
+        Their velocity change over the step (``v_prescribed - v_hat`` on fixed DOFs).
+    x_start : (n_free,) float64 or None
+        The unknowns at which the free DOFs are at ``q_t`` (None: zero, as in backward
+        Euler); Newton's admissible fallback start. BDF2 and Newmark extrapolate, so their
+        ``q_base`` is not ``q_t``.
     """
 
     constraints: Constraints
@@ -64,6 +68,11 @@ class StepMap:
     v_hat_free: np.ndarray
     v_prescribed: np.ndarray | None = None
     dv_prescribed: np.ndarray | None = None
+    x_start: np.ndarray | None = None
+
+    def start_positions(self) -> np.ndarray:
+        """``q(x_start)``: ``q_t`` with the pins at their end-of-step positions, ``(3n,)``."""
+        return self.q_base if self.x_start is None else self.positions(self.x_start)
 
     def positions(self, x: np.ndarray) -> np.ndarray:
         """``q(x)``, ``(3n,)``."""

@@ -101,7 +101,7 @@ class BarrierTerm(Term):
         t, dt, step, v_t = step_map.t, step_map.dt, step_map.step, step_map.v_t
         self._dt = float(dt)
         q_t = np.asarray(step_map.q_t, dtype=np.float64).reshape(-1)
-        q_base = np.asarray(step_map.q_base, dtype=np.float64).reshape(-1)
+        q_base = np.asarray(step_map.start_positions(), dtype=np.float64).reshape(-1)
         # the obstacles' motion over the step, the bodies held at q_t
         if cm.obstacle_step(q_t, t, t + dt) < 1.0:
             moving = ", ".join(m.name for m in cm.meshes if m.motion is not None)

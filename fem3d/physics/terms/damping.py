@@ -1,4 +1,9 @@
-"""Rayleigh damping: the dissipation ``dt/2 v^T D v`` with ``D = alpha M + beta K_psd(q_t)``."""
+"""Rayleigh damping: the dissipation ``h/2 v^T D v`` with ``D = alpha M + beta K_psd(q_t)``.
+
+``h`` is the step map's ``dq/dx`` (backward Euler: ``h = dt``; BDF2: ``2 dt / 3``; Newmark:
+``dt / 2``), so that the minimiser's damping force is ``-D v+`` with the weight the scheme
+gives the end-of-step forces.
+"""
 
 from __future__ import annotations
 
@@ -41,7 +46,7 @@ def check_coefficient(value, name: str, count: int, what: str) -> float | np.nda
 
 
 class RayleighDamping(Term):
-    """``dt/2 v^T D v`` in a step's velocity unknowns, ``D`` evaluated at the start of the
+    """``h/2 v^T D v`` in a step's velocity unknowns, ``D`` evaluated at the start of the
     step (constant during it, so the dissipation stays quadratic).
 
     ``D = alpha M + beta K_psd(q_t)``: ``K_psd`` is the elastic Hessian with each element's
@@ -110,14 +115,14 @@ class RayleighDamping(Term):
 
     def energy(self, x: np.ndarray) -> float:
         v = self._step.velocity(x)
-        return 0.5 * self._step.dt * float(v @ (self._D @ v))
+        return 0.5 * self._step.h * float(v @ (self._D @ v))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         step = self._step
-        return step.dt * (self._D @ step.velocity(x))[step.constraints.free_dofs]
+        return step.h * (self._D @ step.velocity(x))[step.constraints.free_dofs]
 
     def add_hessian(self, x: np.ndarray, sink: HessianSink) -> None:
-        sink.add_pattern_values(self._data, self._step.dt)
+        sink.add_pattern_values(self._data, self._step.h)
 
     def with_model(self, model: Model) -> RayleighDamping:
         return RayleighDamping(model, self.alpha, self.beta)

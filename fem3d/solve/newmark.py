@@ -1,0 +1,115 @@
+"""Newmark's average-acceleration scheme (``beta = 1/4``, ``gamma = 1/2``, the trapezoidal
+rule) as an energy minimisation over the terms.
+
+``q_{n+1} = q_n + dt/2 (v_n + v_{n+1})`` and ``M a_{n+1} = f(q_{n+1}, v_{n+1})`` with
+``v_{n+1} = v_n + dt/2 (a_n + a_{n+1})`` are, with ``x = v_{n+1}`` on the free DOFs, the
+stationarity conditions of backward Euler's objective with
+
+``h = dt / 2``, ``q_base = q_n + dt/2 v_n``, ``v_hat = v_n + dt/2 a_n``;
+
+then ``a_{n+1} = 2 (v_{n+1} - v_n) / dt - a_n``. Second order, no numerical damping: on a
+linear problem ``1/2 v^T M v + V(q)`` (kinetic + strain + gravity potential: the energy the
+run logs) is conserved to the solver's tolerance; on a nonlinear one it stays bounded.
+Rayleigh damping enters as ``h/2 x^T D x``, so the damping force is averaged over the step
+like the others (``D`` at the start of the step).
+
+The state carries ``a``. A state without it (the first step, a changed integrator, a
+:meth:`~fem3d.simulation.Simulation.set_state`) gets ``a_0`` from ``M a_0 = f(q_0, v_0)``:
+one solve with the mass matrix on the free DOFs; the fixed DOFs' acceleration is zero. Pins
+move with the secant velocity ``(p - q_n) / dt`` and the backward-difference acceleration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from fem3d.physics.model import validate_dt
+from fem3d.physics.terms.base import StepMap, as_term
+from fem3d.physics.terms.inertia import Inertia
+from fem3d.solve.backward_euler import check_linear_solver, minimise_step
+from fem3d.solve.directions import NewtonOptions
+from fem3d.solve.state import State, StepStats, check_finite
+from fem3d.solve.step_maps import affine_step_map, end_positions, fixed_dofs
+from fem3d.solve.system import System
+
+__all__ = ["newmark", "initial_acceleration"]
+
+
+def initial_acceleration(system: System, terms: Sequence, state: State, dt: float
+                         ) -> np.ndarray:
+    """``a`` with ``M a = f(q, v)`` on the free DOFs (every term's force but inertia's;
+    position terms at ``q`` as they stand, velocity terms at ``v``), zero on fixed DOFs.
+
+    Returns
+    -------
+    (n, 3) float64
+    """
+    c = system.constraints
+    q, v = state.q.reshape(-1), state.v.reshape(-1)
+    fd = fixed_dofs(system)
+    v_fixed = None
+    if fd.size and np.any(v[fd]):
+        v_fixed = np.zeros(c.n_dofs)
+        v_fixed[fd] = v[fd]
+    probe = StepMap(constraints=c, h=1.0, dt=dt, t=state.t, step=state.step, q_t=q, v_t=v,
+                    q_base=q, v_hat_free=np.zeros(c.n_free), v_prescribed=v_fixed)
+    x = np.ascontiguousarray(v[c.free_dofs])
+    g = np.zeros(c.n_free)
+    for term in map(as_term, terms):
+        if isinstance(term, Inertia) or not term.active:
+            continue
+        if term.variable == "position":
+            g += np.asarray(term.gradient(q))[c.free_dofs]
+        else:
+            term.begin_step(probe)
+            g += term.gradient(x)
+    a = np.zeros(c.n_dofs)
+    if np.any(g):
+        a[c.free_dofs] = spla.spsolve(system.mass_free.tocsc(), -g)
+    return a.reshape(-1, 3)
+
+
+def newmark(
+    system: System,
+    terms: Sequence,
+    state: State,
+    dt: float,
+    *,
+    fixed_positions: np.ndarray | None = None,
+    max_iterations: int | None = 5,
+    rtol: float = 1e-10,
+    atol_factor: float = 1e-12,
+    linear_solver: str = "direct",
+    options: NewtonOptions | None = None,
+    converged_max_iterations: int = 100,
+) -> tuple[State, StepStats]:
+    """One Newmark (average acceleration) step minimising the sum of ``terms``.
+
+    Parameters and returns as in :func:`fem3d.solve.backward_euler.backward_euler`; the
+    returned state carries the acceleration ``a``.
+    """
+    dt = validate_dt(dt)
+    options = NewtonOptions() if options is None else options
+    linear_solver = check_linear_solver(system, linear_solver)
+    p = end_positions(system, state, fixed_positions)
+    a_n = state.a if state.a is not None else initial_acceleration(system, terms, state, dt)
+    a_n = a_n.reshape(-1)
+    v_n = state.v.reshape(-1)
+    half = 0.5 * dt
+    step = affine_step_map(system, state, dt, p, h=half, offset=half * v_n,
+                           v_hat=v_n + half * a_n)
+    x, stats = minimise_step(
+        system, terms, state, step, max_iterations=max_iterations, rtol=rtol,
+        atol_factor=atol_factor, linear_solver=linear_solver, options=options,
+        converged_max_iterations=converged_max_iterations, scheme="Newmark")
+    q = step.positions(x).reshape(-1, 3)
+    v = step.velocity(x)
+    a = (v - v_n) / half - a_n
+    fd = fixed_dofs(system)
+    a[fd] = (v[fd] - v_n[fd]) / dt
+    check_finite(q, v, state.step, "Newmark")
+    return State(q=q, v=v.reshape(-1, 3), t=state.t + dt, step=state.step + 1,
+                 a=a.reshape(-1, 3)), stats
