@@ -216,3 +216,40 @@ def test_bunny_drop_stays_above_the_ground_with_each_scheme(name):
         assert sim.q[:, 1].min() > 0.0
         lowest = min(lowest, sim.q[:, 1].min())
     assert lowest < 0.01  # it has landed
+
+
+@pytest.mark.parametrize("name", ["implicit", "bdf2", "newmark"])
+def test_frictionless_collision_conserves_momentum(name):
+    """Two soft cubes flying at each other, no gravity, frictionless IPC contact: the
+    barrier's and the elastic forces are internal, so every scheme keeps the total momentum
+    ``1^T M v`` (to Newton's tolerance) while the collision reverses the cubes' velocities."""
+    from fem3d.physics.contact import ContactModel
+    from fem3d.physics.terms.contact import ContactTerm
+
+    Xa, Ta = box_mesh(2, 2, 2, size=(0.1, 0.1, 0.1))
+    Xb = Xa + np.array([0.12, 0.01, 0.0])  # 2 cm gap, offset so the faces do not align
+    X, T = np.vstack([Xa, Xb]), np.vstack([Ta, Ta + len(Xa)])
+    ids = np.repeat([0, 1], len(Xa))
+    model = build_model(X, T, E=1e5, nu=0.3, rho=1000.0)
+    system = System(model, Constraints.from_fixed_vertices(X, np.zeros(0, np.int64)))
+    cm = ContactModel(X, T, body_ids=ids, dhat=2e-3, mu=0.0)
+    term = ContactTerm(cm, tolerance=1e-4)
+    v = np.zeros_like(X)
+    v[ids == 0, 0], v[ids == 1, 0] = 1.0, -1.0
+    v[ids == 1, 0] *= 0.5  # unequal speeds: a non-zero total momentum to keep
+    state = State(q=X.copy(), v=v)
+    total = model.mass @ np.ones(model.n_dofs)  # 1^T M per DOF
+
+    def momentum(s):
+        return (total * s.v.reshape(-1)).reshape(-1, 3).sum(axis=0)
+
+    p0 = momentum(state)
+    for _ in range(40):
+        state, stats = INTEGRATORS[name](system, state, 0.002, terms=[term],
+                                         max_iterations=None)
+        assert stats.converged
+    assert not cm.has_intersections(state.q.reshape(-1))
+    mean_vx = [float(state.v[ids == b, 0].mean()) for b in (0, 1)]
+    assert mean_vx[0] < 0.5 and mean_vx[1] > -0.25, mean_vx  # they did collide
+    scale = float(total.reshape(-1, 3)[ids == 0, 0].sum())  # the first cube's mass
+    assert np.abs(momentum(state) - p0).max() < 1e-6 * scale, (momentum(state), p0)
