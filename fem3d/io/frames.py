@@ -285,9 +285,9 @@ class FrameWriter:
             mesh = meshio.Mesh(V, [("triangle", self.faces)], point_data=dict(point_data or {}))
             atomic_write(path, lambda p: meshio.vtu.write(p, mesh, compression=self.compression))
         else:
-            buf = io.BytesIO()
-            np.savetxt(buf, V, fmt="v %.9g %.9g %.9g")
-            atomic_write(path, buf.getvalue() + self._obj_faces)
+            # one % over every coordinate: np.savetxt's text, in half its time
+            text = ("v %.9g %.9g %.9g\n" * V.shape[0]) % tuple(V.ravel().tolist())
+            atomic_write(path, text.encode("ascii") + self._obj_faces)
         self.frames[step_index] = (float(t), path.relative_to(self.out_dir).as_posix())
         if self.pvd_every_frame:
             self.write_pvd()
