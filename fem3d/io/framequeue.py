@@ -127,6 +127,8 @@ class BackgroundWriter:
             The writer thread's error on an earlier frame.
         """
         self._raise_error()
+        if not self._thread.is_alive():
+            raise RuntimeError("frame writer closed: no frame can be queued after close()")
         V = np.array(check_vertices(V, self.faces, int(step_index)), dtype=np.float64)
         data = None if point_data is None else {k: np.array(v) for k, v in point_data.items()}
         item = (int(step_index), float(t), V, data)
