@@ -47,6 +47,7 @@ from fem3d.io.checkpoint import (
     save_run_checkpoint,
 )
 from fem3d.io.energy import EnergyLog
+from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import make_frame_writer
 from fem3d.io.preview import plot_energy, render_preview
 from fem3d.kernels.dispatch import resolve_backend
@@ -194,8 +195,10 @@ class RunLoop:
         self.preview_on = bool(settings["preview"])
         self.digest = mesh_digest(sim.model.X, sim.model.T)
         self.faces = sim.display_faces
-        self.writer = make_frame_writer(out, self.faces, scene.output.format,
-                                               bodies=_display_bodies(scene, sim), dt=sim.dt)
+        # frames are written by a thread of their own (fem3d.io.framequeue)
+        self.writer = BackgroundWriter(make_frame_writer(
+            out, self.faces, scene.output.format, bodies=_display_bodies(scene, sim),
+            dt=sim.dt))
         n_frames = self.steps // self.frame_every + 1
         self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
         self.preview: list[np.ndarray] = []
@@ -208,9 +211,7 @@ class RunLoop:
             self.frame_count = ckpt.frame_count
             self.log.write()
             if self.preview_on:
-                for i, (_, V) in enumerate(self.writer.read_frames()):
-                    if i % self.preview_stride == 0:
-                        self.preview.append(V)
+                self.preview = [V for _, V in self.writer.read_frames(self.preview_stride)]
         # per-step statistics of this invocation
         self.step_seconds: list[float] = []
         self.iterations: list[int] = []
@@ -247,6 +248,12 @@ class RunLoop:
 
     def run(self) -> RunSummary:
         """Step to the end (or a signal, or a failure) and write the outputs."""
+        try:
+            return self._run()
+        finally:
+            self.writer.abandon()  # the frame thread stops on every way out
+
+    def _run(self) -> RunSummary:
         sim, out, command = self.sim, self.out, self.command
         if self.ckpt is None:
             e = sim.energies()
@@ -268,9 +275,6 @@ class RunLoop:
         try:
             with intr.installed():
                 self._step_all(bar, intr)
-                if intr.signum is not None:  # stop before any slow output
-                    bar.close()
-                    return self._interrupted(intr, t_start)
         except SimulationError as exc:
             status, message = "failed", str(exc)
             bar.close()
@@ -282,10 +286,15 @@ class RunLoop:
             )
             if self.debug:
                 traceback.print_exc()
-        finally:
+        except BaseException:  # a frame that could not be written (disk full), ...
             bar.close()
             self.log.write()
-            self.writer.flush()
+            raise
+        bar.close()
+        self.log.write()
+        if intr.signum is not None:  # stop before any slow output
+            return self._interrupted(intr, t_start)
+        self.writer.close()  # every frame on disk (or the writer's error)
         wall = time.perf_counter() - t_start
         self._write_outputs(status, wall)
         return self._summary(status, message, wall)
