@@ -1,6 +1,7 @@
 # fem3d — common tasks. `make run` and `make test` set everything up on a fresh machine.
 PYTHON ?= python3
 PIP_STAMP := .venv-stamp
+RUN_STAMP := .venv-run-stamp
 
 .PHONY: install browser codegen check-generated build test lint run view bench clean
 
@@ -9,6 +10,11 @@ $(PIP_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh
 	$(PYTHON) -m pip install -q -e '.[dev]'
 	@bash scripts/install_cholmod.sh --if-possible $(PYTHON)
 	@touch $(PIP_STAMP)
+
+$(RUN_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh  ## runtime only
+	@if [ -f $(PIP_STAMP) ]; then :; else $(PYTHON) -m pip install -q -e .; \
+	  bash scripts/install_cholmod.sh --if-possible $(PYTHON); fi
+	@touch $(RUN_STAMP)
 
 codegen:  ## regenerate generated/ from codegen/ and templates/, then rebuild the C extension
 	$(PYTHON) -m codegen
@@ -29,14 +35,14 @@ browser:  ## Debian chromium for the browser test (skipped with a reason if this
 test: install browser  ## the test suite (what CI runs)
 	$(PYTHON) -m pytest -q
 
-run: install  ## the main job on the built-in bunny scene
+run: $(RUN_STAMP)  ## the main job (runtime dependencies only, not the [dev] tools) on the built-in bunny scene
 	$(PYTHON) -m fem3d run bunny --out runs/bunny
 
-view: install  ## the interactive viewer on the bunny: open http://127.0.0.1:8080
+view: $(RUN_STAMP)  ## the interactive viewer on the bunny: open http://127.0.0.1:8080
 	$(PYTHON) -m fem3d view bunny
 
 bench: install  ## every figure of docs/benchmarks.md in one run (~35 min; pip install -e .[bench] for the peers)
 	bash bench/all.sh PYTHON=$(PYTHON)
 
 clean:
-	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) .pytest_cache
+	rm -rf build *.egg-info fem3d/*.so $(PIP_STAMP) $(RUN_STAMP) .pytest_cache

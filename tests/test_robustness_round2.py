@@ -131,11 +131,14 @@ def test_parser_failures_describe_the_file(tmp_path: Path) -> None:
             p = tmp_path / f"cut{cut}.{ext}"
             p.write_bytes(data[:cut])
             try:
-                read_tet_mesh(p)
+                got = read_tet_mesh(p)
             except InputError as exc:
                 msg = str(exc)
                 assert str(p) in msg and "\n" not in msg
                 assert not PY_INTERNALS.search(msg), msg
+            else:  # a cut that still loads must have lost nothing (no silent partial mesh)
+                np.testing.assert_array_equal(got.X, X, err_msg=f"{p.name}: vertices")
+                np.testing.assert_array_equal(got.T, T, err_msg=f"{p.name}: tets")
     p = tmp_path / "png.vtu"
     p.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
     with pytest.raises(InputError, match="not a readable VTU file") as info:
@@ -326,3 +329,65 @@ def test_warnings_are_one_prefixed_line_and_the_error_is_last(tmp_path: Path) ->
     assert not any("warnings.warn" in ln for ln in lines), r.stderr
     assert r.returncode == 2, r.stderr
     assert lines[-1].startswith("fem3d run: error: "), r.stderr
+
+
+def _fail_writes_of(monkeypatch: pytest.MonkeyPatch, module, name: str, after: int) -> None:
+    """Make ``module.atomic_write`` run out of space on ``name`` after ``after`` good writes
+    (a partial temp file is written first, so its clean-up is checked too)."""
+    real = module.atomic_write
+    seen = {"n": 0}
+
+    def atomic_write(target, content, *args, **kwargs):  # noqa: ANN001, ANN202
+        if Path(target).name != name:
+            return real(target, content, *args, **kwargs)
+        seen["n"] += 1
+        if seen["n"] <= after:
+            return real(target, content, *args, **kwargs)
+
+        def fill(p: Path) -> None:
+            p.write_bytes(b"partial")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        return real(target, fill)
+
+    monkeypatch.setattr(module, "atomic_write", atomic_write)
+
+
+@pytest.mark.parametrize("which", ["checkpoint", "energy"])
+def test_disk_full_on_the_checkpoint_and_the_energy_log(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+    which: str,
+) -> None:
+    import fem3d.io.checkpoint as checkpoint
+    import fem3d.io.energy as energy
+
+    module, name = {"checkpoint": (checkpoint, CHECKPOINT_NAME),
+                    "energy": (energy, "energy.csv")}[which]
+    _fail_writes_of(monkeypatch, module, name, after=1)
+    out = tmp_path / "full"
+    code = main(["run", ARMA, "--steps", "12", "--checkpoint-every", "3", "--out", str(out),
+                 "--no-preview", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    line = _one_line_error(err)
+    assert "No space left on device" in line and name in line, line
+    assert not [p for p in out.rglob(".*tmp*")], "the failed write left its temp file"
+    if which == "checkpoint":  # the first checkpoint survives the failed second one
+        assert load_run_checkpoint(out / CHECKPOINT_NAME).step == 3
+
+
+def test_disk_full_on_the_sweep_results(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import fem3d.app.sweep.results as results
+
+    _fail_writes_of(monkeypatch, results, "results.csv", after=0)
+    spec = tmp_path / "s.toml"  # every case rejected by the scene: no cluster is started
+    spec.write_text(f'scene = "{ARMA}"\n[grid]\n"bodies[0].material.nu" = [0.7, 0.8]\n',
+                    encoding="utf-8")
+    code = main(["sweep", str(spec), "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    line = _one_line_error(err)
+    assert "No space left on device" in line and "results.csv" in line, line
+    assert not [p for p in (tmp_path / "out").rglob(".*tmp*")]

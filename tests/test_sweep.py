@@ -10,6 +10,7 @@ import csv
 import io
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -156,8 +157,10 @@ def test_dataset_matches_frames(swept):
         assert again.id == case.id and again.params == case.params
 
 
-def test_second_invocation_runs_nothing_then_redoes_a_partial_case(swept):
-    spec, out, _, _ = swept
+def test_second_invocation_runs_nothing_then_redoes_a_partial_case(swept, tmp_path):
+    # on a copy: the module's sweep stays as run for the other tests, in any order
+    spec, out = swept[0], tmp_path / "out"
+    shutil.copytree(swept[1], out)
     rows = _results(out)
     ok = [r["id"] for r in rows if r["status"] == "ok"]
     stamps = {i: (out / "cases" / i / "summary.json").stat().st_mtime_ns for i in ok}
@@ -241,3 +244,55 @@ def test_bad_key_path_is_one_line_exit_2(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and f"{spec}: {key}: {message}" in err, err
         assert not (tmp_path / "out").exists()
+
+
+#: loaded by every worker process of the external cluster below (via PYTHONPATH): the case
+#: whose E is 3e5 kills its worker each time it starts, as a segfaulting kernel would
+_SABOTAGE = '''
+import os
+if os.environ.get("FEM3D_TEST_SABOTAGE"):
+    import fem3d.app.sweep.run as _run
+
+    _real = _run.run_case
+
+    def run_case(task):
+        if "E=3" in str(task) or "300000" in str(task):
+            os._exit(1)
+        return _real(task)
+
+    _run.run_case = run_case
+'''
+
+
+@pytest.mark.slow  # an external cluster of 2 worker processes
+def test_external_scheduler_and_a_case_lost_after_three_worker_deaths(tmp_path, monkeypatch):
+    """``--scheduler ADDRESS`` on an external ``LocalCluster``: the cases run there, and a
+    case that kills its worker every time is given up after 3 deaths (``lost``) while the
+    others finish ok."""
+    dask = pytest.importorskip("dask")
+    distributed = pytest.importorskip("distributed")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_SABOTAGE, encoding="utf-8")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(ROOT)]))
+    monkeypatch.setenv("FEM3D_TEST_SABOTAGE", "1")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    spec = _sweep_file(tmp_path, """
+        [set]
+        "simulation.steps" = 2
+        [grid]
+        "bodies[0].material.E" = [2e5, 3e5, 4e5]
+    """)
+    out = tmp_path / "out"
+    with dask.config.set({"distributed.scheduler.allowed-failures": 3}), \
+            distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                     dashboard_address=None) as cluster:
+        rc, err = _main("sweep", str(spec), "--scheduler", cluster.scheduler_address,
+                        "--out", str(out), "--quiet")
+    assert rc == 1, err
+    assert "2 ok, 0 failed, 1 lost" in err, err
+    rows = _results(out)
+    assert [r["status"] for r in rows] == ["ok", "lost", "ok"]
+    assert "KilledWorker" in rows[1]["message"]
+    for r in (rows[0], rows[2]):
+        assert int(r["steps"]) == 2

@@ -218,6 +218,11 @@ def load_scene(
             names = scene_names()
             near = difflib.get_close_matches(key, names, n=1)
             hint = f"; did you mean {near[0]!r}?" if near else ""
+            if not names:  # an install without the built-in scenes (or a wrong FEM3D_SCENES)
+                raise InputError(f"unknown scene {key!r}: no built-in scenes in "
+                                 f"{scenes_dir()} (set FEM3D_SCENES to a folder of .toml "
+                                 "scenes, e.g. a checkout's data/scenes; or give a .toml "
+                                 "scene file or a mesh file)")
             raise InputError(f"unknown scene {key!r}{hint} (use one of {', '.join(names)}, a "
                              f".toml scene file or a mesh file)")
         scene = read_scene_file(named)

@@ -63,6 +63,7 @@ from fem3d.app.viewer.logic import (
     _material_names,
     _surface_faces,
     camera_for_points,
+    console_help,
     plane_quad,
     spring_segments,
 )
@@ -754,8 +755,7 @@ def serve(
         time_scale=time_scale,
     )
     url = viewer.start()
-    print(f"fem3d view: {url}  (drag the mesh; S mesh, N integrator, space pause, R reset;"
-          " Ctrl-C stops)", flush=True)
+    print(f"fem3d view: {url}  ({console_help()})", flush=True)
     try:
         viewer.wait()
     except KeyboardInterrupt:

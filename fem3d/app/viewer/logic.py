@@ -53,6 +53,13 @@ MESH_MODE_LABELS = {"skin": "skinned display mesh", "sim": "simulation mesh"}
 #: toggle is M.
 HOTKEYS = {"mesh": "M", "integrator": "N", "pause": "space", "reset": "R"}
 
+
+def console_help() -> str:
+    """The keys line ``fem3d view`` prints, built from :data:`HOTKEYS` (one source of truth)."""
+    k = HOTKEYS
+    return (f"drag the mesh; {k['mesh']} mesh, {k['integrator']} integrator, {k['pause']} pause, "
+            f"{k['reset']} reset; Ctrl-C stops")
+
 #: The energy plots: (key, label, colour). Each has its own y scale: the pull spring's
 #: energy (up to 1e9 on the bunny) must not flatten the elastic energies (1e-6 at rest).
 ENERGY_PLOTS = (
