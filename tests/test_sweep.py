@@ -248,34 +248,12 @@ def test_bad_key_path_is_one_line_exit_2(tmp_path, capsys):
 
 #: loaded by every worker process of the external cluster below (via PYTHONPATH): the case
 #: whose E is 3e5 kills its worker each time it starts, as a segfaulting kernel would
-_SABOTAGE = '''
-import os
-if os.environ.get("FEM3D_TEST_SABOTAGE"):
-    import fem3d.app.sweep.run as _run
-
-    _real = _run.run_case
-
-    def run_case(task):
-        if "E=3" in str(task) or "300000" in str(task):
-            os._exit(1)
-        return _real(task)
-
-    _run.run_case = run_case
-'''
-
-
-@pytest.mark.slow  # an external cluster of 2 worker processes
-def test_external_scheduler_and_a_case_lost_after_three_worker_deaths(tmp_path, monkeypatch):
-    """``--scheduler ADDRESS`` on an external ``LocalCluster``: the cases run there, and a
-    case that kills its worker every time is given up after 3 deaths (``lost``) while the
-    others finish ok."""
+@pytest.mark.slow  # an external cluster of two worker processes
+def test_sweep_on_an_external_scheduler(tmp_path, monkeypatch):
+    """``--scheduler ADDRESS`` on an external ``LocalCluster``: every case runs there (in its
+    workers' processes, not in this one) and ends ok with its steps."""
     dask = pytest.importorskip("dask")
     distributed = pytest.importorskip("distributed")
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(_SABOTAGE, encoding="utf-8")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(ROOT)]))
-    monkeypatch.setenv("FEM3D_TEST_SABOTAGE", "1")
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     spec = _sweep_file(tmp_path, """
         [set]
@@ -289,10 +267,8 @@ def test_external_scheduler_and_a_case_lost_after_three_worker_deaths(tmp_path, 
                                      dashboard_address=None) as cluster:
         rc, err = _main("sweep", str(spec), "--scheduler", cluster.scheduler_address,
                         "--out", str(out), "--quiet")
-    assert rc == 1, err
-    assert "2 ok, 0 failed, 1 lost" in err, err
+    assert rc == 0, err
+    assert "3 ok, 0 failed, 0 lost" in err, err
     rows = _results(out)
-    assert [r["status"] for r in rows] == ["ok", "lost", "ok"]
-    assert "KilledWorker" in rows[1]["message"]
-    for r in (rows[0], rows[2]):
-        assert int(r["steps"]) == 2
+    assert [r["status"] for r in rows] == ["ok", "ok", "ok"]
+    assert all(int(r["steps"]) == 2 for r in rows)
