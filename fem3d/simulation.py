@@ -19,12 +19,14 @@ Energies: ``kinetic = 1/2 v^T M v``, ``potential`` = strain energy ``V(q)``,
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from fem3d.errors import ParameterError, SimulationError
+from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import pick_nearest_vertices
@@ -219,6 +221,27 @@ class Simulation:
             return []
         t = self.t if t is None else t
         return [(m.name, m.positions(t), m.faces) for m in self.contact.contact.meshes]
+
+    def obstacle_meshes(self) -> list[ObstacleMesh]:
+        """The contact scene's obstacles as triangle meshes for the outputs (frames, preview):
+        each plane a square three diagonals of the bodies' rest bounding box wide, centred
+        below the bodies (a 10 x 10 grid of quads), each mesh obstacle with its motion. Empty
+        without contact."""
+        if self.contact is None:
+            return []
+        cm = self.contact.contact
+        X = self.model.X
+        lo, hi = X.min(axis=0), X.max(axis=0)
+        center, half = 0.5 * (lo + hi), 1.5 * float(np.linalg.norm(hi - lo))
+        out = []
+        for p in cm.planes:
+            V, F = plane_square(p.point, p.normal, center, half, cells=10)
+            out.append(ObstacleMesh(p.name, V, F, plane=(p.point, p.normal)))
+        for m in cm.meshes:
+            motion = None if m.motion is None else (lambda t, m=m: m.positions(t))
+            out.append(ObstacleMesh(m.name, m.vertices, m.faces, motion=motion))
+        # in the scene's order (obstacles[i]): planes and meshes are kept apart above
+        return sorted(out, key=lambda o: int(re.search(r"\d+", o.name + "0").group()))
 
     def fixed_positions(self, t: float) -> np.ndarray | None:
         """Positions of the pinned vertices at time ``t`` (None: no moving pin).

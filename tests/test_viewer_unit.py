@@ -549,6 +549,19 @@ def test_material_menu_switches_the_model_and_keeps_the_motion() -> None:
         assert v.exceptions == [], v.exceptions
 
 
+def test_plane_grid_lines_cover_the_plane_square() -> None:
+    from fem3d.app.viewer.logic import plane_grid_segments, plane_quad
+
+    n = np.array([0.0, 1.0, 0.0])
+    seg = plane_grid_segments(np.zeros(3), n, np.array([1.0, 5.0, 2.0]), 2.0, cells=4)
+    assert seg.shape == (10, 2, 3)
+    V, _ = plane_quad(np.zeros(3), n, np.array([1.0, 5.0, 2.0]), 2.0)
+    np.testing.assert_allclose(seg[..., 1], 2e-3)  # lifted over the square
+    for k in (0, 2):
+        assert seg[..., k].min() == pytest.approx(V[:, k].min())
+        assert seg[..., k].max() == pytest.approx(V[:, k].max())
+
+
 def test_plane_quad_lies_in_the_plane_around_the_centre() -> None:
     from fem3d.app.viewer.logic import plane_quad
 
@@ -595,6 +608,10 @@ mesh = {{ path = "{data / 'coarser_bunny.obj'}", transform = {{ scale = 0.001, t
         wait_for(lambda: len(v._obstacle_handles) == 2 or None, 60, "the obstacles")
         plane, mesh = v._obstacle_handles
         assert np.allclose(np.asarray(plane.vertices)[:, 1], 0.0)  # the floor
+        (grid,) = v._plane_grid_handles  # and its grid lines, just above it
+        pts = np.asarray(grid.points).reshape(-1, 3)
+        assert pts.shape[0] == 2 * 2 * 13 and np.ptp(pts[:, 1]) < 1e-9 and pts[0, 1] > 0
+        assert np.ptp(pts[:, 0]) == pytest.approx(np.ptp(np.asarray(plane.vertices)[:, 0]))
         y0 = float(np.asarray(mesh.vertices)[:, 1].min())
         wait_for(lambda: float(np.asarray(mesh.vertices)[:, 1].min()) > y0 + 0.05 or None, 120,
                  "the keyframed obstacle to move up on screen")

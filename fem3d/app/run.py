@@ -195,13 +195,15 @@ class RunLoop:
         self.preview_on = bool(settings["preview"])
         self.digest = mesh_digest(sim.model.X, sim.model.T)
         self.faces = sim.display_faces
+        self.obstacles = sim.obstacle_meshes()
         # frames are written by a thread of their own (fem3d.io.framequeue)
         self.writer = BackgroundWriter(make_frame_writer(
             out, self.faces, scene.output.format, bodies=_display_bodies(scene, sim),
-            dt=sim.dt))
+            dt=sim.dt, obstacles=self.obstacles))
         n_frames = self.steps // self.frame_every + 1
         self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
         self.preview: list[np.ndarray] = []
+        self.preview_times: list[float] = []
         self.frame_count = 0
         if ckpt is None:
             self.log = EnergyLog(out / "energy.csv")
@@ -211,7 +213,10 @@ class RunLoop:
             self.frame_count = ckpt.frame_count
             self.log.write()
             if self.preview_on:
-                self.preview = [V for _, V in self.writer.read_frames(self.preview_stride)]
+                kept = list(self.writer.read_frames(self.preview_stride))
+                self.preview = [V for _, V in kept]
+                self.preview_times = [float(ckpt.frames[s][0]) if s in ckpt.frames else 0.0
+                                      for s, _ in kept]
         # per-step statistics of this invocation
         self.step_seconds: list[float] = []
         self.iterations: list[int] = []
@@ -233,6 +238,7 @@ class RunLoop:
             self.writer.write(step, t, V)  # refuses non-finite coordinates
             if self.frame_count % self.preview_stride == 0:
                 self.preview.append(V)
+                self.preview_times.append(float(t))
             self.frame_count += 1
         self.log.append(t, kinetic, potential, total)
 
@@ -347,7 +353,8 @@ class RunLoop:
         if self.preview_on and self.preview:
             cam = scene.output.preview
             render_preview(self.preview, self.faces, out / "preview.gif",
-                                  elev=cam.elev, azim=cam.azim, view_bounds=cam.bounds)
+                           elev=cam.elev, azim=cam.azim, view_bounds=cam.bounds,
+                           obstacles=self.obstacles, times=self.preview_times)
         if self.step_seconds:
             print(
                 f"fem3d {self.command}: {len(self.step_seconds)} steps in {wall:.2f} s; "

@@ -24,6 +24,7 @@ import numpy as np
 
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.files import PathLike, atomic_write
+from fem3d.io.obstacles import ObstacleMesh
 
 __all__ = [
     "FrameWriter",
@@ -219,6 +220,7 @@ class FrameWriter:
         digits: int = 5,
         compression: str | None = None,
         pvd_every_frame: bool = True,
+        obstacles: Sequence[ObstacleMesh] = (),
     ) -> None:
         if fmt not in ("vtu", "obj"):
             raise ValueError(f"unknown frame format {fmt!r}; expected 'vtu' or 'obj'")
@@ -238,6 +240,38 @@ class FrameWriter:
             buf = io.StringIO()
             np.savetxt(buf, self.faces + 1, fmt="f %d %d %d")
             self._obj_faces = buf.getvalue().encode("ascii")
+        self.obstacles = tuple(obstacles)
+        self._obstacle_writers = [FrameWriter._for_obstacle(self, ob) for ob in self.obstacles]
+        self._static_written = False
+
+    @staticmethod
+    def _for_obstacle(parent: FrameWriter, ob: ObstacleMesh) -> FrameWriter:
+        """A writer of one obstacle's files (no ``.pvd`` of its own)."""
+        w = FrameWriter.__new__(FrameWriter)
+        w.out_dir, w.frame_dir = parent.out_dir, parent.frame_dir
+        w.faces, w.fmt, w.digits = check_faces(ob.faces), parent.fmt, parent.digits
+        w.compression, w.pvd_every_frame, w.pvd_path = parent.compression, False, None
+        w.frames, w._pvd_written, w.obstacles, w._obstacle_writers = {}, None, (), []
+        w._static_written = True
+        w._raw = RawVtu(w.faces) if parent._raw is not None else None
+        if w.fmt == "obj":
+            buf = io.StringIO()
+            np.savetxt(buf, w.faces + 1, fmt="f %d %d %d")
+            w._obj_faces = buf.getvalue().encode("ascii")
+        return w
+
+    def obstacle_path(self, i: int, step_index: int) -> Path:
+        """File of obstacle ``i`` at frame ``step_index`` (one file for a static one)."""
+        if self.obstacles[i].moving:
+            return self.frame_dir / f"obstacle_{i}_{int(step_index):0{self.digits}d}.{self.fmt}"
+        return self.frame_dir / f"obstacle_{i}.{self.fmt}"
+
+    def _write_obstacles(self, step_index: int, t: float) -> None:
+        for i, (ob, w) in enumerate(zip(self.obstacles, self._obstacle_writers, strict=True)):
+            if ob.moving or not self._static_written:
+                V = check_vertices(ob.positions(t), w.faces, step_index)
+                w._write_file(self.obstacle_path(i, step_index), V, None)
+        self._static_written = True
 
     def path_of(self, step_index: int) -> Path:
         """File of frame ``step_index``."""
@@ -279,6 +313,15 @@ class FrameWriter:
         step_index = int(step_index)
         V = check_vertices(V, self.faces, step_index)
         path = self.path_of(step_index)
+        self._write_file(path, V, point_data)
+        self._write_obstacles(step_index, t)
+        self.frames[step_index] = (float(t), path.relative_to(self.out_dir).as_posix())
+        if self.pvd_every_frame:
+            self.write_pvd()
+        return path
+
+    def _write_file(self, path: Path, V: np.ndarray,
+                    point_data: Mapping[str, np.ndarray] | None) -> None:
         if self._raw is not None:
             self._raw.write(path, V, point_data)
         elif self.fmt == "vtu":
@@ -288,10 +331,6 @@ class FrameWriter:
             # one % over every coordinate: np.savetxt's text, in half its time
             text = ("v %.9g %.9g %.9g\n" * V.shape[0]) % tuple(V.ravel().tolist())
             atomic_write(path, text.encode("ascii") + self._obj_faces)
-        self.frames[step_index] = (float(t), path.relative_to(self.out_dir).as_posix())
-        if self.pvd_every_frame:
-            self.write_pvd()
-        return path
 
     def pvd_text(self) -> str:
         """ParaView collection listing every frame written so far, by time."""
@@ -300,8 +339,12 @@ class FrameWriter:
             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
             "  <Collection>",
         ]
-        for _, (t, rel) in sorted(self.frames.items()):
+        for step, (t, rel) in sorted(self.frames.items()):
             lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(rel)}/>')
+            for i in range(len(self.obstacles)):
+                orel = self.obstacle_path(i, step).relative_to(self.out_dir).as_posix()
+                lines.append(f'    <DataSet timestep="{t!r}" group="" part="{i + 1}" '
+                             f'file={quoteattr(orel)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
         return "\n".join(lines)
 
@@ -328,10 +371,12 @@ class FrameWriter:
         """Continue a run: the frames written up to ``step`` (a checkpoint's list); files of
         later frames (written after the checkpoint by an interrupted run) are removed."""
         self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()}
-        for f in self.frame_dir.glob(f"frame_*.{self.fmt}"):
-            with contextlib.suppress(ValueError):
-                if int(f.stem.split("_")[-1]) > step:
-                    f.unlink()
+        for pattern in (f"frame_*.{self.fmt}", f"obstacle_*_*.{self.fmt}"):
+            for f in self.frame_dir.glob(pattern):
+                with contextlib.suppress(ValueError):
+                    if int(f.stem.split("_")[-1]) > step:
+                        f.unlink()
+        self._static_written = False  # written again with the next frame
         self._pvd_written = None
         self.write_pvd()
 
@@ -393,13 +438,17 @@ class UsdWriter:
         Frames per clip at most.
     chunk_bytes : int
         Bytes of points per clip at most (a chunk of a big mesh holds fewer frames).
+    obstacles : sequence of ObstacleMesh, optional
+        The contact scene's obstacles: a ``/World/obstacle_<i>`` mesh prim each, its points
+        in ``mesh.usdc`` when static, in the clips (every frame) when moving.
     """
 
     fmt = "usd"
 
     def __init__(self, out_dir: PathLike, faces: np.ndarray,
                  bodies: Sequence[tuple[str, slice, slice]], dt: float, *,
-                 chunk_frames: int = 100, chunk_bytes: int = 64 << 20) -> None:
+                 chunk_frames: int = 100, chunk_bytes: int = 64 << 20,
+                 obstacles: Sequence[ObstacleMesh] = ()) -> None:
         from pxr import Usd  # noqa: F401 - usd-core is optional: fail early without it
 
         self.out_dir = Path(out_dir)
@@ -408,7 +457,13 @@ class UsdWriter:
         self.clip_dir.mkdir(parents=True, exist_ok=True)
         self.faces = check_faces(faces)
         self.bodies = [(n, vs, fs) for n, vs, fs in bodies]
-        self.names = _prim_names([b[0] for b in bodies])
+        self.obstacles = tuple(obstacles)
+        names = _prim_names([b[0] for b in bodies]
+                            + [f"obstacle_{i}" for i in range(len(self.obstacles))])
+        self.names = names[: len(self.bodies)]
+        self.obstacle_names = names[len(self.bodies):]
+        self._moving = [i for i, ob in enumerate(self.obstacles) if ob.moving]
+        self._chunk_obstacles: dict[int, list[np.ndarray]] = {}
         self.dt = float(dt)
         n = max(vs.stop for _, vs, _ in self.bodies)
         self.chunk_frames = max(1, min(int(chunk_frames), int(chunk_bytes) // max(1, 12 * n)))
@@ -429,6 +484,10 @@ class UsdWriter:
         if self._chunk and step_index <= max(self._chunk):
             self._write_chunk()  # frames go forward in a clip (a step written again)
         self._chunk[step_index] = np.asarray(V, dtype=np.float32).copy()
+        if self._moving:
+            self._chunk_obstacles[step_index] = [
+                np.asarray(self.obstacles[i].positions(t), dtype=np.float32)
+                for i in self._moving]
         first = min(self._chunk)
         self.frames[step_index] = (float(t), self._clip_rel(first))
         if len(self._chunk) >= self.chunk_frames:
@@ -455,9 +514,15 @@ class UsdWriter:
             for s in steps:
                 layer.SetTimeSample(attr.path, float(s), Vt.Vec3fArray.FromNumpy(
                     np.ascontiguousarray(self._chunk[s][vs])))
+        for k, i in enumerate(self._moving):
+            attr = self._points_spec(layer, self.obstacle_names[i])
+            for s in steps:
+                layer.SetTimeSample(attr.path, float(s), Vt.Vec3fArray.FromNumpy(
+                    np.ascontiguousarray(self._chunk_obstacles[s][k])))
         atomic_write(self.out_dir / rel, lambda p: layer.Export(str(p)))
         self.clips = [c for c in self.clips if c[2] != rel] + [(steps[0], steps[-1], rel)]
         self._chunk = {}
+        self._chunk_obstacles = {}
         self._write_root()
 
     def _points_spec(self, layer, name: str):
@@ -482,10 +547,22 @@ class UsdWriter:
             mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(
                 np.ascontiguousarray(F.reshape(-1), dtype=np.int32)))
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        for i, (name, ob) in enumerate(zip(self.obstacle_names, self.obstacles, strict=True)):
+            mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(f"/World/{name}"))
+            F = check_faces(ob.faces)
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(
+                np.full(F.shape[0], 3, dtype=np.int32)))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(
+                np.ascontiguousarray(F.reshape(-1), dtype=np.int32)))
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            mesh.GetPrim().SetCustomDataByKey("fem3d:name", ob.name)
+            if i not in self._moving:
+                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(
+                    np.ascontiguousarray(ob.positions(0.0), dtype=np.float32)))
         layer = stage.GetRootLayer()
         atomic_write(self.clip_dir / "mesh.usdc", lambda p: layer.Export(str(p)))
         manifest = Sdf.Layer.CreateAnonymous(".usda")
-        for name in self.names:
+        for name in self.names + [self.obstacle_names[i] for i in self._moving]:
             self._points_spec(manifest, name)
         atomic_write(self.clip_dir / "manifest.usda", lambda p: manifest.Export(str(p)))
         self._mesh_written = True
@@ -523,6 +600,7 @@ class UsdWriter:
         of an older fem3d (every frame in ``frames.usdc``) is moved into clips first."""
         kept = {int(k): (float(t), str(r)) for k, (t, r) in frames.items() if int(k) <= step}
         self._chunk = {}
+        self._chunk_obstacles = {}
         if any(r == self.path.name for _, r in kept.values()):
             kept = self._from_single_stage(kept)
         self.frames = kept
@@ -581,11 +659,12 @@ class UsdWriter:
 
 def make_frame_writer(out_dir: PathLike, faces: np.ndarray, fmt: str, *,
                       bodies: Sequence[tuple[str, slice, slice]] | None = None,
-                      dt: float = 1.0) -> FrameWriter | UsdWriter:
+                      dt: float = 1.0, obstacles: Sequence[ObstacleMesh] = ()
+                      ) -> FrameWriter | UsdWriter:
     """The frame writer of a format: ``"vtu"``/``"obj"`` (:class:`FrameWriter`) or ``"usd"``
-    (:class:`UsdWriter`, one prim per entry of ``bodies``)."""
+    (:class:`UsdWriter`, one prim per entry of ``bodies``), with the ``obstacles``' meshes."""
     if fmt == "usd":
         if bodies is None:  # one prim; its points: the vertices the faces use, and below
             bodies = [("body", slice(0, int(np.max(faces)) + 1), slice(0, len(faces)))]
-        return UsdWriter(out_dir, faces, bodies, dt)
-    return FrameWriter(out_dir, faces, fmt)
+        return UsdWriter(out_dir, faces, bodies, dt, obstacles=obstacles)
+    return FrameWriter(out_dir, faces, fmt, obstacles=obstacles)

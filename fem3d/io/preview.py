@@ -17,6 +17,7 @@ from PIL import Image
 from fem3d.io.energy import energy_columns
 from fem3d.io.files import PathLike, atomic_write
 from fem3d.io.frames import check_faces, check_vertices
+from fem3d.io.obstacles import ObstacleMesh, plane_square
 
 __all__ = ["plot_energy", "render_preview"]
 
@@ -123,6 +124,8 @@ def render_preview(
     margin: float = 0.15,
     view_bounds: str = "first",
     first_frame_png: PathLike | None = None,
+    obstacles: Sequence[ObstacleMesh] = (),
+    times: Sequence[float] | None = None,
 ) -> Path:
     """Render a shaded animation of a triangle mesh offscreen and save it as a GIF.
 
@@ -159,6 +162,13 @@ def render_preview(
         the picture, e.g. a pulled arm).
     first_frame_png : str or PathLike, optional
         Also save the first rendered frame as a PNG (to look at).
+    obstacles : sequence of ObstacleMesh, optional
+        Drawn with the bodies: a plane as a grey checkerboard square (12 x 12 tiles) three
+        view widths wide around the view's centre, behind everything (the camera looks at
+        its free side); a mesh obstacle in blue-grey, depth-sorted with the bodies, at the
+        frame's time (mesh obstacles count in the view box).
+    times : sequence of float, optional
+        Time of each frame (moving obstacles); default: every frame at ``t = 0``.
 
     Returns
     -------
@@ -188,30 +198,87 @@ def render_preview(
         seq = [A @ V for V in seq]
     else:
         F = faces
+    base = np.asarray(color, dtype=np.float64)
+    planes = [ob for ob in obstacles if ob.plane is not None]
+    meshes = [ob for ob in obstacles if ob.plane is None]
+    if meshes:  # mesh obstacles join the bodies' triangles, with their own colour
+        ts = [0.0] * len(frames) if times is None else [float(x) for x in times]
+        F, seq, base = _with_meshes(F, seq, base, meshes, [ts[int(i)] for i in pick])
 
     right, up, toward = _camera(elev, azim)
     proj = np.stack([right, up, toward], axis=1)  # world -> (u, v, depth toward viewer)
     light = 0.55 * toward + 0.45 * up - 0.35 * right
     light /= np.linalg.norm(light)
-    base = np.asarray(color, dtype=np.float64)
 
     if view_bounds not in ("first", "all"):
         raise ValueError(f"view_bounds must be 'first' or 'all', got {view_bounds!r}")
     P0 = seq[0] @ proj if view_bounds == "first" else np.vstack(seq) @ proj
+    for ob in planes:  # the ground under the bodies is in view (where they will land)
+        point, normal = ob.plane
+        n = np.asarray(normal, dtype=np.float64)
+        foot = seq[0] - ((seq[0] - np.asarray(point)) @ n)[:, None] * n
+        P0 = np.vstack([P0, foot @ proj])
     umin, vmin = P0[:, 0].min(), P0[:, 1].min()
     umax, vmax = P0[:, 0].max(), P0[:, 1].max()
     half = 0.5 * max(umax - umin, vmax - vmin, 1e-300) * (1.0 + 2.0 * margin)
     cu, cv = 0.5 * (umin + umax), 0.5 * (vmin + vmax)
 
-    images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half))
+    ground = _plane_tiles(planes, seq[0], proj, light, half) if planes else None
+    images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half), ground)
     if first_frame_png is not None:
         atomic_write(first_frame_png, lambda p: images[0].save(p, format="PNG"))
     return _save_gif(images, path_gif, fps)
 
 
+#: Preview colours: mesh obstacles, and the two tiles of a plane's checkerboard.
+OBSTACLE_RGB = (0.55, 0.62, 0.72)
+PLANE_RGB = ((0.80, 0.80, 0.78), (0.62, 0.62, 0.60))
+
+
+def _with_meshes(F: np.ndarray, seq: list[np.ndarray], base: np.ndarray,
+                 meshes: Sequence[ObstacleMesh], times: Sequence[float]
+                 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """The bodies' faces and frames with the mesh obstacles' appended, and per-face base
+    colours ``(f, 3)``."""
+    n = seq[0].shape[0]
+    faces, cols = [F], [np.broadcast_to(base, (F.shape[0], 3))]
+    off = n
+    for ob in meshes:
+        Fo = check_faces(ob.faces)
+        faces.append(Fo + off)
+        cols.append(np.broadcast_to(np.asarray(OBSTACLE_RGB), (Fo.shape[0], 3)))
+        off += ob.vertices.shape[0]
+    seq = [np.vstack([V] + [ob.positions(t) for ob in meshes])
+           for V, t in zip(seq, times, strict=True)]
+    return np.vstack(faces), seq, np.vstack(cols)
+
+
+def _plane_tiles(planes: Sequence[ObstacleMesh], V0: np.ndarray, proj: np.ndarray,
+                 light: np.ndarray, half_view: float) -> tuple[np.ndarray, np.ndarray]:
+    """The planes as checkerboards: projected quads ``(k, 4, 2)`` and their shaded RGB
+    ``(k, 3)``, far first, around the bodies' first-frame centre, three view widths wide."""
+    center = 0.5 * (V0.min(axis=0) + V0.max(axis=0))
+    polys, rgbs, depth = [], [], []
+    cells = 12
+    for ob in planes:
+        point, normal = ob.plane
+        V, Fq = plane_square(point, normal, center, 3.0 * half_view, cells=cells)
+        P = V @ proj
+        quads = np.stack([Fq[0::2, 0], Fq[0::2, 1], Fq[0::2, 2], Fq[1::2, 2]], axis=1)
+        i, j = np.divmod(np.arange(cells * cells), cells)
+        tile = np.asarray(PLANE_RGB)[(i + j) % 2]
+        n = np.asarray(normal, dtype=np.float64)
+        rgbs.append(np.clip((0.45 + 0.55 * abs(float(n @ light))) * tile, 0.0, 1.0))
+        polys.append(P[quads][:, :, :2])
+        depth.append(P[quads, 2].mean(axis=1))
+    order = np.argsort(np.concatenate(depth), kind="stable")
+    return np.concatenate(polys)[order], np.concatenate(rgbs)[order]
+
+
 def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
                  light: np.ndarray, base: np.ndarray, size: int,
-                 box: tuple[float, float, float]) -> list[Image.Image]:
+                 box: tuple[float, float, float],
+                 ground: tuple[np.ndarray, np.ndarray] | None = None) -> list[Image.Image]:
     """Draw every frame of ``seq`` on one Agg canvas (see :func:`render_preview`).
 
     Parameters
@@ -222,12 +289,14 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
         World -> (u, v, depth toward the viewer).
     light : (3,) float64
         Unit direction toward the light.
-    base : (3,) float64
-        Base RGB colour.
+    base : (3,) or (n_faces, 3) float64
+        Base RGB colour (of every face, or per face).
     size : int
         Image width and height in pixels.
     box : (cu, cv, half)
         Centre and half width of the (square) view in the image plane.
+    ground : ((k, 4, 2), (k, 3)) float64, optional
+        Quads drawn behind every face (the planes, :func:`_plane_tiles`) and their colours.
 
     Returns
     -------
@@ -248,6 +317,10 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
     ax.set_ylim(cv - half, cv + half)
     ax.set_aspect("equal")
     ax.set_axis_off()
+    if ground is not None:
+        ax.add_collection(PolyCollection(ground[0], closed=True, facecolors=ground[1],
+                                         edgecolors=ground[1], linewidths=0.25,
+                                         antialiaseds=False))
     coll = PolyCollection([], closed=True, linewidths=0.25, antialiaseds=False)
     ax.add_collection(coll)
 
@@ -258,7 +331,7 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
         nn = np.linalg.norm(n, axis=1, keepdims=True)
         n = np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
         shade = 0.25 + 0.75 * np.abs(n @ light)
-        rgb = np.clip(shade[:, None] * base[None, :], 0.0, 1.0)
+        rgb = np.clip(shade[:, None] * (base if base.ndim == 2 else base[None, :]), 0.0, 1.0)
         P = V @ proj
         order = np.argsort(P[F, 2].mean(axis=1), kind="stable")  # far first
         coll.set_verts(P[F[order]][:, :, :2])

@@ -58,6 +58,7 @@ import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
+from fem3d.physics.friction import point_plane_friction
 
 __all__ = [
     "PlaneObstacle",
@@ -222,7 +223,9 @@ class ContactModel:
     kappa : float, optional
         Barrier stiffness; None: IPC's adaptive stiffness (:meth:`initialize_stiffness`).
     mu : float, optional
-        Friction coefficient (>= 0; 0: frictionless).
+        Static friction coefficient (>= 0; 0: frictionless).
+    mu_k : float, optional
+        Kinetic coefficient (``<= mu``; default ``mu``: one coefficient).
     eps_v : float, optional
         Friction smoothing velocity (absolute, > 0): slip below ``eps_v`` is static friction.
     self_contact : bool, optional
@@ -257,6 +260,7 @@ class ContactModel:
         dhat: float,
         kappa: float | None = None,
         mu: float = 0.0,
+        mu_k: float | None = None,
         eps_v: float = 1e-3,
         self_contact: bool = False,
         broad_phase: str = "hash_grid",
@@ -272,6 +276,9 @@ class ContactModel:
         mu = float(mu)
         if not (math.isfinite(mu) and mu >= 0):
             raise ParameterError(f"contact.mu must be a finite number >= 0, got {mu}")
+        self.mu_k = mu if mu_k is None else float(mu_k)
+        if not (math.isfinite(self.mu_k) and 0 <= self.mu_k <= mu):
+            raise ParameterError(f"contact.mu_k must be in [0, mu_s = {mu}], got {mu_k}")
         eps_v = float(eps_v)
         if not (math.isfinite(eps_v) and eps_v > 0):
             raise ParameterError(f"contact.eps_v must be a finite number > 0, got {eps_v}")
@@ -555,45 +562,28 @@ class ContactModel:
         self._plane_lag = (pl, vi, lam)
 
     def _plane_friction(self, q: np.ndarray, order: int, *, project: bool = True):
-        """Lagged point-plane friction ``sum mu lambda f0(|P (x - x_lag)|)`` (ipctk's
-        mollifier with ``eps = eps_v dt``): energy, gradient or Hessian on collision DOFs."""
+        """Lagged point-plane friction ``sum lambda F(|P (x - x_lag)|)`` (ipctk's mollifier
+        with ``eps = eps_v dt``, ``mu_s``/``mu_k``: :mod:`fem3d.physics.friction`): energy,
+        gradient or Hessian on collision DOFs."""
         ns = self.n_surface
         if self._plane_lag is None:
             return 0.0 if order == 0 else (np.zeros(3 * ns) if order == 1 else None)
         pl, vi, lam = self._plane_lag
-        n = self._plane_n[pl]
         P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
-        w = P[vi] - self._lagged_V[vi]
-        u = w - (w * n).sum(axis=1, keepdims=True) * n
-        y = np.sqrt((u * u).sum(axis=1))
-        eps = self.eps_v * self._dt
-        small = y < eps
-        ml = self.mu * lam
-        if order == 0:
-            f0 = np.where(small, -y ** 3 / (3 * eps * eps) + y * y / eps + eps / 3, y)
-            return float((ml * f0).sum())
-        f1_y = np.where(small, -y / (eps * eps) + 2.0 / eps, 1.0 / np.maximum(y, eps))
+        out = point_plane_friction(self._plane_n[pl], P[vi] - self._lagged_V[vi], lam,
+                                   self.eps_v * self._dt, self.mu, self.mu_k, order,
+                                   project=project)
         if order == 1:
             g = np.zeros((ns, 3))
-            np.add.at(g, vi, (ml * f1_y)[:, None] * u)
+            np.add.at(g, vi, out)
             return g.reshape(-1)
-        # (f2 - f1 / y) u u^T / y^2 = c2 uh uh^T, uh = u / y: c2 = -y / eps^2 when slipping
-        # slowly, -1 / y when sliding
-        pos = y > 0
-        yy = np.where(pos, y, 1.0)
-        uh = np.where(pos[:, None], u / yy[:, None], 0.0)
-        c2 = np.where(small, -y / (eps * eps), -1.0 / yy)
-        Pm = np.eye(3) - n[:, :, None] * n[:, None, :]
-        blocks = ml[:, None, None] * (f1_y[:, None, None] * Pm
-                                      + c2[:, None, None] * uh[:, :, None] * uh[:, None, :])
-        if project:
-            w_, V_ = np.linalg.eigh(blocks)
-            blocks = (V_ * np.maximum(w_, 0.0)[:, None, :]) @ V_.transpose(0, 2, 1)
-        return self._blocks_matrix(vi, blocks)
+        return out if order == 0 else self._blocks_matrix(vi, out)
 
     # -- friction (lagged) --------------------------------------------------------------------
-    def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None) -> None:
-        """Fix the friction's normal forces and tangent bases at ``q_lag`` (start of a step).
+    def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None,
+                     q_basis: np.ndarray | None = None) -> None:
+        """Fix the friction's normal forces and tangent bases at ``q_basis`` (default
+        ``q_lag``, the start of a step); the slip is measured from ``q_lag``.
 
         Parameters
         ----------
@@ -604,6 +594,9 @@ class ContactModel:
         t_start : float, optional
             Time of ``q_lag`` (kinematic obstacles' displacement over the step starts at their
             positions then; default: where they are now).
+        q_basis : (3n,) or (n, 3) float64, optional
+            Where the normal forces and tangent bases are taken (a re-lagging: the last
+            Newton solution, obstacles where they are now).
         """
         self._dt = float(dt)
         self._friction = ipctk.FrictionPotential(self.eps_v * self._dt)
@@ -611,6 +604,8 @@ class ContactModel:
         self._obstacles_t = np.asarray(obs_t, dtype=np.float64)
         V = self.collision_vertices(q_lag, self._obstacles_t)
         self._lagged_V = V
+        if q_basis is not None:
+            q_lag, V = q_basis, self.collision_vertices(q_basis)
         self._lag_planes(q_lag)
         for part in self._parts:
             part.tangential = None
@@ -620,7 +615,10 @@ class ContactModel:
             col = self._build(part, Vp)
             if len(col):
                 tc = ipctk.TangentialCollisions()
-                tc.build(part.mesh, Vp, col, self._barrier, self.mu)
+                if self.mu_k == self.mu:
+                    tc.build(part.mesh, Vp, col, self._barrier, self.mu)
+                else:  # ipctk's own static-to-kinetic blend (fem3d.physics.friction)
+                    tc.build(part.mesh, Vp, col, self._barrier, self.mu, self.mu_k)
                 part.tangential = tc if len(tc) else None
 
     def _slips(self, q: np.ndarray) -> list[tuple[_Part, np.ndarray]]:

@@ -372,6 +372,9 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
     pts = np.concatenate([a.X] + [m.vertices for m in meshes])
     L = float(np.linalg.norm(np.ptp(pts, axis=0)))
     cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
-                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa, mu=spec.mu,
+                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa,
+                      mu=spec.static_mu, mu_k=spec.kinetic_mu,
                       eps_v=spec.eps_v * L, self_contact=spec.self_contact)
-    return ContactTerm(cm, tolerance=spec.tolerance)
+    return ContactTerm(cm, tolerance=spec.tolerance,
+                       friction_iterations=spec.friction_iterations,
+                       friction_tolerance=spec.friction_tolerance)

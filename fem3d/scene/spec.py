@@ -361,9 +361,35 @@ class ContactSpec(_Spec):
     dhat: Positive = 1e-3
     kappa: Positive | None = None
     mu: NonNegative = 0.0
+    #: static and kinetic friction coefficients (each defaults to ``mu``)
+    mu_s: NonNegative | None = None
+    mu_k: NonNegative | None = None
     eps_v: Positive = 1e-3
     self_contact: StrictBool = False
     tolerance: Positive = 1e-2
+    #: Newton solves per step, each with the friction lagged at the last one's solution
+    #: (1: friction lagged once, at the step's start)
+    friction_iterations: Annotated[StrictInt, Field(ge=1)] = 1
+    #: stop re-lagging when a solve moves the positions by less than this, relative to the
+    #: scene's bounding-box diagonal
+    friction_tolerance: Positive = 1e-6
+
+    @property
+    def static_mu(self) -> float:
+        """The static coefficient (``mu_s``, else ``mu``)."""
+        return self.mu if self.mu_s is None else self.mu_s
+
+    @property
+    def kinetic_mu(self) -> float:
+        """The kinetic coefficient (``mu_k``, else ``mu``)."""
+        return self.mu if self.mu_k is None else self.mu_k
+
+    @model_validator(mode="after")
+    def _friction(self) -> ContactSpec:
+        if self.kinetic_mu > self.static_mu:
+            raise ValueError(f"mu_k ({self.kinetic_mu}) must not exceed mu_s "
+                             f"({self.static_mu})")
+        return self
 
 
 class PlaneObstacleSpec(_Spec):

@@ -238,22 +238,32 @@ def minimise_step(
             f"of {model.n_tets} tets and every shorter trial also inverts tets or is not "
             "finite (try a smaller dt or softer pull)", step=state.step)
 
-    try:
-        res = newtons_method(
-            x0, _timed(objective.energy, stats), _timed(objective.gradient, stats), direction,
-            max_iterations=max_iterations, rtol=rtol, atol=atol, on_no_step=no_step,
-            max_step=objective.max_step if objective.clamps else None,
-            converged_step=objective.step_converged if objective.has_stopping_rule else None,
-            after_step=objective.after_iteration if objective.changes_between_iterates
-            else None,
-            roundoff_rtol=AMG_ROUNDOFF_RTOL if linear_solver == "amg" else 0.0,
-            f0=None if objective.initializes_stiffness else e0,  # stiffness changes E
-            energy_scale=objective.energy_scale if linear_solver != "amg" else 0.0,
-        )
-    except SimulationError as exc:
-        if exc.step is not None:
-            raise
-        raise SimulationError(f"{scheme}: {exc.reason}", step=state.step) from exc
+    f0 = None if objective.initializes_stiffness else e0  # stiffness changes E
+    iterations, norms, halvings = 0, [], 0
+    while True:  # one Newton solve, again while a term re-lags (friction iterations)
+        try:
+            res = newtons_method(
+                x0, _timed(objective.energy, stats), _timed(objective.gradient, stats),
+                direction, max_iterations=max_iterations, rtol=rtol, atol=atol,
+                on_no_step=no_step, max_step=objective.max_step if objective.clamps else None,
+                converged_step=objective.step_converged if objective.has_stopping_rule
+                else None,
+                after_step=objective.after_iteration if objective.changes_between_iterates
+                else None,
+                roundoff_rtol=AMG_ROUNDOFF_RTOL if linear_solver == "amg" else 0.0,
+                f0=f0, energy_scale=objective.energy_scale if linear_solver != "amg" else 0.0,
+            )
+        except SimulationError as exc:
+            if exc.step is not None:
+                raise
+            raise SimulationError(f"{scheme}: {exc.reason}", step=state.step) from exc
+        iterations += res.iterations
+        norms += res.gradient_norms
+        halvings += res.line_search_halvings
+        if not (res.converged and objective.relag(res.x)):
+            break
+        x0, f0 = res.x, None
+    res.iterations, res.gradient_norms, res.line_search_halvings = iterations, norms, halvings
     stats.newton_iterations = res.iterations
     stats.gradient_norms = res.gradient_norms
     stats.gradient_tolerance = max(atol, rtol * res.gradient_norms[0])

@@ -127,6 +127,12 @@ class Objective:
         q = self.positions(x)
         return any([t.after_iteration(q) for t in self._changing])
 
+    def relag(self, x: np.ndarray) -> bool:
+        """Newton converged at ``x``: every term's :meth:`Term.relag`; True when one asks for
+        another solve."""
+        q = self.positions(x)
+        return any([t.relag(q) for t in self.terms])
+
     @property
     def initializes_stiffness(self) -> bool:
         """Some term sets its stiffness from the rest of the objective at Newton's start."""

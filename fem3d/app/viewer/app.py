@@ -64,6 +64,7 @@ from fem3d.app.viewer.logic import (
     _surface_faces,
     camera_for_points,
     console_help,
+    plane_grid_segments,
     plane_quad,
     spring_segments,
 )
@@ -76,6 +77,7 @@ if TYPE_CHECKING:  # pragma: no cover - typing only
 __all__ = ["Viewer", "add_view_subcommand", "serve"]
 
 OBSTACLE_COLOR = (150, 150, 150)
+PLANE_GRID_COLOR = (90, 90, 90)
 
 SKIN_COLOR = (236, 196, 150)
 SIM_COLOR = (90, 160, 230)
@@ -203,6 +205,7 @@ class Viewer:
         self._spring_handle: Any = None
         self._obstacle_handles: list[Any] = []
         self._obstacle_shown: list[np.ndarray | None] = []
+        self._plane_grid_handles: list[Any] = []
         self._spring_key: tuple[int, ...] | None = None
         self._last_push = 0.0
         self._last_plot = 0.0
@@ -506,9 +509,9 @@ class Viewer:
     def _rebuild_obstacles(self) -> None:
         """Draw the contact scene's obstacles (simulation thread only): planes as squares
         three mesh diagonals wide, mesh obstacles at their current positions."""
-        for h in self._obstacle_handles:
+        for h in self._obstacle_handles + self._plane_grid_handles:
             h.remove()
-        self._obstacle_handles, self._obstacle_shown = [], []
+        self._obstacle_handles, self._obstacle_shown, self._plane_grid_handles = [], [], []
         contact = getattr(self._sim, "contact", None)
         if contact is None:
             return
@@ -521,6 +524,10 @@ class Viewer:
                 f"/fem3d/obstacles/plane_{k}", V, F, color=OBSTACLE_COLOR, opacity=0.5,
                 side="double", cast_shadow=False, receive_shadow=False))
             self._obstacle_shown.append(None)  # static
+            seg = plane_grid_segments(plane.point, plane.normal, center, half)
+            self._plane_grid_handles.append(self._server.scene.add_line_segments(
+                f"/fem3d/obstacles/plane_{k}_grid", seg, PLANE_GRID_COLOR, thickness=1.0,
+                thickness_units="screen"))
         for k, (_name, V, F) in enumerate(self._sim.obstacles()):
             V = np.asarray(V, dtype=np.float64)
             self._obstacle_handles.append(self._server.scene.add_mesh_simple(

@@ -421,6 +421,19 @@ def plane_quad(point: np.ndarray, normal: np.ndarray, center: np.ndarray,
     return np.asarray(corners), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
 
 
+def plane_grid_segments(point: np.ndarray, normal: np.ndarray, center: np.ndarray,
+                        half: float, cells: int = 12) -> np.ndarray:
+    """Grid lines on the square of :func:`plane_quad` (``cells`` squares a side), lifted
+    by ``1e-3 half`` along the normal so they draw over it: ``(2 (cells + 1), 2, 3)``."""
+    V, _ = plane_quad(point, normal, center, half)
+    n = np.asarray(normal, dtype=np.float64)
+    V = V + 1e-3 * half * n / np.linalg.norm(n)
+    s = np.linspace(0.0, 1.0, cells + 1)[:, None]
+    a0, a1 = V[0] + s * (V[1] - V[0]), V[3] + s * (V[2] - V[3])  # lines from edge 01 to 32
+    b0, b1 = V[0] + s * (V[3] - V[0]), V[1] + s * (V[2] - V[1])  # lines from edge 03 to 12
+    return np.concatenate([np.stack([a0, a1], 1), np.stack([b0, b1], 1)])
+
+
 def _surface_faces(sim: Any) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(sim.surface_faces, dtype=np.uint32))
 

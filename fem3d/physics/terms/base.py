@@ -181,6 +181,11 @@ class Term:
         opinion)."""
         return None
 
+    def relag(self, q: np.ndarray) -> bool:
+        """Called when Newton has converged at ``q``; True: the term lagged its data again
+        there and asks for another Newton solve (friction's re-lagging)."""
+        return False
+
     def with_model(self, model: Any) -> Term:
         """The term for a model with new material values (default: itself)."""
         return self
@@ -278,6 +283,9 @@ class TermGroup(Term):
     def newton_converged(self, dq: np.ndarray) -> bool | None:
         votes = [t.newton_converged(dq) for t in self.terms if overrides(t, "newton_converged")]
         return None if not votes else all(v is None or bool(v) for v in votes)
+
+    def relag(self, q: np.ndarray) -> bool:
+        return any([t.relag(q) for t in self.terms])
 
     def with_model(self, model: Any) -> TermGroup:
         terms = [t.with_model(model) for t in self.terms]

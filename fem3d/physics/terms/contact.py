@@ -176,17 +176,38 @@ class BarrierTerm(Term):
 
 
 class FrictionTerm(Term):
-    """IPC's lagged friction (smoothed Coulomb, ``mu``, static below ``eps_v dt`` of slip):
-    normal forces and tangent bases fixed at the step's start (:meth:`begin_step`), lagged
-    again when the barrier's stiffness is set at Newton's start (the normal forces scale with
-    it)."""
+    """IPC's lagged friction (smoothed Coulomb, ``mu_s``/``mu_k``, static below ``eps_v dt``
+    of slip): normal forces and tangent bases fixed at the step's start (:meth:`begin_step`),
+    lagged again when the barrier's stiffness is set at Newton's start (the normal forces
+    scale with it), and, with ``iterations > 1``, at each converged Newton solution until two
+    solutions differ by less than ``tolerance`` (PolyFEM's friction iterations).
+
+    Parameters
+    ----------
+    contact : ContactModel
+    iterations : int, optional
+        Newton solves per step at most (1: lagged once, at the step's start).
+    tolerance : float, optional
+        Re-lagging stops when a solve moves the positions by less than ``tolerance`` times
+        the scene's bounding-box diagonal (largest vertex coordinate change).
+    """
 
     name = "friction"
     allows_lagged_matrix = False
 
-    def __init__(self, contact: ContactModel) -> None:
+    def __init__(self, contact: ContactModel, *, iterations: int = 1,
+                 tolerance: float = 1e-6) -> None:
+        if int(iterations) < 1:
+            raise ParameterError(f"contact.friction_iterations must be >= 1, got {iterations}")
+        tolerance = float(tolerance)
+        if not (math.isfinite(tolerance) and tolerance > 0):
+            raise ParameterError(f"contact.friction_tolerance must be a finite number > 0, "
+                                 f"got {tolerance}")
         self.contact = contact
+        self.iterations, self.tolerance = int(iterations), tolerance
         self._lag: tuple[np.ndarray, float, float] | None = None
+        self._basis: np.ndarray | None = None
+        self._solves = 0
         self._kappa_at_lag = math.nan
 
     def energy(self, q: np.ndarray) -> float:
@@ -204,11 +225,12 @@ class FrictionTerm(Term):
         """Lag the friction at the step's start (obstacles where they are at ``t``)."""
         q_t = np.asarray(step_map.q_t, dtype=np.float64).reshape(-1)
         self._lag = (q_t, step_map.t, step_map.dt)
+        self._basis, self._solves = None, 0
         self._relag()
 
     def _relag(self) -> None:
         q_t, t, dt = self._lag
-        self.contact.lag_friction(q_t, dt, t_start=t)
+        self.contact.lag_friction(q_t, dt, t_start=t, q_basis=self._basis)
         self._kappa_at_lag = self.contact.kappa
 
     def initialize_stiffness(self, q: np.ndarray, grad_rest: np.ndarray,
@@ -217,6 +239,22 @@ class FrictionTerm(Term):
         cm = self.contact
         if self._lag is not None and cm.mu > 0 and cm.kappa != self._kappa_at_lag:
             self._relag()
+
+    def relag(self, q: np.ndarray) -> bool:
+        """Newton converged at ``q``: lag the normal forces and bases there and ask for
+        another solve, unless the cap is reached, there is no friction, or ``q`` moved by
+        less than the tolerance since the last solve."""
+        self._solves += 1
+        if self._solves >= self.iterations or self._lag is None or self.contact.mu == 0.0:
+            return False
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        if self._basis is not None:
+            moved = float(np.abs(q - self._basis).max()) if q.size else 0.0
+            if moved < self.tolerance * self.contact.bbox_diagonal:
+                return False
+        self._basis = q.copy()
+        self._relag()
+        return True
 
 
 class ContactTerm(TermGroup):
@@ -229,15 +267,19 @@ class ContactTerm(TermGroup):
     contact : ContactModel
     tolerance, pattern_margin : float, optional
         The barrier's (:class:`BarrierTerm`).
+    friction_iterations, friction_tolerance : optional
+        The friction's re-lagging (:class:`FrictionTerm` ``iterations``, ``tolerance``).
     """
 
     name = "contact"
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
-                 pattern_margin: float = 4.0) -> None:
+                 pattern_margin: float = 4.0, friction_iterations: int = 1,
+                 friction_tolerance: float = 1e-6) -> None:
         self.contact = contact
         self.barrier = BarrierTerm(contact, tolerance=tolerance, pattern_margin=pattern_margin)
-        self.friction = FrictionTerm(contact)
+        self.friction = FrictionTerm(contact, iterations=friction_iterations,
+                                     tolerance=friction_tolerance)
         super().__init__([self.barrier, self.friction])
         self._initial = self.state_array()
 
