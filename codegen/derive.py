@@ -279,6 +279,9 @@ def material_module(name: str) -> ModuleSpec:
         name, "gradient", "Element gradient d(vol psi)/dx_e, vertex-major (12).", element_inputs,
         params, [("gradient", (12,), gradient, False)], prelude_F + P_steps))
 
+    kernels.append(_dgradient_dparams_kernel(name, d, element_inputs, params, D, vol,
+                                             prelude_F))
+
     stress_derivative = prelude_F + A_steps
     hess_doc = "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."
     kernels.append(make_kernel(
@@ -295,6 +298,34 @@ def material_module(name: str) -> ModuleSpec:
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),
                       info=material_info(name))
+
+
+@cache
+def stress_param_steps(name: str) -> tuple:
+    """CSE'd steps computing ``dP/dp`` (``dP_i_j_k`` for the ``k``-th parameter) from ``F``:
+    SymPy's derivative of the direct ``P`` with respect to each parameter."""
+    d = derive_material(name)
+    names, exprs = [], []
+    for k, p in enumerate(MATERIALS[name].PARAM_NAMES):
+        for i in range(3):
+            for j in range(3):
+                names.append(sp.Symbol(f"dP_{i}_{j}_{k}"))
+                exprs.append(sp.diff(d.P[i, j], d.params[p]))
+    return tuple(_cse_prelude(exprs, names, "p"))
+
+
+def _dgradient_dparams_kernel(name: str, d: MaterialDerivation, element_inputs, params,
+                              D: sp.Matrix, vol: sp.Symbol, prelude_F: list) -> KernelSpec:
+    """``d gradient / d params`` (12 x n_params): ``vol dP/dp : dphi_dX`` per parameter."""
+    n = len(d.params)
+    dP = [sp.Matrix(3, 3, lambda i, j, k=k: sp.Symbol(f"dP_{i}_{j}_{k}")) for k in range(n)]
+    out = [vol * sum(dP[k][c, j] * D[v, j] for j in range(3))
+           for v in range(4) for c in range(3) for k in range(n)]
+    return make_kernel(
+        name, "dgradient_dparams",
+        "Element gradient's derivative by each parameter, (12, n_params), vertex-major.",
+        element_inputs, params, [("dgradient_dparams", (12, n), out, False)],
+        prelude_F + list(stress_param_steps(name)))
 
 
 def _hessian_contraction(A: sp.Matrix, D: sp.Matrix, vol: sp.Symbol, prelude: list):
@@ -423,6 +454,10 @@ def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[l
         d = derive_material(module)
         params = [d.params[n] for n in MATERIALS[module].PARAM_NAMES]
         params = [s for m in d.inputs.values() for s in flatten(m)] + params
+        if kernel == "dpsi_dF_dparams":  # not a kernel: dP/dp (9, n_params), for the tests
+            names = MATERIALS[module].PARAM_NAMES
+            return flatten(d.F) + params, [[sp.diff(P, d.params[p]) for P in flatten(d.P)
+                                            for p in names]]
         if kernel in ("psi", "dpsi_dF", "d2psi_dF2"):
             out = {"psi": [d.psi], "dpsi_dF": flatten(d.P), "d2psi_dF2": flatten(d.dP_dF)}[kernel]
             return flatten(d.F) + params, [out]
@@ -436,6 +471,9 @@ def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[l
         gradient = [sp.diff(energy, s) for s in dofs]
         if kernel == "gradient":
             return symbols, [gradient]
+        if kernel == "dgradient_dparams":
+            names = MATERIALS[module].PARAM_NAMES
+            return symbols, [[sp.diff(g, d.params[p]) for g in gradient for p in names]]
         return symbols, [[sp.diff(g, s) for g in gradient for s in dofs]]
     raw = {"tet": _tet_raw, "spring": _spring_raw}[module]()
     inputs, params, outputs = raw[kernel]

@@ -187,6 +187,7 @@ def kernel_view_assemble(kernel: KernelSpec) -> bool:
     """Whether the C back end adds a fused ``*_assemble`` entry point for this kernel: element
     kernels of deformed positions ``x_e`` with one output (materials and tet geometry)."""
     return (kernel.module in (*MATERIALS, "tet") and bool(kernel.inputs)
+            and kernel.name != "dgradient_dparams"  # per element, not scattered
             and kernel.inputs[0].name == "x_e"
             and kernel.inputs[0].shape == (4, 3) and len(kernel.outputs) == 1)
 
@@ -205,7 +206,10 @@ def material_view(module: ModuleSpec, printer) -> dict | None:
         "shape_params", "positive", "description", "inversion", "psi_text", "psi_latex", "doc",
         "mapping_text")}
     return {**literals,
-            "mapping_code": [(p, printer.doprint(e)) for p, e in mapping.exprs.items()]}
+            "mapping_code": [(p, printer.doprint(e)) for p, e in mapping.exprs.items()],
+            "mapping_jacobian_code": [
+                (p, printer.doprint(sp.diff(e, mapping.E)), printer.doprint(sp.diff(e, mapping.nu)))
+                for p, e in mapping.exprs.items()]}
 
 
 def render_module(module: ModuleSpec, backend: str) -> str:

@@ -49,6 +49,7 @@ LAYERS: dict[str, tuple[str, ...] | str] = {
     "physics": ("errors", "kernels", "mesh", "io"),
     "solve": ("errors", "kernels", "physics"),
     "scene": ("errors", "io", "mesh", "kernels", "physics", "solve"),
+    "diff": ("errors", "kernels", "physics", "solve", "scene"),  # adjoint gradients
     "simulation": (*_BELOW_RUN, "assignment"),  # anything but app
     "assignment": (*_BELOW_RUN, "simulation"),  # anything but app
     "app": ANYTHING,

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sympy as sp
-from fem3d._generated import MODULES
 
 from codegen.derive import reference_outputs
 from codegen.materials import MATERIALS
+from fem3d._generated import MODULES
 from fem3d.kernels.backend import c_extension
 from fem3d.kernels.dispatch import kernel_module, material_kernels
 
@@ -152,6 +152,10 @@ def _chain_rule_reference(module: str, kernel: str, args: tuple, m: int) -> list
     if kernel == "gradient":
         P = evaluate_reference(module, "dpsi_dF", columns, m)[0].reshape(m, 3, 3)
         return [(vol[:, None, None] * np.einsum("mcj,mvj->mvc", P, dphi)).reshape(m, 12)]
+    if kernel == "dgradient_dparams":
+        dP = evaluate_reference(module, "dpsi_dF_dparams", columns, m)[0]
+        dP = dP.reshape(m, 3, 3, len(params))
+        return [(vol[:, None, None, None] * np.einsum("mcjk,mvj->mvck", dP, dphi)).reshape(m, -1)]
     A = evaluate_reference(module, "d2psi_dF2", columns, m)[0].reshape(m, 9, 9)
     return [_chain_rule_hessian(A, dphi, vol).reshape(m, 144)]
 
@@ -165,7 +169,7 @@ def test_generated_kernel_matches_sympy(module: str, kernel: str, backend: str) 
     result = getattr(kernel_module(module, backend), kernel)(*args)
     results = result if isinstance(result, tuple) else (result,)
     if module in MATERIALS and module not in DIRECT_REFERENCE and \
-            kernel in ("gradient", "hessian"):
+            kernel in ("gradient", "hessian", "dgradient_dparams"):
         references = _chain_rule_reference(module, kernel, args, m)
     else:
         references = evaluate_reference(module, kernel, columns, m)
@@ -258,6 +262,40 @@ def test_element_gradient_and_hessian_by_finite_differences(material: str, backe
     np.testing.assert_allclose(g, fd_g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
     np.testing.assert_allclose(H, fd_H, rtol=1e-4, atol=1e-6 * np.abs(H).max())
     np.testing.assert_allclose(H, H.transpose(0, 2, 1), atol=1e-12 * np.abs(H).max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_gradient_parameter_derivative_by_finite_differences(material: str,
+                                                             backend: str) -> None:
+    k = material_kernels(material, backend)
+    *extra, params = material_args(material, 12)
+    _, x, dphi, vol = random_elements(np.random.default_rng(4), 12)
+    G = k.dgradient_dparams(x, dphi, vol, *extra, params)
+    assert G.shape == (12, 12, len(params))
+    for j, p in enumerate(params):
+        h = 1e-6 * abs(p)
+        up, down = np.array(params, float), np.array(params, float)
+        up[j] += h
+        down[j] -= h
+        plus, minus = (k.gradient(x, dphi, vol, *extra, v) for v in (up, down))
+        fd = (plus - minus) / (2 * h)
+        np.testing.assert_allclose(G[:, :, j], fd, rtol=1e-5, atol=1e-7 * np.abs(G).max())
+
+
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_parameter_jacobian_of_E_nu_by_finite_differences(material: str) -> None:
+    from fem3d.physics.materials import parameters_from, parameters_jacobian_from
+
+    E, nu = 3.1e5, 0.27
+    jac = parameters_jacobian_from(material, E, nu)
+    for which, (dE, dnu) in ((0, (E * 1e-6, 0.0)), (1, (0.0, 1e-6))):
+        plus = parameters_from(material, E + dE, nu + dnu)
+        minus = parameters_from(material, E - dE, nu - dnu)
+        for p, (d_E, d_nu) in jac.items():
+            fd = (plus[p] - minus[p]) / (2 * (dE + dnu))
+            exact = (d_E, d_nu)[which]
+            assert abs(exact - fd) <= 1e-6 * max(abs(exact), abs(fd), 1e-12 * E), (p, which)
 
 
 def _chain_rule_hessian(A: np.ndarray, dphi: np.ndarray, vol: np.ndarray) -> np.ndarray:

@@ -26,7 +26,8 @@ import numpy as np
 from fem3d._generated import MATERIALS
 from fem3d.errors import ParameterError
 
-__all__ = ["MaterialInfo", "info", "names", "parameters_from", "validate_E_nu"]
+__all__ = ["MaterialInfo", "info", "names", "parameters_from", "parameters_jacobian_from",
+           "validate_E_nu"]
 
 
 @dataclass(frozen=True)
@@ -208,6 +209,23 @@ def parameters_from(
                                  f"{a.flat[int(np.flatnonzero(~(a > 0).ravel())[0])]}")
         out[key] = _plain(a)
     return out
+
+
+def parameters_jacobian_from(name: str, E, nu) -> dict[str, tuple]:
+    """``{p: (dp/dE, dp/dnu)}`` of the material's ``E, nu`` mapping (:func:`parameters_from`),
+    in ``info(name).param_names`` order.
+
+    The mapping is symbolic in the generator (``codegen/materials/<name>.py: from_E_nu``):
+    its derivatives are SymPy's, rendered into the generated module next to the mapping
+    (``parameters_jacobian_from_E_nu``). Shape parameters (e.g. Fung's ``b``) have zero
+    derivatives. Scalars give floats, ``(k,)`` arrays give ``(k,)`` arrays.
+    """
+    mod = _module(name)
+    E, nu = validate_E_nu(E, nu)
+    shape = np.broadcast(np.asarray(E), np.asarray(nu)).shape
+    jac = mod.parameters_jacobian_from_E_nu(E, nu)
+    return {p: tuple(_plain(np.broadcast_to(np.asarray(d, dtype=np.float64), shape).copy())
+                     for d in jac[p]) for p in info(name).param_names}
 
 
 def small_strain_lame(name: str, values: Mapping[str, float | np.ndarray],

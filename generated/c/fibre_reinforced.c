@@ -719,6 +719,208 @@ static PyObject *py_fibre_reinforced_gradient_assemble(PyObject *self, PyObject 
                         12);
 }
 
+// Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
+// outputs: dgradient_dparams (m, 12, 4); operation count per element: 550
+static inline void fibre_reinforced_dgradient_dparams_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    const double k1 = params[2];
+    const double k2 = params[3];
+    (void)params;
+    // inputs
+    const double *restrict in_x_e = in[0];
+    const double x_0_0 = in_x_e[0];
+    const double x_0_1 = in_x_e[1];
+    const double x_0_2 = in_x_e[2];
+    const double x_1_0 = in_x_e[3];
+    const double x_1_1 = in_x_e[4];
+    const double x_1_2 = in_x_e[5];
+    const double x_2_0 = in_x_e[6];
+    const double x_2_1 = in_x_e[7];
+    const double x_2_2 = in_x_e[8];
+    const double x_3_0 = in_x_e[9];
+    const double x_3_1 = in_x_e[10];
+    const double x_3_2 = in_x_e[11];
+    const double *restrict in_dphi_dX = in[1];
+    const double dphi_0_0 = in_dphi_dX[0];
+    const double dphi_0_1 = in_dphi_dX[1];
+    const double dphi_0_2 = in_dphi_dX[2];
+    const double dphi_1_0 = in_dphi_dX[3];
+    const double dphi_1_1 = in_dphi_dX[4];
+    const double dphi_1_2 = in_dphi_dX[5];
+    const double dphi_2_0 = in_dphi_dX[6];
+    const double dphi_2_1 = in_dphi_dX[7];
+    const double dphi_2_2 = in_dphi_dX[8];
+    const double dphi_3_0 = in_dphi_dX[9];
+    const double dphi_3_1 = in_dphi_dX[10];
+    const double dphi_3_2 = in_dphi_dX[11];
+    const double *restrict in_vol = in[2];
+    const double vol = in_vol[0];
+    const double *restrict in_a = in[3];
+    const double a_0 = in_a[0];
+    const double a_1 = in_a[1];
+    const double a_2 = in_a[2];
+    // intermediates (84)
+    const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
+    const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
+    const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
+    const double F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1;
+    const double F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1;
+    const double F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1;
+    const double F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2;
+    const double F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2;
+    const double F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
+    const double p0 = F_1_1*F_2_2;
+    const double p1 = F_1_2*F_2_1;
+    const double p2 = F_1_2*F_2_0;
+    const double p3 = F_1_0*F_2_1;
+    const double p4 = F_1_0*F_2_2;
+    const double p5 = F_1_1*F_2_0;
+    const double p6 = F_0_0*p0 - F_0_0*p1 + F_0_1*p2 - F_0_1*p4 + F_0_2*p3 - F_0_2*p5;
+    const double p7 = (1.0/(p6));
+    const double p8 = p7*(p0 - p1);
+    const double p9 = p7*(-p2 + p4);
+    const double p10 = p7*(p3 - p5);
+    const double p11 = p7*(F_0_1*F_2_2 - F_0_2*F_2_1);
+    const double p12 = p7*(F_0_0*F_2_2 - F_0_2*F_2_0);
+    const double p13 = p7*(F_0_0*F_2_1 - F_0_1*F_2_0);
+    const double p14 = p7*(F_0_1*F_1_2 - F_0_2*F_1_1);
+    const double p15 = p7*(F_0_0*F_1_2 - F_0_2*F_1_0);
+    const double p16 = p7*(F_0_0*F_1_1 - F_0_1*F_1_0);
+    const double p17 = log(p6);
+    const double p18 = (1.0/(((a_0*a_0) + (a_1*a_1) + (a_2*a_2))));
+    const double p19 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1;
+    const double p20 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2;
+    const double p21 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2;
+    const double p22 = -p18*(a_0*(a_0*((F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)) + a_1*p19 + a_2*p20) + a_1*(a_0*p19 + a_1*((F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)) + a_2*p21) + a_2*(a_0*p20 + a_1*p21 + a_2*((F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)))) + 1;
+    const double p23 = exp(k2*(p22*p22));
+    const double p24 = p22*(p23 - 1);
+    const double p25 = 2*p18;
+    const double p26 = p25*(F_0_0*a_0 + F_0_1*a_1 + F_0_2*a_2);
+    const double p27 = a_0*p26;
+    const double p28 = p24*p26;
+    const double p29 = F_1_0*a_0 + F_1_1*a_1 + F_1_2*a_2;
+    const double p30 = p24*p25;
+    const double p31 = p29*p30;
+    const double p32 = F_2_0*a_0 + F_2_1*a_1 + F_2_2*a_2;
+    const double p33 = p30*p32;
+    const double p34 = k1*(p22*p22*p22)*p23;
+    const double p35 = p26*p34;
+    const double p36 = p25*p34;
+    const double p37 = p29*p36;
+    const double p38 = p32*p36;
+    const double dP_0_0_0 = F_0_0 - p8;
+    const double dP_0_1_0 = F_0_1 + p9;
+    const double dP_0_2_0 = F_0_2 - p10;
+    const double dP_1_0_0 = F_1_0 + p11;
+    const double dP_1_1_0 = F_1_1 - p12;
+    const double dP_1_2_0 = F_1_2 + p13;
+    const double dP_2_0_0 = F_2_0 - p14;
+    const double dP_2_1_0 = F_2_1 + p15;
+    const double dP_2_2_0 = F_2_2 - p16;
+    const double dP_0_0_1 = p17*p8;
+    const double dP_0_1_1 = -p17*p9;
+    const double dP_0_2_1 = p10*p17;
+    const double dP_1_0_1 = -p11*p17;
+    const double dP_1_1_1 = p12*p17;
+    const double dP_1_2_1 = -p13*p17;
+    const double dP_2_0_1 = p14*p17;
+    const double dP_2_1_1 = -p15*p17;
+    const double dP_2_2_1 = p16*p17;
+    const double dP_0_0_2 = -p24*p27;
+    const double dP_0_1_2 = -a_1*p28;
+    const double dP_0_2_2 = -a_2*p28;
+    const double dP_1_0_2 = -a_0*p31;
+    const double dP_1_1_2 = -a_1*p31;
+    const double dP_1_2_2 = -a_2*p31;
+    const double dP_2_0_2 = -a_0*p33;
+    const double dP_2_1_2 = -a_1*p33;
+    const double dP_2_2_2 = -a_2*p33;
+    const double dP_0_0_3 = -p27*p34;
+    const double dP_0_1_3 = -a_1*p35;
+    const double dP_0_2_3 = -a_2*p35;
+    const double dP_1_0_3 = -a_0*p37;
+    const double dP_1_1_3 = -a_1*p37;
+    const double dP_1_2_3 = -a_2*p37;
+    const double dP_2_0_3 = -a_0*p38;
+    const double dP_2_1_3 = -a_1*p38;
+    const double dP_2_2_3 = -a_2*p38;
+    // outputs
+    double *restrict out_dgradient_dparams = out[0];
+    out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2);
+    out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2);
+    out_dgradient_dparams[2] = vol*(dP_0_0_2*dphi_0_0 + dP_0_1_2*dphi_0_1 + dP_0_2_2*dphi_0_2);
+    out_dgradient_dparams[3] = vol*(dP_0_0_3*dphi_0_0 + dP_0_1_3*dphi_0_1 + dP_0_2_3*dphi_0_2);
+    out_dgradient_dparams[4] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2);
+    out_dgradient_dparams[5] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2);
+    out_dgradient_dparams[6] = vol*(dP_1_0_2*dphi_0_0 + dP_1_1_2*dphi_0_1 + dP_1_2_2*dphi_0_2);
+    out_dgradient_dparams[7] = vol*(dP_1_0_3*dphi_0_0 + dP_1_1_3*dphi_0_1 + dP_1_2_3*dphi_0_2);
+    out_dgradient_dparams[8] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2);
+    out_dgradient_dparams[9] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2);
+    out_dgradient_dparams[10] = vol*(dP_2_0_2*dphi_0_0 + dP_2_1_2*dphi_0_1 + dP_2_2_2*dphi_0_2);
+    out_dgradient_dparams[11] = vol*(dP_2_0_3*dphi_0_0 + dP_2_1_3*dphi_0_1 + dP_2_2_3*dphi_0_2);
+    out_dgradient_dparams[12] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2);
+    out_dgradient_dparams[13] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2);
+    out_dgradient_dparams[14] = vol*(dP_0_0_2*dphi_1_0 + dP_0_1_2*dphi_1_1 + dP_0_2_2*dphi_1_2);
+    out_dgradient_dparams[15] = vol*(dP_0_0_3*dphi_1_0 + dP_0_1_3*dphi_1_1 + dP_0_2_3*dphi_1_2);
+    out_dgradient_dparams[16] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2);
+    out_dgradient_dparams[17] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2);
+    out_dgradient_dparams[18] = vol*(dP_1_0_2*dphi_1_0 + dP_1_1_2*dphi_1_1 + dP_1_2_2*dphi_1_2);
+    out_dgradient_dparams[19] = vol*(dP_1_0_3*dphi_1_0 + dP_1_1_3*dphi_1_1 + dP_1_2_3*dphi_1_2);
+    out_dgradient_dparams[20] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2);
+    out_dgradient_dparams[21] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2);
+    out_dgradient_dparams[22] = vol*(dP_2_0_2*dphi_1_0 + dP_2_1_2*dphi_1_1 + dP_2_2_2*dphi_1_2);
+    out_dgradient_dparams[23] = vol*(dP_2_0_3*dphi_1_0 + dP_2_1_3*dphi_1_1 + dP_2_2_3*dphi_1_2);
+    out_dgradient_dparams[24] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2);
+    out_dgradient_dparams[25] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2);
+    out_dgradient_dparams[26] = vol*(dP_0_0_2*dphi_2_0 + dP_0_1_2*dphi_2_1 + dP_0_2_2*dphi_2_2);
+    out_dgradient_dparams[27] = vol*(dP_0_0_3*dphi_2_0 + dP_0_1_3*dphi_2_1 + dP_0_2_3*dphi_2_2);
+    out_dgradient_dparams[28] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2);
+    out_dgradient_dparams[29] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2);
+    out_dgradient_dparams[30] = vol*(dP_1_0_2*dphi_2_0 + dP_1_1_2*dphi_2_1 + dP_1_2_2*dphi_2_2);
+    out_dgradient_dparams[31] = vol*(dP_1_0_3*dphi_2_0 + dP_1_1_3*dphi_2_1 + dP_1_2_3*dphi_2_2);
+    out_dgradient_dparams[32] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2);
+    out_dgradient_dparams[33] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2);
+    out_dgradient_dparams[34] = vol*(dP_2_0_2*dphi_2_0 + dP_2_1_2*dphi_2_1 + dP_2_2_2*dphi_2_2);
+    out_dgradient_dparams[35] = vol*(dP_2_0_3*dphi_2_0 + dP_2_1_3*dphi_2_1 + dP_2_2_3*dphi_2_2);
+    out_dgradient_dparams[36] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2);
+    out_dgradient_dparams[37] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2);
+    out_dgradient_dparams[38] = vol*(dP_0_0_2*dphi_3_0 + dP_0_1_2*dphi_3_1 + dP_0_2_2*dphi_3_2);
+    out_dgradient_dparams[39] = vol*(dP_0_0_3*dphi_3_0 + dP_0_1_3*dphi_3_1 + dP_0_2_3*dphi_3_2);
+    out_dgradient_dparams[40] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2);
+    out_dgradient_dparams[41] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2);
+    out_dgradient_dparams[42] = vol*(dP_1_0_2*dphi_3_0 + dP_1_1_2*dphi_3_1 + dP_1_2_2*dphi_3_2);
+    out_dgradient_dparams[43] = vol*(dP_1_0_3*dphi_3_0 + dP_1_1_3*dphi_3_1 + dP_1_2_3*dphi_3_2);
+    out_dgradient_dparams[44] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2);
+    out_dgradient_dparams[45] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
+    out_dgradient_dparams[46] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2);
+    out_dgradient_dparams[47] = vol*(dP_2_0_3*dphi_3_0 + dP_2_1_3*dphi_3_1 + dP_2_2_3*dphi_3_2);
+}
+
+static void fibre_reinforced_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, inputs[3] + 3 * e, };
+        double *out[] = { outputs[0] + 48 * e, };
+        fibre_reinforced_dgradient_dparams_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_fibre_reinforced_dgradient_dparams(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 12, 12, 1, 3, };
+    static const Py_ssize_t output_sizes[] = { 48, };
+    (void)self;
+    return run_kernel(args, "fibre_reinforced_dgradient_dparams", fibre_reinforced_dgradient_dparams,
+                      4, input_sizes, 4,
+                      1, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1345

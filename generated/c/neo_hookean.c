@@ -616,6 +616,147 @@ static PyObject *py_neo_hookean_gradient_assemble(PyObject *self, PyObject *args
                         12);
 }
 
+// Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
+// outputs: dgradient_dparams (m, 12, 2); operation count per element: 322
+static inline void neo_hookean_dgradient_dparams_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double C = params[0];
+    const double D = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_x_e = in[0];
+    const double x_0_0 = in_x_e[0];
+    const double x_0_1 = in_x_e[1];
+    const double x_0_2 = in_x_e[2];
+    const double x_1_0 = in_x_e[3];
+    const double x_1_1 = in_x_e[4];
+    const double x_1_2 = in_x_e[5];
+    const double x_2_0 = in_x_e[6];
+    const double x_2_1 = in_x_e[7];
+    const double x_2_2 = in_x_e[8];
+    const double x_3_0 = in_x_e[9];
+    const double x_3_1 = in_x_e[10];
+    const double x_3_2 = in_x_e[11];
+    const double *restrict in_dphi_dX = in[1];
+    const double dphi_0_0 = in_dphi_dX[0];
+    const double dphi_0_1 = in_dphi_dX[1];
+    const double dphi_0_2 = in_dphi_dX[2];
+    const double dphi_1_0 = in_dphi_dX[3];
+    const double dphi_1_1 = in_dphi_dX[4];
+    const double dphi_1_2 = in_dphi_dX[5];
+    const double dphi_2_0 = in_dphi_dX[6];
+    const double dphi_2_1 = in_dphi_dX[7];
+    const double dphi_2_2 = in_dphi_dX[8];
+    const double dphi_3_0 = in_dphi_dX[9];
+    const double dphi_3_1 = in_dphi_dX[10];
+    const double dphi_3_2 = in_dphi_dX[11];
+    const double *restrict in_vol = in[2];
+    const double vol = in_vol[0];
+    // intermediates (53)
+    const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
+    const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
+    const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
+    const double F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1;
+    const double F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1;
+    const double F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1;
+    const double F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2;
+    const double F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2;
+    const double F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
+    const double p0 = F_1_1*F_2_2;
+    const double p1 = F_1_2*F_2_1;
+    const double p2 = p0 - p1;
+    const double p3 = F_0_0*p0;
+    const double p4 = F_1_2*F_2_0;
+    const double p5 = F_0_1*p4;
+    const double p6 = F_1_0*F_2_1;
+    const double p7 = F_0_2*p6;
+    const double p8 = F_0_0*p1;
+    const double p9 = F_1_0*F_2_2;
+    const double p10 = F_0_1*p9;
+    const double p11 = F_1_1*F_2_0;
+    const double p12 = F_0_2*p11;
+    const double p13 = -p10 - p12 + p3 + p5 + p7 - p8;
+    const double rcbrt_p13 = (fem3d_rcbrt(p13));
+    const double p14 = (1.0/3.0)*((F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2))/p13;
+    const double p15 = 2*(rcbrt_p13*rcbrt_p13);
+    const double p16 = -p4 + p9;
+    const double p17 = -p11 + p6;
+    const double p18 = F_0_1*F_2_2 - F_0_2*F_2_1;
+    const double p19 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double p20 = F_0_0*F_2_1 - F_0_1*F_2_0;
+    const double p21 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double p22 = F_0_0*F_1_2 - F_0_2*F_1_0;
+    const double p23 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double p24 = 2*p10 + 2*p12 - 2*p3 - 2*p5 - 2*p7 + 2*p8 + 2;
+    const double dP_0_0_0 = p15*(F_0_0 - p14*p2);
+    const double dP_0_1_0 = p15*(F_0_1 + p14*p16);
+    const double dP_0_2_0 = p15*(F_0_2 - p14*p17);
+    const double dP_1_0_0 = p15*(F_1_0 + p14*p18);
+    const double dP_1_1_0 = p15*(F_1_1 - p14*p19);
+    const double dP_1_2_0 = p15*(F_1_2 + p14*p20);
+    const double dP_2_0_0 = p15*(F_2_0 - p14*p21);
+    const double dP_2_1_0 = p15*(F_2_1 + p14*p22);
+    const double dP_2_2_0 = p15*(F_2_2 - p14*p23);
+    const double dP_0_0_1 = -p2*p24;
+    const double dP_0_1_1 = p16*p24;
+    const double dP_0_2_1 = -p17*p24;
+    const double dP_1_0_1 = p18*p24;
+    const double dP_1_1_1 = -p19*p24;
+    const double dP_1_2_1 = p20*p24;
+    const double dP_2_0_1 = -p21*p24;
+    const double dP_2_1_1 = p22*p24;
+    const double dP_2_2_1 = -p23*p24;
+    // outputs
+    double *restrict out_dgradient_dparams = out[0];
+    out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2);
+    out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2);
+    out_dgradient_dparams[2] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2);
+    out_dgradient_dparams[3] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2);
+    out_dgradient_dparams[4] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2);
+    out_dgradient_dparams[5] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2);
+    out_dgradient_dparams[6] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2);
+    out_dgradient_dparams[7] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2);
+    out_dgradient_dparams[8] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2);
+    out_dgradient_dparams[9] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2);
+    out_dgradient_dparams[10] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2);
+    out_dgradient_dparams[11] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2);
+    out_dgradient_dparams[12] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2);
+    out_dgradient_dparams[13] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2);
+    out_dgradient_dparams[14] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2);
+    out_dgradient_dparams[15] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2);
+    out_dgradient_dparams[16] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2);
+    out_dgradient_dparams[17] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2);
+    out_dgradient_dparams[18] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2);
+    out_dgradient_dparams[19] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2);
+    out_dgradient_dparams[20] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2);
+    out_dgradient_dparams[21] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2);
+    out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2);
+    out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
+}
+
+static void neo_hookean_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
+        double *out[] = { outputs[0] + 24 * e, };
+        neo_hookean_dgradient_dparams_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_neo_hookean_dgradient_dparams(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 12, 12, 1, };
+    static const Py_ssize_t output_sizes[] = { 24, };
+    (void)self;
+    return run_kernel(args, "neo_hookean_dgradient_dparams", neo_hookean_dgradient_dparams,
+                      3, input_sizes, 2,
+                      1, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1569

@@ -36,6 +36,17 @@ def parameters_from_E_nu(E, nu):
     }
 
 
+def parameters_jacobian_from_E_nu(E, nu):
+    """``(dp/dE, dp/dnu)`` of each parameter ``p`` of :func:`parameters_from_E_nu` (SymPy's
+    derivative of the mapping; a constant is returned as a number)."""
+    return {
+        "mu": ((1.0/((2*nu + 2))), -2*E/((2*nu + 2)**2)),
+        "lam": (nu/((1 - 2*nu)*(nu + 1)), -E*nu/((1 - 2*nu)*((nu + 1)**2)) + 2*E*nu/(((1 - 2*nu)**2)*(nu + 1)) + E/((1 - 2*nu)*(nu + 1))),
+        "k1": (1, 0),
+        "k2": (0, 0),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ("a", (3,)), ),
@@ -66,6 +77,12 @@ SIGNATURES = {
         "params": ("mu", "lam", "k1", "k2", ),
         "outputs": (("gradient", (12,)), ),
         "op_count": 263,
+    },
+    "dgradient_dparams": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ("a", (3,)), ),
+        "params": ("mu", "lam", "k1", "k2", ),
+        "outputs": (("dgradient_dparams", (12, 4)), ),
+        "op_count": 550,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ("a", (3,)), ),
@@ -652,6 +669,197 @@ def gradient(x_e, dphi_dX, vol, a, params):
     _out_gradient[10] = vol*(P_1_0*dphi_3_0 + P_1_1*dphi_3_1 + P_1_2*dphi_3_2)
     _out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2)
     return _finish(_out_gradient, m, (12,))
+
+
+def dgradient_dparams(x_e, dphi_dX, vol, a, params):
+    """Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    a : (m, 3) float64
+        per-element material input a.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam, k1, k2), shared or per element.
+
+    Returns
+    -------
+    dgradient_dparams : (m, 12, 4) float64
+
+    Operation count per element: 550.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, _in_a, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), (a, "a", (3,)), )
+    mu, lam, k1, k2, = _params(params, ('mu', 'lam', 'k1', 'k2'), m)
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    a_0 = _in_a[0]
+    a_1 = _in_a[1]
+    a_2 = _in_a[2]
+    # intermediates (84)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    p0 = F_1_1*F_2_2
+    p1 = F_1_2*F_2_1
+    p2 = F_1_2*F_2_0
+    p3 = F_1_0*F_2_1
+    p4 = F_1_0*F_2_2
+    p5 = F_1_1*F_2_0
+    p6 = F_0_0*p0 - F_0_0*p1 + F_0_1*p2 - F_0_1*p4 + F_0_2*p3 - F_0_2*p5
+    p7 = (1.0/(p6))
+    p8 = p7*(p0 - p1)
+    p9 = p7*(-p2 + p4)
+    p10 = p7*(p3 - p5)
+    p11 = p7*(F_0_1*F_2_2 - F_0_2*F_2_1)
+    p12 = p7*(F_0_0*F_2_2 - F_0_2*F_2_0)
+    p13 = p7*(F_0_0*F_2_1 - F_0_1*F_2_0)
+    p14 = p7*(F_0_1*F_1_2 - F_0_2*F_1_1)
+    p15 = p7*(F_0_0*F_1_2 - F_0_2*F_1_0)
+    p16 = p7*(F_0_0*F_1_1 - F_0_1*F_1_0)
+    p17 = numpy.log(p6)
+    p18 = (1.0/(((a_0*a_0) + (a_1*a_1) + (a_2*a_2))))
+    p19 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
+    p20 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
+    p21 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
+    p22 = -p18*(a_0*(a_0*((F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)) + a_1*p19 + a_2*p20) + a_1*(a_0*p19 + a_1*((F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)) + a_2*p21) + a_2*(a_0*p20 + a_1*p21 + a_2*((F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)))) + 1
+    p23 = numpy.exp(k2*(p22*p22))
+    p24 = p22*(p23 - 1)
+    p25 = 2*p18
+    p26 = p25*(F_0_0*a_0 + F_0_1*a_1 + F_0_2*a_2)
+    p27 = a_0*p26
+    p28 = p24*p26
+    p29 = F_1_0*a_0 + F_1_1*a_1 + F_1_2*a_2
+    p30 = p24*p25
+    p31 = p29*p30
+    p32 = F_2_0*a_0 + F_2_1*a_1 + F_2_2*a_2
+    p33 = p30*p32
+    p34 = k1*(p22*p22*p22)*p23
+    p35 = p26*p34
+    p36 = p25*p34
+    p37 = p29*p36
+    p38 = p32*p36
+    dP_0_0_0 = F_0_0 - p8
+    dP_0_1_0 = F_0_1 + p9
+    dP_0_2_0 = F_0_2 - p10
+    dP_1_0_0 = F_1_0 + p11
+    dP_1_1_0 = F_1_1 - p12
+    dP_1_2_0 = F_1_2 + p13
+    dP_2_0_0 = F_2_0 - p14
+    dP_2_1_0 = F_2_1 + p15
+    dP_2_2_0 = F_2_2 - p16
+    dP_0_0_1 = p17*p8
+    dP_0_1_1 = -p17*p9
+    dP_0_2_1 = p10*p17
+    dP_1_0_1 = -p11*p17
+    dP_1_1_1 = p12*p17
+    dP_1_2_1 = -p13*p17
+    dP_2_0_1 = p14*p17
+    dP_2_1_1 = -p15*p17
+    dP_2_2_1 = p16*p17
+    dP_0_0_2 = -p24*p27
+    dP_0_1_2 = -a_1*p28
+    dP_0_2_2 = -a_2*p28
+    dP_1_0_2 = -a_0*p31
+    dP_1_1_2 = -a_1*p31
+    dP_1_2_2 = -a_2*p31
+    dP_2_0_2 = -a_0*p33
+    dP_2_1_2 = -a_1*p33
+    dP_2_2_2 = -a_2*p33
+    dP_0_0_3 = -p27*p34
+    dP_0_1_3 = -a_1*p35
+    dP_0_2_3 = -a_2*p35
+    dP_1_0_3 = -a_0*p37
+    dP_1_1_3 = -a_1*p37
+    dP_1_2_3 = -a_2*p37
+    dP_2_0_3 = -a_0*p38
+    dP_2_1_3 = -a_1*p38
+    dP_2_2_3 = -a_2*p38
+    # outputs
+    _out_dgradient_dparams = numpy.empty((48, m))
+    _out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2)
+    _out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2)
+    _out_dgradient_dparams[2] = vol*(dP_0_0_2*dphi_0_0 + dP_0_1_2*dphi_0_1 + dP_0_2_2*dphi_0_2)
+    _out_dgradient_dparams[3] = vol*(dP_0_0_3*dphi_0_0 + dP_0_1_3*dphi_0_1 + dP_0_2_3*dphi_0_2)
+    _out_dgradient_dparams[4] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2)
+    _out_dgradient_dparams[5] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2)
+    _out_dgradient_dparams[6] = vol*(dP_1_0_2*dphi_0_0 + dP_1_1_2*dphi_0_1 + dP_1_2_2*dphi_0_2)
+    _out_dgradient_dparams[7] = vol*(dP_1_0_3*dphi_0_0 + dP_1_1_3*dphi_0_1 + dP_1_2_3*dphi_0_2)
+    _out_dgradient_dparams[8] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2)
+    _out_dgradient_dparams[9] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2)
+    _out_dgradient_dparams[10] = vol*(dP_2_0_2*dphi_0_0 + dP_2_1_2*dphi_0_1 + dP_2_2_2*dphi_0_2)
+    _out_dgradient_dparams[11] = vol*(dP_2_0_3*dphi_0_0 + dP_2_1_3*dphi_0_1 + dP_2_2_3*dphi_0_2)
+    _out_dgradient_dparams[12] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2)
+    _out_dgradient_dparams[13] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2)
+    _out_dgradient_dparams[14] = vol*(dP_0_0_2*dphi_1_0 + dP_0_1_2*dphi_1_1 + dP_0_2_2*dphi_1_2)
+    _out_dgradient_dparams[15] = vol*(dP_0_0_3*dphi_1_0 + dP_0_1_3*dphi_1_1 + dP_0_2_3*dphi_1_2)
+    _out_dgradient_dparams[16] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2)
+    _out_dgradient_dparams[17] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2)
+    _out_dgradient_dparams[18] = vol*(dP_1_0_2*dphi_1_0 + dP_1_1_2*dphi_1_1 + dP_1_2_2*dphi_1_2)
+    _out_dgradient_dparams[19] = vol*(dP_1_0_3*dphi_1_0 + dP_1_1_3*dphi_1_1 + dP_1_2_3*dphi_1_2)
+    _out_dgradient_dparams[20] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2)
+    _out_dgradient_dparams[21] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2)
+    _out_dgradient_dparams[22] = vol*(dP_2_0_2*dphi_1_0 + dP_2_1_2*dphi_1_1 + dP_2_2_2*dphi_1_2)
+    _out_dgradient_dparams[23] = vol*(dP_2_0_3*dphi_1_0 + dP_2_1_3*dphi_1_1 + dP_2_2_3*dphi_1_2)
+    _out_dgradient_dparams[24] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2)
+    _out_dgradient_dparams[25] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2)
+    _out_dgradient_dparams[26] = vol*(dP_0_0_2*dphi_2_0 + dP_0_1_2*dphi_2_1 + dP_0_2_2*dphi_2_2)
+    _out_dgradient_dparams[27] = vol*(dP_0_0_3*dphi_2_0 + dP_0_1_3*dphi_2_1 + dP_0_2_3*dphi_2_2)
+    _out_dgradient_dparams[28] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2)
+    _out_dgradient_dparams[29] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2)
+    _out_dgradient_dparams[30] = vol*(dP_1_0_2*dphi_2_0 + dP_1_1_2*dphi_2_1 + dP_1_2_2*dphi_2_2)
+    _out_dgradient_dparams[31] = vol*(dP_1_0_3*dphi_2_0 + dP_1_1_3*dphi_2_1 + dP_1_2_3*dphi_2_2)
+    _out_dgradient_dparams[32] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2)
+    _out_dgradient_dparams[33] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2)
+    _out_dgradient_dparams[34] = vol*(dP_2_0_2*dphi_2_0 + dP_2_1_2*dphi_2_1 + dP_2_2_2*dphi_2_2)
+    _out_dgradient_dparams[35] = vol*(dP_2_0_3*dphi_2_0 + dP_2_1_3*dphi_2_1 + dP_2_2_3*dphi_2_2)
+    _out_dgradient_dparams[36] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2)
+    _out_dgradient_dparams[37] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2)
+    _out_dgradient_dparams[38] = vol*(dP_0_0_2*dphi_3_0 + dP_0_1_2*dphi_3_1 + dP_0_2_2*dphi_3_2)
+    _out_dgradient_dparams[39] = vol*(dP_0_0_3*dphi_3_0 + dP_0_1_3*dphi_3_1 + dP_0_2_3*dphi_3_2)
+    _out_dgradient_dparams[40] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2)
+    _out_dgradient_dparams[41] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2)
+    _out_dgradient_dparams[42] = vol*(dP_1_0_2*dphi_3_0 + dP_1_1_2*dphi_3_1 + dP_1_2_2*dphi_3_2)
+    _out_dgradient_dparams[43] = vol*(dP_1_0_3*dphi_3_0 + dP_1_1_3*dphi_3_1 + dP_1_2_3*dphi_3_2)
+    _out_dgradient_dparams[44] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
+    _out_dgradient_dparams[45] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
+    _out_dgradient_dparams[46] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2)
+    _out_dgradient_dparams[47] = vol*(dP_2_0_3*dphi_3_0 + dP_2_1_3*dphi_3_1 + dP_2_2_3*dphi_3_2)
+    return _finish(_out_dgradient_dparams, m, (12, 4))
 
 
 def hessian(x_e, dphi_dX, vol, a, params):

@@ -35,6 +35,16 @@ def parameters_from_E_nu(E, nu):
     }
 
 
+def parameters_jacobian_from_E_nu(E, nu):
+    """``(dp/dE, dp/dnu)`` of each parameter ``p`` of :func:`parameters_from_E_nu` (SymPy's
+    derivative of the mapping; a constant is returned as a number)."""
+    return {
+        "mu": ((1.0/((2*nu + 2))), -2*E/((2*nu + 2)**2)),
+        "kappa": ((1.0/((3 - 6*nu))), 6*E/((3 - 6*nu)**2)),
+        "b": (0, 0),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ),
@@ -65,6 +75,12 @@ SIGNATURES = {
         "params": ("mu", "kappa", "b", ),
         "outputs": (("gradient", (12,)), ),
         "op_count": 229,
+    },
+    "dgradient_dparams": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("mu", "kappa", "b", ),
+        "outputs": (("dgradient_dparams", (12, 3)), ),
+        "op_count": 411,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
@@ -598,6 +614,171 @@ def gradient(x_e, dphi_dX, vol, params):
     _out_gradient[10] = vol*(P_1_0*dphi_3_0 + P_1_1*dphi_3_1 + P_1_2*dphi_3_2)
     _out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2)
     return _finish(_out_gradient, m, (12,))
+
+
+def dgradient_dparams(x_e, dphi_dX, vol, params):
+    """Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    params : (n_params,) or (m, n_params) float64
+        (mu, kappa, b), shared or per element.
+
+    Returns
+    -------
+    dgradient_dparams : (m, 12, 3) float64
+
+    Operation count per element: 411.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
+    mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    # intermediates (75)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    p0 = F_1_1*F_2_2
+    p1 = F_1_2*F_2_1
+    p2 = p0 - p1
+    p3 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    p4 = F_0_0*p0
+    p5 = F_1_2*F_2_0
+    p6 = F_0_1*p5
+    p7 = F_1_0*F_2_1
+    p8 = F_0_2*p7
+    p9 = F_0_0*p1
+    p10 = F_1_0*F_2_2
+    p11 = F_0_1*p10
+    p12 = F_1_1*F_2_0
+    p13 = F_0_2*p12
+    p14 = -p11 - p13 + p4 + p6 + p8 - p9
+    rcbrt_p14 = (numpy.cbrt(p14)**2/(p14))
+    p15 = (1/3)*p3/p14
+    p16 = (rcbrt_p14*rcbrt_p14)
+    p17 = -p16*p3 + 3
+    p18 = p16*numpy.exp(-b*p17)
+    p19 = p18*(F_0_0 - p15*p2)
+    p20 = p10 - p5
+    p21 = p18*(F_0_1 + p15*p20)
+    p22 = -p12 + p7
+    p23 = p18*(F_0_2 - p15*p22)
+    p24 = F_0_1*F_2_2 - F_0_2*F_2_1
+    p25 = p18*(F_1_0 + p15*p24)
+    p26 = F_0_0*F_2_2 - F_0_2*F_2_0
+    p27 = p18*(F_1_1 - p15*p26)
+    p28 = F_0_0*F_2_1 - F_0_1*F_2_0
+    p29 = p18*(F_1_2 + p15*p28)
+    p30 = F_0_1*F_1_2 - F_0_2*F_1_1
+    p31 = p18*(F_2_0 - p15*p30)
+    p32 = F_0_0*F_1_2 - F_0_2*F_1_0
+    p33 = p18*(F_2_1 + p15*p32)
+    p34 = F_0_0*F_1_1 - F_0_1*F_1_0
+    p35 = p18*(F_2_2 - p15*p34)
+    p36 = p11 + p13 - p4 - p6 - p8 + p9 + 1
+    p37 = mu*p17
+    dP_0_0_0 = p19
+    dP_0_1_0 = p21
+    dP_0_2_0 = p23
+    dP_1_0_0 = p25
+    dP_1_1_0 = p27
+    dP_1_2_0 = p29
+    dP_2_0_0 = p31
+    dP_2_1_0 = p33
+    dP_2_2_0 = p35
+    dP_0_0_1 = -p2*p36
+    dP_0_1_1 = p20*p36
+    dP_0_2_1 = -p22*p36
+    dP_1_0_1 = p24*p36
+    dP_1_1_1 = -p26*p36
+    dP_1_2_1 = p28*p36
+    dP_2_0_1 = -p30*p36
+    dP_2_1_1 = p32*p36
+    dP_2_2_1 = -p34*p36
+    dP_0_0_2 = -p19*p37
+    dP_0_1_2 = -p21*p37
+    dP_0_2_2 = -p23*p37
+    dP_1_0_2 = -p25*p37
+    dP_1_1_2 = -p27*p37
+    dP_1_2_2 = -p29*p37
+    dP_2_0_2 = -p31*p37
+    dP_2_1_2 = -p33*p37
+    dP_2_2_2 = -p35*p37
+    # outputs
+    _out_dgradient_dparams = numpy.empty((36, m))
+    _out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2)
+    _out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2)
+    _out_dgradient_dparams[2] = vol*(dP_0_0_2*dphi_0_0 + dP_0_1_2*dphi_0_1 + dP_0_2_2*dphi_0_2)
+    _out_dgradient_dparams[3] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2)
+    _out_dgradient_dparams[4] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2)
+    _out_dgradient_dparams[5] = vol*(dP_1_0_2*dphi_0_0 + dP_1_1_2*dphi_0_1 + dP_1_2_2*dphi_0_2)
+    _out_dgradient_dparams[6] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2)
+    _out_dgradient_dparams[7] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2)
+    _out_dgradient_dparams[8] = vol*(dP_2_0_2*dphi_0_0 + dP_2_1_2*dphi_0_1 + dP_2_2_2*dphi_0_2)
+    _out_dgradient_dparams[9] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2)
+    _out_dgradient_dparams[10] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2)
+    _out_dgradient_dparams[11] = vol*(dP_0_0_2*dphi_1_0 + dP_0_1_2*dphi_1_1 + dP_0_2_2*dphi_1_2)
+    _out_dgradient_dparams[12] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2)
+    _out_dgradient_dparams[13] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2)
+    _out_dgradient_dparams[14] = vol*(dP_1_0_2*dphi_1_0 + dP_1_1_2*dphi_1_1 + dP_1_2_2*dphi_1_2)
+    _out_dgradient_dparams[15] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2)
+    _out_dgradient_dparams[16] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2)
+    _out_dgradient_dparams[17] = vol*(dP_2_0_2*dphi_1_0 + dP_2_1_2*dphi_1_1 + dP_2_2_2*dphi_1_2)
+    _out_dgradient_dparams[18] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2)
+    _out_dgradient_dparams[19] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2)
+    _out_dgradient_dparams[20] = vol*(dP_0_0_2*dphi_2_0 + dP_0_1_2*dphi_2_1 + dP_0_2_2*dphi_2_2)
+    _out_dgradient_dparams[21] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2)
+    _out_dgradient_dparams[22] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2)
+    _out_dgradient_dparams[23] = vol*(dP_1_0_2*dphi_2_0 + dP_1_1_2*dphi_2_1 + dP_1_2_2*dphi_2_2)
+    _out_dgradient_dparams[24] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2)
+    _out_dgradient_dparams[25] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2)
+    _out_dgradient_dparams[26] = vol*(dP_2_0_2*dphi_2_0 + dP_2_1_2*dphi_2_1 + dP_2_2_2*dphi_2_2)
+    _out_dgradient_dparams[27] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2)
+    _out_dgradient_dparams[28] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2)
+    _out_dgradient_dparams[29] = vol*(dP_0_0_2*dphi_3_0 + dP_0_1_2*dphi_3_1 + dP_0_2_2*dphi_3_2)
+    _out_dgradient_dparams[30] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2)
+    _out_dgradient_dparams[31] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2)
+    _out_dgradient_dparams[32] = vol*(dP_1_0_2*dphi_3_0 + dP_1_1_2*dphi_3_1 + dP_1_2_2*dphi_3_2)
+    _out_dgradient_dparams[33] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
+    _out_dgradient_dparams[34] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
+    _out_dgradient_dparams[35] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2)
+    return _finish(_out_dgradient_dparams, m, (12, 3))
 
 
 def hessian(x_e, dphi_dX, vol, params):

@@ -34,6 +34,15 @@ def parameters_from_E_nu(E, nu):
     }
 
 
+def parameters_jacobian_from_E_nu(E, nu):
+    """``(dp/dE, dp/dnu)`` of each parameter ``p`` of :func:`parameters_from_E_nu` (SymPy's
+    derivative of the mapping; a constant is returned as a number)."""
+    return {
+        "mu": ((1.0/((2*nu + 2))), -2*E/((2*nu + 2)**2)),
+        "lam": (nu/((1 - 2*nu)*(nu + 1)), -E*nu/((1 - 2*nu)*((nu + 1)**2)) + 2*E*nu/(((1 - 2*nu)**2)*(nu + 1)) + E/((1 - 2*nu)*(nu + 1))),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ),
@@ -64,6 +73,12 @@ SIGNATURES = {
         "params": ("mu", "lam", ),
         "outputs": (("gradient", (12,)), ),
         "op_count": 155,
+    },
+    "dgradient_dparams": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("dgradient_dparams", (12, 2)), ),
+        "op_count": 219,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
@@ -479,6 +494,115 @@ def gradient(x_e, dphi_dX, vol, params):
     _out_gradient[10] = vol*(P_1_0*dphi_3_0 + P_1_1*dphi_3_1 + P_1_2*dphi_3_2)
     _out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2)
     return _finish(_out_gradient, m, (12,))
+
+
+def dgradient_dparams(x_e, dphi_dX, vol, params):
+    """Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dgradient_dparams : (m, 12, 2) float64
+
+    Operation count per element: 219.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
+    mu, lam, = _params(params, ('mu', 'lam'), m)
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    # intermediates (31)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    p0 = F_0_1 + F_1_0
+    p1 = F_0_2 + F_2_0
+    p2 = F_1_2 + F_2_1
+    p3 = F_0_0 + F_1_1 + F_2_2 - 3
+    dP_0_0_0 = 2*F_0_0 - 2
+    dP_0_1_0 = p0
+    dP_0_2_0 = p1
+    dP_1_0_0 = p0
+    dP_1_1_0 = 2*F_1_1 - 2
+    dP_1_2_0 = p2
+    dP_2_0_0 = p1
+    dP_2_1_0 = p2
+    dP_2_2_0 = 2*F_2_2 - 2
+    dP_0_0_1 = p3
+    dP_0_1_1 = 0
+    dP_0_2_1 = 0
+    dP_1_0_1 = 0
+    dP_1_1_1 = p3
+    dP_1_2_1 = 0
+    dP_2_0_1 = 0
+    dP_2_1_1 = 0
+    dP_2_2_1 = p3
+    # outputs
+    _out_dgradient_dparams = numpy.empty((24, m))
+    _out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2)
+    _out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2)
+    _out_dgradient_dparams[2] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2)
+    _out_dgradient_dparams[3] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2)
+    _out_dgradient_dparams[4] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2)
+    _out_dgradient_dparams[5] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2)
+    _out_dgradient_dparams[6] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2)
+    _out_dgradient_dparams[7] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2)
+    _out_dgradient_dparams[8] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2)
+    _out_dgradient_dparams[9] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2)
+    _out_dgradient_dparams[10] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2)
+    _out_dgradient_dparams[11] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2)
+    _out_dgradient_dparams[12] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2)
+    _out_dgradient_dparams[13] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2)
+    _out_dgradient_dparams[14] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2)
+    _out_dgradient_dparams[15] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2)
+    _out_dgradient_dparams[16] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2)
+    _out_dgradient_dparams[17] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2)
+    _out_dgradient_dparams[18] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2)
+    _out_dgradient_dparams[19] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2)
+    _out_dgradient_dparams[20] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2)
+    _out_dgradient_dparams[21] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2)
+    _out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
+    _out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
+    return _finish(_out_dgradient_dparams, m, (12, 2))
 
 
 def hessian(x_e, dphi_dX, vol, params):

@@ -35,6 +35,16 @@ def parameters_from_E_nu(E, nu):
     }
 
 
+def parameters_jacobian_from_E_nu(E, nu):
+    """``(dp/dE, dp/dnu)`` of each parameter ``p`` of :func:`parameters_from_E_nu` (SymPy's
+    derivative of the mapping; a constant is returned as a number)."""
+    return {
+        "C10": ((1/4)/(2*nu + 2), -1/2*E/((2*nu + 2)**2)),
+        "C01": ((1/4)/(2*nu + 2), -1/2*E/((2*nu + 2)**2)),
+        "kappa": ((1.0/((3 - 6*nu))), 6*E/((3 - 6*nu)**2)),
+    }
+
+
 SIGNATURES = {
     "psi": {
         "inputs": (("F", (3, 3)), ),
@@ -65,6 +75,12 @@ SIGNATURES = {
         "params": ("C10", "C01", "kappa", ),
         "outputs": (("gradient", (12,)), ),
         "op_count": 343,
+    },
+    "dgradient_dparams": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("C10", "C01", "kappa", ),
+        "outputs": (("dgradient_dparams", (12, 3)), ),
+        "op_count": 527,
     },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
@@ -709,6 +725,170 @@ def gradient(x_e, dphi_dX, vol, params):
     _out_gradient[10] = vol*(P_1_0*dphi_3_0 + P_1_1*dphi_3_1 + P_1_2*dphi_3_2)
     _out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2)
     return _finish(_out_gradient, m, (12,))
+
+
+def dgradient_dparams(x_e, dphi_dX, vol, params):
+    """Element gradient's derivative by each parameter, (12, n_params), vertex-major.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    params : (n_params,) or (m, n_params) float64
+        (C10, C01, kappa), shared or per element.
+
+    Returns
+    -------
+    dgradient_dparams : (m, 12, 3) float64
+
+    Operation count per element: 527.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
+    C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    # intermediates (74)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    p0 = F_1_1*F_2_2
+    p1 = F_1_2*F_2_1
+    p2 = p0 - p1
+    p3 = (F_0_0*F_0_0) + (F_1_0*F_1_0) + (F_2_0*F_2_0)
+    p4 = (F_0_1*F_0_1) + (F_1_1*F_1_1) + (F_2_1*F_2_1)
+    p5 = (F_0_2*F_0_2) + (F_1_2*F_1_2) + (F_2_2*F_2_2)
+    p6 = p3 + p4 + p5
+    p7 = F_0_0*p0
+    p8 = F_1_2*F_2_0
+    p9 = F_0_1*p8
+    p10 = F_1_0*F_2_1
+    p11 = F_0_2*p10
+    p12 = F_0_0*p1
+    p13 = F_1_0*F_2_2
+    p14 = F_0_1*p13
+    p15 = F_1_1*F_2_0
+    p16 = F_0_2*p15
+    p17 = p11 - p12 - p14 - p16 + p7 + p9
+    rcbrt_p17 = (numpy.cbrt(p17)**2/(p17))
+    p18 = (1.0/(p17))
+    p19 = (1/3)*p18
+    p20 = p19*p6
+    p21 = 2*(rcbrt_p17*rcbrt_p17)
+    p22 = p13 - p8
+    p23 = p10 - p15
+    p24 = F_0_1*F_2_2 - F_0_2*F_2_1
+    p25 = F_0_0*F_2_2 - F_0_2*F_2_0
+    p26 = F_0_0*F_2_1 - F_0_1*F_2_0
+    p27 = F_0_1*F_1_2 - F_0_2*F_1_1
+    p28 = F_0_0*F_1_2 - F_0_2*F_1_0
+    p29 = F_0_0*F_1_1 - F_0_1*F_1_0
+    p30 = F_0_0*F_0_1 + F_1_0*F_1_1 + F_2_0*F_2_1
+    p31 = F_0_0*F_0_2 + F_1_0*F_1_2 + F_2_0*F_2_2
+    p32 = F_0_1*F_0_2 + F_1_1*F_1_2 + F_2_1*F_2_2
+    p33 = (p3*p3) + 2*(p30*p30) + 2*(p31*p31) + 2*(p32*p32) + (p4*p4) + (p5*p5) - (p6*p6)
+    p34 = 2*rcbrt_p17/p17
+    p35 = p19*p33
+    p36 = -p11 + p12 + p14 + p16 - p7 - p9 + 1
+    dP_0_0_0 = p21*(F_0_0 - p2*p20)
+    dP_0_1_0 = p21*(F_0_1 + p20*p22)
+    dP_0_2_0 = p21*(F_0_2 - p20*p23)
+    dP_1_0_0 = p21*(F_1_0 + p20*p24)
+    dP_1_1_0 = p21*(F_1_1 - p20*p25)
+    dP_1_2_0 = p21*(F_1_2 + p20*p26)
+    dP_2_0_0 = p21*(F_2_0 - p20*p27)
+    dP_2_1_0 = p21*(F_2_1 + p20*p28)
+    dP_2_2_0 = p21*(F_2_2 - p20*p29)
+    dP_0_0_1 = p34*(-F_0_0*p3 + F_0_0*p6 - F_0_1*p30 - F_0_2*p31 + (1/3)*p18*p2*p33)
+    dP_0_1_1 = -p34*(F_0_0*p30 + F_0_1*p4 - F_0_1*p6 + F_0_2*p32 + p22*p35)
+    dP_0_2_1 = p34*(-F_0_0*p31 - F_0_1*p32 - F_0_2*p5 + F_0_2*p6 + (1/3)*p18*p23*p33)
+    dP_1_0_1 = -p34*(F_1_0*p3 - F_1_0*p6 + F_1_1*p30 + F_1_2*p31 + p24*p35)
+    dP_1_1_1 = p34*(-F_1_0*p30 - F_1_1*p4 + F_1_1*p6 - F_1_2*p32 + (1/3)*p18*p25*p33)
+    dP_1_2_1 = -p34*(F_1_0*p31 + F_1_1*p32 + F_1_2*p5 - F_1_2*p6 + p26*p35)
+    dP_2_0_1 = p34*(-F_2_0*p3 + F_2_0*p6 - F_2_1*p30 - F_2_2*p31 + (1/3)*p18*p27*p33)
+    dP_2_1_1 = -p34*(F_2_0*p30 + F_2_1*p4 - F_2_1*p6 + F_2_2*p32 + p28*p35)
+    dP_2_2_1 = p34*(-F_2_0*p31 - F_2_1*p32 - F_2_2*p5 + F_2_2*p6 + (1/3)*p18*p29*p33)
+    dP_0_0_2 = -p2*p36
+    dP_0_1_2 = p22*p36
+    dP_0_2_2 = -p23*p36
+    dP_1_0_2 = p24*p36
+    dP_1_1_2 = -p25*p36
+    dP_1_2_2 = p26*p36
+    dP_2_0_2 = -p27*p36
+    dP_2_1_2 = p28*p36
+    dP_2_2_2 = -p29*p36
+    # outputs
+    _out_dgradient_dparams = numpy.empty((36, m))
+    _out_dgradient_dparams[0] = vol*(dP_0_0_0*dphi_0_0 + dP_0_1_0*dphi_0_1 + dP_0_2_0*dphi_0_2)
+    _out_dgradient_dparams[1] = vol*(dP_0_0_1*dphi_0_0 + dP_0_1_1*dphi_0_1 + dP_0_2_1*dphi_0_2)
+    _out_dgradient_dparams[2] = vol*(dP_0_0_2*dphi_0_0 + dP_0_1_2*dphi_0_1 + dP_0_2_2*dphi_0_2)
+    _out_dgradient_dparams[3] = vol*(dP_1_0_0*dphi_0_0 + dP_1_1_0*dphi_0_1 + dP_1_2_0*dphi_0_2)
+    _out_dgradient_dparams[4] = vol*(dP_1_0_1*dphi_0_0 + dP_1_1_1*dphi_0_1 + dP_1_2_1*dphi_0_2)
+    _out_dgradient_dparams[5] = vol*(dP_1_0_2*dphi_0_0 + dP_1_1_2*dphi_0_1 + dP_1_2_2*dphi_0_2)
+    _out_dgradient_dparams[6] = vol*(dP_2_0_0*dphi_0_0 + dP_2_1_0*dphi_0_1 + dP_2_2_0*dphi_0_2)
+    _out_dgradient_dparams[7] = vol*(dP_2_0_1*dphi_0_0 + dP_2_1_1*dphi_0_1 + dP_2_2_1*dphi_0_2)
+    _out_dgradient_dparams[8] = vol*(dP_2_0_2*dphi_0_0 + dP_2_1_2*dphi_0_1 + dP_2_2_2*dphi_0_2)
+    _out_dgradient_dparams[9] = vol*(dP_0_0_0*dphi_1_0 + dP_0_1_0*dphi_1_1 + dP_0_2_0*dphi_1_2)
+    _out_dgradient_dparams[10] = vol*(dP_0_0_1*dphi_1_0 + dP_0_1_1*dphi_1_1 + dP_0_2_1*dphi_1_2)
+    _out_dgradient_dparams[11] = vol*(dP_0_0_2*dphi_1_0 + dP_0_1_2*dphi_1_1 + dP_0_2_2*dphi_1_2)
+    _out_dgradient_dparams[12] = vol*(dP_1_0_0*dphi_1_0 + dP_1_1_0*dphi_1_1 + dP_1_2_0*dphi_1_2)
+    _out_dgradient_dparams[13] = vol*(dP_1_0_1*dphi_1_0 + dP_1_1_1*dphi_1_1 + dP_1_2_1*dphi_1_2)
+    _out_dgradient_dparams[14] = vol*(dP_1_0_2*dphi_1_0 + dP_1_1_2*dphi_1_1 + dP_1_2_2*dphi_1_2)
+    _out_dgradient_dparams[15] = vol*(dP_2_0_0*dphi_1_0 + dP_2_1_0*dphi_1_1 + dP_2_2_0*dphi_1_2)
+    _out_dgradient_dparams[16] = vol*(dP_2_0_1*dphi_1_0 + dP_2_1_1*dphi_1_1 + dP_2_2_1*dphi_1_2)
+    _out_dgradient_dparams[17] = vol*(dP_2_0_2*dphi_1_0 + dP_2_1_2*dphi_1_1 + dP_2_2_2*dphi_1_2)
+    _out_dgradient_dparams[18] = vol*(dP_0_0_0*dphi_2_0 + dP_0_1_0*dphi_2_1 + dP_0_2_0*dphi_2_2)
+    _out_dgradient_dparams[19] = vol*(dP_0_0_1*dphi_2_0 + dP_0_1_1*dphi_2_1 + dP_0_2_1*dphi_2_2)
+    _out_dgradient_dparams[20] = vol*(dP_0_0_2*dphi_2_0 + dP_0_1_2*dphi_2_1 + dP_0_2_2*dphi_2_2)
+    _out_dgradient_dparams[21] = vol*(dP_1_0_0*dphi_2_0 + dP_1_1_0*dphi_2_1 + dP_1_2_0*dphi_2_2)
+    _out_dgradient_dparams[22] = vol*(dP_1_0_1*dphi_2_0 + dP_1_1_1*dphi_2_1 + dP_1_2_1*dphi_2_2)
+    _out_dgradient_dparams[23] = vol*(dP_1_0_2*dphi_2_0 + dP_1_1_2*dphi_2_1 + dP_1_2_2*dphi_2_2)
+    _out_dgradient_dparams[24] = vol*(dP_2_0_0*dphi_2_0 + dP_2_1_0*dphi_2_1 + dP_2_2_0*dphi_2_2)
+    _out_dgradient_dparams[25] = vol*(dP_2_0_1*dphi_2_0 + dP_2_1_1*dphi_2_1 + dP_2_2_1*dphi_2_2)
+    _out_dgradient_dparams[26] = vol*(dP_2_0_2*dphi_2_0 + dP_2_1_2*dphi_2_1 + dP_2_2_2*dphi_2_2)
+    _out_dgradient_dparams[27] = vol*(dP_0_0_0*dphi_3_0 + dP_0_1_0*dphi_3_1 + dP_0_2_0*dphi_3_2)
+    _out_dgradient_dparams[28] = vol*(dP_0_0_1*dphi_3_0 + dP_0_1_1*dphi_3_1 + dP_0_2_1*dphi_3_2)
+    _out_dgradient_dparams[29] = vol*(dP_0_0_2*dphi_3_0 + dP_0_1_2*dphi_3_1 + dP_0_2_2*dphi_3_2)
+    _out_dgradient_dparams[30] = vol*(dP_1_0_0*dphi_3_0 + dP_1_1_0*dphi_3_1 + dP_1_2_0*dphi_3_2)
+    _out_dgradient_dparams[31] = vol*(dP_1_0_1*dphi_3_0 + dP_1_1_1*dphi_3_1 + dP_1_2_1*dphi_3_2)
+    _out_dgradient_dparams[32] = vol*(dP_1_0_2*dphi_3_0 + dP_1_1_2*dphi_3_1 + dP_1_2_2*dphi_3_2)
+    _out_dgradient_dparams[33] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
+    _out_dgradient_dparams[34] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
+    _out_dgradient_dparams[35] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2)
+    return _finish(_out_dgradient_dparams, m, (12, 3))
 
 
 def hessian(x_e, dphi_dX, vol, params):

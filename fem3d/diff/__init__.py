@@ -1,0 +1,11 @@
+"""Differentiable simulation: exact adjoint gradients of backward-Euler trajectories.
+
+>>> loss = PositionLoss({10: target_positions})                  # doctest: +SKIP
+>>> value, grads = trajectory_gradient(scene, loss, ["bodies[0].material.E"])  # doctest: +SKIP
+
+See :mod:`fem3d.diff.adjoint` for what is differentiated and what is held fixed.
+"""
+
+from fem3d.diff.adjoint import PositionLoss, simulate, trajectory_gradient
+
+__all__ = ["PositionLoss", "simulate", "trajectory_gradient"]
