@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sympy as sp
+from fem3d._generated import MODULES
 
 from codegen.derive import reference_outputs
 from codegen.materials import MATERIALS
-from fem3d._generated import MODULES
 from fem3d.kernels.backend import c_extension
 from fem3d.kernels.dispatch import kernel_module, material_kernels
 
