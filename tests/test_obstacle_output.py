@@ -94,22 +94,24 @@ def test_vtu_frames_hold_the_obstacles(tmp_path, compression) -> None:  # noqa: 
         w.write(k, 0.1 * k, V + [0.0, -0.01 * k, 0.0])
     w.flush()
     files = sorted(p.name for p in (tmp_path / "frames").iterdir())
-    assert files == ["frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu", "obstacle_0.vtu",
-                     "obstacle_1_00000.vtu", "obstacle_1_00001.vtu", "obstacle_1_00002.vtu"]
-    g = meshio.read(tmp_path / "frames" / "obstacle_0.vtu")
+    assert files == ["frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu"]
+    files = sorted(p.name for p in (tmp_path / "obstacles").iterdir())
+    assert files == ["obstacle_0.vtu", "obstacle_1_00000.vtu", "obstacle_1_00001.vtu",
+                     "obstacle_1_00002.vtu"]
+    g = meshio.read(tmp_path / "obstacles" / "obstacle_0.vtu")
     np.testing.assert_allclose(g.points[:, 1], 0.0)
     assert g.cells_dict["triangle"].shape == (32, 3)
-    r = meshio.read(tmp_path / "frames" / "obstacle_1_00002.vtu")
+    r = meshio.read(tmp_path / "obstacles" / "obstacle_1_00002.vtu")
     np.testing.assert_allclose(r.points, _ramp(True).positions(0.2))
     parts = [(d.get("timestep"), d.get("part"), d.get("file"))
              for d in ElementTree.parse(tmp_path / "frames.pvd").iter("DataSet")]
-    assert ("0.1", "1", "frames/obstacle_0.vtu") in parts
-    assert ("0.1", "2", "frames/obstacle_1_00001.vtu") in parts
+    assert ("0.1", "1", "obstacles/obstacle_0.vtu") in parts
+    assert ("0.1", "2", "obstacles/obstacle_1_00001.vtu") in parts
     assert len(parts) == 9
     # a resume from step 1 drops the later moving frames
     w.restore({0: (0.0, "frames/frame_00000.vtu"), 1: (0.1, "frames/frame_00001.vtu")}, 1)
-    assert not (tmp_path / "frames" / "obstacle_1_00002.vtu").exists()
-    assert (tmp_path / "frames" / "obstacle_0.vtu").exists()
+    assert not (tmp_path / "obstacles" / "obstacle_1_00002.vtu").exists()
+    assert (tmp_path / "obstacles" / "obstacle_0.vtu").exists()
 
 
 def test_frames_without_obstacles_are_unchanged(tmp_path) -> None:  # noqa: ANN001
@@ -154,10 +156,10 @@ def test_a_contact_run_writes_the_ground(tmp_path) -> None:  # noqa: ANN001
 
     env = dict(os.environ, PYTHONPATH=env_path)
     subprocess.run(cmd, check=True, capture_output=True, env=env, timeout=120)
-    g = meshio.read(out / "frames" / "obstacle_0.vtu")
+    g = meshio.read(out / "obstacles" / "obstacle_0.vtu")
     np.testing.assert_allclose(g.points[:, 1], 0.0, atol=1e-12)
     bunny = meshio.read(out / "frames" / "frame_00000.vtu").points
     # the square spans the bunny's footprint
     assert g.points[:, 0].min() < bunny[:, 0].min() and g.points[:, 0].max() > bunny[:, 0].max()
-    assert 'file="frames/obstacle_0.vtu"' in (out / "frames.pvd").read_text()
+    assert 'file="obstacles/obstacle_0.vtu"' in (out / "frames.pvd").read_text()
     assert (out / "preview.gif").is_file()

@@ -241,6 +241,10 @@ class FrameWriter:
             np.savetxt(buf, self.faces + 1, fmt="f %d %d %d")
             self._obj_faces = buf.getvalue().encode("ascii")
         self.obstacles = tuple(obstacles)
+        #: the obstacles' files, beside (not among) the bodies' frames
+        self.obstacle_dir = self.out_dir / "obstacles"
+        if self.obstacles:
+            self.obstacle_dir.mkdir(parents=True, exist_ok=True)
         self._obstacle_writers = [FrameWriter._for_obstacle(self, ob) for ob in self.obstacles]
         self._static_written = False
 
@@ -263,8 +267,8 @@ class FrameWriter:
     def obstacle_path(self, i: int, step_index: int) -> Path:
         """File of obstacle ``i`` at frame ``step_index`` (one file for a static one)."""
         if self.obstacles[i].moving:
-            return self.frame_dir / f"obstacle_{i}_{int(step_index):0{self.digits}d}.{self.fmt}"
-        return self.frame_dir / f"obstacle_{i}.{self.fmt}"
+            return self.obstacle_dir / f"obstacle_{i}_{int(step_index):0{self.digits}d}.{self.fmt}"
+        return self.obstacle_dir / f"obstacle_{i}.{self.fmt}"
 
     def _write_obstacles(self, step_index: int, t: float) -> None:
         for i, (ob, w) in enumerate(zip(self.obstacles, self._obstacle_writers, strict=True)):
@@ -371,8 +375,9 @@ class FrameWriter:
         """Continue a run: the frames written up to ``step`` (a checkpoint's list); files of
         later frames (written after the checkpoint by an interrupted run) are removed."""
         self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()}
-        for pattern in (f"frame_*.{self.fmt}", f"obstacle_*_*.{self.fmt}"):
-            for f in self.frame_dir.glob(pattern):
+        for folder, pattern in ((self.frame_dir, f"frame_*.{self.fmt}"),
+                                (self.obstacle_dir, f"obstacle_*_*.{self.fmt}")):
+            for f in folder.glob(pattern):
                 with contextlib.suppress(ValueError):
                     if int(f.stem.split("_")[-1]) > step:
                         f.unlink()

@@ -37,11 +37,15 @@ from pathlib import Path
 from fem3d.errors import InputError
 from fem3d.io.files import clean_temp_files
 
-__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "claim", "check_overwrite", "warnings_as_lines"]
+__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "OUTPUT_FOLDERS", "claim",
+           "check_overwrite", "warnings_as_lines"]
 
 LOCK_NAME = ".fem3d.lock"
-#: Files a run writes into its output folder (``frames/`` is written as a whole).
+#: Files a run writes into its output folder (``frames/`` and ``obstacles/`` are written as
+#: wholes).
 OUTPUT_NAMES = ("frames.pvd", "energy.csv", "energy.png", "preview.gif", "checkpoint.npz")
+#: The folders of files a run writes.
+OUTPUT_FOLDERS = ("frames", "obstacles")
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -73,7 +77,7 @@ def check_overwrite(
         Naming the input, its role and the output folder.
     """
     out = Path(out)
-    frames = out / "frames"
+    folders = [os.path.realpath(out / f) for f in OUTPUT_FOLDERS]
     written = [out / n for n in OUTPUT_NAMES]
     for role, path in inputs.items():
         if path is None:
@@ -82,7 +86,7 @@ def check_overwrite(
         if any(_same_file(p, Path(a)) for a in allow):
             continue
         hit = any(_same_file(p, w) for w in written)
-        in_frames = os.path.realpath(p.parent) == os.path.realpath(frames)
+        in_frames = os.path.realpath(p.parent) in folders
         if hit or in_frames:
             raise InputError(
                 f"the run would overwrite its own {role} {p}: it writes its outputs "
@@ -139,7 +143,7 @@ def claim(
                 f"since={time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         os.ftruncate(fd, 0)
         os.pwrite(fd, info.encode("utf-8"), 0)
-        clean_temp_files(out, out / "frames")
+        clean_temp_files(out, *(out / f for f in OUTPUT_FOLDERS))
         try:
             yield out
         finally:
