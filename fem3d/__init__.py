@@ -24,7 +24,7 @@ _LAZY = {
 def __getattr__(name: str):
     """``fem3d.Scene``, ``fem3d.load_scene``, ``fem3d.Simulation``, ``fem3d.run_scene``."""
     if name in _LAZY:
-        import importlib
+        import importlib  # lazy: `import fem3d` stays light
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'fem3d' has no attribute {name!r}")

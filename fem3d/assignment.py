@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from fem3d.kernels.dispatch import geometry_kernels, material_kernels, spring_kernels
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.physics import assembly as _assembly
 from fem3d.physics.constraints import fixed_point_constraints, pick_nearest_vertices
@@ -53,20 +54,14 @@ __all__ = [
 
 
 def _nh(backend: str | None = None):
-    from fem3d.kernels.dispatch import material_kernels
-
     return material_kernels("neo_hookean", backend=backend)
 
 
 def _geo(backend: str | None = None):
-    from fem3d.kernels.dispatch import geometry_kernels
-
     return geometry_kernels(backend=backend)
 
 
 def _spring(backend: str | None = None):
-    from fem3d.kernels.dispatch import spring_kernels
-
     return spring_kernels(backend=backend)
 
 

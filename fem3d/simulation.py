@@ -24,9 +24,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.io.obstacles import ObstacleMesh, plane_square
+from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import pick_nearest_vertices
@@ -329,10 +331,6 @@ class Simulation:
         """``(k, n)`` sparse skinning matrix (built on first use), or None without a skin."""
         a = self.assembled
         if self._W is None and a.skin_V is not None:
-            import scipy.sparse as sp
-
-            from fem3d.mesh.skin import build_skinning_matrix
-
             blocks = []
             for i, (vs, _) in enumerate(a.skin_bodies):
                 bv, bt = a.body_vertices[i], a.body_tets[i]

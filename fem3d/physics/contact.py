@@ -49,6 +49,7 @@ surface vertices that cost more than the rest of a bunny step.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -407,8 +408,6 @@ class ContactModel:
 
     # -- collision sets -----------------------------------------------------------------------
     def _build(self, part: _Part, V: np.ndarray) -> ipctk.NormalCollisions:
-        import time
-
         t0 = time.perf_counter()
         cands = ipctk.Candidates()
         # boxes inflated by dhat / 2 each: pairs closer than dhat are candidates
@@ -465,8 +464,6 @@ class ContactModel:
     # -- barrier ------------------------------------------------------------------------------
     def barrier_energy(self, q: np.ndarray) -> float:
         """``kappa * B(q)``; ``+inf`` when two primitives touch (distance 0)."""
-        import time
-
         active = self._active_sets(q)
         t0 = time.perf_counter()
         e = sum(float(self._barrier(p.collisions, p.mesh, V)) for p, V in active)
@@ -476,8 +473,6 @@ class ContactModel:
 
     def barrier_gradient(self, q: np.ndarray) -> np.ndarray:
         """``kappa dB/dq``, ``(3n,)``."""
-        import time
-
         active = self._active_sets(q)
         t0 = time.perf_counter()
         out = np.zeros(3 * self.n_vertices)
@@ -490,8 +485,6 @@ class ContactModel:
 
     def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
         """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
-        import time
-
         active = self._active_sets(q)
         t0 = time.perf_counter()
         how = _PSD if project else ipctk.PSDProjectionMethod.NONE
@@ -688,8 +681,6 @@ class ContactModel:
         Linear trajectories, bodies against each other, themselves (self-contact) and the
         obstacles (at their current positions); ipctk's CCD (Tight Inclusion, conservative).
         """
-        import time
-
         t0 = time.perf_counter()
         V0 = self.collision_vertices(q0)
         V1 = self.collision_vertices(q1)

@@ -25,6 +25,7 @@ import numpy as np
 
 from fem3d._generated import MATERIALS
 from fem3d.errors import ParameterError
+from fem3d.kernels.dispatch import material_kernels
 
 __all__ = ["MaterialInfo", "info", "names", "parameters_from", "parameters_jacobian_from",
            "validate_E_nu"]
@@ -233,8 +234,6 @@ def small_strain_lame(name: str, values: Mapping[str, float | np.ndarray],
     """Effective small-strain Lame parameters ``(mu, lambda)`` of a material with parameter
     ``values``, read from its generated ``d2psi_dF2`` at ``F = I`` (``mu = dP_12/dF_12``,
     ``lambda = dP_11/dF_22``; fibres along x do not enter either)."""
-    from fem3d.kernels.dispatch import material_kernels
-
     material = info(name)
     columns = [np.asarray(values[p], dtype=np.float64) for p in material.param_names]
     given = {n: np.asarray(v, dtype=np.float64) for n, v in (inputs or {}).items()}

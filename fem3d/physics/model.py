@@ -29,6 +29,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import InputError, ParameterError
+from fem3d.kernels.dispatch import geometry_kernels, material_kernels
+from fem3d.physics.materials import info, lame_to_E_nu, parameters_from, small_strain_lame
 
 __all__ = [
     "GroupData",
@@ -100,8 +102,6 @@ def material_parameters(material: str, E: float, nu: float, param_names: tuple[s
         ``fem3d.physics.materials.parameters_from(material, E, nu)`` in ``param_names`` order (for
         ``neo_hookean``: ``C = 0.5 E / (2 (1 + nu))``, ``D = 0.5 E nu / ((1 + nu)(1 - 2 nu))``).
     """
-    from fem3d.physics.materials import parameters_from
-
     values = parameters_from(material, E=E, nu=nu)
     return np.array([values[p] for p in param_names], dtype=np.float64)
 
@@ -236,8 +236,6 @@ class GroupData:
     @property
     def allows_inversion(self) -> bool:
         """Whether this group's material is defined for ``J <= 0``."""
-        from fem3d.physics.materials import info
-
         return info(self.material).allows_inversion
 
     def subset(self, array: np.ndarray) -> np.ndarray:
@@ -356,8 +354,6 @@ class GroupedKernels:
 def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
                     path: str | None) -> tuple[GroupData, ...]:
     """Check the groups against a mesh of ``m`` tets and resolve their parameters."""
-    from fem3d.physics.materials import info
-
     if not groups:
         raise ParameterError("build_model needs at least one material group")
     owner = np.full(m, -1, dtype=np.int64)
@@ -407,9 +403,6 @@ def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None
 
 def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
                    backend: str | None) -> GroupData:
-    from fem3d.kernels.dispatch import material_kernels
-    from fem3d.physics.materials import info, parameters_from
-
     material = info(g.material)
     k = m if el is None else el.size
     where = f"material group {i} ({g.material})"
@@ -460,8 +453,6 @@ def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
 def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
     """Volume-weighted mean small-strain ``E`` and ``nu`` of the groups (for scales, such as
     the Newton tolerance, and the viewer's sliders)."""
-    from fem3d.physics.materials import lame_to_E_nu, small_strain_lame
-
     total_E = total_nu = total_vol = 0.0
     for g in groups:
         w = vol if g.elements is None else vol[g.elements]
@@ -676,8 +667,6 @@ class Model:
 
 def _with_E_nu(g: GroupData, E: float, nu: float) -> GroupData:
     """Group ``g`` with the parameters of ``E, nu`` (scalar shape parameters kept)."""
-    from fem3d.physics.materials import info, parameters_from
-
     material = info(g.material)
     shape = {p: g.values[p] for p in material.shape_params if np.ndim(g.values[p]) == 0}
     values = parameters_from(g.material, E=E, nu=nu, params=shape)
@@ -782,8 +771,6 @@ def build_model(
     InputError
         Bad arrays, a vertex index out of range, or a tet with non-positive volume.
     """
-    from fem3d.kernels.dispatch import geometry_kernels
-
     if rho is not None and density is not None:
         raise ParameterError("give the density once: rho= or density=, not both")
     density = rho if density is None else density

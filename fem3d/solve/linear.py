@@ -103,7 +103,7 @@ def _pardiso_solver():
     found the first time is handed to later ones through ``PYPARDISO_MKL_RT``.
     """
     global _MKL_RT
-    import pypardiso
+    import pypardiso  # optional back end (fem3d[bench]): imported when chosen
 
     if _MKL_RT is None or "PYPARDISO_MKL_RT" in os.environ:
         solver = pypardiso.PyPardisoSolver(mtype=2)
@@ -465,7 +465,7 @@ class SparseSPDSolver:
         return sp.csc_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
 
     def _analyze_cholmod(self) -> None:
-        from sksparse import cholmod
+        from sksparse import cholmod  # optional (fem3d[cholmod]): imported when chosen
 
         _warn_reference_blas()
         self._cholmod = cholmod
@@ -507,7 +507,7 @@ class SparseSPDSolver:
 
     # ------------------------------------------------------------------ PARDISO
     def _analyze_pardiso(self) -> None:
-        from pypardiso.pardiso_wrapper import PyPardisoError
+        from pypardiso.pardiso_wrapper import PyPardisoError  # optional back end
 
         self._pardiso_error = PyPardisoError
         solver = _pardiso_solver()  # holds the MKL handle (pt) and iparm
@@ -529,7 +529,7 @@ class SparseSPDSolver:
 
     def _pardiso_call(self, phase: int, b: np.ndarray) -> np.ndarray:
         """One MKL ``pardiso`` call on the stored upper triangle (real SPD, ``mtype = 2``)."""
-        import ctypes
+        import ctypes  # the optional PARDISO back end's calls only
 
         s = self._pardiso
         i32 = ctypes.c_int32

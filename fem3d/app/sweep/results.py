@@ -96,7 +96,7 @@ def plot_results(path: Path, spec: SweepFile, rows: Sequence[Mapping[str, Any]])
     import matplotlib
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # only after choosing the Agg backend
 
     metric = spec.results.metric
     keys = spec.swept_keys or ["case"]
