@@ -17,6 +17,17 @@ The state carries ``a``. A state without it (the first step, a changed integrato
 :meth:`~fem3d.simulation.Simulation.set_state`) gets ``a_0`` from ``M a_0 = f(q_0, v_0)``:
 one solve with the mass matrix on the free DOFs; the fixed DOFs' acceleration is zero. Pins
 move with the secant velocity ``(p - q_n) / dt`` and the backward-difference acceleration.
+
+With contact (a :class:`~fem3d.physics.terms.contact.ContactTerm` among the terms) the
+trapezoidal rule gains energy at every impact: the barrier is far stiffer than ``dt``
+resolves and average acceleration does not damp the unresolved modes, so the stiff
+accelerations chatter and grow (measured on the bunny drop: ~8,000 J from 0 J by t = 1.5 s,
+whether Newton stops by IPC's rule or at a gradient tolerance 1e-4 times tighter). Newmark
+then uses the dissipative member of the family ``gamma = 1/2 + alpha``, ``beta = gamma^2``
+(:data:`CONTACT_ALPHA` = 0.05; unconditionally stable, damps high frequencies, first order):
+in the same objective ``h = gamma dt``, ``q_base = q_n + (1 - gamma) dt v_n + (1/2 - gamma)
+dt^2 a_n``, ``v_hat = v_n + (1 - gamma) dt a_n``, ``a_{n+1} = (v_{n+1} - v_hat) / (gamma
+dt)`` (``docs/integrators.md``).
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ import scipy.sparse.linalg as spla
 
 from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import StepMap, as_term
+from fem3d.physics.terms.contact import ContactTerm
 from fem3d.physics.terms.inertia import Inertia
 from fem3d.solve.backward_euler import check_linear_solver, minimise_step
 from fem3d.solve.directions import NewtonOptions
@@ -35,7 +47,20 @@ from fem3d.solve.state import State, StepStats, check_finite
 from fem3d.solve.step_maps import affine_step_map, end_positions, fixed_dofs
 from fem3d.solve.system import System
 
-__all__ = ["newmark", "initial_acceleration"]
+__all__ = ["newmark", "initial_acceleration", "newmark_gamma", "CONTACT_ALPHA"]
+
+#: Newmark with contact: ``gamma = 1/2 + CONTACT_ALPHA``, ``beta = gamma^2``; spectral radius
+#: 0.914 at ``omega dt -> inf``, 0.9998 at ``omega dt = 0.1``. On the bunny drop (150 steps)
+#: 0 grows to ~8,000 J, 0.01 regains 7 J within 10 steps at t = 0.8 s, 0.02 and 0.05 lose
+#: energy monotonically to rest (final kinetic 0.32 J and 0.16 J against a 22.7 J drop).
+CONTACT_ALPHA = 0.05
+
+
+def newmark_gamma(terms: Sequence) -> float:
+    """``gamma`` of the step: 1/2 (average acceleration), or ``1/2 + CONTACT_ALPHA`` when a
+    term is IPC contact (:class:`~fem3d.physics.terms.contact.ContactTerm`)."""
+    contact = any(isinstance(t, ContactTerm) and t.active for t in map(as_term, terms))
+    return 0.5 + CONTACT_ALPHA if contact else 0.5
 
 
 def initial_acceleration(system: System, terms: Sequence, state: State, dt: float
@@ -98,16 +123,22 @@ def newmark(
     a_n = state.a if state.a is not None else initial_acceleration(system, terms, state, dt)
     a_n = a_n.reshape(-1)
     v_n = state.v.reshape(-1)
-    half = 0.5 * dt
-    step = affine_step_map(system, state, dt, p, h=half, offset=half * v_n,
-                           v_hat=v_n + half * a_n)
+    gamma = newmark_gamma(terms)
+    if gamma == 0.5:  # average acceleration
+        h = 0.5 * dt
+        offset, v_hat = h * v_n, v_n + h * a_n
+    else:  # beta = gamma^2 (module docstring)
+        h = gamma * dt
+        offset = (1.0 - gamma) * dt * v_n + (0.5 - gamma) * dt * dt * a_n
+        v_hat = v_n + (1.0 - gamma) * dt * a_n
+    step = affine_step_map(system, state, dt, p, h=h, offset=offset, v_hat=v_hat)
     x, stats = minimise_step(
         system, terms, state, step, max_iterations=max_iterations, rtol=rtol,
         atol_factor=atol_factor, linear_solver=linear_solver, options=options,
         converged_max_iterations=converged_max_iterations, scheme="Newmark")
     q = step.positions(x).reshape(-1, 3)
     v = step.velocity(x)
-    a = (v - v_n) / half - a_n
+    a = (v - v_n) / h - a_n if gamma == 0.5 else (v - v_hat) / h
     fd = fixed_dofs(system)
     a[fd] = (v[fd] - v_n[fd]) / dt
     check_finite(q, v, state.step, "Newmark")
