@@ -177,3 +177,42 @@ def test_refuses_to_overwrite_its_inputs(work: Path, capsys) -> None:
     fit_file = write_fit(work, "self", E_FIT.replace('"bar.toml"', '"out_self/fitted.toml"'))
     assert main(["fit", str(fit_file), "--out", str(out)]) == 2
     assert "overwrite its own scene file" in capsys.readouterr().err
+
+
+def test_target_without_frames_and_unsupported_scene_name_the_key(work: Path, capsys) -> None:
+    (work / "empty").mkdir(exist_ok=True)
+    fit_file = write_fit(work, "empty", E_FIT.replace('"target"', '"empty"'))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_empty")]) == 2
+    assert "empty.toml: target: " in capsys.readouterr().err
+    fit_file = write_fit(work, "bdf2", E_FIT.replace("[[params]]", """\
+    [set]
+    "simulation.integrator" = "bdf2"
+    [[params]]"""))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_bdf2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bdf2.toml: scene: " in err[0] and "implicit" in err[0]
+
+
+def test_a_failed_simulation_exits_1_with_the_iterations_before(work: Path, monkeypatch,
+                                                                 capsys) -> None:
+    import fem3d.app.fit.run as fit_run
+    from fem3d.errors import SimulationError
+
+    calls = []
+    real = fit_run.trajectory_gradient
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise SimulationError("Newton did not converge", step=4)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_run, "trajectory_gradient", failing)
+    fit_file = write_fit(work, "fails", E_FIT)
+    out = work / "out_fails"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 1
+    doc = json.loads((out / "fit.json").read_text())
+    assert not doc["result"]["success"]
+    assert "simulation failed: step 4" in doc["result"]["message"]
+    assert len(doc["history"]) >= 1 and (out / "fitted.toml").is_file()
+    assert "did not converge" in capsys.readouterr().err

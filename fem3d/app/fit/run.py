@@ -26,7 +26,7 @@ import scipy.optimize
 from fem3d.app.fit.spec import VECTOR_KEYS, FitFile
 from fem3d.diff import PositionLoss, trajectory_gradient
 from fem3d.diff.adjoint import scene_with
-from fem3d.errors import InputError, SimulationError
+from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io.dataset import read_run_frames
 from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene
@@ -287,7 +287,10 @@ def fit(spec: FitFile, *, where: str = "fit file",
     if scene.pulls:
         raise InputError("scene: the base scene has scripted pulls, which fem3d.diff does not "
                          "differentiate yet (set pulls = [] in the fit file's [set])", path=where)
-    steps, positions = read_target(spec.target)
+    try:
+        steps, positions = read_target(spec.target)
+    except InputError as exc:
+        raise InputError(f"target: {exc}", path=where) from None
     frames = _frames(spec, steps, where)
     n = build_arrays(scene).X.shape[0]
     if positions.shape[1] != n:
@@ -302,7 +305,10 @@ def fit(spec: FitFile, *, where: str = "fit file",
     obj = _Objective(scene, loss, params, spec.steps or max(frames),
                      spec.optimizer.checkpoint_every)
     u0 = np.zeros(sum(p.size for p in params))
-    history = [_record(obj, u0, 0)]
+    try:
+        history = [_record(obj, u0, 0)]
+    except ParameterError as exc:  # what fem3d.diff cannot differentiate (contact, ...)
+        raise InputError(f"scene: {exc}", path=where) from None
     if progress:
         progress(progress_line(history[0]))
 
