@@ -216,3 +216,16 @@ def test_a_failed_simulation_exits_1_with_the_iterations_before(work: Path, monk
     assert "simulation failed: step 4" in doc["result"]["message"]
     assert len(doc["history"]) >= 1 and (out / "fitted.toml").is_file()
     assert "did not converge" in capsys.readouterr().err
+
+
+def test_fit_to_a_dataset_trajectory(work: Path) -> None:
+    from fem3d.io.dataset import read_run_frames, write_trajectory
+
+    steps, times, positions, faces = read_run_frames(work / "target")
+    write_trajectory(work / "trajectory.npz", positions=positions, times=times, steps=steps,
+                     faces=faces, dtype="float64")
+    fit_file = write_fit(work, "npz", E_FIT.replace('"target"', '"trajectory.npz"'))
+    out = work / "out_npz"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["params"][E_KEY] == pytest.approx(E_TRUE, rel=1e-3)
