@@ -229,3 +229,12 @@ def test_fit_to_a_dataset_trajectory(work: Path) -> None:
     assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
     doc = json.loads((out / "fit.json").read_text())
     assert doc["params"][E_KEY] == pytest.approx(E_TRUE, rel=1e-3)
+
+
+def test_a_target_run_with_another_dt_is_refused(work: Path, capsys) -> None:
+    fit_file = write_fit(work, "dt", E_FIT.replace("[[params]]", """\
+    [set]
+    "simulation.dt" = 0.005
+    [[params]]"""))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_dt")]) == 2
+    assert "target: its frame of step 2 is at t = 0.02" in capsys.readouterr().err

@@ -81,19 +81,23 @@ class FitResult:
     n_vertices: int = 0
 
 
-def read_target(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
-    """``(steps (k,), positions (k, n, 3))`` of a target: a ``fem3d run`` folder's frames
-    (VTU or OBJ) or a ``trajectory.npz`` (:mod:`fem3d.io.dataset`)."""
+def read_target(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(steps (k,), times (k,), positions (k, n, 3))`` of a target: a ``fem3d run``
+    folder's frames (VTU or OBJ) or a ``trajectory.npz`` (:mod:`fem3d.io.dataset`)."""
     p = Path(path)
     if p.is_file() and p.suffix == ".npz":
-        with np.load(p, allow_pickle=False) as data:
-            return (np.asarray(data["steps"], dtype=np.int64),
-                    np.asarray(data["positions"], dtype=np.float64))
+        try:
+            with np.load(p, allow_pickle=False) as data:
+                return (np.asarray(data["steps"], dtype=np.int64),
+                        np.asarray(data["times"], dtype=np.float64),
+                        np.asarray(data["positions"], dtype=np.float64))
+        except (OSError, KeyError, ValueError) as exc:
+            raise InputError(f"not a trajectory.npz ({exc})", path=p) from None
     if (p / "frames.usdc").exists() and not (p / "frames").is_dir():
         raise InputError("target: USD frames are not read back; run the target with "
                          "output.format = 'vtu'", path=p)
-    steps, _, positions, _ = read_run_frames(p)
-    return steps, positions
+    steps, times, positions, _ = read_run_frames(p)
+    return steps, times, positions
 
 
 def _frames(spec: FitFile, steps: np.ndarray, where: str) -> list[int]:
@@ -288,10 +292,16 @@ def fit(spec: FitFile, *, where: str = "fit file",
         raise InputError("scene: the base scene has scripted pulls, which fem3d.diff does not "
                          "differentiate yet (set pulls = [] in the fit file's [set])", path=where)
     try:
-        steps, positions = read_target(spec.target)
+        steps, times, positions = read_target(spec.target)
     except InputError as exc:
         raise InputError(f"target: {exc}", path=where) from None
     frames = _frames(spec, steps, where)
+    dt = scene.simulation.dt
+    for s, t in zip(steps, times, strict=True):
+        if s in frames and math.isfinite(t) and abs(t - s * dt) > 1e-6 * max(1.0, abs(t)):
+            raise InputError(f"target: its frame of step {s} is at t = {t:g}, the scene's "
+                             f"simulation.dt = {dt:g} puts step {s} at {s * dt:g} (the "
+                             "target was run with another dt)", path=where)
     n = build_arrays(scene).X.shape[0]
     if positions.shape[1] != n:
         raise InputError(f"target: its frames have {positions.shape[1]} points, the scene's "
