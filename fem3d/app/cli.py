@@ -23,6 +23,8 @@ for bit the one of an uninterrupted run (same kernels and solver back end).
 
 ``fem3d schema`` prints the JSON Schema of scene files.
 
+``fem3d fit FIT.toml --out DIR`` fits parameters to a run's frames (:mod:`fem3d.app.fit`).
+
 SIGINT (Ctrl-C) or SIGTERM during the steps: the current step is finished (a second signal
 abandons it; the state stays at the last finished step), a checkpoint is saved, energy.csv and
 the frames are complete up to that step, one line says how to continue, exit status 130.
@@ -70,6 +72,7 @@ SUBCOMMANDS: list[str] = [
     "fem3d.app.cli:add_resume_subcommand",
     "fem3d.app.cli:add_schema_subcommand",
     "fem3d.app.sweep.cli:add_sweep_subcommand",
+    "fem3d.app.fit.cli:add_fit_subcommand",
 ]
 
 #: ``fem3d run`` flags that set one scene field: (flag, dest, key path; ``{body}`` = every body).

@@ -1,0 +1,240 @@
+"""``fem3d fit``: recovering parameters from a run's frames, its files, bad fit files."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+from test_assembly import box_mesh
+
+from fem3d.app.cli import main
+from fem3d.app.fit import load_fit_file
+from fem3d.app.fit.run import scene_toml
+from fem3d.app.run import run_scene
+from fem3d.errors import InputError
+from fem3d.scene import load_scene
+from fem3d.scene.load import scene_from_arrays
+
+E_TRUE, NU_TRUE = 3e5, 0.3
+E_KEY, NU_KEY = "bodies[0].material.E", "bodies[0].material.nu"
+
+
+def bar_scene(**values):
+    """A 1.5 x 0.5 x 0.5 cantilever (3x2x2 boxes, 72 tets) pinned at x = 0, sagging under
+    gravity for 20 steps of 0.01 s; every second step is a frame."""
+    X, T = box_mesh(3, 2, 2, size=(1.5, 0.5, 0.5))
+    return scene_from_arrays(X, T, {
+        "pulls": [], "simulation.dt": 0.01, "simulation.steps": 20,
+        "simulation.gravity": [0.0, -9.81, 0.0], "output.every": 2,
+        "bodies[0].pins": [{"select": {"box": [[-1, -1, -1], [1e-6, 2, 2]]}}],
+        "bodies[0].material.density": 1000.0, NU_KEY: NU_TRUE, **values})
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    """A folder with the base scene (bar.toml, E = 1e5) and the target run (E = 3e5)."""
+    d = tmp_path_factory.mktemp("fit")
+    target = bar_scene(**{E_KEY: E_TRUE, "simulation.newton.max_iterations": None})
+    summary = run_scene(target, d / "target", quiet=True, preview=False)
+    assert summary.status == "ok"
+    (d / "bar.toml").write_text(scene_toml(bar_scene(**{E_KEY: 1e5})))
+    return d
+
+
+def write_fit(work: Path, name: str, body: str) -> Path:
+    p = work / f"{name}.toml"
+    p.write_text(textwrap.dedent(body))
+    return p
+
+
+E_FIT = """\
+    scene = "bar.toml"
+    target = "target"
+    [[params]]
+    key = "bodies[0].material.E"
+    start = 1e5
+    bounds = [1e3, 1e8]
+    [optimizer]
+    max_iterations = 30
+"""
+
+
+def test_fit_recovers_E_and_writes_its_files(work: Path, capsys) -> None:
+    fit_file = write_fit(work, "e", E_FIT)
+    out = work / "out_e"
+    assert main(["fit", str(fit_file), "--out", str(out)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    doc = json.loads((out / "fit.json").read_text())
+    E = doc["params"][E_KEY]
+    assert abs(E / E_TRUE - 1) < 1e-3
+    assert doc["result"]["success"] and doc["result"]["iterations"] <= 30
+    history = doc["history"]
+    assert history[0]["params"][E_KEY] == 1e5 and history[0]["iteration"] == 0
+    assert len(history) == doc["result"]["iterations"] + 1
+    for rec in history:
+        assert set(rec) >= {"iteration", "params", "loss", "gradient_norm"}
+    assert history[-1]["loss"] < 1e-8 * history[0]["loss"]
+    assert doc["frames"] == list(range(2, 21, 2))
+    # one progress line per iteration, then the summary
+    progress = [line for line in err if line.startswith("fem3d fit: iter")]
+    assert len(progress) == len(history)
+    assert "loss" in progress[0] and "|grad|" in progress[0] and E_KEY in progress[0]
+    assert "converged" in err[-1]
+    fitted = load_scene(out / "fitted.toml")
+    assert fitted.bodies[0].material.E == pytest.approx(E, rel=1e-12)
+    assert (out / "fit.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_fit_recovers_E_and_nu_together(work: Path) -> None:
+    fit_file = write_fit(work, "enu", E_FIT.replace("[optimizer]", """\
+    [[params]]
+    key = "bodies[0].material.nu"
+    start = 0.4
+    bounds = [0.0, 0.49]
+    [optimizer]"""))
+    out = work / "out_enu"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    # measured: 10 iterations, both to about 1e-9
+    assert doc["params"][E_KEY] == pytest.approx(E_TRUE, rel=1e-3)
+    assert doc["params"][NU_KEY] == pytest.approx(NU_TRUE, rel=1e-3)
+
+
+def test_fit_of_a_vector_parameter(work: Path) -> None:
+    fit_file = write_fit(work, "gravity", """\
+        scene = "bar.toml"
+        target = "target"
+        [set]
+        "bodies[0].material.E" = 3e5    # the target's
+        [[params]]
+        key = "simulation.gravity"
+        start = [1.0, -5.0, 0.0]
+        bounds = [-20.0, 20.0]
+    """)
+    out = work / "out_gravity"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["params"]["simulation.gravity"] == pytest.approx([0.0, -9.81, 0.0], abs=1e-4)
+    assert load_scene(out / "fitted.toml").simulation.gravity[1] == pytest.approx(-9.81,
+                                                                                  abs=1e-4)
+
+
+def test_fit_of_selected_frames_and_vertices(work: Path) -> None:
+    fit_file = write_fit(work, "sel", E_FIT.replace("[[params]]", """\
+    [loss]
+    frames = [10, 20]
+    select = {box = [[1.4, -1, -1], [2, 2, 2]]}
+    [[params]]"""))
+    out = work / "out_sel"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["frames"] == [10, 20] and doc["vertices_per_frame"] == 9
+    assert doc["params"][E_KEY] == pytest.approx(E_TRUE, rel=1e-3)
+
+
+def test_iteration_limit_exits_1_and_still_writes(work: Path, capsys) -> None:
+    fit_file = write_fit(work, "short", E_FIT)
+    out = work / "out_short"
+    assert main(["fit", str(fit_file), "--out", str(out), "--max-iterations", "1"]) == 1
+    doc = json.loads((out / "fit.json").read_text())
+    assert not doc["result"]["success"] and "ITERATIONS" in doc["result"]["message"]
+    assert "did not converge" in capsys.readouterr().err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("change, key", [
+    (("key = ", "kye = "), "params[0].kye: unknown key"),
+    (('"bodies[0].material.E"', '"bodies[0].pins"'), "params[0].key: cannot fit"),
+    (("[1e3, 1e8]", "[1e8, 1e3]"), "params[0].bounds: need low < high"),
+    (("[1e3, 1e8]", "[-1.0, 1e8]\n    log = true"), "params[0].bounds: log = true needs"),
+    (("start = 1e5", "start = 1e9"), "params[0].bounds: start"),
+    (('target = "target"\n', ""), "target: missing"),
+    (('target = "target"', 'target = "nowhere"'), "target: no such folder"),
+    (("max_iterations = 30", "max_iterations = 0"), "optimizer.max_iterations:"),
+])
+def test_bad_fit_file_exits_2_naming_the_key(work: Path, capsys, change, key) -> None:
+    fit_file = write_fit(work, "bad", E_FIT.replace(*change))
+    out = work / "out_bad"
+    assert main(["fit", str(fit_file), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(fit_file) in err[0] and key in err[0], err
+    assert not out.exists()
+
+
+def test_frame_not_in_target_is_refused(work: Path) -> None:
+    fit_file = write_fit(work, "frames", E_FIT.replace("[[params]]",
+                                                       "[loss]\nframes = [3]\n[[params]]"))
+    with pytest.raises(InputError, match="loss.frames: step 3"):
+        from fem3d.app.fit import fit
+        fit(load_fit_file(fit_file), where=str(fit_file))
+
+
+def test_refuses_to_overwrite_its_inputs(work: Path, capsys) -> None:
+    out = work / "out_self"
+    out.mkdir()
+    (out / "fitted.toml").write_text((work / "bar.toml").read_text())
+    fit_file = write_fit(work, "self", E_FIT.replace('"bar.toml"', '"out_self/fitted.toml"'))
+    assert main(["fit", str(fit_file), "--out", str(out)]) == 2
+    assert "overwrite its own scene file" in capsys.readouterr().err
+
+
+def test_target_without_frames_and_unsupported_scene_name_the_key(work: Path, capsys) -> None:
+    (work / "empty").mkdir(exist_ok=True)
+    fit_file = write_fit(work, "empty", E_FIT.replace('"target"', '"empty"'))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_empty")]) == 2
+    assert "empty.toml: target: " in capsys.readouterr().err
+    fit_file = write_fit(work, "bdf2", E_FIT.replace("[[params]]", """\
+    [set]
+    "simulation.integrator" = "bdf2"
+    [[params]]"""))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_bdf2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bdf2.toml: scene: " in err[0] and "implicit" in err[0]
+
+
+def test_a_failed_simulation_exits_1_with_the_iterations_before(work: Path, monkeypatch,
+                                                                 capsys) -> None:
+    import fem3d.app.fit.run as fit_run
+    from fem3d.errors import SimulationError
+
+    calls = []
+    real = fit_run.trajectory_gradient
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise SimulationError("Newton did not converge", step=4)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_run, "trajectory_gradient", failing)
+    fit_file = write_fit(work, "fails", E_FIT)
+    out = work / "out_fails"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 1
+    doc = json.loads((out / "fit.json").read_text())
+    assert not doc["result"]["success"]
+    assert "simulation failed: step 4" in doc["result"]["message"]
+    assert len(doc["history"]) >= 1 and (out / "fitted.toml").is_file()
+    assert "did not converge" in capsys.readouterr().err
+
+
+def test_fit_to_a_dataset_trajectory(work: Path) -> None:
+    from fem3d.io.dataset import read_run_frames, write_trajectory
+
+    steps, times, positions, faces = read_run_frames(work / "target")
+    write_trajectory(work / "trajectory.npz", positions=positions, times=times, steps=steps,
+                     faces=faces, dtype="float64")
+    fit_file = write_fit(work, "npz", E_FIT.replace('"target"', '"trajectory.npz"'))
+    out = work / "out_npz"
+    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["params"][E_KEY] == pytest.approx(E_TRUE, rel=1e-3)
+
+
+def test_a_target_run_with_another_dt_is_refused(work: Path, capsys) -> None:
+    fit_file = write_fit(work, "dt", E_FIT.replace("[[params]]", """\
+    [set]
+    "simulation.dt" = 0.005
+    [[params]]"""))
+    assert main(["fit", str(fit_file), "--out", str(work / "out_dt")]) == 2
+    assert "target: its frame of step 2 is at t = 0.02" in capsys.readouterr().err
