@@ -80,3 +80,17 @@ def test_unknown_parameter_is_refused() -> None:
     scene, _ = box_scene(0.0)
     with pytest.raises(ParameterError, match="bodies\\[0\\].pins"):
         trajectory_gradient(scene, PositionLoss({1: np.zeros((27, 3))}), ["bodies[0].pins"])
+
+
+def test_scripted_pulls_are_refused_not_ignored() -> None:
+    """A run applies the scene's scripted pulls; a gradient without them would be of another
+    trajectory, so the adjoint refuses them by name."""
+    from fem3d.scene import apply_overrides
+
+    scene, _ = box_scene(0.0)
+    pulled = apply_overrides(scene, {"pulls": [{"select": {"vertices": [26]},
+                                                "target": [1.5, 1.5, 1.5],
+                                                "duration": 0.05}]})
+    with pytest.raises(ParameterError, match="scripted pulls"):
+        trajectory_gradient(pulled, PositionLoss({1: np.zeros((27, 3))}),
+                            ["bodies[0].material.E"])

@@ -125,6 +125,9 @@ class _Run:
 def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     if scene.contact is not None and getattr(scene.contact, "enabled", True):
         raise ParameterError("trajectory_gradient: contact scenes are not supported yet")
+    if scene.pulls:  # a run applies them: differentiating without them would be wrong
+        raise ParameterError("trajectory_gradient: scripted pulls are not differentiated yet "
+                             f"(the scene has {len(scene.pulls)}; remove them with pulls = [])")
     if scene.simulation.integrator != "implicit":
         raise ParameterError("trajectory_gradient: only simulation.integrator = 'implicit' "
                              f"(backward Euler) is differentiated, got "
