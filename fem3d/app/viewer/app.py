@@ -393,7 +393,8 @@ class Viewer:
         Keys: ``scene``, ``integrator``, ``mesh_mode``, ``paused``, ``error``, ``errors``,
         ``t``, ``steps``, ``pushes``, ``ms_per_step``, ``newton_per_step``,
         ``steps_per_second``, ``material``, ``pull`` (None or ``ids``, ``grab_point``,
-        ``target``, ``start_positions``, ``positions``), ``energy`` (list of
+        ``target``, ``start_positions``, ``positions``: the newest pull), ``pulls`` (every active
+        pull, one per dragging page, each as ``pull`` plus ``owner``), ``energy`` (list of
         ``[t, T, V, T+V]``), ``drag_events``, ``generation``, ``pick_radius``, ``acked``
         (mesh updates the pages acknowledged), ``held_back`` (mesh updates not sent because
         a page had not processed the previous one), ``clients``, ``exceptions``.
@@ -434,9 +435,7 @@ class Viewer:
         cid = int(client.client_id)
         with s.lock:
             self._acks.drop(cid)
-            if s.pull is not None and s.pull.owner == cid:
-                s.pull = None
-                s.pull_version += 1
+            s.drop_pulls(cid)
 
     def _scene_camera(self) -> dict[str, Any]:
         s = self._state
@@ -692,7 +691,7 @@ class Viewer:
                 s.log_exception()
                 self._fail(f"{type(exc).__name__}: {exc}")
                 with s.lock:
-                    s.pull = None
+                    s.drop_pulls()
                     pull = None
             with s.lock:
                 running = not s.paused

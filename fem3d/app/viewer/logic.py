@@ -274,7 +274,7 @@ def spring_segments(positions: np.ndarray, ids: np.ndarray, target: np.ndarray) 
     p = np.asarray(positions, dtype=np.float64)[np.asarray(ids, dtype=np.int64)]
     seg = np.empty((p.shape[0], 2, 3), dtype=np.float32)
     seg[:, 0] = p
-    seg[:, 1] = np.asarray(target, dtype=np.float64).reshape(3)
+    seg[:, 1] = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     return seg
 
 
@@ -481,7 +481,9 @@ class ViewerState:
         self.wake = threading.Event()
         self.commands: collections.deque[Callable[[], None]] = collections.deque()
         self.generation = 0
-        self.pull: PullState | None = None
+        #: The active pulls, one per owner (a browser client; None for calls without one),
+        #: oldest first: two pages can drag at once, each its own vertices.
+        self.pulls: dict[int | None, PullState] = {}
         self.pull_version = 0
         self.q_view = np.array(self.sim.q, dtype=np.float64, copy=True)
         self.paused = False
@@ -545,19 +547,34 @@ class ViewerState:
             "steps_per_second": float(rate),
         }
 
+    @property
+    def pull(self) -> PullState | None:
+        """The newest active pull (None without one)."""
+        return next(reversed(self.pulls.values()), None)
+
+    def drop_pulls(self, owner: Any = ...) -> None:
+        """Release ``owner``'s pull (every pull by default); the caller holds :attr:`lock`."""
+        if owner is ...:
+            self.pulls.clear()
+        elif self.pulls.pop(owner, None) is None:
+            return
+        self.gui_dirty = True
+        self.pull_version += 1
+
+    def _pull_dict(self, p: PullState) -> dict[str, Any]:
+        return {
+            "owner": p.owner,
+            "ids": p.ids.tolist(),
+            "grab_point": p.grab_point.tolist(),
+            "target": p.target.tolist(),
+            "start_positions": p.start_positions.tolist(),
+            "positions": self.q_view[p.ids].tolist(),
+        }
+
     def snapshot_locked(self) -> dict[str, Any]:
         """The shared state as a JSON-serialisable dict (the caller holds :attr:`lock`);
         see :meth:`fem3d.app.viewer.app.Viewer.snapshot`."""
-        pull = None
-        if self.pull is not None:
-            p = self.pull
-            pull = {
-                "ids": p.ids.tolist(),
-                "grab_point": p.grab_point.tolist(),
-                "target": p.target.tolist(),
-                "start_positions": p.start_positions.tolist(),
-                "positions": self.q_view[p.ids].tolist(),
-            }
+        pull = None if self.pull is None else self._pull_dict(self.pull)
         stats = self.stats_locked()
         return {
             "scene": self.scene.name,
@@ -573,6 +590,7 @@ class ViewerState:
             "material": dict(self.material),
             "material_model": self.material_model(),
             "pull": pull,
+            "pulls": [self._pull_dict(p) for p in self.pulls.values()],
             "energy": [list(r) for r in self.history.rows()],
             "drag_events": self.drag_events,
             "generation": self.generation,
@@ -581,9 +599,8 @@ class ViewerState:
 
     def status_locked(self, mesh_mode: str) -> str:
         """The panel's status text (the caller holds :attr:`lock`)."""
-        pull = self.pull
-        grabbed = None if pull is None or pull.generation != self.generation else int(
-            pull.ids.size)
+        live = [p for p in self.pulls.values() if p.generation == self.generation]
+        grabbed = sum(int(p.ids.size) for p in live) if live else None
         return format_status(
             scene=self.scene_label,
             integrator=self.integrator,
@@ -637,7 +654,8 @@ class ViewerState:
         with self.lock:
             q = self.q_view
             ids = _pick(q, grab, self.pick_radius)
-            self.pull = PullState(
+            self.pulls.pop(owner, None)  # a new press of the same owner: the newest pull
+            self.pulls[owner] = PullState(
                 ids=ids,
                 grab_point=grab,
                 target=tgt,
@@ -653,9 +671,10 @@ class ViewerState:
     def move_pull(self, tgt: np.ndarray, owner: int | None) -> None:
         """Move the pull target (only ``owner``'s pull, when given)."""
         with self.lock:
-            if self.pull is None or (owner is not None and self.pull.owner != owner):
+            pull = self.pulls.get(owner) if owner is not None else self.pull
+            if pull is None:
                 return
-            self.pull.target = tgt
+            pull.target = tgt
             self.pull_version += 1
             self.drag_events += 1
         self.wake.set()
@@ -663,11 +682,10 @@ class ViewerState:
     def end_pull(self, owner: int | None) -> None:
         """Release the pull (only ``owner``'s pull, when given)."""
         with self.lock:
-            if self.pull is None or (owner is not None and self.pull.owner != owner):
+            pull = self.pulls.get(owner) if owner is not None else self.pull
+            if pull is None:
                 return
-            self.pull = None
-            self.gui_dirty = True
-            self.pull_version += 1
+            self.drop_pulls(pull.owner)
             self.drag_events += 1
         self.wake.set()
 
@@ -689,11 +707,28 @@ class ViewerState:
                             e.get("pull", 0.0))
 
     def sync_pull(self) -> PullState | None:
-        """Hand a changed pull to the simulation; the current pull."""
+        """Hand changed pulls to the simulation; the active pulls as one (None without).
+
+        Several owners' pulls become one set of springs, each vertex toward its owner's
+        target."""
         with self.lock:
-            pull, version = self.pull, self.pull_version
+            live = [p for p in self.pulls.values()
+                    if p.generation == self.generation and p.ids.size]
+            version = self.pull_version
+            pull = None
+            if len(live) == 1:
+                pull = live[0]
+            elif live:
+                pull = PullState(
+                    ids=np.concatenate([p.ids for p in live]),
+                    grab_point=live[-1].grab_point,
+                    target=np.concatenate([np.broadcast_to(p.target, (p.ids.size, 3))
+                                           for p in live]),
+                    start_positions=np.concatenate([p.start_positions for p in live]),
+                    generation=self.generation,
+                )
         if version != self.applied_pull_version:
-            if pull is not None and pull.generation == self.generation and pull.ids.size:
+            if pull is not None:
                 self.sim.set_pull(pull.ids, pull.target)
             else:
                 self.sim.clear_pull()
@@ -843,8 +878,7 @@ class ViewerState:
         with self.lock:
             self.scene, self.sim, self.scene_label = scene, sim, name
             self.generation += 1
-            self.pull = None
-            self.pull_version += 1
+            self.drop_pulls()
             self.error = None
             self.paused = False
             self.history_reset()
