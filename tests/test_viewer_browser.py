@@ -361,6 +361,6 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
         finally:
             ctx.close()
     shutil.rmtree(profile, ignore_errors=True)
-    # A guard against a silent stall, not a speed target: the shared 2-core machine has
-    # been seen at load 15, where this test takes ~140 s.
-    assert time.monotonic() - t_start < 300.0
+    # No wall-time bound: a stall fails the waits above (each has its timeout); how long
+    # the test took depends on the machine's load (140 s seen at load 15), so it is printed.
+    log(f"done in {time.monotonic() - t_start:.0f} s")
