@@ -66,6 +66,7 @@ from fem3d.app.viewer.logic import (
     console_help,
     plane_grid_segments,
     plane_quad,
+    scene_points,
     spring_segments,
 )
 from fem3d.app.viewer.panel import Panel
@@ -440,7 +441,11 @@ class Viewer:
     def _scene_camera(self) -> dict[str, Any]:
         s = self._state
         direction = VIEW_DIRECTIONS.get(str(s.scene.name), DEFAULT_VIEW_DIRECTION)
-        return camera_for_points(s.sim.q, direction=direction)
+        contact = getattr(s.sim, "contact", None)
+        planes = [] if contact is None else [(p.point, p.normal)
+                                             for p in contact.contact.planes]
+        meshes = [V for _n, V, _F in s.sim.obstacles()] if contact is not None else []
+        return camera_for_points(scene_points(s.sim.q, planes, meshes), direction=direction)
 
     def _apply_camera(self, *, initial: bool = False) -> None:
         cam = self._scene_camera()
@@ -666,8 +671,8 @@ class Viewer:
         s = self._state
         with s.lock:
             text = s.status_locked(self._mesh_handle_mode or s.mesh_mode)
-            x, *series = s.history.recent(self.plot_window, n=PLOT_POINTS)
-            latest = s.history.latest()
+            x, *series = s.history.plot_series(self.plot_window, n=PLOT_POINTS)
+            latest = s.history.latest_split()
         self._panel.update(text, latest, x, series)
 
     def _run_commands(self) -> None:
