@@ -529,12 +529,20 @@ class Simulation:
 
     # ------------------------------------------------------------------ energies
     def energies(self) -> dict[str, float]:
-        """``{"kinetic", "potential", "pull", "total"}`` of the current state (``potential``:
-        strain energy plus gravity's ``-M g . (q - X)``)."""
+        """``{"kinetic", "potential", "pull", "total", "strain", "gravity"}`` of the current
+        state (``potential = strain + gravity``, gravity's ``-M g . (q - X)``)."""
         kin = kinetic_energy(self.model, self.v)
-        pot = potential_energy(self.model, self.q) + self.system.gravity_energy(self.q)
+        strain = potential_energy(self.model, self.q)
+        gravity = self.gravity_energy()
+        pot = strain + gravity
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
-        return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot}
+        return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot,
+                "strain": strain, "gravity": gravity}
+
+    def gravity_energy(self) -> float:
+        """Gravity's potential ``-M g . (q - X)`` of the current state (the part of
+        ``energies()["potential"]`` that is not strain)."""
+        return float(self.system.gravity_energy(self.q))
 
     def _energy_with_pull(self) -> float:
         e = self.energies()

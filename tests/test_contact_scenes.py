@@ -171,6 +171,102 @@ def test_gallery_contact_scenes_load_and_step(name):
     assert not sim.contact.contact.has_intersections(sim.q.reshape(-1))
 
 
+#: Each gallery contact scene run until its bodies touch, measured on full runs (frames of
+#: the 2026-12 code): the bunny lands at step 25 of 150, the stack's top block on the bunny
+#: at step 18 (the bunny on the bottom block at 10), the bar coils onto itself at step 235
+#: of 300, the incline's block touches from the start. None: the whole duration (cheap
+#: enough, and the bunny must come to rest). (name, steps, kind of contact, comes to rest)
+GALLERY_RUNS = [
+    ("contact_bunny_drop", None, "plane", True),
+    ("contact_incline", None, "plane", False),
+    ("contact_stack", 22, "bodies", False),
+    ("contact_twisted_bar", 250, "self", False),
+]
+NEAR = 3e-3  # m: "in contact" (the scenes' barrier widths are below 1 mm)
+
+
+def _ipc_mesh(V: np.ndarray, F: np.ndarray) -> ipctk.CollisionMesh:
+    V = np.asfortranarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int32)
+    return ipctk.CollisionMesh(V, ipctk.edges(F), F)
+
+
+def _near_pairs(V: np.ndarray, F: np.ndarray, between_bodies: bool) -> int:
+    """Surface primitive pairs (not sharing a vertex) closer than :data:`NEAR`, by ipctk;
+    with ``between_bodies`` only pairs of the last body (the one that falls last, whose
+    vertices come last) and another (bodies: connected components)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F, dtype=np.int32)
+    cm = _ipc_mesh(V, F)
+    c = ipctk.NormalCollisions()
+    c.build(cm, np.asfortranarray(V, dtype=np.float64), NEAR)
+    if not between_bodies:
+        return len(c)
+    ii = np.concatenate([F[:, 0], F[:, 1]])
+    jj = np.concatenate([F[:, 1], F[:, 2]])
+    _n, body = connected_components(coo_matrix((np.ones(ii.size), (ii, jj)),
+                                               shape=(len(V), len(V))), directed=False)
+    pairs = [*c.ee_collisions, *c.fv_collisions, *c.ev_collisions, *c.vv_collisions]
+    last = body[len(V) - 1]
+    labels = [{body[i] for i in p.vertex_ids(cm.edges, cm.faces) if i >= 0} for p in pairs]
+    return sum(len(b) > 1 and last in b for b in labels)
+
+
+def _states(scene, out: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(vertices, triangles) of the simulation surface to check, read back from the run.
+
+    The frames are the display meshes: with a skin they are not the simulation surface, so
+    such a scene is checked on its final state (the checkpoint) over the model's boundary."""
+    import meshio
+
+    if any(b.skin for b in scene.bodies):
+        ck = load_run_checkpoint(out / CHECKPOINT_NAME)
+        T = Simulation(scene).model.T
+        return [(np.asarray(ck.snapshot["q"]).reshape(-1, 3), boundary_faces(T))]
+    frames = sorted((out / "frames").glob("*.vtu"))
+    assert frames
+    return [(m.points, m.cells_dict["triangle"]) for m in map(meshio.read, frames)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "steps", "contact", "rests"), GALLERY_RUNS)
+def test_gallery_contact_scenes_make_contact_without_intersecting(tmp_path, capsys, name,
+                                                                    steps, contact, rests):
+    """Each contact scene run until its bodies touch; the written states checked by an
+    ipctk collision mesh of their own (not the model's contact code): no intersection, no
+    vertex behind a plane, the contact the scene is about made, resting bodies at rest."""
+    scene = load_scene(name)
+    n = steps or round(scene.simulation.duration / scene.simulation.dt)
+    out = tmp_path / "run"
+    args = ["run", name, "--out", str(out), "--quiet", "--no-preview",
+            "--checkpoint-every", str(n)]
+    if steps is not None:
+        args += ["--set", f"simulation.steps={steps}"]
+    assert main(args) == 0, capsys.readouterr().err
+    states = _states(scene, out)
+    planes = [(np.asarray(o.plane.point), np.asarray(o.plane.normal) / np.linalg.norm(
+        o.plane.normal)) for o in scene.obstacles if o.plane is not None]
+    near = []
+    for k, (V, F) in enumerate(states):
+        assert not ipctk.has_intersections(_ipc_mesh(V, F), np.asfortranarray(V, float)), (
+            f"{name}: surfaces intersect in state {k}")
+        gap = min((float(((V - p) @ nrm).min()) for p, nrm in planes), default=np.inf)
+        assert gap > 0, f"{name}: a vertex is {-gap:.3g} m behind a plane in state {k}"
+        near.append((gap, _near_pairs(V, F, contact == "bodies")))
+    if contact == "plane":
+        assert min(g for g, _ in near) < NEAR, f"{name}: never touched its plane"
+    else:
+        assert max(c for _, c in near) > 0, f"{name}: the bodies never touched ({contact})"
+    kinetic = np.asarray(read_energy_csv(out / "energy.csv")["kinetic"])
+    assert len(kinetic) == n + 1
+    if rests:
+        assert kinetic[-1] < 1e-3 * kinetic.max(), (
+            f"{name}: not at rest at the end (kinetic {kinetic[-1]:.3g} J, peak "
+            f"{kinetic.max():.3g} J)")
+
+
 def test_keyframed_mesh_obstacle_lifts_a_block_without_intersecting(tmp_path):
     """A mesh obstacle (an OBJ floor, keyframed upward) pushes a block resting on it.
 

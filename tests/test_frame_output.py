@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import errno
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -187,11 +188,28 @@ def test_background_writer_waits_only_when_full(tmp_path):
 
     bg = BackgroundWriter(Gated(tmp_path, F), depth=4)
     frames = _frames(4)
-    start = time.perf_counter()
     for k, V in enumerate(frames[:4]):  # the thread holds one, the queue takes the rest
         bg.write(k, 0.01 * k, V)
-    assert time.perf_counter() - start < 1.0 and bg.waited_seconds == 0.0
-    threading.Timer(0.2, gate.set).start()
+    assert bg.waited_seconds == 0.0  # (no wall-time bound: it would depend on the load)
+    main_id = threading.get_ident()
+
+    def open_gate_once_blocked() -> None:
+        # the gate opens 0.2 s after the writer is seen blocked in Queue.put (not after a
+        # fixed delay from here, which a loaded machine could overtake)
+        deadline = time.monotonic() + 60.0  # a writer that never blocks: open anyway
+        while time.monotonic() < deadline:
+            f = sys._current_frames().get(main_id)
+            names = set()
+            while f is not None:
+                names.add(f.f_code.co_name)
+                f = f.f_back
+            if "put" in names and "write" in names:
+                break
+            time.sleep(0.005)
+        time.sleep(0.2)
+        gate.set()
+
+    threading.Thread(target=open_gate_once_blocked, daemon=True).start()
     bg.write(4, 0.04, frames[0])
     bg.write(5, 0.05, frames[1])  # the queue is full until the gate opens
     assert bg.waited_seconds > 0.05

@@ -317,3 +317,52 @@ def test_render_preview_any_elevation(tmp_path, elev):
     render_preview(frames, F, tmp_path / "a.gif", size=64, elev=elev, first_frame_png=png)
     with Image.open(png) as im:
         assert (np.asarray(im.convert("L")) < 250).any()
+
+
+def test_run_writes_strain_gravity_and_pull_energies(tmp_path):
+    """energy.csv splits V into strain and gravity (and logs the pull springs): a dropped
+    bunny's V goes negative by gravity alone, its strain stays >= 0."""
+    from fem3d.app.cli import main
+
+    out = tmp_path / "drop"
+    assert main(["run", "contact_bunny_drop", "--steps", "30", "--out", str(out), "--quiet",
+                 "--frame-every", "30"]) == 0
+    text = (out / "energy.csv").read_text()
+    assert text.splitlines()[0] == "t,kinetic,potential,total,strain,gravity,pull"
+    c = read_energy_csv(out / "energy.csv")
+    np.testing.assert_allclose(c["strain"] + c["gravity"], c["potential"], rtol=1e-12,
+                               atol=1e-12 * np.abs(c["potential"]).max())
+    assert c["gravity"][-1] < 0.0 and c["potential"][-1] < 0.0
+    assert (c["strain"] >= -1e-9 * np.abs(c["gravity"]).max()).all()
+    assert c["strain"].max() > 0.0  # it landed (step 25) and squashed
+    assert (c["pull"] == 0.0).all()
+    assert (out / "energy.png").stat().st_size > 0
+
+
+def test_resume_of_a_run_written_before_the_energy_split(tmp_path):
+    """A checkpoint and energy.csv of the old 4-column layout resume; the inherited rows keep
+    their values (split unknown: nan), the new rows carry the split."""
+    from fem3d.app.cli import main
+    from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint, save_run_checkpoint
+
+    out = tmp_path / "old"
+    assert main(["run", "contact_incline", "--steps", "4", "--checkpoint-every", "4", "--out",
+                 str(out), "--quiet", "--no-preview"]) == 0
+    ck = load_run_checkpoint(out / CHECKPOINT_NAME)
+    assert ck.energy.shape == (5, 7)
+    old = ck.energy[:, :4].copy()
+    ck.energy = old
+    save_run_checkpoint(out / CHECKPOINT_NAME, ck)  # as a run before the split wrote it
+    (out / "energy.csv").write_text(EnergyLog.from_array(old).to_csv())
+    assert (out / "energy.csv").read_text().startswith("t,kinetic,potential,total\n")
+    assert load_run_checkpoint(out / CHECKPOINT_NAME).energy.shape == (5, 4)
+    assert main(["resume", str(out), "--steps", "8", "--quiet"]) == 0
+    c = read_energy_csv(out / "energy.csv")
+    assert len(c["t"]) == 9
+    for i, name in enumerate(["t", "kinetic", "potential", "total"]):
+        np.testing.assert_array_equal(c[name][:5], old[:, i])  # inherited rows, exact
+    assert np.isnan(c["strain"][:5]).all() and np.isfinite(c["strain"][5:]).all()
+    np.testing.assert_allclose(c["strain"][5:] + c["gravity"][5:], c["potential"][5:],
+                               rtol=1e-12, atol=1e-15)
+    assert load_run_checkpoint(out / CHECKPOINT_NAME).energy.shape[1] == 7 or not (
+        out / CHECKPOINT_NAME).exists()

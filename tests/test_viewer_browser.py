@@ -110,12 +110,39 @@ def _image(png: bytes) -> np.ndarray:
 
 
 def _mesh_mask(img: np.ndarray) -> np.ndarray:
-    """Pixels of the 3-D scene that are not background (white), GUI panel excluded."""
+    """Pixels of the drawn mesh: not background (white), not the spring, GUI panel
+    excluded."""
     mask = np.abs(img - img[-1, VIEWPORT["width"] // 2]).sum(axis=2) > 60
-    mask[:, int(0.62 * img.shape[1]) :] = False  # control panel
-    mask[:260, :330] = False  # notifications
-    mask[-80:, :80] = False  # axes gizmo
-    return mask
+    # The pull's spring (red lines) is not the mesh: it moves with the mouse even when the
+    # mesh does not. Its pixels and their anti-aliased edges are left out.
+    red = img[..., 0] - np.maximum(img[..., 1], img[..., 2]) > 70
+    spring = red.copy()
+    for shift in (1, 2, 3):
+        for axis in (0, 1):
+            spring |= np.roll(red, shift, axis) | np.roll(red, -shift, axis)
+    return mask & _scene_region(img) & ~spring
+
+
+def _scene_region(img: np.ndarray) -> np.ndarray:
+    """Pixels of the 3-D view: the control panel, notifications and axes gizmo excluded."""
+    region = np.ones(img.shape[:2], dtype=bool)
+    region[:, int(0.62 * img.shape[1]) :] = False
+    region[:260, :330] = False
+    region[-80:, :80] = False
+    return region
+
+
+def _mesh_change(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean colour change over the pixels where either picture shows the mesh (the panel's
+    text, the status line and the plots do not count)."""
+    m = _mesh_mask(a) | _mesh_mask(b)
+    return float(np.abs(a - b).sum(axis=2)[m].mean()) if m.any() else 0.0
+
+
+def _mesh_centroid(img: np.ndarray) -> np.ndarray:
+    """(x, y) mean pixel of the mesh in a screenshot."""
+    rows, cols = np.nonzero(_mesh_mask(img))
+    return np.array([cols.mean(), rows.mean()])
 
 
 def _grab_pixel(mask: np.ndarray, q: np.ndarray, camera: Any) -> tuple[float, float]:
@@ -225,7 +252,8 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             x0, y0 = _grab_pixel(_mesh_mask(shot0), viewer.positions(), cam)
             before = viewer.snapshot()
             e_before = max((row[3] for row in before["energy"][-20:]), default=0.0)
-            _drag(page, x0, y0, -80.0 if x0 > 250 else 80.0)
+            dx = -80.0 if x0 > 250 else 80.0
+            _drag(page, x0, y0, dx)
             log("dragged")
             snap = wait_for(
                 lambda: (lambda s: s if s["pull"] and s["pull"]["ids"] else None)(
@@ -255,7 +283,18 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             )
             # The spring is drawn while pulling.
             log(f"pull verified: {len(pull['ids'])} vertices picked")
-            shot1 = _image(page.screenshot(timeout=60_000))
+            # What the page shows: the mesh's own pixels changed and moved the way the
+            # mouse went (the panel's status text and plots are masked out).
+            c0 = _mesh_centroid(shot0)
+
+            def mesh_followed() -> Any:
+                im = _image(page.screenshot(timeout=60_000))
+                change, shift = _mesh_change(im, shot0), (_mesh_centroid(im) - c0)[0]
+                if change > 2.0 and math.copysign(1.0, dx) * shift > 0.5:
+                    return im
+                return f"mesh change {change:.2f}, centroid shift {shift:+.2f} px (dx {dx:+})"
+
+            shot1 = wait_for(mesh_followed, 30, "the drawn mesh to follow the drag", 0.3)
             page.mouse.up()
             wait_for(lambda: viewer.snapshot()["pull"] is None, 10, "the pull to be released")
 
@@ -280,7 +319,7 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 lambda: viewer.snapshot()["integrator"] == integ0, 10, "N to switch it back"
             )
             shot2 = wait_for(
-                lambda: (lambda im: im if np.abs(im - shot1).mean() > 0.2 else None)(
+                lambda: (lambda im: im if _mesh_change(im, shot1) > 2.0 else None)(
                     _image(page.screenshot(timeout=60_000))
                 ),
                 10,
@@ -308,7 +347,9 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 m = _mesh_mask(img)
                 assert img.std() > 5.0, f"{name} is blank"
                 assert m.mean() > 0.01, f"{name} shows no mesh"
-            assert np.abs(shot1 - shot0).mean() > 0.2, "the drag did not change the picture"
+            assert _mesh_change(shot1, shot0) > 2.0, "the drag did not change the drawn mesh"
+            assert math.copysign(1.0, dx) * (_mesh_centroid(shot1) - _mesh_centroid(shot0))[0] > 0.5
+            assert _mesh_change(shot2, shot1) > 2.0, "M did not change the drawn mesh"
 
             snap = viewer.snapshot()
             assert snap["error"] is None, snap["error"]
@@ -320,6 +361,6 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
         finally:
             ctx.close()
     shutil.rmtree(profile, ignore_errors=True)
-    # A guard against a silent stall, not a speed target: the shared 2-core machine has
-    # been seen at load 15, where this test takes ~140 s.
-    assert time.monotonic() - t_start < 300.0
+    # No wall-time bound: a stall fails the waits above (each has its timeout); how long
+    # the test took depends on the machine's load (140 s seen at load 15), so it is printed.
+    log(f"done in {time.monotonic() - t_start:.0f} s")

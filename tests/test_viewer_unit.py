@@ -620,3 +620,58 @@ mesh = {{ path = "{data / 'coarser_bunny.obj'}", transform = {{ scale = 0.001, t
         wait_for(lambda: v.snapshot()["steps"] > steps + 2 or None, 60, "stepping after N")
         assert v.snapshot()["integrator"] == "bdf2"
         assert v.exceptions == [], v.exceptions
+
+
+def test_energy_split_strain_gravity_pull_for_a_falling_bunny() -> None:
+    """The viewer's plots and "now:" line split V into strain and gravity (gravity's
+    potential is negative for a body that fell: it is not strain; V = -22.11 was shown as
+    "V (strain)" for a resting bunny)."""
+    from fem3d.app.viewer.logic import ENERGY_PLOTS, ViewerState
+
+    state = ViewerState("contact_bunny_drop", integrator="implicit", backend=None, mesh_mode="sim",
+                        pacer=RealtimePacer(enabled=False))
+    for _ in range(30):  # it lands at step 25 and squashes
+        assert state.step() is None
+    e = state.sim.energies()
+    assert e["potential"] == pytest.approx(e["strain"] + e["gravity"], rel=1e-12, abs=1e-15)
+    assert e["gravity"] < 0.0 < e["strain"]  # fell and squashed on landing
+    latest = state.history.latest_split()
+    t, T, V, tot, pull, strain, gravity = latest
+    assert gravity == pytest.approx(e["gravity"]) and strain == pytest.approx(e["strain"])
+    assert strain > 0.0 and strain == pytest.approx(V - gravity)
+    text = energy_text(latest).replace("\u00a0", " ")
+    assert f"strain = {format_energy(strain)}" in text
+    assert f"gravity = {format_energy(gravity)}" in text
+    labels = {key: label for key, label, _c in ENERGY_PLOTS}
+    assert "strain" in labels["strain"] and "gravity" in labels["gravity"]
+    assert not any(label == "V (strain)" for label in labels.values())
+    x, *series = state.history.plot_series(10.0)
+    cols = dict(zip([k for k, _l, _c in ENERGY_PLOTS], series, strict=True))
+    assert cols["strain"][-1] == strain and cols["gravity"][-1] == gravity
+    assert (cols["strain"] >= -1e-9 * abs(gravity)).all()  # strain is never negative
+
+
+@needs_viser
+def test_contact_scene_camera_frames_the_ground_under_the_body() -> None:
+    """contact_bunny_drop: the viewer's first view holds the bunny and the ground where it
+    lands (it used to frame the bunny alone, the ground below the viewport)."""
+    from fem3d.app.viewer.app import Viewer
+
+    v = Viewer("contact_bunny_drop", port=0, integrator="implicit", mesh_mode="sim")
+    try:
+        cam, q = v.camera, v.positions()
+    finally:
+        v.stop()
+    ground = q.copy()
+    ground[:, 1] = 0.0  # the plane y = 0 under the bunny
+    pos, look = np.asarray(cam["position"]), np.asarray(cam["look_at"])
+    fwd = (look - pos) / np.linalg.norm(look - pos)
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    half = math.tan(0.5 * 75.0 * math.pi / 180.0)  # camera_for_points' default fov
+    for name, P in (("bunny", q), ("ground under it", ground)):
+        d = P - pos
+        z = d @ fwd
+        assert (z > 0).all(), name
+        assert (np.abs(d @ up / z) < half).all(), f"the {name} leaves the view vertically"

@@ -223,7 +223,7 @@ class RunLoop:
         self.max_disp = 0.0
 
     def record(self, step: int, t: float, kinetic: float, potential: float,
-               total: float) -> None:
+               total: float, pull: float = 0.0) -> None:
         """Log one step's energies and write its frame (every ``output.every`` steps).
 
         Raises
@@ -240,7 +240,8 @@ class RunLoop:
                 self.preview.append(V)
                 self.preview_times.append(float(t))
             self.frame_count += 1
-        self.log.append(t, kinetic, potential, total)
+        self.log.append(t, kinetic, potential, total, gravity=self.sim.gravity_energy(),
+                        pull=pull)
 
     def save_checkpoint(self) -> Path:
         """Write ``energy.csv``, flush the frames and save ``checkpoint.npz``; its path."""
@@ -263,7 +264,7 @@ class RunLoop:
         sim, out, command = self.sim, self.out, self.command
         if self.ckpt is None:
             e = sim.energies()
-            self.record(0, sim.t, e["kinetic"], e["potential"], e["total"])
+            self.record(0, sim.t, e["kinetic"], e["potential"], e["total"], e["pull"])
         start = sim.step_index
         scene = self.scene
         print(
@@ -322,7 +323,8 @@ class RunLoop:
                 intr.in_step = False
             self.step_seconds.append(info.seconds)
             self.iterations.append(info.newton_iterations)
-            self.record(sim.step_index, info.t, info.kinetic, info.potential, info.total)
+            self.record(sim.step_index, info.t, info.kinetic, info.potential, info.total,
+                        float(getattr(info, "pull", 0.0)))
             self.max_disp = max(self.max_disp, float(np.abs(sim.q - X0).max()))
             bar.update(1)
             bar.set_postfix_str(f"t={info.t:.2f} E={info.total:.3g}", refresh=False)

@@ -209,7 +209,7 @@ def save_run_checkpoint(path: PathLike, ckpt: RunCheckpoint) -> Path:
         kind=_KIND,
         settings=ckpt.settings,
         state=scalars,
-        energy=np.asarray(ckpt.energy, dtype=np.float64).reshape(-1, 4),
+        energy=_energy_rows(ckpt.energy),
         frame_steps=np.asarray(steps, dtype=np.int64),
         frame_times=np.asarray([ckpt.frames[s][0] for s in steps], dtype=np.float64),
         frame_paths=[ckpt.frames[s][1] for s in steps],
@@ -260,9 +260,17 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
     if q.ndim != 2 or q.shape[1] != 3 or snap["v"].shape != q.shape:
         raise InputError(f"checkpoint state has bad shapes {q.shape}, {snap['v'].shape}",
                          path=path)
-    if not (np.isfinite(q).all() and np.isfinite(snap["v"]).all() and np.isfinite(energy).all()):
+    finite = np.isfinite(energy[..., :4]).all()  # (the split of inherited rows is nan)
+    if not (np.isfinite(q).all() and np.isfinite(snap["v"]).all() and finite):
         raise InputError("checkpoint holds non-finite values", path=path)
-    if energy.ndim != 2 or energy.shape[1] != 4 or energy.shape[0] != ckpt.step + 1:
+    if energy.ndim != 2 or energy.shape[1] not in (4, 7) or energy.shape[0] != ckpt.step + 1:
         raise InputError(f"checkpoint energy history has shape {energy.shape}, expected "
-                         f"({ckpt.step + 1}, 4)", path=path)
+                         f"({ckpt.step + 1}, 4) or ({ckpt.step + 1}, 7)", path=path)
     return ckpt
+
+
+def _energy_rows(energy: np.ndarray) -> np.ndarray:
+    """The energy rows as saved: ``(n, 4)`` (before the split) or ``(n, 7)`` (with strain,
+    gravity and pull; ``nan`` in the split of rows inherited from an older run)."""
+    a = np.asarray(energy, dtype=np.float64)
+    return a if a.ndim == 2 and a.shape[1] == 7 else a.reshape(-1, 4)

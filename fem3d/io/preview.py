@@ -23,12 +23,13 @@ __all__ = ["plot_energy", "render_preview"]
 
 
 def plot_energy(data: Any, png_path: PathLike, *, title: str | None = None) -> Path:
-    """Plot kinetic, potential and total energy against time into a PNG (Agg, no display).
+    """Plot kinetic, potential (split into strain and gravity when the log has the split,
+    with the pull springs' energy) and total energy against time into a PNG (Agg).
 
     Parameters
     ----------
-    data : path of an energy CSV, EnergyLog, mapping with keys t/kinetic/potential/total,
-        or (n_rows, 4) array
+    data : path of an energy CSV, EnergyLog, mapping or array (see
+        :func:`fem3d.io.energy.energy_columns`)
     png_path : str or PathLike
     title : str, optional
     """
@@ -41,8 +42,15 @@ def plot_energy(data: Any, png_path: PathLike, *, title: str | None = None) -> P
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     ax.plot(cols["t"], cols["kinetic"], label="kinetic")
-    ax.plot(cols["t"], cols["potential"], label="potential")
-    ax.plot(cols["t"], cols["total"], label="total", color="k", linewidth=1.5)
+    if "strain" in cols:  # the split layout: V = strain + gravity, each its own line
+        ax.plot(cols["t"], cols["strain"], label="strain (elastic)")
+        ax.plot(cols["t"], cols["gravity"], label="gravity (potential)")
+        if np.nanmax(np.abs(cols["pull"]), initial=0.0) > 0.0:
+            ax.plot(cols["t"], cols["pull"], label="pull springs", linestyle="--")
+        ax.plot(cols["t"], cols["potential"], label="V = strain + gravity", linestyle=":")
+    else:
+        ax.plot(cols["t"], cols["potential"], label="potential")
+    ax.plot(cols["t"], cols["total"], label="total = kinetic + V", color="k", linewidth=1.5)
     ax.set_xlabel("time t [s]")
     ax.set_ylabel("energy")
     if title:

@@ -49,11 +49,17 @@ MESH_SCENE_DEFAULTS = {
 
 # ------------------------------------------------------------------------------ folders
 def data_dir() -> Path:
-    """Folder of the shipped meshes: ``$FEM3D_DATA`` if set, else the checkout's ``data/``."""
+    """Folder of the shipped meshes: ``$FEM3D_DATA`` if set, else the checkout's ``data/``
+    (a source checkout or an editable install), else the installed package's copy
+    (``fem3d/_data``, the package data of a wheel)."""
     env = os.environ.get("FEM3D_DATA")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "data"
+    here = Path(__file__).resolve()
+    checkout = here.parents[2] / "data"
+    if (checkout / "scenes").is_dir():
+        return checkout
+    return here.parents[1] / "_data"
 
 
 def scenes_dir() -> Path:

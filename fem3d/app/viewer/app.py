@@ -66,6 +66,7 @@ from fem3d.app.viewer.logic import (
     console_help,
     plane_grid_segments,
     plane_quad,
+    scene_points,
     spring_segments,
 )
 from fem3d.app.viewer.panel import Panel
@@ -393,7 +394,8 @@ class Viewer:
         Keys: ``scene``, ``integrator``, ``mesh_mode``, ``paused``, ``error``, ``errors``,
         ``t``, ``steps``, ``pushes``, ``ms_per_step``, ``newton_per_step``,
         ``steps_per_second``, ``material``, ``pull`` (None or ``ids``, ``grab_point``,
-        ``target``, ``start_positions``, ``positions``), ``energy`` (list of
+        ``target``, ``start_positions``, ``positions``: the newest pull), ``pulls`` (every active
+        pull, one per dragging page, each as ``pull`` plus ``owner``), ``energy`` (list of
         ``[t, T, V, T+V]``), ``drag_events``, ``generation``, ``pick_radius``, ``acked``
         (mesh updates the pages acknowledged), ``held_back`` (mesh updates not sent because
         a page had not processed the previous one), ``clients``, ``exceptions``.
@@ -434,14 +436,16 @@ class Viewer:
         cid = int(client.client_id)
         with s.lock:
             self._acks.drop(cid)
-            if s.pull is not None and s.pull.owner == cid:
-                s.pull = None
-                s.pull_version += 1
+            s.drop_pulls(cid)
 
     def _scene_camera(self) -> dict[str, Any]:
         s = self._state
         direction = VIEW_DIRECTIONS.get(str(s.scene.name), DEFAULT_VIEW_DIRECTION)
-        return camera_for_points(s.sim.q, direction=direction)
+        contact = getattr(s.sim, "contact", None)
+        planes = [] if contact is None else [(p.point, p.normal)
+                                             for p in contact.contact.planes]
+        meshes = [V for _n, V, _F in s.sim.obstacles()] if contact is not None else []
+        return camera_for_points(scene_points(s.sim.q, planes, meshes), direction=direction)
 
     def _apply_camera(self, *, initial: bool = False) -> None:
         cam = self._scene_camera()
@@ -667,8 +671,8 @@ class Viewer:
         s = self._state
         with s.lock:
             text = s.status_locked(self._mesh_handle_mode or s.mesh_mode)
-            x, *series = s.history.recent(self.plot_window, n=PLOT_POINTS)
-            latest = s.history.latest()
+            x, *series = s.history.plot_series(self.plot_window, n=PLOT_POINTS)
+            latest = s.history.latest_split()
         self._panel.update(text, latest, x, series)
 
     def _run_commands(self) -> None:
@@ -692,7 +696,7 @@ class Viewer:
                 s.log_exception()
                 self._fail(f"{type(exc).__name__}: {exc}")
                 with s.lock:
-                    s.pull = None
+                    s.drop_pulls()
                     pull = None
             with s.lock:
                 running = not s.paused

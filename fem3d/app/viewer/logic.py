@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from fem3d.app.viewer.plots import ENERGY_PLOTS, HISTORY_COLUMNS, EnergyHistory
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.scene import apply_overrides, material_names
@@ -31,12 +32,15 @@ from fem3d.simulation import Simulation
 from fem3d.solve.integrators import DYNAMIC_INTEGRATORS
 
 __all__ = [
+    "ENERGY_PLOTS",
+    "HISTORY_COLUMNS",
     "EnergyHistory",
     "PullState",
     "RealtimePacer",
     "ViewerState",
     "HOTKEYS",
     "camera_for_points",
+    "scene_points",
     "plane_quad",
     "energy_text",
     "format_energy",
@@ -60,16 +64,10 @@ def console_help() -> str:
     return (f"drag the mesh; {k['mesh']} mesh, {k['integrator']} integrator, {k['pause']} pause, "
             f"{k['reset']} reset; Ctrl-C stops")
 
-#: The energy plots: (key, label, colour). Each has its own y scale: the pull spring's
-#: energy (up to 1e9 on the bunny) must not flatten the elastic energies (1e-6 at rest).
-ENERGY_PLOTS = (
-    ("kinetic", "T (kinetic)", "#1f77b4"),
-    ("potential", "V (strain)", "#ff7f0e"),
-    ("total", "T+V", "#2ca02c"),
-    ("pull", "pull spring", "#d62728"),
-)
+# The energy plots and their history (ENERGY_PLOTS, HISTORY_COLUMNS, EnergyHistory) are
+# in fem3d.app.viewer.plots, imported above and re-exported.
 
-#: Samples per energy plot (4 plots x 2 float32 arrays: 6.4 kB per update at 200).
+#: Samples per energy plot (5 plots x 2 float32 arrays: 8 kB per update at 200).
 PLOT_POINTS = 200
 
 
@@ -161,77 +159,6 @@ class RealtimePacer:
         return max(d, 0.0)
 
 
-class EnergyHistory:
-    """Rolling history of (t, kinetic, potential, total[, pull]) for the energy plots.
-
-    Parameters
-    ----------
-    maxlen : int
-        Number of samples kept.
-    """
-
-    def __init__(self, maxlen: int = 4000) -> None:
-        self._rows: collections.deque[tuple[float, ...]] = collections.deque(maxlen=maxlen)
-
-    def __len__(self) -> int:
-        return len(self._rows)
-
-    def clear(self) -> None:
-        self._rows.clear()
-
-    def append(
-        self, t: float, kinetic: float, potential: float, total: float, pull: float = 0.0
-    ) -> None:
-        self._rows.append(
-            (float(t), float(kinetic), float(potential), float(total), float(pull))
-        )
-
-    def window(self, seconds: float | None = None) -> tuple[np.ndarray, ...]:
-        """The samples of the last ``seconds`` of simulated time.
-
-        Returns
-        -------
-        (t, kinetic, potential, total) : four (n,) float64 arrays
-            ``n >= 1``: an empty history gives one sample of zeros, so the plot always has
-            data.
-        """
-        if not self._rows:
-            return tuple(np.zeros(1) for _ in range(4))
-        a = np.asarray(self._rows, dtype=np.float64)
-        if seconds is not None:
-            a = a[a[:, 0] >= a[-1, 0] - seconds]
-        return tuple(np.ascontiguousarray(a[:, i]) for i in range(4))
-
-    def recent(self, seconds: float, n: int = 400) -> tuple[np.ndarray, ...]:
-        """The real samples of the last ``seconds``, at most ``n`` of them (every k-th).
-
-        Nothing is invented: before the first sample (after a reset) the plot stays
-        empty, and between samples uPlot draws straight lines.
-
-        Returns
-        -------
-        (x, kinetic, potential, total, pull) : five (m,) float64 arrays
-            ``x = t - t_newest`` (seconds before the newest sample, ``<= 0``); ``m = 0``
-            for an empty history.
-        """
-        if not self._rows:
-            return tuple(np.zeros(0) for _ in range(5))
-        a = np.asarray(self._rows, dtype=np.float64)
-        a = a[a[:, 0] >= a[-1, 0] - seconds]
-        k = max(1, math.ceil(a.shape[0] / int(n)))
-        a = a[::-1][::k][::-1]  # keep the newest sample
-        x = a[:, 0] - a[-1, 0]
-        return (np.ascontiguousarray(x), *(np.ascontiguousarray(a[:, i]) for i in range(1, 5)))
-
-    def latest(self) -> tuple[float, ...] | None:
-        """The newest (t, kinetic, potential, total, pull), or None."""
-        return self._rows[-1] if self._rows else None
-
-    def rows(self) -> list[tuple[float, float, float, float]]:
-        """(t, kinetic, potential, total) per sample."""
-        return [r[:4] for r in self._rows]
-
-
 @dataclasses.dataclass
 class PullState:
     """An active mouse pull.
@@ -274,13 +201,35 @@ def spring_segments(positions: np.ndarray, ids: np.ndarray, target: np.ndarray) 
     p = np.asarray(positions, dtype=np.float64)[np.asarray(ids, dtype=np.int64)]
     seg = np.empty((p.shape[0], 2, 3), dtype=np.float32)
     seg[:, 0] = p
-    seg[:, 1] = np.asarray(target, dtype=np.float64).reshape(3)
+    seg[:, 1] = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     return seg
 
 
 #: Viewing direction (from the object toward the camera) per built-in scene; y is up.
 VIEW_DIRECTIONS = {"arma": (0.0, 0.25, -1.0)}  # the armadillo faces -z
 DEFAULT_VIEW_DIRECTION = (0.0, 0.25, 1.0)
+
+
+def scene_points(q: np.ndarray, planes: Sequence[tuple[Any, Any]] = (),
+                 meshes: Sequence[np.ndarray] = ()) -> np.ndarray:
+    """The points a scene's first view frames: the bodies' vertices, their shadows on each
+    obstacle plane (where a dropped body lands: the ground under it stays in view) and the
+    mesh obstacles' vertices.
+
+    Parameters
+    ----------
+    q : (n, 3) float64
+    planes : sequence of (point (3,), normal (3,))
+    meshes : sequence of (k, 3) float64
+    """
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 3)
+    out = [q]
+    for point, normal in planes:
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        out.append(q - ((q - np.asarray(point, dtype=np.float64)) @ n)[:, None] * n)
+    out += [np.asarray(V, dtype=np.float64).reshape(-1, 3) for V in meshes]
+    return np.concatenate(out)
 
 
 def camera_for_points(
@@ -394,8 +343,11 @@ def energy_text(latest: Sequence[float] | None) -> str:
     """The current energies above the plots (markdown), one phrase per energy."""
     if latest is None:
         return "energies: none yet"
-    _t, T, V, tot, pull = (list(latest) + [0.0])[:5]
-    parts = [f"T = {format_energy(T)}", f"V = {format_energy(V)}",
+    row = list(latest) + [0.0] * 7
+    _t, T, V, tot, pull = row[:5]
+    strain, gravity = (row[5], row[6]) if len(latest) >= 7 else (V, 0.0)
+    parts = [f"T = {format_energy(T)}", f"strain = {format_energy(strain)}",
+             f"gravity = {format_energy(gravity)}", f"V = {format_energy(V)}",
              f"T+V = {format_energy(tot)}", f"pull = {format_energy(pull)}"]
     return "now: " + " · ".join(_nb(p) for p in parts)
 
@@ -481,7 +433,9 @@ class ViewerState:
         self.wake = threading.Event()
         self.commands: collections.deque[Callable[[], None]] = collections.deque()
         self.generation = 0
-        self.pull: PullState | None = None
+        #: The active pulls, one per owner (a browser client; None for calls without one),
+        #: oldest first: two pages can drag at once, each its own vertices.
+        self.pulls: dict[int | None, PullState] = {}
         self.pull_version = 0
         self.q_view = np.array(self.sim.q, dtype=np.float64, copy=True)
         self.paused = False
@@ -545,19 +499,34 @@ class ViewerState:
             "steps_per_second": float(rate),
         }
 
+    @property
+    def pull(self) -> PullState | None:
+        """The newest active pull (None without one)."""
+        return next(reversed(self.pulls.values()), None)
+
+    def drop_pulls(self, owner: Any = ...) -> None:
+        """Release ``owner``'s pull (every pull by default); the caller holds :attr:`lock`."""
+        if owner is ...:
+            self.pulls.clear()
+        elif self.pulls.pop(owner, None) is None:
+            return
+        self.gui_dirty = True
+        self.pull_version += 1
+
+    def _pull_dict(self, p: PullState) -> dict[str, Any]:
+        return {
+            "owner": p.owner,
+            "ids": p.ids.tolist(),
+            "grab_point": p.grab_point.tolist(),
+            "target": p.target.tolist(),
+            "start_positions": p.start_positions.tolist(),
+            "positions": self.q_view[p.ids].tolist(),
+        }
+
     def snapshot_locked(self) -> dict[str, Any]:
         """The shared state as a JSON-serialisable dict (the caller holds :attr:`lock`);
         see :meth:`fem3d.app.viewer.app.Viewer.snapshot`."""
-        pull = None
-        if self.pull is not None:
-            p = self.pull
-            pull = {
-                "ids": p.ids.tolist(),
-                "grab_point": p.grab_point.tolist(),
-                "target": p.target.tolist(),
-                "start_positions": p.start_positions.tolist(),
-                "positions": self.q_view[p.ids].tolist(),
-            }
+        pull = None if self.pull is None else self._pull_dict(self.pull)
         stats = self.stats_locked()
         return {
             "scene": self.scene.name,
@@ -573,6 +542,7 @@ class ViewerState:
             "material": dict(self.material),
             "material_model": self.material_model(),
             "pull": pull,
+            "pulls": [self._pull_dict(p) for p in self.pulls.values()],
             "energy": [list(r) for r in self.history.rows()],
             "drag_events": self.drag_events,
             "generation": self.generation,
@@ -581,9 +551,8 @@ class ViewerState:
 
     def status_locked(self, mesh_mode: str) -> str:
         """The panel's status text (the caller holds :attr:`lock`)."""
-        pull = self.pull
-        grabbed = None if pull is None or pull.generation != self.generation else int(
-            pull.ids.size)
+        live = [p for p in self.pulls.values() if p.generation == self.generation]
+        grabbed = sum(int(p.ids.size) for p in live) if live else None
         return format_status(
             scene=self.scene_label,
             integrator=self.integrator,
@@ -637,7 +606,8 @@ class ViewerState:
         with self.lock:
             q = self.q_view
             ids = _pick(q, grab, self.pick_radius)
-            self.pull = PullState(
+            self.pulls.pop(owner, None)  # a new press of the same owner: the newest pull
+            self.pulls[owner] = PullState(
                 ids=ids,
                 grab_point=grab,
                 target=tgt,
@@ -653,9 +623,10 @@ class ViewerState:
     def move_pull(self, tgt: np.ndarray, owner: int | None) -> None:
         """Move the pull target (only ``owner``'s pull, when given)."""
         with self.lock:
-            if self.pull is None or (owner is not None and self.pull.owner != owner):
+            pull = self.pulls.get(owner) if owner is not None else self.pull
+            if pull is None:
                 return
-            self.pull.target = tgt
+            pull.target = tgt
             self.pull_version += 1
             self.drag_events += 1
         self.wake.set()
@@ -663,11 +634,10 @@ class ViewerState:
     def end_pull(self, owner: int | None) -> None:
         """Release the pull (only ``owner``'s pull, when given)."""
         with self.lock:
-            if self.pull is None or (owner is not None and self.pull.owner != owner):
+            pull = self.pulls.get(owner) if owner is not None else self.pull
+            if pull is None:
                 return
-            self.pull = None
-            self.gui_dirty = True
-            self.pull_version += 1
+            self.drop_pulls(pull.owner)
             self.drag_events += 1
         self.wake.set()
 
@@ -686,14 +656,31 @@ class ViewerState:
         except Exception:  # noqa: BLE001 - an exotic simulation without energies
             return
         self.history.append(float(self.sim.t), e["kinetic"], e["potential"], e["total"],
-                            e.get("pull", 0.0))
+                            e.get("pull", 0.0), e.get("gravity", 0.0))
 
     def sync_pull(self) -> PullState | None:
-        """Hand a changed pull to the simulation; the current pull."""
+        """Hand changed pulls to the simulation; the active pulls as one (None without).
+
+        Several owners' pulls become one set of springs, each vertex toward its owner's
+        target."""
         with self.lock:
-            pull, version = self.pull, self.pull_version
+            live = [p for p in self.pulls.values()
+                    if p.generation == self.generation and p.ids.size]
+            version = self.pull_version
+            pull = None
+            if len(live) == 1:
+                pull = live[0]
+            elif live:
+                pull = PullState(
+                    ids=np.concatenate([p.ids for p in live]),
+                    grab_point=live[-1].grab_point,
+                    target=np.concatenate([np.broadcast_to(p.target, (p.ids.size, 3))
+                                           for p in live]),
+                    start_positions=np.concatenate([p.start_positions for p in live]),
+                    generation=self.generation,
+                )
         if version != self.applied_pull_version:
-            if pull is not None and pull.generation == self.generation and pull.ids.size:
+            if pull is not None:
                 self.sim.set_pull(pull.ids, pull.target)
             else:
                 self.sim.clear_pull()
@@ -713,6 +700,7 @@ class ViewerState:
             q = np.asarray(self.sim.q, dtype=np.float64)
             if not np.isfinite(q).all() or not math.isfinite(float(info.total)):
                 raise SimulationError("non-finite positions or energy")
+            gravity = float(getattr(self.sim, "gravity_energy", lambda: 0.0)())
         except SimulationError as exc:
             return str(exc)
         except Exception as exc:  # noqa: BLE001 - keep the viewer alive, show the error
@@ -725,7 +713,7 @@ class ViewerState:
             self.t = float(info.t)
             self.q_view = np.array(q, dtype=np.float64, copy=True)
             self.history.append(info.t, info.kinetic, info.potential, info.total,
-                                float(getattr(info, "pull", 0.0)))
+                                float(getattr(info, "pull", 0.0)), gravity)
             self.recent.append((now, seconds, int(info.newton_iterations)))
         return None
 
@@ -843,8 +831,7 @@ class ViewerState:
         with self.lock:
             self.scene, self.sim, self.scene_label = scene, sim, name
             self.generation += 1
-            self.pull = None
-            self.pull_version += 1
+            self.drop_pulls()
             self.error = None
             self.paused = False
             self.history_reset()

@@ -80,7 +80,7 @@ class Panel:
             "Grab radius", min=lo, max=hi, step=(hi - lo) / 200.0, initial_value=r0
         )
         g["energy"] = gui.add_markdown("")
-        x, *series = history.recent(plot_window)
+        x, *series = history.plot_series(plot_window)
         for (key, label, color), y in zip(ENERGY_PLOTS, series, strict=True):
             g[f"plot_{key}"] = gui.add_uplot(
                 data=(x, y),
