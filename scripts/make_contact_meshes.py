@@ -6,6 +6,8 @@
   (75 vertices, 192 tets): the incline and stack scenes.
 * ``data/contact_bar.mesh``: a 50 x 4 x 4 cm bar along x, 25 x 2 x 2 cells (234 vertices,
   600 tets): the twisted-bar self-contact scene.
+* ``data/scenes/meshes/contact_strip_24x1x3.mesh``: a 30 x 1 x 6 cm strip along x, 24 x 1 x 3
+  cells (200 vertices, 432 tets): the folded-strip self-contact scene (contact_fold).
 """
 
 from __future__ import annotations
@@ -33,6 +35,12 @@ def main() -> None:
         X, T = box(n, size, origin)
         write_tet_mesh(ROOT / "data" / name, TetMesh(X=X, T=T))
         print(f"data/{name}: {len(X)} vertices, {len(T)} tets")
+    for name, n, size, origin in (
+        ("contact_strip_24x1x3.mesh", (24, 1, 3), (0.3, 0.01, 0.06), (-0.15, 0.0, -0.03)),
+    ):
+        X, T = box(n, size, origin)
+        write_tet_mesh(ROOT / "data" / "scenes" / "meshes" / name, TetMesh(X=X, T=T))
+        print(f"data/scenes/meshes/{name}: {len(X)} vertices, {len(T)} tets")
 
 
 if __name__ == "__main__":
