@@ -27,7 +27,8 @@ def box_scene(beta: float):
     X, T = box_mesh(2, 2, 2)
     values = {**VALUES, "bodies[0].damping.rayleigh_stiffness": beta}
     return scene_with(scene_from_arrays(X, T, {
-        "simulation.dt": 0.01, "bodies[0].pins": [{"select": {"lowest_y": {"tol": 0.0}}}]}),
+        "simulation.dt": 0.01, "bodies[0].pins": [{"select": {"lowest_y": {"tol": 0.0}}}],
+        "pulls": []}),  # the mesh scene's default pull: not differentiated (refused)
         values), values
 
 

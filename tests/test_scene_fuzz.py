@@ -7,11 +7,12 @@ import math
 import tomllib
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fem3d.errors import InputError
-from fem3d.scene import Scene, read_scene_file
+from fem3d.scene import Scene, load_scene, read_scene_file
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "data" / "scenes"
@@ -125,3 +126,14 @@ def test_mutated_scene_text_raises_only_input_error(tmp_path, data):
     lambda b: b.decode("latin-1"))))
 def test_random_text_raises_only_input_error(tmp_path, text):
     load_text(tmp_path, text)
+
+
+def test_a_key_with_a_newline_is_named_on_one_line():
+    """Found by the mutated-dict test above: an unknown key "\\n" printed raw split the one-line
+    error in two; odd keys are quoted."""
+    d = load_scene("arma").to_dict()
+    d["\n"] = 1
+    with pytest.raises(InputError) as info:
+        Scene.from_dict(d)
+    assert "\n" not in str(info.value)
+    assert "'\\n': unknown key" in str(info.value)

@@ -23,7 +23,10 @@ def format_key(loc: tuple) -> str:
         if isinstance(part, int):
             out += f"[{part}]"
         else:
-            out += ("." if out else "") + str(part)
+            text = str(part)
+            if not text.isidentifier():  # a key with odd characters (a newline...) stays on
+                text = repr(text)        # one line of the message, visibly
+            out += ("." if out else "") + text
     return out or "(top level)"
 
 
