@@ -272,3 +272,47 @@ def test_sweep_on_an_external_scheduler(tmp_path, monkeypatch):
     rows = _results(out)
     assert [r["status"] for r in rows] == ["ok", "ok", "ok"]
     assert all(int(r["steps"]) == 2 for r in rows)
+
+
+_KILL_EVERY_WORKER = '''
+import os
+if os.environ.get("FEM3D_TEST_SABOTAGE"):
+    import fem3d.app.sweep.run as _run
+
+    def run_case(task):
+        os._exit(1)  # the worker process dies with the case, every time
+
+    _run.run_case = run_case
+'''
+
+
+@pytest.mark.slow  # an external cluster whose worker is restarted three times
+def test_a_case_that_kills_its_worker_is_lost_after_three_deaths(tmp_path, monkeypatch):
+    """A case whose run kills the worker process every time is given up after Dask's allowed
+    failures (3) and recorded ``lost`` with the ``KilledWorker`` reason; the sweep exits 1. One
+    case and one worker: no other case can be taken down with it (Dask also counts the tasks a
+    dying worker held), so the count is exact."""
+    dask = pytest.importorskip("dask")
+    distributed = pytest.importorskip("distributed")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_KILL_EVERY_WORKER, encoding="utf-8")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(ROOT)]))
+    monkeypatch.setenv("FEM3D_TEST_SABOTAGE", "1")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    spec = _sweep_file(tmp_path, """
+        [set]
+        "simulation.steps" = 2
+        [grid]
+        "bodies[0].material.E" = [3e5]
+    """)
+    out = tmp_path / "out"
+    with dask.config.set({"distributed.scheduler.allowed-failures": 3}), \
+            distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                     dashboard_address=None) as cluster:
+        rc, err = _main("sweep", str(spec), "--scheduler", cluster.scheduler_address,
+                        "--out", str(out), "--quiet")
+    assert rc == 1, err
+    assert "0 ok, 0 failed, 1 lost" in err, err
+    (row,) = _results(out)
+    assert row["status"] == "lost" and "KilledWorker" in row["message"], row
