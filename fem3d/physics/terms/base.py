@@ -129,6 +129,10 @@ class Term:
     allows_lagged_matrix : bool
         A Newton matrix of one iterate may serve the next (False where the term changes
         between iterates, e.g. an adaptive barrier stiffness).
+    stiff_barrier : bool
+        The term stiffens by orders of magnitude within a step (a log barrier at contact): a
+        scheme without numerical dissipation (Newmark) damps its highest modes while it is
+        active.
     active : bool
         Whether the term takes part in the next step (checked once per step).
     energy_scale : float
@@ -141,6 +145,7 @@ class Term:
     variable: ClassVar[str] = "position"
     requires_convergence: ClassVar[bool] = False
     allows_lagged_matrix: ClassVar[bool] = True
+    stiff_barrier: ClassVar[bool] = False
     energy_scale: float = 0.0
 
     @property
@@ -238,6 +243,7 @@ class TermGroup(Term):
         self.variable = variables.pop()
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
+        self.stiff_barrier = any(t.stiff_barrier for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
 
     @property

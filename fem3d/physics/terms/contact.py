@@ -48,6 +48,7 @@ class BarrierTerm(Term):
     requires_convergence = True
     #: the adaptive stiffness changes the objective between iterates
     allows_lagged_matrix = False
+    stiff_barrier = True
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
                  pattern_margin: float = 4.0) -> None:
