@@ -39,7 +39,6 @@ import scipy.sparse.linalg as spla
 
 from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import StepMap, as_term
-from fem3d.physics.terms.inertia import Inertia
 from fem3d.solve.backward_euler import check_linear_solver, minimise_step
 from fem3d.solve.directions import NewtonOptions
 from fem3d.solve.state import State, StepStats, check_finite
@@ -83,7 +82,7 @@ def initial_acceleration(system: System, terms: Sequence, state: State, dt: floa
     x = np.ascontiguousarray(v[c.free_dofs])
     g = np.zeros(c.n_free)
     for term in map(as_term, terms):
-        if isinstance(term, Inertia) or not term.active:
+        if term.inertial or not term.active:
             continue
         if term.variable == "position":
             g += np.asarray(term.gradient(q))[c.free_dofs]

@@ -31,8 +31,6 @@ import numpy as np
 from fem3d.errors import SimulationError
 from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import Term, as_term
-from fem3d.physics.terms.damping import RayleighDamping
-from fem3d.physics.terms.inertia import Inertia
 from fem3d.solve.backward_euler import check_linear_solver, minimise_step
 from fem3d.solve.directions import NewtonOptions
 from fem3d.solve.objective import Objective
@@ -92,7 +90,7 @@ def static(
     linear_solver = check_linear_solver(system, linear_solver)
     p = end_positions(system, state, fixed_positions)
     p_n = state.q[system.constraints.fixed_vertices]
-    terms = [t for t in map(as_term, terms) if not isinstance(t, Inertia | RayleighDamping)]
+    terms = [t for t in map(as_term, terms) if not (t.inertial or t.dissipative)]
     n_free = system.constraints.n_free
     total = StepStats(load_increments=0)
 

@@ -133,6 +133,9 @@ class Term:
         The term stiffens by orders of magnitude within a step (a log barrier at contact): a
         scheme without numerical dissipation (Newmark) damps its highest modes while it is
         active.
+    inertial, dissipative : bool
+        The term is the kinetic (mass) term, or a dissipation in the velocities: a static
+        equilibrium leaves both out, an initial acceleration ``M a = f`` every inertial one.
     active : bool
         Whether the term takes part in the next step (checked once per step).
     energy_scale : float
@@ -146,6 +149,8 @@ class Term:
     requires_convergence: ClassVar[bool] = False
     allows_lagged_matrix: ClassVar[bool] = True
     stiff_barrier: ClassVar[bool] = False
+    inertial: ClassVar[bool] = False
+    dissipative: ClassVar[bool] = False
     energy_scale: float = 0.0
 
     @property

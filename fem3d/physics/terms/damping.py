@@ -66,6 +66,7 @@ class RayleighDamping(Term):
 
     name = "damping"
     variable = "velocity"
+    dissipative = True
 
     def __init__(self, model: Model, alpha, beta) -> None:
         self.model = model

@@ -25,6 +25,7 @@ class Inertia(Term):
 
     name = "inertia"
     variable = "velocity"
+    inertial = True
 
     def __init__(self, model: Model, mass_free: sp.csr_matrix) -> None:
         self.model = model
