@@ -10,9 +10,19 @@ re-record on purpose (a deliberate change of behaviour), never to make a failing
 from __future__ import annotations
 
 import hashlib
+import os
+import shutil
 import sys
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
+
+#: fTetWild's output for the surface scenes, fixed: fTetWild gives a different mesh from run to
+#: run of the same input (four runs of coarser_bunny.obj: 480, 477, 477 and 471 vertices), so
+#: these scenes read theirs through a cache seeded from ``<scene>.body<i>.mesh`` here.
+FIXED_TETWILD = Path(__file__).resolve().parent / "data" / "tetwild"
 
 # (case name, scene name, steps, --set overrides; "_backend" picks the kernel back end)
 CASES: list[tuple[str, str, int, dict]] = [
@@ -44,6 +54,37 @@ def digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float64).tobytes()).hexdigest()
 
 
+@contextmanager
+def fixed_tetwild_meshes(scene_name: str, scene):
+    """``$FEM3D_CACHE`` at a folder holding this scene's fixed fTetWild meshes (if it has any)."""
+    try:
+        from fem3d.mesh.tetrahedralize import cache_key
+    except ImportError:  # the code before the restructuring
+        from fem3d.tetrahedralize import cache_key
+    fixed = {i: FIXED_TETWILD / f"{scene_name}.body{i}.mesh" for i in range(len(scene.bodies))}
+    fixed = {i: f for i, f in fixed.items() if f.is_file()}
+    if not fixed:
+        yield
+        return
+    before = os.environ.get("FEM3D_CACHE")
+    with tempfile.TemporaryDirectory() as cache:
+        (Path(cache) / "tetwild").mkdir()
+        for i, mesh in fixed.items():
+            body = scene.bodies[i]
+            opts = body.tetrahedralize
+            key = cache_key(scene.path(body.mesh), opts.edge_length, opts.epsilon,
+                            opts.stop_quality)
+            shutil.copyfile(mesh, Path(cache) / "tetwild" / f"{key[:40]}.mesh")
+        os.environ["FEM3D_CACHE"] = cache
+        try:
+            yield
+        finally:
+            if before is None:
+                os.environ.pop("FEM3D_CACHE", None)
+            else:
+                os.environ["FEM3D_CACHE"] = before
+
+
 def run_case(scene_name: str, steps: int, overrides: dict):
     """The q, v digests after each step and the final q, v of one case."""
     from fem3d.scene import apply_overrides, load_scene
@@ -52,7 +93,8 @@ def run_case(scene_name: str, steps: int, overrides: dict):
     overrides = dict(overrides)
     backend = overrides.pop("_backend", None)
     scene = apply_overrides(load_scene(scene_name), overrides)
-    sim = Simulation(scene, scripted=True, backend=backend)
+    with fixed_tetwild_meshes(scene_name, scene):
+        sim = Simulation(scene, scripted=True, backend=backend)
     digests = []
     for _ in range(steps):
         sim.step()
@@ -60,9 +102,12 @@ def run_case(scene_name: str, steps: int, overrides: dict):
     return digests, sim.q.copy(), sim.v.copy()
 
 
-def main(out: str) -> None:
-    arrays = {}
+def main(out: str, only: list[str] | None = None) -> None:
+    """Record every case into ``out``; with ``only``, re-record those cases and keep the rest."""
+    arrays = dict(np.load(out)) if only else {}
     for name, scene_name, steps, overrides in CASES:
+        if only and name not in only:
+            continue
         digests, q, v = run_case(scene_name, steps, overrides)
         arrays[f"{name}__digests"] = np.array(digests)
         arrays[f"{name}__q"] = q
@@ -72,4 +117,5 @@ def main(out: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "tests/data/trajectories_before_restructure.npz")
+    main(sys.argv[1] if len(sys.argv) > 1 else "tests/data/trajectories_before_restructure.npz",
+         sys.argv[2:] or None)

@@ -7,6 +7,13 @@ scene, the classic bunny and armadillo, and the Newton variants (``reuse``, the 
 AMG, the NumPy kernels). Any change of round-off fails here, naming the first step that moved.
 ``tests/data/checkpoints_before_restructure/`` holds two checkpoints written by that code; they
 resume under the new code to the recorded final state of the uninterrupted run.
+
+The two surface scenes (``bunny_surface``, ``armadillo_surface``) depend on fTetWild, whose
+mesh differs from run to run of the same input: their first recording held the meshes of that
+machine's cache, which a fresh machine cannot reproduce. They were re-recorded on 2026-12-02 by
+the same code (6cbcdd9, in a worktree of its own) with the meshes fixed in
+``tests/data/tetwild/`` (``record_trajectories.fixed_tetwild_meshes``), so they still compare
+the new code against the code before the restructuring.
 """
 
 from __future__ import annotations
