@@ -152,8 +152,10 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
     return out
 
 
-def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6) -> dict:
-    """All steps of ``work`` with one linear-solver mode; totals and the trajectory."""
+def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6,
+             warm_start: str = "previous") -> dict:
+    """All steps of ``work`` with one linear-solver mode (and Newton start, ``warm_start``:
+    :data:`fem3d.solve.backward_euler.WARM_STARTS`); totals and the trajectory."""
     t_system = time.perf_counter()
     system = integ.System(work.model, work.constraints, _backend(mode))
     t_system = time.perf_counter() - t_system  # the solver's analysis (ordering; aggregation)
@@ -167,7 +169,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
         t, c = time.perf_counter(), time.process_time()
         state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
                                             linear_solver=mode, cg_maxiter=cg_maxiter,
-                                            cg_rtol=cg_rtol)
+                                            cg_rtol=cg_rtol, warm_start=warm_start)
         seconds += time.perf_counter() - t
         cpu += time.process_time() - c
         totals["newton"] += stats.newton_iterations
@@ -202,6 +204,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated: direct, reuse, amg")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
     parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")
+    parser.add_argument("--warm-start", default="previous",
+                        help="Newton's start: previous (v_t), extrapolate (also 2 v_t - v_t-1)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per mode (best shown)")
     parser.add_argument("--jsonl", type=Path, help="append one JSON record per mode here")
     args = parser.parse_args(argv)
@@ -233,7 +237,7 @@ def main(argv: list[str] | None = None) -> None:
                      if "factorize" in p else ""), flush=True)
         reference = None
         for mode in modes:
-            best = min((run_mode(work, mode, args.cg_maxiter, args.cg_rtol)
+            best = min((run_mode(work, mode, args.cg_maxiter, args.cg_rtol, args.warm_start)
                         for _ in range(args.repeats)),
                        key=lambda r: r["seconds_per_step"])
             if reference is None:
@@ -261,7 +265,7 @@ def main(argv: list[str] | None = None) -> None:
             if args.jsonl:
                 record = {k: v for k, v in best.items() if k != "trajectory"}
                 record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,
-                               cg_rtol=args.cg_rtol,
+                               cg_rtol=args.cg_rtol, warm_start=args.warm_start,
                                speedup=speedup, deviation=deviation / work.size,
                                free_dofs=work.constraints.n_free, pieces=p)
                 with args.jsonl.open("a") as f:
