@@ -29,7 +29,12 @@ iterations solved with the previous iterate's matrix (``reuse``); first, the pie
 Newton iteration (assembly into the reduced pattern, factorization, solve; with ``amg``: one
 hierarchy setup and one V-cycle). Modes: ``direct`` and ``reuse`` on the default direct back
 end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), each forced whatever ``"auto"``
-would pick.
+would pick. ``--warm-start extrapolate`` starts each step's Newton iteration at the
+lower-energy of ``v_t`` and ``2 v_t - v_t-1`` (:data:`fem3d.solve.backward_euler.
+WARM_STARTS`; the interactive drag of docs/benchmarks.md, on one core:
+``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``)::
+
+    python -m bench.newton_step --mesh arma --refine 1 --modes reuse --warm-start extrapolate
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
+from fem3d.solve.backward_euler import WARM_STARTS
 from fem3d.solve.linear import default_backend
 
 
@@ -204,7 +210,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated: direct, reuse, amg")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
     parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")
-    parser.add_argument("--warm-start", default="previous",
+    parser.add_argument("--warm-start", default="previous", choices=WARM_STARTS,
                         help="Newton's start: previous (v_t), extrapolate (also 2 v_t - v_t-1)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per mode (best shown)")
     parser.add_argument("--jsonl", type=Path, help="append one JSON record per mode here")
