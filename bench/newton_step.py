@@ -29,7 +29,12 @@ iterations solved with the previous iterate's matrix (``reuse``); first, the pie
 Newton iteration (assembly into the reduced pattern, factorization, solve; with ``amg``: one
 hierarchy setup and one V-cycle). Modes: ``direct`` and ``reuse`` on the default direct back
 end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), each forced whatever ``"auto"``
-would pick.
+would pick. ``--warm-start extrapolate`` starts each step's Newton iteration at the
+lower-energy of ``v_t`` and ``2 v_t - v_t-1`` (:data:`fem3d.solve.backward_euler.
+WARM_STARTS`; the interactive drag of docs/benchmarks.md, on one core:
+``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``)::
+
+    python -m bench.newton_step --mesh arma --refine 1 --modes reuse --warm-start extrapolate
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
+from fem3d.solve.backward_euler import WARM_STARTS
 from fem3d.solve.linear import default_backend
 
 
@@ -152,8 +158,10 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
     return out
 
 
-def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6) -> dict:
-    """All steps of ``work`` with one linear-solver mode; totals and the trajectory."""
+def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6,
+             warm_start: str = "previous") -> dict:
+    """All steps of ``work`` with one linear-solver mode (and Newton start, ``warm_start``:
+    :data:`fem3d.solve.backward_euler.WARM_STARTS`); totals and the trajectory."""
     t_system = time.perf_counter()
     system = integ.System(work.model, work.constraints, _backend(mode))
     t_system = time.perf_counter() - t_system  # the solver's analysis (ordering; aggregation)
@@ -167,7 +175,7 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
         t, c = time.perf_counter(), time.process_time()
         state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
                                             linear_solver=mode, cg_maxiter=cg_maxiter,
-                                            cg_rtol=cg_rtol)
+                                            cg_rtol=cg_rtol, warm_start=warm_start)
         seconds += time.perf_counter() - t
         cpu += time.process_time() - c
         totals["newton"] += stats.newton_iterations
@@ -202,6 +210,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated: direct, reuse, amg")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
     parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")
+    parser.add_argument("--warm-start", default="previous", choices=WARM_STARTS,
+                        help="Newton's start: previous (v_t), extrapolate (also 2 v_t - v_t-1)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per mode (best shown)")
     parser.add_argument("--jsonl", type=Path, help="append one JSON record per mode here")
     args = parser.parse_args(argv)
@@ -233,7 +243,7 @@ def main(argv: list[str] | None = None) -> None:
                      if "factorize" in p else ""), flush=True)
         reference = None
         for mode in modes:
-            best = min((run_mode(work, mode, args.cg_maxiter, args.cg_rtol)
+            best = min((run_mode(work, mode, args.cg_maxiter, args.cg_rtol, args.warm_start)
                         for _ in range(args.repeats)),
                        key=lambda r: r["seconds_per_step"])
             if reference is None:
@@ -261,7 +271,7 @@ def main(argv: list[str] | None = None) -> None:
             if args.jsonl:
                 record = {k: v for k, v in best.items() if k != "trajectory"}
                 record |= dict(workload=work.name, mode=mode, cg_maxiter=args.cg_maxiter,
-                               cg_rtol=args.cg_rtol,
+                               cg_rtol=args.cg_rtol, warm_start=args.warm_start,
                                speedup=speedup, deviation=deviation / work.size,
                                free_dofs=work.constraints.n_free, pieces=p)
                 with args.jsonl.open("a") as f:

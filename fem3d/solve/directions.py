@@ -58,8 +58,8 @@ REUSE_LAG_FRACTION = 0.1
 
 @dataclass(frozen=True)
 class NewtonOptions:
-    """How a step's Newton systems are solved (see :func:`fem3d.solve.backward_euler.
-    implicit_euler` for each option's meaning)."""
+    """How a step's Newton systems are solved and where Newton starts (see
+    :func:`fem3d.solve.backward_euler.implicit_euler` for each option's meaning)."""
 
     psd: bool = False
     cg_rtol: float = 1e-6
@@ -67,6 +67,7 @@ class NewtonOptions:
     amg_maxiter: int = 200
     amg_budget: float = AMG_ITERATIONS_PER_DECADE
     forcing_max: float = FORCING_MAX
+    warm_start: str = "previous"
 
 
 @dataclass

@@ -227,7 +227,11 @@ def _warn_reference_blas() -> None:
 def _as_csr(A: sp.spmatrix | sp.sparray) -> sp.csr_matrix:
     if not sp.issparse(A):
         raise TypeError(f"expected a scipy.sparse matrix, got {type(A).__name__}")
-    A = sp.csr_matrix(A, dtype=np.float64)
+    if not (type(A) is sp.csr_matrix and A.dtype == np.float64):
+        A = sp.csr_matrix(A, dtype=np.float64)
+    # the same object when it is already a float64 CSR matrix: scipy caches its
+    # canonical-format check on the object (an O(nnz) scan), so a Newton matrix that CG and
+    # the factorization both see is scanned once
     if not A.has_canonical_format:
         A = A.copy()
         A.sum_duplicates()  # also sorts the indices
