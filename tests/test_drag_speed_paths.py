@@ -114,3 +114,25 @@ def test_contact_keeps_the_classic_start():
     assert finals["extrapolate"].v_prev is not None
     assert np.array_equal(finals["extrapolate"].q, finals["previous"].q)
     assert np.array_equal(finals["extrapolate"].v, finals["previous"].v)
+
+
+def test_the_scene_key_reaches_the_step_and_is_refused_where_it_does_not_apply():
+    from fem3d.scene import apply_overrides, load_scene
+    from fem3d.simulation import Simulation
+
+    scene = apply_overrides(load_scene("arma"), {"simulation.newton.warm_start": "extrapolate",
+                                                 "simulation.integrator": "implicit"})
+    plain = Simulation(load_scene("arma"), scripted=True)
+    warm = Simulation(scene, scripted=True)
+    assert warm.newton_warm_start == "extrapolate" and plain.newton_warm_start == "previous"
+    iterations = {"plain": 0, "warm": 0}
+    for name, sim in (("plain", plain), ("warm", warm)):
+        for _ in range(30):  # the pull's smooth drag: the extrapolated start saves iterations
+            sim.step()
+            iterations[name] += sim.last_stats.newton_iterations
+    assert iterations["warm"] < iterations["plain"]
+    scale = float(np.ptp(plain.q, axis=0).max())
+    assert np.abs(warm.q - plain.q).max() < 1e-6 * scale  # the same solution to tolerance
+    with pytest.raises(Exception, match="warm_start.*implicit"):
+        apply_overrides(load_scene("arma"), {"simulation.newton.warm_start": "extrapolate",
+                                             "simulation.integrator": "bdf2"})

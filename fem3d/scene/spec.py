@@ -306,6 +306,9 @@ class NewtonSpec(_Spec):
     max_iterations: Annotated[StrictInt, Field(ge=1)] | None = 5
     hessian: Literal["exact", "psd"] = "exact"
     solver: Literal["direct", "reuse"] = "direct"
+    #: where each step's Newton starts: the last velocity, or the lower-energy of it and its
+    #: linear extrapolation (fewer iterations on smooth drags; backward Euler only)
+    warm_start: Literal["previous", "extrapolate"] = "previous"
 
 
 class SimulationSpec(_Spec):
@@ -323,6 +326,9 @@ class SimulationSpec(_Spec):
     def _one_length(self) -> SimulationSpec:
         if self.steps is not None and self.duration is not None:
             raise ValueError("give steps or duration, not both")
+        if self.newton.warm_start != "previous" and self.integrator != "implicit":
+            raise ValueError(f"newton.warm_start = {self.newton.warm_start!r} applies to "
+                             f"integrator = 'implicit' only, not {self.integrator!r}")
         return self
 
     @property
