@@ -31,7 +31,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from fem3d.app.sweep.spec import _loc
-from fem3d.diff.adjoint import PARAMETER_KEYS
+from fem3d.diff.params import KEY_PATTERNS, PARAMETER_KEYS, is_field_key
 from fem3d.errors import InputError
 from fem3d.scene.spec import Selector
 
@@ -39,10 +39,9 @@ __all__ = ["FitFile", "ParamSpec", "LossSpec", "OptimizerSpec", "load_fit_file",
            "VECTOR_KEYS", "key_pattern"]
 
 #: Key endings whose value is a 3-vector.
-VECTOR_KEYS = ("velocity", "gravity")
+VECTOR_KEYS = ("velocity", "gravity", "translate")
 
-_KEY = re.compile("^(" + "|".join(re.escape(k).replace(r"\[i\]", r"\[\d+\]")
-                                  for k in PARAMETER_KEYS) + ")$")
+_KEY = re.compile("|".join(f"(?:{p.pattern})" for p in KEY_PATTERNS))
 
 
 def key_pattern() -> re.Pattern[str]:
@@ -82,7 +81,12 @@ class ParamSpec(_Spec):
     def _check(self) -> ParamSpec:
         if not _KEY.match(self.key):
             raise ValueError(f"key: cannot fit {self.key!r}; supported: "
-                             f"{', '.join(PARAMETER_KEYS)} (i: a body index)")
+                             f"{', '.join(PARAMETER_KEYS)} (i, j, k: indices; NAME: a "
+                             "material parameter)")
+        if is_field_key(self.key):
+            raise ValueError(f"key: {self.key} is a per-tet field: fem3d fit takes numbers "
+                             "and 3-vectors (differentiate a field with fem3d.diff."
+                             "trajectory_gradient)")
         vector = self.key.endswith(VECTOR_KEYS)
         if self.start is not None:
             if vector != isinstance(self.start, list) or (vector and len(self.start) != 3):
