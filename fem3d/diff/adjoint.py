@@ -44,6 +44,7 @@ recomputes each segment from its checkpoint (one extra forward run in total), so
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -220,6 +221,11 @@ class Stats:
     recomputed_steps: int = 0
     backward_steps: int = 0
     peak_states: int = 0
+    #: CPU seconds (``time.process_time``) of the forward run, of the recomputation of the
+    #: segments and of the backward (adjoint) steps
+    forward_seconds: float = 0.0
+    recompute_seconds: float = 0.0
+    backward_seconds: float = 0.0
 
 
 def trajectory_gradient(
@@ -270,12 +276,14 @@ def trajectory_gradient(
     k = max(1, int(checkpoint_every))
     checkpoints = {0: run.state0}
     state, value = run.state0, 0.0
+    t0 = time.process_time()
     for n in range(n_steps):
         state = run.step(state)
         value += loss.frame(n + 1, state.q)[0]
-        if (n + 1) % k == 0 and n + 1 < n_steps:
+        if (n + 1) % k == 0 or n + 1 == n_steps:  # the last state too: never recomputed
             checkpoints[n + 1] = state
     stats.forward_steps += n_steps
+    stats.forward_seconds += time.process_time() - t0
     adj = _Adjoint(run, parsed, sources)
     _backward(run, adj, loss, checkpoints, n_steps, k, stats)
     return value, adj.result()
@@ -305,11 +313,20 @@ def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k
     n_dof = run.state0.q.size
     q_bar, v_bar = np.zeros(n_dof), np.zeros(n_dof)
     for start in sorted(checkpoints, reverse=True):
+        if start == n_steps:
+            continue
+        t0 = time.process_time()
         segment = [checkpoints[start]]
         for _ in range(start, min(start + k, n_steps)):
-            segment.append(run.step(segment[-1]))
-        stats.recomputed_steps += len(segment) - 1
-        stats.peak_states = max(stats.peak_states, len(checkpoints) + len(segment) - 1)
+            kept = checkpoints.get(start + len(segment))
+            if kept is None:
+                kept = run.step(segment[-1])
+                stats.recomputed_steps += 1
+            segment.append(kept)
+        t1 = time.process_time()
+        stats.recompute_seconds += t1 - t0
+        held = sum(1 for n in range(start + 1, start + len(segment)) if n not in checkpoints)
+        stats.peak_states = max(stats.peak_states, len(checkpoints) + held)
         for i in range(len(segment) - 1, 0, -1):
             n = start + i  # the state after step n
             grad = loss.frame(n, segment[i].q)[1]
@@ -317,6 +334,7 @@ def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k
                 q_bar += grad.reshape(-1)
             q_bar, v_bar = adj.step(segment[i - 1], segment[i], q_bar, v_bar)
             stats.backward_steps += 1
+        stats.backward_seconds += time.process_time() - t1
     adj.q_bar0, adj.v_bar0 = q_bar, v_bar
 
 
