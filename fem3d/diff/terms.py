@@ -33,7 +33,8 @@ from fem3d.physics.assembly import hessian_data
 from fem3d.physics.materials import info
 
 __all__ = ["StepPair", "Gradients", "AdjointTerm", "InertiaAdjoint", "ElasticAdjoint",
-           "GravityAdjoint", "DampingAdjoint", "element_groups"]
+           "GravityAdjoint", "DampingAdjoint", "element_groups", "psd_bilinear_vjp",
+           "projection_weights"]
 
 
 @dataclass
@@ -203,8 +204,11 @@ class ElasticAdjoint(AdjointTerm):
 
 class DampingAdjoint(AdjointTerm):
     """``dt D(q_n) u`` with ``D = alpha M + beta K_psd(q_n)``: linear in ``alpha``, ``beta``
-    and density (through ``M``); ``K_psd``'s derivatives by ``q_n`` and by the kernel
-    parameters are central differences per element (relative step ``1e-6``)."""
+    and density (through ``M``). ``K_psd``'s derivatives by ``q_n`` and by the kernel
+    parameters: exact, from the generated ``d3psi_contract`` (the third derivative of ``psi``
+    contracted with a 9x9 matrix) and the derivative of the PSD projection (Daleckii-Krein:
+    :func:`projection_weights`); central differences per element (relative step ``1e-6``)
+    only for a kernel module without ``d3psi_contract`` (an old C build)."""
 
     name = "damping"
 
@@ -227,9 +231,18 @@ class DampingAdjoint(AdjointTerm):
     def matrix(self):
         return self.D
 
+    @property
+    def exact(self) -> bool:
+        """Whether every group's kernels have ``d3psi_contract`` (else: differences)."""
+        return all(hasattr(g.kernels, "d3psi_contract") for g, _, _, _ in self.groups)
+
     def state_vjp(self, lf):
+        self._exact = None
         if not self.beta_any:
             return None, None
+        if self.exact:
+            self._exact = _damping_exact(self, lf)
+            return -self.pair.dt * self._exact[0], None
         return -self.pair.dt * _damping_state_vjp(self, self.pair.q0, lf, self.pair.u), None
 
     def param_vjp(self, lf, grads):
@@ -239,12 +252,87 @@ class DampingAdjoint(AdjointTerm):
         grads.density -= dt * self.alpha_b * Mlf_u / self.rho
         if not self.beta_any:
             return
-        per_tet = _bilinear(self, self.pair.q0, lf, u, with_beta=False)
+        if self._exact is not None:
+            _, per_tet, per_group = self._exact
+        else:
+            per_tet = _bilinear(self, self.pair.q0, lf, u, with_beta=False)
+            per_group = _damping_param_vjp(self, lf) if grads.material is not None else None
         grads.rayleigh_stiffness -= dt * np.array(
             [float(per_tet[s].sum()) for s in self.bodies.tets])
         if grads.material is not None:
-            for acc, d in zip(grads.material, _damping_param_vjp(self, lf), strict=True):
+            for acc, d in zip(grads.material, per_group, strict=True):
                 acc -= dt * d
+
+
+def projection_weights(values: np.ndarray) -> np.ndarray:
+    """``Gamma_ij`` of the PSD projection ``f(A) = V max(Lambda, 0) V^T``: its derivative is
+    ``V (Gamma o (V^T dA V)) V^T`` with ``Gamma_ij = (f(l_i) - f(l_j)) / (l_i - l_j)`` (1
+    where both eigenvalues are positive, 0 where neither is). ``values``: ``(m, n)``."""
+    pos = values > 0
+    f = np.maximum(values, 0.0)
+    li, lj = values[:, :, None], values[:, None, :]
+    mixed = pos[:, :, None] != pos[:, None, :]
+    denom = np.where(mixed, li - lj, 1.0)
+    return np.where(mixed, (f[:, :, None] - f[:, None, :]) / denom,
+                    (pos[:, :, None] & pos[:, None, :]).astype(np.float64))
+
+
+def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, inputs,
+                     params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``s = a^T A_psd(F) b`` per element and its exact derivatives by ``F`` and by the
+    parameters (``A = dP/dF``, projected to PSD where indefinite, as ``hessian_psd`` does).
+
+    Parameters
+    ----------
+    kernels : KernelModule
+        The material's (``d2psi_dF2``, ``d3psi_contract``).
+    F : (k, 3, 3) float64
+    a, b : (k, 9) float64
+    inputs : tuple of (k, ...) float64
+        The material's per-element inputs.
+    params : (k, n_params) float64
+
+    Returns
+    -------
+    s : (k,), dF : (k, 3, 3), dparams : (k, n_params)
+    """
+    A = kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
+    values, V = np.linalg.eigh(A)
+    bad = (values < 0.0).any(axis=1)  # as hessian_psd: a PSD A is kept exactly
+    C = a[:, :, None] * b[:, None, :]
+    s = np.einsum("ei,eij,ej->e", a, A, b)
+    if bad.any():
+        Vb, lb = V[bad], values[bad]
+        at, bt = np.einsum("eki,ek->ei", Vb, a[bad]), np.einsum("eki,ek->ei", Vb, b[bad])
+        G = projection_weights(lb) * at[:, :, None] * bt[:, None, :]
+        C[bad] = np.einsum("eik,ekl,ejl->eij", Vb, G, Vb)
+        s[bad] = np.sum(at * np.maximum(lb, 0.0) * bt, axis=1)
+    dF, dp = kernels.d3psi_contract(F, C, *inputs, params)
+    return s, dF, dp
+
+
+def _damping_exact(adj: DampingAdjoint, lf: np.ndarray):
+    """Exact ``d/dq_n`` and ``d/dparams`` of ``sum_e beta_e vol_e a_e^T A_psd(F_e) b_e``
+    (``a = B lambda_e``, ``b = B u_e``; ``B``: ``dF/dx``) and the per-element
+    ``vol_e a_e^T A_psd b_e`` (for ``d/dbeta``): ``(dq (n_dofs,), (n_tets,), [per group
+    (k, n_params)])``."""
+    model, pair = adj.model, adj.pair
+    x = pair.q0.reshape(-1, 3)
+    lam, u = lf.reshape(-1, 3), pair.u.reshape(-1, 3)
+    dq = np.zeros((model.n_vertices, 3))
+    per_tet = np.zeros(model.n_tets)
+    per_group = []
+    for g, els, params, inputs in adj.groups:
+        T, D = model.T[els], model.dphi_dX[els]
+        F = np.einsum("evc,evj->ecj", x[T], D)
+        a = np.einsum("evc,evj->ecj", lam[T], D).reshape(-1, 9)
+        b = np.einsum("evc,evj->ecj", u[T], D).reshape(-1, 9)
+        s, dF, dp = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params)
+        w = adj.beta[els] * model.vol[els]
+        np.add.at(dq, T, w[:, None, None] * np.einsum("ecj,evj->evc", dF, D))
+        per_tet[els] = model.vol[els] * s
+        per_group.append(w[:, None] * dp)
+    return dq.reshape(-1), per_tet, per_group
 
 
 def _bilinear(adj: DampingAdjoint, q0, lf, v, *, with_beta: bool = True,
