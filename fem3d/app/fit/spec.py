@@ -64,7 +64,9 @@ class ParamSpec(_Spec):
     key : str
         One of :data:`fem3d.diff.adjoint.PARAMETER_KEYS` (``bodies[0].material.E``).
     start : float or list of 3 floats, optional
-        Starting value (default: the base scene's).
+        Starting value (default: the base scene's; a per-tet field
+        ``bodies[i].material.cell_fields.NAME``: one number for every tet, default the
+        mesh's values).
     bounds : [low, high], optional
         Finite or ``inf`` (left out: unbounded); vectors: the same bounds for every
         component.
@@ -83,10 +85,9 @@ class ParamSpec(_Spec):
             raise ValueError(f"key: cannot fit {self.key!r}; supported: "
                              f"{', '.join(PARAMETER_KEYS)} (i, j, k: indices; NAME: a "
                              "material parameter)")
-        if is_field_key(self.key):
-            raise ValueError(f"key: {self.key} is a per-tet field: fem3d fit takes numbers "
-                             "and 3-vectors (differentiate a field with fem3d.diff."
-                             "trajectory_gradient)")
+        if is_field_key(self.key) and isinstance(self.start, list):
+            raise ValueError(f"start: {self.key} is a per-tet field: start is one number "
+                             "for every tet (left out: the mesh's values)")
         vector = self.key.endswith(VECTOR_KEYS)
         if self.start is not None:
             if vector != isinstance(self.start, list) or (vector and len(self.start) != 3):
