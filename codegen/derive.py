@@ -281,6 +281,7 @@ def material_module(name: str) -> ModuleSpec:
 
     kernels.append(_dgradient_dparams_kernel(name, d, element_inputs, params, D, vol,
                                              prelude_F))
+    kernels.append(_d3psi_contract_kernel(name, d, F_args, params))
 
     stress_derivative = prelude_F + A_steps
     hess_doc = "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."
@@ -326,6 +327,50 @@ def _dgradient_dparams_kernel(name: str, d: MaterialDerivation, element_inputs, 
         "Element gradient's derivative by each parameter, (12, n_params), vertex-major.",
         element_inputs, params, [("dgradient_dparams", (12, n), out, False)],
         prelude_F + list(stress_param_steps(name)))
+
+
+def contracted_third_steps(name: str) -> tuple[list, list, list]:
+    """Reverse-mode derivative of ``s = sum_kl dP/dF_kl C_kl`` through the CSE'd steps of
+    ``dP/dF`` (:func:`derivative_steps`): ``(steps, ds/dF (9), ds/dparams)``.
+
+    Each step ``y = e(x, ...)`` of ``dP/dF`` gets an adjoint ``r = ds/dy`` (a new step, once
+    every later step that reads ``y`` has added its part), which adds ``r de/dx`` to each
+    argument's: SymPy differentiates one small step at a time, never the expanded ``dP/dF``.
+    """
+    d = derive_material(name)
+    _, _, A_steps = derivative_steps(name)
+    C = symbol_matrix("C", 9, 9)
+    bar: dict = {sp.Symbol(f"A_{a}_{b}"): C[a, b] + C[b, a] if a != b else C[a, a]
+                 for a, b in _UPPER}
+    defined = {sym for sym, _ in A_steps}
+    targets = set(flatten(d.F)) | set(d.params.values())
+    steps = []
+    for sym, expr in reversed(A_steps):
+        adjoint = bar.pop(sym, None)
+        if adjoint is None:
+            continue
+        r = sp.Symbol(f"r{len(steps)}")
+        steps.append((r, adjoint))
+        for x in sorted(expr.free_symbols & (defined | targets), key=sp.default_sort_key):
+            dx = sp.diff(expr, x)
+            if dx != 0:
+                bar[x] = bar.get(x, sp.Integer(0)) + r * dx
+    zero = sp.Integer(0)
+    return (list(A_steps) + steps, [bar.get(f, zero) for f in flatten(d.F)],
+            [bar.get(d.params[p], zero) for p in MATERIALS[name].PARAM_NAMES])
+
+
+def _d3psi_contract_kernel(name: str, d: MaterialDerivation, F_args: list,
+                           params) -> KernelSpec:
+    """``d/dF`` and ``d/dparams`` of ``sum_kl dP/dF_kl C_kl`` (a third derivative of ``psi``
+    contracted with a 9x9 ``C``): the adjoint of Rayleigh stiffness damping."""
+    steps, dF, dp = contracted_third_steps(name)
+    C_arg = _matrix_arg("C", symbol_matrix("C", 9, 9), "9x9 weights contracted with dP/dF")
+    return make_kernel(
+        name, "d3psi_contract",
+        "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi "
+        "contracted with C.", [F_args[0], C_arg, *F_args[1:]], params,
+        [("dF", (3, 3), dF, False), ("dparams", (len(dp),), dp, False)], steps)
 
 
 def _hessian_contraction(A: sp.Matrix, D: sp.Matrix, vol: sp.Symbol, prelude: list):

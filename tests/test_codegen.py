@@ -117,6 +117,10 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
         if kernel in ("psi", "dpsi_dF", "d2psi_dF2"):
             F = deformation_gradients(rng, m)
             return (F, *extra, params), [*F.reshape(m, 9).T, *columns, *params]
+        if kernel == "d3psi_contract":
+            F, C = deformation_gradients(rng, m), rng.normal(size=(m, 9, 9))
+            return (F, C, *extra, params), [*F.reshape(m, 9).T, *C.reshape(m, 81).T,
+                                            *columns, *params]
         return ((x, dphi, vol, *extra, params),
                 [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T, vol, *columns, *params])
     if module == "spring":
@@ -135,7 +139,10 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
 
 
 # hessian_psd has no closed form to compare with; it has its own tests below.
-EXACT_CASES = [case for case in kernel_cases() if case[1] != "hessian_psd"]
+# d3psi_contract: SymPy's third derivatives take minutes per material; it is compared with
+# SymPy's dP/dF differenced in 40-digit arithmetic below.
+EXACT_CASES = [case for case in kernel_cases()
+               if case[1] not in ("hessian_psd", "d3psi_contract")]
 
 
 # The element kernels of these materials are compared with SymPy's direct differentiation by
@@ -176,6 +183,49 @@ def test_generated_kernel_matches_sympy(module: str, kernel: str, backend: str) 
     for generated, reference in zip(results, references, strict=True):
         assert generated.shape[0] == m
         assert_close(generated, reference)
+
+
+@cache
+def _contracted_reference(material: str):
+    """Inputs of ``d3psi_contract`` on two elements (a strong stretch, a near-singular F) and
+    its reference: central differences of SymPy's exact ``dP/dF : C`` in 40-digit arithmetic
+    (step 1e-15: error ~1e-30)."""
+    import mpmath
+
+    symbols, outputs = reference_outputs(material, "d2psi_dF2")
+    f = sp.lambdify(symbols, outputs[0], "mpmath")
+    args, _ = kernel_inputs(material, "d3psi_contract", np.random.default_rng(13), 8)
+    args = [a[[2, 6]] for a in args[:-1]] + [args[-1]]
+    F, C, *extra, params = args
+    m = 2
+    n_in = 9 + sum(a[0].size for a in extra)
+    refs = []
+    with mpmath.workdps(40):
+        h = mpmath.mpf("1e-15")
+        for e in range(m):
+            point = [mpmath.mpf(float(v)) for v in F[e].reshape(9)] + \
+                [mpmath.mpf(float(v)) for a in extra for v in a[e].reshape(-1)] + \
+                [mpmath.mpf(float(v)) for v in params]
+            weights = [mpmath.mpf(float(c)) for c in C[e].reshape(81)]
+
+            def contracted(i, shift, point=point, weights=weights):
+                x = list(point)
+                x[i] += shift
+                return mpmath.fsum(w * a for w, a in zip(weights, f(*x), strict=True))
+            refs.append([float((contracted(i, h) - contracted(i, -h)) / (2 * h))
+                         for i in [*range(9), *range(n_in, n_in + len(params))]])
+    return args, np.array(refs)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_contracted_third_derivative_matches_sympy(material: str, backend: str) -> None:
+    """``d3psi_contract``: ``d/dF`` and ``d/dparams`` of ``sum dP/dF : C`` against SymPy's
+    exact ``dP/dF`` differenced in 40-digit arithmetic, on two elements."""
+    args, ref = _contracted_reference(material)
+    dF, dp = kernel_module(material, backend).d3psi_contract(*args)
+    assert_close(dF.reshape(len(ref), 9), ref[:, :9])
+    assert_close(dp.reshape(len(ref), -1), ref[:, 9:])
 
 
 @pytest.mark.skipif(c_extension() is None, reason="C extension not built")

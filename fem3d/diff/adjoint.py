@@ -1,16 +1,22 @@
-"""The discrete adjoint of a backward-Euler trajectory (no contact, no pulls, fixed pins).
+"""The discrete adjoint of a backward-Euler trajectory (no contact, no pulls).
 
-Each step solves ``g(x; q_n, v_n, p) = 0`` over the free velocities ``x = v_{n+1}`` (``g``:
-the gradient of backward Euler's objective, :mod:`fem3d.solve.backward_euler`)::
+Each step solves ``g(u; q_n, v_n, p) = 0`` over the free velocities (``u``: the full
+velocity, the pinned DOFs' part ``w = (p_{n+1} - q_n[F]) / dt`` prescribed by the pins'
+positions ``p_{n+1}``; ``g``: the gradient of backward Euler's objective,
+:mod:`fem3d.solve.backward_euler`)::
 
-    g = M (v_{n+1} - v_n) + dt dV/dq(q_n + dt v_{n+1}) - dt M g_grav + dt D(q_n) v_{n+1}
+    g = P [M (u - v_n) + dt dV/dq(q_n + dt u) - dt M g_grav + dt D(q_n) u]
 
-with ``D = alpha M + beta K_psd(q_n)``. The backward pass runs the steps in reverse: with
-``(q_bar, v_bar)`` the loss's total derivative by ``(q_{n+1}, v_{n+1})`` it solves the
-transposed (symmetric) Newton matrix ``A lambda = P (v_bar + dt q_bar)``, ``A = M + dt^2
-H(q_{n+1}) + dt D(q_n)`` on the free DOFs, with the :class:`~fem3d.solve.system.System`'s
-sparse direct solver, and accumulates ``-lambda^T dg/dp`` for every parameter and
-``-lambda^T dg/d(q_n, v_n)`` for the state.
+with ``D = alpha M + beta K_psd(q_n)``, ``q_{n+1} = q_n + dt u``, ``v_{n+1} = u``. The
+backward pass runs the steps in reverse: with ``(q_bar, v_bar)`` the loss's total derivative
+by ``(q_{n+1}, v_{n+1})`` it solves the transposed (symmetric) Newton matrix
+``A lambda = P (v_bar + dt q_bar)``, ``A = P K P^T``, ``K = dg/du = M + dt^2 H(q_{n+1}) +
+dt D(q_n)``, with the :class:`~fem3d.solve.system.System`'s sparse direct solver, and
+accumulates ``-lambda^T dg/dp`` for every parameter, ``-lambda^T dg/d(q_n, v_n)`` for the
+state and ``w_bar = (v_bar + dt q_bar - K P^T lambda)[F]`` for the pins' positions
+(``dL/dp_{n+1} = w_bar / dt``). Each term of ``g`` is an :class:`~fem3d.diff.terms.
+AdjointTerm` (its matrix, its state and parameter products); :func:`register_term` adds
+another (contact).
 
 What is exact and what is not:
 
@@ -18,15 +24,17 @@ What is exact and what is not:
   convergence: :func:`simulate` runs every step to ``rtol`` (default ``1e-11`` of the first
   gradient norm, no iteration cap). A run capped at a few Newton iterations (``fem3d run``'s
   default) is a different map; its data is still a fine fitting target.
-* Elastic parameter derivatives use the generated ``dgradient_dparams`` kernels and the
+* Material values (per body, per region, per tet: :mod:`fem3d.diff.params`) use the
+  generated ``dgradient_dparams`` kernels (one call per material group and step) and the
   generated Jacobian of each material's ``E, nu`` mapping: exact.
 * The stiffness-proportional damping ``beta K_psd(q_n)`` depends on ``q_n`` and on the
   material parameters through the PSD-projected element Hessians; the generator has no third
   derivatives, so these two pieces are central finite differences per element (relative error
   about ``1e-9``). With ``rayleigh_stiffness = 0`` (the default) everything is exact.
-* Held fixed / not supported: contact and friction, pull springs, moving pins, material
-  ``regions`` and ``cell_fields`` (the body's ``E, nu`` derivative covers the tets that take
-  them), angular velocity.
+* Moving pins: the gradient by each keyframe's ``translate`` is exact (the translation is
+  linear in the keyframes; rotations are held fixed).
+* Not supported: contact and friction (unless a registered term handles them), pull
+  springs, angular velocity.
 
 Memory: the states at every ``checkpoint_every``-th step are kept; the backward pass
 recomputes each segment from its checkpoint (one extra forward run in total), so memory is
@@ -36,33 +44,41 @@ recomputes each segment from its checkpoint (one extra forward run in total), so
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fem3d.diff.params import (
+    PARAMETER_KEYS,
+    ParamKey,
+    TetSources,
+    parse_param_key,
+)
+from fem3d.diff.terms import (
+    AdjointTerm,
+    DampingAdjoint,
+    ElasticAdjoint,
+    Gradients,
+    GravityAdjoint,
+    InertiaAdjoint,
+    StepPair,
+    element_groups,
+    sparse_of,
+)
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.physics.assembly import hessian_data
-from fem3d.physics.materials import info, parameters_jacobian_from
-from fem3d.scene.build import build
+from fem3d.scene.arrays import select_vertices
+from fem3d.scene.build import Built, build
 from fem3d.scene.load import apply_overrides
 from fem3d.scene.spec import Scene
 from fem3d.solve.backward_euler import backward_euler, model_terms, newton_options
 from fem3d.solve.state import State
 from fem3d.solve.system import System
 
-__all__ = ["PositionLoss", "simulate", "trajectory_gradient", "PARAMETER_KEYS"]
-
-#: The parameter keys :func:`trajectory_gradient` differentiates (``i``: a body index).
-PARAMETER_KEYS = (
-    "bodies[i].material.E", "bodies[i].material.nu", "bodies[i].material.density",
-    "bodies[i].damping.rayleigh_mass", "bodies[i].damping.rayleigh_stiffness",
-    "bodies[i].velocity", "simulation.gravity",
-)
-_BODY_KEY = re.compile(r"^bodies\[(\d+)\]\.(material\.E|material\.nu|material\.density|"
-                       r"damping\.rayleigh_mass|damping\.rayleigh_stiffness|velocity)$")
+__all__ = ["PositionLoss", "simulate", "trajectory_gradient", "PARAMETER_KEYS",
+           "register_term", "TermFactory"]
 
 
 class PositionLoss:
@@ -101,19 +117,58 @@ class PositionLoss:
         return 0.5 * self.weight * float(np.sum(r * r)), grad
 
 
+#: ``factory(run) -> AdjointTerm or None``: a term the adjoint adds to every run it applies
+#: to (its :meth:`~fem3d.diff.terms.AdjointTerm.forward_terms` join the forward step).
+TermFactory = Callable[["_Run"], AdjointTerm | None]
+_FACTORIES: list[tuple[TermFactory, tuple[re.Pattern[str], ...], Callable | None]] = []
+
+
+def register_term(factory: TermFactory, keys: Sequence[str] = (),
+                  accepts: Callable[[Scene], bool] | None = None) -> None:
+    """Add a term to the adjoint (contact, friction: :mod:`fem3d.diff.contact`).
+
+    Parameters
+    ----------
+    factory : callable
+        ``factory(run) -> AdjointTerm or None`` (None: not in this scene). ``run`` has
+        ``scene``, ``built``, ``system``, ``dt``.
+    keys : sequence of str
+        Regular expressions of the parameter keys the term differentiates: its
+        :meth:`~fem3d.diff.terms.AdjointTerm.param_vjp` adds them into ``grads.extra[key]``
+        (``float`` or an array), which :func:`trajectory_gradient` returns as they are.
+    accepts : callable, optional
+        ``accepts(scene) -> bool``: the term handles a scene the adjoint would otherwise
+        refuse (contact).
+    """
+    _FACTORIES.append((factory, tuple(re.compile(k) for k in keys), accepts))
+
+
 @dataclass
 class _Run:
     scene: Scene
+    built: Built
     system: System
-    arrays: object
     state0: State
     dt: float
     rtol: float
     atol_factor: float
+    terms: list[AdjointTerm] = field(default_factory=list)  # registered (extra) terms
+
+    def fixed_positions(self, t: float) -> np.ndarray | None:
+        """The pinned vertices' positions at ``t`` (None: no moving pin), as a run's."""
+        motions = self.built.motions
+        if not motions:
+            return None
+        p = self.built.model.X[self.system.constraints.fixed_vertices].copy()
+        for slots, rest, kf in motions:
+            p[slots] = kf.apply(rest, t)
+        return p
 
     def step(self, state: State) -> State:
+        extra = [t for term in self.terms for t in term.forward_terms()]
         new, stats = backward_euler(
-            self.system, model_terms(self.system), state, self.dt, max_iterations=None,
+            self.system, [*model_terms(self.system), *extra], state, self.dt,
+            fixed_positions=self.fixed_positions(state.t + self.dt), max_iterations=None,
             rtol=self.rtol, atol_factor=self.atol_factor, linear_solver="direct",
             options=newton_options("exact"))
         if not stats.converged:
@@ -123,7 +178,8 @@ class _Run:
 
 
 def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
-    if scene.contact is not None and getattr(scene.contact, "enabled", True):
+    accepted = any(a is not None and a(scene) for _, _, a in _FACTORIES)
+    if scene.contact is not None and getattr(scene.contact, "enabled", True) and not accepted:
         raise ParameterError("trajectory_gradient: contact scenes are not supported yet")
     if scene.pulls:  # a run applies them: differentiating without them would be wrong
         raise ParameterError("trajectory_gradient: scripted pulls are not differentiated yet "
@@ -136,13 +192,13 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     system = System(built.model, built.constraints, scene.simulation.linear_solver,
                     gravity=built.gravity, rayleigh_alpha=built.rayleigh_alpha,
                     rayleigh_beta=built.rayleigh_beta)
-    if built.motions:
-        raise ParameterError("trajectory_gradient: moving pins are not supported yet")
     a = built.arrays
     v0 = np.array(a.v0, dtype=np.float64)
-    v0[built.constraints.fixed_vertices] = 0.0
+    v0[built.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
     state = State(q=built.model.X.copy(), v=v0, t=0.0, step=0)
-    return _Run(scene, system, a, state, float(scene.simulation.dt), rtol, atol_factor)
+    run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor)
+    run.terms = [t for f, _, _ in _FACTORIES if (t := f(run)) is not None]
+    return run
 
 
 def simulate(scene: Scene, steps: int, *, rtol: float = 1e-11,
@@ -157,6 +213,21 @@ def simulate(scene: Scene, steps: int, *, rtol: float = 1e-11,
     return out
 
 
+@dataclass
+class Stats:
+    """What one :func:`trajectory_gradient` call held and did (for the cost figures)."""
+
+    forward_steps: int = 0
+    recomputed_steps: int = 0
+    backward_steps: int = 0
+    peak_states: int = 0
+    #: CPU seconds (``time.process_time``) of the forward run, of the recomputation of the
+    #: segments and of the backward (adjoint) steps
+    forward_seconds: float = 0.0
+    recompute_seconds: float = 0.0
+    backward_seconds: float = 0.0
+
+
 def trajectory_gradient(
     scene: Scene,
     loss: PositionLoss | Callable,
@@ -166,6 +237,7 @@ def trajectory_gradient(
     checkpoint_every: int = 10,
     rtol: float = 1e-11,
     atol_factor: float = 1e-16,
+    stats: Stats | None = None,
 ) -> tuple[float, dict[str, float | np.ndarray]]:
     """The loss of a backward-Euler run of ``scene`` and its gradient by ``params``.
 
@@ -175,86 +247,162 @@ def trajectory_gradient(
     loss : PositionLoss, or an object with ``frame(step, q) -> (value, dL/dq or None)``
         and ``last_step``.
     params : sequence of str
-        Keys of :data:`PARAMETER_KEYS` (``bodies[0].material.E``, ``simulation.gravity``).
+        Keys of :data:`PARAMETER_KEYS` (``bodies[0].material.E``,
+        ``bodies[0].material.regions[1].E``, ``bodies[0].material.cell_fields.E``,
+        ``bodies[0].pins[0].motion.keyframes[1].translate``, ``simulation.gravity``).
     steps : int, optional
         Steps to run (default: ``loss.last_step``).
     checkpoint_every : int, optional
         States kept every ``k`` steps; the backward pass recomputes the others.
     rtol, atol_factor : float, optional
         Newton's tolerances (run to convergence: see the module docstring).
+    stats : Stats, optional
+        Filled with the steps run and the most states held at once.
 
     Returns
     -------
-    (float, dict of str -> float or (3,) float64)
+    (float, dict of str -> float or ndarray)
+        Scalars as floats, vectors ``(3,)``, per-tet fields ``(body's tets,)``.
     """
-    for key in params:
-        if key != "simulation.gravity" and not _BODY_KEY.match(key):
-            raise ParameterError(f"trajectory_gradient: cannot differentiate {key!r}; "
-                                 f"supported: {', '.join(PARAMETER_KEYS)}")
+    extra = tuple(p for _, keys, _ in _FACTORIES for p in keys)
+    parsed = [parse_param_key(k, extra) for k in params]
     run = _prepare(scene, rtol, atol_factor)
+    sources = TetSources(scene, run.built.arrays) if any(
+        p.kind in ("material", "field") for p in parsed) else None
+    for p in parsed:
+        _check_key(run, sources, p)
+    stats = Stats() if stats is None else stats
     n_steps = int(loss.last_step if steps is None else steps)
     k = max(1, int(checkpoint_every))
     checkpoints = {0: run.state0}
     state, value = run.state0, 0.0
+    t0 = time.process_time()
     for n in range(n_steps):
         state = run.step(state)
         value += loss.frame(n + 1, state.q)[0]
-        if (n + 1) % k == 0 and n + 1 < n_steps:
+        if (n + 1) % k == 0 or n + 1 == n_steps:  # the last state too: never recomputed
             checkpoints[n + 1] = state
-    grads = _backward(run, loss, params, checkpoints, n_steps, k)
-    return value, grads
+    stats.forward_steps += n_steps
+    stats.forward_seconds += time.process_time() - t0
+    adj = _Adjoint(run, parsed, sources)
+    _backward(run, adj, loss, checkpoints, n_steps, k, stats)
+    return value, adj.result()
 
 
-def _backward(run: _Run, loss, params, checkpoints: dict, n_steps: int, k: int) -> dict:
-    adj = _Adjoint(run, params)
+def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
+    n_bodies = len(run.scene.bodies)
+    if p.body is not None and p.body >= n_bodies:
+        raise ParameterError(f"{p.key}: the scene has {n_bodies} bodies")
+    if sources is not None:
+        sources.check(p)
+    if p.kind == "material" and p.name in ("E", "nu") and p.region is None and \
+            run.scene.bodies[p.body].material.E is None:
+        raise ParameterError(f"{p.key}: body {p.body}'s material is given by its own "
+                             "parameters; E and nu derivatives need E and nu")
+    if p.kind == "keyframe":
+        pins = run.scene.bodies[p.body].pins
+        if p.pin >= len(pins) or pins[p.pin].motion is None:
+            raise ParameterError(f"{p.key}: bodies[{p.body}].pins[{p.pin}] is not a moving pin")
+        if p.keyframe >= len(pins[p.pin].motion.keyframes):
+            raise ParameterError(f"{p.key}: the motion has "
+                                 f"{len(pins[p.pin].motion.keyframes)} keyframes")
+
+
+def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k: int,
+              stats: Stats) -> None:
     n_dof = run.state0.q.size
     q_bar, v_bar = np.zeros(n_dof), np.zeros(n_dof)
     for start in sorted(checkpoints, reverse=True):
+        if start == n_steps:
+            continue
+        t0 = time.process_time()
         segment = [checkpoints[start]]
         for _ in range(start, min(start + k, n_steps)):
-            segment.append(run.step(segment[-1]))
+            kept = checkpoints.get(start + len(segment))
+            if kept is None:
+                kept = run.step(segment[-1])
+                stats.recomputed_steps += 1
+            segment.append(kept)
+        t1 = time.process_time()
+        stats.recompute_seconds += t1 - t0
+        held = sum(1 for n in range(start + 1, start + len(segment)) if n not in checkpoints)
+        stats.peak_states = max(stats.peak_states, len(checkpoints) + held)
         for i in range(len(segment) - 1, 0, -1):
             n = start + i  # the state after step n
             grad = loss.frame(n, segment[i].q)[1]
             if grad is not None:
                 q_bar += grad.reshape(-1)
             q_bar, v_bar = adj.step(segment[i - 1], segment[i], q_bar, v_bar)
-    return adj.result(v_bar)
+            stats.backward_steps += 1
+        stats.backward_seconds += time.process_time() - t1
+    adj.q_bar0, adj.v_bar0 = q_bar, v_bar
 
 
 class _Adjoint:
     """One backward step at a time; accumulates the parameters' gradients."""
 
-    def __init__(self, run: _Run, params: Sequence[str]) -> None:
-        self.run, self.params = run, list(params)
+    def __init__(self, run: _Run, params: list[ParamKey], sources: TetSources | None) -> None:
+        self.run, self.params, self.sources = run, params, sources
         system = run.system
         self.model, self.c = system.model, system.constraints
         self.free = self.c.free_dofs
+        fv = self.c.fixed_vertices
+        self.fixed = (3 * fv[:, None] + np.arange(3)).reshape(-1)
         self.dt = run.dt
-        self.a = run.arrays
-        self.acc = {key: np.zeros(3) if key.endswith(("velocity", "gravity")) else 0.0
-                    for key in self.params}
-        self.groups = _element_groups(self.model)
-        n_tets = self.model.n_tets
-        alpha = np.broadcast_to(np.asarray(system.rayleigh_alpha, dtype=np.float64),
-                                (self.model.n_vertices,))
-        self.alpha_dof = np.repeat(alpha, 3)
-        self.beta = np.broadcast_to(np.asarray(system.rayleigh_beta, dtype=np.float64),
-                                    (n_tets,))
-        g = system.gravity
-        n = self.model.n_vertices
-        self.g_full = np.zeros(3 * n) if g is None else np.tile(g, n)
+        a = run.built.arrays
+        self.groups = element_groups(self.model)
+        density = np.array([float(b.material.density) for b in run.scene.bodies])
+        self.terms: list[AdjointTerm] = [
+            InertiaAdjoint(self.model, a, density), ElasticAdjoint(self.model, self.groups),
+            GravityAdjoint(self.model, a, run.built.gravity, density),
+            DampingAdjoint(system, a, self.groups, density), *run.terms]
+        n_bodies = len(run.scene.bodies)
+        wants_material = any(p.kind in ("material", "field") for p in params)
+        self.grads = Gradients(
+            material=[np.zeros_like(p) for _, _, p, _ in self.groups] if wants_material
+            else None,
+            density=np.zeros(n_bodies), rayleigh_mass=np.zeros(n_bodies),
+            rayleigh_stiffness=np.zeros(n_bodies))
+        self.keyframes = {p.key: _keyframe_weights(run, p) for p in params
+                          if p.kind == "keyframe"}
+        self.pin_grads = {key: np.zeros(3) for key in self.keyframes}
 
-    def _newton_matrix(self, q0: np.ndarray, q1: np.ndarray) -> sp.csr_matrix:
-        model, dt = self.model, self.dt
-        data = model.mass.data + dt * dt * hessian_data(model, q1)
-        damping = self.run.system.damping_data(q0)
-        if damping is not None:
-            data = data + dt * damping
-        A = model.csr(data)
-        return A[self.free][:, self.free].tocsr()
+    def step(self, s0: State, s1: State, q_bar: np.ndarray, v_bar: np.ndarray):
+        dt, model = self.dt, self.model
+        pair = StepPair(q0=s0.q.reshape(-1), v0=s0.v.reshape(-1), q1=s1.q.reshape(-1),
+                        u=s1.v.reshape(-1), dt=dt, t1=s1.t)
+        data, others = np.zeros(model.nnz), []
+        for term in self.terms:
+            term.linearize(pair)
+            m = term.matrix()
+            if isinstance(m, np.ndarray):
+                data += m
+            elif m is not None:
+                others.append(m)
+        K = model.csr(data)
+        for m in others:
+            K = K + sparse_of(model, m)
+        u_bar = v_bar + dt * q_bar
+        lam = self._solve(K[self.free][:, self.free].tocsr(), u_bar[self.free])
+        lf = np.zeros(model.n_dofs)
+        lf[self.free] = lam
+        q_bar_new, v_bar_new = q_bar.copy(), np.zeros_like(v_bar)
+        for term in self.terms:
+            dq, dv = term.state_vjp(lf)
+            if dq is not None:
+                q_bar_new += dq
+            if dv is not None:
+                v_bar_new += dv
+            term.param_vjp(lf, self.grads)
+        if self.fixed.size:  # u[F] = (p_{n+1} - q_n[F]) / dt
+            w_bar = u_bar[self.fixed] - (K @ lf)[self.fixed]
+            q_bar_new[self.fixed] -= w_bar / dt
+            p_bar = (w_bar / dt).reshape(-1, 3)
+            for key, (slots, weights) in self.keyframes.items():
+                self.pin_grads[key] += weights(s1.t) * p_bar[slots].sum(axis=0)
+        return q_bar_new, v_bar_new
 
-    def _solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+    def _solve(self, A, b: np.ndarray) -> np.ndarray:
         system = self.run.system
         try:
             system.factorize(A, shifts=False)
@@ -262,194 +410,61 @@ class _Adjoint:
         except SimulationError:  # indefinite at this state: a general sparse LU
             return spla.spsolve(A.tocsc(), b)
 
-    def step(self, s0: State, s1: State, q_bar: np.ndarray, v_bar: np.ndarray):
-        dt, model = self.dt, self.model
-        q0, q1 = s0.q.reshape(-1), s1.q.reshape(-1)
-        v0, v1 = s0.v.reshape(-1), s1.v.reshape(-1)
-        rhs = (v_bar + dt * q_bar)[self.free]
-        lam = self._solve(self._newton_matrix(q0, q1), rhs)
-        lf = np.zeros(model.n_dofs)
-        lf[self.free] = lam
-        H1 = model.csr(hessian_data(model, q1))
-        q_bar_new = q_bar - dt * (H1 @ lf)  # q_{n+1} = q_n + dt P^T x
-        beta_any = bool(np.any(self.beta > 0))
-        if beta_any:
-            q_bar_new -= dt * _damping_state_vjp(self, q0, lf, v1)
-        Mlf = model.mass @ lf
-        v_bar_new = np.zeros_like(Mlf)  # the pinned DOFs' velocities are prescribed (0)
-        v_bar_new[self.free] = Mlf[self.free]
-        self._accumulate(q0, q1, v0, v1, lf, Mlf, beta_any)
-        return q_bar_new, v_bar_new
-
-    def _accumulate(self, q0, q1, v0, v1, lf, Mlf, beta_any: bool) -> None:
-        dt = self.dt
-        for key in self.params:
-            if key == "simulation.gravity":
-                self.acc[key] += dt * Mlf.reshape(-1, 3).sum(axis=0)
-                continue
-            b, what = _body_key(key)
-            dofs = _body_dofs(self.a.body_vertices[b])
-            tets = np.arange(self.a.body_tets[b].start, self.a.body_tets[b].stop)
-            if what in ("material.E", "material.nu"):
-                which = 0 if what == "material.E" else 1
-                mat = self.run.scene.bodies[b].material
-                if mat.E is None:
-                    raise ParameterError(f"{key}: body {b}'s material is given by its own "
-                                         "parameters; E and nu derivatives need E and nu")
-                E_nu = (float(mat.E), float(mat.nu))
-                self.acc[key] -= dt * _elastic_vjp(self, q1, lf, tets, which, E_nu)
-                if beta_any:
-                    self.acc[key] -= dt * _damping_param_vjp(self, q0, lf, v1, tets, which,
-                                                             E_nu)
-            elif what == "material.density":
-                rho = float(self.run.scene.bodies[b].material.density)
-                u = (v1 - v0) - dt * self.g_full + dt * self.alpha_dof * v1
-                self.acc[key] -= float(Mlf[dofs] @ u[dofs]) / rho
-            elif what == "damping.rayleigh_mass":
-                self.acc[key] -= dt * float(Mlf[dofs] @ v1[dofs])
-            elif what == "damping.rayleigh_stiffness":
-                self.acc[key] -= dt * float(np.sum(_element_bilinear(self, q0, lf, v1, tets,
-                                                                     with_beta=False)))
-
-    def result(self, v_bar0: np.ndarray) -> dict:
-        out = {}
-        for key in self.params:
-            if key.endswith("velocity"):
-                b, _ = _body_key(key)
-                vb = v_bar0.reshape(-1, 3)[self.a.body_vertices[b]]
-                out[key] = vb.sum(axis=0)  # 0 on pinned vertices: they start at rest
+    def result(self) -> dict:
+        out: dict[str, float | np.ndarray] = {}
+        a = self.run.built.arrays
+        per_tet = self._material_per_tet()
+        g = self.grads
+        for p in self.params:
+            if p.kind == "gravity":
+                out[p.key] = g.gravity.copy()
+            elif p.kind == "velocity":
+                vb = self.v_bar0.reshape(-1, 3).copy()
+                vb[self.c.fixed_vertices] = 0.0  # pinned vertices start at rest
+                out[p.key] = vb[a.body_vertices[p.body]].sum(axis=0)
+            elif p.kind in ("density", "rayleigh_mass", "rayleigh_stiffness"):
+                out[p.key] = float(getattr(g, p.kind)[p.body])
+            elif p.kind == "keyframe":
+                out[p.key] = self.pin_grads[p.key].copy()
+            elif p.kind == "field":
+                d = per_tet[p.name].copy()
+                d[np.setdiff1d(np.arange(d.size), self.sources.tets_of(
+                    ParamKey(p.key, "material", p.body, name=p.name)))] = 0.0
+                out[p.key] = d[a.body_tets[p.body]]
+            elif p.kind == "material":
+                out[p.key] = float(per_tet[p.name][self.sources.tets_of(p)].sum())
             else:
-                out[key] = self.acc[key] if isinstance(self.acc[key], np.ndarray) \
-                    else float(self.acc[key])
+                out[p.key] = g.extra.get(p.key, 0.0)
+        return out
+
+    def _material_per_tet(self) -> dict[str, np.ndarray]:
+        """``dL/d(value)`` per tet of every material value a key asks for."""
+        names = {p.name for p in self.params if p.kind in ("material", "field")}
+        out = {}
+        for name in names:
+            d = np.zeros(self.model.n_tets)
+            for acc, (g, els, _, _) in zip(self.grads.material, self.groups, strict=True):
+                d[els] = np.sum(acc * self.sources.jacobian(g.material, els, name), axis=1)
+            out[name] = d
         return out
 
 
-def _body_key(key: str) -> tuple[int, str]:
-    match = _BODY_KEY.match(key)
-    assert match is not None
-    return int(match.group(1)), match.group(2)
+def _keyframe_weights(run: _Run, p: ParamKey):
+    """``(slots, weight(t))`` of a keyframe key: its pin's slots among the pinned vertices
+    and ``d translation(t) / d translate_k`` (a scalar: the translation is interpolated)."""
+    c = run.system.constraints
+    body = run.scene.bodies[p.body]
+    a = run.built.arrays
+    ids = select_vertices(run.scene, a.X[a.body_vertices[p.body]], body.pins[p.pin].select,
+                          f"bodies[{p.body}].pins[{p.pin}].select") + a.body_vertices[p.body].start
+    slots = np.searchsorted(c.fixed_vertices, ids)
+    kf = next(m.keyframes for m in run.built.motions if np.array_equal(m.slots, slots))
+    unit = np.zeros(kf.times.size)
+    unit[p.keyframe] = 1.0
 
-
-def _body_dofs(vertices: slice) -> np.ndarray:
-    return np.arange(3 * vertices.start, 3 * vertices.stop)
-
-
-def _element_groups(model) -> list[tuple]:
-    """``(group, element indices, params (k, n_params), inputs)`` of every material group."""
-    out = []
-    for g in model.groups:
-        els = np.arange(model.n_tets) if g.elements is None else np.asarray(g.elements)
-        params = np.asarray(g.params, dtype=np.float64)
-        params = np.broadcast_to(params, (els.size, params.shape[-1])).copy()
-        inputs = tuple(np.broadcast_to(np.asarray(x, dtype=np.float64),
-                                       (els.size, *np.shape(x)[-len(s):]))
-                       for x, s in zip(g.inputs, info(g.material).per_element_inputs.values(),
-                                       strict=True))
-        out.append((g, els, params, inputs))
-    return out
-
-
-def _group_E_nu_jacobian(g, els: np.ndarray, which: int, E_nu: tuple) -> np.ndarray:
-    """``d params / d E`` (``which = 0``) or ``/ d nu`` per element, ``(k, n_params)``, at the
-    body's ``E, nu``."""
-    jac = parameters_jacobian_from(g.material, *E_nu)
-    row = np.array([jac[p][which] for p in info(g.material).param_names], dtype=np.float64)
-    return np.broadcast_to(row, (els.size, row.size))
-
-
-def _elastic_vjp(adj: _Adjoint, q1: np.ndarray, lf: np.ndarray, tets: np.ndarray,
-                 which: int, E_nu: tuple) -> float:
-    """``lambda^T d(dV/dq)/dE`` (or ``/dnu``) over the elements ``tets``."""
-    model = adj.model
-    x = q1.reshape(-1, 3)
-    lam = lf.reshape(-1, 3)
-    total = 0.0
-    for g, els, params, inputs in adj.groups:
-        sel = np.isin(els, tets)
-        if not sel.any():
-            continue
-        e = els[sel]
-        G = g.kernels.dgradient_dparams(x[model.T[e]], model.dphi_dX[e], model.vol[e],
-                                        *(a[sel] for a in inputs), params[sel])
-        contrib = np.einsum("ea,eap->ep", lam[model.T[e]].reshape(-1, 12), G)
-        jac = _group_E_nu_jacobian(g, els, which, E_nu)[sel]
-        total += float(np.sum(contrib * jac))
-    return total
-
-
-def _element_bilinear(adj: _Adjoint, q0, lf, v1, tets, *, params_of=None,
-                      with_beta: bool = True) -> np.ndarray:
-    """``beta_e lambda_e^T H_psd,e(q0) v1_e`` per element of ``tets`` (``H_psd`` with the
-    volume; ``with_beta=False``: without ``beta_e``)."""
-    model = adj.model
-    x = q0.reshape(-1, 3)
-    lam, v = lf.reshape(-1, 3), v1.reshape(-1, 3)
-    out = []
-    for g, els, params, inputs in adj.groups:
-        sel = np.isin(els, tets)
-        if not sel.any():
-            continue
-        e = els[sel]
-        p = params[sel] if params_of is None else params_of(g, els, params, sel)
-        H = g.kernels.hessian_psd(x[model.T[e]], model.dphi_dX[e], model.vol[e],
-                                  *(a[sel] for a in inputs), p)
-        out.append(np.einsum("ea,eab,eb->e", lam[model.T[e]].reshape(-1, 12), H,
-                             v[model.T[e]].reshape(-1, 12)) * (adj.beta[e] if with_beta else 1.0))
-    return np.concatenate(out) if out else np.zeros(0)
-
-
-def _damping_param_vjp(adj: _Adjoint, q0, lf, v1, tets, which: int, E_nu: tuple) -> float:
-    """``d/dE`` (or ``nu``) of ``lambda^T beta K_psd(q0) v1``: central differences of the
-    element parameters along the mapping's Jacobian (a relative step of ``1e-6``)."""
-    steps = {}
-
-    def shifted(sign):
-        def params_of(g, els, params, sel):
-            jac = _group_E_nu_jacobian(g, els, which, E_nu)[sel]
-            scale = np.abs(params[sel]).max(axis=1) / np.maximum(np.abs(jac).max(axis=1),
-                                                                 1e-300)
-            h = 1e-6 * scale
-            steps[id(g)] = h
-            return params[sel] + sign * h[:, None] * jac
-        return params_of
-
-    plus = _element_bilinear(adj, q0, lf, v1, tets, params_of=shifted(1.0))
-    minus = _element_bilinear(adj, q0, lf, v1, tets, params_of=shifted(-1.0))
-    h = np.concatenate([steps[id(g)] for g, els, _, _ in adj.groups
-                        if np.isin(els, tets).any()])
-    return float(np.sum((plus - minus) / (2 * h)))
-
-
-def _damping_state_vjp(adj: _Adjoint, q0, lf, v1) -> np.ndarray:
-    """``d/dq0`` of ``lambda^T beta K_psd(q0) v1``: central differences per element DOF."""
-    model = adj.model
-    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
-    h = 1e-6 * L
-    out = np.zeros(model.n_dofs)
-    tets = np.arange(model.n_tets)
-    base = q0.reshape(-1, 3)
-    for a in range(12):
-        vert, comp = divmod(a, 3)
-        diffs = 0.0
-        for sign in (1.0, -1.0):
-            x = np.take(base, model.T, axis=0)
-            x[:, vert, comp] += sign * h
-            diffs = diffs + sign * _bilinear_at(adj, x, lf, v1)
-        np.add.at(out, 3 * model.T[tets, vert] + comp, diffs / (2 * h))
-    return out
-
-
-def _bilinear_at(adj: _Adjoint, x_e: np.ndarray, lf, v1) -> np.ndarray:
-    """``beta vol lambda_e^T H_psd(x_e) v1_e`` of every element at element positions
-    ``x_e (m, 4, 3)``."""
-    model = adj.model
-    lam, v = lf.reshape(-1, 3), v1.reshape(-1, 3)
-    out = np.zeros(model.n_tets)
-    for g, els, params, inputs in adj.groups:
-        H = g.kernels.hessian_psd(x_e[els], model.dphi_dX[els], model.vol[els], *inputs, params)
-        out[els] = np.einsum("ea,eab,eb->e", lam[model.T[els]].reshape(-1, 12), H,
-                             v[model.T[els]].reshape(-1, 12)) * adj.beta[els]
-    return out
+    def weight(t: float) -> float:
+        return float(np.interp(kf._warped_time(t), kf.times, unit))
+    return slots, weight
 
 
 def scene_with(scene: Scene, values: Mapping[str, object]) -> Scene:

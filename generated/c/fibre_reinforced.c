@@ -921,6 +921,318 @@ static PyObject *py_fibre_reinforced_dgradient_dparams(PyObject *self, PyObject 
                       1, output_sizes);
 }
 
+// d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+// inputs: F (m, 3, 3), C (m, 9, 9), a (m, 3); params: (mu, lam, k1, k2), shared or per element
+// outputs: dF (m, 3, 3), dparams (m, 4); operation count per element: 847
+static inline void fibre_reinforced_d3psi_contract_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    const double k1 = params[2];
+    const double k2 = params[3];
+    (void)params;
+    // inputs
+    const double *restrict in_F = in[0];
+    const double F_0_0 = in_F[0];
+    const double F_0_1 = in_F[1];
+    const double F_0_2 = in_F[2];
+    const double F_1_0 = in_F[3];
+    const double F_1_1 = in_F[4];
+    const double F_1_2 = in_F[5];
+    const double F_2_0 = in_F[6];
+    const double F_2_1 = in_F[7];
+    const double F_2_2 = in_F[8];
+    const double *restrict in_C = in[1];
+    const double C_0_0 = in_C[0];
+    const double C_0_1 = in_C[1];
+    const double C_0_2 = in_C[2];
+    const double C_0_3 = in_C[3];
+    const double C_0_4 = in_C[4];
+    const double C_0_5 = in_C[5];
+    const double C_0_6 = in_C[6];
+    const double C_0_7 = in_C[7];
+    const double C_0_8 = in_C[8];
+    const double C_1_0 = in_C[9];
+    const double C_1_1 = in_C[10];
+    const double C_1_2 = in_C[11];
+    const double C_1_3 = in_C[12];
+    const double C_1_4 = in_C[13];
+    const double C_1_5 = in_C[14];
+    const double C_1_6 = in_C[15];
+    const double C_1_7 = in_C[16];
+    const double C_1_8 = in_C[17];
+    const double C_2_0 = in_C[18];
+    const double C_2_1 = in_C[19];
+    const double C_2_2 = in_C[20];
+    const double C_2_3 = in_C[21];
+    const double C_2_4 = in_C[22];
+    const double C_2_5 = in_C[23];
+    const double C_2_6 = in_C[24];
+    const double C_2_7 = in_C[25];
+    const double C_2_8 = in_C[26];
+    const double C_3_0 = in_C[27];
+    const double C_3_1 = in_C[28];
+    const double C_3_2 = in_C[29];
+    const double C_3_3 = in_C[30];
+    const double C_3_4 = in_C[31];
+    const double C_3_5 = in_C[32];
+    const double C_3_6 = in_C[33];
+    const double C_3_7 = in_C[34];
+    const double C_3_8 = in_C[35];
+    const double C_4_0 = in_C[36];
+    const double C_4_1 = in_C[37];
+    const double C_4_2 = in_C[38];
+    const double C_4_3 = in_C[39];
+    const double C_4_4 = in_C[40];
+    const double C_4_5 = in_C[41];
+    const double C_4_6 = in_C[42];
+    const double C_4_7 = in_C[43];
+    const double C_4_8 = in_C[44];
+    const double C_5_0 = in_C[45];
+    const double C_5_1 = in_C[46];
+    const double C_5_2 = in_C[47];
+    const double C_5_3 = in_C[48];
+    const double C_5_4 = in_C[49];
+    const double C_5_5 = in_C[50];
+    const double C_5_6 = in_C[51];
+    const double C_5_7 = in_C[52];
+    const double C_5_8 = in_C[53];
+    const double C_6_0 = in_C[54];
+    const double C_6_1 = in_C[55];
+    const double C_6_2 = in_C[56];
+    const double C_6_3 = in_C[57];
+    const double C_6_4 = in_C[58];
+    const double C_6_5 = in_C[59];
+    const double C_6_6 = in_C[60];
+    const double C_6_7 = in_C[61];
+    const double C_6_8 = in_C[62];
+    const double C_7_0 = in_C[63];
+    const double C_7_1 = in_C[64];
+    const double C_7_2 = in_C[65];
+    const double C_7_3 = in_C[66];
+    const double C_7_4 = in_C[67];
+    const double C_7_5 = in_C[68];
+    const double C_7_6 = in_C[69];
+    const double C_7_7 = in_C[70];
+    const double C_7_8 = in_C[71];
+    const double C_8_0 = in_C[72];
+    const double C_8_1 = in_C[73];
+    const double C_8_2 = in_C[74];
+    const double C_8_3 = in_C[75];
+    const double C_8_4 = in_C[76];
+    const double C_8_5 = in_C[77];
+    const double C_8_6 = in_C[78];
+    const double C_8_7 = in_C[79];
+    const double C_8_8 = in_C[80];
+    const double *restrict in_a = in[2];
+    const double a_0 = in_a[0];
+    const double a_1 = in_a[1];
+    const double a_2 = in_a[2];
+    // intermediates (164)
+    const double dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1;
+    const double dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0;
+    const double dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0;
+    const double hg3 = F_0_0*a_0 + F_0_1*a_1 + F_0_2*a_2;
+    const double hg4 = 2*hg3;
+    const double hg5 = F_1_0*a_0 + F_1_1*a_1 + F_1_2*a_2;
+    const double hg6 = 2*hg5;
+    const double hg7 = F_2_0*a_0 + F_2_1*a_1 + F_2_2*a_2;
+    const double hg8 = 2*hg7;
+    const double dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1;
+    const double dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0;
+    const double dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0;
+    const double dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double dI4_a_0_0 = a_0*hg4;
+    const double dI4_a_0_1 = a_1*hg4;
+    const double dI4_a_0_2 = a_2*hg4;
+    const double dI4_a_1_0 = a_0*hg6;
+    const double dI4_a_1_1 = a_1*hg6;
+    const double dI4_a_1_2 = a_2*hg6;
+    const double dI4_a_2_0 = a_0*hg8;
+    const double dI4_a_2_1 = a_1*hg8;
+    const double dI4_a_2_2 = a_2*hg8;
+    const double J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2;
+    const double I4_a = (hg3*hg3) + (hg5*hg5) + (hg7*hg7);
+    const double h0 = lam*log(J);
+    const double h1 = (-h0 + lam + mu)/(J*J);
+    const double h2 = (a_0*a_0);
+    const double h3 = (a_1*a_1);
+    const double h4 = (a_2*a_2);
+    const double h5 = h2 + h3 + h4;
+    const double h6 = (1.0/(h5));
+    const double h7 = I4_a*h6 - 1;
+    const double h8 = (h7*h7)*k2;
+    const double h9 = exp(h8);
+    const double h10 = h9 - 1;
+    const double h11 = k1*(h10 + 2*h8*h9)/(h5*h5);
+    const double h14 = dJ_0_0*h1;
+    const double h17 = dI4_a_0_0*h11;
+    const double h19 = (h0 - mu)/J;
+    const double h25 = dJ_0_1*h1;
+    const double h27 = dI4_a_0_1*h11;
+    const double h31 = dJ_0_2*h1;
+    const double h32 = dI4_a_0_2*h11;
+    const double h33 = dJ_1_0*h1;
+    const double h34 = dI4_a_1_0*h11;
+    const double h37 = dJ_1_1*h1;
+    const double h38 = dI4_a_1_1*h11;
+    const double h40 = dJ_1_2*h1;
+    const double h41 = dI4_a_1_2*h11;
+    const double h42 = dJ_2_0*h1;
+    const double h43 = dI4_a_2_0*h11;
+    const double r0 = C_8_8;
+    const double r1 = C_7_8 + C_8_7;
+    const double r2 = C_7_7;
+    const double r3 = C_6_8 + C_8_6;
+    const double r4 = C_6_7 + C_7_6;
+    const double r5 = C_6_6;
+    const double r6 = C_5_8 + C_8_5;
+    const double r7 = C_5_7 + C_7_5;
+    const double r8 = C_5_6 + C_6_5;
+    const double r9 = C_5_5;
+    const double r10 = C_4_8 + C_8_4;
+    const double r11 = C_4_7 + C_7_4;
+    const double r12 = C_4_6 + C_6_4;
+    const double r13 = C_4_5 + C_5_4;
+    const double r14 = C_4_4;
+    const double r15 = C_3_8 + C_8_3;
+    const double r16 = C_3_7 + C_7_3;
+    const double r17 = C_3_6 + C_6_3;
+    const double r18 = C_3_5 + C_5_3;
+    const double r19 = C_3_4 + C_4_3;
+    const double r20 = C_3_3;
+    const double r21 = C_2_8 + C_8_2;
+    const double r22 = C_2_7 + C_7_2;
+    const double r23 = C_2_6 + C_6_2;
+    const double r24 = C_2_5 + C_5_2;
+    const double r25 = C_2_4 + C_4_2;
+    const double r26 = C_2_3 + C_3_2;
+    const double r27 = C_2_2;
+    const double r28 = C_1_8 + C_8_1;
+    const double r29 = C_1_7 + C_7_1;
+    const double r30 = C_1_6 + C_6_1;
+    const double r31 = C_1_5 + C_5_1;
+    const double r32 = C_1_4 + C_4_1;
+    const double r33 = C_1_3 + C_3_1;
+    const double r34 = C_1_2 + C_2_1;
+    const double r35 = C_1_1;
+    const double r36 = C_0_8 + C_8_0;
+    const double r37 = C_0_7 + C_7_0;
+    const double r38 = C_0_6 + C_6_0;
+    const double r39 = C_0_5 + C_5_0;
+    const double r40 = C_0_4 + C_4_0;
+    const double r41 = C_0_3 + C_3_0;
+    const double r42 = C_0_2 + C_2_0;
+    const double r43 = C_0_1 + C_1_0;
+    const double r44 = C_0_0;
+    const double r45 = dI4_a_2_1*r4 + dI4_a_2_2*r3;
+    const double r46 = dJ_2_1*r4 + dJ_2_2*r3;
+    const double r47 = dI4_a_2_0*r8 + dI4_a_2_1*r7 + dI4_a_2_2*r6;
+    const double r48 = dJ_2_0*r8 + dJ_2_1*r7 + dJ_2_2*r6;
+    const double r49 = r10 - r7;
+    const double r50 = dI4_a_1_2*r13 + dI4_a_2_0*r12 + dI4_a_2_1*r11 + dI4_a_2_2*r10;
+    const double r51 = dJ_1_2*r13 + dJ_2_0*r12 + dJ_2_1*r11 + dJ_2_2*r10;
+    const double r52 = -r15 + r8;
+    const double r53 = -r12 + r16;
+    const double r54 = dI4_a_1_1*r19 + dI4_a_1_2*r18 + dI4_a_2_0*r17 + dI4_a_2_1*r16 + dI4_a_2_2*r15;
+    const double r55 = dJ_1_1*r19 + dJ_1_2*r18 + dJ_2_0*r17 + dJ_2_1*r16 + dJ_2_2*r15;
+    const double r56 = dI4_a_1_0*r26 + dI4_a_1_1*r25 + dI4_a_1_2*r24 + dI4_a_2_0*r23 + dI4_a_2_1*r22 + dI4_a_2_2*r21;
+    const double r57 = dJ_1_0*r26 + dJ_1_1*r25 + dJ_1_2*r24 + dJ_2_0*r23 + dJ_2_1*r22 + dJ_2_2*r21;
+    const double r58 = r0 + r27 + r9;
+    const double r59 = r22 - r28;
+    const double r60 = -r25 + r31;
+    const double r61 = dI4_a_0_2*r34 + dI4_a_1_0*r33 + dI4_a_1_1*r32 + dI4_a_1_2*r31 + dI4_a_2_0*r30 + dI4_a_2_1*r29 + dI4_a_2_2*r28;
+    const double r62 = r1 + r13 + r34;
+    const double r63 = dJ_0_2*r34 + dJ_1_0*r33 + dJ_1_1*r32 + dJ_1_2*r31 + dJ_2_0*r30 + dJ_2_1*r29 + dJ_2_2*r28;
+    const double r64 = r14 + r2 + r35;
+    const double r65 = -r23 + r36;
+    const double r66 = r30 - r37;
+    const double r67 = r26 - r39;
+    const double r68 = -r33 + r40;
+    const double r69 = F_0_0*r49 + F_0_1*r52 + F_0_2*r53 + F_1_0*r59 + F_1_1*r65 + F_1_2*r66 + F_2_0*r60 + F_2_1*r67 + F_2_2*r68;
+    const double r70 = r18 + r3 + r42;
+    const double r71 = dI4_a_0_1*r43 + dI4_a_0_2*r42 + dI4_a_1_0*r41 + dI4_a_1_1*r40 + dI4_a_1_2*r39 + dI4_a_2_0*r38 + dI4_a_2_1*r37 + dI4_a_2_2*r36;
+    const double r72 = r19 + r4 + r43;
+    const double r73 = a_1*r72 + a_2*r70;
+    const double r74 = dJ_0_1*r43 + dJ_0_2*r42 + dJ_1_0*r41 + dJ_1_1*r40 + dJ_1_2*r39 + dJ_2_0*r38 + dJ_2_1*r37 + dJ_2_2*r36;
+    const double r75 = r20 + r44 + r5;
+    const double r76 = a_0*r73 + a_1*a_2*r62 + h2*r75 + h3*r64 + h4*r58;
+    const double r77 = (dI4_a_0_0*dI4_a_0_0)*r44 + dI4_a_0_0*r71 + (dI4_a_0_1*dI4_a_0_1)*r35 + dI4_a_0_1*r61 + (dI4_a_0_2*dI4_a_0_2)*r27 + dI4_a_0_2*r56 + (dI4_a_1_0*dI4_a_1_0)*r20 + dI4_a_1_0*r54 + (dI4_a_1_1*dI4_a_1_1)*r14 + dI4_a_1_1*r50 + (dI4_a_1_2*dI4_a_1_2)*r9 + dI4_a_1_2*r47 + (dI4_a_2_0*dI4_a_2_0)*r5 + dI4_a_2_0*r45 + (dI4_a_2_1*dI4_a_2_1)*r2 + dI4_a_2_1*dI4_a_2_2*r1 + (dI4_a_2_2*dI4_a_2_2)*r0;
+    const double r78 = 2*h6*h7*k1*r76 + k1*r77/(h5*h5);
+    const double r79 = r78 + 2*h8*k1*r77/(h5*h5);
+    const double r80 = r79*exp(h8) + 2*h9*k1*r77/(h5*h5);
+    const double r81 = 2*h10*h6*k1*r76 + 2*h7*k2*r80;
+    const double r87 = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r74 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r63 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r57 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r55 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r51 + (dJ_1_2*dJ_1_2)*r9 + dJ_1_2*r48 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*r46 + (dJ_2_1*dJ_2_1)*r2 + dJ_2_1*dJ_2_2*r1 + (dJ_2_2*dJ_2_2)*r0;
+    const double r88 = r69/J - r87/(J*J);
+    const double r89 = h6*r81;
+    const double r90 = lam*r88/J - r69*(h0 - mu)/(J*J) - 2*r87*(-h0 + lam + mu)/(J*J*J);
+    const double r91 = dI4_a_2_1*h11*r1 + 2*dI4_a_2_2*h11*r0 + h17*r36 + h27*r28 + h32*r21 + h34*r15 + h38*r10 + h41*r6 + h43*r3;
+    const double r92 = 2*dI4_a_2_1*h11*r2 + dI4_a_2_2*h11*r1 + h17*r37 + h27*r29 + h32*r22 + h34*r16 + h38*r11 + h41*r7 + h43*r4;
+    const double r93 = 2*dI4_a_2_0*h11*r5 + h11*r45 + h17*r38 + h27*r30 + h32*r23 + h34*r17 + h38*r12 + h41*r8;
+    const double r94 = 2*dI4_a_1_2*h11*r9 + h11*r47 + h17*r39 + h27*r31 + h32*r24 + h34*r18 + h38*r13;
+    const double r95 = 2*dI4_a_1_1*h11*r14 + h11*r50 + h17*r40 + h27*r32 + h32*r25 + h34*r19;
+    const double r96 = 2*dI4_a_1_0*h11*r20 + h11*r54 + h17*r41 + h27*r33 + h32*r26;
+    const double r97 = 2*dI4_a_0_2*h11*r27 + h11*r56 + h17*r42 + h27*r34;
+    const double r98 = 2*dI4_a_0_1*h11*r35 + h11*r61 + h17*r43;
+    const double r99 = 2*dI4_a_0_0*h11*r44 + h11*r71;
+    const double r100 = dJ_2_1*h1*r1 + 2*dJ_2_2*h1*r0 + h14*r36 + h25*r28 + h31*r21 + h33*r15 + h37*r10 + h40*r6 + h42*r3;
+    const double r101 = 2*dJ_2_1*h1*r2 + dJ_2_2*h1*r1 + h14*r37 + h25*r29 + h31*r22 + h33*r16 + h37*r11 + h40*r7 + h42*r4;
+    const double r102 = 2*dJ_2_0*h1*r5 + h1*r46 + h14*r38 + h25*r30 + h31*r23 + h33*r17 + h37*r12 + h40*r8;
+    const double r103 = 2*dJ_1_2*h1*r9 + h1*r48 + h14*r39 + h25*r31 + h31*r24 + h33*r18 + h37*r13;
+    const double r104 = 2*dJ_1_1*h1*r14 + h1*r51 + h14*r40 + h25*r32 + h31*r25 + h33*r19;
+    const double r105 = 2*dJ_1_0*h1*r20 + h1*r55 + h14*r41 + h25*r33 + h31*r26;
+    const double r106 = a_0*r93 + a_1*r92 + a_2*r91;
+    const double r107 = 2*hg7*r89 + 2*r106;
+    const double r108 = a_0*r96 + a_1*r95 + a_2*r94;
+    const double r109 = 2*hg5*r89 + 2*r108;
+    const double r110 = a_0*r99 + a_1*r98 + a_2*r97;
+    const double r111 = 2*hg3*r89 + 2*r110;
+    const double r112 = F_0_2*r90 + 2*dJ_0_2*h1*r27 + h1*r57 + h14*r42 + h25*r34;
+    const double r113 = F_0_1*r90 + 2*dJ_0_1*h1*r35 + h1*r63 + h14*r43;
+    const double r114 = F_0_0*r90 + 2*dJ_0_0*h1*r44 + h1*r74;
+    const double t0 = r87/(J*J);
+    // outputs
+    double *restrict out_dF = out[0];
+    out_dF[0] = F_1_1*r100 - F_1_2*r101 - F_2_1*r103 + F_2_2*r104 + a_0*r111 + dJ_0_0*r90 + h19*r49;
+    out_dF[1] = -F_1_0*r100 + F_1_2*r102 + F_2_0*r103 - F_2_2*r105 + a_1*r111 + dJ_0_1*r90 + h19*r52;
+    out_dF[2] = F_1_0*r101 - F_1_1*r102 - F_2_0*r104 + F_2_1*r105 + a_2*r111 + dJ_0_2*r90 + h19*r53;
+    out_dF[3] = -F_0_1*r100 + F_0_2*r101 + F_2_1*r112 - F_2_2*r113 + a_0*r109 + h19*r59;
+    out_dF[4] = F_0_0*r100 - F_0_2*r102 - F_2_0*r112 + F_2_2*r114 + a_1*r109 + h19*r65;
+    out_dF[5] = -F_0_0*r101 + F_0_1*r102 + F_2_0*r113 - F_2_1*r114 + a_2*r109 + h19*r66;
+    out_dF[6] = F_0_1*r103 - F_0_2*r104 - F_1_1*r112 + F_1_2*r113 + a_0*r107 + h19*r60;
+    out_dF[7] = -F_0_0*r103 + F_0_2*r105 + F_1_0*r112 - F_1_2*r114 + a_1*r107 + h19*r67;
+    out_dF[8] = F_0_0*r104 - F_0_1*r105 - F_1_0*r113 + F_1_1*r114 + a_2*r107 + h19*r68;
+    double *restrict out_dparams = out[1];
+    out_dparams[0] = r58 + r64 + r75 + t0 - r69/J;
+    out_dparams[1] = r88*log(J) + t0;
+    out_dparams[2] = 2*h10*h6*h7*r76 + r77*(h10 + 2*h8*h9)/(h5*h5);
+    out_dparams[3] = (h7*h7)*r80;
+}
+
+static void fibre_reinforced_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 9 * e, inputs[1] + 81 * e, inputs[2] + 3 * e, };
+        double *out[] = { outputs[0] + 9 * e, outputs[1] + 4 * e, };
+        fibre_reinforced_d3psi_contract_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_fibre_reinforced_d3psi_contract(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 9, 81, 3, };
+    static const Py_ssize_t output_sizes[] = { 9, 4, };
+    (void)self;
+    return run_kernel(args, "fibre_reinforced_d3psi_contract", fibre_reinforced_d3psi_contract,
+                      3, input_sizes, 4,
+                      2, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1345

@@ -659,6 +659,92 @@ static PyObject *py_linear_dgradient_dparams(PyObject *self, PyObject *args)
                       1, output_sizes);
 }
 
+// d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+// inputs: F (m, 3, 3), C (m, 9, 9); params: (mu, lam), shared or per element
+// outputs: dF (m, 3, 3), dparams (m, 2); operation count per element: 21
+static inline FEM3D_ELEMENT void linear_d3psi_contract_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_C = in[1];
+    const double C_0_0 = in_C[0];
+    const double C_0_4 = in_C[4];
+    const double C_0_8 = in_C[8];
+    const double C_1_1 = in_C[10];
+    const double C_1_3 = in_C[12];
+    const double C_2_2 = in_C[20];
+    const double C_2_6 = in_C[24];
+    const double C_3_1 = in_C[28];
+    const double C_3_3 = in_C[30];
+    const double C_4_0 = in_C[36];
+    const double C_4_4 = in_C[40];
+    const double C_4_8 = in_C[44];
+    const double C_5_5 = in_C[50];
+    const double C_5_7 = in_C[52];
+    const double C_6_2 = in_C[56];
+    const double C_6_6 = in_C[60];
+    const double C_7_5 = in_C[68];
+    const double C_7_7 = in_C[70];
+    const double C_8_0 = in_C[72];
+    const double C_8_4 = in_C[76];
+    const double C_8_8 = in_C[80];
+    // intermediates (16)
+    const double r0 = C_8_8;
+    const double r2 = C_7_7;
+    const double r5 = C_6_6;
+    const double r7 = C_5_7 + C_7_5;
+    const double r9 = C_5_5;
+    const double r10 = C_4_8 + C_8_4;
+    const double r14 = C_4_4;
+    const double r20 = C_3_3;
+    const double r23 = C_2_6 + C_6_2;
+    const double r27 = C_2_2;
+    const double r33 = C_1_3 + C_3_1;
+    const double r35 = C_1_1;
+    const double r36 = C_0_8 + C_8_0;
+    const double r40 = C_0_4 + C_4_0;
+    const double r44 = C_0_0;
+    const double r45 = r0 + r14 + r44;
+    // outputs
+    double *restrict out_dF = out[0];
+    out_dF[0] = 0;
+    out_dF[1] = 0;
+    out_dF[2] = 0;
+    out_dF[3] = 0;
+    out_dF[4] = 0;
+    out_dF[5] = 0;
+    out_dF[6] = 0;
+    out_dF[7] = 0;
+    out_dF[8] = 0;
+    double *restrict out_dparams = out[1];
+    out_dparams[0] = r2 + r20 + r23 + r27 + r33 + r35 + 2*r45 + r5 + r7 + r9;
+    out_dparams[1] = r10 + r36 + r40 + r45;
+}
+
+static void linear_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 9 * e, inputs[1] + 81 * e, };
+        double *out[] = { outputs[0] + 9 * e, outputs[1] + 2 * e, };
+        linear_d3psi_contract_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_linear_d3psi_contract(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 9, 81, };
+    static const Py_ssize_t output_sizes[] = { 9, 2, };
+    (void)self;
+    return run_kernel(args, "linear_d3psi_contract", linear_d3psi_contract,
+                      2, input_sizes, 2,
+                      2, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 965

@@ -757,6 +757,267 @@ static PyObject *py_neo_hookean_dgradient_dparams(PyObject *self, PyObject *args
                       1, output_sizes);
 }
 
+// d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+// inputs: F (m, 3, 3), C (m, 9, 9); params: (C, D), shared or per element
+// outputs: dF (m, 3, 3), dparams (m, 2); operation count per element: 1221
+static inline FEM3D_ELEMENT void neo_hookean_d3psi_contract_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double C = params[0];
+    const double D = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_F = in[0];
+    const double F_0_0 = in_F[0];
+    const double F_0_1 = in_F[1];
+    const double F_0_2 = in_F[2];
+    const double F_1_0 = in_F[3];
+    const double F_1_1 = in_F[4];
+    const double F_1_2 = in_F[5];
+    const double F_2_0 = in_F[6];
+    const double F_2_1 = in_F[7];
+    const double F_2_2 = in_F[8];
+    const double *restrict in_C = in[1];
+    const double C_0_0 = in_C[0];
+    const double C_0_1 = in_C[1];
+    const double C_0_2 = in_C[2];
+    const double C_0_3 = in_C[3];
+    const double C_0_4 = in_C[4];
+    const double C_0_5 = in_C[5];
+    const double C_0_6 = in_C[6];
+    const double C_0_7 = in_C[7];
+    const double C_0_8 = in_C[8];
+    const double C_1_0 = in_C[9];
+    const double C_1_1 = in_C[10];
+    const double C_1_2 = in_C[11];
+    const double C_1_3 = in_C[12];
+    const double C_1_4 = in_C[13];
+    const double C_1_5 = in_C[14];
+    const double C_1_6 = in_C[15];
+    const double C_1_7 = in_C[16];
+    const double C_1_8 = in_C[17];
+    const double C_2_0 = in_C[18];
+    const double C_2_1 = in_C[19];
+    const double C_2_2 = in_C[20];
+    const double C_2_3 = in_C[21];
+    const double C_2_4 = in_C[22];
+    const double C_2_5 = in_C[23];
+    const double C_2_6 = in_C[24];
+    const double C_2_7 = in_C[25];
+    const double C_2_8 = in_C[26];
+    const double C_3_0 = in_C[27];
+    const double C_3_1 = in_C[28];
+    const double C_3_2 = in_C[29];
+    const double C_3_3 = in_C[30];
+    const double C_3_4 = in_C[31];
+    const double C_3_5 = in_C[32];
+    const double C_3_6 = in_C[33];
+    const double C_3_7 = in_C[34];
+    const double C_3_8 = in_C[35];
+    const double C_4_0 = in_C[36];
+    const double C_4_1 = in_C[37];
+    const double C_4_2 = in_C[38];
+    const double C_4_3 = in_C[39];
+    const double C_4_4 = in_C[40];
+    const double C_4_5 = in_C[41];
+    const double C_4_6 = in_C[42];
+    const double C_4_7 = in_C[43];
+    const double C_4_8 = in_C[44];
+    const double C_5_0 = in_C[45];
+    const double C_5_1 = in_C[46];
+    const double C_5_2 = in_C[47];
+    const double C_5_3 = in_C[48];
+    const double C_5_4 = in_C[49];
+    const double C_5_5 = in_C[50];
+    const double C_5_6 = in_C[51];
+    const double C_5_7 = in_C[52];
+    const double C_5_8 = in_C[53];
+    const double C_6_0 = in_C[54];
+    const double C_6_1 = in_C[55];
+    const double C_6_2 = in_C[56];
+    const double C_6_3 = in_C[57];
+    const double C_6_4 = in_C[58];
+    const double C_6_5 = in_C[59];
+    const double C_6_6 = in_C[60];
+    const double C_6_7 = in_C[61];
+    const double C_6_8 = in_C[62];
+    const double C_7_0 = in_C[63];
+    const double C_7_1 = in_C[64];
+    const double C_7_2 = in_C[65];
+    const double C_7_3 = in_C[66];
+    const double C_7_4 = in_C[67];
+    const double C_7_5 = in_C[68];
+    const double C_7_6 = in_C[69];
+    const double C_7_7 = in_C[70];
+    const double C_7_8 = in_C[71];
+    const double C_8_0 = in_C[72];
+    const double C_8_1 = in_C[73];
+    const double C_8_2 = in_C[74];
+    const double C_8_3 = in_C[75];
+    const double C_8_4 = in_C[76];
+    const double C_8_5 = in_C[77];
+    const double C_8_6 = in_C[78];
+    const double C_8_7 = in_C[79];
+    const double C_8_8 = in_C[80];
+    // intermediates (121)
+    const double dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1;
+    const double dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0;
+    const double dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0;
+    const double dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1;
+    const double dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0;
+    const double dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0;
+    const double dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2;
+    const double rcbrt_J = (fem3d_rcbrt(J));
+    const double I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2);
+    const double h1 = (rcbrt_J*rcbrt_J)/J;
+    const double h2 = C*h1;
+    const double h3 = (2.0/3.0)*h2;
+    const double h4 = 6*h2;
+    const double h5 = C*I1;
+    const double h6 = 9*D + 5*h5*(rcbrt_J*rcbrt_J)/(J*J);
+    const double h7 = F_0_0*h4 - dJ_0_0*h6;
+    const double h8 = F_0_1*h4;
+    const double h9 = F_0_2*h4;
+    const double h10 = F_1_0*h4;
+    const double h11 = F_1_1*h4;
+    const double h12 = -3*D*(J - 1) + h1*h5;
+    const double h13 = 3*h12;
+    const double h14 = F_1_2*h4;
+    const double h15 = F_2_0*h4;
+    const double h16 = F_2_1*h4;
+    const double h17 = F_2_2*h4;
+    const double h18 = -dJ_0_1*h6 + h8;
+    const double h19 = -dJ_0_2*h6 + h9;
+    const double h20 = -dJ_1_0*h6 + h10;
+    const double h21 = -dJ_1_1*h6 + h11;
+    const double h22 = -dJ_1_2*h6 + h14;
+    const double h23 = -dJ_2_0*h6 + h15;
+    const double h24 = -dJ_2_1*h6 + h16;
+    const double r0 = C_8_8;
+    const double r1 = C_7_8 + C_8_7;
+    const double r2 = C_7_7;
+    const double r3 = C_6_8 + C_8_6;
+    const double r4 = C_6_7 + C_7_6;
+    const double r5 = C_6_6;
+    const double r6 = C_5_8 + C_8_5;
+    const double r7 = C_5_7 + C_7_5;
+    const double r8 = C_5_6 + C_6_5;
+    const double r9 = C_5_5;
+    const double r10 = C_4_8 + C_8_4;
+    const double r11 = C_4_7 + C_7_4;
+    const double r12 = C_4_6 + C_6_4;
+    const double r13 = C_4_5 + C_5_4;
+    const double r14 = C_4_4;
+    const double r15 = C_3_8 + C_8_3;
+    const double r16 = C_3_7 + C_7_3;
+    const double r17 = C_3_6 + C_6_3;
+    const double r18 = C_3_5 + C_5_3;
+    const double r19 = C_3_4 + C_4_3;
+    const double r20 = C_3_3;
+    const double r21 = C_2_8 + C_8_2;
+    const double r22 = C_2_7 + C_7_2;
+    const double r23 = C_2_6 + C_6_2;
+    const double r24 = C_2_5 + C_5_2;
+    const double r25 = C_2_4 + C_4_2;
+    const double r26 = C_2_3 + C_3_2;
+    const double r27 = C_2_2;
+    const double r28 = C_1_8 + C_8_1;
+    const double r29 = C_1_7 + C_7_1;
+    const double r30 = C_1_6 + C_6_1;
+    const double r31 = C_1_5 + C_5_1;
+    const double r32 = C_1_4 + C_4_1;
+    const double r33 = C_1_3 + C_3_1;
+    const double r34 = C_1_2 + C_2_1;
+    const double r35 = C_1_1;
+    const double r36 = C_0_8 + C_8_0;
+    const double r37 = C_0_7 + C_7_0;
+    const double r38 = C_0_6 + C_6_0;
+    const double r39 = C_0_5 + C_5_0;
+    const double r40 = C_0_4 + C_4_0;
+    const double r41 = C_0_3 + C_3_0;
+    const double r42 = C_0_2 + C_2_0;
+    const double r43 = C_0_1 + C_1_0;
+    const double r44 = C_0_0;
+    const double r45 = -2.0/9.0*dJ_2_1*r2 - 2.0/9.0*dJ_2_2*r1;
+    const double r46 = -2.0/9.0*dJ_2_0*r5 - 2.0/9.0*dJ_2_1*r4 - 2.0/9.0*dJ_2_2*r3;
+    const double r47 = -2.0/9.0*dJ_1_2*r9 - 2.0/9.0*dJ_2_0*r8 - 2.0/9.0*dJ_2_1*r7 - 2.0/9.0*dJ_2_2*r6;
+    const double r48 = -2.0/9.0*dJ_1_1*r14 - 2.0/9.0*dJ_1_2*r13 - 2.0/9.0*dJ_2_0*r12 - 2.0/9.0*dJ_2_1*r11 - 2.0/9.0*dJ_2_2*r10;
+    const double r49 = -2.0/9.0*dJ_1_0*r20 - 2.0/9.0*dJ_1_1*r19 - 2.0/9.0*dJ_1_2*r18 - 2.0/9.0*dJ_2_0*r17 - 2.0/9.0*dJ_2_1*r16 - 2.0/9.0*dJ_2_2*r15;
+    const double r50 = -2.0/9.0*dJ_0_2*r27 - 2.0/9.0*dJ_1_0*r26 - 2.0/9.0*dJ_1_1*r25 - 2.0/9.0*dJ_1_2*r24 - 2.0/9.0*dJ_2_0*r23 - 2.0/9.0*dJ_2_1*r22 - 2.0/9.0*dJ_2_2*r21;
+    const double r51 = -2.0/9.0*dJ_0_1*r35 - 2.0/9.0*dJ_0_2*r34 - 2.0/9.0*dJ_1_0*r33 - 2.0/9.0*dJ_1_1*r32 - 2.0/9.0*dJ_1_2*r31 - 2.0/9.0*dJ_2_0*r30 - 2.0/9.0*dJ_2_1*r29 - 2.0/9.0*dJ_2_2*r28;
+    const double r52 = -2.0/9.0*dJ_0_0*r36 - 2.0/9.0*dJ_0_1*r28 - 2.0/9.0*dJ_0_2*r21 - 2.0/9.0*dJ_1_0*r15 - 2.0/9.0*dJ_1_1*r10 - 2.0/9.0*dJ_1_2*r6 - 2.0/9.0*dJ_2_0*r3 - 2.0/9.0*dJ_2_1*r1 - 2.0/9.0*dJ_2_2*r0;
+    const double r53 = -2.0/9.0*dJ_0_0*r37 - 2.0/9.0*dJ_0_1*r29 - 2.0/9.0*dJ_0_2*r22 - 2.0/9.0*dJ_1_0*r16 - 2.0/9.0*dJ_1_1*r11 - 2.0/9.0*dJ_1_2*r7 - 2.0/9.0*dJ_2_0*r4 + r45;
+    const double r54 = -2.0/9.0*dJ_0_0*r38 - 2.0/9.0*dJ_0_1*r30 - 2.0/9.0*dJ_0_2*r23 - 2.0/9.0*dJ_1_0*r17 - 2.0/9.0*dJ_1_1*r12 - 2.0/9.0*dJ_1_2*r8 + r46;
+    const double r55 = -2.0/9.0*dJ_0_0*r39 - 2.0/9.0*dJ_0_1*r31 - 2.0/9.0*dJ_0_2*r24 - 2.0/9.0*dJ_1_0*r18 - 2.0/9.0*dJ_1_1*r13 + r47;
+    const double r56 = -2.0/9.0*F_0_0*r10 - 2.0/9.0*F_0_1*r8 - 2.0/9.0*F_0_2*r16 - 2.0/9.0*F_1_0*r22 - 2.0/9.0*F_1_1*r36 - 2.0/9.0*F_1_2*r30 - 2.0/9.0*F_2_0*r31 - 2.0/9.0*F_2_1*r26 - 2.0/9.0*F_2_2*r40;
+    const double r57 = (2.0/3.0)*F_0_0*r7 + (2.0/3.0)*F_0_1*r15 + (2.0/3.0)*F_0_2*r12 + (2.0/3.0)*F_1_0*r28 + (2.0/3.0)*F_1_1*r23 + (2.0/3.0)*F_1_2*r37 + (2.0/3.0)*F_2_0*r25 + (2.0/3.0)*F_2_1*r39 + (2.0/3.0)*F_2_2*r33 + 3*r56;
+    const double r58 = -2.0/9.0*dJ_0_0*r40 - 2.0/9.0*dJ_0_1*r32 - 2.0/9.0*dJ_0_2*r25 - 2.0/9.0*dJ_1_0*r19 + r48;
+    const double r59 = -2.0/9.0*dJ_0_0*r41 - 2.0/9.0*dJ_0_1*r33 - 2.0/9.0*dJ_0_2*r26 + r49;
+    const double r60 = -2.0/9.0*dJ_0_0*r42 - 2.0/9.0*dJ_0_1*r34 + r50;
+    const double r61 = -2.0/9.0*dJ_0_0*r43 + r51;
+    const double r62 = -2.0/9.0*dJ_0_0*r44 - 2.0/9.0*dJ_0_1*r43 - 2.0/9.0*dJ_0_2*r42 - 2.0/9.0*dJ_1_0*r41 - 2.0/9.0*dJ_1_1*r40 - 2.0/9.0*dJ_1_2*r39 - 2.0/9.0*dJ_2_0*r38 - 2.0/9.0*dJ_2_1*r37 - 2.0/9.0*dJ_2_2*r36;
+    const double r63 = -dJ_0_0*r62 - dJ_0_1*r51 - dJ_0_2*r50 - dJ_1_0*r49 - dJ_1_1*r48 - dJ_1_2*r47 - dJ_2_0*r46 - dJ_2_1*r45 + (2.0/9.0)*(dJ_2_2*dJ_2_2)*r0;
+    const double r64 = h1*r57 + 5*r63*(rcbrt_J*rcbrt_J)/(J*J);
+    const double r65 = F_0_0*r62 + F_0_1*r61 + F_0_2*r60 + F_1_0*r59 + F_1_1*r58 + F_1_2*r55 + F_2_0*r54 + F_2_1*r53 + F_2_2*r52;
+    const double r66 = -2*F_0_0*dJ_0_0*r44 - 2*F_0_1*dJ_0_1*r35 - 2*F_0_2*dJ_0_2*r27 - 2*F_1_0*dJ_1_0*r20 - 2*F_1_1*dJ_1_1*r14 - 2*F_1_2*dJ_1_2*r9 - 2*F_2_0*dJ_2_0*r5 - 2*F_2_1*dJ_2_1*r2 - 2*F_2_2*dJ_2_2*r0;
+    const double r67 = 6*r65 + (2.0/3.0)*r66;
+    const double r68 = C*r67 + h5*r57;
+    const double r69 = -2*r0 - 2*r14 - 2*r2 - 2*r20 - 2*r27 - 2*r35 - 2*r44 - 2*r5 - 2*r9;
+    const double r70 = C*r64;
+    const double r71 = (2.0/3.0)*C*r69*(rcbrt_J*rcbrt_J)/J - 3*D*r57 - 5.0/3.0*r68*(rcbrt_J*rcbrt_J)/(J*J) - 40.0/3.0*h5*r63*(rcbrt_J*rcbrt_J)/(J*J*J);
+    const double r72 = -2.0/9.0*h18*r28 - 2.0/9.0*h19*r21 - 2.0/9.0*h20*r15 - 2.0/9.0*h21*r10 - 2.0/9.0*h22*r6 - 2.0/9.0*h23*r3 - 2.0/9.0*h24*r1 - 2.0/9.0*h7*r36 + r0*(-2*F_2_2*h3 + (4.0/9.0)*dJ_2_2*h6 - 2.0/9.0*h17);
+    const double r73 = -2.0/9.0*h17*r1 - 2.0/9.0*h18*r29 - 2.0/9.0*h19*r22 - 2.0/9.0*h20*r16 - 2.0/9.0*h21*r11 - 2.0/9.0*h22*r7 - 2.0/9.0*h23*r4 - h6*r45 - 2.0/9.0*h7*r37 + r2*(-2*F_2_1*h3 - 2.0/9.0*h24);
+    const double r74 = -2.0/9.0*h16*r4 - 2.0/9.0*h17*r3 - 2.0/9.0*h18*r30 - 2.0/9.0*h19*r23 - 2.0/9.0*h20*r17 - 2.0/9.0*h21*r12 - 2.0/9.0*h22*r8 - h6*r46 - 2.0/9.0*h7*r38 + r5*(-2*F_2_0*h3 - 2.0/9.0*h23);
+    const double r75 = -2.0/9.0*h15*r8 - 2.0/9.0*h16*r7 - 2.0/9.0*h17*r6 - 2.0/9.0*h18*r31 - 2.0/9.0*h19*r24 - 2.0/9.0*h20*r18 - 2.0/9.0*h21*r13 - h6*r47 - 2.0/9.0*h7*r39 + r9*(-2*F_1_2*h3 - 2.0/9.0*h22);
+    const double r76 = -2.0/9.0*h14*r13 - 2.0/9.0*h15*r12 - 2.0/9.0*h16*r11 - 2.0/9.0*h17*r10 - 2.0/9.0*h18*r32 - 2.0/9.0*h19*r25 - 2.0/9.0*h20*r19 - h6*r48 - 2.0/9.0*h7*r40 + r14*(-2*F_1_1*h3 - 2.0/9.0*h21);
+    const double r77 = -2.0/9.0*h11*r19 - 2.0/9.0*h14*r18 - 2.0/9.0*h15*r17 - 2.0/9.0*h16*r16 - 2.0/9.0*h17*r15 - 2.0/9.0*h18*r33 - 2.0/9.0*h19*r26 - h6*r49 - 2.0/9.0*h7*r41 + r20*(-2*F_1_0*h3 - 2.0/9.0*h20);
+    const double r78 = F_0_2*r71 - 2.0/9.0*h10*r26 - 2.0/9.0*h11*r25 - 2.0/9.0*h14*r24 - 2.0/9.0*h15*r23 - 2.0/9.0*h16*r22 - 2.0/9.0*h17*r21 - 2.0/9.0*h18*r34 - h6*r50 - 2.0/9.0*h7*r42 + r27*(-2*F_0_2*h3 - 2.0/9.0*h19);
+    const double r79 = F_0_1*r71 - 2.0/9.0*h10*r33 - 2.0/9.0*h11*r32 - 2.0/9.0*h14*r31 - 2.0/9.0*h15*r30 - 2.0/9.0*h16*r29 - 2.0/9.0*h17*r28 - h6*r51 - 2.0/9.0*h7*r43 - 2.0/9.0*h9*r34 + r35*(-2*F_0_1*h3 - 2.0/9.0*h18);
+    const double r80 = F_0_0*r71 - 2.0/9.0*h10*r41 - 2.0/9.0*h11*r40 - 2.0/9.0*h14*r39 - 2.0/9.0*h15*r38 - 2.0/9.0*h16*r37 - 2.0/9.0*h17*r36 - h6*r62 - 2.0/9.0*h8*r43 - 2.0/9.0*h9*r42 + r44*(-2*F_0_0*h3 - 2.0/9.0*h7);
+    const double t0 = 2*r70;
+    const double t1 = (2.0/3.0)*h12;
+    const double t2 = (2.0/9.0)*h13;
+    const double t3 = 2*h3;
+    // outputs
+    double *restrict out_dF = out[0];
+    out_dF[0] = F_0_0*t0 + F_1_1*r72 - F_1_2*r73 - F_2_1*r75 + F_2_2*r76 - dJ_0_0*r44*t3 + dJ_0_0*r71 + h4*r62 - r10*t2 + r7*t1;
+    out_dF[1] = F_0_1*t0 - F_1_0*r72 + F_1_2*r74 + F_2_0*r75 - F_2_2*r77 - dJ_0_1*r35*t3 + dJ_0_1*r71 + h4*r61 + r15*t1 - r8*t2;
+    out_dF[2] = F_0_2*t0 + F_1_0*r73 - F_1_1*r74 - F_2_0*r76 + F_2_1*r77 - dJ_0_2*r27*t3 + dJ_0_2*r71 + h4*r60 + r12*t1 - r16*t2;
+    out_dF[3] = -F_0_1*r72 + F_0_2*r73 + F_1_0*t0 + F_2_1*r78 - F_2_2*r79 - dJ_1_0*r20*t3 + h4*r59 - r22*t2 + r28*t1;
+    out_dF[4] = F_0_0*r72 - F_0_2*r74 + F_1_1*t0 - F_2_0*r78 + F_2_2*r80 - dJ_1_1*r14*t3 + h4*r58 + r23*t1 - r36*t2;
+    out_dF[5] = -F_0_0*r73 + F_0_1*r74 + F_1_2*t0 + F_2_0*r79 - F_2_1*r80 - dJ_1_2*r9*t3 + h4*r55 - r30*t2 + r37*t1;
+    out_dF[6] = F_0_1*r75 - F_0_2*r76 - F_1_1*r78 + F_1_2*r79 + F_2_0*t0 - dJ_2_0*r5*t3 + h4*r54 + r25*t1 - r31*t2;
+    out_dF[7] = -F_0_0*r75 + F_0_2*r77 + F_1_0*r78 - F_1_2*r80 + F_2_1*t0 - dJ_2_1*r2*t3 + h4*r53 - r26*t2 + r39*t1;
+    out_dF[8] = F_0_0*r76 - F_0_1*r77 - F_1_0*r79 + F_1_1*r80 + F_2_2*t0 - dJ_2_2*r0*t3 + h4*r52 + r33*t1 - r40*t2;
+    double *restrict out_dparams = out[1];
+    out_dparams[0] = I1*r64 + h1*r67 - r69*(rcbrt_J*rcbrt_J);
+    out_dparams[1] = -3*r57*(J - 1) + 9*r63;
+}
+
+static void neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 9 * e, inputs[1] + 81 * e, };
+        double *out[] = { outputs[0] + 9 * e, outputs[1] + 2 * e, };
+        neo_hookean_d3psi_contract_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_neo_hookean_d3psi_contract(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 9, 81, };
+    static const Py_ssize_t output_sizes[] = { 9, 2, };
+    (void)self;
+    return run_kernel(args, "neo_hookean_d3psi_contract", neo_hookean_d3psi_contract,
+                      2, input_sizes, 2,
+                      2, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1569

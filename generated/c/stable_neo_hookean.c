@@ -749,6 +749,260 @@ static PyObject *py_stable_neo_hookean_dgradient_dparams(PyObject *self, PyObjec
                       1, output_sizes);
 }
 
+// d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+// inputs: F (m, 3, 3), C (m, 9, 9); params: (mu, lam), shared or per element
+// outputs: dF (m, 3, 3), dparams (m, 2); operation count per element: 722
+static inline FEM3D_ELEMENT void stable_neo_hookean_d3psi_contract_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_F = in[0];
+    const double F_0_0 = in_F[0];
+    const double F_0_1 = in_F[1];
+    const double F_0_2 = in_F[2];
+    const double F_1_0 = in_F[3];
+    const double F_1_1 = in_F[4];
+    const double F_1_2 = in_F[5];
+    const double F_2_0 = in_F[6];
+    const double F_2_1 = in_F[7];
+    const double F_2_2 = in_F[8];
+    const double *restrict in_C = in[1];
+    const double C_0_0 = in_C[0];
+    const double C_0_1 = in_C[1];
+    const double C_0_2 = in_C[2];
+    const double C_0_3 = in_C[3];
+    const double C_0_4 = in_C[4];
+    const double C_0_5 = in_C[5];
+    const double C_0_6 = in_C[6];
+    const double C_0_7 = in_C[7];
+    const double C_0_8 = in_C[8];
+    const double C_1_0 = in_C[9];
+    const double C_1_1 = in_C[10];
+    const double C_1_2 = in_C[11];
+    const double C_1_3 = in_C[12];
+    const double C_1_4 = in_C[13];
+    const double C_1_5 = in_C[14];
+    const double C_1_6 = in_C[15];
+    const double C_1_7 = in_C[16];
+    const double C_1_8 = in_C[17];
+    const double C_2_0 = in_C[18];
+    const double C_2_1 = in_C[19];
+    const double C_2_2 = in_C[20];
+    const double C_2_3 = in_C[21];
+    const double C_2_4 = in_C[22];
+    const double C_2_5 = in_C[23];
+    const double C_2_6 = in_C[24];
+    const double C_2_7 = in_C[25];
+    const double C_2_8 = in_C[26];
+    const double C_3_0 = in_C[27];
+    const double C_3_1 = in_C[28];
+    const double C_3_2 = in_C[29];
+    const double C_3_3 = in_C[30];
+    const double C_3_4 = in_C[31];
+    const double C_3_5 = in_C[32];
+    const double C_3_6 = in_C[33];
+    const double C_3_7 = in_C[34];
+    const double C_3_8 = in_C[35];
+    const double C_4_0 = in_C[36];
+    const double C_4_1 = in_C[37];
+    const double C_4_2 = in_C[38];
+    const double C_4_3 = in_C[39];
+    const double C_4_4 = in_C[40];
+    const double C_4_5 = in_C[41];
+    const double C_4_6 = in_C[42];
+    const double C_4_7 = in_C[43];
+    const double C_4_8 = in_C[44];
+    const double C_5_0 = in_C[45];
+    const double C_5_1 = in_C[46];
+    const double C_5_2 = in_C[47];
+    const double C_5_3 = in_C[48];
+    const double C_5_4 = in_C[49];
+    const double C_5_5 = in_C[50];
+    const double C_5_6 = in_C[51];
+    const double C_5_7 = in_C[52];
+    const double C_5_8 = in_C[53];
+    const double C_6_0 = in_C[54];
+    const double C_6_1 = in_C[55];
+    const double C_6_2 = in_C[56];
+    const double C_6_3 = in_C[57];
+    const double C_6_4 = in_C[58];
+    const double C_6_5 = in_C[59];
+    const double C_6_6 = in_C[60];
+    const double C_6_7 = in_C[61];
+    const double C_6_8 = in_C[62];
+    const double C_7_0 = in_C[63];
+    const double C_7_1 = in_C[64];
+    const double C_7_2 = in_C[65];
+    const double C_7_3 = in_C[66];
+    const double C_7_4 = in_C[67];
+    const double C_7_5 = in_C[68];
+    const double C_7_6 = in_C[69];
+    const double C_7_7 = in_C[70];
+    const double C_7_8 = in_C[71];
+    const double C_8_0 = in_C[72];
+    const double C_8_1 = in_C[73];
+    const double C_8_2 = in_C[74];
+    const double C_8_3 = in_C[75];
+    const double C_8_4 = in_C[76];
+    const double C_8_5 = in_C[77];
+    const double C_8_6 = in_C[78];
+    const double C_8_7 = in_C[79];
+    const double C_8_8 = in_C[80];
+    // intermediates (114)
+    const double dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1;
+    const double dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0;
+    const double dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0;
+    const double dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1;
+    const double dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0;
+    const double dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0;
+    const double dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2;
+    const double I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2);
+    const double h0 = I1 + 1;
+    const double h1 = 2*mu/(h0*h0);
+    const double h3 = dJ_0_0*lam;
+    const double h4 = F_0_0*h1;
+    const double h5 = lam*(J - 1) - 3.0/4.0*mu;
+    const double h10 = dJ_0_1*lam;
+    const double h11 = F_0_1*h1;
+    const double h14 = dJ_0_2*lam;
+    const double h15 = F_0_2*h1;
+    const double h16 = dJ_1_0*lam;
+    const double h17 = F_1_0*h1;
+    const double h20 = dJ_1_1*lam;
+    const double h21 = F_1_1*h1;
+    const double h23 = dJ_1_2*lam;
+    const double h24 = F_1_2*h1;
+    const double h25 = dJ_2_0*lam;
+    const double h26 = F_2_0*h1;
+    const double r0 = C_8_8;
+    const double r1 = C_7_8 + C_8_7;
+    const double r2 = C_7_7;
+    const double r3 = C_6_8 + C_8_6;
+    const double r4 = C_6_7 + C_7_6;
+    const double r5 = C_6_6;
+    const double r6 = C_5_8 + C_8_5;
+    const double r7 = C_5_7 + C_7_5;
+    const double r8 = C_5_6 + C_6_5;
+    const double r9 = C_5_5;
+    const double r10 = C_4_8 + C_8_4;
+    const double r11 = C_4_7 + C_7_4;
+    const double r12 = C_4_6 + C_6_4;
+    const double r13 = C_4_5 + C_5_4;
+    const double r14 = C_4_4;
+    const double r15 = C_3_8 + C_8_3;
+    const double r16 = C_3_7 + C_7_3;
+    const double r17 = C_3_6 + C_6_3;
+    const double r18 = C_3_5 + C_5_3;
+    const double r19 = C_3_4 + C_4_3;
+    const double r20 = C_3_3;
+    const double r21 = C_2_8 + C_8_2;
+    const double r22 = C_2_7 + C_7_2;
+    const double r23 = C_2_6 + C_6_2;
+    const double r24 = C_2_5 + C_5_2;
+    const double r25 = C_2_4 + C_4_2;
+    const double r26 = C_2_3 + C_3_2;
+    const double r27 = C_2_2;
+    const double r28 = C_1_8 + C_8_1;
+    const double r29 = C_1_7 + C_7_1;
+    const double r30 = C_1_6 + C_6_1;
+    const double r31 = C_1_5 + C_5_1;
+    const double r32 = C_1_4 + C_4_1;
+    const double r33 = C_1_3 + C_3_1;
+    const double r34 = C_1_2 + C_2_1;
+    const double r35 = C_1_1;
+    const double r36 = C_0_8 + C_8_0;
+    const double r37 = C_0_7 + C_7_0;
+    const double r38 = C_0_6 + C_6_0;
+    const double r39 = C_0_5 + C_5_0;
+    const double r40 = C_0_4 + C_4_0;
+    const double r41 = C_0_3 + C_3_0;
+    const double r42 = C_0_2 + C_2_0;
+    const double r43 = C_0_1 + C_1_0;
+    const double r44 = C_0_0;
+    const double r45 = F_2_1*r4 + F_2_2*r3;
+    const double r46 = dJ_2_1*r4 + dJ_2_2*r3;
+    const double r47 = F_2_0*r8 + F_2_1*r7 + F_2_2*r6;
+    const double r48 = dJ_2_0*r8 + dJ_2_1*r7 + dJ_2_2*r6;
+    const double r49 = r10 - r7;
+    const double r50 = F_1_2*r13 + F_2_0*r12 + F_2_1*r11 + F_2_2*r10;
+    const double r51 = dJ_1_2*r13 + dJ_2_0*r12 + dJ_2_1*r11 + dJ_2_2*r10;
+    const double r52 = -r15 + r8;
+    const double r53 = -r12 + r16;
+    const double r54 = F_1_1*r19 + F_1_2*r18 + F_2_0*r17 + F_2_1*r16 + F_2_2*r15;
+    const double r55 = dJ_1_1*r19 + dJ_1_2*r18 + dJ_2_0*r17 + dJ_2_1*r16 + dJ_2_2*r15;
+    const double r56 = F_1_0*r26 + F_1_1*r25 + F_1_2*r24 + F_2_0*r23 + F_2_1*r22 + F_2_2*r21;
+    const double r57 = dJ_1_0*r26 + dJ_1_1*r25 + dJ_1_2*r24 + dJ_2_0*r23 + dJ_2_1*r22 + dJ_2_2*r21;
+    const double r58 = r22 - r28;
+    const double r59 = -r25 + r31;
+    const double r60 = F_0_2*r34 + F_1_0*r33 + F_1_1*r32 + F_1_2*r31 + F_2_0*r30 + F_2_1*r29 + F_2_2*r28;
+    const double r61 = dJ_0_2*r34 + dJ_1_0*r33 + dJ_1_1*r32 + dJ_1_2*r31 + dJ_2_0*r30 + dJ_2_1*r29 + dJ_2_2*r28;
+    const double r62 = -r23 + r36;
+    const double r63 = r30 - r37;
+    const double r64 = r26 - r39;
+    const double r65 = -r33 + r40;
+    const double r66 = F_0_0*r49 + F_0_1*r52 + F_0_2*r53 + F_1_0*r58 + F_1_1*r62 + F_1_2*r63 + F_2_0*r59 + F_2_1*r64 + F_2_2*r65;
+    const double r67 = F_0_1*r43 + F_0_2*r42 + F_1_0*r41 + F_1_1*r40 + F_1_2*r39 + F_2_0*r38 + F_2_1*r37 + F_2_2*r36;
+    const double r68 = dJ_0_1*r43 + dJ_0_2*r42 + dJ_1_0*r41 + dJ_1_1*r40 + dJ_1_2*r39 + dJ_2_0*r38 + dJ_2_1*r37 + dJ_2_2*r36;
+    const double r69 = r0 + r14 + r2 + r20 + r27 + r35 + r44 + r5 + r9;
+    const double r70 = (F_0_0*F_0_0)*r44 + F_0_0*r67 + (F_0_1*F_0_1)*r35 + F_0_1*r60 + (F_0_2*F_0_2)*r27 + F_0_2*r56 + (F_1_0*F_1_0)*r20 + F_1_0*r54 + (F_1_1*F_1_1)*r14 + F_1_1*r50 + (F_1_2*F_1_2)*r9 + F_1_2*r47 + (F_2_0*F_2_0)*r5 + F_2_0*r45 + (F_2_1*F_2_1)*r2 + F_2_1*F_2_2*r1 + (F_2_2*F_2_2)*r0;
+    const double r71 = mu*r69/(h0*h0) - 4*mu*r70/(h0*h0*h0);
+    const double r72 = r71;
+    const double r73 = lam*r66;
+    const double r74 = dJ_2_1*lam*r1 + 2*dJ_2_2*lam*r0 + h10*r28 + h14*r21 + h16*r15 + h20*r10 + h23*r6 + h25*r3 + h3*r36;
+    const double r75 = 2*dJ_2_1*lam*r2 + dJ_2_2*lam*r1 + h10*r29 + h14*r22 + h16*r16 + h20*r11 + h23*r7 + h25*r4 + h3*r37;
+    const double r76 = 2*dJ_2_0*lam*r5 + h10*r30 + h14*r23 + h16*r17 + h20*r12 + h23*r8 + h3*r38 + lam*r46;
+    const double r77 = 2*dJ_1_2*lam*r9 + h10*r31 + h14*r24 + h16*r18 + h20*r13 + h3*r39 + lam*r48;
+    const double r78 = 2*dJ_1_1*lam*r14 + h10*r32 + h14*r25 + h16*r19 + h3*r40 + lam*r51;
+    const double r79 = 2*dJ_1_0*lam*r20 + h10*r33 + h14*r26 + h3*r41 + lam*r55;
+    const double r80 = F_0_2*r73 + 2*dJ_0_2*lam*r27 + h10*r34 + h3*r42 + lam*r57;
+    const double r81 = F_0_1*r73 + 2*dJ_0_1*lam*r35 + h3*r43 + lam*r61;
+    const double r82 = F_0_0*r73 + 2*dJ_0_0*lam*r44 + lam*r68;
+    const double t0 = 2*r72;
+    const double t1 = 2*h1;
+    const double t2 = h1*r1;
+    // outputs
+    double *restrict out_dF = out[0];
+    out_dF[0] = F_0_0*r44*t1 + F_0_0*t0 + F_1_1*r74 - F_1_2*r75 - F_2_1*r77 + F_2_2*r78 + dJ_0_0*r73 + h1*r67 + h5*r49;
+    out_dF[1] = F_0_1*r35*t1 + F_0_1*t0 - F_1_0*r74 + F_1_2*r76 + F_2_0*r77 - F_2_2*r79 + dJ_0_1*r73 + h1*r60 + h4*r43 + h5*r52;
+    out_dF[2] = F_0_2*r27*t1 + F_0_2*t0 + F_1_0*r75 - F_1_1*r76 - F_2_0*r78 + F_2_1*r79 + dJ_0_2*r73 + h1*r56 + h11*r34 + h4*r42 + h5*r53;
+    out_dF[3] = -F_0_1*r74 + F_0_2*r75 + F_1_0*r20*t1 + F_1_0*t0 + F_2_1*r80 - F_2_2*r81 + h1*r54 + h11*r33 + h15*r26 + h4*r41 + h5*r58;
+    out_dF[4] = F_0_0*r74 - F_0_2*r76 + F_1_1*r14*t1 + F_1_1*t0 - F_2_0*r80 + F_2_2*r82 + h1*r50 + h11*r32 + h15*r25 + h17*r19 + h4*r40 + h5*r62;
+    out_dF[5] = -F_0_0*r75 + F_0_1*r76 + F_1_2*r9*t1 + F_1_2*t0 + F_2_0*r81 - F_2_1*r82 + h1*r47 + h11*r31 + h15*r24 + h17*r18 + h21*r13 + h4*r39 + h5*r63;
+    out_dF[6] = F_0_1*r77 - F_0_2*r78 - F_1_1*r80 + F_1_2*r81 + F_2_0*r5*t1 + F_2_0*t0 + h1*r45 + h11*r30 + h15*r23 + h17*r17 + h21*r12 + h24*r8 + h4*r38 + h5*r59;
+    out_dF[7] = -F_0_0*r77 + F_0_2*r79 + F_1_0*r80 - F_1_2*r82 + F_2_1*r2*t1 + F_2_1*t0 + F_2_2*t2 + h11*r29 + h15*r22 + h17*r16 + h21*r11 + h24*r7 + h26*r4 + h4*r37 + h5*r64;
+    out_dF[8] = F_0_0*r78 - F_0_1*r79 - F_1_0*r81 + F_1_1*r82 + F_2_1*t2 + F_2_2*r0*t1 + F_2_2*t0 + h11*r28 + h15*r21 + h17*r15 + h21*r10 + h24*r6 + h26*r3 + h4*r36 + h5*r65;
+    double *restrict out_dparams = out[1];
+    out_dparams[0] = -3.0/4.0*r66 + r69*(1 - 1/h0) + 2*r70/(h0*h0);
+    out_dparams[1] = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r68 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r61 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r57 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r55 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r51 + (dJ_1_2*dJ_1_2)*r9 + dJ_1_2*r48 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*r46 + (dJ_2_1*dJ_2_1)*r2 + dJ_2_1*dJ_2_2*r1 + (dJ_2_2*dJ_2_2)*r0 + r66*(J - 1);
+}
+
+static void stable_neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 9 * e, inputs[1] + 81 * e, };
+        double *out[] = { outputs[0] + 9 * e, outputs[1] + 2 * e, };
+        stable_neo_hookean_d3psi_contract_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_stable_neo_hookean_d3psi_contract(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 9, 81, };
+    static const Py_ssize_t output_sizes[] = { 9, 2, };
+    (void)self;
+    return run_kernel(args, "stable_neo_hookean_d3psi_contract", stable_neo_hookean_d3psi_contract,
+                      2, input_sizes, 2,
+                      2, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1291

@@ -738,6 +738,286 @@ static PyObject *py_stvk_dgradient_dparams(PyObject *self, PyObject *args)
                       1, output_sizes);
 }
 
+// d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+// inputs: F (m, 3, 3), C (m, 9, 9); params: (mu, lam), shared or per element
+// outputs: dF (m, 3, 3), dparams (m, 2); operation count per element: 793
+static inline FEM3D_ELEMENT void stvk_d3psi_contract_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_F = in[0];
+    const double F_0_0 = in_F[0];
+    const double F_0_1 = in_F[1];
+    const double F_0_2 = in_F[2];
+    const double F_1_0 = in_F[3];
+    const double F_1_1 = in_F[4];
+    const double F_1_2 = in_F[5];
+    const double F_2_0 = in_F[6];
+    const double F_2_1 = in_F[7];
+    const double F_2_2 = in_F[8];
+    const double *restrict in_C = in[1];
+    const double C_0_0 = in_C[0];
+    const double C_0_1 = in_C[1];
+    const double C_0_2 = in_C[2];
+    const double C_0_3 = in_C[3];
+    const double C_0_4 = in_C[4];
+    const double C_0_5 = in_C[5];
+    const double C_0_6 = in_C[6];
+    const double C_0_7 = in_C[7];
+    const double C_0_8 = in_C[8];
+    const double C_1_0 = in_C[9];
+    const double C_1_1 = in_C[10];
+    const double C_1_2 = in_C[11];
+    const double C_1_3 = in_C[12];
+    const double C_1_4 = in_C[13];
+    const double C_1_5 = in_C[14];
+    const double C_1_6 = in_C[15];
+    const double C_1_7 = in_C[16];
+    const double C_1_8 = in_C[17];
+    const double C_2_0 = in_C[18];
+    const double C_2_1 = in_C[19];
+    const double C_2_2 = in_C[20];
+    const double C_2_3 = in_C[21];
+    const double C_2_4 = in_C[22];
+    const double C_2_5 = in_C[23];
+    const double C_2_6 = in_C[24];
+    const double C_2_7 = in_C[25];
+    const double C_2_8 = in_C[26];
+    const double C_3_0 = in_C[27];
+    const double C_3_1 = in_C[28];
+    const double C_3_2 = in_C[29];
+    const double C_3_3 = in_C[30];
+    const double C_3_4 = in_C[31];
+    const double C_3_5 = in_C[32];
+    const double C_3_6 = in_C[33];
+    const double C_3_7 = in_C[34];
+    const double C_3_8 = in_C[35];
+    const double C_4_0 = in_C[36];
+    const double C_4_1 = in_C[37];
+    const double C_4_2 = in_C[38];
+    const double C_4_3 = in_C[39];
+    const double C_4_4 = in_C[40];
+    const double C_4_5 = in_C[41];
+    const double C_4_6 = in_C[42];
+    const double C_4_7 = in_C[43];
+    const double C_4_8 = in_C[44];
+    const double C_5_0 = in_C[45];
+    const double C_5_1 = in_C[46];
+    const double C_5_2 = in_C[47];
+    const double C_5_3 = in_C[48];
+    const double C_5_4 = in_C[49];
+    const double C_5_5 = in_C[50];
+    const double C_5_6 = in_C[51];
+    const double C_5_7 = in_C[52];
+    const double C_5_8 = in_C[53];
+    const double C_6_0 = in_C[54];
+    const double C_6_1 = in_C[55];
+    const double C_6_2 = in_C[56];
+    const double C_6_3 = in_C[57];
+    const double C_6_4 = in_C[58];
+    const double C_6_5 = in_C[59];
+    const double C_6_6 = in_C[60];
+    const double C_6_7 = in_C[61];
+    const double C_6_8 = in_C[62];
+    const double C_7_0 = in_C[63];
+    const double C_7_1 = in_C[64];
+    const double C_7_2 = in_C[65];
+    const double C_7_3 = in_C[66];
+    const double C_7_4 = in_C[67];
+    const double C_7_5 = in_C[68];
+    const double C_7_6 = in_C[69];
+    const double C_7_7 = in_C[70];
+    const double C_7_8 = in_C[71];
+    const double C_8_0 = in_C[72];
+    const double C_8_1 = in_C[73];
+    const double C_8_2 = in_C[74];
+    const double C_8_3 = in_C[75];
+    const double C_8_4 = in_C[76];
+    const double C_8_5 = in_C[77];
+    const double C_8_6 = in_C[78];
+    const double C_8_7 = in_C[79];
+    const double C_8_8 = in_C[80];
+    // intermediates (140)
+    const double h0 = (F_0_0*F_0_0);
+    const double h1 = (F_0_1*F_0_1);
+    const double h2 = (F_1_0*F_1_0);
+    const double h3 = h1 + h2;
+    const double h4 = (F_2_0*F_2_0);
+    const double h5 = (F_0_2*F_0_2);
+    const double h6 = h5 - 1;
+    const double h7 = h4 + h6;
+    const double h8 = (F_1_2*F_1_2);
+    const double h9 = (F_2_2*F_2_2);
+    const double h10 = (F_2_1*F_2_1);
+    const double h11 = (F_1_1*F_1_1);
+    const double h12 = h0 + h11;
+    const double h13 = h10 + h12;
+    const double h15 = F_0_0*F_0_1;
+    const double h16 = F_1_0*F_1_1;
+    const double h17 = F_2_0*F_2_1;
+    const double h18 = F_0_0*F_0_2;
+    const double h19 = F_1_0*F_1_2;
+    const double h20 = F_2_0*F_2_2;
+    const double h21 = F_0_0*F_1_0;
+    const double h22 = F_0_1*F_1_1;
+    const double h23 = F_0_2*F_1_2;
+    const double h24 = F_0_0*lam;
+    const double h25 = F_1_0*mu;
+    const double h26 = F_0_0*F_2_0;
+    const double h27 = F_0_1*F_2_1;
+    const double h28 = F_0_2*F_2_2;
+    const double h29 = F_2_0*mu;
+    const double h30 = F_0_1*F_0_2;
+    const double h31 = F_1_1*F_1_2;
+    const double h32 = F_2_1*F_2_2;
+    const double h33 = F_1_1*mu;
+    const double h34 = F_0_1*lam;
+    const double h35 = F_2_1*mu;
+    const double h36 = h8 - 1;
+    const double h37 = h0 + h9;
+    const double h38 = F_1_2*mu;
+    const double h39 = F_0_2*lam;
+    const double h40 = F_2_2*mu;
+    const double h41 = F_1_0*F_2_0;
+    const double h42 = F_1_1*F_2_1;
+    const double h43 = F_1_2*F_2_2;
+    const double h44 = F_1_0*lam;
+    const double h45 = F_1_1*lam;
+    const double h46 = h11 + h9;
+    const double h47 = F_1_2*lam;
+    const double r0 = C_8_8;
+    const double r1 = C_7_8 + C_8_7;
+    const double r2 = C_7_7;
+    const double r3 = C_6_8 + C_8_6;
+    const double r4 = C_6_7 + C_7_6;
+    const double r5 = C_6_6;
+    const double r6 = C_5_8 + C_8_5;
+    const double r7 = C_5_7 + C_7_5;
+    const double r8 = C_5_6 + C_6_5;
+    const double r9 = C_5_5;
+    const double r10 = C_4_8 + C_8_4;
+    const double r11 = C_4_7 + C_7_4;
+    const double r12 = C_4_6 + C_6_4;
+    const double r13 = C_4_5 + C_5_4;
+    const double r14 = C_4_4;
+    const double r15 = C_3_8 + C_8_3;
+    const double r16 = C_3_7 + C_7_3;
+    const double r17 = C_3_6 + C_6_3;
+    const double r18 = C_3_5 + C_5_3;
+    const double r19 = C_3_4 + C_4_3;
+    const double r20 = C_3_3;
+    const double r21 = C_2_8 + C_8_2;
+    const double r22 = C_2_7 + C_7_2;
+    const double r23 = C_2_6 + C_6_2;
+    const double r24 = C_2_5 + C_5_2;
+    const double r25 = C_2_4 + C_4_2;
+    const double r26 = C_2_3 + C_3_2;
+    const double r27 = C_2_2;
+    const double r28 = C_1_8 + C_8_1;
+    const double r29 = C_1_7 + C_7_1;
+    const double r30 = C_1_6 + C_6_1;
+    const double r31 = C_1_5 + C_5_1;
+    const double r32 = C_1_4 + C_4_1;
+    const double r33 = C_1_3 + C_3_1;
+    const double r34 = C_1_2 + C_2_1;
+    const double r35 = C_1_1;
+    const double r36 = C_0_8 + C_8_0;
+    const double r37 = C_0_7 + C_7_0;
+    const double r38 = C_0_6 + C_6_0;
+    const double r39 = C_0_5 + C_5_0;
+    const double r40 = C_0_4 + C_4_0;
+    const double r41 = C_0_3 + C_3_0;
+    const double r42 = C_0_2 + C_2_0;
+    const double r43 = C_0_1 + C_1_0;
+    const double r44 = C_0_0;
+    const double r45 = F_2_0*r8 + F_2_1*r7;
+    const double r46 = mu*r2 + mu*r9;
+    const double r47 = F_2_0*r12 + F_2_2*r10;
+    const double r48 = F_2_1*r16 + F_2_2*r15;
+    const double r49 = mu*r11 + mu*r17 + r6*(lam + 2*mu);
+    const double r50 = mu*r17 + mu*r6 + r11*(lam + 2*mu);
+    const double r51 = mu*r11 + mu*r6 + r17*(lam + 2*mu);
+    const double r52 = F_0_0*r23 + F_0_1*r22;
+    const double r53 = F_1_0*r26 + F_1_1*r25 + F_2_0*r23 + F_2_1*r22;
+    const double r54 = F_0_0*r26 + F_0_1*r25;
+    const double r55 = mu*r27 + mu*r5;
+    const double r56 = mu*r14 + mu*r20 + mu*r27;
+    const double r57 = F_0_0*r30 + F_0_2*r28 + F_1_2*r10;
+    const double r58 = F_1_0*r33 + F_1_2*r31 + F_2_0*r30 + F_2_2*r28;
+    const double r59 = F_0_0*r33 + F_0_2*r31 + F_2_2*r7;
+    const double r60 = mu*r13 + mu*r34 + r1*(lam + 2*mu);
+    const double r61 = mu*r1 + mu*r34 + r13*(lam + 2*mu);
+    const double r62 = mu*r1 + mu*r13 + r34*(lam + 2*mu);
+    const double r63 = F_0_1*r37 + F_0_2*r36 + F_1_1*r16 + F_1_2*r15;
+    const double r64 = mu*r29 + mu*r38 + r21*(lam + 2*mu);
+    const double r65 = mu*r21 + mu*r38 + r29*(lam + 2*mu);
+    const double r66 = mu*r21 + mu*r29 + r38*(lam + 2*mu);
+    const double r67 = F_0_1*r40 + F_0_2*r39 + F_2_1*r12 + F_2_2*r8;
+    const double r68 = F_1_1*r40 + F_1_2*r39 + F_2_1*r37 + F_2_2*r36;
+    const double r69 = mu*r32 + mu*r41 + r24*(lam + 2*mu);
+    const double r70 = mu*r24 + mu*r41 + r32*(lam + 2*mu);
+    const double r71 = mu*r24 + mu*r32 + r41*(lam + 2*mu);
+    const double r72 = mu*r18 + mu*r42 + r3*(lam + 2*mu);
+    const double r73 = mu*r3 + mu*r42 + r18*(lam + 2*mu);
+    const double r74 = mu*r18 + mu*r3 + r42*(lam + 2*mu);
+    const double r75 = mu*r19 + mu*r43 + r4*(lam + 2*mu);
+    const double r76 = mu*r4 + mu*r43 + r19*(lam + 2*mu);
+    const double r77 = mu*r19 + mu*r4 + r43*(lam + 2*mu);
+    const double r78 = r0 + r14 + r2 + r20 + r27 + r35 + r44 + r5 + r9;
+    const double r79 = (1.0/2.0)*lam*r78 + mu*r35;
+    const double r80 = mu*r20 + r79;
+    const double r81 = r14*(lam + 3*mu) + r46 + r80;
+    const double r82 = mu*r0 + mu*r14 + mu*r5 + r2*(lam + 3*mu) + r79;
+    const double r83 = (1.0/2.0)*lam*r78 + r0*(lam + 3*mu) + r46 + r55;
+    const double r84 = (1.0/2.0)*lam*r78 + mu*r0 + r56 + r9*(lam + 3*mu);
+    const double r85 = mu*r0 + mu*r44;
+    const double r86 = mu*r35 + mu*r9 + r85;
+    const double r87 = (1.0/2.0)*lam*r78 + r27*(lam + 3*mu) + r86;
+    const double r88 = (1.0/2.0)*lam*r78 + mu*r2 + mu*r20 + r5*(lam + 3*mu) + r85;
+    const double r89 = (1.0/2.0)*lam*r78 + mu*r14 + mu*r44;
+    const double r90 = mu*r5 + mu*r9 + r20*(lam + 3*mu) + r89;
+    const double r91 = mu*r2 + mu*r27 + r35*(lam + 3*mu) + r89;
+    const double r92 = r44*(lam + 3*mu) + r55 + r80;
+    // outputs
+    double *restrict out_dF = out[0];
+    out_dF[0] = 2*F_0_0*r92 + F_0_1*r77 + F_0_2*r74 + F_1_0*r71 + F_2_0*r66 + h33*r33 + h35*r30 + h38*r26 + h40*r23 + lam*r68;
+    out_dF[1] = F_0_0*r77 + 2*F_0_1*r91 + F_0_2*r62 + F_1_1*r70 + F_2_1*r65 + h25*r40 + h29*r37 + h38*r25 + h40*r22 + lam*r58;
+    out_dF[2] = F_0_0*r74 + F_0_1*r62 + 2*F_0_2*r87 + F_1_2*r69 + F_2_2*r64 + h25*r39 + h29*r36 + h33*r31 + h35*r28 + lam*r53;
+    out_dF[3] = F_0_0*r71 + 2*F_1_0*r90 + F_1_1*r76 + F_1_2*r73 + F_2_0*r51 + h34*r33 + h39*r26 + lam*r48 + mu*r67;
+    out_dF[4] = F_0_1*r70 + F_1_0*r76 + 2*F_1_1*r81 + F_1_2*r61 + F_2_1*r50 + h24*r40 + h29*r16 + h39*r25 + lam*r47 + mu*r59;
+    out_dF[5] = F_0_2*r69 + F_1_0*r73 + F_1_1*r61 + 2*F_1_2*r84 + F_2_2*r49 + h24*r39 + h29*r15 + h34*r31 + h35*r10 + lam*r45 + mu*r54;
+    out_dF[6] = F_0_0*r66 + F_1_0*r51 + 2*F_2_0*r88 + F_2_1*r75 + F_2_2*r72 + h34*r30 + h39*r23 + h45*r12 + h47*r8 + mu*r63;
+    out_dF[7] = F_0_1*r65 + F_1_1*r50 + F_2_0*r75 + 2*F_2_1*r82 + F_2_2*r60 + h24*r37 + h25*r12 + h39*r22 + h44*r16 + h47*r7 + mu*r57;
+    out_dF[8] = F_0_2*r64 + F_1_2*r49 + F_2_0*r72 + F_2_1*r60 + 2*F_2_2*r83 + h24*r36 + h25*r8 + h33*r7 + h34*r28 + h44*r15 + h45*r10 + mu*r52;
+    double *restrict out_dparams = out[1];
+    out_dparams[0] = F_1_0*r67 + F_1_1*r59 + F_1_2*r54 + F_2_0*r63 + F_2_1*r57 + F_2_2*r52 + r0*(h10 + h7 + h8 + 3*h9) + r1*(h30 + h31 + 2*h32) + r11*(h41 + 2*h42 + h43) + r13*(h30 + 2*h31 + h32) + r14*(h10 + 3*h11 + h3 + h36) + r17*(2*h41 + h42 + h43) + r18*(h18 + 2*h19 + h20) + r19*(h15 + 2*h16 + h17) + r2*(h1 + 3*h10 + h4 + h46 - 1) + r20*(h12 + 3*h2 + h36 + h4) + r21*(h26 + h27 + 2*h28) + r24*(h21 + h22 + 2*h23) + r27*(h1 + h36 + h37 + 3*h5) + r29*(h26 + 2*h27 + h28) + r3*(h18 + h19 + 2*h20) + r32*(h21 + 2*h22 + h23) + r34*(2*h30 + h31 + h32) + r35*(3*h1 + h13 + h6) + r38*(2*h26 + h27 + h28) + r4*(h15 + h16 + 2*h17) + r41*(2*h21 + h22 + h23) + r42*(2*h18 + h19 + h20) + r43*(2*h15 + h16 + h17) + r44*(3*h0 + h3 + h7) + r5*(h10 + h2 + h37 + 3*h4 - 1) + r6*(h41 + h42 + 2*h43) + r9*(h2 + h46 + h6 + 3*h8);
+    out_dparams[1] = F_0_0*r68 + F_0_1*r58 + F_0_2*r53 + F_1_0*r48 + F_1_1*r47 + F_1_2*r45 + h0*r44 + h1*r35 + h10*r2 + h11*r14 + h15*r43 + h16*r19 + h17*r4 + h18*r42 + h19*r18 + h2*r20 + h20*r3 + h21*r41 + h22*r32 + h23*r24 + h26*r38 + h27*r29 + h28*r21 + h30*r34 + h31*r13 + h32*r1 + h4*r5 + h41*r17 + h42*r11 + h43*r6 + h5*r27 + h8*r9 + h9*r0 + (1.0/2.0)*r78*(h13 + h3 + h4 + h5 + h8 + h9 - 3);
+}
+
+static void stvk_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 9 * e, inputs[1] + 81 * e, };
+        double *out[] = { outputs[0] + 9 * e, outputs[1] + 2 * e, };
+        stvk_d3psi_contract_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_stvk_d3psi_contract(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 9, 81, };
+    static const Py_ssize_t output_sizes[] = { 9, 2, };
+    (void)self;
+    return run_kernel(args, "stvk_d3psi_contract", stvk_d3psi_contract,
+                      2, input_sizes, 2,
+                      2, output_sizes);
+}
+
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315

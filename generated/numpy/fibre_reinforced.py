@@ -84,6 +84,12 @@ SIGNATURES = {
         "outputs": (("dgradient_dparams", (12, 4)), ),
         "op_count": 550,
     },
+    "d3psi_contract": {
+        "inputs": (("F", (3, 3)), ("C", (9, 9)), ("a", (3,)), ),
+        "params": ("mu", "lam", "k1", "k2", ),
+        "outputs": (("dF", (3, 3)), ("dparams", (4,)), ),
+        "op_count": 847,
+    },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ("a", (3,)), ),
         "params": ("mu", "lam", "k1", "k2", ),
@@ -860,6 +866,307 @@ def dgradient_dparams(x_e, dphi_dX, vol, a, params):
     _out_dgradient_dparams[46] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2)
     _out_dgradient_dparams[47] = vol*(dP_2_0_3*dphi_3_0 + dP_2_1_3*dphi_3_1 + dP_2_2_3*dphi_3_2)
     return _finish(_out_dgradient_dparams, m, (12, 4))
+
+
+def d3psi_contract(F, C, a, params):
+    """d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    C : (m, 9, 9) float64
+        9x9 weights contracted with dP/dF.
+    a : (m, 3) float64
+        per-element material input a.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam, k1, k2), shared or per element.
+
+    Returns
+    -------
+    dF : (m, 3, 3) float64
+    dparams : (m, 4) float64
+
+    Operation count per element: 847.
+    """
+    m, (_in_F, _in_C, _in_a, ) = _elements((F, "F", (3, 3)), (C, "C", (9, 9)), (a, "a", (3,)), )
+    mu, lam, k1, k2, = _params(params, ('mu', 'lam', 'k1', 'k2'), m)
+    # inputs
+    F_0_0 = _in_F[0]
+    F_0_1 = _in_F[1]
+    F_0_2 = _in_F[2]
+    F_1_0 = _in_F[3]
+    F_1_1 = _in_F[4]
+    F_1_2 = _in_F[5]
+    F_2_0 = _in_F[6]
+    F_2_1 = _in_F[7]
+    F_2_2 = _in_F[8]
+    C_0_0 = _in_C[0]
+    C_0_1 = _in_C[1]
+    C_0_2 = _in_C[2]
+    C_0_3 = _in_C[3]
+    C_0_4 = _in_C[4]
+    C_0_5 = _in_C[5]
+    C_0_6 = _in_C[6]
+    C_0_7 = _in_C[7]
+    C_0_8 = _in_C[8]
+    C_1_0 = _in_C[9]
+    C_1_1 = _in_C[10]
+    C_1_2 = _in_C[11]
+    C_1_3 = _in_C[12]
+    C_1_4 = _in_C[13]
+    C_1_5 = _in_C[14]
+    C_1_6 = _in_C[15]
+    C_1_7 = _in_C[16]
+    C_1_8 = _in_C[17]
+    C_2_0 = _in_C[18]
+    C_2_1 = _in_C[19]
+    C_2_2 = _in_C[20]
+    C_2_3 = _in_C[21]
+    C_2_4 = _in_C[22]
+    C_2_5 = _in_C[23]
+    C_2_6 = _in_C[24]
+    C_2_7 = _in_C[25]
+    C_2_8 = _in_C[26]
+    C_3_0 = _in_C[27]
+    C_3_1 = _in_C[28]
+    C_3_2 = _in_C[29]
+    C_3_3 = _in_C[30]
+    C_3_4 = _in_C[31]
+    C_3_5 = _in_C[32]
+    C_3_6 = _in_C[33]
+    C_3_7 = _in_C[34]
+    C_3_8 = _in_C[35]
+    C_4_0 = _in_C[36]
+    C_4_1 = _in_C[37]
+    C_4_2 = _in_C[38]
+    C_4_3 = _in_C[39]
+    C_4_4 = _in_C[40]
+    C_4_5 = _in_C[41]
+    C_4_6 = _in_C[42]
+    C_4_7 = _in_C[43]
+    C_4_8 = _in_C[44]
+    C_5_0 = _in_C[45]
+    C_5_1 = _in_C[46]
+    C_5_2 = _in_C[47]
+    C_5_3 = _in_C[48]
+    C_5_4 = _in_C[49]
+    C_5_5 = _in_C[50]
+    C_5_6 = _in_C[51]
+    C_5_7 = _in_C[52]
+    C_5_8 = _in_C[53]
+    C_6_0 = _in_C[54]
+    C_6_1 = _in_C[55]
+    C_6_2 = _in_C[56]
+    C_6_3 = _in_C[57]
+    C_6_4 = _in_C[58]
+    C_6_5 = _in_C[59]
+    C_6_6 = _in_C[60]
+    C_6_7 = _in_C[61]
+    C_6_8 = _in_C[62]
+    C_7_0 = _in_C[63]
+    C_7_1 = _in_C[64]
+    C_7_2 = _in_C[65]
+    C_7_3 = _in_C[66]
+    C_7_4 = _in_C[67]
+    C_7_5 = _in_C[68]
+    C_7_6 = _in_C[69]
+    C_7_7 = _in_C[70]
+    C_7_8 = _in_C[71]
+    C_8_0 = _in_C[72]
+    C_8_1 = _in_C[73]
+    C_8_2 = _in_C[74]
+    C_8_3 = _in_C[75]
+    C_8_4 = _in_C[76]
+    C_8_5 = _in_C[77]
+    C_8_6 = _in_C[78]
+    C_8_7 = _in_C[79]
+    C_8_8 = _in_C[80]
+    a_0 = _in_a[0]
+    a_1 = _in_a[1]
+    a_2 = _in_a[2]
+    # intermediates (164)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    hg3 = F_0_0*a_0 + F_0_1*a_1 + F_0_2*a_2
+    hg4 = 2*hg3
+    hg5 = F_1_0*a_0 + F_1_1*a_1 + F_1_2*a_2
+    hg6 = 2*hg5
+    hg7 = F_2_0*a_0 + F_2_1*a_1 + F_2_2*a_2
+    hg8 = 2*hg7
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    dI4_a_0_0 = a_0*hg4
+    dI4_a_0_1 = a_1*hg4
+    dI4_a_0_2 = a_2*hg4
+    dI4_a_1_0 = a_0*hg6
+    dI4_a_1_1 = a_1*hg6
+    dI4_a_1_2 = a_2*hg6
+    dI4_a_2_0 = a_0*hg8
+    dI4_a_2_1 = a_1*hg8
+    dI4_a_2_2 = a_2*hg8
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    I4_a = (hg3*hg3) + (hg5*hg5) + (hg7*hg7)
+    h0 = lam*numpy.log(J)
+    h1 = (-h0 + lam + mu)/(J*J)
+    h2 = (a_0*a_0)
+    h3 = (a_1*a_1)
+    h4 = (a_2*a_2)
+    h5 = h2 + h3 + h4
+    h6 = (1.0/(h5))
+    h7 = I4_a*h6 - 1
+    h8 = (h7*h7)*k2
+    h9 = numpy.exp(h8)
+    h10 = h9 - 1
+    h11 = k1*(h10 + 2*h8*h9)/(h5*h5)
+    h14 = dJ_0_0*h1
+    h17 = dI4_a_0_0*h11
+    h19 = (h0 - mu)/J
+    h25 = dJ_0_1*h1
+    h27 = dI4_a_0_1*h11
+    h31 = dJ_0_2*h1
+    h32 = dI4_a_0_2*h11
+    h33 = dJ_1_0*h1
+    h34 = dI4_a_1_0*h11
+    h37 = dJ_1_1*h1
+    h38 = dI4_a_1_1*h11
+    h40 = dJ_1_2*h1
+    h41 = dI4_a_1_2*h11
+    h42 = dJ_2_0*h1
+    h43 = dI4_a_2_0*h11
+    r0 = C_8_8
+    r1 = C_7_8 + C_8_7
+    r2 = C_7_7
+    r3 = C_6_8 + C_8_6
+    r4 = C_6_7 + C_7_6
+    r5 = C_6_6
+    r6 = C_5_8 + C_8_5
+    r7 = C_5_7 + C_7_5
+    r8 = C_5_6 + C_6_5
+    r9 = C_5_5
+    r10 = C_4_8 + C_8_4
+    r11 = C_4_7 + C_7_4
+    r12 = C_4_6 + C_6_4
+    r13 = C_4_5 + C_5_4
+    r14 = C_4_4
+    r15 = C_3_8 + C_8_3
+    r16 = C_3_7 + C_7_3
+    r17 = C_3_6 + C_6_3
+    r18 = C_3_5 + C_5_3
+    r19 = C_3_4 + C_4_3
+    r20 = C_3_3
+    r21 = C_2_8 + C_8_2
+    r22 = C_2_7 + C_7_2
+    r23 = C_2_6 + C_6_2
+    r24 = C_2_5 + C_5_2
+    r25 = C_2_4 + C_4_2
+    r26 = C_2_3 + C_3_2
+    r27 = C_2_2
+    r28 = C_1_8 + C_8_1
+    r29 = C_1_7 + C_7_1
+    r30 = C_1_6 + C_6_1
+    r31 = C_1_5 + C_5_1
+    r32 = C_1_4 + C_4_1
+    r33 = C_1_3 + C_3_1
+    r34 = C_1_2 + C_2_1
+    r35 = C_1_1
+    r36 = C_0_8 + C_8_0
+    r37 = C_0_7 + C_7_0
+    r38 = C_0_6 + C_6_0
+    r39 = C_0_5 + C_5_0
+    r40 = C_0_4 + C_4_0
+    r41 = C_0_3 + C_3_0
+    r42 = C_0_2 + C_2_0
+    r43 = C_0_1 + C_1_0
+    r44 = C_0_0
+    r45 = dI4_a_2_1*r4 + dI4_a_2_2*r3
+    r46 = dJ_2_1*r4 + dJ_2_2*r3
+    r47 = dI4_a_2_0*r8 + dI4_a_2_1*r7 + dI4_a_2_2*r6
+    r48 = dJ_2_0*r8 + dJ_2_1*r7 + dJ_2_2*r6
+    r49 = r10 - r7
+    r50 = dI4_a_1_2*r13 + dI4_a_2_0*r12 + dI4_a_2_1*r11 + dI4_a_2_2*r10
+    r51 = dJ_1_2*r13 + dJ_2_0*r12 + dJ_2_1*r11 + dJ_2_2*r10
+    r52 = -r15 + r8
+    r53 = -r12 + r16
+    r54 = dI4_a_1_1*r19 + dI4_a_1_2*r18 + dI4_a_2_0*r17 + dI4_a_2_1*r16 + dI4_a_2_2*r15
+    r55 = dJ_1_1*r19 + dJ_1_2*r18 + dJ_2_0*r17 + dJ_2_1*r16 + dJ_2_2*r15
+    r56 = dI4_a_1_0*r26 + dI4_a_1_1*r25 + dI4_a_1_2*r24 + dI4_a_2_0*r23 + dI4_a_2_1*r22 + dI4_a_2_2*r21
+    r57 = dJ_1_0*r26 + dJ_1_1*r25 + dJ_1_2*r24 + dJ_2_0*r23 + dJ_2_1*r22 + dJ_2_2*r21
+    r58 = r0 + r27 + r9
+    r59 = r22 - r28
+    r60 = -r25 + r31
+    r61 = dI4_a_0_2*r34 + dI4_a_1_0*r33 + dI4_a_1_1*r32 + dI4_a_1_2*r31 + dI4_a_2_0*r30 + dI4_a_2_1*r29 + dI4_a_2_2*r28
+    r62 = r1 + r13 + r34
+    r63 = dJ_0_2*r34 + dJ_1_0*r33 + dJ_1_1*r32 + dJ_1_2*r31 + dJ_2_0*r30 + dJ_2_1*r29 + dJ_2_2*r28
+    r64 = r14 + r2 + r35
+    r65 = -r23 + r36
+    r66 = r30 - r37
+    r67 = r26 - r39
+    r68 = -r33 + r40
+    r69 = F_0_0*r49 + F_0_1*r52 + F_0_2*r53 + F_1_0*r59 + F_1_1*r65 + F_1_2*r66 + F_2_0*r60 + F_2_1*r67 + F_2_2*r68
+    r70 = r18 + r3 + r42
+    r71 = dI4_a_0_1*r43 + dI4_a_0_2*r42 + dI4_a_1_0*r41 + dI4_a_1_1*r40 + dI4_a_1_2*r39 + dI4_a_2_0*r38 + dI4_a_2_1*r37 + dI4_a_2_2*r36
+    r72 = r19 + r4 + r43
+    r73 = a_1*r72 + a_2*r70
+    r74 = dJ_0_1*r43 + dJ_0_2*r42 + dJ_1_0*r41 + dJ_1_1*r40 + dJ_1_2*r39 + dJ_2_0*r38 + dJ_2_1*r37 + dJ_2_2*r36
+    r75 = r20 + r44 + r5
+    r76 = a_0*r73 + a_1*a_2*r62 + h2*r75 + h3*r64 + h4*r58
+    r77 = (dI4_a_0_0*dI4_a_0_0)*r44 + dI4_a_0_0*r71 + (dI4_a_0_1*dI4_a_0_1)*r35 + dI4_a_0_1*r61 + (dI4_a_0_2*dI4_a_0_2)*r27 + dI4_a_0_2*r56 + (dI4_a_1_0*dI4_a_1_0)*r20 + dI4_a_1_0*r54 + (dI4_a_1_1*dI4_a_1_1)*r14 + dI4_a_1_1*r50 + (dI4_a_1_2*dI4_a_1_2)*r9 + dI4_a_1_2*r47 + (dI4_a_2_0*dI4_a_2_0)*r5 + dI4_a_2_0*r45 + (dI4_a_2_1*dI4_a_2_1)*r2 + dI4_a_2_1*dI4_a_2_2*r1 + (dI4_a_2_2*dI4_a_2_2)*r0
+    r78 = 2*h6*h7*k1*r76 + k1*r77/(h5*h5)
+    r79 = r78 + 2*h8*k1*r77/(h5*h5)
+    r80 = r79*numpy.exp(h8) + 2*h9*k1*r77/(h5*h5)
+    r81 = 2*h10*h6*k1*r76 + 2*h7*k2*r80
+    r87 = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r74 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r63 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r57 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r55 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r51 + (dJ_1_2*dJ_1_2)*r9 + dJ_1_2*r48 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*r46 + (dJ_2_1*dJ_2_1)*r2 + dJ_2_1*dJ_2_2*r1 + (dJ_2_2*dJ_2_2)*r0
+    r88 = r69/J - r87/(J*J)
+    r89 = h6*r81
+    r90 = lam*r88/J - r69*(h0 - mu)/(J*J) - 2*r87*(-h0 + lam + mu)/(J*J*J)
+    r91 = dI4_a_2_1*h11*r1 + 2*dI4_a_2_2*h11*r0 + h17*r36 + h27*r28 + h32*r21 + h34*r15 + h38*r10 + h41*r6 + h43*r3
+    r92 = 2*dI4_a_2_1*h11*r2 + dI4_a_2_2*h11*r1 + h17*r37 + h27*r29 + h32*r22 + h34*r16 + h38*r11 + h41*r7 + h43*r4
+    r93 = 2*dI4_a_2_0*h11*r5 + h11*r45 + h17*r38 + h27*r30 + h32*r23 + h34*r17 + h38*r12 + h41*r8
+    r94 = 2*dI4_a_1_2*h11*r9 + h11*r47 + h17*r39 + h27*r31 + h32*r24 + h34*r18 + h38*r13
+    r95 = 2*dI4_a_1_1*h11*r14 + h11*r50 + h17*r40 + h27*r32 + h32*r25 + h34*r19
+    r96 = 2*dI4_a_1_0*h11*r20 + h11*r54 + h17*r41 + h27*r33 + h32*r26
+    r97 = 2*dI4_a_0_2*h11*r27 + h11*r56 + h17*r42 + h27*r34
+    r98 = 2*dI4_a_0_1*h11*r35 + h11*r61 + h17*r43
+    r99 = 2*dI4_a_0_0*h11*r44 + h11*r71
+    r100 = dJ_2_1*h1*r1 + 2*dJ_2_2*h1*r0 + h14*r36 + h25*r28 + h31*r21 + h33*r15 + h37*r10 + h40*r6 + h42*r3
+    r101 = 2*dJ_2_1*h1*r2 + dJ_2_2*h1*r1 + h14*r37 + h25*r29 + h31*r22 + h33*r16 + h37*r11 + h40*r7 + h42*r4
+    r102 = 2*dJ_2_0*h1*r5 + h1*r46 + h14*r38 + h25*r30 + h31*r23 + h33*r17 + h37*r12 + h40*r8
+    r103 = 2*dJ_1_2*h1*r9 + h1*r48 + h14*r39 + h25*r31 + h31*r24 + h33*r18 + h37*r13
+    r104 = 2*dJ_1_1*h1*r14 + h1*r51 + h14*r40 + h25*r32 + h31*r25 + h33*r19
+    r105 = 2*dJ_1_0*h1*r20 + h1*r55 + h14*r41 + h25*r33 + h31*r26
+    r106 = a_0*r93 + a_1*r92 + a_2*r91
+    r107 = 2*hg7*r89 + 2*r106
+    r108 = a_0*r96 + a_1*r95 + a_2*r94
+    r109 = 2*hg5*r89 + 2*r108
+    r110 = a_0*r99 + a_1*r98 + a_2*r97
+    r111 = 2*hg3*r89 + 2*r110
+    r112 = F_0_2*r90 + 2*dJ_0_2*h1*r27 + h1*r57 + h14*r42 + h25*r34
+    r113 = F_0_1*r90 + 2*dJ_0_1*h1*r35 + h1*r63 + h14*r43
+    r114 = F_0_0*r90 + 2*dJ_0_0*h1*r44 + h1*r74
+    t0 = r87/(J*J)
+    # outputs
+    _out_dF = numpy.empty((9, m))
+    _out_dF[0] = F_1_1*r100 - F_1_2*r101 - F_2_1*r103 + F_2_2*r104 + a_0*r111 + dJ_0_0*r90 + h19*r49
+    _out_dF[1] = -F_1_0*r100 + F_1_2*r102 + F_2_0*r103 - F_2_2*r105 + a_1*r111 + dJ_0_1*r90 + h19*r52
+    _out_dF[2] = F_1_0*r101 - F_1_1*r102 - F_2_0*r104 + F_2_1*r105 + a_2*r111 + dJ_0_2*r90 + h19*r53
+    _out_dF[3] = -F_0_1*r100 + F_0_2*r101 + F_2_1*r112 - F_2_2*r113 + a_0*r109 + h19*r59
+    _out_dF[4] = F_0_0*r100 - F_0_2*r102 - F_2_0*r112 + F_2_2*r114 + a_1*r109 + h19*r65
+    _out_dF[5] = -F_0_0*r101 + F_0_1*r102 + F_2_0*r113 - F_2_1*r114 + a_2*r109 + h19*r66
+    _out_dF[6] = F_0_1*r103 - F_0_2*r104 - F_1_1*r112 + F_1_2*r113 + a_0*r107 + h19*r60
+    _out_dF[7] = -F_0_0*r103 + F_0_2*r105 + F_1_0*r112 - F_1_2*r114 + a_1*r107 + h19*r67
+    _out_dF[8] = F_0_0*r104 - F_0_1*r105 - F_1_0*r113 + F_1_1*r114 + a_2*r107 + h19*r68
+    _out_dparams = numpy.empty((4, m))
+    _out_dparams[0] = r58 + r64 + r75 + t0 - r69/J
+    _out_dparams[1] = r88*numpy.log(J) + t0
+    _out_dparams[2] = 2*h10*h6*h7*r76 + r77*(h10 + 2*h8*h9)/(h5*h5)
+    _out_dparams[3] = (h7*h7)*r80
+    return _finish(_out_dF, m, (3, 3)), _finish(_out_dparams, m, (4,))
 
 
 def hessian(x_e, dphi_dX, vol, a, params):

@@ -80,6 +80,12 @@ SIGNATURES = {
         "outputs": (("dgradient_dparams", (12, 2)), ),
         "op_count": 219,
     },
+    "d3psi_contract": {
+        "inputs": (("F", (3, 3)), ("C", (9, 9)), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("dF", (3, 3)), ("dparams", (2,)), ),
+        "op_count": 21,
+    },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
@@ -603,6 +609,83 @@ def dgradient_dparams(x_e, dphi_dX, vol, params):
     _out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
     _out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
     return _finish(_out_dgradient_dparams, m, (12, 2))
+
+
+def d3psi_contract(F, C, params):
+    """d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    C : (m, 9, 9) float64
+        9x9 weights contracted with dP/dF.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dF : (m, 3, 3) float64
+    dparams : (m, 2) float64
+
+    Operation count per element: 21.
+    """
+    m, (_in_F, _in_C, ) = _elements((F, "F", (3, 3)), (C, "C", (9, 9)), )
+    mu, lam, = _params(params, ('mu', 'lam'), m)
+    # inputs
+    C_0_0 = _in_C[0]
+    C_0_4 = _in_C[4]
+    C_0_8 = _in_C[8]
+    C_1_1 = _in_C[10]
+    C_1_3 = _in_C[12]
+    C_2_2 = _in_C[20]
+    C_2_6 = _in_C[24]
+    C_3_1 = _in_C[28]
+    C_3_3 = _in_C[30]
+    C_4_0 = _in_C[36]
+    C_4_4 = _in_C[40]
+    C_4_8 = _in_C[44]
+    C_5_5 = _in_C[50]
+    C_5_7 = _in_C[52]
+    C_6_2 = _in_C[56]
+    C_6_6 = _in_C[60]
+    C_7_5 = _in_C[68]
+    C_7_7 = _in_C[70]
+    C_8_0 = _in_C[72]
+    C_8_4 = _in_C[76]
+    C_8_8 = _in_C[80]
+    # intermediates (16)
+    r0 = C_8_8
+    r2 = C_7_7
+    r5 = C_6_6
+    r7 = C_5_7 + C_7_5
+    r9 = C_5_5
+    r10 = C_4_8 + C_8_4
+    r14 = C_4_4
+    r20 = C_3_3
+    r23 = C_2_6 + C_6_2
+    r27 = C_2_2
+    r33 = C_1_3 + C_3_1
+    r35 = C_1_1
+    r36 = C_0_8 + C_8_0
+    r40 = C_0_4 + C_4_0
+    r44 = C_0_0
+    r45 = r0 + r14 + r44
+    # outputs
+    _out_dF = numpy.empty((9, m))
+    _out_dF[0] = 0
+    _out_dF[1] = 0
+    _out_dF[2] = 0
+    _out_dF[3] = 0
+    _out_dF[4] = 0
+    _out_dF[5] = 0
+    _out_dF[6] = 0
+    _out_dF[7] = 0
+    _out_dF[8] = 0
+    _out_dparams = numpy.empty((2, m))
+    _out_dparams[0] = r2 + r20 + r23 + r27 + r33 + r35 + 2*r45 + r5 + r7 + r9
+    _out_dparams[1] = r10 + r36 + r40 + r45
+    return _finish(_out_dF, m, (3, 3)), _finish(_out_dparams, m, (2,))
 
 
 def hessian(x_e, dphi_dX, vol, params):

@@ -80,6 +80,12 @@ SIGNATURES = {
         "outputs": (("dgradient_dparams", (12, 2)), ),
         "op_count": 278,
     },
+    "d3psi_contract": {
+        "inputs": (("F", (3, 3)), ("C", (9, 9)), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("dF", (3, 3)), ("dparams", (2,)), ),
+        "op_count": 726,
+    },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
@@ -685,6 +691,249 @@ def dgradient_dparams(x_e, dphi_dX, vol, params):
     _out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
     _out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
     return _finish(_out_dgradient_dparams, m, (12, 2))
+
+
+def d3psi_contract(F, C, params):
+    """d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    C : (m, 9, 9) float64
+        9x9 weights contracted with dP/dF.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dF : (m, 3, 3) float64
+    dparams : (m, 2) float64
+
+    Operation count per element: 726.
+    """
+    m, (_in_F, _in_C, ) = _elements((F, "F", (3, 3)), (C, "C", (9, 9)), )
+    mu, lam, = _params(params, ('mu', 'lam'), m)
+    # inputs
+    F_0_0 = _in_F[0]
+    F_0_1 = _in_F[1]
+    F_0_2 = _in_F[2]
+    F_1_0 = _in_F[3]
+    F_1_1 = _in_F[4]
+    F_1_2 = _in_F[5]
+    F_2_0 = _in_F[6]
+    F_2_1 = _in_F[7]
+    F_2_2 = _in_F[8]
+    C_0_0 = _in_C[0]
+    C_0_1 = _in_C[1]
+    C_0_2 = _in_C[2]
+    C_0_3 = _in_C[3]
+    C_0_4 = _in_C[4]
+    C_0_5 = _in_C[5]
+    C_0_6 = _in_C[6]
+    C_0_7 = _in_C[7]
+    C_0_8 = _in_C[8]
+    C_1_0 = _in_C[9]
+    C_1_1 = _in_C[10]
+    C_1_2 = _in_C[11]
+    C_1_3 = _in_C[12]
+    C_1_4 = _in_C[13]
+    C_1_5 = _in_C[14]
+    C_1_6 = _in_C[15]
+    C_1_7 = _in_C[16]
+    C_1_8 = _in_C[17]
+    C_2_0 = _in_C[18]
+    C_2_1 = _in_C[19]
+    C_2_2 = _in_C[20]
+    C_2_3 = _in_C[21]
+    C_2_4 = _in_C[22]
+    C_2_5 = _in_C[23]
+    C_2_6 = _in_C[24]
+    C_2_7 = _in_C[25]
+    C_2_8 = _in_C[26]
+    C_3_0 = _in_C[27]
+    C_3_1 = _in_C[28]
+    C_3_2 = _in_C[29]
+    C_3_3 = _in_C[30]
+    C_3_4 = _in_C[31]
+    C_3_5 = _in_C[32]
+    C_3_6 = _in_C[33]
+    C_3_7 = _in_C[34]
+    C_3_8 = _in_C[35]
+    C_4_0 = _in_C[36]
+    C_4_1 = _in_C[37]
+    C_4_2 = _in_C[38]
+    C_4_3 = _in_C[39]
+    C_4_4 = _in_C[40]
+    C_4_5 = _in_C[41]
+    C_4_6 = _in_C[42]
+    C_4_7 = _in_C[43]
+    C_4_8 = _in_C[44]
+    C_5_0 = _in_C[45]
+    C_5_1 = _in_C[46]
+    C_5_2 = _in_C[47]
+    C_5_3 = _in_C[48]
+    C_5_4 = _in_C[49]
+    C_5_5 = _in_C[50]
+    C_5_6 = _in_C[51]
+    C_5_7 = _in_C[52]
+    C_5_8 = _in_C[53]
+    C_6_0 = _in_C[54]
+    C_6_1 = _in_C[55]
+    C_6_2 = _in_C[56]
+    C_6_3 = _in_C[57]
+    C_6_4 = _in_C[58]
+    C_6_5 = _in_C[59]
+    C_6_6 = _in_C[60]
+    C_6_7 = _in_C[61]
+    C_6_8 = _in_C[62]
+    C_7_0 = _in_C[63]
+    C_7_1 = _in_C[64]
+    C_7_2 = _in_C[65]
+    C_7_3 = _in_C[66]
+    C_7_4 = _in_C[67]
+    C_7_5 = _in_C[68]
+    C_7_6 = _in_C[69]
+    C_7_7 = _in_C[70]
+    C_7_8 = _in_C[71]
+    C_8_0 = _in_C[72]
+    C_8_1 = _in_C[73]
+    C_8_2 = _in_C[74]
+    C_8_3 = _in_C[75]
+    C_8_4 = _in_C[76]
+    C_8_5 = _in_C[77]
+    C_8_6 = _in_C[78]
+    C_8_7 = _in_C[79]
+    C_8_8 = _in_C[80]
+    # intermediates (113)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    h0 = lam*numpy.log(J)
+    h1 = -h0 + lam + mu
+    h2 = h1/(J*J)
+    h3 = dJ_0_0*h2
+    h4 = (1.0/(J))
+    h5 = h0 - mu
+    h6 = F_2_2*h5
+    h7 = h1*h4
+    h8 = dJ_0_0*h7
+    h9 = F_2_1*h5
+    h10 = F_1_2*h5
+    h11 = F_1_1*h5
+    h12 = dJ_0_1*h2
+    h13 = F_2_0*h5
+    h14 = dJ_0_1*h7
+    h15 = F_1_0*h5
+    h16 = dJ_0_2*h7
+    h17 = dJ_0_2*h2
+    h18 = dJ_1_0*h2
+    h19 = F_0_2*h5
+    h20 = F_0_1*h5
+    h21 = dJ_1_1*h2
+    h22 = F_0_0*h5
+    h23 = dJ_2_2*h2
+    r0 = C_8_8
+    r1 = C_7_8 + C_8_7
+    r2 = C_7_7
+    r3 = C_6_8 + C_8_6
+    r4 = C_6_7 + C_7_6
+    r5 = C_6_6
+    r6 = C_5_8 + C_8_5
+    r7 = C_5_7 + C_7_5
+    r8 = C_5_6 + C_6_5
+    r9 = C_5_5
+    r10 = C_4_8 + C_8_4
+    r11 = C_4_7 + C_7_4
+    r12 = C_4_6 + C_6_4
+    r13 = C_4_5 + C_5_4
+    r14 = C_4_4
+    r15 = C_3_8 + C_8_3
+    r16 = C_3_7 + C_7_3
+    r17 = C_3_6 + C_6_3
+    r18 = C_3_5 + C_5_3
+    r19 = C_3_4 + C_4_3
+    r20 = C_3_3
+    r21 = C_2_8 + C_8_2
+    r22 = C_2_7 + C_7_2
+    r23 = C_2_6 + C_6_2
+    r24 = C_2_5 + C_5_2
+    r25 = C_2_4 + C_4_2
+    r26 = C_2_3 + C_3_2
+    r27 = C_2_2
+    r28 = C_1_8 + C_8_1
+    r29 = C_1_7 + C_7_1
+    r30 = C_1_6 + C_6_1
+    r31 = C_1_5 + C_5_1
+    r32 = C_1_4 + C_4_1
+    r33 = C_1_3 + C_3_1
+    r34 = C_1_2 + C_2_1
+    r35 = C_1_1
+    r36 = C_0_8 + C_8_0
+    r37 = C_0_7 + C_7_0
+    r38 = C_0_6 + C_6_0
+    r39 = C_0_5 + C_5_0
+    r40 = C_0_4 + C_4_0
+    r41 = C_0_3 + C_3_0
+    r42 = C_0_2 + C_2_0
+    r43 = C_0_1 + C_1_0
+    r44 = C_0_0
+    r45 = dJ_1_2*r6 + dJ_2_0*r3 + dJ_2_1*r1
+    r46 = h4*r10 - h4*r7
+    r47 = dJ_1_2*r13 + dJ_2_1*r11
+    r48 = -h4*r15 + h4*r8
+    r49 = -h4*r12 + h4*r16
+    r50 = dJ_1_1*r19 + dJ_1_2*r18 + dJ_2_0*r17
+    r51 = dJ_1_2*r24 + dJ_2_2*r21
+    r52 = dJ_1_0*h4*r26 + dJ_2_1*h4*r22
+    r53 = h4*r22 - h4*r28
+    r54 = dJ_1_2*h4*r31 + dJ_2_0*h4*r30
+    r55 = -h4*r25 + h4*r31
+    r56 = dJ_0_2*r34 + dJ_1_1*r32 + dJ_2_1*r29
+    r57 = -h4*r23 + h4*r36
+    r58 = h4*r30 - h4*r37
+    r59 = h4*r26 - h4*r39
+    r60 = dJ_1_1*h4*r40 + dJ_2_2*h4*r36
+    r61 = dJ_0_0*r60 + dJ_0_1*r54 + dJ_0_2*r52 + dJ_1_0*dJ_2_1*h4*r16 + dJ_1_1*dJ_2_2*h4*r10 + dJ_1_2*dJ_2_0*h4*r8
+    r62 = -h4*r33 + h4*r40
+    r63 = F_0_0*r46 + F_0_1*r48 + F_0_2*r49 + F_1_0*r53 + F_1_1*r57 + F_1_2*r58 + F_2_0*r55 + F_2_1*r59 + F_2_2*r62
+    r64 = h1*r61 + r10*(dJ_1_1*dJ_2_2*h7 + h22) + r12*(2*dJ_1_1*dJ_2_0*h1*h4 - h19) + r15*(2*dJ_1_0*dJ_2_2*h1*h4 - h20) + r16*(dJ_1_0*dJ_2_1*h7 + h19) + r22*(dJ_2_1*h16 + h15) + r23*(2*dJ_0_2*dJ_2_0*h1*h4 - h11) + r25*(2*dJ_0_2*dJ_1_1*h1*h4 - h13) + r26*(dJ_1_0*h16 + h9) + r28*(2*dJ_0_1*dJ_2_2*h1*h4 - h15) + r30*(dJ_2_0*h14 + h10) + r31*(dJ_1_2*h14 + h13) + r33*(2*dJ_0_1*dJ_1_0*h1*h4 - h6) + r36*(dJ_2_2*h8 + h11) + r37*(2*dJ_0_0*dJ_2_1*h1*h4 - h10) + r39*(2*dJ_0_0*dJ_1_2*h1*h4 - h9) + r40*(dJ_1_1*h8 + h6) + r7*(2*dJ_1_2*dJ_2_1*h1*h4 - h22) + r8*(dJ_1_2*dJ_2_0*h7 + h20)
+    r65 = dJ_0_1*r43 + dJ_0_2*r42 + dJ_1_0*r41 + dJ_2_0*r38
+    r66 = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r65 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r56 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r51 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r50 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r47 + (dJ_1_2*dJ_1_2)*r9 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*dJ_2_1*r4 + (dJ_2_1*dJ_2_1)*r2 + (dJ_2_2*dJ_2_2)*r0 + dJ_2_2*r45
+    r67 = dJ_0_0*dJ_1_2*(h4*h4)*r39 + dJ_0_0*dJ_2_1*(h4*h4)*r37 + dJ_0_1*dJ_1_0*(h4*h4)*r33 + dJ_0_1*dJ_2_2*(h4*h4)*r28 + dJ_0_2*dJ_1_1*(h4*h4)*r25 + dJ_0_2*dJ_2_0*(h4*h4)*r23 + dJ_1_0*dJ_2_2*(h4*h4)*r15 + dJ_1_1*dJ_2_0*(h4*h4)*r12 + dJ_1_2*dJ_2_1*(h4*h4)*r7 + h4*r61 + r66/(J*J)
+    r68 = r63 - r67
+    r69 = lam*r68/J - r64/(J*J) - 2*h1*r66/(J*J*J)
+    r70 = dJ_0_1*h1*(h4*h4)*r28 + dJ_1_0*h1*(h4*h4)*r15 + dJ_1_1*h4*h7*r10 + 2*dJ_2_2*h2*r0 + h17*r21 + h2*r45 + h4*h8*r36
+    r71 = dJ_0_0*h1*(h4*h4)*r37 + dJ_1_0*h4*h7*r16 + dJ_1_2*h1*(h4*h4)*r7 + dJ_2_0*h2*r4 + 2*dJ_2_1*h2*r2 + h12*r29 + h16*h4*r22 + h21*r11 + h23*r1
+    r72 = dJ_0_2*h1*(h4*h4)*r23 + dJ_1_1*h1*(h4*h4)*r12 + dJ_1_2*h4*h7*r8 + 2*dJ_2_0*h2*r5 + dJ_2_1*h2*r4 + h14*h4*r30 + h18*r17 + h23*r3 + h3*r38
+    r73 = dJ_0_0*h1*(h4*h4)*r39 + 2*dJ_1_2*h2*r9 + dJ_2_0*h4*h7*r8 + dJ_2_1*h1*(h4*h4)*r7 + h14*h4*r31 + h17*r24 + h18*r18 + h21*r13 + h23*r6
+    r74 = dJ_0_2*h1*(h4*h4)*r25 + 2*dJ_1_1*h2*r14 + dJ_2_0*h1*(h4*h4)*r12 + dJ_2_2*h4*h7*r10 + h12*r32 + h18*r19 + h2*r47 + h4*h8*r40
+    r75 = dJ_0_1*h1*(h4*h4)*r33 + 2*dJ_1_0*h2*r20 + dJ_2_1*h4*h7*r16 + dJ_2_2*h1*(h4*h4)*r15 + h16*h4*r26 + h2*r50 + h3*r41
+    r76 = F_0_2*r69 + 2*dJ_0_2*h2*r27 + dJ_1_1*h1*(h4*h4)*r25 + dJ_2_0*h1*(h4*h4)*r23 + h12*r34 + h2*r51 + h3*r42 + h7*r52
+    r77 = F_0_1*r69 + 2*dJ_0_1*h2*r35 + dJ_1_0*h1*(h4*h4)*r33 + dJ_2_2*h1*(h4*h4)*r28 + h2*r56 + h3*r43 + h7*r54
+    r78 = F_0_0*r69 + 2*dJ_0_0*h2*r44 + dJ_1_2*h1*(h4*h4)*r39 + dJ_2_1*h1*(h4*h4)*r37 + h2*r65 + h7*r60
+    # outputs
+    _out_dF = numpy.empty((9, m))
+    _out_dF[0] = F_1_1*r70 - F_1_2*r71 - F_2_1*r73 + F_2_2*r74 + dJ_0_0*r69 + h5*r46
+    _out_dF[1] = -F_1_0*r70 + F_1_2*r72 + F_2_0*r73 - F_2_2*r75 + dJ_0_1*r69 + h5*r48
+    _out_dF[2] = F_1_0*r71 - F_1_1*r72 - F_2_0*r74 + F_2_1*r75 + dJ_0_2*r69 + h5*r49
+    _out_dF[3] = -F_0_1*r70 + F_0_2*r71 + F_2_1*r76 - F_2_2*r77 + h5*r53
+    _out_dF[4] = F_0_0*r70 - F_0_2*r72 - F_2_0*r76 + F_2_2*r78 + h5*r57
+    _out_dF[5] = -F_0_0*r71 + F_0_1*r72 + F_2_0*r77 - F_2_1*r78 + h5*r58
+    _out_dF[6] = F_0_1*r73 - F_0_2*r74 - F_1_1*r76 + F_1_2*r77 + h5*r55
+    _out_dF[7] = -F_0_0*r73 + F_0_2*r75 + F_1_0*r76 - F_1_2*r78 + h5*r59
+    _out_dF[8] = F_0_0*r74 - F_0_1*r75 - F_1_0*r77 + F_1_1*r78 + h5*r62
+    _out_dparams = numpy.empty((2, m))
+    _out_dparams[0] = r0 + r14 + r2 + r20 + r27 + r35 + r44 + r5 - r63 + r67 + r9
+    _out_dparams[1] = r67 + r68*numpy.log(J)
+    return _finish(_out_dF, m, (3, 3)), _finish(_out_dparams, m, (2,))
 
 
 def hessian(x_e, dphi_dX, vol, params):

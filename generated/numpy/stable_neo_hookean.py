@@ -80,6 +80,12 @@ SIGNATURES = {
         "outputs": (("dgradient_dparams", (12, 2)), ),
         "op_count": 354,
     },
+    "d3psi_contract": {
+        "inputs": (("F", (3, 3)), ("C", (9, 9)), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("dF", (3, 3)), ("dparams", (2,)), ),
+        "op_count": 722,
+    },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
@@ -692,6 +698,250 @@ def dgradient_dparams(x_e, dphi_dX, vol, params):
     _out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
     _out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
     return _finish(_out_dgradient_dparams, m, (12, 2))
+
+
+def d3psi_contract(F, C, params):
+    """d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    C : (m, 9, 9) float64
+        9x9 weights contracted with dP/dF.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dF : (m, 3, 3) float64
+    dparams : (m, 2) float64
+
+    Operation count per element: 722.
+    """
+    m, (_in_F, _in_C, ) = _elements((F, "F", (3, 3)), (C, "C", (9, 9)), )
+    mu, lam, = _params(params, ('mu', 'lam'), m)
+    # inputs
+    F_0_0 = _in_F[0]
+    F_0_1 = _in_F[1]
+    F_0_2 = _in_F[2]
+    F_1_0 = _in_F[3]
+    F_1_1 = _in_F[4]
+    F_1_2 = _in_F[5]
+    F_2_0 = _in_F[6]
+    F_2_1 = _in_F[7]
+    F_2_2 = _in_F[8]
+    C_0_0 = _in_C[0]
+    C_0_1 = _in_C[1]
+    C_0_2 = _in_C[2]
+    C_0_3 = _in_C[3]
+    C_0_4 = _in_C[4]
+    C_0_5 = _in_C[5]
+    C_0_6 = _in_C[6]
+    C_0_7 = _in_C[7]
+    C_0_8 = _in_C[8]
+    C_1_0 = _in_C[9]
+    C_1_1 = _in_C[10]
+    C_1_2 = _in_C[11]
+    C_1_3 = _in_C[12]
+    C_1_4 = _in_C[13]
+    C_1_5 = _in_C[14]
+    C_1_6 = _in_C[15]
+    C_1_7 = _in_C[16]
+    C_1_8 = _in_C[17]
+    C_2_0 = _in_C[18]
+    C_2_1 = _in_C[19]
+    C_2_2 = _in_C[20]
+    C_2_3 = _in_C[21]
+    C_2_4 = _in_C[22]
+    C_2_5 = _in_C[23]
+    C_2_6 = _in_C[24]
+    C_2_7 = _in_C[25]
+    C_2_8 = _in_C[26]
+    C_3_0 = _in_C[27]
+    C_3_1 = _in_C[28]
+    C_3_2 = _in_C[29]
+    C_3_3 = _in_C[30]
+    C_3_4 = _in_C[31]
+    C_3_5 = _in_C[32]
+    C_3_6 = _in_C[33]
+    C_3_7 = _in_C[34]
+    C_3_8 = _in_C[35]
+    C_4_0 = _in_C[36]
+    C_4_1 = _in_C[37]
+    C_4_2 = _in_C[38]
+    C_4_3 = _in_C[39]
+    C_4_4 = _in_C[40]
+    C_4_5 = _in_C[41]
+    C_4_6 = _in_C[42]
+    C_4_7 = _in_C[43]
+    C_4_8 = _in_C[44]
+    C_5_0 = _in_C[45]
+    C_5_1 = _in_C[46]
+    C_5_2 = _in_C[47]
+    C_5_3 = _in_C[48]
+    C_5_4 = _in_C[49]
+    C_5_5 = _in_C[50]
+    C_5_6 = _in_C[51]
+    C_5_7 = _in_C[52]
+    C_5_8 = _in_C[53]
+    C_6_0 = _in_C[54]
+    C_6_1 = _in_C[55]
+    C_6_2 = _in_C[56]
+    C_6_3 = _in_C[57]
+    C_6_4 = _in_C[58]
+    C_6_5 = _in_C[59]
+    C_6_6 = _in_C[60]
+    C_6_7 = _in_C[61]
+    C_6_8 = _in_C[62]
+    C_7_0 = _in_C[63]
+    C_7_1 = _in_C[64]
+    C_7_2 = _in_C[65]
+    C_7_3 = _in_C[66]
+    C_7_4 = _in_C[67]
+    C_7_5 = _in_C[68]
+    C_7_6 = _in_C[69]
+    C_7_7 = _in_C[70]
+    C_7_8 = _in_C[71]
+    C_8_0 = _in_C[72]
+    C_8_1 = _in_C[73]
+    C_8_2 = _in_C[74]
+    C_8_3 = _in_C[75]
+    C_8_4 = _in_C[76]
+    C_8_5 = _in_C[77]
+    C_8_6 = _in_C[78]
+    C_8_7 = _in_C[79]
+    C_8_8 = _in_C[80]
+    # intermediates (114)
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    h0 = I1 + 1
+    h1 = 2*mu/(h0*h0)
+    h3 = dJ_0_0*lam
+    h4 = F_0_0*h1
+    h5 = lam*(J - 1) - 3/4*mu
+    h10 = dJ_0_1*lam
+    h11 = F_0_1*h1
+    h14 = dJ_0_2*lam
+    h15 = F_0_2*h1
+    h16 = dJ_1_0*lam
+    h17 = F_1_0*h1
+    h20 = dJ_1_1*lam
+    h21 = F_1_1*h1
+    h23 = dJ_1_2*lam
+    h24 = F_1_2*h1
+    h25 = dJ_2_0*lam
+    h26 = F_2_0*h1
+    r0 = C_8_8
+    r1 = C_7_8 + C_8_7
+    r2 = C_7_7
+    r3 = C_6_8 + C_8_6
+    r4 = C_6_7 + C_7_6
+    r5 = C_6_6
+    r6 = C_5_8 + C_8_5
+    r7 = C_5_7 + C_7_5
+    r8 = C_5_6 + C_6_5
+    r9 = C_5_5
+    r10 = C_4_8 + C_8_4
+    r11 = C_4_7 + C_7_4
+    r12 = C_4_6 + C_6_4
+    r13 = C_4_5 + C_5_4
+    r14 = C_4_4
+    r15 = C_3_8 + C_8_3
+    r16 = C_3_7 + C_7_3
+    r17 = C_3_6 + C_6_3
+    r18 = C_3_5 + C_5_3
+    r19 = C_3_4 + C_4_3
+    r20 = C_3_3
+    r21 = C_2_8 + C_8_2
+    r22 = C_2_7 + C_7_2
+    r23 = C_2_6 + C_6_2
+    r24 = C_2_5 + C_5_2
+    r25 = C_2_4 + C_4_2
+    r26 = C_2_3 + C_3_2
+    r27 = C_2_2
+    r28 = C_1_8 + C_8_1
+    r29 = C_1_7 + C_7_1
+    r30 = C_1_6 + C_6_1
+    r31 = C_1_5 + C_5_1
+    r32 = C_1_4 + C_4_1
+    r33 = C_1_3 + C_3_1
+    r34 = C_1_2 + C_2_1
+    r35 = C_1_1
+    r36 = C_0_8 + C_8_0
+    r37 = C_0_7 + C_7_0
+    r38 = C_0_6 + C_6_0
+    r39 = C_0_5 + C_5_0
+    r40 = C_0_4 + C_4_0
+    r41 = C_0_3 + C_3_0
+    r42 = C_0_2 + C_2_0
+    r43 = C_0_1 + C_1_0
+    r44 = C_0_0
+    r45 = F_2_1*r4 + F_2_2*r3
+    r46 = dJ_2_1*r4 + dJ_2_2*r3
+    r47 = F_2_0*r8 + F_2_1*r7 + F_2_2*r6
+    r48 = dJ_2_0*r8 + dJ_2_1*r7 + dJ_2_2*r6
+    r49 = r10 - r7
+    r50 = F_1_2*r13 + F_2_0*r12 + F_2_1*r11 + F_2_2*r10
+    r51 = dJ_1_2*r13 + dJ_2_0*r12 + dJ_2_1*r11 + dJ_2_2*r10
+    r52 = -r15 + r8
+    r53 = -r12 + r16
+    r54 = F_1_1*r19 + F_1_2*r18 + F_2_0*r17 + F_2_1*r16 + F_2_2*r15
+    r55 = dJ_1_1*r19 + dJ_1_2*r18 + dJ_2_0*r17 + dJ_2_1*r16 + dJ_2_2*r15
+    r56 = F_1_0*r26 + F_1_1*r25 + F_1_2*r24 + F_2_0*r23 + F_2_1*r22 + F_2_2*r21
+    r57 = dJ_1_0*r26 + dJ_1_1*r25 + dJ_1_2*r24 + dJ_2_0*r23 + dJ_2_1*r22 + dJ_2_2*r21
+    r58 = r22 - r28
+    r59 = -r25 + r31
+    r60 = F_0_2*r34 + F_1_0*r33 + F_1_1*r32 + F_1_2*r31 + F_2_0*r30 + F_2_1*r29 + F_2_2*r28
+    r61 = dJ_0_2*r34 + dJ_1_0*r33 + dJ_1_1*r32 + dJ_1_2*r31 + dJ_2_0*r30 + dJ_2_1*r29 + dJ_2_2*r28
+    r62 = -r23 + r36
+    r63 = r30 - r37
+    r64 = r26 - r39
+    r65 = -r33 + r40
+    r66 = F_0_0*r49 + F_0_1*r52 + F_0_2*r53 + F_1_0*r58 + F_1_1*r62 + F_1_2*r63 + F_2_0*r59 + F_2_1*r64 + F_2_2*r65
+    r67 = F_0_1*r43 + F_0_2*r42 + F_1_0*r41 + F_1_1*r40 + F_1_2*r39 + F_2_0*r38 + F_2_1*r37 + F_2_2*r36
+    r68 = dJ_0_1*r43 + dJ_0_2*r42 + dJ_1_0*r41 + dJ_1_1*r40 + dJ_1_2*r39 + dJ_2_0*r38 + dJ_2_1*r37 + dJ_2_2*r36
+    r69 = r0 + r14 + r2 + r20 + r27 + r35 + r44 + r5 + r9
+    r70 = (F_0_0*F_0_0)*r44 + F_0_0*r67 + (F_0_1*F_0_1)*r35 + F_0_1*r60 + (F_0_2*F_0_2)*r27 + F_0_2*r56 + (F_1_0*F_1_0)*r20 + F_1_0*r54 + (F_1_1*F_1_1)*r14 + F_1_1*r50 + (F_1_2*F_1_2)*r9 + F_1_2*r47 + (F_2_0*F_2_0)*r5 + F_2_0*r45 + (F_2_1*F_2_1)*r2 + F_2_1*F_2_2*r1 + (F_2_2*F_2_2)*r0
+    r71 = mu*r69/(h0*h0) - 4*mu*r70/(h0*h0*h0)
+    r72 = r71
+    r73 = lam*r66
+    r74 = dJ_2_1*lam*r1 + 2*dJ_2_2*lam*r0 + h10*r28 + h14*r21 + h16*r15 + h20*r10 + h23*r6 + h25*r3 + h3*r36
+    r75 = 2*dJ_2_1*lam*r2 + dJ_2_2*lam*r1 + h10*r29 + h14*r22 + h16*r16 + h20*r11 + h23*r7 + h25*r4 + h3*r37
+    r76 = 2*dJ_2_0*lam*r5 + h10*r30 + h14*r23 + h16*r17 + h20*r12 + h23*r8 + h3*r38 + lam*r46
+    r77 = 2*dJ_1_2*lam*r9 + h10*r31 + h14*r24 + h16*r18 + h20*r13 + h3*r39 + lam*r48
+    r78 = 2*dJ_1_1*lam*r14 + h10*r32 + h14*r25 + h16*r19 + h3*r40 + lam*r51
+    r79 = 2*dJ_1_0*lam*r20 + h10*r33 + h14*r26 + h3*r41 + lam*r55
+    r80 = F_0_2*r73 + 2*dJ_0_2*lam*r27 + h10*r34 + h3*r42 + lam*r57
+    r81 = F_0_1*r73 + 2*dJ_0_1*lam*r35 + h3*r43 + lam*r61
+    r82 = F_0_0*r73 + 2*dJ_0_0*lam*r44 + lam*r68
+    t0 = 2*r72
+    t1 = 2*h1
+    t2 = h1*r1
+    # outputs
+    _out_dF = numpy.empty((9, m))
+    _out_dF[0] = F_0_0*r44*t1 + F_0_0*t0 + F_1_1*r74 - F_1_2*r75 - F_2_1*r77 + F_2_2*r78 + dJ_0_0*r73 + h1*r67 + h5*r49
+    _out_dF[1] = F_0_1*r35*t1 + F_0_1*t0 - F_1_0*r74 + F_1_2*r76 + F_2_0*r77 - F_2_2*r79 + dJ_0_1*r73 + h1*r60 + h4*r43 + h5*r52
+    _out_dF[2] = F_0_2*r27*t1 + F_0_2*t0 + F_1_0*r75 - F_1_1*r76 - F_2_0*r78 + F_2_1*r79 + dJ_0_2*r73 + h1*r56 + h11*r34 + h4*r42 + h5*r53
+    _out_dF[3] = -F_0_1*r74 + F_0_2*r75 + F_1_0*r20*t1 + F_1_0*t0 + F_2_1*r80 - F_2_2*r81 + h1*r54 + h11*r33 + h15*r26 + h4*r41 + h5*r58
+    _out_dF[4] = F_0_0*r74 - F_0_2*r76 + F_1_1*r14*t1 + F_1_1*t0 - F_2_0*r80 + F_2_2*r82 + h1*r50 + h11*r32 + h15*r25 + h17*r19 + h4*r40 + h5*r62
+    _out_dF[5] = -F_0_0*r75 + F_0_1*r76 + F_1_2*r9*t1 + F_1_2*t0 + F_2_0*r81 - F_2_1*r82 + h1*r47 + h11*r31 + h15*r24 + h17*r18 + h21*r13 + h4*r39 + h5*r63
+    _out_dF[6] = F_0_1*r77 - F_0_2*r78 - F_1_1*r80 + F_1_2*r81 + F_2_0*r5*t1 + F_2_0*t0 + h1*r45 + h11*r30 + h15*r23 + h17*r17 + h21*r12 + h24*r8 + h4*r38 + h5*r59
+    _out_dF[7] = -F_0_0*r77 + F_0_2*r79 + F_1_0*r80 - F_1_2*r82 + F_2_1*r2*t1 + F_2_1*t0 + F_2_2*t2 + h11*r29 + h15*r22 + h17*r16 + h21*r11 + h24*r7 + h26*r4 + h4*r37 + h5*r64
+    _out_dF[8] = F_0_0*r78 - F_0_1*r79 - F_1_0*r81 + F_1_1*r82 + F_2_1*t2 + F_2_2*r0*t1 + F_2_2*t0 + h11*r28 + h15*r21 + h17*r15 + h21*r10 + h24*r6 + h26*r3 + h4*r36 + h5*r65
+    _out_dparams = numpy.empty((2, m))
+    _out_dparams[0] = -3/4*r66 + r69*(1 - 1/h0) + 2*r70/(h0*h0)
+    _out_dparams[1] = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r68 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r61 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r57 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r55 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r51 + (dJ_1_2*dJ_1_2)*r9 + dJ_1_2*r48 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*r46 + (dJ_2_1*dJ_2_1)*r2 + dJ_2_1*dJ_2_2*r1 + (dJ_2_2*dJ_2_2)*r0 + r66*(J - 1)
+    return _finish(_out_dF, m, (3, 3)), _finish(_out_dparams, m, (2,))
 
 
 def hessian(x_e, dphi_dX, vol, params):

@@ -80,6 +80,12 @@ SIGNATURES = {
         "outputs": (("dgradient_dparams", (12, 2)), ),
         "op_count": 301,
     },
+    "d3psi_contract": {
+        "inputs": (("F", (3, 3)), ("C", (9, 9)), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("dF", (3, 3)), ("dparams", (2,)), ),
+        "op_count": 793,
+    },
     "hessian": {
         "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
         "params": ("mu", "lam", ),
@@ -681,6 +687,276 @@ def dgradient_dparams(x_e, dphi_dX, vol, params):
     _out_dgradient_dparams[22] = vol*(dP_2_0_0*dphi_3_0 + dP_2_1_0*dphi_3_1 + dP_2_2_0*dphi_3_2)
     _out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2)
     return _finish(_out_dgradient_dparams, m, (12, 2))
+
+
+def d3psi_contract(F, C, params):
+    """d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    C : (m, 9, 9) float64
+        9x9 weights contracted with dP/dF.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dF : (m, 3, 3) float64
+    dparams : (m, 2) float64
+
+    Operation count per element: 793.
+    """
+    m, (_in_F, _in_C, ) = _elements((F, "F", (3, 3)), (C, "C", (9, 9)), )
+    mu, lam, = _params(params, ('mu', 'lam'), m)
+    # inputs
+    F_0_0 = _in_F[0]
+    F_0_1 = _in_F[1]
+    F_0_2 = _in_F[2]
+    F_1_0 = _in_F[3]
+    F_1_1 = _in_F[4]
+    F_1_2 = _in_F[5]
+    F_2_0 = _in_F[6]
+    F_2_1 = _in_F[7]
+    F_2_2 = _in_F[8]
+    C_0_0 = _in_C[0]
+    C_0_1 = _in_C[1]
+    C_0_2 = _in_C[2]
+    C_0_3 = _in_C[3]
+    C_0_4 = _in_C[4]
+    C_0_5 = _in_C[5]
+    C_0_6 = _in_C[6]
+    C_0_7 = _in_C[7]
+    C_0_8 = _in_C[8]
+    C_1_0 = _in_C[9]
+    C_1_1 = _in_C[10]
+    C_1_2 = _in_C[11]
+    C_1_3 = _in_C[12]
+    C_1_4 = _in_C[13]
+    C_1_5 = _in_C[14]
+    C_1_6 = _in_C[15]
+    C_1_7 = _in_C[16]
+    C_1_8 = _in_C[17]
+    C_2_0 = _in_C[18]
+    C_2_1 = _in_C[19]
+    C_2_2 = _in_C[20]
+    C_2_3 = _in_C[21]
+    C_2_4 = _in_C[22]
+    C_2_5 = _in_C[23]
+    C_2_6 = _in_C[24]
+    C_2_7 = _in_C[25]
+    C_2_8 = _in_C[26]
+    C_3_0 = _in_C[27]
+    C_3_1 = _in_C[28]
+    C_3_2 = _in_C[29]
+    C_3_3 = _in_C[30]
+    C_3_4 = _in_C[31]
+    C_3_5 = _in_C[32]
+    C_3_6 = _in_C[33]
+    C_3_7 = _in_C[34]
+    C_3_8 = _in_C[35]
+    C_4_0 = _in_C[36]
+    C_4_1 = _in_C[37]
+    C_4_2 = _in_C[38]
+    C_4_3 = _in_C[39]
+    C_4_4 = _in_C[40]
+    C_4_5 = _in_C[41]
+    C_4_6 = _in_C[42]
+    C_4_7 = _in_C[43]
+    C_4_8 = _in_C[44]
+    C_5_0 = _in_C[45]
+    C_5_1 = _in_C[46]
+    C_5_2 = _in_C[47]
+    C_5_3 = _in_C[48]
+    C_5_4 = _in_C[49]
+    C_5_5 = _in_C[50]
+    C_5_6 = _in_C[51]
+    C_5_7 = _in_C[52]
+    C_5_8 = _in_C[53]
+    C_6_0 = _in_C[54]
+    C_6_1 = _in_C[55]
+    C_6_2 = _in_C[56]
+    C_6_3 = _in_C[57]
+    C_6_4 = _in_C[58]
+    C_6_5 = _in_C[59]
+    C_6_6 = _in_C[60]
+    C_6_7 = _in_C[61]
+    C_6_8 = _in_C[62]
+    C_7_0 = _in_C[63]
+    C_7_1 = _in_C[64]
+    C_7_2 = _in_C[65]
+    C_7_3 = _in_C[66]
+    C_7_4 = _in_C[67]
+    C_7_5 = _in_C[68]
+    C_7_6 = _in_C[69]
+    C_7_7 = _in_C[70]
+    C_7_8 = _in_C[71]
+    C_8_0 = _in_C[72]
+    C_8_1 = _in_C[73]
+    C_8_2 = _in_C[74]
+    C_8_3 = _in_C[75]
+    C_8_4 = _in_C[76]
+    C_8_5 = _in_C[77]
+    C_8_6 = _in_C[78]
+    C_8_7 = _in_C[79]
+    C_8_8 = _in_C[80]
+    # intermediates (140)
+    h0 = (F_0_0*F_0_0)
+    h1 = (F_0_1*F_0_1)
+    h2 = (F_1_0*F_1_0)
+    h3 = h1 + h2
+    h4 = (F_2_0*F_2_0)
+    h5 = (F_0_2*F_0_2)
+    h6 = h5 - 1
+    h7 = h4 + h6
+    h8 = (F_1_2*F_1_2)
+    h9 = (F_2_2*F_2_2)
+    h10 = (F_2_1*F_2_1)
+    h11 = (F_1_1*F_1_1)
+    h12 = h0 + h11
+    h13 = h10 + h12
+    h15 = F_0_0*F_0_1
+    h16 = F_1_0*F_1_1
+    h17 = F_2_0*F_2_1
+    h18 = F_0_0*F_0_2
+    h19 = F_1_0*F_1_2
+    h20 = F_2_0*F_2_2
+    h21 = F_0_0*F_1_0
+    h22 = F_0_1*F_1_1
+    h23 = F_0_2*F_1_2
+    h24 = F_0_0*lam
+    h25 = F_1_0*mu
+    h26 = F_0_0*F_2_0
+    h27 = F_0_1*F_2_1
+    h28 = F_0_2*F_2_2
+    h29 = F_2_0*mu
+    h30 = F_0_1*F_0_2
+    h31 = F_1_1*F_1_2
+    h32 = F_2_1*F_2_2
+    h33 = F_1_1*mu
+    h34 = F_0_1*lam
+    h35 = F_2_1*mu
+    h36 = h8 - 1
+    h37 = h0 + h9
+    h38 = F_1_2*mu
+    h39 = F_0_2*lam
+    h40 = F_2_2*mu
+    h41 = F_1_0*F_2_0
+    h42 = F_1_1*F_2_1
+    h43 = F_1_2*F_2_2
+    h44 = F_1_0*lam
+    h45 = F_1_1*lam
+    h46 = h11 + h9
+    h47 = F_1_2*lam
+    r0 = C_8_8
+    r1 = C_7_8 + C_8_7
+    r2 = C_7_7
+    r3 = C_6_8 + C_8_6
+    r4 = C_6_7 + C_7_6
+    r5 = C_6_6
+    r6 = C_5_8 + C_8_5
+    r7 = C_5_7 + C_7_5
+    r8 = C_5_6 + C_6_5
+    r9 = C_5_5
+    r10 = C_4_8 + C_8_4
+    r11 = C_4_7 + C_7_4
+    r12 = C_4_6 + C_6_4
+    r13 = C_4_5 + C_5_4
+    r14 = C_4_4
+    r15 = C_3_8 + C_8_3
+    r16 = C_3_7 + C_7_3
+    r17 = C_3_6 + C_6_3
+    r18 = C_3_5 + C_5_3
+    r19 = C_3_4 + C_4_3
+    r20 = C_3_3
+    r21 = C_2_8 + C_8_2
+    r22 = C_2_7 + C_7_2
+    r23 = C_2_6 + C_6_2
+    r24 = C_2_5 + C_5_2
+    r25 = C_2_4 + C_4_2
+    r26 = C_2_3 + C_3_2
+    r27 = C_2_2
+    r28 = C_1_8 + C_8_1
+    r29 = C_1_7 + C_7_1
+    r30 = C_1_6 + C_6_1
+    r31 = C_1_5 + C_5_1
+    r32 = C_1_4 + C_4_1
+    r33 = C_1_3 + C_3_1
+    r34 = C_1_2 + C_2_1
+    r35 = C_1_1
+    r36 = C_0_8 + C_8_0
+    r37 = C_0_7 + C_7_0
+    r38 = C_0_6 + C_6_0
+    r39 = C_0_5 + C_5_0
+    r40 = C_0_4 + C_4_0
+    r41 = C_0_3 + C_3_0
+    r42 = C_0_2 + C_2_0
+    r43 = C_0_1 + C_1_0
+    r44 = C_0_0
+    r45 = F_2_0*r8 + F_2_1*r7
+    r46 = mu*r2 + mu*r9
+    r47 = F_2_0*r12 + F_2_2*r10
+    r48 = F_2_1*r16 + F_2_2*r15
+    r49 = mu*r11 + mu*r17 + r6*(lam + 2*mu)
+    r50 = mu*r17 + mu*r6 + r11*(lam + 2*mu)
+    r51 = mu*r11 + mu*r6 + r17*(lam + 2*mu)
+    r52 = F_0_0*r23 + F_0_1*r22
+    r53 = F_1_0*r26 + F_1_1*r25 + F_2_0*r23 + F_2_1*r22
+    r54 = F_0_0*r26 + F_0_1*r25
+    r55 = mu*r27 + mu*r5
+    r56 = mu*r14 + mu*r20 + mu*r27
+    r57 = F_0_0*r30 + F_0_2*r28 + F_1_2*r10
+    r58 = F_1_0*r33 + F_1_2*r31 + F_2_0*r30 + F_2_2*r28
+    r59 = F_0_0*r33 + F_0_2*r31 + F_2_2*r7
+    r60 = mu*r13 + mu*r34 + r1*(lam + 2*mu)
+    r61 = mu*r1 + mu*r34 + r13*(lam + 2*mu)
+    r62 = mu*r1 + mu*r13 + r34*(lam + 2*mu)
+    r63 = F_0_1*r37 + F_0_2*r36 + F_1_1*r16 + F_1_2*r15
+    r64 = mu*r29 + mu*r38 + r21*(lam + 2*mu)
+    r65 = mu*r21 + mu*r38 + r29*(lam + 2*mu)
+    r66 = mu*r21 + mu*r29 + r38*(lam + 2*mu)
+    r67 = F_0_1*r40 + F_0_2*r39 + F_2_1*r12 + F_2_2*r8
+    r68 = F_1_1*r40 + F_1_2*r39 + F_2_1*r37 + F_2_2*r36
+    r69 = mu*r32 + mu*r41 + r24*(lam + 2*mu)
+    r70 = mu*r24 + mu*r41 + r32*(lam + 2*mu)
+    r71 = mu*r24 + mu*r32 + r41*(lam + 2*mu)
+    r72 = mu*r18 + mu*r42 + r3*(lam + 2*mu)
+    r73 = mu*r3 + mu*r42 + r18*(lam + 2*mu)
+    r74 = mu*r18 + mu*r3 + r42*(lam + 2*mu)
+    r75 = mu*r19 + mu*r43 + r4*(lam + 2*mu)
+    r76 = mu*r4 + mu*r43 + r19*(lam + 2*mu)
+    r77 = mu*r19 + mu*r4 + r43*(lam + 2*mu)
+    r78 = r0 + r14 + r2 + r20 + r27 + r35 + r44 + r5 + r9
+    r79 = (1/2)*lam*r78 + mu*r35
+    r80 = mu*r20 + r79
+    r81 = r14*(lam + 3*mu) + r46 + r80
+    r82 = mu*r0 + mu*r14 + mu*r5 + r2*(lam + 3*mu) + r79
+    r83 = (1/2)*lam*r78 + r0*(lam + 3*mu) + r46 + r55
+    r84 = (1/2)*lam*r78 + mu*r0 + r56 + r9*(lam + 3*mu)
+    r85 = mu*r0 + mu*r44
+    r86 = mu*r35 + mu*r9 + r85
+    r87 = (1/2)*lam*r78 + r27*(lam + 3*mu) + r86
+    r88 = (1/2)*lam*r78 + mu*r2 + mu*r20 + r5*(lam + 3*mu) + r85
+    r89 = (1/2)*lam*r78 + mu*r14 + mu*r44
+    r90 = mu*r5 + mu*r9 + r20*(lam + 3*mu) + r89
+    r91 = mu*r2 + mu*r27 + r35*(lam + 3*mu) + r89
+    r92 = r44*(lam + 3*mu) + r55 + r80
+    # outputs
+    _out_dF = numpy.empty((9, m))
+    _out_dF[0] = 2*F_0_0*r92 + F_0_1*r77 + F_0_2*r74 + F_1_0*r71 + F_2_0*r66 + h33*r33 + h35*r30 + h38*r26 + h40*r23 + lam*r68
+    _out_dF[1] = F_0_0*r77 + 2*F_0_1*r91 + F_0_2*r62 + F_1_1*r70 + F_2_1*r65 + h25*r40 + h29*r37 + h38*r25 + h40*r22 + lam*r58
+    _out_dF[2] = F_0_0*r74 + F_0_1*r62 + 2*F_0_2*r87 + F_1_2*r69 + F_2_2*r64 + h25*r39 + h29*r36 + h33*r31 + h35*r28 + lam*r53
+    _out_dF[3] = F_0_0*r71 + 2*F_1_0*r90 + F_1_1*r76 + F_1_2*r73 + F_2_0*r51 + h34*r33 + h39*r26 + lam*r48 + mu*r67
+    _out_dF[4] = F_0_1*r70 + F_1_0*r76 + 2*F_1_1*r81 + F_1_2*r61 + F_2_1*r50 + h24*r40 + h29*r16 + h39*r25 + lam*r47 + mu*r59
+    _out_dF[5] = F_0_2*r69 + F_1_0*r73 + F_1_1*r61 + 2*F_1_2*r84 + F_2_2*r49 + h24*r39 + h29*r15 + h34*r31 + h35*r10 + lam*r45 + mu*r54
+    _out_dF[6] = F_0_0*r66 + F_1_0*r51 + 2*F_2_0*r88 + F_2_1*r75 + F_2_2*r72 + h34*r30 + h39*r23 + h45*r12 + h47*r8 + mu*r63
+    _out_dF[7] = F_0_1*r65 + F_1_1*r50 + F_2_0*r75 + 2*F_2_1*r82 + F_2_2*r60 + h24*r37 + h25*r12 + h39*r22 + h44*r16 + h47*r7 + mu*r57
+    _out_dF[8] = F_0_2*r64 + F_1_2*r49 + F_2_0*r72 + F_2_1*r60 + 2*F_2_2*r83 + h24*r36 + h25*r8 + h33*r7 + h34*r28 + h44*r15 + h45*r10 + mu*r52
+    _out_dparams = numpy.empty((2, m))
+    _out_dparams[0] = F_1_0*r67 + F_1_1*r59 + F_1_2*r54 + F_2_0*r63 + F_2_1*r57 + F_2_2*r52 + r0*(h10 + h7 + h8 + 3*h9) + r1*(h30 + h31 + 2*h32) + r11*(h41 + 2*h42 + h43) + r13*(h30 + 2*h31 + h32) + r14*(h10 + 3*h11 + h3 + h36) + r17*(2*h41 + h42 + h43) + r18*(h18 + 2*h19 + h20) + r19*(h15 + 2*h16 + h17) + r2*(h1 + 3*h10 + h4 + h46 - 1) + r20*(h12 + 3*h2 + h36 + h4) + r21*(h26 + h27 + 2*h28) + r24*(h21 + h22 + 2*h23) + r27*(h1 + h36 + h37 + 3*h5) + r29*(h26 + 2*h27 + h28) + r3*(h18 + h19 + 2*h20) + r32*(h21 + 2*h22 + h23) + r34*(2*h30 + h31 + h32) + r35*(3*h1 + h13 + h6) + r38*(2*h26 + h27 + h28) + r4*(h15 + h16 + 2*h17) + r41*(2*h21 + h22 + h23) + r42*(2*h18 + h19 + h20) + r43*(2*h15 + h16 + h17) + r44*(3*h0 + h3 + h7) + r5*(h10 + h2 + h37 + 3*h4 - 1) + r6*(h41 + h42 + 2*h43) + r9*(h2 + h46 + h6 + 3*h8)
+    _out_dparams[1] = F_0_0*r68 + F_0_1*r58 + F_0_2*r53 + F_1_0*r48 + F_1_1*r47 + F_1_2*r45 + h0*r44 + h1*r35 + h10*r2 + h11*r14 + h15*r43 + h16*r19 + h17*r4 + h18*r42 + h19*r18 + h2*r20 + h20*r3 + h21*r41 + h22*r32 + h23*r24 + h26*r38 + h27*r29 + h28*r21 + h30*r34 + h31*r13 + h32*r1 + h4*r5 + h41*r17 + h42*r11 + h43*r6 + h5*r27 + h8*r9 + h9*r0 + (1/2)*r78*(h13 + h3 + h4 + h5 + h8 + h9 - 3)
+    return _finish(_out_dF, m, (3, 3)), _finish(_out_dparams, m, (2,))
 
 
 def hessian(x_e, dphi_dX, vol, params):

@@ -26,11 +26,13 @@ import scipy.optimize
 from fem3d.app.fit.spec import VECTOR_KEYS, FitFile
 from fem3d.diff import PositionLoss, trajectory_gradient
 from fem3d.diff.adjoint import scene_with
+from fem3d.diff.params import is_field_key, parse_param_key
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io.dataset import read_run_frames
 from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.scene.arrays import build_arrays, select_vertices
+from fem3d.scene.build import _cell_field
 from fem3d.scene.keys import parse_key
 from fem3d.scene.spec import Scene
 
@@ -61,6 +63,9 @@ class FitResult:
     iterations, evaluations : int
     scene : Scene
         The base scene with the fitted values.
+    meshes : dict of int -> Path
+        Bodies with a fitted per-tet field: the mesh holding it (a temporary file;
+        :func:`write_outputs` copies it into the output folder).
     frames : list of int
         The step indices the loss compared.
     n_vertices : int
@@ -79,6 +84,7 @@ class FitResult:
     scene: Scene
     frames: list[int] = field(default_factory=list)
     n_vertices: int = 0
+    meshes: dict[int, Path] = field(default_factory=dict)
 
 
 def read_target(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -138,6 +144,10 @@ def _vertices(spec: FitFile, scene: Scene, where: str) -> np.ndarray | None:
 
 
 def _value_of(scene: Scene, key: str) -> Any:
+    if is_field_key(key):  # the field's values, read from the body's mesh
+        p = parse_param_key(key)
+        name = scene.bodies[p.body].material.cell_fields[p.name]
+        return _cell_field(scene, build_arrays(scene), p.body, p.name, name)
     d: Any = scene.model_dump(mode="json")
     for part in parse_key(key):
         d = d[part]
@@ -175,8 +185,8 @@ class _Param:
         return out
 
     def public(self, values: np.ndarray) -> float | list[float]:
-        return [float(v) for v in values] if self.key.endswith(VECTOR_KEYS) \
-            else float(values[0])
+        return [float(v) for v in values] if self.key.endswith(VECTOR_KEYS) or \
+            is_field_key(self.key) else float(values[0])
 
 
 def _params(spec: FitFile, scene: Scene, where: str) -> list[_Param]:
@@ -191,7 +201,9 @@ def _params(spec: FitFile, scene: Scene, where: str) -> list[_Param]:
         if start is None:
             raise InputError(f"params[{i}].start: the scene gives no {p.key}; give start",
                              path=where)
-        start = np.atleast_1d(np.asarray(start, dtype=np.float64))
+        if is_field_key(p.key):  # one number: every tet
+            start = np.broadcast_to(np.asarray(start, dtype=np.float64), np.shape(current))
+        start = np.atleast_1d(np.array(start, dtype=np.float64))
         low, high = p.bounds if p.bounds is not None else (-math.inf, math.inf)
         if np.any(start < low) or np.any(start > high):
             raise InputError(f"params[{i}].bounds: the start {start} is outside "
@@ -204,6 +216,54 @@ def _params(spec: FitFile, scene: Scene, where: str) -> list[_Param]:
     return out
 
 
+class FieldMeshes:
+    """Scenes with fitted per-tet fields: each body with a field key gets its mesh written
+    again (VTU, in a temporary folder) with the field's values as its cell data."""
+
+    def __init__(self) -> None:
+        self.folder: Path | None = None
+        self.meshes: dict[int, Path] = {}  # body -> the mesh of the latest scene
+        self.count = 0
+
+    def scene(self, base: Scene, values: dict[str, Any]) -> Scene:
+        """``base`` with ``values`` set (fields: through a mesh written for them)."""
+        plain = {k: v for k, v in values.items() if not is_field_key(k)}
+        scene = scene_with(base, plain)
+        by_body: dict[int, dict[str, np.ndarray]] = {}
+        for k, v in values.items():
+            if is_field_key(k):
+                p = parse_param_key(k)
+                by_body.setdefault(p.body, {})[p.name] = np.asarray(v, dtype=np.float64)
+        for body, fields in by_body.items():
+            path = self._write(base, body, fields)
+            scene = apply_overrides(scene, {f"bodies[{body}].mesh": str(path)})
+        return scene
+
+    def _write(self, base: Scene, body: int, fields: dict[str, np.ndarray]) -> Path:
+        import tempfile
+
+        import meshio
+
+        if self.folder is None:
+            self.folder = Path(tempfile.mkdtemp(prefix="fem3d-fit-"))
+        mesh = meshio.read(base.path(base.bodies[body].mesh))
+        blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
+        T = np.concatenate([mesh.cells[j].data for j in blocks])
+        data = {n: [np.concatenate([np.asarray(a[j]) for j in blocks])]
+                for n, a in mesh.cell_data.items()}
+        names = base.bodies[body].material.cell_fields
+        for param, v in fields.items():
+            data[names[param]] = [v]
+        self.count += 1
+        path = self.folder / f"body{body}_{self.count}.vtu"
+        meshio.write(path, meshio.Mesh(mesh.points, [("tetra", T)], cell_data=data))
+        old = self.meshes.get(body)
+        self.meshes[body] = path
+        if old is not None and old != path:
+            old.unlink(missing_ok=True)
+        return path
+
+
 class _Objective:
     """The scaled loss and its gradient, cached by point; records what it evaluated."""
 
@@ -214,6 +274,7 @@ class _Objective:
         self.cache: dict[bytes, tuple[float, np.ndarray, dict]] = {}
         self.norm: float | None = None
         self.evaluations = 0
+        self.fields = FieldMeshes()
 
     def split(self, u: np.ndarray) -> list[np.ndarray]:
         return np.split(np.asarray(u, dtype=np.float64),
@@ -228,7 +289,7 @@ class _Objective:
         key = np.asarray(u, dtype=np.float64).tobytes()
         if key not in self.cache:
             values = self.values(u)
-            scene = scene_with(self.scene, values)
+            scene = self.fields.scene(self.scene, values)
             value, grads = trajectory_gradient(scene, self.loss, [p.key for p in self.params],
                                                steps=self.steps, checkpoint_every=self.k)
             self.evaluations += 1
@@ -259,6 +320,8 @@ def progress_line(rec: dict[str, Any]) -> str:
 
 
 def _fmt(v: Any) -> str:
+    if isinstance(v, list) and len(v) > 3:  # a per-tet field
+        return f"[{min(v):.6g} .. {max(v):.6g}, {len(v)} tets]"
     return "[" + ", ".join(f"{x:.6g}" for x in v) + "]" if isinstance(v, list) else f"{v:.6g}"
 
 
@@ -350,8 +413,9 @@ def fit(spec: FitFile, *, where: str = "fit file",
     return FitResult(params=values, start=history[0]["params"], history=history,
                      loss=final["loss"], gradient_norm=final["gradient_norm"], success=success,
                      message=message, iterations=iterations, evaluations=obj.evaluations,
-                     scene=scene_with(scene, values), frames=frames,
-                     n_vertices=n if ids is None else int(ids.size))
+                     scene=obj.fields.scene(scene, values), frames=frames,
+                     n_vertices=n if ids is None else int(ids.size),
+                     meshes=dict(obj.fields.meshes))
 
 
 def _to_u(p: _Param, value: Any) -> np.ndarray:
@@ -429,6 +493,10 @@ def _plot(result: FitResult, path: Path) -> None:
     for key in result.params:
         final = np.atleast_1d(np.asarray(result.params[key], dtype=np.float64))
         path_k = np.array([np.atleast_1d(r["params"][key]) for r in result.history])
+        if final.size > 3:  # a per-tet field: its median ratio to the fitted values
+            ratio = path_k / np.where(final != 0, final, 1.0)
+            a2.plot(it, np.median(ratio, axis=1), "o-", label=f"{key} (median of {final.size})")
+            continue
         for c in range(final.size):
             ref = final[c] if final[c] != 0 else 1.0
             label = key if final.size == 1 else f"{key}[{c}]"
@@ -465,5 +533,11 @@ def write_outputs(result: FitResult, spec: FitFile, out: Path, *,
     header = (f"fitted by `fem3d fit` ({spec.name}): "
               + ", ".join(f"{k} = {_fmt(v)}" for k, v in result.params.items())
               + f"\nfrom {spec.scene}")
-    written.append(atomic_write(out / "fitted.toml", scene_toml(result.scene, header)))
+    scene = result.scene
+    for body, mesh in result.meshes.items():  # the fitted fields' meshes, beside fitted.toml
+        target = out / f"fitted_body{body}.vtu"
+        atomic_write(target, mesh.read_bytes())
+        written.append(target)
+        scene = apply_overrides(scene, {f"bodies[{body}].mesh": str(target.resolve())})
+    written.append(atomic_write(out / "fitted.toml", scene_toml(scene, header)))
     return written

@@ -31,7 +31,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from fem3d.app.sweep.spec import _loc
-from fem3d.diff.adjoint import PARAMETER_KEYS
+from fem3d.diff.params import KEY_PATTERNS, PARAMETER_KEYS, is_field_key
 from fem3d.errors import InputError
 from fem3d.scene.spec import Selector
 
@@ -39,10 +39,9 @@ __all__ = ["FitFile", "ParamSpec", "LossSpec", "OptimizerSpec", "load_fit_file",
            "VECTOR_KEYS", "key_pattern"]
 
 #: Key endings whose value is a 3-vector.
-VECTOR_KEYS = ("velocity", "gravity")
+VECTOR_KEYS = ("velocity", "gravity", "translate")
 
-_KEY = re.compile("^(" + "|".join(re.escape(k).replace(r"\[i\]", r"\[\d+\]")
-                                  for k in PARAMETER_KEYS) + ")$")
+_KEY = re.compile("|".join(f"(?:{p.pattern})" for p in KEY_PATTERNS))
 
 
 def key_pattern() -> re.Pattern[str]:
@@ -65,7 +64,9 @@ class ParamSpec(_Spec):
     key : str
         One of :data:`fem3d.diff.adjoint.PARAMETER_KEYS` (``bodies[0].material.E``).
     start : float or list of 3 floats, optional
-        Starting value (default: the base scene's).
+        Starting value (default: the base scene's; a per-tet field
+        ``bodies[i].material.cell_fields.NAME``: one number for every tet, default the
+        mesh's values).
     bounds : [low, high], optional
         Finite or ``inf`` (left out: unbounded); vectors: the same bounds for every
         component.
@@ -82,7 +83,11 @@ class ParamSpec(_Spec):
     def _check(self) -> ParamSpec:
         if not _KEY.match(self.key):
             raise ValueError(f"key: cannot fit {self.key!r}; supported: "
-                             f"{', '.join(PARAMETER_KEYS)} (i: a body index)")
+                             f"{', '.join(PARAMETER_KEYS)} (i, j, k: indices; NAME: a "
+                             "material parameter)")
+        if is_field_key(self.key) and isinstance(self.start, list):
+            raise ValueError(f"start: {self.key} is a per-tet field: start is one number "
+                             "for every tet (left out: the mesh's values)")
         vector = self.key.endswith(VECTOR_KEYS)
         if self.start is not None:
             if vector != isinstance(self.start, list) or (vector and len(self.start) != 3):
