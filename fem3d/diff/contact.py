@@ -1,0 +1,276 @@
+"""IPC contact and friction in the adjoint of a backward-Euler trajectory.
+
+A contact scene's step minimises the model's terms plus the contact group
+(:class:`~fem3d.physics.terms.contact.ContactTerm`): the barrier ``kappa B(q_{n+1})`` and the
+lagged friction ``D(q_{n+1}; q_n, mu)``, both in positions, so the step's stationarity
+condition (:mod:`fem3d.diff.adjoint`) gains ``dt (grad B(q_{n+1}) + grad_1 D(q_{n+1}; q_n))``.
+:class:`ContactAdjoint` supplies that term's three pieces of the adjoint step:
+
+* :meth:`ContactAdjoint.hessian`: the **exact** Hessian ``kappa H_B + H_D`` at ``q_{n+1}``
+  (not the per-pair PSD projection Newton uses: the adjoint differentiates what was
+  minimised; ``ipctk``'s ``PSDProjectionMethod.NONE`` and the planes' unprojected blocks of
+  :class:`~fem3d.physics.contact.ContactModel`);
+* :meth:`ContactAdjoint.state_vjp`: ``d/dq_n`` of ``lambda^T grad(B + D)`` with the step's
+  unknowns held (``q_{n+1} = q_n + dt v_{n+1}``). The barrier gives ``H_B lambda``; the
+  friction's slip ``q_{n+1} - q_n`` does not change, so only its lagged quantities do: the
+  normal forces (and, between meshes, tangent bases and closest points) taken at ``q_n``.
+  Planes: ``d lambda_k / d s_k`` of IPC's normal force ``kappa |b'(s^2) 2 s|`` in NumPy;
+  meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``;
+* :meth:`ContactAdjoint.param_vjp`: ``lambda^T d grad D / d mu`` (``mu``, ``mu_s``,
+  ``mu_k``): the friction is linear in the two coefficients, so each derivative is the
+  friction gradient lagged with that coefficient 1 and the other 0.
+
+Held fixed within a step (each a discrete choice, not a function of the parameters):
+
+* the barrier stiffness ``kappa``. With ``contact.kappa`` given it is a constant and the
+  gradient is exact. With the adaptive stiffness (``kappa`` unset) the value each step used
+  is recorded in the forward pass and replayed: the derivative of IPC's initial ``kappa``
+  (it balances the elastic gradient, so it moves with ``E``) and of its doublings is left
+  out. That is an error of the order of the barrier's share of the contact force's
+  sensitivity; a doubling between two finite-difference runs is a jump the adjoint does not
+  see at all. Fix ``contact.kappa`` to differentiate exactly;
+* the contact set: the barrier is C2 at ``d = dhat`` (its value, slope and curvature vanish
+  there), so pairs entering or leaving it change the gradient continuously; the friction's
+  lagged pairs carry normal forces that vanish with their first derivative at ``dhat``;
+* the friction is lagged once per step, at the step's start (``friction_iterations = 1``;
+  more re-lag at the Newton solution, a fixed point that is refused here).
+
+Newton runs to the adjoint's tight tolerance: the contact term is rebuilt with IPC's
+velocity-based stopping rule out of the way (:data:`_NO_VELOCITY_STOP`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+
+from fem3d.errors import ParameterError
+from fem3d.physics.friction import point_plane_friction
+from fem3d.physics.terms.contact import ContactTerm
+from fem3d.solve.state import State
+
+__all__ = ["ContactAdjoint", "CONTACT_KEYS", "contact_adjoint"]
+
+#: The contact parameters :class:`ContactAdjoint` differentiates.
+CONTACT_KEYS = ("contact.mu", "contact.mu_s", "contact.mu_k")
+
+#: IPC's stopping rule (the Newton step's position change per second below this times the
+#: scene's size) is kept from stopping Newton before the adjoint's gradient tolerance.
+_NO_VELOCITY_STOP = 1e-300
+
+
+def contact_adjoint(scene, built) -> ContactAdjoint | None:
+    """The :class:`ContactAdjoint` of a built contact scene (None without contact).
+
+    Raises
+    ------
+    ParameterError
+        ``contact.friction_iterations > 1`` (friction re-lagged at the Newton solution), or a
+        start that intersects or touches.
+    """
+    if built.contact is None:
+        return None
+    spec = scene.contact
+    if spec.friction_iterations != 1:
+        raise ParameterError("trajectory_gradient: contact.friction_iterations = "
+                             f"{spec.friction_iterations}: the adjoint differentiates friction "
+                             "lagged once per step (set it to 1)")
+    term = ContactTerm(built.contact.contact, tolerance=_NO_VELOCITY_STOP,
+                       pattern_margin=built.contact.barrier.pattern_margin)
+    return ContactAdjoint(term, {"mu_s": spec.mu_s is None, "mu_k": spec.mu_k is None})
+
+
+class ContactAdjoint:
+    """The contact group's part of the forward run and of each adjoint step.
+
+    Parameters
+    ----------
+    term : ContactTerm
+        The scene's contact group (friction lagged once per step).
+    follows_mu : dict, optional
+        ``{"mu_s": bool, "mu_k": bool}``: whether ``contact.mu`` sets that coefficient (the
+        scene leaves its own key unset; default both).
+
+    Attributes
+    ----------
+    keys : tuple of str
+        The parameters :meth:`param_vjp` answers (:data:`CONTACT_KEYS`).
+    terms : list
+        What the forward step adds to the model's terms.
+    """
+
+    keys = CONTACT_KEYS
+
+    def __init__(self, term: ContactTerm, follows_mu: dict | None = None) -> None:
+        self.term = term
+        self.follows_mu = follows_mu or {"mu_s": True, "mu_k": True}
+        self.cm = term.contact
+        self.terms = [term]
+        self._before: dict[int, np.ndarray] = {}   # adaptive state before step n
+        self._kappas: dict[int, tuple[float, float]] = {}  # (at the friction lag, at the end)
+        self._q1: np.ndarray | None = None
+        self._unit: dict[str, np.ndarray] = {}
+
+    # -- the forward run ------------------------------------------------------------------------
+    def check_start(self, q: np.ndarray) -> None:
+        """Refuse an intersecting or touching start (as a run does)."""
+        self.cm.check_admissible(q)
+
+    def before_step(self, state: State) -> None:
+        """Record the adaptive stiffness before step ``state.step`` (first run) or restore it
+        (a recomputation from a checkpoint repeats the first run's steps)."""
+        saved = self._before.get(state.step)
+        if saved is None:
+            self._before[state.step] = self.term.state_array()
+        else:
+            self.term.load_state_array(saved)
+
+    def after_step(self, state: State) -> None:
+        """Record the stiffness step ``state.step`` (its start) lagged the friction with and
+        the one its minimiser holds."""
+        kappa_lag = self.term.friction._kappa_at_lag
+        kappa = self.cm.kappa
+        self._kappas[state.step] = (kappa if math.isnan(kappa_lag) else kappa_lag, kappa)
+
+    # -- one adjoint step -----------------------------------------------------------------------
+    def linearize(self, s0: State, s1: State, dt: float, keys) -> None:
+        """Put the contact model in step ``s0 -> s1``'s configuration: the friction lagged at
+        ``s0`` with the stiffness it used, the obstacles at ``s1``'s time, the barrier's
+        stiffness at convergence; the unit-coefficient friction gradients of ``keys``."""
+        cm = self.cm
+        kappa_lag, kappa = self._kappas[s0.step]
+        q0 = np.asarray(s0.q, dtype=np.float64).reshape(-1)
+        q1 = np.asarray(s1.q, dtype=np.float64).reshape(-1)
+        cm.set_time(s0.t + dt)
+        cm.set_kappa(kappa_lag)
+        cm.lag_friction(q0, dt, t_start=s0.t)
+        self._q0, self._q1, self._kappa_lag = q0, q1, kappa_lag
+        self._planes = self._plane_lag()
+        self._unit = {}
+        if any(k in CONTACT_KEYS for k in keys):
+            for which, coeffs in (("mu_s", (1.0, 0.0)), ("mu_k", (0.0, 1.0))):
+                self._unit[which] = self._plane_gradient(*coeffs) + \
+                    self._mesh_gradient(*coeffs, s0.t)
+        cm.set_kappa(kappa)
+
+    def hessian(self) -> sp.csr_matrix:
+        """The exact (unprojected) Hessian of barrier + friction at ``q_{n+1}``, ``(3n, 3n)``
+        in positions."""
+        H = self.cm.barrier_hessian(self._q1, project=False).tocsr()
+        if self.cm.n_friction_pairs:
+            H = H + self.cm.friction_hessian(self._q1, project=False).tocsr()
+        return H
+
+    def state_vjp(self, lf: np.ndarray) -> np.ndarray:
+        """``d/dq_n`` of ``lf^T grad(B + D)(q_{n+1}; q_n)`` with the step's unknowns held:
+        ``H_B lf`` plus the friction's lagged normal forces and bases, ``(3n,)``."""
+        cm = self.cm
+        out = cm.barrier_hessian(self._q1, project=False).tocsr() @ lf
+        if cm.n_friction_pairs:
+            out += self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
+        return out
+
+    def param_vjp(self, key: str, lf: np.ndarray) -> float:
+        """``lf^T d grad(B + D) / d key`` for a key of :data:`CONTACT_KEYS`."""
+        g = 0.0
+        for which in ("mu_s", "mu_k"):
+            if key == f"contact.{which}" or (key == "contact.mu" and self.follows_mu[which]):
+                g += float(lf @ self._unit[which])
+        return g
+
+    # -- the friction's lagged quantities ------------------------------------------------------
+    def _plane_lag(self):
+        """``(planes, surface vertices, normals, lambda, d lambda / d s)`` of the point-plane
+        pairs active at ``q_n``: IPC's normal force ``lambda = kappa |b'(s^2) 2 s|`` (as
+        :class:`ContactModel` lags it, whatever ``mu``) and its derivative by the signed
+        distance ``s``, ``kappa (-2 b' - 4 s^2 b'')``."""
+        cm = self.cm
+        if not cm.planes:
+            return None
+        S = cm._plane_distances(self._q0)
+        pl, vi = np.nonzero((S < cm.dhat) & (S > 0))
+        if pl.size == 0:
+            return None
+        s = S[pl, vi]
+        z, zh = s * s, cm.dhat * cm.dhat
+        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z
+        b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
+        k = self._kappa_lag
+        return pl, vi, cm._plane_n[pl], k * np.abs(b1 * 2.0 * s), k * (-2.0 * b1 - 4.0 * z * b2)
+
+    def _plane_slip_forces(self, lam, mu_s: float, mu_k: float) -> np.ndarray:
+        """Each lagged point-plane pair's friction gradient ``(k, 3)`` at ``q_{n+1}``."""
+        cm = self.cm
+        _, vi, n, _, _ = self._planes
+        P0 = self._q0.reshape(-1, 3)[cm.surface[vi]]
+        P1 = self._q1.reshape(-1, 3)[cm.surface[vi]]
+        return point_plane_friction(n, P1 - P0, lam, cm.eps_v * cm._dt, mu_s, mu_k, 1)
+
+    def _plane_gradient(self, mu_s: float, mu_k: float) -> np.ndarray:
+        """The point-plane friction's gradient ``(3n,)`` with coefficients ``mu_s, mu_k``."""
+        out = np.zeros(3 * self.cm.n_vertices)
+        if self._planes is not None:
+            _, vi, _, lam, _ = self._planes
+            np.add.at(out.reshape(-1, 3), self.cm.surface[vi],
+                      self._plane_slip_forces(lam, mu_s, mu_k))
+        return out
+
+    def _plane_lag_vjp(self, lf: np.ndarray) -> np.ndarray:
+        """Point-plane pairs: ``sum_k (lf_k . G_k) d lambda_k / d q_n``, ``G_k`` the pair's
+        friction gradient per unit normal force (the normals are the planes': fixed)."""
+        cm = self.cm
+        out = np.zeros(3 * cm.n_vertices)
+        if self._planes is None or cm.mu == 0.0:
+            return out
+        _, vi, n, _, dlam_ds = self._planes
+        G = self._plane_slip_forces(np.ones(vi.size), cm.mu, cm.mu_k)
+        verts = cm.surface[vi]
+        coef = (lf.reshape(-1, 3)[verts] * G).sum(axis=1) * dlam_ds
+        np.add.at(out.reshape(-1, 3), verts, coef[:, None] * n)
+        return out
+
+    def _mesh_gradient(self, mu_s: float, mu_k: float, t0: float) -> np.ndarray:
+        """The mesh-mesh friction's gradient ``(3n,)`` at ``q_{n+1}`` lagged at ``q_n`` with
+        coefficients ``mu_s, mu_k`` (ipctk's ``TangentialCollisions`` built for them)."""
+        cm = self.cm
+        out = np.zeros(3 * cm.n_vertices)
+        if not cm._parts:
+            return out
+        V1 = cm.collision_vertices(self._q1)
+        normal = ipctk.BarrierPotential(cm.dhat, self._kappa_lag)
+        for p in cm._parts:
+            Vl = np.asfortranarray(p.view(cm._lagged_V))
+            col = cm._build(p, Vl)
+            if not len(col):
+                continue
+            tc = ipctk.TangentialCollisions()
+            tc.build(p.mesh, Vl, col, normal, mu_s, mu_k)
+            if len(tc):
+                U = np.asfortranarray(p.view(V1) - Vl)
+                cm._to_full_vector(cm._friction.gradient(tc, p.mesh, U), out)
+        return out
+
+    def _mesh_lag_vjp(self, lf: np.ndarray) -> np.ndarray:
+        """Mesh-mesh pairs: ``-J^T lf`` with ``J`` ipctk's Jacobian of the friction force
+        (``-grad D``) by the lagged positions at a fixed slip."""
+        cm = self.cm
+        out = np.zeros(3 * cm.n_vertices)
+        parts = [p for p in cm._parts if p.tangential is not None]
+        if not parts:
+            return out
+        V1 = cm.collision_vertices(self._q1)
+        normal = ipctk.BarrierPotential(cm.dhat, self._kappa_lag)
+        w = np.zeros(3 * cm.n_collision_vertices)
+        nd = cm._n_dyn_dofs
+        w[:nd] = lf[cm._dof[:nd]]
+        for p in parts:
+            Vl = p.view(cm._lagged_V)
+            U = np.asfortranarray(p.view(V1) - Vl)
+            J = cm._friction.force_jacobian(
+                p.tangential, p.mesh, np.asfortranarray(Vl), np.zeros_like(U, order="F"), U,
+                normal, ipctk.TangentialPotential.DiffWRT.LAGGED_DISPLACEMENTS)
+            cm._to_full_vector(-(J.T @ w[: J.shape[0]]), out)
+        return out
