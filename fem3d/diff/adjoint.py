@@ -24,7 +24,9 @@ What is exact and what is not:
   material parameters through the PSD-projected element Hessians; the generator has no third
   derivatives, so these two pieces are central finite differences per element (relative error
   about ``1e-9``). With ``rayleigh_stiffness = 0`` (the default) everything is exact.
-* Held fixed / not supported: contact and friction, pull springs, moving pins, material
+* Terms beyond the model's (IPC contact and friction) enter through a term adjoint
+  (:class:`TermAdjoint`; :mod:`fem3d.diff.contact` says what it differentiates and holds).
+* Held fixed / not supported: pull springs, moving pins, material
   ``regions`` and ``cell_fields`` (the body's ``E, nu`` derivative covers the tets that take
   them), angular velocity.
 
@@ -37,12 +39,14 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fem3d.diff.contact import CONTACT_KEYS, contact_adjoint
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.assembly import hessian_data
 from fem3d.physics.materials import info, parameters_jacobian_from
@@ -61,6 +65,9 @@ PARAMETER_KEYS = (
     "bodies[i].damping.rayleigh_mass", "bodies[i].damping.rayleigh_stiffness",
     "bodies[i].velocity", "simulation.gravity",
 )
+#: the term adjoints' keys (:class:`TermAdjoint`)
+PARAMETER_KEYS = PARAMETER_KEYS + CONTACT_KEYS
+_TERM_KEYS = frozenset(CONTACT_KEYS)
 _BODY_KEY = re.compile(r"^bodies\[(\d+)\]\.(material\.E|material\.nu|material\.density|"
                        r"damping\.rayleigh_mass|damping\.rayleigh_stiffness|velocity)$")
 
@@ -101,6 +108,29 @@ class PositionLoss:
         return 0.5 * self.weight * float(np.sum(r * r)), grad
 
 
+class TermAdjoint(Protocol):
+    """The adjoint of objective terms beyond the model's (:mod:`fem3d.diff.contact`): what
+    they add to the forward step and to each backward step ``s0 -> s1``, all in positions.
+
+    ``keys``: the parameters it differentiates; ``terms``: the forward step's extra terms;
+    ``before_step``/``after_step``: around each forward step (record, or replay on a
+    recomputation, what the terms hold fixed); ``linearize``: set up step ``s0 -> s1``;
+    ``hessian``: the terms' exact Hessian at ``s1`` (3n, 3n); ``state_vjp(lf)``: ``d/dq0`` of
+    ``lf^T`` their gradient at fixed unknowns (3n,); ``param_vjp(key, lf)``: ``lf^T d grad /
+    d key``.
+    """
+
+    keys: tuple[str, ...]
+    terms: list
+
+    def before_step(self, state: State) -> None: ...
+    def after_step(self, state: State) -> None: ...
+    def linearize(self, s0: State, s1: State, dt: float, keys: Sequence[str]) -> None: ...
+    def hessian(self) -> sp.spmatrix: ...
+    def state_vjp(self, lf: np.ndarray) -> np.ndarray: ...
+    def param_vjp(self, key: str, lf: np.ndarray) -> float: ...
+
+
 @dataclass
 class _Run:
     scene: Scene
@@ -110,21 +140,25 @@ class _Run:
     dt: float
     rtol: float
     atol_factor: float
+    extensions: list = field(default_factory=list)  # TermAdjoint
 
     def step(self, state: State) -> State:
+        extra = [t for e in self.extensions for t in e.terms]
+        for e in self.extensions:
+            e.before_step(state)
         new, stats = backward_euler(
-            self.system, model_terms(self.system), state, self.dt, max_iterations=None,
-            rtol=self.rtol, atol_factor=self.atol_factor, linear_solver="direct",
-            options=newton_options("exact"))
+            self.system, [*model_terms(self.system), *extra], state, self.dt,
+            max_iterations=None, rtol=self.rtol, atol_factor=self.atol_factor,
+            linear_solver="direct", options=newton_options("exact"))
         if not stats.converged:
             raise SimulationError("Newton did not converge: the adjoint needs converged steps",
                                   step=state.step)
+        for e in self.extensions:
+            e.after_step(state)
         return new
 
 
 def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
-    if scene.contact is not None and getattr(scene.contact, "enabled", True):
-        raise ParameterError("trajectory_gradient: contact scenes are not supported yet")
     if scene.pulls:  # a run applies them: differentiating without them would be wrong
         raise ParameterError("trajectory_gradient: scripted pulls are not differentiated yet "
                              f"(the scene has {len(scene.pulls)}; remove them with pulls = [])")
@@ -142,7 +176,11 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     v0 = np.array(a.v0, dtype=np.float64)
     v0[built.constraints.fixed_vertices] = 0.0
     state = State(q=built.model.X.copy(), v=v0, t=0.0, step=0)
-    return _Run(scene, system, a, state, float(scene.simulation.dt), rtol, atol_factor)
+    extensions = [e for e in (contact_adjoint(scene, built),) if e is not None]
+    for e in extensions:
+        e.check_start(state.q)
+    return _Run(scene, system, a, state, float(scene.simulation.dt), rtol, atol_factor,
+                extensions)
 
 
 def simulate(scene: Scene, steps: int, *, rtol: float = 1e-11,
@@ -188,10 +226,13 @@ def trajectory_gradient(
     (float, dict of str -> float or (3,) float64)
     """
     for key in params:
-        if key != "simulation.gravity" and not _BODY_KEY.match(key):
+        if key != "simulation.gravity" and key not in _TERM_KEYS and not _BODY_KEY.match(key):
             raise ParameterError(f"trajectory_gradient: cannot differentiate {key!r}; "
                                  f"supported: {', '.join(PARAMETER_KEYS)}")
     run = _prepare(scene, rtol, atol_factor)
+    for key in set(params) & _TERM_KEYS - {k for e in run.extensions for k in e.keys}:
+        raise ParameterError(f"trajectory_gradient: cannot differentiate {key!r}: the scene "
+                             "has no term it belongs to (contact.enabled is false)")
     n_steps = int(loss.last_step if steps is None else steps)
     k = max(1, int(checkpoint_every))
     checkpoints = {0: run.state0}
@@ -252,6 +293,8 @@ class _Adjoint:
         if damping is not None:
             data = data + dt * damping
         A = model.csr(data)
+        for e in self.run.extensions:
+            A = A + dt * dt * e.hessian()
         return A[self.free][:, self.free].tocsr()
 
     def _solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
@@ -266,12 +309,16 @@ class _Adjoint:
         dt, model = self.dt, self.model
         q0, q1 = s0.q.reshape(-1), s1.q.reshape(-1)
         v0, v1 = s0.v.reshape(-1), s1.v.reshape(-1)
+        for e in self.run.extensions:
+            e.linearize(s0, s1, dt, self.params)
         rhs = (v_bar + dt * q_bar)[self.free]
         lam = self._solve(self._newton_matrix(q0, q1), rhs)
         lf = np.zeros(model.n_dofs)
         lf[self.free] = lam
         H1 = model.csr(hessian_data(model, q1))
         q_bar_new = q_bar - dt * (H1 @ lf)  # q_{n+1} = q_n + dt P^T x
+        for e in self.run.extensions:
+            q_bar_new -= dt * e.state_vjp(lf)
         beta_any = bool(np.any(self.beta > 0))
         if beta_any:
             q_bar_new -= dt * _damping_state_vjp(self, q0, lf, v1)
@@ -286,6 +333,10 @@ class _Adjoint:
         for key in self.params:
             if key == "simulation.gravity":
                 self.acc[key] += dt * Mlf.reshape(-1, 3).sum(axis=0)
+                continue
+            if key in _TERM_KEYS:
+                self.acc[key] -= dt * sum(e.param_vjp(key, lf) for e in self.run.extensions
+                                          if key in e.keys)
                 continue
             b, what = _body_key(key)
             dofs = _body_dofs(self.a.body_vertices[b])
