@@ -1,4 +1,4 @@
-"""The discrete adjoint of a backward-Euler trajectory (no contact, no pulls, fixed pins).
+"""The discrete adjoint of a backward-Euler trajectory (no pulls, fixed pins).
 
 Each step solves ``g(x; q_n, v_n, p) = 0`` over the free velocities ``x = v_{n+1}`` (``g``:
 the gradient of backward Euler's objective, :mod:`fem3d.solve.backward_euler`)::
