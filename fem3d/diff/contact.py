@@ -111,7 +111,12 @@ class ContactAdjoint:
         self.terms = [term]
         self._before: dict[int, np.ndarray] = {}   # adaptive state before step n
         self._kappas: dict[int, tuple[float, float]] = {}  # (at the friction lag, at the end)
+        # the step linearize() set up: q_n, q_{n+1}, the friction's kappa, the planes' lag
+        self._q0: np.ndarray | None = None
         self._q1: np.ndarray | None = None
+        self._kappa_lag = math.nan
+        self._planes = None
+        self._HB: sp.csr_matrix | None = None
         self._unit: dict[str, np.ndarray] = {}
 
     # -- the forward run ------------------------------------------------------------------------
@@ -148,6 +153,7 @@ class ContactAdjoint:
         cm.set_kappa(kappa_lag)
         cm.lag_friction(q0, dt, t_start=s0.t)
         self._q0, self._q1, self._kappa_lag = q0, q1, kappa_lag
+        self._HB: sp.csr_matrix | None = None
         self._planes = self._plane_lag()
         self._unit = {}
         if any(k in CONTACT_KEYS for k in keys):
@@ -159,16 +165,22 @@ class ContactAdjoint:
     def hessian(self) -> sp.csr_matrix:
         """The exact (unprojected) Hessian of barrier + friction at ``q_{n+1}``, ``(3n, 3n)``
         in positions."""
-        H = self.cm.barrier_hessian(self._q1, project=False).tocsr()
+        H = self._barrier_hessian()
         if self.cm.n_friction_pairs:
             H = H + self.cm.friction_hessian(self._q1, project=False).tocsr()
         return H
+
+    def _barrier_hessian(self) -> sp.csr_matrix:
+        """``kappa H_B(q_{n+1})``, unprojected (computed once per step)."""
+        if self._HB is None:
+            self._HB = self.cm.barrier_hessian(self._q1, project=False).tocsr()
+        return self._HB
 
     def state_vjp(self, lf: np.ndarray) -> np.ndarray:
         """``d/dq_n`` of ``lf^T grad(B + D)(q_{n+1}; q_n)`` with the step's unknowns held:
         ``H_B lf`` plus the friction's lagged normal forces and bases, ``(3n,)``."""
         cm = self.cm
-        out = cm.barrier_hessian(self._q1, project=False).tocsr() @ lf
+        out = self._barrier_hessian() @ lf
         if cm.n_friction_pairs:
             out += self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
         return out
