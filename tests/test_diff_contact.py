@@ -59,7 +59,7 @@ def variant(name: str, tmp_path: Path):
     moving mesh (ipctk's pairs, a kinematic obstacle: it drags the box back), or a plane
     with static 0.5 above kinetic 0.3 friction."""
     if name == "plane":
-        return drop_scene(), {E_KEY: 1e4, "contact.mu": 0.3}
+        return drop_scene(), {E_KEY: 1e4, "contact.mu": 0.3, "contact.kappa": 5e10}
     if name == "moving_mesh":
         scene = drop_scene(obstacles=[{"mesh": {"path": ground_mesh(tmp_path),
                                                 "motion": CONVEYOR}}])
@@ -95,8 +95,8 @@ def test_contact_drop_gradient_matches_central_differences(ground: str, tmp_path
         h = 1e-5 * v  # the step: 1e-5 of the value
         fd = (total_loss(scene_with(scene, {key: v + h}), loss)
               - total_loss(scene_with(scene, {key: v - h}), loss)) / (2 * h)
-        # measured: 3e-9 (E) and 2e-10 (mu) on the plane, 3e-9 and 1e-9 on the moving mesh,
-        # 1e-9 (mu_k) with mu_s > mu_k
+        # measured: 3e-9 (E), 2e-10 (mu), 6e-8 (kappa) on the plane, 3e-9 and 1e-9 on the
+        # moving mesh, 1e-9 (mu_k) with mu_s > mu_k
         error = abs(grads[key] - fd) / abs(fd)
         assert error < 1e-6, f"{key}: adjoint {grads[key]}, differences {fd}, error {error:.1e}"
 
@@ -158,15 +158,18 @@ def test_one_step_pieces_are_exact(ground: str, tmp_path) -> None:
         assert d == pytest.approx(fd, rel=1e-7)
 
 
-def test_friction_iterations_and_contact_keys_without_contact_are_refused() -> None:
+def test_friction_iterations_and_contact_keys_without_their_term_are_refused() -> None:
     scene = drop_scene(contact={**CONTACT, "friction_iterations": 3})
     loss = PositionLoss({1: np.zeros((27, 3))})
     with pytest.raises(ParameterError, match="friction_iterations = 3"):
         trajectory_gradient(scene, loss, [E_KEY])
     no_contact = drop_scene(contact={"enabled": False}, obstacles=[], **{
         "bodies[0].pins": [{"select": {"lowest_y": {"tol": 0.0}}}]})
-    with pytest.raises(ParameterError, match="'contact.mu'.*no term"):
+    with pytest.raises(ParameterError, match="'contact.mu' in this scene"):
         trajectory_gradient(no_contact, loss, ["contact.mu"])
+    adaptive = drop_scene(contact={k: v for k, v in CONTACT.items() if k != "kappa"})
+    with pytest.raises(ParameterError, match="'contact.kappa'.*a fixed kappa"):
+        trajectory_gradient(adaptive, loss, ["contact.kappa"])
 
 
 def test_fit_recovers_E_through_a_contact_landing(tmp_path: Path, capsys) -> None:

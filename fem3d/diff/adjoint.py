@@ -231,8 +231,9 @@ def trajectory_gradient(
                                  f"supported: {', '.join(PARAMETER_KEYS)}")
     run = _prepare(scene, rtol, atol_factor)
     for key in set(params) & _TERM_KEYS - {k for e in run.extensions for k in e.keys}:
-        raise ParameterError(f"trajectory_gradient: cannot differentiate {key!r}: the scene "
-                             "has no term it belongs to (contact.enabled is false)")
+        raise ParameterError(f"trajectory_gradient: cannot differentiate {key!r} in this "
+                             "scene (contact keys need contact.enabled = true, contact.kappa "
+                             "a fixed kappa)")
     n_steps = int(loss.last_step if steps is None else steps)
     k = max(1, int(checkpoint_every))
     checkpoints = {0: run.state0}

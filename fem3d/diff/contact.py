@@ -18,7 +18,9 @@ condition (:mod:`fem3d.diff.adjoint`) gains ``dt (grad B(q_{n+1}) + grad_1 D(q_{
   meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``;
 * :meth:`ContactAdjoint.param_vjp`: ``lambda^T d grad D / d mu`` (``mu``, ``mu_s``,
   ``mu_k``): the friction is linear in the two coefficients, so each derivative is the
-  friction gradient lagged with that coefficient 1 and the other 0.
+  friction gradient lagged with that coefficient 1 and the other 0; ``d / d kappa`` (a fixed
+  stiffness): the barrier and the lagged normal forces are linear in it, so it is
+  ``grad (B + D) / kappa``.
 
 Held fixed within a step (each a discrete choice, not a function of the parameters):
 
@@ -54,8 +56,9 @@ from fem3d.solve.state import State
 
 __all__ = ["ContactAdjoint", "CONTACT_KEYS", "contact_adjoint"]
 
-#: The contact parameters :class:`ContactAdjoint` differentiates.
-CONTACT_KEYS = ("contact.mu", "contact.mu_s", "contact.mu_k")
+#: The contact parameters :class:`ContactAdjoint` differentiates (``contact.kappa``: a fixed
+#: stiffness only).
+CONTACT_KEYS = ("contact.mu", "contact.mu_s", "contact.mu_k", "contact.kappa")
 
 #: IPC's stopping rule (the Newton step's position change per second below this times the
 #: scene's size) is kept from stopping Newton before the adjoint's gradient tolerance.
@@ -102,12 +105,12 @@ class ContactAdjoint:
         What the forward step adds to the model's terms.
     """
 
-    keys = CONTACT_KEYS
-
     def __init__(self, term: ContactTerm, follows_mu: dict | None = None) -> None:
         self.term = term
         self.follows_mu = follows_mu or {"mu_s": True, "mu_k": True}
         self.cm = term.contact
+        self.keys = tuple(k for k in CONTACT_KEYS
+                          if k != "contact.kappa" or not self.cm.adaptive)
         self.terms = [term]
         self._before: dict[int, np.ndarray] = {}   # adaptive state before step n
         self._kappas: dict[int, tuple[float, float]] = {}  # (at the friction lag, at the end)
@@ -186,7 +189,11 @@ class ContactAdjoint:
         return out
 
     def param_vjp(self, key: str, lf: np.ndarray) -> float:
-        """``lf^T d grad(B + D) / d key`` for a key of :data:`CONTACT_KEYS`."""
+        """``lf^T d grad(B + D) / d key`` for a key of :attr:`keys`."""
+        cm = self.cm
+        if key == "contact.kappa":
+            g = cm.barrier_gradient(self._q1) + cm.friction_gradient(self._q1)
+            return float(lf @ g) / cm.kappa
         g = 0.0
         for which in ("mu_s", "mu_k"):
             if key == f"contact.{which}" or (key == "contact.mu" and self.follows_mu[which]):
