@@ -113,16 +113,17 @@ class TermAdjoint(Protocol):
     they add to the forward step and to each backward step ``s0 -> s1``, all in positions.
 
     ``keys``: the parameters it differentiates; ``terms``: the forward step's extra terms;
-    ``before_step``/``after_step``: around each forward step (record, or replay on a
-    recomputation, what the terms hold fixed); ``linearize``: set up step ``s0 -> s1``;
-    ``hessian``: the terms' exact Hessian at ``s1`` (3n, 3n); ``state_vjp(lf)``: ``d/dq0`` of
-    ``lf^T`` their gradient at fixed unknowns (3n,); ``param_vjp(key, lf)``: ``lf^T d grad /
-    d key``.
+    ``check_start``: refuse an inadmissible initial state; ``before_step``/``after_step``:
+    around each forward step (record, or replay on a recomputation, what the terms hold
+    fixed); ``linearize``: set up step ``s0 -> s1``; ``hessian``: the terms' exact Hessian
+    at ``s1`` (3n, 3n); ``state_vjp(lf)``: ``d/dq0`` of ``lf^T`` their gradient at fixed
+    unknowns (3n,); ``param_vjp(key, lf)``: ``lf^T d grad / d key``.
     """
 
     keys: tuple[str, ...]
     terms: list
 
+    def check_start(self, q: np.ndarray) -> None: ...
     def before_step(self, state: State) -> None: ...
     def after_step(self, state: State) -> None: ...
     def linearize(self, s0: State, s1: State, dt: float, keys: Sequence[str]) -> None: ...
