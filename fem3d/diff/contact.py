@@ -27,10 +27,12 @@ Held fixed within a step (each a discrete choice, not a function of the paramete
 * the barrier stiffness ``kappa``. With ``contact.kappa`` given it is a constant and the
   gradient is exact. With the adaptive stiffness (``kappa`` unset) the value each step used
   is recorded in the forward pass and replayed: the derivative of IPC's initial ``kappa``
-  (it balances the elastic gradient, so it moves with ``E``) and of its doublings is left
-  out. That is an error of the order of the barrier's share of the contact force's
-  sensitivity; a doubling between two finite-difference runs is a jump the adjoint does not
-  see at all. Fix ``contact.kappa`` to differentiate exactly;
+  (the larger of a bound proportional to the mean vertex mass over ``dt^2`` and a balance
+  against the elastic gradient: it moves with the density, and with ``E`` where the balance
+  decides) and of its doublings is left out (measured on the tests' box drop: the density's
+  gradient off by ``2.4e-3``, the others unaffected; docs/differentiable.md); a doubling
+  between two finite-difference runs is a jump no derivative sees. Fix ``contact.kappa`` to
+  differentiate exactly;
 * the contact set: the barrier is C2 at ``d = dhat`` (its value, slope and curvature vanish
   there), so pairs entering or leaving it change the gradient continuously; the friction's
   lagged pairs carry normal forces that vanish with their first derivative at ``dhat``;
