@@ -120,7 +120,9 @@ class ContactAdjoint:
         self._q0: np.ndarray | None = None
         self._q1: np.ndarray | None = None
         self._kappa_lag = math.nan
+        self._dt = math.nan
         self._planes = None
+        self._mesh = None
         self._HB: sp.csr_matrix | None = None
         self._unit: dict[str, np.ndarray] = {}
 
@@ -141,7 +143,7 @@ class ContactAdjoint:
     def after_step(self, state: State) -> None:
         """Record the stiffness step ``state.step`` (its start) lagged the friction with and
         the one its minimiser holds."""
-        kappa_lag = self.term.friction._kappa_at_lag
+        kappa_lag = self.term.friction.lagged_stiffness
         kappa = self.cm.kappa
         self._kappas[state.step] = (kappa if math.isnan(kappa_lag) else kappa_lag, kappa)
 
@@ -157,14 +159,14 @@ class ContactAdjoint:
         cm.set_time(s0.t + dt)
         cm.set_kappa(kappa_lag)
         cm.lag_friction(q0, dt, t_start=s0.t)
-        self._q0, self._q1, self._kappa_lag = q0, q1, kappa_lag
-        self._HB: sp.csr_matrix | None = None
+        self._q0, self._q1, self._kappa_lag, self._dt = q0, q1, kappa_lag, float(dt)
+        self._HB = None
         self._planes = self._plane_lag()
+        self._mesh = self._mesh_lag(s0.t)
         self._unit = {}
         if any(k in CONTACT_KEYS for k in keys):
             for which, coeffs in (("mu_s", (1.0, 0.0)), ("mu_k", (0.0, 1.0))):
-                self._unit[which] = self._plane_gradient(*coeffs) + \
-                    self._mesh_gradient(*coeffs, s0.t)
+                self._unit[which] = self._plane_gradient(*coeffs) + self._mesh_gradient(*coeffs)
         cm.set_kappa(kappa)
 
     def hessian(self) -> sp.csr_matrix:
@@ -202,16 +204,17 @@ class ContactAdjoint:
                 g += float(lf @ self._unit[which])
         return g
 
-    # -- the friction's lagged quantities ------------------------------------------------------
+    # -- the friction's lagged quantities (public ContactModel API and ipctk only) -------------
     def _plane_lag(self):
-        """``(planes, surface vertices, normals, lambda, d lambda / d s)`` of the point-plane
-        pairs active at ``q_n``: IPC's normal force ``lambda = kappa |b'(s^2) 2 s|`` (as
+        """``(surface vertices, normals, lambda, d lambda / d s)`` of the point-plane pairs
+        active at ``q_n``: IPC's normal force ``lambda = kappa |b'(s^2) 2 s|`` (as
         :class:`ContactModel` lags it, whatever ``mu``) and its derivative by the signed
         distance ``s``, ``kappa (-2 b' - 4 s^2 b'')``."""
         cm = self.cm
         if not cm.planes:
             return None
-        S = cm._plane_distances(self._q0)
+        P0 = self._q0.reshape(-1, 3)[cm.surface]
+        S = np.stack([p.signed_distance(P0) for p in cm.planes])
         pl, vi = np.nonzero((S < cm.dhat) & (S > 0))
         if pl.size == 0:
             return None
@@ -220,21 +223,22 @@ class ContactAdjoint:
         b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z
         b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
         k = self._kappa_lag
-        return pl, vi, cm._plane_n[pl], k * np.abs(b1 * 2.0 * s), k * (-2.0 * b1 - 4.0 * z * b2)
+        normals = np.array([p.normal for p in cm.planes])[pl]
+        return vi, normals, k * np.abs(b1 * 2.0 * s), k * (-2.0 * b1 - 4.0 * z * b2)
 
     def _plane_slip_forces(self, lam, mu_s: float, mu_k: float) -> np.ndarray:
         """Each lagged point-plane pair's friction gradient ``(k, 3)`` at ``q_{n+1}``."""
         cm = self.cm
-        _, vi, n, _, _ = self._planes
+        vi, n, _, _ = self._planes
         P0 = self._q0.reshape(-1, 3)[cm.surface[vi]]
         P1 = self._q1.reshape(-1, 3)[cm.surface[vi]]
-        return point_plane_friction(n, P1 - P0, lam, cm.eps_v * cm._dt, mu_s, mu_k, 1)
+        return point_plane_friction(n, P1 - P0, lam, cm.eps_v * self._dt, mu_s, mu_k, 1)
 
     def _plane_gradient(self, mu_s: float, mu_k: float) -> np.ndarray:
         """The point-plane friction's gradient ``(3n,)`` with coefficients ``mu_s, mu_k``."""
         out = np.zeros(3 * self.cm.n_vertices)
         if self._planes is not None:
-            _, vi, _, lam, _ = self._planes
+            vi, _, lam, _ = self._planes
             np.add.at(out.reshape(-1, 3), self.cm.surface[vi],
                       self._plane_slip_forces(lam, mu_s, mu_k))
         return out
@@ -246,52 +250,70 @@ class ContactAdjoint:
         out = np.zeros(3 * cm.n_vertices)
         if self._planes is None or cm.mu == 0.0:
             return out
-        _, vi, n, _, dlam_ds = self._planes
+        vi, n, _, dlam_ds = self._planes
         G = self._plane_slip_forces(np.ones(vi.size), cm.mu, cm.mu_k)
         verts = cm.surface[vi]
         coef = (lf.reshape(-1, 3)[verts] * G).sum(axis=1) * dlam_ds
         np.add.at(out.reshape(-1, 3), verts, coef[:, None] * n)
         return out
 
-    def _mesh_gradient(self, mu_s: float, mu_k: float, t0: float) -> np.ndarray:
-        """The mesh-mesh friction's gradient ``(3n,)`` at ``q_{n+1}`` lagged at ``q_n`` with
-        coefficients ``mu_s, mu_k`` (ipctk's ``TangentialCollisions`` built for them)."""
+    def _mesh_lag(self, t0: float):
+        """``(lagged collision vertices, their normal collisions)`` of the mesh pairs (bodies
+        against each other, themselves or mesh obstacles) within ``dhat`` at ``q_n``, the
+        obstacles where they were at ``t0``; None where no two meshes can touch."""
         cm = self.cm
-        out = np.zeros(3 * cm.n_vertices)
-        if not cm._parts:
-            return out
-        V1 = cm.collision_vertices(self._q1)
-        normal = ipctk.BarrierPotential(cm.dhat, self._kappa_lag)
-        for p in cm._parts:
-            Vl = np.asfortranarray(p.view(cm._lagged_V))
-            col = cm._build(p, Vl)
-            if not len(col):
-                continue
-            tc = ipctk.TangentialCollisions()
-            tc.build(p.mesh, Vl, col, normal, mu_s, mu_k)
-            if len(tc):
-                U = np.asfortranarray(p.view(V1) - Vl)
-                cm._to_full_vector(cm._friction.gradient(tc, p.mesh, U), out)
-        return out
+        can_touch = (cm.self_contact or len(cm.meshes) > 0
+                     or np.unique(cm.body_ids).size > 1)
+        if not can_touch:
+            return None
+        V = np.asfortranarray(cm.collision_vertices(self._q0, cm.obstacle_positions(t0)))
+        cands = ipctk.Candidates()
+        cands.build(cm.mesh, V, 0.5 * cm.dhat)  # pairs closer than dhat are candidates
+        col = ipctk.NormalCollisions()
+        col.build(cands, cm.mesh, V, cm.dhat)
+        return (V, col) if len(col) else None
+
+    def _tangential(self, mu_s: float, mu_k: float):
+        """ipctk's lagged friction pairs for coefficients ``mu_s, mu_k`` (None: none)."""
+        V, col = self._mesh
+        tc = ipctk.TangentialCollisions()
+        tc.build(self.cm.mesh, V, col, ipctk.BarrierPotential(self.cm.dhat, self._kappa_lag),
+                 mu_s, mu_k)
+        return tc if len(tc) else None
+
+    def _to_fem3d(self, g: np.ndarray) -> np.ndarray:
+        """A collision-vertex vector ``(3 n_collision,)`` on fem3d's DOFs ``(3n,)`` (the
+        obstacles' entries dropped)."""
+        cm = self.cm
+        out = np.zeros((cm.n_vertices, 3))
+        np.add.at(out, cm.surface, np.asarray(g).reshape(-1, 3)[: cm.n_surface])
+        return out.reshape(-1)
+
+    def _slip(self) -> np.ndarray:
+        """The collision vertices' displacement over the step (obstacles: their motion)."""
+        return np.asfortranarray(self.cm.collision_vertices(self._q1) - self._mesh[0])
+
+    def _mesh_gradient(self, mu_s: float, mu_k: float) -> np.ndarray:
+        """The mesh-mesh friction's gradient ``(3n,)`` at ``q_{n+1}`` lagged at ``q_n`` with
+        coefficients ``mu_s, mu_k``."""
+        tc = None if self._mesh is None else self._tangential(mu_s, mu_k)
+        if tc is None:
+            return np.zeros(3 * self.cm.n_vertices)
+        potential = ipctk.FrictionPotential(self.cm.eps_v * self._dt)
+        return self._to_fem3d(potential.gradient(tc, self.cm.mesh, self._slip()))
 
     def _mesh_lag_vjp(self, lf: np.ndarray) -> np.ndarray:
         """Mesh-mesh pairs: ``-J^T lf`` with ``J`` ipctk's Jacobian of the friction force
         (``-grad D``) by the lagged positions at a fixed slip."""
         cm = self.cm
-        out = np.zeros(3 * cm.n_vertices)
-        parts = [p for p in cm._parts if p.tangential is not None]
-        if not parts:
-            return out
-        V1 = cm.collision_vertices(self._q1)
-        normal = ipctk.BarrierPotential(cm.dhat, self._kappa_lag)
-        w = np.zeros(3 * cm.n_collision_vertices)
-        nd = cm._n_dyn_dofs
-        w[:nd] = lf[cm._dof[:nd]]
-        for p in parts:
-            Vl = p.view(cm._lagged_V)
-            U = np.asfortranarray(p.view(V1) - Vl)
-            J = cm._friction.force_jacobian(
-                p.tangential, p.mesh, np.asfortranarray(Vl), np.zeros_like(U, order="F"), U,
-                normal, ipctk.TangentialPotential.DiffWRT.LAGGED_DISPLACEMENTS)
-            cm._to_full_vector(-(J.T @ w[: J.shape[0]]), out)
-        return out
+        tc = None if self._mesh is None or cm.mu == 0.0 else self._tangential(cm.mu, cm.mu_k)
+        if tc is None:
+            return np.zeros(3 * cm.n_vertices)
+        V, U = self._mesh[0], self._slip()
+        w = np.zeros((cm.n_collision_vertices, 3))
+        w[: cm.n_surface] = lf.reshape(-1, 3)[cm.surface]
+        J = ipctk.FrictionPotential(cm.eps_v * self._dt).force_jacobian(
+            tc, cm.mesh, V, np.zeros_like(U, order="F"), U,
+            ipctk.BarrierPotential(cm.dhat, self._kappa_lag),
+            ipctk.TangentialPotential.DiffWRT.LAGGED_DISPLACEMENTS)
+        return self._to_fem3d(-(J.T @ w.reshape(-1)))
