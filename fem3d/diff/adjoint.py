@@ -294,10 +294,10 @@ class _Adjoint:
         damping = self.run.system.damping_data(q0)
         if damping is not None:
             data = data + dt * damping
-        A = model.csr(data)
-        for e in self.run.extensions:
-            A = A + dt * dt * e.hessian()
-        return A[self.free][:, self.free].tocsr()
+        A = model.csr(data)[self.free][:, self.free].tocsr()
+        for e in self.run.extensions:  # entries between bodies widen the solver's pattern
+            A = self.run.system.add_hessian(A, e.hessian(), dt * dt)
+        return A
 
     def _solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
         system = self.run.system
