@@ -153,6 +153,7 @@ class _Run:
     rtol: float
     atol_factor: float
     terms: list[AdjointTerm] = field(default_factory=list)  # registered (extra) terms
+    extra_keys: tuple[str, ...] = ()  # the registered terms' keys asked for
 
     def fixed_positions(self, t: float) -> np.ndarray | None:
         """The pinned vertices' positions at ``t`` (None: no moving pin), as a run's."""
@@ -166,6 +167,8 @@ class _Run:
 
     def step(self, state: State) -> State:
         extra = [t for term in self.terms for t in term.forward_terms()]
+        for term in self.terms:
+            term.before_step(state)
         new, stats = backward_euler(
             self.system, [*model_terms(self.system), *extra], state, self.dt,
             fixed_positions=self.fixed_positions(state.t + self.dt), max_iterations=None,
@@ -174,6 +177,8 @@ class _Run:
         if not stats.converged:
             raise SimulationError("Newton did not converge: the adjoint needs converged steps",
                                   step=state.step)
+        for term in self.terms:
+            term.after_step(state)
         return new
 
 
@@ -267,6 +272,7 @@ def trajectory_gradient(
     extra = tuple(p for _, keys, _ in _FACTORIES for p in keys)
     parsed = [parse_param_key(k, extra) for k in params]
     run = _prepare(scene, rtol, atol_factor)
+    run.extra_keys = tuple(p.key for p in parsed if p.kind == "extra")
     sources = TetSources(scene, run.built.arrays) if any(
         p.kind in ("material", "field") for p in parsed) else None
     for p in parsed:
@@ -290,6 +296,10 @@ def trajectory_gradient(
 
 
 def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
+    if p.kind == "extra" and not any(p.key in term.keys for term in run.terms):
+        raise ParameterError(f"trajectory_gradient: cannot differentiate {p.key!r} in this "
+                             "scene: none of its terms has it (contact keys need contact, "
+                             "contact.kappa a fixed kappa)")
     n_bodies = len(run.scene.bodies)
     if p.body is not None and p.body >= n_bodies:
         raise ParameterError(f"{p.key}: the scene has {n_bodies} bodies")
@@ -370,7 +380,7 @@ class _Adjoint:
     def step(self, s0: State, s1: State, q_bar: np.ndarray, v_bar: np.ndarray):
         dt, model = self.dt, self.model
         pair = StepPair(q0=s0.q.reshape(-1), v0=s0.v.reshape(-1), q1=s1.q.reshape(-1),
-                        u=s1.v.reshape(-1), dt=dt, t1=s1.t)
+                        u=s1.v.reshape(-1), dt=dt, t1=s1.t, t0=s0.t, step=s0.step)
         data, others = np.zeros(model.nnz), []
         for term in self.terms:
             term.linearize(pair)
@@ -380,10 +390,12 @@ class _Adjoint:
             elif m is not None:
                 others.append(m)
         K = model.csr(data)
-        for m in others:
+        K_free = K[self.free][:, self.free].tocsr()
+        for m in others:  # entries between bodies (contact) widen the solver's pattern
+            K_free = self.run.system.add_hessian(K_free, m)
             K = K + sparse_of(model, m)
         u_bar = v_bar + dt * q_bar
-        lam = self._solve(K[self.free][:, self.free].tocsr(), u_bar[self.free])
+        lam = self._solve(K_free, u_bar[self.free])
         lf = np.zeros(model.n_dofs)
         lf[self.free] = lam
         q_bar_new, v_bar_new = q_bar.copy(), np.zeros_like(v_bar)

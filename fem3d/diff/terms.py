@@ -39,7 +39,8 @@ __all__ = ["StepPair", "Gradients", "AdjointTerm", "InertiaAdjoint", "ElasticAdj
 
 @dataclass
 class StepPair:
-    """One step, flat: ``q0, v0`` before, ``q1, u`` (``= v1``) after, ``dt``."""
+    """One step, flat: ``q0, v0`` before, ``q1, u`` (``= v1``) after, ``dt``; ``step`` the
+    step's number (``q0`` is the state after ``step`` steps) and ``t0``, ``t1`` its times."""
 
     q0: np.ndarray
     v0: np.ndarray
@@ -47,6 +48,8 @@ class StepPair:
     u: np.ndarray
     dt: float
     t1: float
+    t0: float = 0.0
+    step: int = 0
 
 
 @dataclass
@@ -79,10 +82,19 @@ class AdjointTerm:
     """
 
     name = "term"
+    #: the extra parameter keys (:func:`fem3d.diff.adjoint.register_term`) this term answers
+    #: in this scene
+    keys: tuple[str, ...] = ()
 
     def forward_terms(self) -> list:
         """Terms this one adds to the forward step's objective (default: none)."""
         return []
+
+    def before_step(self, state) -> None:
+        """Called before each forward step from ``state`` (first run and recomputations)."""
+
+    def after_step(self, state) -> None:
+        """Called after each forward step from ``state``."""
 
     def linearize(self, pair: StepPair) -> None:
         """Keep what the step needs (matrices at ``q_{n+1}`` or ``q_n``)."""

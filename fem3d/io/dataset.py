@@ -84,6 +84,8 @@ def read_run_frames(run_dir: str | Path) -> tuple[np.ndarray, np.ndarray, np.nda
     pvd = run_dir / "frames.pvd"
     if pvd.exists():
         for ds in ET.parse(pvd).getroot().iter("DataSet"):
+            if ds.attrib.get("part", "0") != "0":
+                continue  # a contact scene's obstacles (part 1, 2, ...), not the bodies
             f = run_dir / ds.attrib["file"]
             m = _FRAME_NUMBER.search(f.stem)
             if m is not None:

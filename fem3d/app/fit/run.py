@@ -380,7 +380,7 @@ def fit(spec: FitFile, *, where: str = "fit file",
     u0 = np.zeros(sum(p.size for p in params))
     try:
         history = [_record(obj, u0, 0)]
-    except ParameterError as exc:  # what fem3d.diff cannot differentiate (contact, ...)
+    except ParameterError as exc:  # what fem3d.diff cannot differentiate (pulls, ...)
         raise InputError(f"scene: {exc}", path=where) from None
     if progress:
         progress(progress_line(history[0]))

@@ -257,6 +257,12 @@ class FrictionTerm(Term):
         self._relag()
         return True
 
+    @property
+    def lagged_stiffness(self) -> float:
+        """The barrier stiffness the current normal forces were lagged with (nan before the
+        first step): the adaptive stiffness may change after the lagging within a step."""
+        return self._kappa_at_lag
+
 
 class ContactTerm(TermGroup):
     """IPC contact: :class:`BarrierTerm` and :class:`FrictionTerm` of one
