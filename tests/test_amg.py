@@ -372,6 +372,13 @@ def test_threaded_kernels_equal_the_numpy_reference():
             ext.bsr_matvec(M.indptr, M.indices, M.data, *M.blocksize, v, y, -1.0, y)
             ref = y0 - M @ v
             assert np.abs(y - ref).max() <= 1e-13 * np.abs(ref).max()
+    lvl = amg._levels[0]
+    Abar = (lvl.L + lvl.U).tobsr(blocksize=(3, 3))
+    for left, right in ((Abar, lvl.P), (lvl.R, Abar), (lvl.R, lvl.P)):  # 3x3x6, 6x3x3, 6x3x6
+        ours = sparse_threads.bsr_product(ext, left, right)
+        theirs = (left @ right).toarray()
+        assert ours.has_sorted_indices and np.all(np.diff(ours.indices[:ours.indptr[1]]) > 0)
+        assert np.abs(ours.toarray() - theirs).max() <= 1e-13 * np.abs(theirs).max()
     p = rng.standard_normal(A.shape[0])
     y = np.empty_like(p)
     ext.csr_matvec(A.indptr, A.indices, A.data, p, y)

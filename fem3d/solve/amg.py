@@ -286,6 +286,24 @@ def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int, dot=No
     return float(np.abs(np.linalg.eigvals(H[:m, :m])).max())
 
 
+def _galerkin(A: sp.bsr_matrix, T: sp.bsr_matrix, Dinv: np.ndarray, scale: float,
+              ext: object) -> tuple[sp.bsr_matrix, sp.bsr_matrix, sp.bsr_matrix]:
+    """``P = T - scale D^-1 A T``, ``R = P^T`` and the coarse matrix ``R A P`` (sorted
+    indices): SciPy's products, or the threaded C ones when ``ext`` is the C extension."""
+    if ext is None:
+        P = T - scale * _block_rows_times(Dinv, A @ T)
+        P = sp.bsr_matrix(P, blocksize=T.blocksize)
+        R = sp.bsr_matrix(P.T)
+        Ac = sp.bsr_matrix(R @ (A @ P))  # (the product A P is the largest transient)
+        Ac.sort_indices()
+        return P, R, Ac
+    product = sparse_threads.bsr_product
+    P = T - scale * _block_rows_times(Dinv, product(ext, A, T))
+    P = _c_bsr(sp.bsr_matrix(P, blocksize=T.blocksize))
+    R = _c_bsr(sp.bsr_matrix(P.T))
+    return P, R, product(ext, R, product(ext, A, P))
+
+
 class AMGPreconditioner:
     """Smoothed-aggregation AMG V-cycles preconditioning conjugate gradients.
 
@@ -412,18 +430,13 @@ class AMGPreconditioner:
         for T in plan.T:
             Dinv = _block_inverses(Al)
             rho = _spectral_radius(Al, Dinv, iters, None if ext is None else ext.dot)
-            P = T - (omega / rho) * _block_rows_times(Dinv, Al @ T)
-            P = sp.bsr_matrix(P, blocksize=T.blocksize)
-            R = sp.bsr_matrix(P.T)
-            Ac = sp.bsr_matrix(R @ (Al @ P))  # (the product A P is the largest transient)
-            Ac.sort_indices()
+            P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext)
             if ext is None:
                 levels.append(_AMGLevel.make(Al, Dinv, P, R))
             else:
                 sweep = self._sweep_schedule(len(levels), Al)
                 L, U = sparse_threads.split_triangles(Al, sweep.rank)
-                levels.append(_ThreadedLevel(L, U, np.ascontiguousarray(Dinv), sweep,
-                                             _c_bsr(P), _c_bsr(R)))
+                levels.append(_ThreadedLevel(L, U, np.ascontiguousarray(Dinv), sweep, P, R))
             Al = Ac
         Ac = Al.toarray()
         Ac = 0.5 * (Ac + Ac.T)

@@ -1,10 +1,11 @@
 """Threaded sparse kernels of the AMG-preconditioned CG, the same bits on any thread count.
 
 The C extension (``fem3d._ckernels``, rendered from ``templates/c/amg.c.jinja``) provides
-BSR mat-vecs, block Gauss-Seidel sweeps, a CSR mat-vec and a dot product, all on the OpenMP
-threads (``OMP_NUM_THREADS``, ``threadpoolctl``). Every row's sum runs in storage order
-whichever thread computes it, and a dot product adds fixed chunks in order, so the results do
-not depend on the number of threads.
+BSR mat-vecs, block Gauss-Seidel sweeps, a CSR mat-vec, a dot product and BSR x BSR products
+(:func:`bsr_product`: the Galerkin products of a setup), all on the OpenMP threads
+(``OMP_NUM_THREADS``, ``threadpoolctl``). Every row's sum runs in storage order whichever
+thread computes it, and a dot product adds fixed chunks in order, so the results do not depend
+on the number of threads.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and
@@ -29,7 +30,7 @@ import scipy.sparse as sp
 
 from fem3d.kernels.backend import c_extension
 
-__all__ = ["SweepSchedule", "c_kernels", "reference_sweep", "split_triangles",
+__all__ = ["SweepSchedule", "bsr_product", "c_kernels", "reference_sweep", "split_triangles",
            "sweep_schedule"]
 
 #: A schedule starts from blocks of at least this many rows (at most :data:`MAX_BLOCKS`) and
@@ -166,6 +167,35 @@ def split_triangles(A: sp.bsr_matrix, rank: np.ndarray | None
                              shape=A.shape)
 
     return part(rank_cols < rank_rows), part(rank_cols > rank_rows)
+
+
+def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_matrix:
+    """``A @ B`` of two BSR matrices on the C kernels (threads over the rows of the product,
+    each row's blocks summed in ``A``'s then ``B``'s storage order: the same bits on any
+    thread count); sorted int32 indices."""
+    R, K = A.blocksize
+    C = B.blocksize[1]
+    if B.blocksize[0] != K or A.shape[1] != B.shape[0]:
+        raise ValueError(f"cannot multiply {A.shape} ({R}x{K} blocks) by {B.shape} "
+                         f"({B.blocksize[0]}x{C} blocks)")
+    n_rows, n_cols = A.shape[0] // R, B.shape[1] // C
+    a = [np.ascontiguousarray(A.indptr, dtype=np.int32),
+         np.ascontiguousarray(A.indices, dtype=np.int32), np.ascontiguousarray(A.data)]
+    b = [np.ascontiguousarray(B.indptr, dtype=np.int32),
+         np.ascontiguousarray(B.indices, dtype=np.int32), np.ascontiguousarray(B.data)]
+    counts = np.empty(n_rows, dtype=np.int64)
+    ext.bsr_matmat_count(a[0], a[1], b[0], b[1], n_cols, counts)
+    indptr = np.zeros(n_rows + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    if indptr[-1] >= 2**31:
+        raise ValueError("the product has more than 2**31 blocks")
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    data = np.empty((int(indptr[-1]), R, C))
+    ext.bsr_matmat_fill(a[0], a[1], a[2], R, K, b[0], b[1], b[2], C, n_cols, indptr, indices,
+                        data)
+    M = sp.bsr_matrix((data, indices, indptr.astype(np.int32)), shape=(A.shape[0], B.shape[1]))
+    M.has_sorted_indices = True
+    return M
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,

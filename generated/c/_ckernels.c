@@ -545,8 +545,8 @@ done:
 
 // ---------------------------------------------------------------------------------------------
 // Sparse kernels of the AMG-preconditioned CG (fem3d.solve.amg, fem3d.solve.sparse_threads):
-// BSR mat-vecs, block Gauss-Seidel sweeps over a colour/block schedule, a CSR mat-vec and a
-// dot product, on the OpenMP threads.
+// BSR mat-vecs, block Gauss-Seidel sweeps over a colour/block schedule, a CSR mat-vec, a dot
+// product and BSR x BSR products, on the OpenMP threads.
 //
 // Every result is the same bits on any number of threads: a row's sum runs over its stored
 // entries in storage order whichever thread computes it; a sweep runs the colours one after
@@ -1130,13 +1130,562 @@ done:
     return result;
 }
 
+// ---- BSR x BSR products (the Galerkin products of an AMG setup) ----------------------------
+// C = A B row by row (Gustavson): row i of C gathers the blocks B_j. of the blocks A_ij of
+// row i, in A's storage order then B's; its columns are sorted. One thread computes a whole
+// row: the same bits on any number of threads. Two passes: bsr_matmat_count (the blocks per
+// row), then bsr_matmat_fill into the arrays the caller allocated from the counts.
+
+// Per-thread scratch of n_cols ints set to -1 (NULL when out of memory).
+static int *fem3d_marks(Py_ssize_t n_cols)
+{
+    int *mark = malloc(sizeof(int) * (size_t)(n_cols > 0 ? n_cols : 1));
+    if (mark != NULL)
+        for (Py_ssize_t c = 0; c < n_cols; ++c) mark[c] = -1;
+    return mark;
+}
+
+// counts[i] = number of distinct block columns of row i of A B; returns 0, or -1 when out of
+// memory.
+static int fem3d_matmat_count(Py_ssize_t n_rows, const int *a_indptr, const int *a_indices,
+                              const int *b_indptr, const int *b_indices, Py_ssize_t n_cols,
+                              long long *counts)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *mark = fem3d_marks(n_cols);
+        if (mark == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (mark == NULL) continue;
+            long long count = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (mark[c] != (int)i) {
+                        mark[c] = (int)i;
+                        ++count;
+                    }
+                }
+            }
+            counts[i] = count;
+        }
+        free(mark);
+    }
+    return failed ? -1 : 0;
+}
+
+static void fem3d_sort_ints(int *a, Py_ssize_t n)
+{
+    for (Py_ssize_t i = 1; i < n; ++i) {
+        const int v = a[i];
+        Py_ssize_t j = i;
+        while (j > 0 && a[j - 1] > v) {
+            a[j] = a[j - 1];
+            --j;
+        }
+        a[j] = v;
+    }
+}
+
+
+// The numeric pass of C = A B, 3 x 3 times 3 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_3x3x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 18;
+            for (long long t = 0; t < n * 18; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 9;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 18;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 18;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17];
+                    out[6] += a[3] * b[0] + a[4] * b[6] + a[5] * b[12];
+                    out[7] += a[3] * b[1] + a[4] * b[7] + a[5] * b[13];
+                    out[8] += a[3] * b[2] + a[4] * b[8] + a[5] * b[14];
+                    out[9] += a[3] * b[3] + a[4] * b[9] + a[5] * b[15];
+                    out[10] += a[3] * b[4] + a[4] * b[10] + a[5] * b[16];
+                    out[11] += a[3] * b[5] + a[4] * b[11] + a[5] * b[17];
+                    out[12] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12];
+                    out[13] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13];
+                    out[14] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14];
+                    out[15] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15];
+                    out[16] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16];
+                    out[17] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 6 x 3 times 3 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_6x3x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 36;
+            for (long long t = 0; t < n * 36; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 18;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 18;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 36;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17];
+                    out[6] += a[3] * b[0] + a[4] * b[6] + a[5] * b[12];
+                    out[7] += a[3] * b[1] + a[4] * b[7] + a[5] * b[13];
+                    out[8] += a[3] * b[2] + a[4] * b[8] + a[5] * b[14];
+                    out[9] += a[3] * b[3] + a[4] * b[9] + a[5] * b[15];
+                    out[10] += a[3] * b[4] + a[4] * b[10] + a[5] * b[16];
+                    out[11] += a[3] * b[5] + a[4] * b[11] + a[5] * b[17];
+                    out[12] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12];
+                    out[13] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13];
+                    out[14] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14];
+                    out[15] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15];
+                    out[16] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16];
+                    out[17] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17];
+                    out[18] += a[9] * b[0] + a[10] * b[6] + a[11] * b[12];
+                    out[19] += a[9] * b[1] + a[10] * b[7] + a[11] * b[13];
+                    out[20] += a[9] * b[2] + a[10] * b[8] + a[11] * b[14];
+                    out[21] += a[9] * b[3] + a[10] * b[9] + a[11] * b[15];
+                    out[22] += a[9] * b[4] + a[10] * b[10] + a[11] * b[16];
+                    out[23] += a[9] * b[5] + a[10] * b[11] + a[11] * b[17];
+                    out[24] += a[12] * b[0] + a[13] * b[6] + a[14] * b[12];
+                    out[25] += a[12] * b[1] + a[13] * b[7] + a[14] * b[13];
+                    out[26] += a[12] * b[2] + a[13] * b[8] + a[14] * b[14];
+                    out[27] += a[12] * b[3] + a[13] * b[9] + a[14] * b[15];
+                    out[28] += a[12] * b[4] + a[13] * b[10] + a[14] * b[16];
+                    out[29] += a[12] * b[5] + a[13] * b[11] + a[14] * b[17];
+                    out[30] += a[15] * b[0] + a[16] * b[6] + a[17] * b[12];
+                    out[31] += a[15] * b[1] + a[16] * b[7] + a[17] * b[13];
+                    out[32] += a[15] * b[2] + a[16] * b[8] + a[17] * b[14];
+                    out[33] += a[15] * b[3] + a[16] * b[9] + a[17] * b[15];
+                    out[34] += a[15] * b[4] + a[16] * b[10] + a[17] * b[16];
+                    out[35] += a[15] * b[5] + a[16] * b[11] + a[17] * b[17];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 6 x 6 times 6 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_6x6x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 36;
+            for (long long t = 0; t < n * 36; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 36;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 36;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 36;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12] + a[3] * b[18] + a[4] * b[24] + a[5] * b[30];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13] + a[3] * b[19] + a[4] * b[25] + a[5] * b[31];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14] + a[3] * b[20] + a[4] * b[26] + a[5] * b[32];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15] + a[3] * b[21] + a[4] * b[27] + a[5] * b[33];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16] + a[3] * b[22] + a[4] * b[28] + a[5] * b[34];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17] + a[3] * b[23] + a[4] * b[29] + a[5] * b[35];
+                    out[6] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12] + a[9] * b[18] + a[10] * b[24] + a[11] * b[30];
+                    out[7] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13] + a[9] * b[19] + a[10] * b[25] + a[11] * b[31];
+                    out[8] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14] + a[9] * b[20] + a[10] * b[26] + a[11] * b[32];
+                    out[9] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15] + a[9] * b[21] + a[10] * b[27] + a[11] * b[33];
+                    out[10] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16] + a[9] * b[22] + a[10] * b[28] + a[11] * b[34];
+                    out[11] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17] + a[9] * b[23] + a[10] * b[29] + a[11] * b[35];
+                    out[12] += a[12] * b[0] + a[13] * b[6] + a[14] * b[12] + a[15] * b[18] + a[16] * b[24] + a[17] * b[30];
+                    out[13] += a[12] * b[1] + a[13] * b[7] + a[14] * b[13] + a[15] * b[19] + a[16] * b[25] + a[17] * b[31];
+                    out[14] += a[12] * b[2] + a[13] * b[8] + a[14] * b[14] + a[15] * b[20] + a[16] * b[26] + a[17] * b[32];
+                    out[15] += a[12] * b[3] + a[13] * b[9] + a[14] * b[15] + a[15] * b[21] + a[16] * b[27] + a[17] * b[33];
+                    out[16] += a[12] * b[4] + a[13] * b[10] + a[14] * b[16] + a[15] * b[22] + a[16] * b[28] + a[17] * b[34];
+                    out[17] += a[12] * b[5] + a[13] * b[11] + a[14] * b[17] + a[15] * b[23] + a[16] * b[29] + a[17] * b[35];
+                    out[18] += a[18] * b[0] + a[19] * b[6] + a[20] * b[12] + a[21] * b[18] + a[22] * b[24] + a[23] * b[30];
+                    out[19] += a[18] * b[1] + a[19] * b[7] + a[20] * b[13] + a[21] * b[19] + a[22] * b[25] + a[23] * b[31];
+                    out[20] += a[18] * b[2] + a[19] * b[8] + a[20] * b[14] + a[21] * b[20] + a[22] * b[26] + a[23] * b[32];
+                    out[21] += a[18] * b[3] + a[19] * b[9] + a[20] * b[15] + a[21] * b[21] + a[22] * b[27] + a[23] * b[33];
+                    out[22] += a[18] * b[4] + a[19] * b[10] + a[20] * b[16] + a[21] * b[22] + a[22] * b[28] + a[23] * b[34];
+                    out[23] += a[18] * b[5] + a[19] * b[11] + a[20] * b[17] + a[21] * b[23] + a[22] * b[29] + a[23] * b[35];
+                    out[24] += a[24] * b[0] + a[25] * b[6] + a[26] * b[12] + a[27] * b[18] + a[28] * b[24] + a[29] * b[30];
+                    out[25] += a[24] * b[1] + a[25] * b[7] + a[26] * b[13] + a[27] * b[19] + a[28] * b[25] + a[29] * b[31];
+                    out[26] += a[24] * b[2] + a[25] * b[8] + a[26] * b[14] + a[27] * b[20] + a[28] * b[26] + a[29] * b[32];
+                    out[27] += a[24] * b[3] + a[25] * b[9] + a[26] * b[15] + a[27] * b[21] + a[28] * b[27] + a[29] * b[33];
+                    out[28] += a[24] * b[4] + a[25] * b[10] + a[26] * b[16] + a[27] * b[22] + a[28] * b[28] + a[29] * b[34];
+                    out[29] += a[24] * b[5] + a[25] * b[11] + a[26] * b[17] + a[27] * b[23] + a[28] * b[29] + a[29] * b[35];
+                    out[30] += a[30] * b[0] + a[31] * b[6] + a[32] * b[12] + a[33] * b[18] + a[34] * b[24] + a[35] * b[30];
+                    out[31] += a[30] * b[1] + a[31] * b[7] + a[32] * b[13] + a[33] * b[19] + a[34] * b[25] + a[35] * b[31];
+                    out[32] += a[30] * b[2] + a[31] * b[8] + a[32] * b[14] + a[33] * b[20] + a[34] * b[26] + a[35] * b[32];
+                    out[33] += a[30] * b[3] + a[31] * b[9] + a[32] * b[15] + a[33] * b[21] + a[34] * b[27] + a[35] * b[33];
+                    out[34] += a[30] * b[4] + a[31] * b[10] + a[32] * b[16] + a[33] * b[22] + a[34] * b[28] + a[35] * b[34];
+                    out[35] += a[30] * b[5] + a[31] * b[11] + a[32] * b[17] + a[33] * b[23] + a[34] * b[29] + a[35] * b[35];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 3 x 3 times 3 x 3 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_3x3x3(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 9;
+            for (long long t = 0; t < n * 9; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 9;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 9;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 9;
+                    out[0] += a[0] * b[0] + a[1] * b[3] + a[2] * b[6];
+                    out[1] += a[0] * b[1] + a[1] * b[4] + a[2] * b[7];
+                    out[2] += a[0] * b[2] + a[1] * b[5] + a[2] * b[8];
+                    out[3] += a[3] * b[0] + a[4] * b[3] + a[5] * b[6];
+                    out[4] += a[3] * b[1] + a[4] * b[4] + a[5] * b[7];
+                    out[5] += a[3] * b[2] + a[4] * b[5] + a[5] * b[8];
+                    out[6] += a[6] * b[0] + a[7] * b[3] + a[8] * b[6];
+                    out[7] += a[6] * b[1] + a[7] * b[4] + a[8] * b[7];
+                    out[8] += a[6] * b[2] + a[7] * b[5] + a[8] * b[8];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, any blocks (R x K times K x C):
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_generic(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data, int R, int K, int C)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * R * C;
+            for (long long t = 0; t < n * R * C; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * R * K;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * K * C;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * R * C;
+                    for (int r = 0; r < R; ++r)
+                        for (int q = 0; q < C; ++q) {
+                            double sum = out[r * C + q];
+                            for (int m = 0; m < K; ++m) sum += a[r * K + m] * b[m * C + q];
+                            out[r * C + q] = sum;
+                        }
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The A and B patterns of a product: rising indptr, indices in range (A's columns are B's
+// block rows). 0, or -1 with an exception.
+static int fem3d_matmat_patterns(const char *fn, const void **buf, const Py_ssize_t *count,
+                                 Py_ssize_t n_cols)
+{
+    const Py_ssize_t n_rows = count[0] - 1, n_mid = count[2] - 1;
+    if (n_rows < 0 || n_mid < 0 || n_cols < 0 || n_cols >= INT_MAX) {
+        PyErr_Format(PyExc_ValueError, "%s: indptr arrays need at least one entry", fn);
+        return -1;
+    }
+    if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], n_mid) != 0 ||
+        fem3d_amg_check_pattern(fn, buf[2], n_mid, buf[3], count[3], n_cols) != 0)
+        return -1;
+    return 0;
+}
+
+// bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): the number of
+// blocks of every row of A B (int32 patterns; n_cols block columns of B; counts int64 n_rows).
+static PyObject *py_bsr_matmat_count(PyObject *self, PyObject *args)
+{
+    static const char *fn = "bsr_matmat_count";
+    PyObject *o[5];
+    Py_ssize_t n_cols;
+    Py_buffer views[5];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOOnO:bsr_matmat_count", &o[0], &o[1], &o[2], &o[3], &n_cols,
+                          &o[4]))
+        return NULL;
+    const void *buf[5];
+    Py_ssize_t count[5];
+    static const char *names[] = {"a_indptr", "a_indices", "b_indptr", "b_indices", "counts"};
+    static const char kinds[] = {'i', 'i', 'i', 'i', 'q'};
+    for (int a = 0; a < 5; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a == 4, 0, fn, names[a],
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    if (fem3d_matmat_patterns(fn, buf, count, n_cols) != 0) goto done;
+    if (count[4] != count[0] - 1) {
+        PyErr_Format(PyExc_ValueError, "%s: counts must have n_rows entries", fn);
+        goto done;
+    }
+    {
+        int failed;
+        Py_BEGIN_ALLOW_THREADS
+        failed = fem3d_matmat_count(count[0] - 1, buf[0], buf[1], buf[2], buf[3], n_cols,
+                                    (long long *)buf[4]);
+        Py_END_ALLOW_THREADS
+        if (failed) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// bsr_matmat_fill(a_indptr, a_indices, a_data, R, K, b_indptr, b_indices, b_data, C, n_cols,
+// c_indptr, c_indices, c_data): the product A B (R x K times K x C blocks, any sizes up to 8)
+// into c_indptr (int64, from bsr_matmat_count's counts), c_indices (int32), c_data (float64).
+static PyObject *py_bsr_matmat_fill(PyObject *self, PyObject *args)
+{
+    static const char *fn = "bsr_matmat_fill";
+    PyObject *o[9];
+    int R, K, C;
+    Py_ssize_t n_cols;
+    Py_buffer views[9];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOiiOOOinOOO:bsr_matmat_fill", &o[0], &o[1], &o[2], &R, &K,
+                          &o[3], &o[4], &o[5], &C, &n_cols, &o[6], &o[7], &o[8]))
+        return NULL;
+    const void *buf[9];
+    Py_ssize_t count[9];
+    static const char *names[] = {"a_indptr", "a_indices", "a_data", "b_indptr", "b_indices",
+                                  "b_data", "c_indptr", "c_indices", "c_data"};
+    static const char kinds[] = {'i', 'i', 'd', 'i', 'i', 'd', 'q', 'i', 'd'};
+    for (int a = 0; a < 9; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a >= 7, 0, fn, names[a],
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    {
+        const void *pattern[4] = {buf[0], buf[1], buf[3], buf[4]};
+        const Py_ssize_t pattern_count[4] = {count[0], count[1], count[3], count[4]};
+        if (fem3d_matmat_patterns(fn, pattern, pattern_count, n_cols) != 0) goto done;
+        const Py_ssize_t n_rows = count[0] - 1;
+        const long long *c_indptr = buf[6];
+        int ok = R >= 1 && K >= 1 && C >= 1 && R <= 8 && K <= 8 && C <= 8 &&
+                 count[2] == count[1] * R * K && count[5] == count[4] * K * C &&
+                 count[6] == n_rows + 1 && c_indptr[0] == 0 && c_indptr[n_rows] == count[7] &&
+                 count[8] == count[7] * R * C;
+        for (Py_ssize_t i = 0; ok && i < n_rows; ++i) ok = c_indptr[i] <= c_indptr[i + 1];
+        if (!ok) {
+            PyErr_Format(PyExc_ValueError, "%s: shapes do not fit (blocks 1..8; data len(indices)"
+                         " blocks; c_indptr the cumulated counts, c_indices c_indptr[-1] entries, "
+                         "c_data as many R x C blocks)", fn);
+            goto done;
+        }
+        int failed;
+        Py_BEGIN_ALLOW_THREADS
+        if (R == 3 && K == 3 && C == 6)
+            failed = fem3d_matmat_fill_3x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 6 && K == 3 && C == 6)
+            failed = fem3d_matmat_fill_6x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 6 && K == 6 && C == 6)
+            failed = fem3d_matmat_fill_6x6x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 3 && K == 3 && C == 3)
+            failed = fem3d_matmat_fill_3x3x3(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else
+            failed = fem3d_matmat_fill_generic(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5],
+                                               n_cols, c_indptr, (int *)buf[7], (double *)buf[8], R, K, C);
+        Py_END_ALLOW_THREADS
+        if (failed) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
 #define FEM3D_AMG_METHODS \
     {"bsr_matvec", py_bsr_matvec, METH_VARARGS, \
      "bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y): y = b + alpha * A x (BSR), alpha = +1 or -1."}, \
     {"block_sweep", py_block_sweep, METH_VARARGS, \
      "block_sweep(L (indptr, indices, data), U (or None x 3), Dinv, order, blocks, colours, x, b): block Gauss-Seidel over a schedule."}, \
     {"dot", py_dot, METH_VARARGS, "dot(x, y): x . y, the same bits on any number of threads."}, \
-    {"csr_matvec", py_csr_matvec, METH_VARARGS, "csr_matvec(indptr, indices, data, x, y): y = A x (CSR)."},
+    {"csr_matvec", py_csr_matvec, METH_VARARGS, "csr_matvec(indptr, indices, data, x, y): y = A x (CSR)."}, \
+    {"bsr_matmat_count", py_bsr_matmat_count, METH_VARARGS, \
+     "bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): blocks per row of A B."}, \
+    {"bsr_matmat_fill", py_bsr_matmat_fill, METH_VARARGS, \
+     "bsr_matmat_fill(A (indptr, indices, data), R, K, B (indptr, indices, data), C, n_cols, c_indptr, c_indices, c_data): A B (BSR)."},
 
 #include "tet.c"
 #include "spring.c"
