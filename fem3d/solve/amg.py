@@ -255,11 +255,25 @@ def _block_rows_times(Dinv: np.ndarray, M: sp.bsr_matrix) -> sp.bsr_matrix:
     return sp.bsr_matrix((np.matmul(Dinv[rows], M.data), M.indices, M.indptr), shape=M.shape)
 
 
-def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int, dot=None) -> float:
-    """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector); ``dot`` the inner
-    product (default: NumPy's)."""
+def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int,
+                     ext: object = None) -> float:
+    """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector); NumPy's inner
+    products and SciPy's mat-vecs, or the C extension's ``ext`` (threaded)."""
     n = A.shape[0]
     Dinv = _block_diagonal(Dinv)
+    dot = None if ext is None else ext.dot
+    if ext is None:
+        def operator(v):
+            return Dinv @ (A @ v)
+    else:
+        A, Dinv = _c_bsr(A), _c_bsr(Dinv)
+
+        def operator(v):
+            Av, w = np.empty(n), np.empty(n)
+            ext.bsr_matvec(A.indptr, A.indices, A.data, *A.blocksize, v, None, 1.0, Av)
+            ext.bsr_matvec(Dinv.indptr, Dinv.indices, Dinv.data, *Dinv.blocksize, Av, None, 1.0,
+                           w)
+            return w
     v = np.random.default_rng(12345).random(n)
     if dot is None:
         def dot(x, y):
@@ -274,7 +288,7 @@ def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int, dot=No
     H = np.zeros((iterations + 1, iterations))
     m = iterations
     for j in range(iterations):
-        w = Dinv @ (A @ V[j])
+        w = operator(V[j])
         for i in range(j + 1):
             H[i, j] = float(dot(w, V[i]))
             w -= H[i, j] * V[i]
@@ -429,7 +443,7 @@ class AMGPreconditioner:
         levels = []
         for T in plan.T:
             Dinv = _block_inverses(Al)
-            rho = _spectral_radius(Al, Dinv, iters, None if ext is None else ext.dot)
+            rho = _spectral_radius(Al, Dinv, iters, ext)
             P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext)
             if ext is None:
                 levels.append(_AMGLevel.make(Al, Dinv, P, R))
