@@ -444,3 +444,24 @@ def test_threaded_amg_converges_like_the_classic_smoother(monkeypatch):
     assert amg_system.amg._threads is not None
     size = np.ptp(model.X, axis=0).max()
     assert max(np.abs(a - d).max() for a, d in zip(threaded, direct, strict=True)) < 1e-8 * size
+
+
+def test_without_the_c_extension_large_systems_keep_the_classic_path(monkeypatch):
+    """No C extension (or one without the AMG kernels): every size runs pyamg's sweeps and
+    SciPy's products, as below ``threads_min_rows`` (the NumPy/SciPy fallback)."""
+    from fem3d.solve import sparse_threads
+
+    model, c = clamped_box((4, 4, 4))
+    system = System(model, c, "amg")
+    state = swinging(model, c)
+    A = system.newton_matrix(state.q + 0.01 * state.v, 0.01)
+    b = np.random.default_rng(4).standard_normal(A.shape[0])
+    classic = solve_amg.AMGPreconditioner(system.amg.B)
+    classic.setup(A)
+    monkeypatch.setattr(sparse_threads, "c_extension", lambda: None)
+    assert sparse_threads.c_kernels() is None
+    fallback = solve_amg.AMGPreconditioner(system.amg.B, {"threads_min_rows": 0})
+    fallback.setup(A)
+    assert fallback._threads is None
+    assert np.array_equal(fallback.solve(A, b, rtol=1e-8, maxiter=50).x,
+                          classic.solve(A, b, rtol=1e-8, maxiter=50).x)
