@@ -4,7 +4,10 @@ The ``"amg"`` back end of the Newton systems (:func:`fem3d.solve.linear.choose_b
 it by size): :func:`rigid_body_modes` gives the near-nullspace, :class:`AMGPreconditioner`
 aggregates a sparsity pattern once, builds a numeric hierarchy per matrix and runs V-cycle
 preconditioned CG. pyamg provides the aggregation, the candidate fitting and the block
-Gauss-Seidel kernel; the rest is fem3d's own.
+Gauss-Seidel kernel; the rest is fem3d's own. Large systems (``threads_min_rows``) run the
+setup's products, the V-cycles and CG on the threaded C kernels of
+:mod:`fem3d.solve.sparse_threads` instead (Gauss-Seidel in a colour/block order; the same bits
+on any number of threads).
 """
 
 from __future__ import annotations
