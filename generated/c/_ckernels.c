@@ -567,6 +567,7 @@ static void fem3d_bsr_mv_3x3(Py_ssize_t n_rows, const int *indptr, const int *in
                                   double alpha, double *y)
 {
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
@@ -594,6 +595,7 @@ static void fem3d_bsr_mv_6x6(Py_ssize_t n_rows, const int *indptr, const int *in
                                   double alpha, double *y)
 {
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
@@ -633,6 +635,7 @@ static void fem3d_bsr_mv_3x6(Py_ssize_t n_rows, const int *indptr, const int *in
                                   double alpha, double *y)
 {
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
@@ -663,6 +666,7 @@ static void fem3d_bsr_mv_6x3(Py_ssize_t n_rows, const int *indptr, const int *in
                                   double alpha, double *y)
 {
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
@@ -721,6 +725,7 @@ static void fem3d_sweep_3(const int *l_indptr, const int *l_indices, const doubl
 {
     const int backward = u_data != NULL;
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel if (threads)")
     for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
         const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
@@ -790,6 +795,7 @@ static void fem3d_sweep_6(const int *l_indptr, const int *l_indices, const doubl
 {
     const int backward = u_data != NULL;
     const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    (void)threads;  // (unused without OpenMP)
     FEM3D_PRAGMA("omp parallel if (threads)")
     for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
         const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
@@ -1062,6 +1068,7 @@ static PyObject *py_dot(PyObject *self, PyObject *args)
         double total = 0.0;
         Py_BEGIN_ALLOW_THREADS
         const int threads = n >= 16 * FEM3D_DOT_CHUNK;
+        (void)threads;  // (unused without OpenMP)
         FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
         for (Py_ssize_t c = 0; c < n_chunks; ++c) {
             const Py_ssize_t lo = c * FEM3D_DOT_CHUNK;
@@ -1116,6 +1123,7 @@ static PyObject *py_csr_matvec(PyObject *self, PyObject *args)
         double *y = (double *)buf[4];
         Py_BEGIN_ALLOW_THREADS
         const int threads = n_rows >= 4 * FEM3D_AMG_PARALLEL_ROWS;
+        (void)threads;  // (unused without OpenMP)
         FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
         for (Py_ssize_t i = 0; i < n_rows; ++i) {
             double s = 0.0;
