@@ -308,3 +308,160 @@ def test_end_game_judges_noisy_energies_by_the_gradient():
     assert noisy.line_search_halvings == 0 and noisy.iterations <= 4
     plain = newtons_method(x0, energy, gradient, direction, **kw)
     assert plain.gradient_norms[-1] > 1e-10 and plain.line_search_halvings > 20
+
+
+# --- the threaded kernels of the large systems (fem3d.solve.sparse_threads) -----------------
+
+def _threaded_setup(n=(14, 14, 14), **options):
+    """A swinging box's Newton matrix and a hierarchy on the threaded kernels."""
+    from fem3d.solve import sparse_threads
+
+    if sparse_threads.c_kernels() is None:
+        pytest.skip("the C extension is not built")
+    model, c = clamped_box(n)
+    system = System(model, c, "amg")
+    state = swinging(model, c)
+    A = system.newton_matrix(state.q + 0.01 * state.v, 0.01)
+    amg = solve_amg.AMGPreconditioner(system.amg.B, {"threads_min_rows": 0} | options)
+    amg.setup(A)
+    assert amg._threads is not None
+    return A, amg, system
+
+
+def test_threaded_kernels_equal_the_numpy_reference():
+    """Sweeps (forward from zero, backward), the V-cycle's BSR mat-vecs (3x3, 6x6, 3x6, 6x3
+    blocks), the CSR mat-vec and the dot product against NumPy/SciPy to round-off; the
+    schedule's blocks of one colour share no entry."""
+    from fem3d.solve import sparse_threads
+
+    A, amg, _ = _threaded_setup((8, 8, 8), max_coarse=10)
+    ext = sparse_threads.c_kernels()
+    rng = np.random.default_rng(0)
+    assert len(amg._levels) == 2  # 3x3 and 6x6 levels
+    for lvl in amg._levels:
+        L, U, s, k = lvl.L, lvl.U, lvl.sweep, lvl.Dinv.shape[1]
+        # a finer schedule than the level's own: several blocks and colours even here
+        Afull = (L + U).tobsr(blocksize=(k, k))
+        s = sparse_threads.sweep_schedule(Afull.indptr, Afull.indices, min_block_rows=8)
+        if k == 3:  # (the 6x6 level is dense: one block)
+            assert s.n_colours >= 2 and s.n_blocks > s.n_colours
+        colour = np.repeat(np.arange(s.n_colours), np.diff(s.colours))
+        block_colour = colour
+        row_block = np.empty(L.shape[0] // k, dtype=np.int64)
+        row_block[s.sequence()] = np.repeat(np.arange(s.n_blocks), np.diff(s.blocks))
+        rows = np.repeat(np.arange(row_block.size), np.diff(Afull.indptr))
+        bi, bj = row_block[rows], row_block[Afull.indices]
+        assert not np.any((bi != bj) & (block_colour[bi] == block_colour[bj]))
+        L, U = sparse_threads.split_triangles(Afull, s.rank)
+        assert np.allclose((L + U).toarray(), Afull.toarray(), rtol=0, atol=0)
+        b = rng.standard_normal(L.shape[0])
+        x = np.zeros_like(b)
+        ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, lvl.Dinv, s.order,
+                        s.blocks, s.colours, x, b)
+        ref = sparse_threads.reference_sweep(L, U, lvl.Dinv, s, np.zeros_like(b), b)
+        assert np.abs(x - ref).max() <= 1e-13 * np.abs(ref).max()
+        x2 = x.copy()
+        ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, lvl.Dinv,
+                        s.order, s.blocks, s.colours, x2, b)
+        ref = sparse_threads.reference_sweep(L, U, lvl.Dinv, s, x, b, backward=True)
+        assert np.abs(x2 - ref).max() <= 1e-13 * np.abs(ref).max()
+        for M in (U, lvl.P, lvl.R):
+            v = rng.standard_normal(M.shape[1])
+            y0 = rng.standard_normal(M.shape[0])
+            y = y0.copy()
+            ext.bsr_matvec(M.indptr, M.indices, M.data, *M.blocksize, v, y, -1.0, y)
+            ref = y0 - M @ v
+            assert np.abs(y - ref).max() <= 1e-13 * np.abs(ref).max()
+    lvl = amg._levels[0]
+    Abar = (lvl.L + lvl.U).tobsr(blocksize=(3, 3))
+    for left, right in ((Abar, lvl.P), (lvl.R, Abar), (lvl.R, lvl.P)):  # 3x3x6, 6x3x3, 6x3x6
+        ours = sparse_threads.bsr_product(ext, left, right)
+        theirs = (left @ right).toarray()
+        assert ours.has_sorted_indices and np.all(np.diff(ours.indices[:ours.indptr[1]]) > 0)
+        assert np.abs(ours.toarray() - theirs).max() <= 1e-13 * np.abs(theirs).max()
+    p = rng.standard_normal(A.shape[0])
+    y = np.empty_like(p)
+    ext.csr_matvec(A.indptr, A.indices, A.data, p, y)
+    assert np.abs(y - A @ p).max() <= 1e-13 * np.abs(A @ p).max()
+    big = rng.standard_normal(200_001)
+    assert ext.dot(big, big[::-1].copy()) == pytest.approx(big @ big[::-1], rel=1e-12)
+    with pytest.raises(ValueError, match="bsr_matvec: indptr must rise"):
+        P = amg._levels[0].P
+        bad = P.indices.copy()
+        bad[0] = P.shape[1] // P.blocksize[1]  # one block column past the end
+        ext.bsr_matvec(P.indptr, bad, P.data, *P.blocksize, np.ones(P.shape[1]), None, 1.0,
+                       np.empty(P.shape[0]))
+
+
+def test_threaded_amg_is_bit_identical_on_one_and_two_threads():
+    """Setup, V-cycle and CG on 1 and 2 OpenMP threads: the same bits (the sweeps' colours
+    run one after the other, every row's sum in storage order, dot products in fixed
+    chunks)."""
+    from fem3d.solve import sparse_threads
+
+    A, amg, _ = _threaded_setup()
+    ext = sparse_threads.c_kernels()
+    level0 = amg._levels[0].sweep
+    assert level0.n_colours >= 2 and level0.n_blocks >= 4  # the sweeps do run in parallel
+    assert A.shape[0] // 3 >= 2048  # above FEM3D_AMG_PARALLEL_ROWS
+    b = np.random.default_rng(1).standard_normal(A.shape[0])
+    big = np.random.default_rng(2).standard_normal(1_000_003)
+    before = ext.max_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            ext.set_max_threads(threads)
+            amg.setup(A)
+            res = amg.solve(A, b, rtol=1e-8, maxiter=100)
+            results.append((amg.apply(b), res.x, res.iterations, ext.dot(big, big)))
+    finally:
+        ext.set_max_threads(before)
+    (z1, x1, it1, d1), (z2, x2, it2, d2) = results
+    assert np.array_equal(z1, z2) and np.array_equal(x1, x2) and it1 == it2 and d1 == d2
+
+
+def test_threaded_amg_converges_like_the_classic_smoother(monkeypatch):
+    """The sweeps in colour/block order precondition as well as pyamg's sweeps in row order
+    (CG iterations to 1e-8 within one), and the threaded back end keeps the trajectory of
+    the direct solve."""
+    A, amg, system = _threaded_setup()
+    classic = solve_amg.AMGPreconditioner(system.amg.B)
+    classic.setup(A)
+    assert classic._threads is None  # below threads_min_rows
+    b = np.random.default_rng(3).standard_normal(A.shape[0])
+    new = amg.solve(A, b, rtol=1e-8, maxiter=100)
+    old = classic.solve(A, b, rtol=1e-8, maxiter=100)
+    print("CG iterations threaded", new.iterations, "classic", old.iterations)
+    assert new.converged and new.iterations <= old.iterations + 1
+    assert np.linalg.norm(A @ new.x - b) <= 1e-8 * np.linalg.norm(b) * 1.01
+
+    monkeypatch.setitem(solve_amg.AMG_OPTIONS, "threads_min_rows", 0)
+    model, c = clamped_box()
+    start = swinging(model, c)
+    direct, _ = run(System(model, c, linsolve.default_backend()), start, 2)
+    amg_system = System(model, c, "amg")
+    threaded, _ = run(amg_system, start, 2)
+    assert amg_system.amg._threads is not None
+    size = np.ptp(model.X, axis=0).max()
+    assert max(np.abs(a - d).max() for a, d in zip(threaded, direct, strict=True)) < 1e-8 * size
+
+
+def test_without_the_c_extension_large_systems_keep_the_classic_path(monkeypatch):
+    """No C extension (or one without the AMG kernels): every size runs pyamg's sweeps and
+    SciPy's products, as below ``threads_min_rows`` (the NumPy/SciPy fallback)."""
+    from fem3d.solve import sparse_threads
+
+    model, c = clamped_box((4, 4, 4))
+    system = System(model, c, "amg")
+    state = swinging(model, c)
+    A = system.newton_matrix(state.q + 0.01 * state.v, 0.01)
+    b = np.random.default_rng(4).standard_normal(A.shape[0])
+    classic = solve_amg.AMGPreconditioner(system.amg.B)
+    classic.setup(A)
+    monkeypatch.setattr(sparse_threads, "c_extension", lambda: None)
+    assert sparse_threads.c_kernels() is None
+    fallback = solve_amg.AMGPreconditioner(system.amg.B, {"threads_min_rows": 0})
+    fallback.setup(A)
+    assert fallback._threads is None
+    assert np.array_equal(fallback.solve(A, b, rtol=1e-8, maxiter=50).x,
+                          classic.solve(A, b, rtol=1e-8, maxiter=50).x)

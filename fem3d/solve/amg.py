@@ -4,11 +4,15 @@ The ``"amg"`` back end of the Newton systems (:func:`fem3d.solve.linear.choose_b
 it by size): :func:`rigid_body_modes` gives the near-nullspace, :class:`AMGPreconditioner`
 aggregates a sparsity pattern once, builds a numeric hierarchy per matrix and runs V-cycle
 preconditioned CG. pyamg provides the aggregation, the candidate fitting and the block
-Gauss-Seidel kernel; the rest is fem3d's own.
+Gauss-Seidel kernel; the rest is fem3d's own. Large systems (``threads_min_rows``) run the
+setup's products, the V-cycles and CG on the threaded C kernels of
+:mod:`fem3d.solve.sparse_threads` instead (Gauss-Seidel in a colour/block order; the same bits
+on any number of threads).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -16,6 +20,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from fem3d.solve import sparse_threads
 from fem3d.solve.krylov import CGResult
 from fem3d.solve.linear import _as_csr
 
@@ -72,7 +77,16 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
 #: vectors); one forward block Gauss-Seidel sweep before the coarse correction and one
 #: backward sweep after (a symmetric V-cycle at half the cost of symmetric sweeps, same
 #: iterations).
-AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=6)
+#:
+#: ``threads_min_rows``
+#:     Systems of at least this many vertices (3-DOF block rows) run the V-cycles and CG on
+#:     the threaded C kernels of :mod:`fem3d.solve.sparse_threads` (the sweeps in a
+#:     colour/block order: the same bits on any number of threads); smaller ones, or any
+#:     without the C extension, keep pyamg's Gauss-Seidel in row order and SciPy's mat-vecs
+#:     (the classic scenes' bits). 6144 vertices: about 3e4 tets, where the fused assemblies
+#:     start their threads too.
+AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=6,
+                         threads_min_rows=6144)
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +151,28 @@ class _AMGLevel:
                     (indptr[-1] - indptr[::-1]).astype(indptr.dtype))
         return _AMGLevel(bsr(*part(A.indices < rows)), u_rev, Dinv,
                          np.ascontiguousarray(Dinv[::-1]), P, R)
+
+
+@dataclass(frozen=True, eq=False)
+class _ThreadedLevel:
+    """One non-coarsest level of a hierarchy on the threaded kernels: the order of its
+    Gauss-Seidel sweeps (:func:`~fem3d.solve.sparse_threads.sweep_schedule`), its matrix
+    ``A = L + D + U`` split in that order (:func:`~fem3d.solve.sparse_threads.split_triangles`)
+    as ``L``, ``U`` and the inverses ``Dinv`` of the diagonal blocks, P and R = P^T (BSR with
+    int32 indices)."""
+
+    L: sp.bsr_matrix
+    U: sp.bsr_matrix
+    Dinv: np.ndarray
+    sweep: sparse_threads.SweepSchedule
+    P: sp.bsr_matrix
+    R: sp.bsr_matrix
+
+
+def _c_bsr(M: sp.bsr_matrix) -> sp.bsr_matrix:
+    """``M`` with int32 indices and contiguous data (what the C kernels take)."""
+    return sp.bsr_matrix((np.ascontiguousarray(M.data), M.indices.astype(np.int32, copy=False),
+                          M.indptr.astype(np.int32, copy=False)), shape=M.shape)
 
 
 def _reversed_blocks(x: np.ndarray, k: int) -> np.ndarray:
@@ -222,25 +258,67 @@ def _block_rows_times(Dinv: np.ndarray, M: sp.bsr_matrix) -> sp.bsr_matrix:
     return sp.bsr_matrix((np.matmul(Dinv[rows], M.data), M.indices, M.indptr), shape=M.shape)
 
 
-def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int) -> float:
-    """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector)."""
+def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int,
+                     ext: object = None) -> float:
+    """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector); NumPy's inner
+    products and SciPy's mat-vecs, or the C extension's ``ext`` (threaded)."""
     n = A.shape[0]
     Dinv = _block_diagonal(Dinv)
+    dot = None if ext is None else ext.dot
+    if ext is None:
+        def operator(v):
+            return Dinv @ (A @ v)
+    else:
+        A, Dinv = _c_bsr(A), _c_bsr(Dinv)
+
+        def operator(v):
+            Av, w = np.empty(n), np.empty(n)
+            ext.bsr_matvec(A.indptr, A.indices, A.data, *A.blocksize, v, None, 1.0, Av)
+            ext.bsr_matvec(Dinv.indptr, Dinv.indices, Dinv.data, *Dinv.blocksize, Av, None, 1.0,
+                           w)
+            return w
     v = np.random.default_rng(12345).random(n)
-    V = [v / np.linalg.norm(v)]
+    if dot is None:
+        def dot(x, y):
+            return x @ y
+
+        def norm(x):
+            return np.linalg.norm(x)
+    else:
+        def norm(x):
+            return np.sqrt(dot(x, x))
+    V = [v / norm(v)]
     H = np.zeros((iterations + 1, iterations))
     m = iterations
     for j in range(iterations):
-        w = Dinv @ (A @ V[j])
+        w = operator(V[j])
         for i in range(j + 1):
-            H[i, j] = float(w @ V[i])
+            H[i, j] = float(dot(w, V[i]))
             w -= H[i, j] * V[i]
-        H[j + 1, j] = float(np.linalg.norm(w))
+        H[j + 1, j] = float(norm(w))
         if H[j + 1, j] <= 1e-12 * abs(H[j, j]):
             m = j + 1
             break
         V.append(w / H[j + 1, j])
     return float(np.abs(np.linalg.eigvals(H[:m, :m])).max())
+
+
+def _galerkin(A: sp.bsr_matrix, T: sp.bsr_matrix, Dinv: np.ndarray, scale: float,
+              ext: object) -> tuple[sp.bsr_matrix, sp.bsr_matrix, sp.bsr_matrix]:
+    """``P = T - scale D^-1 A T``, ``R = P^T`` and the coarse matrix ``R A P`` (sorted
+    indices): SciPy's products, or the threaded C ones when ``ext`` is the C extension."""
+    if ext is None:
+        P = T - scale * _block_rows_times(Dinv, A @ T)
+        P = sp.bsr_matrix(P, blocksize=T.blocksize)
+        R = sp.bsr_matrix(P.T)
+        Ac = sp.bsr_matrix(R @ (A @ P))  # (the product A P is the largest transient)
+        Ac.sort_indices()
+        return P, R, Ac
+    product = sparse_threads.bsr_product
+    P = T - scale * _block_rows_times(Dinv, product(ext, A, T))
+    P = _c_bsr(sp.bsr_matrix(P, blocksize=T.blocksize))
+    R = _c_bsr(sp.bsr_matrix(P.T))
+    return P, R, product(ext, R, product(ext, A, P))
 
 
 class AMGPreconditioner:
@@ -283,8 +361,10 @@ class AMGPreconditioner:
                              f"{sorted(AMG_OPTIONS)}")
         self.options = AMG_OPTIONS | dict(options or {})
         self._plan: _AMGPlan | None = None
-        self._levels: list[_AMGLevel] = []
+        self._levels: list = []  # _AMGLevel, or _ThreadedLevel when threaded
         self._coarse: tuple | None = None
+        self._threads = None  # the C kernels while the hierarchy runs on them
+        self._sweeps: list[tuple[np.ndarray, np.ndarray, sparse_threads.SweepSchedule]] = []
         self.pattern_key: object = None
         self.setups = 0
         self.analyze_seconds = 0.0
@@ -362,16 +442,18 @@ class AMGPreconditioner:
         Al = sp.bsr_matrix((data.reshape(-1, 3, 3), plan.bsr_indices, plan.bsr_indptr),
                            shape=(n, n))
         omega, iters = self.options["omega"], self.options["rho_iterations"]
+        ext = sparse_threads.c_kernels() if n // 3 >= self.options["threads_min_rows"] else None
         levels = []
         for T in plan.T:
             Dinv = _block_inverses(Al)
-            rho = _spectral_radius(Al, Dinv, iters)
-            P = T - (omega / rho) * _block_rows_times(Dinv, Al @ T)
-            P = sp.bsr_matrix(P, blocksize=T.blocksize)
-            R = sp.bsr_matrix(P.T)
-            Ac = sp.bsr_matrix(R @ (Al @ P))  # (the product A P is the largest transient)
-            Ac.sort_indices()
-            levels.append(_AMGLevel.make(Al, Dinv, P, R))
+            rho = _spectral_radius(Al, Dinv, iters, ext)
+            P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext)
+            if ext is None:
+                levels.append(_AMGLevel.make(Al, Dinv, P, R))
+            else:
+                sweep = self._sweep_schedule(len(levels), Al)
+                L, U = sparse_threads.split_triangles(Al, sweep.rank)
+                levels.append(_ThreadedLevel(L, U, np.ascontiguousarray(Dinv), sweep, P, R))
             Al = Ac
         Ac = Al.toarray()
         Ac = 0.5 * (Ac + Ac.T)
@@ -380,10 +462,23 @@ class AMGPreconditioner:
         except np.linalg.LinAlgError:  # not positive definite: a symmetric pseudo-inverse
             self._coarse = ("pinv", scipy.linalg.pinvh(Ac))
         self._levels = levels
+        self._threads = ext
         self.level_sizes = [lvl.P.shape[0] for lvl in levels] + [Ac.shape[0]]
         self.pattern_key = pattern_key
         self.setups += 1
         self.setup_seconds += time.perf_counter() - t0
+
+    def _sweep_schedule(self, level: int, A: sp.bsr_matrix) -> sparse_threads.SweepSchedule:
+        """The sweep order of level ``level``'s pattern (cached while the pattern stays: a
+        pattern with a new block needs a new colouring)."""
+        if level < len(self._sweeps):
+            indptr, indices, schedule = self._sweeps[level]
+            if np.array_equal(indptr, A.indptr) and np.array_equal(indices, A.indices):
+                return schedule
+        del self._sweeps[level:]
+        self._sweeps.append((A.indptr, A.indices, sparse_threads.sweep_schedule(A.indptr,
+                                                                                A.indices)))
+        return self._sweeps[level][2]
 
     def _coarse_solve(self, b: np.ndarray) -> np.ndarray:
         kind, f = self._coarse
@@ -398,6 +493,8 @@ class AMGPreconditioner:
 
         if self._coarse is None:
             raise RuntimeError("setup() must run before apply()")
+        if self._threads is not None:
+            return self._apply_threaded(np.ascontiguousarray(b, dtype=np.float64))
         # Forward Gauss-Seidel from x = 0 never reads the upper triangle (x is still 0 there)
         # and leaves the residual b - A x = -U x; the backward sweep on x is one on U + D
         # with b - L x (L x of the old x throughout). So each sweep touches half the blocks
@@ -424,6 +521,50 @@ class AMGPreconditioner:
             x = _reversed_blocks(x, k)
         return x
 
+    def _apply_threaded(self, b: np.ndarray) -> np.ndarray:
+        """:meth:`apply` on the threaded kernels: the same V-cycle, the sweeps in each level's
+        schedule order on its triangles in that order (the backward sweep reads ``L`` of the
+        old ``x`` itself: one pass for ``b - L x`` and the sweep)."""
+        ext = self._threads
+        xs, bs = [], []
+        for lvl in self._levels:
+            L, U, s, R = lvl.L, lvl.U, lvl.sweep, lvl.R
+            x = np.zeros_like(b)
+            ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, lvl.Dinv, s.order,
+                            s.blocks, s.colours, x, b)
+            xs.append(x)
+            bs.append(b)
+            r = np.empty_like(b)  # b - A x = -U x after a forward sweep from zero
+            ext.bsr_matvec(U.indptr, U.indices, U.data, *U.blocksize, x, None, -1.0, r)
+            b = np.empty(R.shape[0])
+            ext.bsr_matvec(R.indptr, R.indices, R.data, *R.blocksize, r, None, 1.0, b)
+        x = self._coarse_solve(b)
+        for lvl, xf, bf in zip(reversed(self._levels), reversed(xs), reversed(bs), strict=True):
+            L, U, s, P = lvl.L, lvl.U, lvl.sweep, lvl.P
+            ext.bsr_matvec(P.indptr, P.indices, P.data, *P.blocksize, x, xf, 1.0, xf)
+            ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, lvl.Dinv,
+                            s.order, s.blocks, s.colours, xf, bf)
+            x = xf
+        return x
+
+    def _cg_operations(self, A: sp.csr_matrix) -> tuple:
+        """CG's inner product and ``p -> A p``: NumPy's and SciPy's, or the threaded C kernels
+        (the same bits on any thread count) with a threaded hierarchy."""
+        ext = self._threads
+        if ext is None:
+            # bitwise the classic float(r @ z), np.linalg.norm(r) (its square root of r @ r)
+            return (lambda x, y: float(x @ y)), (lambda p: A @ p)
+        if A.indptr.dtype != np.int32 or A.indices.dtype != np.int32:
+            return ext.dot, (lambda p: A @ p)
+        data = np.ascontiguousarray(A.data, dtype=np.float64)
+
+        def matvec(p: np.ndarray) -> np.ndarray:
+            y = np.empty(A.shape[0])
+            ext.csr_matvec(A.indptr, A.indices, data, p, y)
+            return y
+
+        return ext.dot, matvec
+
     def solve(self, A: sp.spmatrix | sp.sparray, b: np.ndarray, *, rtol: float,
               maxiter: int) -> CGResult:
         """CG on ``A x = b`` from ``x = 0``, V-cycle preconditioned, to ``|r| <= rtol |b|``.
@@ -437,7 +578,8 @@ class AMGPreconditioner:
         t0 = time.perf_counter()
         A = _as_csr(A)
         b = np.asarray(b, dtype=np.float64)
-        bnorm = float(np.linalg.norm(b))
+        dot, matvec = self._cg_operations(A)
+        bnorm = math.sqrt(dot(b, b))
         if bnorm == 0.0:
             return CGResult(np.zeros_like(b), 0, 0.0, True, False, False)
         x = np.zeros_like(b)
@@ -452,7 +594,7 @@ class AMGPreconditioner:
                 stalled = True
                 break
             z = self.apply(r)
-            rz_new = float(r @ z)
+            rz_new = dot(r, z)
             if not rz_new > 0.0:  # the V-cycle is not SPD (hierarchy of an indefinite matrix)
                 negative = stalled = True
                 break
@@ -462,8 +604,8 @@ class AMGPreconditioner:
                 p *= rz_new / rz
                 p += z
             rz = rz_new
-            Ap = A @ p
-            curv = float(p @ Ap)
+            Ap = matvec(p)
+            curv = dot(p, Ap)
             if not curv > 0.0:
                 negative = stalled = True
                 break
@@ -471,7 +613,7 @@ class AMGPreconditioner:
             x += alpha * p
             r -= alpha * Ap
             it += 1
-            res = float(np.linalg.norm(r)) / bnorm
+            res = math.sqrt(dot(r, r)) / bnorm
         self.iterations += it
         self.cg_seconds += time.perf_counter() - t0
         return CGResult(x, it, res, not stalled, stalled, False, negative)

@@ -543,6 +543,1158 @@ done:
     return result;
 }
 
+// ---------------------------------------------------------------------------------------------
+// Sparse kernels of the AMG-preconditioned CG (fem3d.solve.amg, fem3d.solve.sparse_threads):
+// BSR mat-vecs, block Gauss-Seidel sweeps over a colour/block schedule, a CSR mat-vec, a dot
+// product and BSR x BSR products, on the OpenMP threads.
+//
+// Every result is the same bits on any number of threads: a row's sum runs over its stored
+// entries in storage order whichever thread computes it; a sweep runs the colours one after
+// the other and, within a colour, blocks that share no entry (any order gives the same
+// result), each block's rows in order; a dot product sums fixed chunks of FEM3D_DOT_CHUNK
+// entries and adds the chunk sums in chunk order.
+//
+// A sweep takes the matrix split in its order: L holds the blocks of the rows that come earlier
+// in the sweep, U those of later rows (fem3d.solve.sparse_threads.split_triangles).
+// ---------------------------------------------------------------------------------------------
+
+// Loops over fewer rows (or entries, for the dot product) than this run on one thread.
+#define FEM3D_AMG_PARALLEL_ROWS 2048
+#define FEM3D_DOT_CHUNK 4096
+// y_i = b_i + alpha * A_i x, 3 x 3 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
+static void fem3d_bsr_mv_3x3(Py_ssize_t n_rows, const int *indptr, const int *indices,
+                                  const double *data, const double *x, const double *b,
+                                  double alpha, double *y)
+{
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    for (Py_ssize_t i = 0; i < n_rows; ++i) {
+        double acc0 = 0.0;
+        double acc1 = 0.0;
+        double acc2 = 0.0;
+        for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
+            const double *a = data + jj * 9;
+            const double *xj = x + (Py_ssize_t)indices[jj] * 3;
+            const double x0 = xj[0];
+            const double x1 = xj[1];
+            const double x2 = xj[2];
+            acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+            acc1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+            acc2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+        }
+        y[i * 3 + 0] = (b != NULL ? b[i * 3 + 0] : 0.0) - alpha * acc0;
+        y[i * 3 + 1] = (b != NULL ? b[i * 3 + 1] : 0.0) - alpha * acc1;
+        y[i * 3 + 2] = (b != NULL ? b[i * 3 + 2] : 0.0) - alpha * acc2;
+    }
+}
+
+// y_i = b_i + alpha * A_i x, 6 x 6 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
+static void fem3d_bsr_mv_6x6(Py_ssize_t n_rows, const int *indptr, const int *indices,
+                                  const double *data, const double *x, const double *b,
+                                  double alpha, double *y)
+{
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    for (Py_ssize_t i = 0; i < n_rows; ++i) {
+        double acc0 = 0.0;
+        double acc1 = 0.0;
+        double acc2 = 0.0;
+        double acc3 = 0.0;
+        double acc4 = 0.0;
+        double acc5 = 0.0;
+        for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
+            const double *a = data + jj * 36;
+            const double *xj = x + (Py_ssize_t)indices[jj] * 6;
+            const double x0 = xj[0];
+            const double x1 = xj[1];
+            const double x2 = xj[2];
+            const double x3 = xj[3];
+            const double x4 = xj[4];
+            const double x5 = xj[5];
+            acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2 + a[3] * x3 + a[4] * x4 + a[5] * x5;
+            acc1 -= a[6] * x0 + a[7] * x1 + a[8] * x2 + a[9] * x3 + a[10] * x4 + a[11] * x5;
+            acc2 -= a[12] * x0 + a[13] * x1 + a[14] * x2 + a[15] * x3 + a[16] * x4 + a[17] * x5;
+            acc3 -= a[18] * x0 + a[19] * x1 + a[20] * x2 + a[21] * x3 + a[22] * x4 + a[23] * x5;
+            acc4 -= a[24] * x0 + a[25] * x1 + a[26] * x2 + a[27] * x3 + a[28] * x4 + a[29] * x5;
+            acc5 -= a[30] * x0 + a[31] * x1 + a[32] * x2 + a[33] * x3 + a[34] * x4 + a[35] * x5;
+        }
+        y[i * 6 + 0] = (b != NULL ? b[i * 6 + 0] : 0.0) - alpha * acc0;
+        y[i * 6 + 1] = (b != NULL ? b[i * 6 + 1] : 0.0) - alpha * acc1;
+        y[i * 6 + 2] = (b != NULL ? b[i * 6 + 2] : 0.0) - alpha * acc2;
+        y[i * 6 + 3] = (b != NULL ? b[i * 6 + 3] : 0.0) - alpha * acc3;
+        y[i * 6 + 4] = (b != NULL ? b[i * 6 + 4] : 0.0) - alpha * acc4;
+        y[i * 6 + 5] = (b != NULL ? b[i * 6 + 5] : 0.0) - alpha * acc5;
+    }
+}
+
+// y_i = b_i + alpha * A_i x, 3 x 6 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
+static void fem3d_bsr_mv_3x6(Py_ssize_t n_rows, const int *indptr, const int *indices,
+                                  const double *data, const double *x, const double *b,
+                                  double alpha, double *y)
+{
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    for (Py_ssize_t i = 0; i < n_rows; ++i) {
+        double acc0 = 0.0;
+        double acc1 = 0.0;
+        double acc2 = 0.0;
+        for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
+            const double *a = data + jj * 18;
+            const double *xj = x + (Py_ssize_t)indices[jj] * 6;
+            const double x0 = xj[0];
+            const double x1 = xj[1];
+            const double x2 = xj[2];
+            const double x3 = xj[3];
+            const double x4 = xj[4];
+            const double x5 = xj[5];
+            acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2 + a[3] * x3 + a[4] * x4 + a[5] * x5;
+            acc1 -= a[6] * x0 + a[7] * x1 + a[8] * x2 + a[9] * x3 + a[10] * x4 + a[11] * x5;
+            acc2 -= a[12] * x0 + a[13] * x1 + a[14] * x2 + a[15] * x3 + a[16] * x4 + a[17] * x5;
+        }
+        y[i * 3 + 0] = (b != NULL ? b[i * 3 + 0] : 0.0) - alpha * acc0;
+        y[i * 3 + 1] = (b != NULL ? b[i * 3 + 1] : 0.0) - alpha * acc1;
+        y[i * 3 + 2] = (b != NULL ? b[i * 3 + 2] : 0.0) - alpha * acc2;
+    }
+}
+
+// y_i = b_i + alpha * A_i x, 6 x 3 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
+static void fem3d_bsr_mv_6x3(Py_ssize_t n_rows, const int *indptr, const int *indices,
+                                  const double *data, const double *x, const double *b,
+                                  double alpha, double *y)
+{
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    for (Py_ssize_t i = 0; i < n_rows; ++i) {
+        double acc0 = 0.0;
+        double acc1 = 0.0;
+        double acc2 = 0.0;
+        double acc3 = 0.0;
+        double acc4 = 0.0;
+        double acc5 = 0.0;
+        for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
+            const double *a = data + jj * 18;
+            const double *xj = x + (Py_ssize_t)indices[jj] * 3;
+            const double x0 = xj[0];
+            const double x1 = xj[1];
+            const double x2 = xj[2];
+            acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+            acc1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+            acc2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+            acc3 -= a[9] * x0 + a[10] * x1 + a[11] * x2;
+            acc4 -= a[12] * x0 + a[13] * x1 + a[14] * x2;
+            acc5 -= a[15] * x0 + a[16] * x1 + a[17] * x2;
+        }
+        y[i * 6 + 0] = (b != NULL ? b[i * 6 + 0] : 0.0) - alpha * acc0;
+        y[i * 6 + 1] = (b != NULL ? b[i * 6 + 1] : 0.0) - alpha * acc1;
+        y[i * 6 + 2] = (b != NULL ? b[i * 6 + 2] : 0.0) - alpha * acc2;
+        y[i * 6 + 3] = (b != NULL ? b[i * 6 + 3] : 0.0) - alpha * acc3;
+        y[i * 6 + 4] = (b != NULL ? b[i * 6 + 4] : 0.0) - alpha * acc4;
+        y[i * 6 + 5] = (b != NULL ? b[i * 6 + 5] : 0.0) - alpha * acc5;
+    }
+}
+
+typedef void (*fem3d_bsr_mv_fn)(Py_ssize_t, const int *, const int *, const double *,
+                                const double *, const double *, double, double *);
+
+// The mat-vec of R x C blocks, or NULL.
+static fem3d_bsr_mv_fn fem3d_bsr_mv_kernel(int R, int C)
+{
+    if (R == 3 && C == 3) return fem3d_bsr_mv_3x3;
+    if (R == 6 && C == 6) return fem3d_bsr_mv_6x6;
+    if (R == 3 && C == 6) return fem3d_bsr_mv_3x6;
+    if (R == 6 && C == 3) return fem3d_bsr_mv_6x3;
+    return NULL;
+}
+
+// One block Gauss-Seidel sweep, 3 x 3 blocks, of A = L + D + U split in the sweep
+// order (L: the blocks of earlier rows, U: of later ones; Dinv: D's inverse blocks). Forward
+// (U NULL): x_i = Dinv_i (b_i - L_i x), the rows in sweep order. Backward: x_i = Dinv_i (b_i -
+// L_i x - U_i x), the rows in reverse order (L_i reads rows not yet updated: the sweep on
+// D + U with b - L x of the old x). The rows of block s are order[blocks[s]:blocks[s + 1]];
+// colour c the blocks colours[c] ... colours[c + 1] - 1, which share no entry: they run in
+// parallel, the colours one after the other.
+static void fem3d_sweep_3(const int *l_indptr, const int *l_indices, const double *l_data,
+                              const int *u_indptr, const int *u_indices, const double *u_data,
+                              const double *Dinv, const int *order, const long long *blocks,
+                              const long long *colours, Py_ssize_t n_colours, Py_ssize_t n_rows,
+                              double *x, const double *b)
+{
+    const int backward = u_data != NULL;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (threads)")
+    for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
+        const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
+        FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
+        for (long long s = colours[c]; s < colours[c + 1]; ++s) {
+            const long long lo = blocks[s], hi = blocks[s + 1];
+            for (long long t = 0; t < hi - lo; ++t) {
+                const long long p = backward ? hi - 1 - t : lo + t;
+                const Py_ssize_t i = order != NULL ? order[p] : p;
+                double acc0 = b[i * 3 + 0];
+                double acc1 = b[i * 3 + 1];
+                double acc2 = b[i * 3 + 2];
+                if (backward) {
+                for (Py_ssize_t jj = u_indptr[i + 1] - 1; jj >= u_indptr[i]; --jj) {
+                    const double *a = u_data + jj * 9;
+                    const double *xj = x + (Py_ssize_t)u_indices[jj] * 3;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+                    acc1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+                    acc2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+                }
+                for (Py_ssize_t jj = l_indptr[i + 1] - 1; jj >= l_indptr[i]; --jj) {
+                    const double *a = l_data + jj * 9;
+                    const double *xj = x + (Py_ssize_t)l_indices[jj] * 3;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+                    acc1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+                    acc2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+                }
+} else {
+                for (Py_ssize_t jj = l_indptr[i]; jj < l_indptr[i + 1]; ++jj) {
+                    const double *a = l_data + jj * 9;
+                    const double *xj = x + (Py_ssize_t)l_indices[jj] * 3;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+                    acc1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+                    acc2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+                }
+}
+                const double *d = Dinv + i * 9;
+                x[i * 3 + 0] = d[0] * acc0 + d[1] * acc1 + d[2] * acc2;
+                x[i * 3 + 1] = d[3] * acc0 + d[4] * acc1 + d[5] * acc2;
+                x[i * 3 + 2] = d[6] * acc0 + d[7] * acc1 + d[8] * acc2;
+            }
+        }
+    }
+}
+
+// One block Gauss-Seidel sweep, 6 x 6 blocks, of A = L + D + U split in the sweep
+// order (L: the blocks of earlier rows, U: of later ones; Dinv: D's inverse blocks). Forward
+// (U NULL): x_i = Dinv_i (b_i - L_i x), the rows in sweep order. Backward: x_i = Dinv_i (b_i -
+// L_i x - U_i x), the rows in reverse order (L_i reads rows not yet updated: the sweep on
+// D + U with b - L x of the old x). The rows of block s are order[blocks[s]:blocks[s + 1]];
+// colour c the blocks colours[c] ... colours[c + 1] - 1, which share no entry: they run in
+// parallel, the colours one after the other.
+static void fem3d_sweep_6(const int *l_indptr, const int *l_indices, const double *l_data,
+                              const int *u_indptr, const int *u_indices, const double *u_data,
+                              const double *Dinv, const int *order, const long long *blocks,
+                              const long long *colours, Py_ssize_t n_colours, Py_ssize_t n_rows,
+                              double *x, const double *b)
+{
+    const int backward = u_data != NULL;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    (void)threads;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (threads)")
+    for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
+        const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
+        FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
+        for (long long s = colours[c]; s < colours[c + 1]; ++s) {
+            const long long lo = blocks[s], hi = blocks[s + 1];
+            for (long long t = 0; t < hi - lo; ++t) {
+                const long long p = backward ? hi - 1 - t : lo + t;
+                const Py_ssize_t i = order != NULL ? order[p] : p;
+                double acc0 = b[i * 6 + 0];
+                double acc1 = b[i * 6 + 1];
+                double acc2 = b[i * 6 + 2];
+                double acc3 = b[i * 6 + 3];
+                double acc4 = b[i * 6 + 4];
+                double acc5 = b[i * 6 + 5];
+                if (backward) {
+                for (Py_ssize_t jj = u_indptr[i + 1] - 1; jj >= u_indptr[i]; --jj) {
+                    const double *a = u_data + jj * 36;
+                    const double *xj = x + (Py_ssize_t)u_indices[jj] * 6;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    const double x3 = xj[3];
+                    const double x4 = xj[4];
+                    const double x5 = xj[5];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2 + a[3] * x3 + a[4] * x4 + a[5] * x5;
+                    acc1 -= a[6] * x0 + a[7] * x1 + a[8] * x2 + a[9] * x3 + a[10] * x4 + a[11] * x5;
+                    acc2 -= a[12] * x0 + a[13] * x1 + a[14] * x2 + a[15] * x3 + a[16] * x4 + a[17] * x5;
+                    acc3 -= a[18] * x0 + a[19] * x1 + a[20] * x2 + a[21] * x3 + a[22] * x4 + a[23] * x5;
+                    acc4 -= a[24] * x0 + a[25] * x1 + a[26] * x2 + a[27] * x3 + a[28] * x4 + a[29] * x5;
+                    acc5 -= a[30] * x0 + a[31] * x1 + a[32] * x2 + a[33] * x3 + a[34] * x4 + a[35] * x5;
+                }
+                for (Py_ssize_t jj = l_indptr[i + 1] - 1; jj >= l_indptr[i]; --jj) {
+                    const double *a = l_data + jj * 36;
+                    const double *xj = x + (Py_ssize_t)l_indices[jj] * 6;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    const double x3 = xj[3];
+                    const double x4 = xj[4];
+                    const double x5 = xj[5];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2 + a[3] * x3 + a[4] * x4 + a[5] * x5;
+                    acc1 -= a[6] * x0 + a[7] * x1 + a[8] * x2 + a[9] * x3 + a[10] * x4 + a[11] * x5;
+                    acc2 -= a[12] * x0 + a[13] * x1 + a[14] * x2 + a[15] * x3 + a[16] * x4 + a[17] * x5;
+                    acc3 -= a[18] * x0 + a[19] * x1 + a[20] * x2 + a[21] * x3 + a[22] * x4 + a[23] * x5;
+                    acc4 -= a[24] * x0 + a[25] * x1 + a[26] * x2 + a[27] * x3 + a[28] * x4 + a[29] * x5;
+                    acc5 -= a[30] * x0 + a[31] * x1 + a[32] * x2 + a[33] * x3 + a[34] * x4 + a[35] * x5;
+                }
+} else {
+                for (Py_ssize_t jj = l_indptr[i]; jj < l_indptr[i + 1]; ++jj) {
+                    const double *a = l_data + jj * 36;
+                    const double *xj = x + (Py_ssize_t)l_indices[jj] * 6;
+                    const double x0 = xj[0];
+                    const double x1 = xj[1];
+                    const double x2 = xj[2];
+                    const double x3 = xj[3];
+                    const double x4 = xj[4];
+                    const double x5 = xj[5];
+                    acc0 -= a[0] * x0 + a[1] * x1 + a[2] * x2 + a[3] * x3 + a[4] * x4 + a[5] * x5;
+                    acc1 -= a[6] * x0 + a[7] * x1 + a[8] * x2 + a[9] * x3 + a[10] * x4 + a[11] * x5;
+                    acc2 -= a[12] * x0 + a[13] * x1 + a[14] * x2 + a[15] * x3 + a[16] * x4 + a[17] * x5;
+                    acc3 -= a[18] * x0 + a[19] * x1 + a[20] * x2 + a[21] * x3 + a[22] * x4 + a[23] * x5;
+                    acc4 -= a[24] * x0 + a[25] * x1 + a[26] * x2 + a[27] * x3 + a[28] * x4 + a[29] * x5;
+                    acc5 -= a[30] * x0 + a[31] * x1 + a[32] * x2 + a[33] * x3 + a[34] * x4 + a[35] * x5;
+                }
+}
+                const double *d = Dinv + i * 36;
+                x[i * 6 + 0] = d[0] * acc0 + d[1] * acc1 + d[2] * acc2 + d[3] * acc3 + d[4] * acc4 + d[5] * acc5;
+                x[i * 6 + 1] = d[6] * acc0 + d[7] * acc1 + d[8] * acc2 + d[9] * acc3 + d[10] * acc4 + d[11] * acc5;
+                x[i * 6 + 2] = d[12] * acc0 + d[13] * acc1 + d[14] * acc2 + d[15] * acc3 + d[16] * acc4 + d[17] * acc5;
+                x[i * 6 + 3] = d[18] * acc0 + d[19] * acc1 + d[20] * acc2 + d[21] * acc3 + d[22] * acc4 + d[23] * acc5;
+                x[i * 6 + 4] = d[24] * acc0 + d[25] * acc1 + d[26] * acc2 + d[27] * acc3 + d[28] * acc4 + d[29] * acc5;
+                x[i * 6 + 5] = d[30] * acc0 + d[31] * acc1 + d[32] * acc2 + d[33] * acc3 + d[34] * acc4 + d[35] * acc5;
+            }
+        }
+    }
+}
+
+// A buffer argument of an AMG kernel: kind 'd' float64, 'i' int32, 'q' int64; None allowed
+// (buf NULL) when optional. Returns 0, or -1 with an exception naming the argument.
+static int fem3d_amg_arg(PyObject *obj, Py_buffer *view, int *n_views, char kind, int writable,
+                         int optional, const char *fn, const char *name, const void **buf,
+                         Py_ssize_t *count)
+{
+    if (optional && obj == Py_None) {
+        *buf = NULL;
+        *count = 0;
+        return 0;
+    }
+    const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) != 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_ValueError, "%s: %s must be a C-contiguous%s array", fn, name,
+                     writable ? " writable" : "");
+        return -1;
+    }
+    ++*n_views;
+    const int ok = kind == 'd' ? is_float64(view) : kind == 'i' ? is_int32(view)
+                                                               : is_int64(view);
+    if (!ok) {
+        PyErr_Format(PyExc_ValueError, "%s: %s must have dtype %s", fn, name,
+                     kind == 'd' ? "float64" : kind == 'i' ? "int32" : "int64");
+        return -1;
+    }
+    *buf = view->buf;
+    *count = view->len / view->itemsize;
+    return 0;
+}
+
+// The indices of a BSR/CSR pattern lie in [0, n_cols) and indptr rises from 0: checked once
+// per call (a pass over indices, cheaper than one mat-vec).
+static int fem3d_amg_check_pattern(const char *fn, const int *indptr, Py_ssize_t n_rows,
+                                   const int *indices, Py_ssize_t n_indices, Py_ssize_t n_cols)
+{
+    int bad = indptr[0] != 0 || indptr[n_rows] > n_indices;
+    for (Py_ssize_t i = 0; i < n_rows && !bad; ++i) bad = indptr[i] > indptr[i + 1];
+    for (Py_ssize_t jj = 0; jj < (bad ? 0 : indptr[n_rows]); ++jj)
+        if ((unsigned int)indices[jj] >= (size_t)n_cols) {
+            bad = 1;
+            break;
+        }
+    if (bad) {
+        PyErr_Format(PyExc_ValueError, "%s: indptr must rise from 0 to at most len(indices) "
+                     "and indices lie in [0, %zd)", fn, n_cols);
+        return -1;
+    }
+    return 0;
+}
+
+// bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y): y = b + alpha * A x with A
+// (n_rows R) x (n_cols C) in BSR (int32 indptr, indices; float64 data of R x C blocks: 3 x 3,
+// 6 x 6, 3 x 6 or 6 x 3), b None for zero, alpha +1 or -1. y may be b (in place).
+static PyObject *py_bsr_matvec(PyObject *self, PyObject *args)
+{
+    static const char *fn = "bsr_matvec";
+    PyObject *o[6];
+    int R, C;
+    double alpha;
+    Py_buffer views[6];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOiiOOdO:bsr_matvec", &o[0], &o[1], &o[2], &R, &C, &o[3],
+                          &o[4], &alpha, &o[5]))
+        return NULL;
+    const void *buf[6];
+    Py_ssize_t count[6];
+    static const char *names[] = {"indptr", "indices", "data", "x", "b", "y"};
+    static const char kinds[] = {'i', 'i', 'd', 'd', 'd', 'd'};
+    for (int a = 0; a < 6; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a == 5, a == 4, fn,
+                          names[a], &buf[a], &count[a]) != 0)
+            goto done;
+    {
+        const fem3d_bsr_mv_fn kernel = fem3d_bsr_mv_kernel(R, C);
+        const Py_ssize_t n_rows = count[0] - 1;
+        if (kernel == NULL || n_rows < 0 || count[2] != count[1] * R * C ||
+            count[5] != n_rows * R || count[3] % C != 0 || (buf[4] && count[4] != count[5]) ||
+            (alpha != 1.0 && alpha != -1.0)) {
+            PyErr_Format(PyExc_ValueError, "%s: shapes do not fit (blocks %d x %d: 3 x 3, 6 x 6, "
+                         "3 x 6 or 6 x 3; data len(indices) blocks; y and b n_rows * R; x a "
+                         "multiple of C; alpha +1 or -1)", fn, R, C);
+            goto done;
+        }
+        if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], count[3] / C) != 0)
+            goto done;
+        Py_BEGIN_ALLOW_THREADS
+        kernel(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], alpha, (double *)buf[5]);
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// block_sweep(l_indptr, l_indices, l_data, u_indptr, u_indices, u_data, Dinv, order, blocks,
+// colours, x, b): one block Gauss-Seidel sweep in place on x (see fem3d_sweep_k): forward when
+// the U arrays are None, backward otherwise. L and U: BSR (int32 indptr, indices) of k x k
+// blocks, k 3 or 6 from Dinv (n_rows k x k); order int32 (n_rows, or None: the row order),
+// blocks and colours int64 offsets.
+static PyObject *py_block_sweep(PyObject *self, PyObject *args)
+{
+    static const char *fn = "block_sweep";
+    PyObject *o[12];
+    Py_buffer views[12];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOO:block_sweep", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11]))
+        return NULL;
+    const void *buf[12];
+    Py_ssize_t count[12];
+    static const char *names[] = {"l_indptr", "l_indices", "l_data", "u_indptr", "u_indices",
+                                  "u_data", "Dinv", "order", "blocks", "colours", "x", "b"};
+    static const char kinds[] = {'i', 'i', 'd', 'i', 'i', 'd', 'd', 'i', 'q', 'q', 'd', 'd'};
+    for (int a = 0; a < 12; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a == 10,
+                          (a >= 3 && a <= 5) || a == 7, fn, names[a], &buf[a], &count[a]) != 0)
+            goto done;
+    {
+        const Py_ssize_t n_rows = count[0] - 1;
+        const Py_ssize_t k = n_rows > 0 && count[6] == n_rows * 9 ? 3 : 6;
+        const long long *blocks = buf[8], *colours = buf[9];
+        const Py_ssize_t n_blocks = count[8] - 1, n_colours = count[9] - 1;
+        const int backward = buf[3] != NULL;
+        int ok = n_rows >= 1 && count[6] == n_rows * k * k && count[2] == count[1] * k * k &&
+                 count[10] == n_rows * k && count[11] == n_rows * k &&
+                 (buf[3] != NULL) == (buf[4] != NULL) && (buf[4] != NULL) == (buf[5] != NULL) &&
+                 (!backward || (count[3] == n_rows + 1 && count[5] == count[4] * k * k)) &&
+                 (!buf[7] || count[7] == n_rows) && n_blocks >= 1 && n_colours >= 1 &&
+                 blocks[0] == 0 && blocks[n_blocks] == n_rows && colours[0] == 0 &&
+                 colours[n_colours] == n_blocks;
+        for (Py_ssize_t s = 0; ok && s < n_blocks; ++s) ok = blocks[s] <= blocks[s + 1];
+        for (Py_ssize_t c = 0; ok && c < n_colours; ++c) ok = colours[c] <= colours[c + 1];
+        const int *order = buf[7];
+        for (Py_ssize_t p = 0; ok && order && p < n_rows; ++p)
+            ok = (unsigned int)order[p] < (size_t)n_rows;
+        if (!ok) {
+            PyErr_Format(PyExc_ValueError, "%s: shapes do not fit (Dinv n_rows k x k with k 3 or "
+                         "6; L and U n_rows block rows of k x k blocks, U all None for a forward "
+                         "sweep; x and b n_rows * k; order n_rows in [0, n_rows); blocks and "
+                         "colours rising offsets to n_rows and to len(blocks) - 1)", fn);
+            goto done;
+        }
+        if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], n_rows) != 0 ||
+            (backward && fem3d_amg_check_pattern(fn, buf[3], n_rows, buf[4], count[4], n_rows)))
+            goto done;
+        Py_BEGIN_ALLOW_THREADS
+        (k == 3 ? fem3d_sweep_3 : fem3d_sweep_6)(buf[0], buf[1], buf[2], buf[3], buf[4], buf[5],
+                                                 buf[6], order, blocks, colours, n_colours,
+                                                 n_rows, (double *)buf[10], buf[11]);
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// dot(x, y): sum of x * y over fixed chunks (four running sums each), chunk sums in order.
+static PyObject *py_dot(PyObject *self, PyObject *args)
+{
+    PyObject *o[2];
+    Py_buffer views[2];
+    int n_views = 0;
+    PyObject *result = NULL;
+    double *partial = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OO:dot", &o[0], &o[1])) return NULL;
+    const void *buf[2];
+    Py_ssize_t count[2];
+    for (int a = 0; a < 2; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, 'd', 0, 0, "dot", a ? "y" : "x",
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    if (count[0] != count[1]) {
+        PyErr_Format(PyExc_ValueError, "dot: x has %zd entries, y %zd", count[0], count[1]);
+        goto done;
+    }
+    {
+        const Py_ssize_t n = count[0], n_chunks = (n + FEM3D_DOT_CHUNK - 1) / FEM3D_DOT_CHUNK;
+        const double *x = buf[0], *y = buf[1];
+        partial = PyMem_Calloc((size_t)(n_chunks > 0 ? n_chunks : 1), sizeof(double));
+        if (partial == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        double total = 0.0;
+        Py_BEGIN_ALLOW_THREADS
+        const int threads = n >= 16 * FEM3D_DOT_CHUNK;
+        (void)threads;  // (unused without OpenMP)
+        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+        for (Py_ssize_t c = 0; c < n_chunks; ++c) {
+            const Py_ssize_t lo = c * FEM3D_DOT_CHUNK;
+            const Py_ssize_t hi = lo + FEM3D_DOT_CHUNK < n ? lo + FEM3D_DOT_CHUNK : n;
+            double s[4] = {0.0, 0.0, 0.0, 0.0};
+            Py_ssize_t i = lo;
+            for (; i + 4 <= hi; i += 4)
+                for (int q = 0; q < 4; ++q) s[q] += x[i + q] * y[i + q];
+            for (; i < hi; ++i) s[0] += x[i] * y[i];
+            partial[c] = (s[0] + s[1]) + (s[2] + s[3]);
+        }
+        for (Py_ssize_t c = 0; c < n_chunks; ++c) total += partial[c];
+        Py_END_ALLOW_THREADS
+        result = PyFloat_FromDouble(total);
+    }
+done:
+    PyMem_Free(partial);
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// csr_matvec(indptr, indices, data, x, y): y = A x for a CSR matrix (int32 indptr, indices).
+static PyObject *py_csr_matvec(PyObject *self, PyObject *args)
+{
+    static const char *fn = "csr_matvec";
+    PyObject *o[5];
+    Py_buffer views[5];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOOO:csr_matvec", &o[0], &o[1], &o[2], &o[3], &o[4]))
+        return NULL;
+    const void *buf[5];
+    Py_ssize_t count[5];
+    static const char *names[] = {"indptr", "indices", "data", "x", "y"};
+    static const char kinds[] = {'i', 'i', 'd', 'd', 'd'};
+    for (int a = 0; a < 5; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a == 4, 0, fn, names[a],
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    {
+        const Py_ssize_t n_rows = count[0] - 1;
+        if (n_rows < 0 || count[1] != count[2] || count[4] != n_rows) {
+            PyErr_Format(PyExc_ValueError, "%s: data must match indices and y have n_rows "
+                         "entries", fn);
+            goto done;
+        }
+        if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], count[3]) != 0)
+            goto done;
+        const int *indptr = buf[0], *indices = buf[1];
+        const double *data = buf[2], *x = buf[3];
+        double *y = (double *)buf[4];
+        Py_BEGIN_ALLOW_THREADS
+        const int threads = n_rows >= 4 * FEM3D_AMG_PARALLEL_ROWS;
+        (void)threads;  // (unused without OpenMP)
+        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            double s = 0.0;
+            for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) s += data[jj] * x[indices[jj]];
+            y[i] = s;
+        }
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// ---- BSR x BSR products (the Galerkin products of an AMG setup) ----------------------------
+// C = A B row by row (Gustavson): row i of C gathers the blocks B_j. of the blocks A_ij of
+// row i, in A's storage order then B's; its columns are sorted. One thread computes a whole
+// row: the same bits on any number of threads. Two passes: bsr_matmat_count (the blocks per
+// row), then bsr_matmat_fill into the arrays the caller allocated from the counts.
+
+// Per-thread scratch of n_cols ints set to -1 (NULL when out of memory).
+static int *fem3d_marks(Py_ssize_t n_cols)
+{
+    int *mark = malloc(sizeof(int) * (size_t)(n_cols > 0 ? n_cols : 1));
+    if (mark != NULL)
+        for (Py_ssize_t c = 0; c < n_cols; ++c) mark[c] = -1;
+    return mark;
+}
+
+// counts[i] = number of distinct block columns of row i of A B; returns 0, or -1 when out of
+// memory.
+static int fem3d_matmat_count(Py_ssize_t n_rows, const int *a_indptr, const int *a_indices,
+                              const int *b_indptr, const int *b_indices, Py_ssize_t n_cols,
+                              long long *counts)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *mark = fem3d_marks(n_cols);
+        if (mark == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (mark == NULL) continue;
+            long long count = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (mark[c] != (int)i) {
+                        mark[c] = (int)i;
+                        ++count;
+                    }
+                }
+            }
+            counts[i] = count;
+        }
+        free(mark);
+    }
+    return failed ? -1 : 0;
+}
+
+static void fem3d_sort_ints(int *a, Py_ssize_t n)
+{
+    for (Py_ssize_t i = 1; i < n; ++i) {
+        const int v = a[i];
+        Py_ssize_t j = i;
+        while (j > 0 && a[j - 1] > v) {
+            a[j] = a[j - 1];
+            --j;
+        }
+        a[j] = v;
+    }
+}
+
+
+// The numeric pass of C = A B, 3 x 3 times 3 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_3x3x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 18;
+            for (long long t = 0; t < n * 18; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 9;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 18;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 18;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17];
+                    out[6] += a[3] * b[0] + a[4] * b[6] + a[5] * b[12];
+                    out[7] += a[3] * b[1] + a[4] * b[7] + a[5] * b[13];
+                    out[8] += a[3] * b[2] + a[4] * b[8] + a[5] * b[14];
+                    out[9] += a[3] * b[3] + a[4] * b[9] + a[5] * b[15];
+                    out[10] += a[3] * b[4] + a[4] * b[10] + a[5] * b[16];
+                    out[11] += a[3] * b[5] + a[4] * b[11] + a[5] * b[17];
+                    out[12] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12];
+                    out[13] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13];
+                    out[14] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14];
+                    out[15] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15];
+                    out[16] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16];
+                    out[17] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 6 x 3 times 3 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_6x3x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 36;
+            for (long long t = 0; t < n * 36; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 18;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 18;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 36;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17];
+                    out[6] += a[3] * b[0] + a[4] * b[6] + a[5] * b[12];
+                    out[7] += a[3] * b[1] + a[4] * b[7] + a[5] * b[13];
+                    out[8] += a[3] * b[2] + a[4] * b[8] + a[5] * b[14];
+                    out[9] += a[3] * b[3] + a[4] * b[9] + a[5] * b[15];
+                    out[10] += a[3] * b[4] + a[4] * b[10] + a[5] * b[16];
+                    out[11] += a[3] * b[5] + a[4] * b[11] + a[5] * b[17];
+                    out[12] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12];
+                    out[13] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13];
+                    out[14] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14];
+                    out[15] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15];
+                    out[16] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16];
+                    out[17] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17];
+                    out[18] += a[9] * b[0] + a[10] * b[6] + a[11] * b[12];
+                    out[19] += a[9] * b[1] + a[10] * b[7] + a[11] * b[13];
+                    out[20] += a[9] * b[2] + a[10] * b[8] + a[11] * b[14];
+                    out[21] += a[9] * b[3] + a[10] * b[9] + a[11] * b[15];
+                    out[22] += a[9] * b[4] + a[10] * b[10] + a[11] * b[16];
+                    out[23] += a[9] * b[5] + a[10] * b[11] + a[11] * b[17];
+                    out[24] += a[12] * b[0] + a[13] * b[6] + a[14] * b[12];
+                    out[25] += a[12] * b[1] + a[13] * b[7] + a[14] * b[13];
+                    out[26] += a[12] * b[2] + a[13] * b[8] + a[14] * b[14];
+                    out[27] += a[12] * b[3] + a[13] * b[9] + a[14] * b[15];
+                    out[28] += a[12] * b[4] + a[13] * b[10] + a[14] * b[16];
+                    out[29] += a[12] * b[5] + a[13] * b[11] + a[14] * b[17];
+                    out[30] += a[15] * b[0] + a[16] * b[6] + a[17] * b[12];
+                    out[31] += a[15] * b[1] + a[16] * b[7] + a[17] * b[13];
+                    out[32] += a[15] * b[2] + a[16] * b[8] + a[17] * b[14];
+                    out[33] += a[15] * b[3] + a[16] * b[9] + a[17] * b[15];
+                    out[34] += a[15] * b[4] + a[16] * b[10] + a[17] * b[16];
+                    out[35] += a[15] * b[5] + a[16] * b[11] + a[17] * b[17];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 6 x 6 times 6 x 6 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_6x6x6(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 36;
+            for (long long t = 0; t < n * 36; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 36;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 36;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 36;
+                    out[0] += a[0] * b[0] + a[1] * b[6] + a[2] * b[12] + a[3] * b[18] + a[4] * b[24] + a[5] * b[30];
+                    out[1] += a[0] * b[1] + a[1] * b[7] + a[2] * b[13] + a[3] * b[19] + a[4] * b[25] + a[5] * b[31];
+                    out[2] += a[0] * b[2] + a[1] * b[8] + a[2] * b[14] + a[3] * b[20] + a[4] * b[26] + a[5] * b[32];
+                    out[3] += a[0] * b[3] + a[1] * b[9] + a[2] * b[15] + a[3] * b[21] + a[4] * b[27] + a[5] * b[33];
+                    out[4] += a[0] * b[4] + a[1] * b[10] + a[2] * b[16] + a[3] * b[22] + a[4] * b[28] + a[5] * b[34];
+                    out[5] += a[0] * b[5] + a[1] * b[11] + a[2] * b[17] + a[3] * b[23] + a[4] * b[29] + a[5] * b[35];
+                    out[6] += a[6] * b[0] + a[7] * b[6] + a[8] * b[12] + a[9] * b[18] + a[10] * b[24] + a[11] * b[30];
+                    out[7] += a[6] * b[1] + a[7] * b[7] + a[8] * b[13] + a[9] * b[19] + a[10] * b[25] + a[11] * b[31];
+                    out[8] += a[6] * b[2] + a[7] * b[8] + a[8] * b[14] + a[9] * b[20] + a[10] * b[26] + a[11] * b[32];
+                    out[9] += a[6] * b[3] + a[7] * b[9] + a[8] * b[15] + a[9] * b[21] + a[10] * b[27] + a[11] * b[33];
+                    out[10] += a[6] * b[4] + a[7] * b[10] + a[8] * b[16] + a[9] * b[22] + a[10] * b[28] + a[11] * b[34];
+                    out[11] += a[6] * b[5] + a[7] * b[11] + a[8] * b[17] + a[9] * b[23] + a[10] * b[29] + a[11] * b[35];
+                    out[12] += a[12] * b[0] + a[13] * b[6] + a[14] * b[12] + a[15] * b[18] + a[16] * b[24] + a[17] * b[30];
+                    out[13] += a[12] * b[1] + a[13] * b[7] + a[14] * b[13] + a[15] * b[19] + a[16] * b[25] + a[17] * b[31];
+                    out[14] += a[12] * b[2] + a[13] * b[8] + a[14] * b[14] + a[15] * b[20] + a[16] * b[26] + a[17] * b[32];
+                    out[15] += a[12] * b[3] + a[13] * b[9] + a[14] * b[15] + a[15] * b[21] + a[16] * b[27] + a[17] * b[33];
+                    out[16] += a[12] * b[4] + a[13] * b[10] + a[14] * b[16] + a[15] * b[22] + a[16] * b[28] + a[17] * b[34];
+                    out[17] += a[12] * b[5] + a[13] * b[11] + a[14] * b[17] + a[15] * b[23] + a[16] * b[29] + a[17] * b[35];
+                    out[18] += a[18] * b[0] + a[19] * b[6] + a[20] * b[12] + a[21] * b[18] + a[22] * b[24] + a[23] * b[30];
+                    out[19] += a[18] * b[1] + a[19] * b[7] + a[20] * b[13] + a[21] * b[19] + a[22] * b[25] + a[23] * b[31];
+                    out[20] += a[18] * b[2] + a[19] * b[8] + a[20] * b[14] + a[21] * b[20] + a[22] * b[26] + a[23] * b[32];
+                    out[21] += a[18] * b[3] + a[19] * b[9] + a[20] * b[15] + a[21] * b[21] + a[22] * b[27] + a[23] * b[33];
+                    out[22] += a[18] * b[4] + a[19] * b[10] + a[20] * b[16] + a[21] * b[22] + a[22] * b[28] + a[23] * b[34];
+                    out[23] += a[18] * b[5] + a[19] * b[11] + a[20] * b[17] + a[21] * b[23] + a[22] * b[29] + a[23] * b[35];
+                    out[24] += a[24] * b[0] + a[25] * b[6] + a[26] * b[12] + a[27] * b[18] + a[28] * b[24] + a[29] * b[30];
+                    out[25] += a[24] * b[1] + a[25] * b[7] + a[26] * b[13] + a[27] * b[19] + a[28] * b[25] + a[29] * b[31];
+                    out[26] += a[24] * b[2] + a[25] * b[8] + a[26] * b[14] + a[27] * b[20] + a[28] * b[26] + a[29] * b[32];
+                    out[27] += a[24] * b[3] + a[25] * b[9] + a[26] * b[15] + a[27] * b[21] + a[28] * b[27] + a[29] * b[33];
+                    out[28] += a[24] * b[4] + a[25] * b[10] + a[26] * b[16] + a[27] * b[22] + a[28] * b[28] + a[29] * b[34];
+                    out[29] += a[24] * b[5] + a[25] * b[11] + a[26] * b[17] + a[27] * b[23] + a[28] * b[29] + a[29] * b[35];
+                    out[30] += a[30] * b[0] + a[31] * b[6] + a[32] * b[12] + a[33] * b[18] + a[34] * b[24] + a[35] * b[30];
+                    out[31] += a[30] * b[1] + a[31] * b[7] + a[32] * b[13] + a[33] * b[19] + a[34] * b[25] + a[35] * b[31];
+                    out[32] += a[30] * b[2] + a[31] * b[8] + a[32] * b[14] + a[33] * b[20] + a[34] * b[26] + a[35] * b[32];
+                    out[33] += a[30] * b[3] + a[31] * b[9] + a[32] * b[15] + a[33] * b[21] + a[34] * b[27] + a[35] * b[33];
+                    out[34] += a[30] * b[4] + a[31] * b[10] + a[32] * b[16] + a[33] * b[22] + a[34] * b[28] + a[35] * b[34];
+                    out[35] += a[30] * b[5] + a[31] * b[11] + a[32] * b[17] + a[33] * b[23] + a[34] * b[29] + a[35] * b[35];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, 3 x 3 times 3 x 3 blocks:
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_3x3x3(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * 9;
+            for (long long t = 0; t < n * 9; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * 9;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * 9;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * 9;
+                    out[0] += a[0] * b[0] + a[1] * b[3] + a[2] * b[6];
+                    out[1] += a[0] * b[1] + a[1] * b[4] + a[2] * b[7];
+                    out[2] += a[0] * b[2] + a[1] * b[5] + a[2] * b[8];
+                    out[3] += a[3] * b[0] + a[4] * b[3] + a[5] * b[6];
+                    out[4] += a[3] * b[1] + a[4] * b[4] + a[5] * b[7];
+                    out[5] += a[3] * b[2] + a[4] * b[5] + a[5] * b[8];
+                    out[6] += a[6] * b[0] + a[7] * b[3] + a[8] * b[6];
+                    out[7] += a[6] * b[1] + a[7] * b[4] + a[8] * b[7];
+                    out[8] += a[6] * b[2] + a[7] * b[5] + a[8] * b[8];
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The numeric pass of C = A B, any blocks (R x K times K x C):
+// c_indptr from the counts; writes c_indices (sorted per row) and c_data.
+static int fem3d_matmat_fill_generic(
+    Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
+    const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
+    const long long *c_indptr, int *c_indices, double *c_data, int R, int K, int C)
+{
+    int failed = 0;
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    {
+        int *pos = fem3d_marks(n_cols);
+        if (pos == NULL) {
+            FEM3D_PRAGMA("omp atomic write")
+            failed = 1;
+        }
+        FEM3D_PRAGMA("omp for schedule(dynamic, 256)")
+        for (Py_ssize_t i = 0; i < n_rows; ++i) {
+            if (pos == NULL) continue;
+            const long long lo = c_indptr[i];
+            long long n = 0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const int c = b_indices[kk];
+                    if (pos[c] < 0) {
+                        pos[c] = 0;
+                        c_indices[lo + n++] = c;
+                    }
+                }
+            }
+            fem3d_sort_ints(c_indices + lo, n);
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = (int)t;
+            double *row = c_data + lo * R * C;
+            for (long long t = 0; t < n * R * C; ++t) row[t] = 0.0;
+            for (int jj = a_indptr[i]; jj < a_indptr[i + 1]; ++jj) {
+                const int j = a_indices[jj];
+                const double *a = a_data + (Py_ssize_t)jj * R * K;
+                for (int kk = b_indptr[j]; kk < b_indptr[j + 1]; ++kk) {
+                    const double *b = b_data + (Py_ssize_t)kk * K * C;
+                    double *out = row + (Py_ssize_t)pos[b_indices[kk]] * R * C;
+                    for (int r = 0; r < R; ++r)
+                        for (int q = 0; q < C; ++q) {
+                            double sum = out[r * C + q];
+                            for (int m = 0; m < K; ++m) sum += a[r * K + m] * b[m * C + q];
+                            out[r * C + q] = sum;
+                        }
+                }
+            }
+            for (long long t = 0; t < n; ++t) pos[c_indices[lo + t]] = -1;
+        }
+        free(pos);
+    }
+    return failed ? -1 : 0;
+}
+
+// The A and B patterns of a product: rising indptr, indices in range (A's columns are B's
+// block rows). 0, or -1 with an exception.
+static int fem3d_matmat_patterns(const char *fn, const void **buf, const Py_ssize_t *count,
+                                 Py_ssize_t n_cols)
+{
+    const Py_ssize_t n_rows = count[0] - 1, n_mid = count[2] - 1;
+    if (n_rows < 0 || n_mid < 0 || n_cols < 0 || n_cols >= INT_MAX) {
+        PyErr_Format(PyExc_ValueError, "%s: indptr arrays need at least one entry", fn);
+        return -1;
+    }
+    if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], n_mid) != 0 ||
+        fem3d_amg_check_pattern(fn, buf[2], n_mid, buf[3], count[3], n_cols) != 0)
+        return -1;
+    return 0;
+}
+
+// bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): the number of
+// blocks of every row of A B (int32 patterns; n_cols block columns of B; counts int64 n_rows).
+static PyObject *py_bsr_matmat_count(PyObject *self, PyObject *args)
+{
+    static const char *fn = "bsr_matmat_count";
+    PyObject *o[5];
+    Py_ssize_t n_cols;
+    Py_buffer views[5];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOOnO:bsr_matmat_count", &o[0], &o[1], &o[2], &o[3], &n_cols,
+                          &o[4]))
+        return NULL;
+    const void *buf[5];
+    Py_ssize_t count[5];
+    static const char *names[] = {"a_indptr", "a_indices", "b_indptr", "b_indices", "counts"};
+    static const char kinds[] = {'i', 'i', 'i', 'i', 'q'};
+    for (int a = 0; a < 5; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a == 4, 0, fn, names[a],
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    if (fem3d_matmat_patterns(fn, buf, count, n_cols) != 0) goto done;
+    if (count[4] != count[0] - 1) {
+        PyErr_Format(PyExc_ValueError, "%s: counts must have n_rows entries", fn);
+        goto done;
+    }
+    {
+        int failed;
+        Py_BEGIN_ALLOW_THREADS
+        failed = fem3d_matmat_count(count[0] - 1, buf[0], buf[1], buf[2], buf[3], n_cols,
+                                    (long long *)buf[4]);
+        Py_END_ALLOW_THREADS
+        if (failed) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+// bsr_matmat_fill(a_indptr, a_indices, a_data, R, K, b_indptr, b_indices, b_data, C, n_cols,
+// c_indptr, c_indices, c_data): the product A B (R x K times K x C blocks, any sizes up to 8)
+// into c_indptr (int64, from bsr_matmat_count's counts), c_indices (int32), c_data (float64).
+static PyObject *py_bsr_matmat_fill(PyObject *self, PyObject *args)
+{
+    static const char *fn = "bsr_matmat_fill";
+    PyObject *o[9];
+    int R, K, C;
+    Py_ssize_t n_cols;
+    Py_buffer views[9];
+    int n_views = 0;
+    PyObject *result = NULL;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OOOiiOOOinOOO:bsr_matmat_fill", &o[0], &o[1], &o[2], &R, &K,
+                          &o[3], &o[4], &o[5], &C, &n_cols, &o[6], &o[7], &o[8]))
+        return NULL;
+    const void *buf[9];
+    Py_ssize_t count[9];
+    static const char *names[] = {"a_indptr", "a_indices", "a_data", "b_indptr", "b_indices",
+                                  "b_data", "c_indptr", "c_indices", "c_data"};
+    static const char kinds[] = {'i', 'i', 'd', 'i', 'i', 'd', 'q', 'i', 'd'};
+    for (int a = 0; a < 9; ++a)
+        if (fem3d_amg_arg(o[a], &views[n_views], &n_views, kinds[a], a >= 7, 0, fn, names[a],
+                          &buf[a], &count[a]) != 0)
+            goto done;
+    {
+        const void *pattern[4] = {buf[0], buf[1], buf[3], buf[4]};
+        const Py_ssize_t pattern_count[4] = {count[0], count[1], count[3], count[4]};
+        if (fem3d_matmat_patterns(fn, pattern, pattern_count, n_cols) != 0) goto done;
+        const Py_ssize_t n_rows = count[0] - 1;
+        const long long *c_indptr = buf[6];
+        int ok = R >= 1 && K >= 1 && C >= 1 && R <= 8 && K <= 8 && C <= 8 &&
+                 count[2] == count[1] * R * K && count[5] == count[4] * K * C &&
+                 count[6] == n_rows + 1 && c_indptr[0] == 0 && c_indptr[n_rows] == count[7] &&
+                 count[8] == count[7] * R * C;
+        for (Py_ssize_t i = 0; ok && i < n_rows; ++i) ok = c_indptr[i] <= c_indptr[i + 1];
+        if (!ok) {
+            PyErr_Format(PyExc_ValueError, "%s: shapes do not fit (blocks 1..8; data len(indices)"
+                         " blocks; c_indptr the cumulated counts, c_indices c_indptr[-1] entries, "
+                         "c_data as many R x C blocks)", fn);
+            goto done;
+        }
+        int failed;
+        Py_BEGIN_ALLOW_THREADS
+        if (R == 3 && K == 3 && C == 6)
+            failed = fem3d_matmat_fill_3x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 6 && K == 3 && C == 6)
+            failed = fem3d_matmat_fill_6x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 6 && K == 6 && C == 6)
+            failed = fem3d_matmat_fill_6x6x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else if (R == 3 && K == 3 && C == 3)
+            failed = fem3d_matmat_fill_3x3x3(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
+                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+        else
+            failed = fem3d_matmat_fill_generic(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5],
+                                               n_cols, c_indptr, (int *)buf[7], (double *)buf[8], R, K, C);
+        Py_END_ALLOW_THREADS
+        if (failed) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    }
+    result = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < n_views; ++i) PyBuffer_Release(&views[i]);
+    return result;
+}
+
+#define FEM3D_AMG_METHODS \
+    {"bsr_matvec", py_bsr_matvec, METH_VARARGS, \
+     "bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y): y = b + alpha * A x (BSR), alpha = +1 or -1."}, \
+    {"block_sweep", py_block_sweep, METH_VARARGS, \
+     "block_sweep(L (indptr, indices, data), U (or None x 3), Dinv, order, blocks, colours, x, b): block Gauss-Seidel over a schedule."}, \
+    {"dot", py_dot, METH_VARARGS, "dot(x, y): x . y, the same bits on any number of threads."}, \
+    {"csr_matvec", py_csr_matvec, METH_VARARGS, "csr_matvec(indptr, indices, data, x, y): y = A x (CSR)."}, \
+    {"bsr_matmat_count", py_bsr_matmat_count, METH_VARARGS, \
+     "bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): blocks per row of A B."}, \
+    {"bsr_matmat_fill", py_bsr_matmat_fill, METH_VARARGS, \
+     "bsr_matmat_fill(A (indptr, indices, data), R, K, B (indptr, indices, data), C, n_cols, c_indptr, c_indices, c_data): A B (BSR)."},
+
 #include "tet.c"
 #include "spring.c"
 #include "fibre_reinforced.c"
@@ -731,6 +1883,7 @@ static PyMethodDef methods[] = {
      "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
     {"colour_blocks", py_colour_blocks, METH_VARARGS,
      "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
+    FEM3D_AMG_METHODS
     {"max_threads", py_max_threads, METH_NOARGS, "OpenMP threads the kernels use (1 without OpenMP)."},
     {"set_max_threads", py_set_max_threads, METH_O,
      "set_max_threads(n): OpenMP threads of later kernel calls from this thread (no-op without OpenMP)."},
