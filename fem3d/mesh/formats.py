@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import io
 import itertools
+import logging
 import struct
 import warnings
 from collections.abc import Sequence
@@ -59,6 +60,8 @@ __all__ = [
     "write_surface_mesh",
     "write_tet_mesh",
 ]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 # --------------------------------------------------------------------------------------
@@ -270,6 +273,7 @@ def _medit_tet_mesh(path: Path) -> TetMesh:
     if "tetrahedra" not in sec or sec["tetrahedra"][0].shape[0] == 0:
         raise InputError("mesh has no tetrahedra (no or empty Tetrahedra section)", path=path)
     Tr, tlines = sec["tetrahedra"]
+    _stages.debug("read mesh")
     return validate_tet_mesh(Xr[:, :3], Tr[:, :4] - 1, path=path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=1)
 
@@ -365,6 +369,7 @@ def _tetgen_tet_mesh(path: Path) -> TetMesh:
         raise InputError(f"tetrahedron {j} has a non-integer vertex index {Tf[j].tolist()}",
                          path=ele_path, line=int(tlines[j]), element=j)
     Tf = np.clip(Tf, -(2.0**62), 2.0**62)
+    _stages.debug("read mesh")
     return validate_tet_mesh(X, Tf.astype(np.int64) - base, path=ele_path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=base)
 
@@ -470,6 +475,7 @@ def _meshio_tet_mesh(path: Path) -> TetMesh:
     T = cells["tetra"]
     if not np.issubdtype(T.dtype, np.integer):
         raise InputError("tetrahedron indices are not integers", path=path)
+    _stages.debug("read mesh")
     return validate_tet_mesh(points, T, path=path)
 
 

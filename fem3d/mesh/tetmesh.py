@@ -17,6 +17,7 @@ file, the line and/or element and what is wrong.
 from __future__ import annotations
 
 import itertools
+import logging
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,6 +40,8 @@ __all__ = [
 ]
 
 PathArg = str | PathLike[str]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 #: A tet is degenerate when ``|6 V| <= DEGENERATE_RTOL * h**3`` with ``h`` its longest edge
 #: (a regular tet has ``6 V = h**3 / sqrt(2)``). Scale-invariant, so the 165-unit bunny and
@@ -257,7 +260,9 @@ def validate_tet_mesh(
         new_index = np.cumsum(used) - 1
         X = X[used]
         T = new_index[T]
-    return TetMesh(X=X, T=T, path=None if path is None else str(path))
+    mesh = TetMesh(X=X, T=T, path=None if path is None else str(path))
+    _stages.debug("validate mesh")
+    return mesh
 
 
 def _check_tet_indices(T: np.ndarray, n: int, *, path: PathArg | None,

@@ -9,6 +9,7 @@ matrix.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -39,6 +40,8 @@ LEAN_ASSEMBLY_MIN_TETS = 250_000
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
 SHIFT_LADDER_GROWTH = 10.0
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 class System:
@@ -106,6 +109,7 @@ class System:
             self._free_scatter = self._free_slot[model.scatter]
             self._free_scatter.setflags(write=False)
         self._free_slot.setflags(write=False)
+        _stages.debug("system: reduced pattern")
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
         #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
@@ -118,6 +122,7 @@ class System:
             self._solver = self._new_direct_solver(self.pattern_free)
         elif constraints.n_free:  # the AMG's aggregation: once per pattern, like an analysis
             self.amg.analyze(self.pattern_free)
+        _stages.debug(f"system: {self.linear_backend} analysis")
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
         self.factorized_data: np.ndarray | None = None
