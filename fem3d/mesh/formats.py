@@ -33,6 +33,7 @@ import contextlib
 import io
 import itertools
 import logging
+import re
 import struct
 import warnings
 from collections.abc import Sequence
@@ -72,9 +73,9 @@ _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 class _Tokens:
     """Whitespace tokens of a text file with their 1-based line numbers."""
 
-    def __init__(self, path: Path, comment: str = "#") -> None:
+    def __init__(self, path: Path, comment: str = "#", text: str | None = None) -> None:
         self.path = path
-        text = read_text_file(path, "mesh")
+        text = read_text_file(path, "mesh") if text is None else text
         lines = text.split("\n")
         if comment in text:
             lines = [ln.split(comment, 1)[0] for ln in lines]
@@ -199,9 +200,101 @@ _MEDIT_SECTIONS: dict[str, int] = {
 _MEDIT_KEYWORDS = set(_MEDIT_SECTIONS) | {"meshversionformatted", "dimension", "end"}
 
 
+class _NotPlain(Exception):
+    """The fast MEDIT reader met something only the token reader handles (a comment, a
+    malformed section, ...): that reader then reads the file and says what is wrong."""
+
+
+#: A word starting with a letter at the start of a line: a MEDIT keyword in a plain file.
+_KEYWORD_AT_LINE_START = re.compile(r"^[ \t\r\f\v]*([A-Za-z]\S*)", re.M)
+
+
+class _RecordLines:
+    """The line of each record of one section, found only when a message needs one: the
+    token reader re-reads the file then (the fast reader keeps no per-token lines)."""
+
+    def __init__(self, path: Path, text: str, section: str) -> None:
+        self.path, self.text, self.section = path, text, section
+        self._lines: np.ndarray | None = None
+
+    def __getitem__(self, i):
+        if self._lines is None:
+            self._lines = _read_medit_tokens(self.path, _Tokens(self.path, text=self.text)
+                                             )[self.section][1]
+        return self._lines[i]
+
+
+def _section_values(body: str, count: int, width: int, dtype: type) -> np.ndarray:
+    """``count`` records of ``width`` numbers parsed from ``body`` in C (``np.fromstring``;
+    float64 rounds like ``float()``), or :class:`_NotPlain` when it holds anything else."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a token that is not a number stops fromstring
+        try:
+            values = np.fromstring(body, dtype=dtype, sep=" ")
+        except (ValueError, DeprecationWarning):
+            raise _NotPlain from None
+    if values.size != count * width:
+        raise _NotPlain
+    if dtype is not np.float64 and values.size and np.abs(values).max() >= 2**62:
+        raise _NotPlain  # (out of range either way; the token reader says so)
+    return values.reshape(count, width)
+
+
+def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _RecordLines]]:
+    """:func:`_read_medit` of a plain file (keywords at line starts, no comments, every
+    section exactly its declared count of numbers) without a Python object per number.
+
+    Raises
+    ------
+    _NotPlain
+        Anything else: the token reader reads the file (and reports what is wrong).
+    """
+    if "#" in text:
+        raise _NotPlain
+    marks = [(m.start(1), m.end(1), m.group(1)) for m in _KEYWORD_AT_LINE_START.finditer(text)]
+    if not marks or text[:marks[0][0]].strip():
+        raise _NotPlain
+    stops = [s for s, _, _ in marks[1:]] + [len(text)]
+    dim, out = 3, {}
+    for (_, end, word), stop in zip(marks, stops, strict=True):
+        key, body = word.lower(), text[end:stop]
+        if key == "end":
+            if body.strip() or stop != len(text):
+                raise _NotPlain
+            return out
+        if key in ("meshversionformatted", "dimension"):
+            words = body.split()
+            if len(words) != 1 or not words[0].isdigit() or \
+                    int(words[0]) not in ((0, 1, 2, 3, 4) if key[0] == "m" else (3,)):
+                raise _NotPlain
+            continue
+        width = _MEDIT_SECTIONS.get(key, 0)
+        if width == 0 or key in out:
+            raise _NotPlain
+        if width < 0:
+            width = dim + 1 if key == "vertices" else dim
+        head = body.split(None, 1)
+        if not head or not head[0].isdigit() or (len(head) == 1 and int(head[0])):
+            raise _NotPlain
+        count = int(head[0])
+        dtype = np.float64 if key in ("vertices", "normals", "tangents") else np.int64
+        values = _section_values(head[1] if len(head) > 1 else "", count, width, dtype)
+        out[key] = (values, _RecordLines(path, text, key))
+    raise _NotPlain  # no End
+
+
 def _read_medit(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Parse an ASCII MEDIT file into ``{section: (records, lines)}``."""
-    tk = _Tokens(path)
+    """Parse an ASCII MEDIT file into ``{section: (records, lines)}``: a plain file in C
+    (:func:`_read_medit_plain`), anything else token by token with line numbers."""
+    text = read_text_file(path, "mesh")
+    try:
+        return _read_medit_plain(path, text)
+    except _NotPlain:
+        return _read_medit_tokens(path, _Tokens(path, text=text))
+
+
+def _read_medit_tokens(path: Path, tk: _Tokens) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Parse the tokens of an ASCII MEDIT file into ``{section: (records, lines)}``."""
     dim = 3
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     saw_end = False
