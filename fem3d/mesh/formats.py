@@ -205,8 +205,22 @@ class _NotPlain(Exception):
     malformed section, ...): that reader then reads the file and says what is wrong."""
 
 
-#: A word starting with a letter at the start of a line: a MEDIT keyword in a plain file.
-_KEYWORD_AT_LINE_START = re.compile(r"^[ \t\r\f\v]*([A-Za-z]\S*)", re.M)
+#: A word at the start of a line.
+_WORD = re.compile(r"\S*")
+
+
+def _keyword_lines(text: str) -> list[tuple[int, int, str]]:
+    """``(start, end, word)`` of every line's first word that starts with a letter (an ASCII
+    text; a keyword after white space is left to the token reader: fromstring stops at it)."""
+    b = np.frombuffer(text.encode("ascii"), dtype=np.uint8)
+    starts = np.flatnonzero(b == 10) + 1
+    starts = np.concatenate(([0], starts[starts < b.size]))
+    lower = b[starts] | 0x20
+    marks = []
+    for s in starts[(lower >= ord("a")) & (lower <= ord("z"))].tolist():
+        word = _WORD.match(text, s).group()
+        marks.append((s, s + len(word), word))
+    return marks
 
 
 class _RecordLines:
@@ -249,9 +263,9 @@ def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _Rec
     _NotPlain
         Anything else: the token reader reads the file (and reports what is wrong).
     """
-    if "#" in text:
+    if "#" in text or not text.isascii():
         raise _NotPlain
-    marks = [(m.start(1), m.end(1), m.group(1)) for m in _KEYWORD_AT_LINE_START.finditer(text)]
+    marks = _keyword_lines(text)
     if not marks or text[:marks[0][0]].strip():
         raise _NotPlain
     stops = [s for s, _, _ in marks[1:]] + [len(text)]
