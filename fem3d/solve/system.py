@@ -93,9 +93,7 @@ class System:
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
-        self.mass_free = constraints.reduce_matrix(model.mass)
-        self.pattern_free = constraints.reduce_matrix(model.pattern)
-        self.pattern_free.data.setflags(write=False)
+        self.mass_free, self.pattern_free = _reduced_mass_and_pattern(model, constraints)
         # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
         nnz_free = self.pattern_free.nnz
         kept = constraints.kept_entries(model.pattern)
@@ -506,6 +504,19 @@ class System:
         """A hierarchy exists for the solver's current pattern."""
         return self._amg is not None and self._amg.ready and \
             self._amg.pattern_key == self.pattern_generation
+
+
+def _reduced_mass_and_pattern(model: Model, constraints: Constraints
+                              ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """``P M P^T`` and the reduced pattern: one reduction (the mass matrix is on the model's
+    pattern), the pattern sharing its index arrays, its zeros never written (no memory)."""
+    mass_free = constraints.reduce_matrix(model.mass)
+    zeros = np.zeros(mass_free.nnz)
+    zeros.setflags(write=False)
+    pattern_free = sp.csr_matrix((zeros, mass_free.indices, mass_free.indptr),
+                                 shape=mass_free.shape, copy=False)
+    pattern_free.has_sorted_indices = mass_free.has_sorted_indices
+    return mass_free, pattern_free
 
 
 @dataclass(frozen=True, eq=False)
