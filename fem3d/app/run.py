@@ -50,7 +50,6 @@ from fem3d.io.checkpoint import (
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import make_frame_writer
-from fem3d.io.preview import plot_energy, render_preview
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
@@ -355,6 +354,9 @@ class RunLoop:
     def _write_outputs(self, status: str, wall: float) -> None:
         """The end of a run: a checkpoint (with ``checkpoint_every``), ``energy.png``,
         ``preview.gif`` and the timing line."""
+        # matplotlib is imported when a run ends, not before its first step
+        from fem3d.io.preview import plot_energy, render_preview
+
         sim, out, scene = self.sim, self.out, self.scene
         if status == "ok" and self.every:
             self.save_checkpoint()

@@ -93,10 +93,10 @@ class System:
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
-        self.mass_free, self.pattern_free = _reduced_mass_and_pattern(model, constraints)
+        kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
+        self.mass_free = self._reduced_mass(model, kept)
         # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
         nnz_free = self.pattern_free.nnz
-        kept = constraints.kept_entries(model.pattern)
         self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
         self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
         self._kept = kept
@@ -139,9 +139,17 @@ class System:
         new = object.__new__(System)
         new.__dict__.update(self.__dict__)
         new.model = model
-        new.mass_free = self.constraints.reduce_matrix(model.mass)
+        new.mass_free = self._reduced_mass(model, self._kept)
         new._physics_cache()
         return new
+
+    def _reduced_mass(self, model: Model, kept: np.ndarray) -> sp.csr_matrix:
+        """``P M P^T`` on :attr:`pattern_free` (sharing its index arrays)."""
+        pf = self.pattern_free
+        M = sp.csr_matrix((model.mass.data[kept], pf.indices, pf.indptr), shape=pf.shape,
+                          copy=False)
+        M.has_sorted_indices = pf.has_sorted_indices
+        return M
 
     # -- the model's loads as terms -----------------------------------------------------------
     def _physics_cache(self) -> None:
@@ -506,17 +514,41 @@ class System:
             self._amg.pattern_key == self.pattern_generation
 
 
-def _reduced_mass_and_pattern(model: Model, constraints: Constraints
-                              ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """``P M P^T`` and the reduced pattern: one reduction (the mass matrix is on the model's
-    pattern), the pattern sharing its index arrays, its zeros never written (no memory)."""
-    mass_free = constraints.reduce_matrix(model.mass)
-    zeros = np.zeros(mass_free.nnz)
+def _reduced_pattern(pattern: sp.csr_matrix, constraints: Constraints
+                     ) -> tuple[np.ndarray, sp.csr_matrix]:
+    """The entries of ``pattern`` on free rows and columns, and ``P pattern P^T``: what
+    ``constraints.kept_entries`` / ``reduce_matrix`` give, in int32 where it fits, without
+    keeping their cache (four ``nnz``-long arrays), the pattern's zeros never written.
+
+    Returns
+    -------
+    kept : (nnz_free,) int32 or int64
+        Positions in ``pattern.data`` of the reduced matrix's entries, in its order.
+    pattern_free : (n_free, n_free) scipy.sparse.csr_matrix
+    """
+    N, nnz, nf = constraints.n_dofs, pattern.nnz, constraints.n_free
+    index = np.int32 if max(nnz, N) < np.iinfo(np.int32).max else np.int64
+    new = np.full(N, -1, dtype=index)
+    new[constraints.free_dofs] = np.arange(nf, dtype=index)
+    free = new >= 0
+    row_length = np.diff(pattern.indptr)
+    keep = np.repeat(free, row_length)
+    keep &= free[pattern.indices]
+    kept = np.arange(nnz, dtype=index)[keep]
+    indices = new[pattern.indices[kept]]
+    before = np.zeros(nnz + 1, dtype=index)  # kept entries before each position
+    np.cumsum(keep, out=before[1:])
+    del keep
+    rows = constraints.free_dofs
+    indptr = np.zeros(nf + 1, dtype=index)
+    np.cumsum(before[pattern.indptr[rows + 1]] - before[pattern.indptr[rows]], out=indptr[1:])
+    zeros = np.zeros(kept.size)
     zeros.setflags(write=False)
-    pattern_free = sp.csr_matrix((zeros, mass_free.indices, mass_free.indptr),
-                                 shape=mass_free.shape, copy=False)
-    pattern_free.has_sorted_indices = mass_free.has_sorted_indices
-    return mass_free, pattern_free
+    R = sp.csr_matrix((zeros, indices, indptr), shape=(nf, nf), copy=False)
+    # column relabelling is monotone, so sorted input stays sorted
+    R.has_sorted_indices = bool(pattern.has_sorted_indices)
+    kept.setflags(write=False)
+    return kept, R
 
 
 @dataclass(frozen=True, eq=False)
