@@ -247,18 +247,20 @@ _MASS_CHUNK = 1 << 13
 
 
 def _assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
-                   scatter: np.ndarray, nnz: int) -> np.ndarray:
-    """CSR ``data`` of the consistent mass matrix (generated ``mass_matrix`` kernel): the
-    sums of ``np.bincount(scatter, all_blocks)`` bit for bit, without its ``(m, 144)``
-    float64 blocks and ``(m * 144,)`` intp copy of ``scatter`` (2.3 GB at 1e6 tets).
+                   scatter: np.ndarray, T: np.ndarray, indptr: np.ndarray) -> np.ndarray:
+    """CSR ``data`` of the consistent mass matrix (generated ``mass_matrix`` kernel) on the
+    pattern of :func:`block_pattern` (``scatter``, ``indptr``): the sums of
+    ``np.bincount(scatter, all_blocks)`` bit for bit, without its ``(m, 144)`` float64
+    blocks and ``(m * 144,)`` intp copy of ``scatter`` (2.3 GB at 1e6 tets).
 
     The kernel's blocks are ``M_ab I_3`` (made a chunk of tets at a time, their structure
-    checked), so entry ``(3 a + c, 3 b + c)`` of every tet is one bincount over the ``16 m``
-    vertex pairs per ``c``; each position gets its terms in element order, as before, and
-    the other entries only zeros. Blocks of any other structure are added entry by entry
-    in element order (``np.add.at``). M is linear in rho: a per-tet density scales each
-    tet's volume.
+    checked), so the three entries ``(3 i + c, 3 j + c)`` of a vertex pair ``p = (i, j)`` are
+    one sum over its tets: a bincount of the ``16 m`` pairs ``(T[e, a], T[e, b])`` in element
+    order, the order every entry got its terms in before (the other entries got zeros).
+    Blocks of any other structure are added entry by entry in element order
+    (``np.add.at``). M is linear in rho: a per-tet density scales each tet's volume.
     """
+    nnz = int(indptr[-1])
     m = vol.shape[0]
     pair_mass = np.empty((m, 4, 4))
     identity = np.eye(3, dtype=bool)
@@ -272,11 +274,21 @@ def _assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
                 and (B[:, :, 2, :, 2] == B[:, :, 0, :, 0]).all()):
             return _assemble_entries(geo, vol, rho, rho_e, scatter, nnz)
         pair_mass[a:b] = B[:, :, 0, :, 0]
-    S = scatter.reshape(m, 4, 3, 4, 3)
-    w = pair_mass.reshape(-1)
-    data = np.bincount(S[:, :, 0, :, 0].reshape(-1), weights=w, minlength=nnz)
-    for c in (1, 2):
-        data += np.bincount(S[:, :, c, :, c].reshape(-1), weights=w, minlength=nnz)
+    # entry (3 i, 3 j) of pair p in vertex row i sits at 6 bp_i + 3 p (block_pattern), and
+    # indptr[3 i] = 9 bp_i; entry (3 i + c, 3 j + c) c (3 deg_i + 1) further
+    n = (indptr.size - 1) // 3
+    bp = (np.asarray(indptr[0:3 * n + 1:3]) // 9).astype(np.int64)
+    deg = np.diff(bp)
+    pair = scatter.reshape(m, 4, 3, 4, 3)[:, :, 0, :, 0] // 3
+    pair -= (2 * bp[:-1][T]).astype(pair.dtype)[:, :, None]
+    sums = np.bincount(pair.reshape(-1), weights=pair_mass.reshape(-1), minlength=int(bp[-1]))
+    del pair, pair_mass
+    row = np.repeat(np.arange(n), deg)
+    first = 6 * bp[:-1][row] + 3 * np.arange(row.size)
+    step = 3 * deg[row] + 1
+    data = np.zeros(nnz)
+    for c in range(3):
+        data[first + c * step] = sums
     return data
 
 
@@ -934,7 +946,7 @@ def build_model(
     dofs = element_dofs(T)
     pattern, scatter = block_pattern(T, X.shape[0])
     _stages.debug("model: sparsity pattern")
-    mass_data = _assemble_mass(geo, vol, rho, rho_e, scatter, pattern.nnz)
+    mass_data = _assemble_mass(geo, vol, rho, rho_e, scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
     _readonly(X, T, dphi_dX, vol, mass.data, scatter, dofs,
