@@ -124,10 +124,11 @@ def tet_signed_volumes(X: np.ndarray, T: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
-def _sorted_columns(A: np.ndarray) -> list[np.ndarray]:
-    """The columns of ``np.sort(A, axis=1)`` of an ``(k, 3)`` or ``(k, 4)`` array, by a sorting
-    network of whole columns (a sort per row of 3 or 4 numbers is a call per row)."""
-    cols = [A[:, k] for k in range(A.shape[1])]
+def _sorted_columns(A: np.ndarray | Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The columns of ``np.sort(A, axis=1)`` of an ``(k, 3)`` or ``(k, 4)`` array (or of its
+    columns), by a sorting network of whole columns (a sort per row of 3 or 4 numbers is a
+    call per row)."""
+    cols = [A[:, k] for k in range(A.shape[1])] if isinstance(A, np.ndarray) else list(A)
     pairs = ((0, 1), (1, 2), (0, 1)) if len(cols) == 3 else \
         ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))
     for i, j in pairs:
@@ -138,6 +139,26 @@ def _sorted_columns(A: np.ndarray) -> list[np.ndarray]:
 def _tet_faces(T: np.ndarray) -> np.ndarray:
     """``(4 m, 3)`` faces of tets ``T`` (``T[:, TET_FACES]`` with C-ordered rows)."""
     return T.take(TET_FACES.reshape(-1), axis=1).reshape(-1, 3)
+
+
+def _tet_face_keys(T: np.ndarray) -> np.ndarray | None:
+    """:func:`_face_keys` of :func:`_tet_faces` ``(T)`` without making the faces (None: too
+    many vertices for one int64 key per face)."""
+    m = T.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.int64)
+    n = int(T.max()) + 1  # every vertex of a tet is on three of its faces
+    if n >= 2_000_000:
+        return None
+    keys = np.empty((m, 4), dtype=np.int64)
+    for k, face in enumerate(TET_FACES):
+        s0, s1, s2 = _sorted_columns([T[:, v] for v in face])
+        key = keys[:, k]
+        np.multiply(s0, n, out=key)
+        key += s1
+        key *= n
+        key += s2
+    return keys.reshape(-1)
 
 
 def _face_keys(faces: np.ndarray) -> np.ndarray:
@@ -175,11 +196,10 @@ def boundary_faces(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.int64)
     if T.ndim != 2 or T.shape[1] != 4:
         raise ValueError(f"T must be (n_tets, 4), got {T.shape}")
-    faces = _tet_faces(T)
-    if faces.shape[0] == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    keys = _face_keys(faces)
-    if keys.ndim == 1:  # keys of the faces only one tet has, then a lookup (no argsort)
+    keys = _tet_face_keys(T)
+    if keys is not None:  # keys of the faces only one tet has, then a lookup (no argsort)
+        if keys.size == 0:
+            return np.zeros((0, 3), dtype=np.int64)
         s = np.sort(keys)
         single = np.ones(s.size, dtype=bool)
         same = s[1:] == s[:-1]
@@ -190,7 +210,10 @@ def boundary_faces(T: np.ndarray) -> np.ndarray:
             return np.zeros((0, 3), dtype=np.int64)
         pos = np.searchsorted(once, keys)
         np.minimum(pos, once.size - 1, out=pos)
-        return np.ascontiguousarray(faces[once[pos] == keys])
+        tet, k = np.divmod(np.flatnonzero(once[pos] == keys), 4)
+        return np.ascontiguousarray(T[tet[:, None], TET_FACES[k]])
+    faces = _tet_faces(T)
+    keys = _face_keys(faces)
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     return np.ascontiguousarray(faces[counts[inverse.reshape(-1)] == 1])
 
@@ -420,12 +443,13 @@ def _scaled_determinants(X: np.ndarray, T: np.ndarray
 def _check_face_sharing(T: np.ndarray, *, path: PathArg | None, tet_lines: np.ndarray | None,
                         index_base: int) -> None:
     """Refuse a face shared by more than two tets (overlapping / non-conforming mesh)."""
-    faces = _tet_faces(T)
-    keys = _face_keys(faces)
-    if keys.ndim == 1:  # a sort says whether any key is there three times
+    keys = _tet_face_keys(T)
+    if keys is not None:  # a sort says whether any key is there three times
         s = np.sort(keys)
         if not (s[2:] == s[:-2]).any():
             return
+    faces = _tet_faces(T)
+    keys = _face_keys(faces)
     fax = None if keys.ndim == 1 else 0
     _, finv, fcounts = np.unique(keys, axis=fax, return_inverse=True, return_counts=True)
     finv = finv.reshape(-1)

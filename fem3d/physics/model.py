@@ -173,6 +173,10 @@ def _vertex_pairs(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return block_ptr, block_cols, pair.reshape(m, 4, 4)
 
 
+#: Tets per chunk of the scatter map's expansion.
+_PATTERN_CHUNK = 1 << 14
+
+
 def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
     """CSR pattern of the ``3n x 3n`` element matrices of tets ``T`` and their scatter map.
 
@@ -222,8 +226,11 @@ def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.nda
     base += (6 * bp[Ti])[:, :, None]
     stride = 3 * deg[Ti]  # (m, 4): row length of vertex T[e, a]'s rows
     scatter = np.empty((m, 4, 3, 4, 3), dtype=np.int32)
-    np.add(base[:, :, None, :, None], np.arange(3, dtype=np.int32), out=scatter)
-    scatter += (stride[:, :, None] * np.arange(3, dtype=np.int32))[:, :, :, None, None]
+    three = np.arange(3, dtype=np.int32)
+    for a in range(0, m, _PATTERN_CHUNK):  # one pass over scatter, temporaries in cache
+        b = min(m, a + _PATTERN_CHUNK)
+        row = base[a:b, :, None, :] + (stride[a:b, :, None] * three)[:, :, :, None]
+        np.add(row[..., None], three, out=scatter[a:b])
     del base, stride
     # CSR rows 3i, 3i + 1, 3i + 2 each hold 3 j + d over vertex i's blocks j
     indptr = np.empty(3 * n + 1, dtype=np.int32)
