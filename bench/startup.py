@@ -156,7 +156,8 @@ def child(scene: str, out: str, result: str) -> int:
           once=True)
     status = main(["run", scene, "--out", out, "--quiet", "--no-preview"])
     marks.mark("rest of the run (later steps, outputs)")
-    Path(result).write_text(json.dumps({"status": status, "rows": marks.rows}))
+    Path(result).write_text(json.dumps({"status": status, "rows": marks.rows,
+                                        "fem3d": str(Path(formats.__file__).parents[2])}))
     return status
 
 
@@ -164,10 +165,12 @@ def child(scene: str, out: str, result: str) -> int:
 def run_checkout(checkout: Path, scene: Path, out: Path) -> dict:
     """Run the child under ``checkout``; its stages plus wall, CPU and peak RSS."""
     result = out.with_suffix(".json")
-    env = dict(os.environ, PYTHONPATH=f"{checkout}{os.pathsep}{ROOT}")
+    env = dict(os.environ, PYTHONPATH=str(checkout))
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "bench.startup", "--child", str(scene),
-                             str(out), str(result)], env=env, cwd=ROOT)
+    # this file as a script, run in the scene's folder: nothing but the checkout on the path
+    # (``python -m`` would put the working directory first)
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child",
+                             str(scene), str(out), str(result)], env=env, cwd=scene.parent)
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     data = json.loads(result.read_text()) if result.exists() else {"rows": []}
@@ -240,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         load = os.getloadavg()[0]
         runs[name] = run_checkout(Path(checkout).resolve(), scene, args.dir / f"out_{name}")
         runs[name]["load"] = load
-        print(f"{name} ({checkout}): exit {runs[name]['returncode']}, "
+        print(f"{name} (fem3d of {runs[name].get('fem3d')}): exit {runs[name]['returncode']}, "
               f"{runs[name]['wall']:.1f} s wall, load {load:.1f} at its start", flush=True)
     lines = table(runs)
     loads = ", ".join(f"{n} {r['load']:.1f}" for n, r in runs.items())

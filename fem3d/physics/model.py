@@ -369,6 +369,9 @@ class GroupData:
     kernels: Any = field(repr=False)
     n_tets: int = 0
     _cache: dict = field(default_factory=dict, repr=False)
+    #: ``slice(first, last + 1)`` when the elements are consecutive tets (a body's): its
+    #: subsets are views, not copies (a copy of the scatter map is 576 bytes per tet).
+    span: slice | None = field(default=None, repr=False)
 
     @property
     def allows_inversion(self) -> bool:
@@ -383,6 +386,9 @@ class GroupData:
         if self.elements is None:
             return array
         a = np.asarray(array)
+        if self.span is not None and a.flags.c_contiguous:
+            rows = a.reshape(self.n_tets, -1)[self.span] if a.ndim == 1 else a[self.span]
+            return rows.reshape(-1) if a.ndim == 1 else rows
         cached = self._cache.get(id(a))
         if cached is not None and cached[0] is a:
             return cached[1]
@@ -460,7 +466,8 @@ class GroupedKernels:
                 list(out) if isinstance(out, tuple | list) else [out]
             for g in self.groups:
                 n_base = self._base_inputs(kernel, g)
-                base = [np.asarray(a) if g.elements is None else np.asarray(a)[g.elements]
+                base = [np.asarray(a) if g.elements is None else
+                        np.asarray(a)[g.span if g.span is not None else g.elements]
                         for a in arrays[:n_base]]
                 values = getattr(g.kernels, kernel)(*base, *g.inputs, g.params)
                 values = values if isinstance(values, tuple) else (values,)
@@ -582,9 +589,13 @@ def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
             [np.broadcast_to(np.asarray(values[p], dtype=np.float64), (k,)) for p in names],
             axis=1))
     _readonly(params, *inputs)
+    span = None
+    if el is not None and el.size and int(el[-1]) - int(el[0]) + 1 == el.size and \
+            (np.diff(el) == 1).all():
+        span = slice(int(el[0]), int(el[-1]) + 1)
     return GroupData(material=g.material, elements=el, values=values, params=params,
                      inputs=tuple(inputs), kernels=material_kernels(g.material, backend),
-                     n_tets=m)
+                     n_tets=m, span=span)
 
 
 def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
