@@ -20,7 +20,7 @@ from fem3d.kernels.dispatch import geometry_kernels
 from fem3d.mesh import formats
 from fem3d.mesh.formats import read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, box_tet_mesh, validate_tet_mesh
-from fem3d.physics import model as model_module
+from fem3d.physics import pattern as pattern_module
 from fem3d.physics.model import block_pattern, build_model, element_dofs
 
 
@@ -60,7 +60,7 @@ def test_mass_matrix_is_the_bincount_of_every_block_bit_for_bit(shuffled_box, pe
                                                                  monkeypatch):
     X, T = shuffled_box
     density = np.linspace(500.0, 1500.0, len(T)) if per_tet_density else 1000.0
-    monkeypatch.setattr(model_module, "_MASS_CHUNK", 37)  # several uneven chunks
+    monkeypatch.setattr(pattern_module, "_MASS_CHUNK", 37)  # several uneven chunks
     model = build_model(X, T, E=1e5, nu=0.3, density=density, backend="numpy")
     geo = geometry_kernels(backend="numpy")
     blocks = geo.mass_matrix(model.vol * density, (1.0,)) if per_tet_density else \
@@ -68,7 +68,7 @@ def test_mass_matrix_is_the_bincount_of_every_block_bit_for_bit(shuffled_box, pe
     ref = np.bincount(model.scatter, weights=blocks.reshape(-1), minlength=model.nnz)
     assert model.mass.data.tobytes() == ref.tobytes()
     # the entry-by-entry path (blocks of any structure) gives the same sums
-    entries = model_module._assemble_entries(geo, model.vol, 1000.0, density if
+    entries = pattern_module._assemble_entries(geo, model.vol, 1000.0, density if
                                              per_tet_density else None, model.scatter,
                                              model.nnz)
     ref_entries = ref if not per_tet_density else np.bincount(
