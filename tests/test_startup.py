@@ -143,7 +143,9 @@ def test_boundary_faces_are_the_faces_one_tet_has(shuffled_box):
 
 
 def test_run_profile_prints_each_stage(tmp_path, capsys):
-    status = main(["run", "cantilever", "--steps", "1", "--out", str(tmp_path / "o"),
+    mesh = tmp_path / "bar.mesh"  # a file of its own: no earlier test has read it (cached)
+    write_tet_mesh(mesh, TetMesh(*box_tet_mesh((6, 2, 2), size=(3.0, 1.0, 1.0))))
+    status = main(["run", str(mesh), "--steps", "1", "--out", str(tmp_path / "o"),
                    "--quiet", "--no-preview", "--profile", "--linear-solver", "amg"])
     assert status == 0
     err = capsys.readouterr().err

@@ -460,7 +460,8 @@ class Model:
     scatter : (m * 144,) int32
         Element-block to CSR-``data`` map (see :func:`block_pattern`).
     elem_dofs : (m, 12) int64
-        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map.
+        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map (made when
+        first asked for: the C kernels use :attr:`dof_slots`).
     backend : str or None
         Kernel back end requested (None: automatic).
     groups : tuple of GroupData
@@ -484,7 +485,6 @@ class Model:
     mass: sp.csr_matrix = field(repr=False)
     pattern: sp.csr_matrix = field(repr=False)
     scatter: np.ndarray = field(repr=False)
-    elem_dofs: np.ndarray = field(repr=False)
     backend: str | None = None
     groups: tuple[GroupData, ...] = field(default=(), repr=False)
     density: np.ndarray | None = field(default=None, repr=False)
@@ -548,9 +548,19 @@ class Model:
         return slots
 
     @cached_property
+    def elem_dofs(self) -> np.ndarray:
+        """``(m, 12) int64`` element DOFs (:func:`element_dofs`), read-only."""
+        dofs = element_dofs(self.T)
+        dofs.setflags(write=False)
+        return dofs
+
+    @cached_property
     def dof_slots(self) -> np.ndarray:
-        """``(m, 12) int32`` copy of :attr:`elem_dofs`: the fused gradient's scatter map."""
-        slots = self.elem_dofs.astype(np.int32)
+        """``(m, 12) int32`` :attr:`elem_dofs`: the fused gradient's scatter map."""
+        if 3 * self.n_vertices > np.iinfo(np.int32).max:
+            raise ValueError("more DOFs than int32 indexes")
+        slots = (3 * self.T.astype(np.int32)[:, :, None]
+                 + np.arange(3, dtype=np.int32)).reshape(-1, 12)
         slots.setflags(write=False)
         return slots
 
@@ -641,11 +651,20 @@ def _kernels_of(groups: Sequence[GroupData]) -> tuple[Any, Any]:
     return GroupedKernels(groups), GROUP_PARAMS
 
 
+def _own_copy(a, dtype) -> np.ndarray:
+    """``a`` as a C-ordered array of ``dtype`` the caller may make read-only: ``a`` itself
+    when it is one already and read-only (a validated mesh's arrays), else a copy."""
+    if isinstance(a, np.ndarray) and not a.flags.writeable and a.flags.c_contiguous and \
+            (dtype is None or a.dtype == dtype) and a.base is None:
+        return a
+    return np.array(a, dtype=dtype, order="C")
+
+
 def _mesh_arrays(X, T, path: str | None) -> tuple[np.ndarray, np.ndarray]:
     """Own C-ordered copies of the rest positions ``(n, 3)`` and tets ``(m, 4) int64``,
     checked (InputError names the vertex or tet)."""
-    X = np.array(X, dtype=np.float64, order="C")  # own copy: it is made read-only
-    T = np.array(T, order="C")
+    X = _own_copy(X, np.float64)  # made read-only
+    T = _own_copy(T, None)
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
         raise InputError(f"X must have shape (n >= 4, 3), got {X.shape}", path=path)
     if not np.isfinite(X).all():
@@ -771,18 +790,16 @@ def build_model(
         E, nu = _summary_E_nu(resolved, vol)
 
     _stages.debug("model: rest shape, materials")
-    dofs = element_dofs(T)
     pattern, scatter = block_pattern(T, X.shape[0])
     _stages.debug("model: sparsity pattern")
     mass_data = assemble_mass(geo, vol, rho, rho_e, scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
-    _readonly(X, T, dphi_dX, vol, mass.data, scatter, dofs,
-              pattern.indices, pattern.indptr)
+    _readonly(X, T, dphi_dX, vol, mass.data, scatter, pattern.indices, pattern.indptr)
     material_name = "+".join(dict.fromkeys(g.material for g in resolved))
     _stages.debug("model: mass matrix")
     return Model(
         X=X, T=T, dphi_dX=dphi_dX, vol=vol, material=material_name, E=float(E), nu=float(nu),
         rho=float(rho), params=params, mat=mat, geo=geo, mass=mass, pattern=pattern,
-        scatter=scatter, elem_dofs=dofs, backend=backend, groups=resolved, density=rho_e,
+        scatter=scatter, backend=backend, groups=resolved, density=rho_e,
     )

@@ -95,18 +95,14 @@ class System:
         self.solver_backend = solver_backend
         kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
         self.mass_free = self._reduced_mass(model, kept)
-        # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
-        nnz_free = self.pattern_free.nnz
-        self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
-        self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
         self._kept = kept
+        self._free_slot_map: np.ndarray | None = None
         # element entry -> reduced slot (4 bytes per element-matrix entry: 576 MB at 1e6 tets);
         # large meshes assemble on the full pattern and gather instead (the same sums)
         self._free_scatter = None
         if model.n_tets < LEAN_ASSEMBLY_MIN_TETS:
             self._free_scatter = self._free_slot[model.scatter]
             self._free_scatter.setflags(write=False)
-        self._free_slot.setflags(write=False)
         _stages.debug("system: reduced pattern")
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
@@ -142,6 +138,18 @@ class System:
         new.mass_free = self._reduced_mass(model, self._kept)
         new._physics_cache()
         return new
+
+    @property
+    def _free_slot(self) -> np.ndarray:
+        """Reduced-data slot of every full-pattern entry (entries on fixed DOFs: the sink slot
+        ``nnz_free``), ``(nnz,) int32``; made when first needed (pulls, small meshes)."""
+        if self._free_slot_map is None:
+            nnz_free = self._kept.size
+            slot = np.full(self.model.nnz, nnz_free, dtype=np.int32)
+            slot[self._kept] = np.arange(nnz_free, dtype=np.int32)
+            slot.setflags(write=False)
+            self._free_slot_map = slot
+        return self._free_slot_map
 
     def _reduced_mass(self, model: Model, kept: np.ndarray) -> sp.csr_matrix:
         """``P M P^T`` on :attr:`pattern_free` (sharing its index arrays)."""
