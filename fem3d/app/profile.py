@@ -145,7 +145,9 @@ def profiled(enabled: bool = True, out: TextIO | None = None,
     try:
         yield prof
     finally:
-        prof.mark("rest of the run (later steps, outputs)")
+        stepped = any(st.name == FIRST_STEP for st in prof.stages)
+        prof.mark("rest of the run (later steps, outputs)" if stepped else
+                  "until the run ended (no step)")
         logger.removeHandler(prof)
         logger.setLevel(saved[0])
         logger.propagate = saved[1]
