@@ -157,3 +157,13 @@ def test_run_profile_prints_each_stage(tmp_path, capsys):
         assert stage in stages, (stage, table)
     first = float(table[-1].split()[4])
     assert first > 0
+
+
+def test_token_spans_are_str_split_with_line_numbers():
+    text = "  a 1\t2\r\n\n\x0b3  4.5e-3\x1c x\n\ty  \n-7"
+    spans = formats._TokenSpans(text)
+    assert spans[:] == text.split() and [spans[i] for i in range(len(spans))] == text.split()
+    lines = [i + 1 for i, ln in enumerate(text.split("\n")) for _ in ln.split()]
+    assert spans.line.tolist() == lines and spans.n_lines == text.count("\n") + 1
+    assert spans.values(2, 4, np.float64).tolist() == [2.0, 3.0]
+    assert spans.values(0, 2, np.float64) is None  # 'a' is no number
