@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from fem3d.app.cli import main
 from fem3d.errors import InputError
 from fem3d.kernels.dispatch import geometry_kernels
-from fem3d.mesh import formats
+from fem3d.mesh import formats, textscan
 from fem3d.mesh.formats import read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, box_tet_mesh, validate_tet_mesh
 from fem3d.physics import pattern as pattern_module
@@ -161,7 +161,7 @@ def test_run_profile_prints_each_stage(tmp_path, capsys):
 
 def test_token_spans_are_str_split_with_line_numbers():
     text = "  a 1\t2\r\n\n\x0b3  4.5e-3\x1c x\n\ty  \n-7"
-    spans = formats._TokenSpans(text)
+    spans = textscan.TokenSpans(text)
     assert spans[:] == text.split() and [spans[i] for i in range(len(spans))] == text.split()
     lines = [i + 1 for i, ln in enumerate(text.split("\n")) for _ in ln.split()]
     assert spans.line.tolist() == lines and spans.n_lines == text.count("\n") + 1

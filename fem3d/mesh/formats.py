@@ -54,6 +54,7 @@ from fem3d.mesh.tetmesh import (
     validate_surface_mesh,
     validate_tet_mesh,
 )
+from fem3d.mesh.textscan import TokenSpans
 
 __all__ = [
     "read_surface_mesh",
@@ -70,51 +71,6 @@ _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 # --------------------------------------------------------------------------------------
 
 
-#: The bytes ``str.split()`` splits ASCII text at.
-_ASCII_SPACE = np.zeros(256, dtype=bool)
-_ASCII_SPACE[[9, 10, 11, 12, 13, 28, 29, 30, 31, 32]] = True
-
-
-class _TokenSpans:
-    """The tokens of an ASCII text as a sequence (``tok[i]``, ``tok[a:b]``, ``len``) held as
-    start and end offsets: no Python string per token until one is asked for."""
-
-    def __init__(self, text: str) -> None:
-        self.text = text
-        b = np.frombuffer(text.encode("ascii"), dtype=np.uint8)
-        space = _ASCII_SPACE[b]
-        edge = np.flatnonzero(np.diff(space.view(np.int8), prepend=1, append=1))
-        # non-space runs start where space falls to 0 and end where it rises back
-        self.starts, self.ends = edge[0::2], edge[1::2]
-        newlines = np.flatnonzero(b == 10)
-        self.line = np.searchsorted(newlines, self.starts) + 1
-        self.n_lines = newlines.size + 1
-
-    def __len__(self) -> int:
-        return self.starts.size
-
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            return [self.text[s:e] for s, e in zip(self.starts[i].tolist(),
-                                                   self.ends[i].tolist(), strict=True)]
-        return self.text[int(self.starts[i]):int(self.ends[i])]
-
-    def values(self, a: int, b: int, dtype: type) -> np.ndarray | None:
-        """Tokens ``a .. b - 1`` parsed in C (None: one of them is not a plain number)."""
-        if b <= a:
-            return None
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            try:
-                v = np.fromstring(self.text[self.starts[a]:self.ends[b - 1]], dtype=dtype,
-                                  sep=" ")
-            except (ValueError, DeprecationWarning):
-                return None
-        if v.size != b - a or (dtype is not np.float64 and np.abs(v).max() >= 2**62):
-            return None
-        return v
-
-
 class _Tokens:
     """Whitespace tokens of a text file with their 1-based line numbers."""
 
@@ -122,7 +78,7 @@ class _Tokens:
         self.path = path
         text = read_text_file(path, "mesh") if text is None else text
         if comment not in text and text.isascii():  # offsets, parsed in C by blocks
-            spans = _TokenSpans(text)
+            spans = TokenSpans(text)
             self.tok: Sequence[str] = spans
             self.line, self.n_lines, self._spans = spans.line, spans.n_lines, spans
         else:
