@@ -3,11 +3,13 @@ sub-commands other modules register.
 
 ``fem3d run NAME|FILE.toml|MESH [--steps N] [--dt DT] [--integrator NAME]
 [--material NAME] [--E E] [--nu NU] [--rho RHO] [--format vtu|obj|usd] [--frame-every K]
-[--set KEY=VALUE ...] [--out DIR] [--kernels numpy|c] [--checkpoint-every N] [--debug]`` runs
+[--set KEY=VALUE ...] [--out DIR] [--kernels numpy|c] [--checkpoint-every N] [--profile]
+[--debug]`` runs
 a scene (:mod:`fem3d.scene.spec`: a name of ``data/scenes``, a scene file, or a one-body scene
 around a mesh file) with its scripted pulls. Every flag but ``--out``, ``--kernels``,
 ``--checkpoint-every``, ``--no-preview`` and ``--quiet`` overrides one field of the scene
-(:data:`RUN_FLAGS`; ``--set`` any field by its key path). It writes into ``DIR``:
+(:data:`RUN_FLAGS`; ``--set`` any field by its key path). ``--profile`` prints the time and
+memory of each stage of the start (:mod:`fem3d.app.profile`). It writes into ``DIR``:
 
 * ``frames/frame_00000.vtu`` ... and ``frames.pvd`` - the display mesh per frame (open
   ``frames.pvd`` in ParaView), ``frames/*.obj``, or one ``frames.usdc`` (``output.format``);
@@ -50,6 +52,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import logging
 import sys
 import tomllib
 import traceback
@@ -57,6 +60,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fem3d.app.profile import STAGES_LOGGER, profiled
 from fem3d.app.run import resume_run, run_scene
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
@@ -64,6 +68,8 @@ from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 
 __all__ = ["main", "build_parser", "scene_from_args", "SUBCOMMANDS", "RUN_FLAGS"]
+
+_stages = logging.getLogger(STAGES_LOGGER)  # stage marks (fem3d.app.profile)
 
 #: Sub-command registrars, ``"module:function"``, in ``--help`` order.
 SUBCOMMANDS: list[str] = [
@@ -160,6 +166,9 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-preview", action="store_true", help="skip preview.gif")
     p.add_argument("--no-pull", action="store_true", help="no scripted pulls (pulls = [])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--profile", action="store_true",
+                   help="print the wall time, CPU time and memory of each stage of the start "
+                   "(reading, validation, model, pattern, solver analysis, first step)")
     p.add_argument(
         "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks"
     )
@@ -271,11 +280,14 @@ def _run_command(args: argparse.Namespace) -> int:
                  "skin": getattr(args, "skin", None)}
         rundir.check_overwrite(args.out, {k: v for k, v in named.items()
                                           if v is not None and Path(v).exists()})
-    scene = scene_from_args(args)
-    out = Path(args.out) if args.out else Path("out") / scene.name
-    summary = run_scene(scene, out, quiet=args.quiet, checkpoint_every=args.checkpoint_every,
-                        preview=not args.no_preview, backend=args.kernels,
-                        debug=getattr(args, "debug", False))
+    with profiled(getattr(args, "profile", False)):
+        scene = scene_from_args(args)
+        _stages.debug("scene file")
+        out = Path(args.out) if args.out else Path("out") / scene.name
+        summary = run_scene(scene, out, quiet=args.quiet,
+                            checkpoint_every=args.checkpoint_every,
+                            preview=not args.no_preview, backend=args.kernels,
+                            debug=getattr(args, "debug", False))
     return summary.exit_status
 
 

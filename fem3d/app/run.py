@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import logging
 import math
 import os
 import signal
@@ -49,7 +50,6 @@ from fem3d.io.checkpoint import (
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import make_frame_writer
-from fem3d.io.preview import plot_energy, render_preview
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
@@ -62,6 +62,9 @@ PREVIEW_FRAMES = 60
 
 #: Exit status of an interrupted run (128 + SIGINT).
 EXIT_INTERRUPTED = 130
+
+#: Stage marks (``fem3d run --profile``, :mod:`fem3d.app.profile`).
+_stages = logging.getLogger("fem3d.stages")
 
 
 def _check_writable(out: Path) -> None:
@@ -265,6 +268,7 @@ class RunLoop:
         if self.ckpt is None:
             e = sim.energies()
             self.record(0, sim.t, e["kinetic"], e["potential"], e["total"], e["pull"])
+            _stages.debug("initial state and frame")
         start = sim.step_index
         scene = self.scene
         print(
@@ -310,6 +314,7 @@ class RunLoop:
         """Step until ``scene.n_steps`` or a signal; a second signal abandons the step."""
         sim = self.sim
         X0 = sim.model.X
+        first = True
         while sim.step_index < self.steps and intr.signum is None:
             before = sim.snapshot()
             intr.in_step = True
@@ -321,6 +326,9 @@ class RunLoop:
                 break
             finally:
                 intr.in_step = False
+            if first:
+                _stages.debug("first step")
+                first = False
             self.step_seconds.append(info.seconds)
             self.iterations.append(info.newton_iterations)
             self.record(sim.step_index, info.t, info.kinetic, info.potential, info.total,
@@ -346,6 +354,9 @@ class RunLoop:
     def _write_outputs(self, status: str, wall: float) -> None:
         """The end of a run: a checkpoint (with ``checkpoint_every``), ``energy.png``,
         ``preview.gif`` and the timing line."""
+        # matplotlib is imported when a run ends, not before its first step
+        from fem3d.io.preview import plot_energy, render_preview
+
         sim, out, scene = self.sim, self.out, self.scene
         if status == "ok" and self.every:
             self.save_checkpoint()
@@ -456,13 +467,16 @@ def run_scene(
     rundir.check_overwrite(out, inputs)  # before any expensive setup
     backend = _resolve_kernels(backend)
     sim = Simulation(scene, backend=backend, scripted=True)
+    _stages.debug("simulation set-up")
     settings = {
         "scene": scene.to_dict(), "kernels": backend, "solver": sim.system.linear_backend,
         "checkpoint_every": int(checkpoint_every), "preview": bool(preview),
     }
     out.mkdir(parents=True, exist_ok=True)
     with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
-        return RunLoop(scene, sim, out, settings, quiet=quiet, debug=debug).run()
+        loop = RunLoop(scene, sim, out, settings, quiet=quiet, debug=debug)
+        _stages.debug("output set-up")
+        return loop.run()
 
 
 def _scene_inputs(scene) -> dict[str, Any]:

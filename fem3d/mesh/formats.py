@@ -32,6 +32,8 @@ from __future__ import annotations
 import contextlib
 import io
 import itertools
+import logging
+import re
 import struct
 import warnings
 from collections.abc import Sequence
@@ -52,6 +54,7 @@ from fem3d.mesh.tetmesh import (
     validate_surface_mesh,
     validate_tet_mesh,
 )
+from fem3d.mesh.textscan import TokenSpans
 
 __all__ = [
     "read_surface_mesh",
@@ -59,6 +62,8 @@ __all__ = [
     "write_surface_mesh",
     "write_tet_mesh",
 ]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 # --------------------------------------------------------------------------------------
@@ -69,19 +74,24 @@ __all__ = [
 class _Tokens:
     """Whitespace tokens of a text file with their 1-based line numbers."""
 
-    def __init__(self, path: Path, comment: str = "#") -> None:
+    def __init__(self, path: Path, comment: str = "#", text: str | None = None) -> None:
         self.path = path
-        text = read_text_file(path, "mesh")
-        lines = text.split("\n")
-        if comment in text:
-            lines = [ln.split(comment, 1)[0] for ln in lines]
-        split = [ln.split() for ln in lines]
-        counts = np.fromiter(map(len, split), dtype=np.int64, count=len(split))
-        self.tok: list[str] = list(itertools.chain.from_iterable(split))
-        self.line = np.repeat(np.arange(1, len(lines) + 1, dtype=np.int64), counts)
-        self.n_lines = len(lines)
+        text = read_text_file(path, "mesh") if text is None else text
+        if comment not in text and text.isascii():  # offsets, parsed in C by blocks
+            spans = TokenSpans(text)
+            self.tok: Sequence[str] = spans
+            self.line, self.n_lines, self._spans = spans.line, spans.n_lines, spans
+        else:
+            lines = text.split("\n")
+            if comment in text:
+                lines = [ln.split(comment, 1)[0] for ln in lines]
+            split = [ln.split() for ln in lines]
+            counts = np.fromiter(map(len, split), dtype=np.int64, count=len(split))
+            self.tok = list(itertools.chain.from_iterable(split))
+            self.line = np.repeat(np.arange(1, len(lines) + 1, dtype=np.int64), counts)
+            self.n_lines, self._spans = len(lines), None
         self.pos = 0
-        if not self.tok:
+        if not len(self.tok):
             raise InputError("empty file (no data)", path=path)
 
     def lineno(self, i: int | None = None) -> int:
@@ -144,6 +154,11 @@ class _Tokens:
                 f"{width} numbers, only {have} complete entries follow",
                 path=self.path, line=self.lineno(len(self.tok) - 1),
             )
+        parsed = None if self._spans is None else self._spans.values(a, b, dtype)
+        if parsed is not None:
+            self.pos = b
+            return parsed.reshape(count, width), self.line[a:b:width] if width else \
+                np.zeros(0, dtype=np.int64)
         chunk = self.tok[a:b]
         try:
             values = np.array(chunk, dtype=dtype).reshape(count, width)
@@ -196,9 +211,115 @@ _MEDIT_SECTIONS: dict[str, int] = {
 _MEDIT_KEYWORDS = set(_MEDIT_SECTIONS) | {"meshversionformatted", "dimension", "end"}
 
 
+class _NotPlain(Exception):
+    """The fast MEDIT reader met something only the token reader handles (a comment, a
+    malformed section, ...): that reader then reads the file and says what is wrong."""
+
+
+#: A word at the start of a line.
+_WORD = re.compile(r"\S*")
+
+
+def _keyword_lines(text: str) -> list[tuple[int, int, str]]:
+    """``(start, end, word)`` of every line's first word that starts with a letter (an ASCII
+    text; a keyword after white space is left to the token reader: fromstring stops at it)."""
+    b = np.frombuffer(text.encode("ascii"), dtype=np.uint8)
+    starts = np.flatnonzero(b == 10) + 1
+    starts = np.concatenate(([0], starts[starts < b.size]))
+    lower = b[starts] | 0x20
+    marks = []
+    for s in starts[(lower >= ord("a")) & (lower <= ord("z"))].tolist():
+        word = _WORD.match(text, s).group()
+        marks.append((s, s + len(word), word))
+    return marks
+
+
+class _RecordLines:
+    """The line of each record of one section, found only when a message needs one: the
+    token reader re-reads the file then (the fast reader keeps no per-token lines)."""
+
+    def __init__(self, path: Path, text: str, section: str) -> None:
+        self.path, self.text, self.section = path, text, section
+        self._lines: np.ndarray | None = None
+
+    def __getitem__(self, i):
+        if self._lines is None:
+            self._lines = _read_medit_tokens(self.path, _Tokens(self.path, text=self.text)
+                                             )[self.section][1]
+        return self._lines[i]
+
+
+def _section_values(body: str, count: int, width: int, dtype: type) -> np.ndarray:
+    """``count`` records of ``width`` numbers parsed from ``body`` in C (``np.fromstring``;
+    float64 rounds like ``float()``), or :class:`_NotPlain` when it holds anything else."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a token that is not a number stops fromstring
+        try:
+            values = np.fromstring(body, dtype=dtype, sep=" ")
+        except (ValueError, DeprecationWarning):
+            raise _NotPlain from None
+    if values.size != count * width:
+        raise _NotPlain
+    if dtype is not np.float64 and values.size and np.abs(values).max() >= 2**62:
+        raise _NotPlain  # (out of range either way; the token reader says so)
+    return values.reshape(count, width)
+
+
+def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _RecordLines]]:
+    """:func:`_read_medit` of a plain file (keywords at line starts, no comments, every
+    section exactly its declared count of numbers) without a Python object per number.
+
+    Raises
+    ------
+    _NotPlain
+        Anything else: the token reader reads the file (and reports what is wrong).
+    """
+    if "#" in text or not text.isascii():
+        raise _NotPlain
+    marks = _keyword_lines(text)
+    if not marks or text[:marks[0][0]].strip():
+        raise _NotPlain
+    stops = [s for s, _, _ in marks[1:]] + [len(text)]
+    dim, out = 3, {}
+    for (_, end, word), stop in zip(marks, stops, strict=True):
+        key, body = word.lower(), text[end:stop]
+        if key == "end":
+            if body.strip() or stop != len(text):
+                raise _NotPlain
+            return out
+        if key in ("meshversionformatted", "dimension"):
+            words = body.split()
+            if len(words) != 1 or not words[0].isdigit() or \
+                    int(words[0]) not in ((0, 1, 2, 3, 4) if key[0] == "m" else (3,)):
+                raise _NotPlain
+            continue
+        width = _MEDIT_SECTIONS.get(key, 0)
+        if width == 0 or key in out:
+            raise _NotPlain
+        if width < 0:
+            width = dim + 1 if key == "vertices" else dim
+        head = body.split(None, 1)
+        if not head or not head[0].isdigit() or (len(head) == 1 and int(head[0])):
+            raise _NotPlain
+        count = int(head[0])
+        dtype = np.float64 if key in ("vertices", "normals", "tangents") else np.int64
+        values = _section_values(head[1] if len(head) > 1 else "", count, width, dtype)
+        out[key] = (values, _RecordLines(path, text, key))
+    raise _NotPlain  # no End
+
+
 def _read_medit(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Parse an ASCII MEDIT file into ``{section: (records, lines)}``."""
-    tk = _Tokens(path)
+    """Parse an ASCII MEDIT file into ``{section: (records, lines)}``: a plain file in C
+    (:func:`_read_medit_plain`), anything else token by token with line numbers."""
+    text = read_text_file(path, "mesh")
+    try:
+        return _read_medit_plain(path, text)
+    except _NotPlain:
+        return _read_medit_tokens(path, _Tokens(path, text=text))
+
+
+def _read_medit_tokens(path: Path, tk: _Tokens) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Parse the tokens of an ASCII MEDIT file into ``{section: (records, lines)}``."""
     dim = 3
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     saw_end = False
@@ -270,6 +391,7 @@ def _medit_tet_mesh(path: Path) -> TetMesh:
     if "tetrahedra" not in sec or sec["tetrahedra"][0].shape[0] == 0:
         raise InputError("mesh has no tetrahedra (no or empty Tetrahedra section)", path=path)
     Tr, tlines = sec["tetrahedra"]
+    _stages.debug("read mesh")
     return validate_tet_mesh(Xr[:, :3], Tr[:, :4] - 1, path=path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=1)
 
@@ -365,6 +487,7 @@ def _tetgen_tet_mesh(path: Path) -> TetMesh:
         raise InputError(f"tetrahedron {j} has a non-integer vertex index {Tf[j].tolist()}",
                          path=ele_path, line=int(tlines[j]), element=j)
     Tf = np.clip(Tf, -(2.0**62), 2.0**62)
+    _stages.debug("read mesh")
     return validate_tet_mesh(X, Tf.astype(np.int64) - base, path=ele_path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=base)
 
@@ -470,6 +593,7 @@ def _meshio_tet_mesh(path: Path) -> TetMesh:
     T = cells["tetra"]
     if not np.issubdtype(T.dtype, np.integer):
         raise InputError("tetrahedron indices are not integers", path=path)
+    _stages.debug("read mesh")
     return validate_tet_mesh(points, T, path=path)
 
 

@@ -17,6 +17,7 @@ file, the line and/or element and what is wrong.
 from __future__ import annotations
 
 import itertools
+import logging
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,6 +40,8 @@ __all__ = [
 ]
 
 PathArg = str | PathLike[str]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 #: A tet is degenerate when ``|6 V| <= DEGENERATE_RTOL * h**3`` with ``h`` its longest edge
 #: (a regular tet has ``6 V = h**3 / sqrt(2)``). Scale-invariant, so the 165-unit bunny and
@@ -121,13 +124,56 @@ def tet_signed_volumes(X: np.ndarray, T: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
+def _sorted_columns(A: np.ndarray | Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The columns of ``np.sort(A, axis=1)`` of an ``(k, 3)`` or ``(k, 4)`` array (or of its
+    columns), by a sorting network of whole columns (a sort per row of 3 or 4 numbers is a
+    call per row)."""
+    cols = [A[:, k] for k in range(A.shape[1])] if isinstance(A, np.ndarray) else list(A)
+    pairs = ((0, 1), (1, 2), (0, 1)) if len(cols) == 3 else \
+        ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))
+    for i, j in pairs:
+        cols[i], cols[j] = np.minimum(cols[i], cols[j]), np.maximum(cols[i], cols[j])
+    return cols
+
+
+def _tet_faces(T: np.ndarray) -> np.ndarray:
+    """``(4 m, 3)`` faces of tets ``T`` (``T[:, TET_FACES]`` with C-ordered rows)."""
+    return T.take(TET_FACES.reshape(-1), axis=1).reshape(-1, 3)
+
+
+def _tet_face_keys(T: np.ndarray) -> np.ndarray | None:
+    """:func:`_face_keys` of :func:`_tet_faces` ``(T)`` without making the faces (None: too
+    many vertices for one int64 key per face)."""
+    m = T.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.int64)
+    n = int(T.max()) + 1  # every vertex of a tet is on three of its faces
+    if n >= 2_000_000:
+        return None
+    keys = np.empty((m, 4), dtype=np.int64)
+    for k, face in enumerate(TET_FACES):
+        s0, s1, s2 = _sorted_columns([T[:, v] for v in face])
+        key = keys[:, k]
+        np.multiply(s0, n, out=key)
+        key += s1
+        key *= n
+        key += s2
+    return keys.reshape(-1)
+
+
 def _face_keys(faces: np.ndarray) -> np.ndarray:
     """Orientation-independent integer keys of triangles, ``(f,) int64`` (or ``(f, 3)``)."""
-    s = np.sort(faces, axis=1)
-    n = int(s.max()) + 1 if s.size else 1
-    if n < 2_000_000:  # n**3 < 2**63
-        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]
-    return s
+    if faces.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    n = int(faces.max()) + 1
+    if n >= 2_000_000:  # n**3 >= 2**63: the sorted rows themselves
+        return np.sort(faces, axis=1)
+    s0, s1, s2 = _sorted_columns(faces)
+    key = s0 * n
+    key += s1
+    key *= n
+    key += s2
+    return key
 
 
 def boundary_faces(T: np.ndarray) -> np.ndarray:
@@ -150,12 +196,25 @@ def boundary_faces(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.int64)
     if T.ndim != 2 or T.shape[1] != 4:
         raise ValueError(f"T must be (n_tets, 4), got {T.shape}")
-    faces = T[:, TET_FACES].reshape(-1, 3)
-    if faces.shape[0] == 0:
-        return np.zeros((0, 3), dtype=np.int64)
+    keys = _tet_face_keys(T)
+    if keys is not None:  # keys of the faces only one tet has, then a lookup (no argsort)
+        if keys.size == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        s = np.sort(keys)
+        single = np.ones(s.size, dtype=bool)
+        same = s[1:] == s[:-1]
+        single[1:] &= ~same
+        single[:-1] &= ~same
+        once = s[single]
+        if once.size == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        pos = np.searchsorted(once, keys)
+        np.minimum(pos, once.size - 1, out=pos)
+        tet, k = np.divmod(np.flatnonzero(once[pos] == keys), 4)
+        return np.ascontiguousarray(T[tet[:, None], TET_FACES[k]])
+    faces = _tet_faces(T)
     keys = _face_keys(faces)
-    axis = None if keys.ndim == 1 else 0
-    _, inverse, counts = np.unique(keys, axis=axis, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     return np.ascontiguousarray(faces[counts[inverse.reshape(-1)] == 1])
 
 
@@ -257,7 +316,9 @@ def validate_tet_mesh(
         new_index = np.cumsum(used) - 1
         X = X[used]
         T = new_index[T]
-    return TetMesh(X=X, T=T, path=None if path is None else str(path))
+    mesh = TetMesh(X=X, T=T, path=None if path is None else str(path))
+    _stages.debug("validate mesh")
+    return mesh
 
 
 def _check_tet_indices(T: np.ndarray, n: int, *, path: PathArg | None,
@@ -278,14 +339,37 @@ def _check_tet_indices(T: np.ndarray, n: int, *, path: PathArg | None,
         raise InputError(what + _more(neg.size + big.size), path=path,
                          line=_where(tet_lines, j), element=j)
 
-    S = np.sort(T, axis=1)
-    rep = np.flatnonzero((S[:, 1:] == S[:, :-1]).any(axis=1))
+    s0, s1, s2, s3 = _sorted_columns(T)
+    rep = np.flatnonzero((s0 == s1) | (s1 == s2) | (s2 == s3))
     if rep.size:
         j = int(rep[0])
         raise InputError(
             f"tet {j} has a repeated vertex {(T[j] + index_base).tolist()}{_more(rep.size)}",
             path=path, line=_where(tet_lines, j), element=j,
         )
+    if _may_repeat_rows((s0, s1, s2, s3), n):
+        _report_duplicate_tets(np.stack([s0, s1, s2, s3], axis=1), T, path=path,
+                               tet_lines=tet_lines, index_base=index_base)
+
+
+def _may_repeat_rows(S: tuple[np.ndarray, ...], n: int) -> bool:
+    """Whether two rows of the sorted tets with columns ``S`` (indices in ``[0, n)``) may be
+    equal: a sort of one int64 hash per row (equal rows have equal hashes; a collision costs
+    the exact check only)."""
+    s0, s1, s2, s3 = S
+    if s0.size < 2:
+        return False
+    if n < 55_000:  # n**4 < 2**63: the key is the row itself
+        h = ((s0 * n + s1) * n + s2) * n + s3
+    else:  # integer arrays wrap around silently
+        h = (s0 * n + s1) * np.int64(0x9E3779B97F4A7C15 - 2**64) + (s2 * n + s3)
+    h.sort()
+    return bool((h[1:] == h[:-1]).any())
+
+
+def _report_duplicate_tets(S: np.ndarray, T: np.ndarray, *, path: PathArg | None,
+                           tet_lines: np.ndarray | None, index_base: int) -> None:
+    """Raise the message about the first repeated tet, if any row of ``S`` repeats."""
     _, first, counts = np.unique(S, axis=0, return_index=True, return_counts=True)
     if (counts > 1).any():
         dup_rows = np.flatnonzero((S == S[first[np.argmax(counts > 1)]]).all(axis=1))
@@ -309,13 +393,11 @@ def _tet_determinants(X: np.ndarray, T: np.ndarray, rtol: float, *, path: PathAr
     # the degeneracy test is scale-invariant: evaluate it on each tet translated to its
     # first vertex and divided by its largest edge-vector component (no overflow or
     # underflow for any finite coordinates); report sizes in the file's units
-    with np.errstate(all="ignore"):
-        e = X[T]
-        rel = e[:, [1, 2, 3, 2, 3, 3]] - e[:, [0, 0, 0, 1, 1, 2]]
-        scale = np.abs(rel).max(axis=(1, 2))
-        edges = rel / np.where(scale > 0, scale, 1.0)[:, None, None]
-        h = np.sqrt(np.einsum("mij,mij->mi", edges, edges).max(axis=1))
-        det = np.einsum("ij,ij->i", edges[:, 0], np.cross(edges[:, 1], edges[:, 2]))
+    m = T.shape[0]
+    scale, h, det = np.empty(m), np.empty(m), np.empty(m)
+    for a in range(0, m, _CHUNK):  # chunks of tets: temporaries stay in cache
+        b = min(m, a + _CHUNK)
+        scale[a:b], h[a:b], det[a:b] = _scaled_determinants(X, T[a:b])
     degen = np.flatnonzero(~(np.abs(det) > rtol * h**3))
     if degen.size:
         j = int(degen[0])
@@ -340,10 +422,33 @@ def _tet_determinants(X: np.ndarray, T: np.ndarray, rtol: float, *, path: PathAr
     return det
 
 
+#: Tets per chunk of the element-wise checks.
+_CHUNK = 1 << 15
+
+
+def _scaled_determinants(X: np.ndarray, T: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(scale, h, det)`` of tets ``T``: the largest edge-vector component, the longest edge
+    and ``6 V``, the last two of the tet divided by ``scale``."""
+    with np.errstate(all="ignore"):
+        e = X[T]
+        rel = e[:, [1, 2, 3, 2, 3, 3]] - e[:, [0, 0, 0, 1, 1, 2]]
+        scale = np.abs(rel).max(axis=(1, 2))
+        edges = rel / np.where(scale > 0, scale, 1.0)[:, None, None]
+        h = np.sqrt(np.einsum("mij,mij->mi", edges, edges).max(axis=1))
+        det = np.einsum("ij,ij->i", edges[:, 0], np.cross(edges[:, 1], edges[:, 2]))
+    return scale, h, det
+
+
 def _check_face_sharing(T: np.ndarray, *, path: PathArg | None, tet_lines: np.ndarray | None,
                         index_base: int) -> None:
     """Refuse a face shared by more than two tets (overlapping / non-conforming mesh)."""
-    faces = T[:, TET_FACES].reshape(-1, 3)
+    keys = _tet_face_keys(T)
+    if keys is not None:  # a sort says whether any key is there three times
+        s = np.sort(keys)
+        if not (s[2:] == s[:-2]).any():
+            return
+    faces = _tet_faces(T)
     keys = _face_keys(faces)
     fax = None if keys.ndim == 1 else 0
     _, finv, fcounts = np.unique(keys, axis=fax, return_inverse=True, return_counts=True)

@@ -19,6 +19,7 @@ The stiffness and the mass matrix share the pattern, so ``M + dt^2 H`` is arithm
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -31,6 +32,7 @@ import scipy.sparse as sp
 from fem3d.errors import InputError, ParameterError
 from fem3d.kernels.dispatch import geometry_kernels, material_kernels
 from fem3d.physics.materials import info, lame_to_E_nu, parameters_from, small_strain_lame
+from fem3d.physics.pattern import assemble_mass, block_pattern
 
 __all__ = [
     "GroupData",
@@ -43,6 +45,8 @@ __all__ = [
     "element_dofs",
     "block_pattern",
 ]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 def validate_material(E: float, nu: float, rho: float) -> tuple[float, float, float]:
@@ -121,63 +125,6 @@ def element_dofs(T: np.ndarray) -> np.ndarray:
     return (3 * np.asarray(T, dtype=np.int64)[:, :, None] + np.arange(3)).reshape(-1, 12)
 
 
-def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """CSR pattern of the ``3n x 3n`` element matrices of tets ``T`` and their scatter map.
-
-    The pattern is found over vertex pairs (16 per tet) and expanded to 3x3 blocks, which needs
-    about a ninth of the memory and time of sorting all 144 DOF pairs of every tet.
-
-    Parameters
-    ----------
-    T : (m, 4) int64
-        Tets.
-    n_vertices : int
-        Number of vertices ``n``; the matrices are ``N x N`` with ``N = 3 n`` (vertex-major
-        DOFs, see :func:`element_dofs`).
-
-    Returns
-    -------
-    pattern : (N, N) scipy.sparse.csr_matrix
-        Canonical (sorted, no duplicates), ``data`` all zeros: every ``(3 i + c, 3 j + d)`` with
-        vertices ``i, j`` in a common tet.
-    scatter : (m * 144,) int32
-        ``scatter[e * 144 + 12 r + s]`` is the ``data`` position of the entry of element DOFs
-        ``(r, s)`` of tet ``e``, so ``np.bincount(scatter, blocks.ravel(), nnz)`` assembles
-        ``(m, 12, 12)`` blocks. int32 halves the memory and the bandwidth of the fused C
-        assembly, which reads it on every call.
-
-    Raises
-    ------
-    ValueError
-        More than ``2**31 - 1`` stored entries.
-    """
-    T = np.asarray(T, dtype=np.int64)
-    m, corners = T.shape
-    n = int(n_vertices)
-    keys = (T[:, :, None] * n + T[:, None, :]).reshape(-1)
-    pairs, block = np.unique(keys, return_inverse=True)
-    del keys
-    if 9 * pairs.size > np.iinfo(np.int32).max:
-        raise ValueError(f"the sparsity pattern has {9 * pairs.size} entries, more than int32 "
-                         "indexes")
-    block_rows, block_cols = np.divmod(pairs, n)
-    block_ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(block_rows, minlength=n), out=block_ptr[1:])
-    # number the block entries 1..9 nnzb, convert to CSR: its data says where each one lands
-    numbered = np.arange(1, 9 * pairs.size + 1, dtype=np.float64).reshape(-1, 3, 3)
-    csr = sp.bsr_matrix((numbered, block_cols, block_ptr), shape=(3 * n, 3 * n)).tocsr()
-    where = np.empty(9 * pairs.size, dtype=np.int32)
-    where[csr.data.astype(np.int64) - 1] = np.arange(csr.nnz, dtype=np.int32)
-    # entry (3a + c, 3b + d) of tet e lives in block (T[e, a], T[e, b]) at (c, d)
-    block = block.astype(np.int32).reshape(m, corners, 1, corners, 1)
-    local = 3 * np.arange(3, dtype=np.int32)[:, None] + np.arange(3, dtype=np.int32)
-    scatter = where[9 * block + local.reshape(1, 1, 3, 1, 3)].reshape(-1)
-    pattern = sp.csr_matrix((np.zeros(csr.nnz), csr.indices.astype(np.int32),
-                             csr.indptr.astype(np.int32)), shape=(3 * n, 3 * n))
-    pattern.has_sorted_indices = True
-    return pattern, scatter
-
-
 def _readonly(*arrays: np.ndarray) -> None:
     for a in arrays:
         a.setflags(write=False)
@@ -232,6 +179,9 @@ class GroupData:
     kernels: Any = field(repr=False)
     n_tets: int = 0
     _cache: dict = field(default_factory=dict, repr=False)
+    #: ``slice(first, last + 1)`` when the elements are consecutive tets (a body's): its
+    #: subsets are views, not copies (a copy of the scatter map is 576 bytes per tet).
+    span: slice | None = field(default=None, repr=False)
 
     @property
     def allows_inversion(self) -> bool:
@@ -246,6 +196,9 @@ class GroupData:
         if self.elements is None:
             return array
         a = np.asarray(array)
+        if self.span is not None and a.flags.c_contiguous:
+            rows = a.reshape(self.n_tets, -1)[self.span] if a.ndim == 1 else a[self.span]
+            return rows.reshape(-1) if a.ndim == 1 else rows
         cached = self._cache.get(id(a))
         if cached is not None and cached[0] is a:
             return cached[1]
@@ -323,7 +276,8 @@ class GroupedKernels:
                 list(out) if isinstance(out, tuple | list) else [out]
             for g in self.groups:
                 n_base = self._base_inputs(kernel, g)
-                base = [np.asarray(a) if g.elements is None else np.asarray(a)[g.elements]
+                base = [np.asarray(a) if g.elements is None else
+                        np.asarray(a)[g.span if g.span is not None else g.elements]
                         for a in arrays[:n_base]]
                 values = getattr(g.kernels, kernel)(*base, *g.inputs, g.params)
                 values = values if isinstance(values, tuple) else (values,)
@@ -445,9 +399,13 @@ def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
             [np.broadcast_to(np.asarray(values[p], dtype=np.float64), (k,)) for p in names],
             axis=1))
     _readonly(params, *inputs)
+    span = None
+    if el is not None and el.size and int(el[-1]) - int(el[0]) + 1 == el.size and \
+            (np.diff(el) == 1).all():
+        span = slice(int(el[0]), int(el[-1]) + 1)
     return GroupData(material=g.material, elements=el, values=values, params=params,
                      inputs=tuple(inputs), kernels=material_kernels(g.material, backend),
-                     n_tets=m)
+                     n_tets=m, span=span)
 
 
 def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
@@ -502,7 +460,8 @@ class Model:
     scatter : (m * 144,) int32
         Element-block to CSR-``data`` map (see :func:`block_pattern`).
     elem_dofs : (m, 12) int64
-        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map.
+        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map (made when
+        first asked for: the C kernels use :attr:`dof_slots`).
     backend : str or None
         Kernel back end requested (None: automatic).
     groups : tuple of GroupData
@@ -526,7 +485,6 @@ class Model:
     mass: sp.csr_matrix = field(repr=False)
     pattern: sp.csr_matrix = field(repr=False)
     scatter: np.ndarray = field(repr=False)
-    elem_dofs: np.ndarray = field(repr=False)
     backend: str | None = None
     groups: tuple[GroupData, ...] = field(default=(), repr=False)
     density: np.ndarray | None = field(default=None, repr=False)
@@ -590,9 +548,19 @@ class Model:
         return slots
 
     @cached_property
+    def elem_dofs(self) -> np.ndarray:
+        """``(m, 12) int64`` element DOFs (:func:`element_dofs`), read-only."""
+        dofs = element_dofs(self.T)
+        dofs.setflags(write=False)
+        return dofs
+
+    @cached_property
     def dof_slots(self) -> np.ndarray:
-        """``(m, 12) int32`` copy of :attr:`elem_dofs`: the fused gradient's scatter map."""
-        slots = self.elem_dofs.astype(np.int32)
+        """``(m, 12) int32`` :attr:`elem_dofs`: the fused gradient's scatter map."""
+        if 3 * self.n_vertices > np.iinfo(np.int32).max:
+            raise ValueError("more DOFs than int32 indexes")
+        slots = (3 * self.T.astype(np.int32)[:, :, None]
+                 + np.arange(3, dtype=np.int32)).reshape(-1, 12)
         slots.setflags(write=False)
         return slots
 
@@ -683,11 +651,20 @@ def _kernels_of(groups: Sequence[GroupData]) -> tuple[Any, Any]:
     return GroupedKernels(groups), GROUP_PARAMS
 
 
+def _own_copy(a, dtype) -> np.ndarray:
+    """``a`` as a C-ordered array of ``dtype`` the caller may make read-only: ``a`` itself
+    when it is one already and read-only (a validated mesh's arrays), else a copy."""
+    if isinstance(a, np.ndarray) and not a.flags.writeable and a.flags.c_contiguous and \
+            (dtype is None or a.dtype == dtype) and a.base is None:
+        return a
+    return np.array(a, dtype=dtype, order="C")
+
+
 def _mesh_arrays(X, T, path: str | None) -> tuple[np.ndarray, np.ndarray]:
     """Own C-ordered copies of the rest positions ``(n, 3)`` and tets ``(m, 4) int64``,
     checked (InputError names the vertex or tet)."""
-    X = np.array(X, dtype=np.float64, order="C")  # own copy: it is made read-only
-    T = np.array(T, order="C")
+    X = _own_copy(X, np.float64)  # made read-only
+    T = _own_copy(T, None)
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
         raise InputError(f"X must have shape (n >= 4, 3), got {X.shape}", path=path)
     if not np.isfinite(X).all():
@@ -812,19 +789,17 @@ def build_model(
     if given_E_nu is None:
         E, nu = _summary_E_nu(resolved, vol)
 
-    dofs = element_dofs(T)
+    _stages.debug("model: rest shape, materials")
     pattern, scatter = block_pattern(T, X.shape[0])
-    # M is linear in rho: a per-tet density scales each tet's volume
-    mass_blocks = geo.mass_matrix(vol, (rho,)) if rho_e is None else \
-        geo.mass_matrix(vol * rho_e, (1.0,))
-    mass_data = np.bincount(scatter, weights=mass_blocks.reshape(-1), minlength=pattern.nnz)
+    _stages.debug("model: sparsity pattern")
+    mass_data = assemble_mass(geo, vol, rho, rho_e, scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
-    _readonly(X, T, dphi_dX, vol, mass.data, scatter, dofs,
-              pattern.indices, pattern.indptr)
+    _readonly(X, T, dphi_dX, vol, mass.data, scatter, pattern.indices, pattern.indptr)
     material_name = "+".join(dict.fromkeys(g.material for g in resolved))
+    _stages.debug("model: mass matrix")
     return Model(
         X=X, T=T, dphi_dX=dphi_dX, vol=vol, material=material_name, E=float(E), nu=float(nu),
         rho=float(rho), params=params, mat=mat, geo=geo, mass=mass, pattern=pattern,
-        scatter=scatter, elem_dofs=dofs, backend=backend, groups=resolved, density=rho_e,
+        scatter=scatter, backend=backend, groups=resolved, density=rho_e,
     )

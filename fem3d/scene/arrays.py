@@ -382,7 +382,7 @@ def build_arrays(scene: Scene) -> SceneArrays:
                     np.asarray(bm.skin_F, dtype=np.int64))
         skins.append(skin)
         Xs.append(X)
-        Ts.append(T + nv)
+        Ts.append(T if nv == 0 else T + nv)  # the first body's: the mesh's (read-only) array
         v0s.append(v)
         body_v.append(slice(nv, nv + X.shape[0]))
         body_t.append(slice(nt, nt + T.shape[0]))

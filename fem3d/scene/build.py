@@ -22,6 +22,7 @@ scene's key (a bad mesh, a selector that selects nothing, a bad motion or obstac
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -47,6 +48,8 @@ from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
 __all__ = ["Built", "PinMotion", "build", "model_from_scene", "damping_from_scene",
            "pin_motions", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 class PinMotion(NamedTuple):
@@ -124,6 +127,7 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
         vertex in a scene without contact, a bad material, motion or obstacle.
     """
     a = build_arrays(scene)
+    _stages.debug("scene arrays (transforms, selections)")
     model = model_from_scene(scene, a, backend)
     if a.fixed.size == 0 and not scene.contact.enabled:
         raise scene.error(
@@ -137,6 +141,7 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     contact = contact_from_scene(scene, a) if scene.contact.enabled else None
     spring_k = (a.spring_k if a.spring_k is not None
                 else default_spring_k(float(model.E), a.height))
+    _stages.debug("pins, motions, damping, contact")
     return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
                  rayleigh_alpha=alpha, rayleigh_beta=beta, motions=motions, contact=contact,
                  pick_radius=a.pick_radius, spring_k=spring_k)

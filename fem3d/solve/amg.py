@@ -211,6 +211,53 @@ def _block_pattern(indptr: np.ndarray, indices: np.ndarray, n: int
     return bsr_indptr, bsr_indices, slot.astype(_slot_dtype(slot))
 
 
+def _full_block_pattern(indptr: np.ndarray, indices: np.ndarray, n: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`_block_pattern` of a CSR pattern made of whole 3x3 blocks (a finite-element
+    pattern: every vertex pair couples all 3 x 3 DOFs) in int32 arithmetic over its column
+    triples; None when the pattern is not made of whole blocks.
+
+    Triple ``u`` of the CSR (entries ``3 u .. 3 u + 2``) is the ``k``-th of row ``3 i + c``,
+    ``u = 3 bp_i + c deg_i + k`` (``bp_i`` the first block of block row ``i``, ``deg_i`` its
+    block count), and its entries land in BSR slots ``9 (bp_i + k) + 3 c + (0, 1, 2)``.
+    """
+    nb = n // 3
+    indptr = np.asarray(indptr)
+    nnz = int(indptr[-1])
+    if nnz == 0 or nnz % 9 or nnz > np.iinfo(np.int32).max:
+        return None
+    length = np.diff(indptr)
+    if (length % 3).any() or not ((length[1::3] == length[0::3]).all()
+                                  and (length[2::3] == length[0::3]).all()):
+        return None
+    deg = (length[0::3] // 3).astype(np.int32)  # blocks per block row
+    triple = np.asarray(indices).reshape(-1, 3)  # rows hold whole triples: they start at 3 k
+    first = triple[:, 0]
+    if (first % 3).any() or not ((triple[:, 1] == first + 1).all()
+                                 and (triple[:, 2] == first + 2).all()):
+        return None
+    block_col = (first // 3).astype(np.int32)  # one per triple, in CSR order
+    del triple, first
+    bsr_indptr = np.zeros(nb + 1, dtype=np.int32)
+    np.cumsum(deg, out=bsr_indptr[1:])
+    row_of_triple = np.repeat(np.arange(3 * nb, dtype=np.int32), np.repeat(deg, 3))
+    c = row_of_triple % 3
+    bsr_indices = block_col[c == 0]
+    # rows 3 i + 1 and 3 i + 2 must repeat row 3 i's block columns
+    if not (np.array_equal(block_col[c == 1], bsr_indices)
+            and np.array_equal(block_col[c == 2], bsr_indices)):
+        return None
+    del block_col
+    i = row_of_triple // 3
+    del row_of_triple
+    u = np.arange(c.size, dtype=np.int32)
+    u -= 2 * bsr_indptr[i] + c * deg[i]  # bp_i + k
+    u *= 9
+    u += 3 * c
+    slot = (u[:, None] + np.arange(3, dtype=np.int32)).reshape(-1)
+    return bsr_indptr, bsr_indices, slot
+
+
 def _block_inverses(A: sp.bsr_matrix) -> np.ndarray:
     """``(nb, k, k)`` inverses of the diagonal blocks of a square-blocked BSR matrix:
     pseudo-inverses where a block is singular (coarse levels: a candidate dropped in an
@@ -403,7 +450,9 @@ class AMGPreconditioner:
             raise ValueError("AMG needs a square matrix of whole 3-DOF vertices")
         if self.B.shape[0] != n:
             raise ValueError(f"near-nullspace has {self.B.shape[0]} rows, the matrix {n}")
-        bsr_indptr, bsr_indices, slot = _block_pattern(P.indptr, P.indices, n)
+        blocks = _full_block_pattern(P.indptr, P.indices, n)
+        bsr_indptr, bsr_indices, slot = blocks if blocks is not None else \
+            _block_pattern(P.indptr, P.indices, n)
         nb = n // 3
         G = sp.csr_matrix((np.ones(bsr_indices.size), bsr_indices, bsr_indptr), shape=(nb, nb))
         B = self.B

@@ -9,6 +9,7 @@ matrix.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -39,6 +40,8 @@ LEAN_ASSEMBLY_MIN_TETS = 250_000
 #: Shifts ``mu`` of an indefinite Newton matrix ``A + mu M``: ``1e-4, 1e-3, ...``.
 SHIFT_LADDER_START = 1e-4
 SHIFT_LADDER_GROWTH = 10.0
+
+_stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
 class System:
@@ -90,22 +93,17 @@ class System:
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
-        self.mass_free = constraints.reduce_matrix(model.mass)
-        self.pattern_free = constraints.reduce_matrix(model.pattern)
-        self.pattern_free.data.setflags(write=False)
-        # reduced-data slot of every full-pattern entry; entries on fixed DOFs -> sink slot
-        nnz_free = self.pattern_free.nnz
-        kept = constraints.kept_entries(model.pattern)
-        self._free_slot = np.full(model.nnz, nnz_free, dtype=np.int32)
-        self._free_slot[kept] = np.arange(nnz_free, dtype=np.int32)
+        kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
+        self.mass_free = self._reduced_mass(model, kept)
         self._kept = kept
+        self._free_slot_map: np.ndarray | None = None
         # element entry -> reduced slot (4 bytes per element-matrix entry: 576 MB at 1e6 tets);
         # large meshes assemble on the full pattern and gather instead (the same sums)
         self._free_scatter = None
         if model.n_tets < LEAN_ASSEMBLY_MIN_TETS:
             self._free_scatter = self._free_slot[model.scatter]
             self._free_scatter.setflags(write=False)
-        self._free_slot.setflags(write=False)
+        _stages.debug("system: reduced pattern")
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
         #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
@@ -118,6 +116,7 @@ class System:
             self._solver = self._new_direct_solver(self.pattern_free)
         elif constraints.n_free:  # the AMG's aggregation: once per pattern, like an analysis
             self.amg.analyze(self.pattern_free)
+        _stages.debug(f"system: {self.linear_backend} analysis")
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
         self.factorized_data: np.ndarray | None = None
@@ -136,9 +135,29 @@ class System:
         new = object.__new__(System)
         new.__dict__.update(self.__dict__)
         new.model = model
-        new.mass_free = self.constraints.reduce_matrix(model.mass)
+        new.mass_free = self._reduced_mass(model, self._kept)
         new._physics_cache()
         return new
+
+    @property
+    def _free_slot(self) -> np.ndarray:
+        """Reduced-data slot of every full-pattern entry (entries on fixed DOFs: the sink slot
+        ``nnz_free``), ``(nnz,) int32``; made when first needed (pulls, small meshes)."""
+        if self._free_slot_map is None:
+            nnz_free = self._kept.size
+            slot = np.full(self.model.nnz, nnz_free, dtype=np.int32)
+            slot[self._kept] = np.arange(nnz_free, dtype=np.int32)
+            slot.setflags(write=False)
+            self._free_slot_map = slot
+        return self._free_slot_map
+
+    def _reduced_mass(self, model: Model, kept: np.ndarray) -> sp.csr_matrix:
+        """``P M P^T`` on :attr:`pattern_free` (sharing its index arrays)."""
+        pf = self.pattern_free
+        M = sp.csr_matrix((model.mass.data[kept], pf.indices, pf.indptr), shape=pf.shape,
+                          copy=False)
+        M.has_sorted_indices = pf.has_sorted_indices
+        return M
 
     # -- the model's loads as terms -----------------------------------------------------------
     def _physics_cache(self) -> None:
@@ -501,6 +520,43 @@ class System:
         """A hierarchy exists for the solver's current pattern."""
         return self._amg is not None and self._amg.ready and \
             self._amg.pattern_key == self.pattern_generation
+
+
+def _reduced_pattern(pattern: sp.csr_matrix, constraints: Constraints
+                     ) -> tuple[np.ndarray, sp.csr_matrix]:
+    """The entries of ``pattern`` on free rows and columns, and ``P pattern P^T``: what
+    ``constraints.kept_entries`` / ``reduce_matrix`` give, in int32 where it fits, without
+    keeping their cache (four ``nnz``-long arrays), the pattern's zeros never written.
+
+    Returns
+    -------
+    kept : (nnz_free,) int32 or int64
+        Positions in ``pattern.data`` of the reduced matrix's entries, in its order.
+    pattern_free : (n_free, n_free) scipy.sparse.csr_matrix
+    """
+    N, nnz, nf = constraints.n_dofs, pattern.nnz, constraints.n_free
+    index = np.int32 if max(nnz, N) < np.iinfo(np.int32).max else np.int64
+    new = np.full(N, -1, dtype=index)
+    new[constraints.free_dofs] = np.arange(nf, dtype=index)
+    free = new >= 0
+    row_length = np.diff(pattern.indptr)
+    keep = np.repeat(free, row_length)
+    keep &= free[pattern.indices]
+    kept = np.arange(nnz, dtype=index)[keep]
+    indices = new[pattern.indices[kept]]
+    before = np.zeros(nnz + 1, dtype=index)  # kept entries before each position
+    np.cumsum(keep, out=before[1:])
+    del keep
+    rows = constraints.free_dofs
+    indptr = np.zeros(nf + 1, dtype=index)
+    np.cumsum(before[pattern.indptr[rows + 1]] - before[pattern.indptr[rows]], out=indptr[1:])
+    zeros = np.zeros(kept.size)
+    zeros.setflags(write=False)
+    R = sp.csr_matrix((zeros, indices, indptr), shape=(nf, nf), copy=False)
+    # column relabelling is monotone, so sorted input stays sorted
+    R.has_sorted_indices = bool(pattern.has_sorted_indices)
+    kept.setflags(write=False)
+    return kept, R
 
 
 @dataclass(frozen=True, eq=False)
