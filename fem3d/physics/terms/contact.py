@@ -77,7 +77,8 @@ class BarrierTerm(Term):
         :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
         the contact set."""
         H = self.contact.barrier_hessian(q)
-        if covered is None or covered(H.row, H.col):
+        if covered is None or not self.contact._parts or self.pattern_margin <= 0 or \
+                covered(H.row, H.col):  # planes' blocks are in the elastic pattern
             return H.row, H.col, H.data
         hint = self._pattern_hint(q)
         if hint is None:
