@@ -60,7 +60,7 @@ import scipy.sparse as sp
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.contact_candidates import StepCandidates
-from fem3d.physics.contact_planes import PlanePairs
+from fem3d.physics.contact_planes import Entries, PlanePairs
 
 __all__ = [
     "PlaneObstacle",
@@ -484,7 +484,9 @@ class ContactModel(PlanePairs):
         out[self._dof[: self._n_dyn_dofs]] += g[: self._n_dyn_dofs]
         return out
 
-    def _to_full_matrix(self, Hs: Sequence[sp.spmatrix]) -> sp.coo_matrix:
+    def _to_full_matrix(self, Hs: Sequence, triplets: bool = False):
+        """The collision-DOF matrices ``Hs`` (sparse or :class:`Entries`) in full DOFs, as
+        one COO matrix or (``triplets``) :class:`Entries`."""
         N = 3 * self.n_vertices
         rows, cols, vals = [], [], []
         nd = self._n_dyn_dofs
@@ -494,6 +496,10 @@ class ContactModel(PlanePairs):
             rows.append(self._dof[H.row[keep]])
             cols.append(self._dof[H.col[keep]])
             vals.append(H.data[keep])
+        if triplets:
+            if not rows:
+                return Entries(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+            return Entries(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals))
         if not rows:
             return sp.coo_matrix((N, N))
         return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
@@ -521,8 +527,10 @@ class ContactModel(PlanePairs):
         self.stats.seconds_derivatives += time.perf_counter() - t0
         return out
 
-    def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
-        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
+    def barrier_hessian(self, q: np.ndarray, *, project: bool = True,
+                        triplets: bool = False) -> sp.coo_matrix | Entries:
+        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO
+        (``triplets``: its ``row, col, data`` arrays alone, :class:`Entries`)."""
         active = self._active_sets(q)
         t0 = time.perf_counter()
         how = _PSD if project else ipctk.PSDProjectionMethod.NONE
@@ -530,7 +538,7 @@ class ContactModel(PlanePairs):
         if self.planes:
             Hs.append(self._plane_barrier(q, 2, project=project))
         self.stats.seconds_derivatives += time.perf_counter() - t0
-        return self._to_full_matrix(Hs)
+        return self._to_full_matrix(Hs, triplets)
 
     # -- friction (lagged) --------------------------------------------------------------------
     def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None,
@@ -596,13 +604,15 @@ class ContactModel(PlanePairs):
             self._to_full_vector(self._plane_friction(q, 1), out)
         return out
 
-    def friction_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
-        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO."""
+    def friction_hessian(self, q: np.ndarray, *, project: bool = True,
+                         triplets: bool = False) -> sp.coo_matrix | Entries:
+        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO
+        (``triplets``: :class:`Entries`)."""
         how = _PSD if project else ipctk.PSDProjectionMethod.NONE
         Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
         if self._plane_lag is not None:
             Hs.append(self._plane_friction(q, 2, project=project))
-        return self._to_full_matrix(Hs)
+        return self._to_full_matrix(Hs, triplets)
 
     @property
     def n_friction_pairs(self) -> int:

@@ -10,13 +10,27 @@ the lagged normal forces).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
 
 from fem3d.physics.friction import point_plane_friction
 
-__all__ = ["PlanePairs"]
+__all__ = ["Entries", "PlanePairs"]
+
+
+class Entries(NamedTuple):
+    """COO triplets of a sparse matrix (duplicates summed later), without building a SciPy
+    matrix: its construction checks the indices, which costs more than the contact blocks
+    themselves on a Newton iteration."""
+
+    row: np.ndarray
+    col: np.ndarray
+    data: np.ndarray
+
+    def tocoo(self) -> Entries:
+        """Itself (the duck type of ``scipy.sparse`` matrices' ``tocoo``)."""
+        return self
 
 
 class PlanePairs:
@@ -57,14 +71,13 @@ class PlanePairs:
         blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
         return self._blocks_matrix(vi, blocks)
 
-    def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> sp.coo_matrix:
-        """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO on the
-        collision DOFs (duplicates summed later)."""
+    def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> Entries:
+        """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO triplets
+        on the collision DOFs (duplicates summed later)."""
         d = 3 * vi[:, None] + np.arange(3)
         rows = np.broadcast_to(d[:, :, None], blocks.shape).reshape(-1)
         cols = np.broadcast_to(d[:, None, :], blocks.shape).reshape(-1)
-        N = 3 * self.n_collision_vertices
-        return sp.coo_matrix((blocks.reshape(-1), (rows, cols)), shape=(N, N))
+        return Entries(rows, cols, blocks.reshape(-1))
 
     def _lag_planes(self, q_lag: np.ndarray) -> None:
         """Normal forces ``lambda = kappa |db/ds|`` and vertices of the point-plane pairs active

@@ -76,7 +76,7 @@ class BarrierTerm(Term):
         zeros are added on the blocks of the pairs within the pattern margin at ``q`` (see
         :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
         the contact set."""
-        H = self.contact.barrier_hessian(q)
+        H = self.contact.barrier_hessian(q, triplets=True)
         if covered is None or not self.contact._parts or self.pattern_margin <= 0 or \
                 covered(H.row, H.col):  # planes' blocks are in the elastic pattern
             return H.row, H.col, H.data
@@ -229,7 +229,7 @@ class FrictionTerm(Term):
 
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
         if self.contact.n_friction_pairs:
-            H = self.contact.friction_hessian(q)
+            H = self.contact.friction_hessian(q, triplets=True)
             sink.add_entries((H.row, H.col, H.data), sink.position_scale)
 
     def begin_step(self, step_map: StepMap) -> None:
