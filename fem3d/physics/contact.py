@@ -30,6 +30,12 @@ Determinism
     threaded assembly adds per-thread partial sums in a varying order, so two runs of the same
     step would differ in the last bits and a resumed run would not repeat the uninterrupted one.
 
+Candidates
+    Mesh-mesh pairs come from one ``ipctk.Candidates`` set per time step
+    (:meth:`ContactModel.start_step`, :class:`fem3d.physics.contact_candidates.StepCandidates`):
+    built from the step's swept volume, grown only when a query leaves it, shared by the
+    collision sets of every iterate and line-search trial, CCD and friction's lagging.
+
 Barrier stiffness
     ``kappa=None``: ``ipctk.initial_barrier_stiffness`` balances the barrier's gradient against
     the rest of the objective's (:meth:`ContactModel.initialize_stiffness`), and
@@ -196,8 +202,7 @@ class ContactStats:
 
 class _Part:
     """One collision mesh with its collision sets: the step's candidates, the normal set
-    cached for the last configuration, the lagged tangential set for friction, and where
-    the step started (its own motion from there must stay intersection-free)."""
+    cached for the last configuration, the lagged tangential set for friction."""
 
     def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int, broad_phase,
                  pad: float) -> None:
@@ -207,7 +212,6 @@ class _Part:
         self.collisions = ipctk.NormalCollisions()
         self.tangential: ipctk.TangentialCollisions | None = None
         self.step = StepCandidates(mesh, broad_phase, pad)  # the model pads by 2 dhat
-        self.origin: np.ndarray | None = None
 
     def view(self, V: np.ndarray) -> np.ndarray:
         """This part's rows of the full collision-vertex array (Fortran order)."""
@@ -425,7 +429,6 @@ class ContactModel(PlanePairs):
             raise ValueError("start_step needs the step's start positions")
         Vs = [self.collision_vertices(q) for q in configurations]
         for part in self._parts:
-            part.origin = part.view(Vs[0])
             builds = part.step.builds
             part.step.reset(*[part.view(V) for V in Vs], pad=pad)
             self.stats.broad_phases += part.step.builds - builds
