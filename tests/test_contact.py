@@ -221,6 +221,49 @@ def test_max_step_stops_before_intersection():
     assert cm.max_step(q0.reshape(-1), q3.reshape(-1)) == 1.0
 
 
+def test_the_steps_candidates_answer_as_a_fresh_broad_phase_and_are_reused():
+    """One candidate set per step (``start_step``), grown only when a query leaves its boxes:
+    CCD, the collision set (pairs, order, values), its derivatives and the minimum distance
+    equal those of a fresh broad phase at each query, bit for bit; queries inside the step's
+    boxes run no broad phase, one far outside grows them."""
+    X, T, ids = two_boxes(gap=0.004)
+    rng = np.random.default_rng(3)
+
+    def model():
+        return ContactModel(X, T, body_ids=ids, dhat=0.01, kappa=1.0, mu=0.3, eps_v=1e-3)
+
+    cm = model()
+    q_t = X.reshape(-1).copy()
+    q_pred = q_t.copy()
+    q_pred.reshape(-1, 3)[ids == 1, 1] -= 0.01  # the upper box falls onto the lower one
+    cm.start_step(q_t, q_pred, pad=0.02)
+    built = cm.stats.broad_phases
+    mesh = cm.mesh
+    for k in range(12):
+        # iterates around the predicted motion; the last ones far outside the step's boxes
+        q = q_t + rng.uniform(0.0, 1.0) * (q_pred - q_t) + 1e-3 * rng.standard_normal(q_t.size)
+        if k >= 10:
+            q = q + 0.3 * k
+        q1 = q + 0.003 * rng.standard_normal(q_t.size)
+        fresh = model()  # no step: candidates built around each query only
+        assert cm.max_step(q, q1) == fresh.max_step(q, q1)
+        V0, V1 = cm.collision_vertices(q), cm.collision_vertices(q1)
+        assert cm.max_step(q, q1) == min(1.0, ipctk.compute_collision_free_stepsize(
+            mesh, V0, V1, broad_phase=ipctk.HashGrid(), narrow_phase_ccd=ipctk.AdditiveCCD()))
+        col = ipctk.NormalCollisions()
+        col.build(mesh, V0, cm.dhat, broad_phase=ipctk.HashGrid())
+        assert cm.n_active(q) == len(col)
+        assert cm.barrier_energy(q) == fresh.barrier_energy(q)
+        assert np.array_equal(cm.barrier_gradient(q), fresh.barrier_gradient(q))
+        Ha, Hb = cm.barrier_hessian(q), fresh.barrier_hessian(q)
+        assert np.array_equal(Ha.row, Hb.row) and np.array_equal(Ha.data, Hb.data)
+        assert cm.minimum_distance(q) == fresh.minimum_distance(q)
+        if k == 9:
+            assert len(col) > 0  # the boxes did come within dhat
+            assert cm.stats.broad_phases == built  # every query so far reused the set
+    assert cm.stats.broad_phases > built  # the far queries grew the boxes
+
+
 def test_initial_intersection_names_the_bodies():
     X, T, ids = two_boxes(gap=-0.2)
     cm = ContactModel(X, T, body_ids=ids, body_names=["jelly", "cube"],

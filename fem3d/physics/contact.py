@@ -30,6 +30,12 @@ Determinism
     threaded assembly adds per-thread partial sums in a varying order, so two runs of the same
     step would differ in the last bits and a resumed run would not repeat the uninterrupted one.
 
+Candidates
+    Mesh-mesh pairs come from one ``ipctk.Candidates`` set per time step
+    (:meth:`ContactModel.start_step`, :class:`fem3d.physics.contact_candidates.StepCandidates`):
+    built from the step's swept volume, grown only when a query leaves it, shared by the
+    collision sets of every iterate and line-search trial, CCD and friction's lagging.
+
 Barrier stiffness
     ``kappa=None``: ``ipctk.initial_barrier_stiffness`` balances the barrier's gradient against
     the rest of the objective's (:meth:`ContactModel.initialize_stiffness`), and
@@ -59,7 +65,8 @@ import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
-from fem3d.physics.friction import point_plane_friction
+from fem3d.physics.contact_candidates import StepCandidates
+from fem3d.physics.contact_planes import Entries, PlanePairs
 
 __all__ = [
     "PlaneObstacle",
@@ -172,13 +179,17 @@ class ContactStats:
     Attributes
     ----------
     builds : int
-        Collision-set builds (broad + narrow phase).
+        Collision-set builds (narrow phase on the step's candidates).
+    broad_phases : int
+        Candidate-set builds (:class:`~fem3d.physics.contact_candidates.StepCandidates`).
     ccd_calls : int
     seconds_build, seconds_ccd, seconds_derivatives : float
-        Wall time in collision-set builds, CCD, and barrier/friction evaluation.
+        Wall time in collision-set builds (broad phases included), CCD, and barrier/friction
+        evaluation.
     """
 
     builds: int = 0
+    broad_phases: int = 0
     ccd_calls: int = 0
     seconds_build: float = 0.0
     seconds_ccd: float = 0.0
@@ -190,22 +201,24 @@ class ContactStats:
 
 
 class _Part:
-    """One collision mesh with its collision sets: the normal set cached for the last
-    configuration, the lagged tangential set for friction."""
+    """One collision mesh with its collision sets: the step's candidates, the normal set
+    cached for the last configuration, the lagged tangential set for friction."""
 
-    def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int) -> None:
+    def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int, broad_phase,
+                 pad: float) -> None:
         self.mesh = mesh
         self.n = n_vertices
         self.key: bytes | None = None
         self.collisions = ipctk.NormalCollisions()
         self.tangential: ipctk.TangentialCollisions | None = None
+        self.step = StepCandidates(mesh, broad_phase, pad)  # the model pads by 2 dhat
 
     def view(self, V: np.ndarray) -> np.ndarray:
         """This part's rows of the full collision-vertex array (Fortran order)."""
         return V if V.shape[0] == self.n else np.asfortranarray(V[: self.n])
 
 
-class ContactModel:
+class ContactModel(PlanePairs):
     """IPC barrier, lagged friction and CCD over one fem3d mesh and its obstacles.
 
     Parameters
@@ -345,7 +358,7 @@ class ContactModel:
         # are point-plane pairs evaluated here, vectorized (see the module's note)
         self._parts: list[_Part] = []
         if self.self_contact or np.unique(self._groups).size > 1:
-            self._parts.append(_Part(self.mesh, offset))
+            self._parts.append(_Part(self.mesh, offset, self._broad_phase, 2.0 * dhat))
         self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
         self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
         self._plane_lag: tuple[np.ndarray, ...] | None = None
@@ -407,11 +420,39 @@ class ContactModel:
         return V
 
     # -- collision sets -----------------------------------------------------------------------
+    def start_step(self, *configurations: np.ndarray, pad: float = 0.0) -> None:
+        """A new time step from ``configurations[0]`` (positions ``q``): the step's
+        candidates are built around every configuration given (where the step is expected
+        to go), inflated by ``pad`` (at least the parts' own), and grown only when a later
+        query leaves them."""
+        if not configurations:
+            raise ValueError("start_step needs the step's start positions")
+        Vs = [self.collision_vertices(q) for q in configurations]
+        for part in self._parts:
+            builds = part.step.builds
+            part.step.reset(*[part.view(V) for V in Vs], pad=pad)
+            self.stats.broad_phases += part.step.builds - builds
+            part.key = None
+
+    def candidates_near(self, part: _Part, V: np.ndarray, radius: float) -> ipctk.Candidates:
+        """The step's candidates of ``part`` that hold every pair closer than ``2 radius``
+        at its vertices ``V`` (grown when needed)."""
+        t0, builds = part.step.seconds, part.step.builds
+        cands = part.step.near(V, radius)
+        self.stats.broad_phases += part.step.builds - builds
+        self.stats.seconds_build += part.step.seconds - t0
+        return cands
+
+    def _candidates_along(self, part: _Part, V0: np.ndarray, V1: np.ndarray):
+        builds = part.step.builds
+        cands = part.step.along(V0, V1)
+        self.stats.broad_phases += part.step.builds - builds
+        return cands
+
     def _build(self, part: _Part, V: np.ndarray) -> ipctk.NormalCollisions:
-        t0 = time.perf_counter()
-        cands = ipctk.Candidates()
         # boxes inflated by dhat / 2 each: pairs closer than dhat are candidates
-        cands.build(part.mesh, V, 0.5 * self.dhat, broad_phase=self._broad_phase)
+        cands = self.candidates_near(part, V, 0.5 * self.dhat)
+        t0 = time.perf_counter()
         col = ipctk.NormalCollisions()
         col.build(cands, part.mesh, V, self.dhat)
         self.stats.builds += 1
@@ -446,7 +487,9 @@ class ContactModel:
         out[self._dof[: self._n_dyn_dofs]] += g[: self._n_dyn_dofs]
         return out
 
-    def _to_full_matrix(self, Hs: Sequence[sp.spmatrix]) -> sp.coo_matrix:
+    def _to_full_matrix(self, Hs: Sequence, triplets: bool = False):
+        """The collision-DOF matrices ``Hs`` (sparse or :class:`Entries`) in full DOFs, as
+        one COO matrix or (``triplets``) :class:`Entries`."""
         N = 3 * self.n_vertices
         rows, cols, vals = [], [], []
         nd = self._n_dyn_dofs
@@ -456,6 +499,10 @@ class ContactModel:
             rows.append(self._dof[H.row[keep]])
             cols.append(self._dof[H.col[keep]])
             vals.append(H.data[keep])
+        if triplets:
+            if not rows:
+                return Entries(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+            return Entries(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals))
         if not rows:
             return sp.coo_matrix((N, N))
         return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
@@ -483,8 +530,10 @@ class ContactModel:
         self.stats.seconds_derivatives += time.perf_counter() - t0
         return out
 
-    def barrier_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
-        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO."""
+    def barrier_hessian(self, q: np.ndarray, *, project: bool = True,
+                        triplets: bool = False) -> sp.coo_matrix | Entries:
+        """``kappa d2B/dq2`` (per-pair PSD-projected when ``project``), ``(3n, 3n)`` COO
+        (``triplets``: its ``row, col, data`` arrays alone, :class:`Entries`)."""
         active = self._active_sets(q)
         t0 = time.perf_counter()
         how = _PSD if project else ipctk.PSDProjectionMethod.NONE
@@ -492,85 +541,7 @@ class ContactModel:
         if self.planes:
             Hs.append(self._plane_barrier(q, 2, project=project))
         self.stats.seconds_derivatives += time.perf_counter() - t0
-        return self._to_full_matrix(Hs)
-
-    # -- planes (point-plane pairs, vectorized) -------------------------------------------------
-    def _plane_distances(self, q: np.ndarray) -> np.ndarray:
-        """Signed distances ``(n_planes, n_surface)`` of the surface vertices."""
-        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
-        return self._plane_n @ P.T - self._plane_o[:, None]
-
-    def _plane_barrier(self, q: np.ndarray, order: int, *, project: bool = True):
-        """``kappa sum b(s^2, dhat^2)`` over point-plane pairs closer than ``dhat``: the
-        energy (``order`` 0), its gradient on the collision DOFs (1) or Hessian (2, sparse on
-        the collision DOFs; PSD-projected: the one eigenvalue along the normal clamped)."""
-        ns = self.n_surface
-        if not self.planes:
-            return 0.0 if order == 0 else np.zeros(3 * ns)
-        S = self._plane_distances(q)
-        if order == 0 and (S <= 0).any():
-            return math.inf
-        pl, vi = np.nonzero(S < self.dhat)
-        s = S[pl, vi]
-        z, zh = s * s, self.dhat * self.dhat
-        k = self.kappa
-        if order == 0:
-            return float(k * (-(z - zh) ** 2 * np.log(z / zh)).sum())
-        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z  # db/dz
-        n = self._plane_n[pl]
-        if order == 1:
-            g = np.zeros((ns, 3))
-            np.add.at(g, vi, (k * b1 * 2.0 * s)[:, None] * n)
-            return g.reshape(-1)
-        b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
-        c = k * (4.0 * z * b2 + 2.0 * b1)
-        if project:
-            c = np.maximum(c, 0.0)
-        blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
-        return self._blocks_matrix(vi, blocks)
-
-    def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> sp.coo_matrix:
-        """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO on the
-        collision DOFs (duplicates summed later)."""
-        d = 3 * vi[:, None] + np.arange(3)
-        rows = np.broadcast_to(d[:, :, None], blocks.shape).reshape(-1)
-        cols = np.broadcast_to(d[:, None, :], blocks.shape).reshape(-1)
-        N = 3 * self.n_collision_vertices
-        return sp.coo_matrix((blocks.reshape(-1), (rows, cols)), shape=(N, N))
-
-    def _lag_planes(self, q_lag: np.ndarray) -> None:
-        """Normal forces ``lambda = kappa |db/ds|`` and vertices of the point-plane pairs active
-        at ``q_lag`` (tangent planes are the planes': fixed)."""
-        self._plane_lag = None
-        if not self.planes or self.mu == 0.0:
-            return
-        S = self._plane_distances(q_lag)
-        pl, vi = np.nonzero((S < self.dhat) & (S > 0))
-        if pl.size == 0:
-            return
-        s = S[pl, vi]
-        z, zh = s * s, self.dhat * self.dhat
-        b1 = -2.0 * (z - zh) * np.log(z / zh) - (z - zh) ** 2 / z
-        lam = self.kappa * np.abs(b1 * 2.0 * s)
-        self._plane_lag = (pl, vi, lam)
-
-    def _plane_friction(self, q: np.ndarray, order: int, *, project: bool = True):
-        """Lagged point-plane friction ``sum lambda F(|P (x - x_lag)|)`` (ipctk's mollifier
-        with ``eps = eps_v dt``, ``mu_s``/``mu_k``: :mod:`fem3d.physics.friction`): energy,
-        gradient or Hessian on collision DOFs."""
-        ns = self.n_surface
-        if self._plane_lag is None:
-            return 0.0 if order == 0 else (np.zeros(3 * ns) if order == 1 else None)
-        pl, vi, lam = self._plane_lag
-        P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
-        out = point_plane_friction(self._plane_n[pl], P[vi] - self._lagged_V[vi], lam,
-                                   self.eps_v * self._dt, self.mu, self.mu_k, order,
-                                   project=project)
-        if order == 1:
-            g = np.zeros((ns, 3))
-            np.add.at(g, vi, out)
-            return g.reshape(-1)
-        return out if order == 0 else self._blocks_matrix(vi, out)
+        return self._to_full_matrix(Hs, triplets)
 
     # -- friction (lagged) --------------------------------------------------------------------
     def lag_friction(self, q_lag: np.ndarray, dt: float, t_start: float | None = None,
@@ -636,13 +607,15 @@ class ContactModel:
             self._to_full_vector(self._plane_friction(q, 1), out)
         return out
 
-    def friction_hessian(self, q: np.ndarray, *, project: bool = True) -> sp.coo_matrix:
-        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO."""
+    def friction_hessian(self, q: np.ndarray, *, project: bool = True,
+                         triplets: bool = False) -> sp.coo_matrix | Entries:
+        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO
+        (``triplets``: :class:`Entries`)."""
         how = _PSD if project else ipctk.PSDProjectionMethod.NONE
         Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
         if self._plane_lag is not None:
             Hs.append(self._plane_friction(q, 2, project=project))
-        return self._to_full_matrix(Hs)
+        return self._to_full_matrix(Hs, triplets)
 
     @property
     def n_friction_pairs(self) -> int:
@@ -679,7 +652,8 @@ class ContactModel:
         """Largest ``a`` in ``[0, 1]`` such that ``q0 + a (q1 - q0)`` is collision free.
 
         Linear trajectories, bodies against each other, themselves (self-contact) and the
-        obstacles (at their current positions); ipctk's CCD (Tight Inclusion, conservative).
+        obstacles (at their current positions); the narrow phase of the model (additive CCD
+        by default, conservative) on the step's candidates (:meth:`start_step`).
         """
         t0 = time.perf_counter()
         V0 = self.collision_vertices(q0)
@@ -688,27 +662,14 @@ class ContactModel:
         for part in self._parts:
             if part.mesh is not self.mesh:
                 continue  # planes: below
-            a = min(a, float(ipctk.compute_collision_free_stepsize(
-                part.mesh, part.view(V0), part.view(V1), broad_phase=self._broad_phase,
-                narrow_phase_ccd=self._ccd)))
+            P0, P1 = part.view(V0), part.view(V1)
+            cands = self._candidates_along(part, P0, P1)
+            a = min(a, float(cands.compute_collision_free_stepsize(
+                part.mesh, P0, P1, narrow_phase_ccd=self._ccd)))
         a = min(a, self._plane_step(V0[: self.n_surface], V1[: self.n_surface]))
         self.stats.ccd_calls += 1
         self.stats.seconds_ccd += time.perf_counter() - t0
         return a
-
-    def _plane_step(self, P0: np.ndarray, P1: np.ndarray) -> float:
-        """CCD of points moving linearly against the static planes: ``0.9`` of the first time
-        of impact (the conservative rescaling of ipctk's additive CCD). Done here, vectorized:
-        ipctk's plane CCD goes through a vertex-vertex broad phase of the point cloud."""
-        a = 1.0
-        for p in self.planes:
-            s0 = (P0 - p.point) @ p.normal
-            s1 = (P1 - p.point) @ p.normal
-            hit = s1 < 0.0
-            if hit.any():
-                toi = s0[hit] / (s0[hit] - s1[hit])
-                a = min(a, 0.9 * float(toi.min()))
-        return max(a, 0.0)
 
     def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
         """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at

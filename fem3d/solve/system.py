@@ -411,6 +411,20 @@ class System:
         np.add.at(data, np.searchsorted(ext.keys, keys), vals)
         return ext.csr(data)
 
+    def pattern_covers(self, rows: np.ndarray, cols: np.ndarray) -> bool:
+        """Whether the solver's current pattern holds every entry ``(rows, cols)`` (full-DOF
+        indices; entries on fixed DOFs are ignored): adding them would not re-analyse."""
+        new = self.constraints._new_index
+        r = new[np.asarray(rows, dtype=np.int64)]
+        c = new[np.asarray(cols, dtype=np.int64)]
+        keep = (r >= 0) & (c >= 0)
+        keys = r[keep] * self.constraints.n_free + c[keep]
+        if keys.size == 0:
+            return True
+        have = self._base_key_array() if self._ext is None else self._ext.keys
+        pos = np.minimum(np.searchsorted(have, keys), have.size - 1)
+        return bool(np.array_equal(have[pos], keys))
+
     def _like(self, A: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
         B = sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape, copy=False)
         B.has_sorted_indices = True
@@ -428,7 +442,12 @@ class System:
         nf = self.constraints.n_free
         old = self._base_key_array() if self._ext is None else self._ext.keys
         r, c = np.divmod(keys, nf)
-        union = np.union1d(old, np.concatenate([keys, c * nf + r]))
+        wanted = np.concatenate([keys, c * nf + r])
+        # the (few) keys not in the sorted, unique ``old`` yet, inserted in order: the same
+        # array as ``np.union1d(old, wanted)`` without sorting the whole pattern again
+        pos = np.minimum(np.searchsorted(old, wanted), old.size - 1)
+        fresh = np.unique(wanted[old[pos] != wanted])
+        union = np.insert(old, np.searchsorted(old, fresh), fresh)
         rows, cols = np.divmod(union, nf)
         indptr = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=indptr[1:])

@@ -38,9 +38,11 @@ class BarrierTerm(Term):
     tolerance : float, optional
         IPC's Newton tolerance, relative to the scene's bounding-box diagonal (per second).
     pattern_margin : float, optional
-        The solver's pattern is widened, at each step's start, by the blocks of the
-        mesh-mesh pairs closer than ``pattern_margin * dhat`` (0: only by the active ones,
-        re-analysing whenever a new pair appears). ``python -m bench.contact`` measures it.
+        When a contact block outside the solver's pattern appears (a re-analysis is due
+        anyway), the pattern is widened also by the blocks of the mesh-mesh pairs closer
+        than ``pattern_margin * dhat`` there, so that the contact region can spread without
+        a re-analysis per new pair (0: only by the active blocks).
+        ``python -m bench.contact`` measures it.
     """
 
     name = "barrier"
@@ -61,7 +63,6 @@ class BarrierTerm(Term):
         self.pattern_margin = float(pattern_margin)
         self._dt = 1.0
         self._had_contact = False
-        self._hint: tuple[np.ndarray, np.ndarray] | None = None
 
     def energy(self, q: np.ndarray) -> float:
         return self.contact.barrier_energy(q)
@@ -69,19 +70,27 @@ class BarrierTerm(Term):
     def gradient(self, q: np.ndarray) -> np.ndarray:
         return self.contact.barrier_gradient(q)
 
-    def hessian(self, q: np.ndarray):
-        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs, plus
-        explicit zeros on the blocks of the pairs within the step's pattern margin (see
-        :meth:`begin_step`), so that the solver's pattern grows ahead of the contact set."""
-        H = self.contact.barrier_hessian(q)
-        if self._hint is None:
+    def hessian(self, q: np.ndarray, covered=None):
+        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs. When
+        ``covered(rows, cols)`` (the solver's pattern holds those entries) says no, explicit
+        zeros are added on the blocks of the pairs within the pattern margin at ``q`` (see
+        :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
+        the contact set."""
+        H = self.contact.barrier_hessian(q, triplets=True)
+        if covered is None or not self.contact._parts or self.pattern_margin <= 0 or \
+                covered(H.row, H.col):  # planes' blocks are in the elastic pattern
             return H.row, H.col, H.data
-        r, c = self._hint
+        hint = self._pattern_hint(q)
+        if hint is None:
+            return H.row, H.col, H.data
+        r, c = hint
         return (np.concatenate([H.row, r]), np.concatenate([H.col, c]),
                 np.concatenate([H.data, np.zeros(r.size)]))
 
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
-        sink.add_entries(self.hessian(q), sink.position_scale)
+        system = getattr(sink, "system", None)
+        covered = getattr(system, "pattern_covers", None)
+        sink.add_entries(self.hessian(q, covered), sink.position_scale)
 
     def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
         """CCD: the largest collision-free fraction of ``dq``."""
@@ -99,7 +108,7 @@ class BarrierTerm(Term):
             step (the message says which).
         """
         cm = self.contact
-        t, dt, step, v_t = step_map.t, step_map.dt, step_map.step, step_map.v_t
+        t, dt, step = step_map.t, step_map.dt, step_map.step
         self._dt = float(dt)
         q_t = np.asarray(step_map.q_t, dtype=np.float64).reshape(-1)
         q_base = np.asarray(step_map.start_positions(), dtype=np.float64).reshape(-1)
@@ -111,31 +120,32 @@ class BarrierTerm(Term):
                                   "gap to the bodies per step); use a smaller dt or a slower "
                                   "motion", step=step)
         cm.set_time(t + dt)
-        v_max = float(np.abs(np.asarray(v_t)).max()) if np.size(v_t) else 0.0
-        self._hint = self._pattern_hint(q_t, 2.0 * v_max * dt)
+        # the step's candidates: around its start, the pins' jump and the free flight
+        # at the scheme's target velocity (where Newton starts, clamped); grown when an
+        # iterate leaves them
+        q_free = np.asarray(step_map.positions(step_map.v_hat_free), dtype=np.float64)
+        cm.start_step(q_t, q_base, q_free, pad=0.5 * self.pattern_margin * cm.dhat)
         if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
             raise SimulationError("contact: the moving pins would drive the surface through "
                                   "itself or an obstacle within one step; use a smaller dt",
                                   step=step)
 
-    def _pattern_hint(self, q: np.ndarray, reach: float):
+    def _pattern_hint(self, q: np.ndarray):
         """``(rows, cols)`` of the Hessian blocks of the mesh-mesh pairs closer than the
-        margin ``pattern_margin * dhat + reach`` at ``q`` (None without mesh-mesh contact;
-        ``reach``: how far two vertices may approach each other within the step). The
+        margin ``pattern_margin * dhat`` at ``q`` (None without mesh-mesh contact). The
         solver's pattern is the union of the elastic one and every block seen so far, and is
-        re-analysed only when a block appears that was never seen: asking for the pairs
-        within a margin now makes that rare."""
+        re-analysed only when a block appears that was never seen: widening it then by the
+        pairs within a margin makes that rare."""
         cm = self.contact
         parts = cm._parts
         if not parts or self.pattern_margin <= 0:
             return None
         V = cm.collision_vertices(q)
-        margin = self.pattern_margin * cm.dhat + reach
+        margin = self.pattern_margin * cm.dhat
         rows, cols = [], []
         for part in parts:
             Vp = part.view(V)
-            cands = ipctk.Candidates()
-            cands.build(part.mesh, Vp, 0.5 * margin, broad_phase=cm._broad_phase)
+            cands = cm.candidates_near(part, Vp, 0.5 * margin)
             col = ipctk.NormalCollisions()
             col.build(cands, part.mesh, Vp, margin)
             if not len(col):
@@ -219,7 +229,7 @@ class FrictionTerm(Term):
 
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
         if self.contact.n_friction_pairs:
-            H = self.contact.friction_hessian(q)
+            H = self.contact.friction_hessian(q, triplets=True)
             sink.add_entries((H.row, H.col, H.data), sink.position_scale)
 
     def begin_step(self, step_map: StepMap) -> None:
