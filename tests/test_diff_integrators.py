@@ -79,39 +79,56 @@ def test_static_gradients_match_central_differences() -> None:
     assert max(errors.values()) < 1e-6, errors
 
 
-# ------------------------------------------------------------------ BDF2
+# ------------------------------------------------------------------ BDF2, Newmark
+@pytest.mark.parametrize("integrator", ["bdf2", "newmark"])
 @pytest.mark.parametrize("beta", [0.0, 0.002])
-def test_bdf2_gradients_match_central_differences(beta: float) -> None:
-    """The box of tests/test_diff.py with BDF2 (first step backward Euler), 6 steps: E, nu,
-    density, alpha (and beta), initial velocity, gravity; relative steps 1e-5; to 1e-6."""
+def test_bdf2_and_newmark_gradients_match_central_differences(integrator: str,
+                                                              beta: float) -> None:
+    """The box of tests/test_diff.py with BDF2 (first step backward Euler) and Newmark (its
+    a_0 from M a_0 = f(q_0, v_0)), 6 steps: E, nu, density, alpha (and beta), initial
+    velocity, gravity; relative steps 1e-5; to 1e-6."""
     scene, values = box_scene(beta)
-    scene = apply_overrides(scene, {"simulation.integrator": "bdf2"})
+    scene = apply_overrides(scene, {"simulation.integrator": integrator})
     loss = noisy_loss(simulate(scene, STEPS), np.random.default_rng(12))
     keys = {k: values[k] for k in VALUES if beta > 0 or "stiffness" not in k}
     errors = relative_errors(scene, loss, keys, 1e-5)
-    print("bdf2", beta, errors)
+    print(integrator, beta, errors)
     assert max(errors.values()) < 1e-6, errors
 
 
-def test_bdf2_pin_keyframe_and_region_gradients() -> None:
-    """BDF2 on the two-halves bar with its clamp driven by keyframes: the region's E (relative
-    step 1e-4; the loss is weakly sensitive to it, so smaller steps meet round-off: 7e-7 at
-    1e-5, 3.6e-6 at 1e-6) and each keyframe's translate (step 1e-5 of its size), to 1e-6."""
-    scene = drive(apply_overrides(two_halves(1e5, 4e5), {"simulation.integrator": "bdf2"}),
-                  "bdf2")
+@pytest.mark.parametrize("integrator", ["bdf2", "newmark"])
+def test_bdf2_and_newmark_pin_keyframe_and_region_gradients(integrator: str) -> None:
+    """BDF2 and Newmark on the two-halves bar with its clamp driven by keyframes: the
+    region's E (relative step 1e-4; the loss is weakly sensitive to it, so smaller steps meet
+    round-off: BDF2 7e-7 at 1e-5, 3.6e-6 at 1e-6) and each keyframe's translate (step 1e-5
+    of its size), to 1e-6."""
+    scene = drive(apply_overrides(two_halves(1e5, 4e5),
+                                  {"simulation.integrator": integrator}), integrator)
     loss = noisy_loss(simulate(scene, STEPS), np.random.default_rng(13))
     errors = relative_errors(scene, loss, {"bodies[0].material.regions[0].E": 4e5}, 1e-4)
     for k in range(1, 3):
         t = np.array(scene.bodies[0].pins[0].motion.keyframes[k].translate)
         errors |= relative_errors(scene, loss, {
             f"bodies[0].pins[0].motion.keyframes[{k}].translate": t}, 1e-5 / np.abs(t).max())
-    print("bdf2 pins", errors)
+    print(integrator, "pins", errors)
     assert max(errors.values()) < 1e-6, errors
 
 
 def test_undifferentiated_integrators_are_refused_in_one_line() -> None:
     scene, _ = box_scene(0.0)
-    for name in ("linear",):
-        with pytest.raises(ParameterError, match=f"'{name}' is not differentiated"):
-            trajectory_gradient(apply_overrides(scene, {"simulation.integrator": name}),
-                                PositionLoss({1: np.zeros((27, 3))}), ["bodies[0].material.E"])
+    with pytest.raises(ParameterError, match="'linear' is not differentiated") as info:
+        trajectory_gradient(apply_overrides(scene, {"simulation.integrator": "linear"}),
+                            PositionLoss({1: np.zeros((27, 3))}), ["bodies[0].material.E"])
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("integrator", ["static", "bdf2", "newmark"])
+def test_contact_with_other_integrators_is_refused_in_one_line(integrator: str) -> None:
+    from test_diff_contact import drop_scene
+
+    scene = apply_overrides(drop_scene(), {"simulation.integrator": integrator})
+    with pytest.raises(ParameterError, match="contact is differentiated with "
+                       "simulation.integrator = 'implicit' only") as info:
+        trajectory_gradient(scene, PositionLoss({1: np.zeros((1, 3))}, vertices=[0]),
+                            ["bodies[0].material.E"])
+    assert "\n" not in str(info.value)

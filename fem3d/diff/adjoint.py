@@ -208,6 +208,7 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor,
                scheme)
     run.terms = [t for f, _, _ in _FACTORIES if (t := f(run)) is not None]
+    run.state0 = scheme.start(run, state)
     return run
 
 
@@ -353,6 +354,7 @@ def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k
         stats.backward_seconds += time.process_time() - t1
     if bar is None:
         bar = run.scheme.zero(run.state0)
+    run.scheme.finish(adj, run.state0, bar)
     adj.q_bar0, adj.v_bar0 = bar["q"], bar["v"]
 
 
@@ -393,7 +395,7 @@ class _Adjoint:
         :class:`State`, flat); accumulates the parameters' gradients."""
         scheme, model = self.run.scheme, self.model
         lin = scheme.linear(s0, self.dt)
-        q1_bar, v1_bar, bar0 = scheme.split(s0, s1, bar1)
+        q1_bar, v1_bar, bar0 = scheme.split(s0, s1, bar1, self.fixed)
         u = s1.v.reshape(-1) if scheme.dynamic else np.zeros(model.n_dofs)
         pair = StepPair(q0=s0.q.reshape(-1), v0=s0.v.reshape(-1), q1=s1.q.reshape(-1),
                         u=u, dt=self.dt, t1=s1.t, t0=s0.t, step=s0.step, h=lin.h, qb=lin.qb,

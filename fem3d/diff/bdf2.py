@@ -34,7 +34,7 @@ class BDF2Adjoint(SchemeAdjoint):
         return StepLin(h=2.0 * dt / 3.0, tau=dt, qb=(4.0 * q - s0.q_prev.reshape(-1)) / 3.0,
                        vh=(4.0 * v - s0.v_prev.reshape(-1)) / 3.0)
 
-    def split(self, s0, s1, bar1):
+    def split(self, s0, s1, bar1, fixed):
         bar0 = self.zero(s0)
         bar0["q"] += bar1["q_prev"]  # the state after the step carries q_n, v_n
         bar0["v"] += bar1["v_prev"]

@@ -54,6 +54,13 @@ class SchemeAdjoint:
     #: whether registered terms (contact) may join its steps
     contact = False
 
+    def start(self, run, state: State) -> State:
+        """The first state as the scheme's steps read it (default: ``state``)."""
+        return state
+
+    def finish(self, adj, s0: State, bar0: dict) -> None:
+        """Pull the first state's cotangent back through :meth:`start` (default: nothing)."""
+
     def forward(self, run, state: State, terms: list) -> tuple[State, StepStats]:
         """One step from ``state`` with the objective ``terms``, Newton run to convergence."""
         raise NotImplementedError
@@ -67,9 +74,11 @@ class SchemeAdjoint:
         return {f: np.zeros(s.q.size) for f in ("q", "v", "q_prev", "v_prev", "a")
                 if getattr(s, f) is not None}
 
-    def split(self, s0: State, s1: State, bar1: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    def split(self, s0: State, s1: State, bar1: dict, fixed: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, dict]:
         """``(q1_bar, v1_bar, bar0)``: the cotangents of ``q_{n+1}``, ``v_{n+1}`` as the step
-        equation sees them, and what ``bar1`` gives the state before the step directly."""
+        equation sees them, and what ``bar1`` gives the state before the step directly
+        (``fixed``: the pinned DOFs)."""
         return bar1["q"], bar1["v"], self.zero(s0)
 
     def pull_back(self, s0: State, lin: StepLin, bar0: dict, qb_bar: np.ndarray,

@@ -33,7 +33,7 @@ class StaticAdjoint(SchemeAdjoint):
     def linear(self, s0, dt):
         return StepLin(h=1.0, tau=1.0, qb=s0.q.reshape(-1), vh=None)
 
-    def split(self, s0, s1, bar1):
+    def split(self, s0, s1, bar1, fixed):
         return bar1["q"], np.zeros_like(bar1["q"]), self.zero(s0)  # v_{n+1} = 0
 
     def pull_back(self, s0, lin, bar0, qb_bar, vh_bar):

@@ -97,6 +97,9 @@ class AdjointTerm:
     """
 
     name = "term"
+    #: ``"velocity"``: its matrix is its derivative by the velocity ``u`` itself (inertia,
+    #: damping); ``"position"``: through ``q_{n+1} = q_B + h u``
+    variable = "position"
     #: the extra parameter keys (:func:`fem3d.diff.adjoint.register_term`) this term answers
     #: in this scene
     keys: tuple[str, ...] = ()
@@ -150,6 +153,7 @@ class InertiaAdjoint(AdjointTerm):
     """``M (u - v_n)``: ``M`` in ``u``, ``-M`` in ``v_n``, linear in density."""
 
     name = "inertia"
+    variable = "velocity"
 
     def __init__(self, model, arrays, density: np.ndarray) -> None:
         self.model, self.bodies, self.rho = model, _Bodies(arrays), density
@@ -245,6 +249,7 @@ class DampingAdjoint(AdjointTerm):
     only for a kernel module without ``d3psi_contract`` (an old C build)."""
 
     name = "damping"
+    variable = "velocity"
 
     def __init__(self, system, arrays, groups: list[tuple], density: np.ndarray) -> None:
         self.system, self.model, self.groups = system, system.model, groups
