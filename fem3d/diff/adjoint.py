@@ -1,4 +1,5 @@
-"""The discrete adjoint of a backward-Euler trajectory (no contact, no pulls).
+"""The discrete adjoint of a trajectory (backward Euler below; static, BDF2 and Newmark:
+:mod:`fem3d.diff.schemes`, each scheme's own module, registered by integrator name).
 
 Each step solves ``g(u; q_n, v_n, p) = 0`` over the free velocities (``u``: the full
 velocity, the pinned DOFs' part ``w = (p_{n+1} - q_n[F]) / dt`` prescribed by the pins'
@@ -28,9 +29,8 @@ What is exact and what is not:
   generated ``dgradient_dparams`` kernels (one call per material group and step) and the
   generated Jacobian of each material's ``E, nu`` mapping: exact.
 * The stiffness-proportional damping ``beta K_psd(q_n)`` depends on ``q_n`` and on the
-  material parameters through the PSD-projected element Hessians; the generator has no third
-  derivatives, so these two pieces are central finite differences per element (relative error
-  about ``1e-9``). With ``rayleigh_stiffness = 0`` (the default) everything is exact.
+  material parameters through the PSD-projected element Hessians: exact through the
+  generated ``d3psi_contract`` and the projection's derivative (:mod:`fem3d.diff.terms`).
 * Moving pins: the gradient by each keyframe's ``translate`` is exact (the translation is
   linear in the keyframes; rotations are held fixed).
 * Not supported: contact and friction (unless a registered term handles them), pull

@@ -18,6 +18,11 @@ An :class:`AdjointTerm` gives, at one step:
   ``u`` (contributions to ``dL/dq_n``, ``dL/dv_n``);
 * :meth:`~AdjointTerm.param_vjp`: ``-lambda^T dg_t/dp`` added into a :class:`Gradients`.
 
+Another scheme (:mod:`fem3d.diff.schemes`) has the same terms with its ``h`` (``dq_{n+1}/du``)
+in place of ``dt``, its base positions ``q_B`` in place of ``q_n`` and inertia target
+``v_hat`` in place of ``v_n`` (:class:`StepPair`'s ``h``, ``qb``, ``vh``); damping's ``D``
+stays at the start of the step (:meth:`AdjointTerm.start_vjp`).
+
 Another term (contact, friction) plugs in through :func:`fem3d.diff.adjoint.register_term`:
 a factory that returns such a term (plus the forward terms it adds to each step).
 """
