@@ -122,6 +122,12 @@ def test_undifferentiated_integrators_are_refused_in_one_line() -> None:
     assert "\n" not in str(info.value)
 
 
+def test_static_initial_velocity_key_is_refused() -> None:
+    with pytest.raises(ParameterError, match="'static' has no velocities"):
+        trajectory_gradient(static_bar(), PositionLoss({1: np.zeros((30, 3))}),
+                            ["bodies[0].velocity"])
+
+
 @pytest.mark.parametrize("integrator", ["static", "bdf2", "newmark"])
 def test_contact_with_other_integrators_is_refused_in_one_line(integrator: str) -> None:
     from test_diff_contact import drop_scene

@@ -307,6 +307,9 @@ def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
                              "scene: none of its terms has it (contact keys need contact, "
                              "contact.kappa a fixed kappa)")
     n_bodies = len(run.scene.bodies)
+    if p.kind == "velocity" and not run.scheme.dynamic:
+        raise ParameterError(f"{p.key}: simulation.integrator = {run.scheme.name!r} has no "
+                             "velocities (its steps are equilibria)")
     if p.body is not None and p.body >= n_bodies:
         raise ParameterError(f"{p.key}: the scene has {n_bodies} bodies")
     if sources is not None:
