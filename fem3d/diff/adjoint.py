@@ -1,4 +1,5 @@
-"""The discrete adjoint of a backward-Euler trajectory (no contact, no pulls).
+"""The discrete adjoint of a trajectory (backward Euler below; static, BDF2 and Newmark:
+:mod:`fem3d.diff.schemes`, each scheme's own module, registered by integrator name).
 
 Each step solves ``g(u; q_n, v_n, p) = 0`` over the free velocities (``u``: the full
 velocity, the pinned DOFs' part ``w = (p_{n+1} - q_n[F]) / dt`` prescribed by the pins'
@@ -28,9 +29,8 @@ What is exact and what is not:
   generated ``dgradient_dparams`` kernels (one call per material group and step) and the
   generated Jacobian of each material's ``E, nu`` mapping: exact.
 * The stiffness-proportional damping ``beta K_psd(q_n)`` depends on ``q_n`` and on the
-  material parameters through the PSD-projected element Hessians; the generator has no third
-  derivatives, so these two pieces are central finite differences per element (relative error
-  about ``1e-9``). With ``rayleigh_stiffness = 0`` (the default) everything is exact.
+  material parameters through the PSD-projected element Hessians: exact through the
+  generated ``d3psi_contract`` and the projection's derivative (:mod:`fem3d.diff.terms`).
 * Moving pins: the gradient by each keyframe's ``translate`` is exact (the translation is
   linear in the keyframes; rotations are held fixed).
 * Not supported: contact and friction (unless a registered term handles them), pull
@@ -57,6 +57,7 @@ from fem3d.diff.params import (
     TetSources,
     parse_param_key,
 )
+from fem3d.diff.schemes import SCHEMES, SchemeAdjoint
 from fem3d.diff.terms import (
     AdjointTerm,
     DampingAdjoint,
@@ -73,7 +74,7 @@ from fem3d.scene.arrays import select_vertices
 from fem3d.scene.build import Built, build
 from fem3d.scene.load import apply_overrides
 from fem3d.scene.spec import Scene
-from fem3d.solve.backward_euler import backward_euler, model_terms, newton_options
+from fem3d.solve.backward_euler import model_terms
 from fem3d.solve.state import State
 from fem3d.solve.system import System
 
@@ -152,6 +153,7 @@ class _Run:
     dt: float
     rtol: float
     atol_factor: float
+    scheme: SchemeAdjoint | None = None  # the integrator (fem3d.diff.schemes)
     terms: list[AdjointTerm] = field(default_factory=list)  # registered (extra) terms
     extra_keys: tuple[str, ...] = ()  # the registered terms' keys asked for
 
@@ -169,11 +171,7 @@ class _Run:
         extra = [t for term in self.terms for t in term.forward_terms()]
         for term in self.terms:
             term.before_step(state)
-        new, stats = backward_euler(
-            self.system, [*model_terms(self.system), *extra], state, self.dt,
-            fixed_positions=self.fixed_positions(state.t + self.dt), max_iterations=None,
-            rtol=self.rtol, atol_factor=self.atol_factor, linear_solver="direct",
-            options=newton_options("exact"))
+        new, stats = self.scheme.forward(self, state, [*model_terms(self.system), *extra])
         if not stats.converged:
             raise SimulationError("Newton did not converge: the adjoint needs converged steps",
                                   step=state.step)
@@ -189,9 +187,15 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     if scene.pulls:  # a run applies them: differentiating without them would be wrong
         raise ParameterError("trajectory_gradient: scripted pulls are not differentiated yet "
                              f"(the scene has {len(scene.pulls)}; remove them with pulls = [])")
-    if scene.simulation.integrator != "implicit":
-        raise ParameterError("trajectory_gradient: only simulation.integrator = 'implicit' "
-                             f"(backward Euler) is differentiated, got "
+    scheme = SCHEMES.get(scene.simulation.integrator)
+    if scheme is None:
+        raise ParameterError("trajectory_gradient: simulation.integrator = "
+                             f"{scene.simulation.integrator!r} is not differentiated "
+                             f"(differentiated: {', '.join(sorted(SCHEMES))})")
+    if accepted and not scheme.contact and scene.contact is not None and \
+            getattr(scene.contact, "enabled", True):
+        raise ParameterError("trajectory_gradient: contact is differentiated with "
+                             "simulation.integrator = 'implicit' only, got "
                              f"{scene.simulation.integrator!r}")
     built = build(scene)
     system = System(built.model, built.constraints, scene.simulation.linear_solver,
@@ -201,8 +205,10 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     v0 = np.array(a.v0, dtype=np.float64)
     v0[built.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
     state = State(q=built.model.X.copy(), v=v0, t=0.0, step=0)
-    run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor)
+    run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor,
+               scheme)
     run.terms = [t for f, _, _ in _FACTORIES if (t := f(run)) is not None]
+    run.state0 = scheme.start(run, state)
     return run
 
 
@@ -301,6 +307,9 @@ def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
                              "scene: none of its terms has it (contact keys need contact, "
                              "contact.kappa a fixed kappa)")
     n_bodies = len(run.scene.bodies)
+    if p.kind == "velocity" and not run.scheme.dynamic:
+        raise ParameterError(f"{p.key}: simulation.integrator = {run.scheme.name!r} has no "
+                             "velocities (its steps are equilibria)")
     if p.body is not None and p.body >= n_bodies:
         raise ParameterError(f"{p.key}: the scene has {n_bodies} bodies")
     if sources is not None:
@@ -320,8 +329,7 @@ def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
 
 def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k: int,
               stats: Stats) -> None:
-    n_dof = run.state0.q.size
-    q_bar, v_bar = np.zeros(n_dof), np.zeros(n_dof)
+    bar = None
     for start in sorted(checkpoints, reverse=True):
         if start == n_steps:
             continue
@@ -339,13 +347,18 @@ def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k
         stats.peak_states = max(stats.peak_states, len(checkpoints) + held)
         for i in range(len(segment) - 1, 0, -1):
             n = start + i  # the state after step n
+            if bar is None:
+                bar = run.scheme.zero(segment[i])
             grad = loss.frame(n, segment[i].q)[1]
             if grad is not None:
-                q_bar += grad.reshape(-1)
-            q_bar, v_bar = adj.step(segment[i - 1], segment[i], q_bar, v_bar)
+                bar["q"] += grad.reshape(-1)
+            bar = adj.step(segment[i - 1], segment[i], bar)
             stats.backward_steps += 1
         stats.backward_seconds += time.process_time() - t1
-    adj.q_bar0, adj.v_bar0 = q_bar, v_bar
+    if bar is None:
+        bar = run.scheme.zero(run.state0)
+    run.scheme.finish(adj, run.state0, bar)
+    adj.q_bar0, adj.v_bar0 = bar["q"], bar["v"]
 
 
 class _Adjoint:
@@ -362,10 +375,13 @@ class _Adjoint:
         a = run.built.arrays
         self.groups = element_groups(self.model)
         density = np.array([float(b.material.density) for b in run.scene.bodies])
+        dynamic = run.scheme.dynamic  # static: no inertia, no damping
         self.terms: list[AdjointTerm] = [
-            InertiaAdjoint(self.model, a, density), ElasticAdjoint(self.model, self.groups),
+            *([InertiaAdjoint(self.model, a, density)] if dynamic else []),
+            ElasticAdjoint(self.model, self.groups),
             GravityAdjoint(self.model, a, run.built.gravity, density),
-            DampingAdjoint(system, a, self.groups, density), *run.terms]
+            *([DampingAdjoint(system, a, self.groups, density)] if dynamic else []),
+            *run.terms]
         n_bodies = len(run.scene.bodies)
         wants_material = any(p.kind in ("material", "field") for p in params)
         self.grads = Gradients(
@@ -377,10 +393,46 @@ class _Adjoint:
                           if p.kind == "keyframe"}
         self.pin_grads = {key: np.zeros(3) for key in self.keyframes}
 
-    def step(self, s0: State, s1: State, q_bar: np.ndarray, v_bar: np.ndarray):
-        dt, model = self.dt, self.model
+    def step(self, s0: State, s1: State, bar1: dict) -> dict:
+        """The cotangent of the state before a step from the one after it (fields of
+        :class:`State`, flat); accumulates the parameters' gradients."""
+        scheme, model = self.run.scheme, self.model
+        lin = scheme.linear(s0, self.dt)
+        q1_bar, v1_bar, bar0 = scheme.split(s0, s1, bar1, self.fixed)
+        u = s1.v.reshape(-1) if scheme.dynamic else np.zeros(model.n_dofs)
         pair = StepPair(q0=s0.q.reshape(-1), v0=s0.v.reshape(-1), q1=s1.q.reshape(-1),
-                        u=s1.v.reshape(-1), dt=dt, t1=s1.t, t0=s0.t, step=s0.step)
+                        u=u, dt=self.dt, t1=s1.t, t0=s0.t, step=s0.step, h=lin.h, qb=lin.qb,
+                        vh=lin.vh)
+        K, K_free = self._matrix(pair)
+        u_bar = lin.h * q1_bar + (v1_bar if scheme.dynamic else 0.0)
+        lf = np.zeros(model.n_dofs)
+        lf[self.free] = self._solve(K_free, u_bar[self.free])
+        qb_bar, vh_bar, qt_bar = q1_bar.copy(), np.zeros(model.n_dofs), np.zeros(model.n_dofs)
+        for term in self.terms:
+            dq, dv = term.state_vjp(lf)
+            if dq is not None:
+                qb_bar += dq
+            if dv is not None:
+                vh_bar += dv
+            dq = term.start_vjp(lf)
+            if dq is not None:
+                qt_bar += dq
+            term.param_vjp(lf, self.grads)
+        if self.fixed.size:  # u[F] = w = (p - q_t[F]) / tau, q_B[F] = p - h w
+            F, r = self.fixed, lin.h / lin.tau
+            w_bar = u_bar[F] - (K @ lf)[F]
+            p_bar = (w_bar / lin.tau + (1.0 - r) * qb_bar[F]).reshape(-1, 3)
+            qt_bar[F] += r * qb_bar[F] - w_bar / lin.tau
+            qb_bar[F] = 0.0
+            for key, (slots, weights) in self.keyframes.items():
+                self.pin_grads[key] += weights(s1.t) * p_bar[slots].sum(axis=0)
+        scheme.pull_back(s0, lin, bar0, qb_bar, vh_bar)
+        bar0["q"] += qt_bar
+        return bar0
+
+    def _matrix(self, pair: StepPair):
+        """``K = dg/du`` over every DOF and on the free DOFs (the solver's pattern)."""
+        model = self.model
         data, others = np.zeros(model.nnz), []
         for term in self.terms:
             term.linearize(pair)
@@ -394,25 +446,7 @@ class _Adjoint:
         for m in others:  # entries between bodies (contact) widen the solver's pattern
             K_free = self.run.system.add_hessian(K_free, m)
             K = K + sparse_of(model, m)
-        u_bar = v_bar + dt * q_bar
-        lam = self._solve(K_free, u_bar[self.free])
-        lf = np.zeros(model.n_dofs)
-        lf[self.free] = lam
-        q_bar_new, v_bar_new = q_bar.copy(), np.zeros_like(v_bar)
-        for term in self.terms:
-            dq, dv = term.state_vjp(lf)
-            if dq is not None:
-                q_bar_new += dq
-            if dv is not None:
-                v_bar_new += dv
-            term.param_vjp(lf, self.grads)
-        if self.fixed.size:  # u[F] = (p_{n+1} - q_n[F]) / dt
-            w_bar = u_bar[self.fixed] - (K @ lf)[self.fixed]
-            q_bar_new[self.fixed] -= w_bar / dt
-            p_bar = (w_bar / dt).reshape(-1, 3)
-            for key, (slots, weights) in self.keyframes.items():
-                self.pin_grads[key] += weights(s1.t) * p_bar[slots].sum(axis=0)
-        return q_bar_new, v_bar_new
+        return K, K_free
 
     def _solve(self, A, b: np.ndarray) -> np.ndarray:
         system = self.run.system

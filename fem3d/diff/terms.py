@@ -18,6 +18,11 @@ An :class:`AdjointTerm` gives, at one step:
   ``u`` (contributions to ``dL/dq_n``, ``dL/dv_n``);
 * :meth:`~AdjointTerm.param_vjp`: ``-lambda^T dg_t/dp`` added into a :class:`Gradients`.
 
+Another scheme (:mod:`fem3d.diff.schemes`) has the same terms with its ``h`` (``dq_{n+1}/du``)
+in place of ``dt``, its base positions ``q_B`` in place of ``q_n`` and inertia target
+``v_hat`` in place of ``v_n`` (:class:`StepPair`'s ``h``, ``qb``, ``vh``); damping's ``D``
+stays at the start of the step (:meth:`AdjointTerm.start_vjp`).
+
 Another term (contact, friction) plugs in through :func:`fem3d.diff.adjoint.register_term`:
 a factory that returns such a term (plus the forward terms it adds to each step).
 """
@@ -39,8 +44,10 @@ __all__ = ["StepPair", "Gradients", "AdjointTerm", "InertiaAdjoint", "ElasticAdj
 
 @dataclass
 class StepPair:
-    """One step, flat: ``q0, v0`` before, ``q1, u`` (``= v1``) after, ``dt``; ``step`` the
-    step's number (``q0`` is the state after ``step`` steps) and ``t0``, ``t1`` its times."""
+    """One step, flat: ``q0, v0`` before, ``q1, u`` (``= v1`` in a dynamic scheme) after,
+    ``dt``; ``step`` the step's number (``q0`` is the state after ``step`` steps) and ``t0``,
+    ``t1`` its times; ``h``, ``qb``, ``vh``: the scheme's step map (backward Euler: ``dt``,
+    ``q0``, ``v0``)."""
 
     q0: np.ndarray
     v0: np.ndarray
@@ -50,6 +57,19 @@ class StepPair:
     t1: float
     t0: float = 0.0
     step: int = 0
+    #: the scheme's ``dq_{n+1}/du`` (None: ``dt``, backward Euler), base positions ``q_B``
+    #: (``q_{n+1} = q_B + h u``; None: ``q0``) and inertia target (None: ``v0``)
+    h: float | None = None
+    qb: np.ndarray | None = None
+    vh: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.h is None:
+            self.h = self.dt
+        if self.qb is None:
+            self.qb = self.q0
+        if self.vh is None:
+            self.vh = self.v0
 
 
 @dataclass
@@ -82,6 +102,9 @@ class AdjointTerm:
     """
 
     name = "term"
+    #: ``"velocity"``: its matrix is its derivative by the velocity ``u`` itself (inertia,
+    #: damping); ``"position"``: through ``q_{n+1} = q_B + h u``
+    variable = "position"
     #: the extra parameter keys (:func:`fem3d.diff.adjoint.register_term`) this term answers
     #: in this scene
     keys: tuple[str, ...] = ()
@@ -104,8 +127,15 @@ class AdjointTerm:
         return None
 
     def state_vjp(self, lf: np.ndarray):
-        """``(-lambda^T dg/dq_n, -lambda^T dg/dv_n)`` (each ``(n_dofs,)`` or None)."""
+        """``(-lambda^T dg/dq_B, -lambda^T dg/dv_hat)`` (each ``(n_dofs,)`` or None): by the
+        scheme's base positions and inertia target (backward Euler: ``q_n``, ``v_n``)."""
         return None, None
+
+    def start_vjp(self, lf: np.ndarray):
+        """``-lambda^T dg/dq_t`` by the positions at the start of the step where the term
+        reads them directly (damping's ``D(q_t)``), ``(n_dofs,)`` or None; called after
+        :meth:`state_vjp`, before :meth:`param_vjp`."""
+        return None
 
     def param_vjp(self, lf: np.ndarray, grads: Gradients) -> None:
         """Add ``-lambda^T dg/dp`` into ``grads``."""
@@ -128,6 +158,7 @@ class InertiaAdjoint(AdjointTerm):
     """``M (u - v_n)``: ``M`` in ``u``, ``-M`` in ``v_n``, linear in density."""
 
     name = "inertia"
+    variable = "velocity"
 
     def __init__(self, model, arrays, density: np.ndarray) -> None:
         self.model, self.bodies, self.rho = model, _Bodies(arrays), density
@@ -143,7 +174,7 @@ class InertiaAdjoint(AdjointTerm):
         return None, self.Mlf
 
     def param_vjp(self, lf, grads):
-        grads.density -= self.bodies.dot(self.Mlf, self.pair.u - self.pair.v0) / self.rho
+        grads.density -= self.bodies.dot(self.Mlf, self.pair.u - self.pair.vh) / self.rho
 
 
 class GravityAdjoint(AdjointTerm):
@@ -157,7 +188,7 @@ class GravityAdjoint(AdjointTerm):
         self.g_full = np.zeros(3 * n) if gravity is None else np.tile(gravity, n)
 
     def linearize(self, pair: StepPair) -> None:
-        self.dt = pair.dt
+        self.dt = pair.h
 
     def param_vjp(self, lf, grads):
         Mlf = self.model.mass @ lf
@@ -198,15 +229,15 @@ class ElasticAdjoint(AdjointTerm):
         self.H = hessian_data(self.model, pair.q1)
 
     def matrix(self):
-        return (self.pair.dt * self.pair.dt) * self.H
+        return (self.pair.h * self.pair.h) * self.H
 
     def state_vjp(self, lf):
-        return -self.pair.dt * (self.model.csr(self.H) @ lf), None
+        return -self.pair.h * (self.model.csr(self.H) @ lf), None
 
     def param_vjp(self, lf, grads):
         if grads.material is None:
             return
-        model, dt = self.model, self.pair.dt
+        model, dt = self.model, self.pair.h
         x = self.pair.q1.reshape(-1, 3)
         for acc, (g, els, params, inputs) in zip(grads.material, self.groups, strict=True):
             G = g.kernels.dgradient_dparams(x[model.T[els]], model.dphi_dX[els],
@@ -223,6 +254,7 @@ class DampingAdjoint(AdjointTerm):
     only for a kernel module without ``d3psi_contract`` (an old C build)."""
 
     name = "damping"
+    variable = "velocity"
 
     def __init__(self, system, arrays, groups: list[tuple], density: np.ndarray) -> None:
         self.system, self.model, self.groups = system, system.model, groups
@@ -237,8 +269,9 @@ class DampingAdjoint(AdjointTerm):
 
     def linearize(self, pair: StepPair) -> None:
         self.pair = pair
+        self._exact = None
         data = self.system.damping_data(pair.q0)
-        self.D = None if data is None else pair.dt * data
+        self.D = None if data is None else pair.h * data
 
     def matrix(self):
         return self.D
@@ -248,17 +281,17 @@ class DampingAdjoint(AdjointTerm):
         """Whether every group's kernels have ``d3psi_contract`` (else: differences)."""
         return all(hasattr(g.kernels, "d3psi_contract") for g, _, _, _ in self.groups)
 
-    def state_vjp(self, lf):
+    def start_vjp(self, lf):
         self._exact = None
         if not self.beta_any:
-            return None, None
+            return None
         if self.exact:
             self._exact = _damping_exact(self, lf)
-            return -self.pair.dt * self._exact[0], None
-        return -self.pair.dt * _damping_state_vjp(self, self.pair.q0, lf, self.pair.u), None
+            return -self.pair.h * self._exact[0]
+        return -self.pair.h * _damping_state_vjp(self, self.pair.q0, lf, self.pair.u)
 
     def param_vjp(self, lf, grads):
-        dt, u = self.pair.dt, self.pair.u
+        dt, u = self.pair.h, self.pair.u
         Mlf_u = self.bodies.dot(self.model.mass @ lf, u)
         grads.rayleigh_mass -= dt * Mlf_u
         grads.density -= dt * self.alpha_b * Mlf_u / self.rho
