@@ -92,10 +92,10 @@ def rest_step(kinetic: np.ndarray, rel: float) -> int | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fem3d.app.cli import _parse_value
     from fem3d.app.run import run_scene
     from fem3d.io.energy import read_energy_csv
     from fem3d.scene import apply_overrides, load_scene
-    from fem3d.app.cli import _parse_value
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=None, help="default: the scene's duration")
