@@ -116,3 +116,23 @@ def _touching_bodies(x: np.ndarray, faces: np.ndarray, bodies) -> set[tuple[int,
         b = sorted({int(body[i]) for i in p.vertex_ids(cm.edges, cm.faces) if i >= 0})
         pairs |= {(b[0], b[-1])} if len(b) > 1 else set()
     return pairs
+
+
+def test_the_newton_peer_row_says_why_it_is_skipped(monkeypatch, capsys):
+    """``python -m bench.contact``'s Newton (VBD) row when Newton cannot be imported: a
+    skipped row with the reason, printed and tabulated, never an exception."""
+    import sys
+
+    from bench import Skip
+    from bench import contact as bench_contact
+    from bench.peers import newton_vbd
+
+    monkeypatch.setitem(sys.modules, "newton", None)  # import newton -> ImportError
+    with pytest.raises(Skip, match="newton not installed"):
+        newton_vbd.drop(np.zeros((4, 3)), np.array([[0, 1, 2, 3]]), steps=1, E=1e5, nu=0.3,
+                        rho=1e3, mu=0.3, particle_radius=1e-3)
+    row = bench_contact.run_newton_peer(1)
+    assert row["tets"] == 1518 and "newton not installed" in row["skipped"]
+    bench_contact._print_row(row)
+    assert "skipped: newton not installed" in capsys.readouterr().out
+    assert bench_contact._markdown_row(row).count("|") == 14  # 13 columns, like the others
