@@ -78,6 +78,7 @@ def test_the_frame_check_sees_intersections_and_vertices_outside(tmp_path):
     assert rest_step(np.array([0.0, 1.0, 1e-7, 0.5]), 1e-6) is None
 
 
+@pytest.mark.slow
 def test_a_corner_column_of_the_pile_lands_without_intersecting(scene, tmp_path):
     d = scene.model_dump(mode="json")
     column = apply_overrides(scene, {"bodies": [d["bodies"][i] for i in COLUMN],
