@@ -1,14 +1,24 @@
 """Backward Euler with IPC contact: steps per second and where the time goes.
 
     python -m bench.contact [--steps 150] [--refine 0 1] [--narrow-phase additive]
-                            [--markdown FILE]
+                            [--cases bunny_drop bunny_stack contact_stack contact_pile]
+                            [--scene-steps 100] [--no-newton] [--markdown FILE]
 
 Cases: the coarse bunny (``data/coarser_bunny.mesh``, 1,518 tets) dropped on a ground plane,
 bouncing and coming to rest, and a stack of two bunnies dropped onto each other and the
 ground (3,036 tets); ``--refine k`` also runs each case on the mesh red-refined ``k`` times
-(x8 tets per level: about 1.2e4 and 1e5 tets). Every step is a full backward-Euler step as
-``fem3d run`` takes it (Newton to IPC's velocity tolerance, CCD-clamped line search), one
-thread (``OMP_NUM_THREADS=1`` is set here before NumPy loads).
+(x8 tets per level: about 1.2e4 and 1e5 tets). Scene cases (``contact_*``, a name of
+``data/scenes``) run the gallery scene as ``fem3d run`` steps it (``Simulation.step``) for its
+first ``--scene-steps`` steps: ``contact_stack`` (three bodies, 1,902 tets) and
+``contact_pile`` (12 bodies in an open box, 15,600 tets; ``python -m bench.pile_check`` runs
+it to rest and checks every frame). Every step is a full backward-Euler step as ``fem3d run``
+takes it (Newton to IPC's velocity tolerance, CCD-clamped line search), one thread
+(``OMP_NUM_THREADS=1`` is set here before NumPy loads).
+
+Peer (unless ``--no-newton``): the same bunny drop in NVIDIA Newton's VBD solver on Warp's CPU
+device (``bench/peers/newton_vbd.py``: 10 substeps x 10 iterations per 0.01 s frame, one frame
+per fem3d step, vertex contact radius = fem3d's ``dhat``), its frames per second and lowest
+vertex beside fem3d's; skipped with the reason when Newton is not installed or cannot run.
 
 Time split (wall seconds summed over the run, from wrappers around the integrator's calls):
 ``ccd`` (continuous collision detection), ``contact`` (collision-set builds + barrier and
@@ -118,15 +128,13 @@ def build_case(name: str, refine: int, narrow_phase: str):
     return model, system, term, State.at_rest(model), 0.01
 
 
-def run_case(name: str, refine: int, steps: int, narrow_phase: str,
-             newton_solver: str = "direct", contact: bool = True) -> dict:
+def _install_timers() -> Timers:
     import fem3d.physics.terms.elasticity as elasticity
     import fem3d.solve.integrators as integ
     from fem3d.physics.contact import ContactModel
     from fem3d.solve.krylov import PreconditionedCG
     from fem3d.solve.system import NewtonMatrixBuilder
 
-    model, system, term, state, dt = build_case(name, refine, narrow_phase)
     timers = Timers()
     timers.wrap(elasticity, "assemble_gradient", "elastic")
     timers.wrap(elasticity, "potential_energy", "elastic")
@@ -142,6 +150,15 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
                "friction_gradient", "friction_hessian", "lag_friction", "n_active",
                "minimum_distance", "initialize_stiffness"):
         timers.wrap(ContactModel, fn, "contact")
+    return timers
+
+
+def run_case(name: str, refine: int, steps: int, narrow_phase: str,
+             newton_solver: str = "direct", contact: bool = True) -> dict:
+    import fem3d.solve.integrators as integ
+
+    model, system, term, state, dt = build_case(name, refine, narrow_phase)
+    timers = _install_timers()
     newton = factorizations = 0
     terms = [term] if contact else []
     generations0 = getattr(system, "pattern_generation", 0)
@@ -171,11 +188,94 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     }
 
 
+def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict:
+    """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it."""
+    from fem3d.scene import load_scene
+    from fem3d.simulation import Simulation
+
+    overrides = {} if newton_solver == "direct" else {"simulation.newton.solver": newton_solver}
+    sim = Simulation(load_scene(name, overrides))
+    timers = _install_timers()
+    newton = factorizations = 0
+    generations0 = sim.system.pattern_generation
+    lowest = np.inf
+    t0 = time.perf_counter()
+    try:
+        for _ in range(steps):
+            sim.step()
+            newton += sim.last_stats.newton_iterations
+            factorizations += sim.last_stats.factorizations
+            lowest = min(lowest, float(sim.q[:, 1].min()))
+    finally:
+        wall = time.perf_counter() - t0
+        timers.restore()
+    sec = dict(timers.seconds)
+    sec["other"] = wall - sum(sec.values())
+    return {
+        "case": name + ("" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "tets": sim.model.n_tets, "factorizations_per_step": factorizations / steps,
+        "steps": steps, "wall": wall, "steps_per_s": steps / wall,
+        "newton_per_step": newton / steps,
+        "pattern_reanalyses": sim.system.pattern_generation - generations0,
+        "lowest_gap": lowest, "seconds": sec,
+    }
+
+
+def run_newton_peer(steps: int) -> dict:
+    """The bunny drop of :func:`build_case` in Newton's VBD (CPU), or a skipped row."""
+    from bench import Skip
+    from bench.peers import newton_vbd
+
+    model, _system, term, state, dt = build_case("bunny_drop", 0, "additive")
+    try:
+        return newton_vbd.drop(model.X, model.T, steps=steps, dt=dt, E=2e5, nu=0.4,
+                               rho=1000.0, mu=0.3, particle_radius=term.contact.dhat)
+    except Skip as why:
+        return {"case": f"bunny_drop [{newton_vbd.LIB}]", "tets": model.n_tets,
+                "skipped": str(why)}
+
+
+def _print_row(r: dict) -> None:
+    if "skipped" in r:
+        print(f"{r['case']:28s} {r['tets']:7d} tets  skipped: {r['skipped']}", flush=True)
+        return
+    s = r.get("seconds")
+    split = "  ".join(f"{k} {v / r['wall']:.0%}" for k, v in sorted(s.items())) if s else (
+        f"Warp kernels compiled in the warm-up frame ({r['compile_s']:.1f} s, untimed); "
+        f"vertex contact radius {r['particle_radius']:.2e} m")
+    fem = "" if s is None else (
+        f"{r['newton_per_step']:.2f} Newton/step {r['factorizations_per_step']:.2f} fact/step  "
+        f"re-analyses {r['pattern_reanalyses']}  ")
+    print(f"{r['case']:28s} {r['tets']:7d} tets {r['steps']:4d} steps "
+          f"{r['steps_per_s']:7.2f} steps/s  {fem}min y {r['lowest_gap']:.2e} | {split}",
+          flush=True)
+
+
+def _markdown_row(r: dict) -> str:
+    if "skipped" in r:
+        return f"| {r['case']} | {r['tets']:,} | skipped: {r['skipped']} |" + " |" * 10
+    s = r.get("seconds")
+    if s is None:  # the peer: no fem3d breakdown
+        return (f"| {r['case']} | {r['tets']:,} | {r['steps_per_s']:.2f} | "
+                f"{r['lowest_gap'] * 1e3:.3f} |" + " |" * 9)
+    pct = [f"{s.get(k, 0.0) / r['wall']:.0%}" for k in
+           ("ccd", "contact", "elastic", "pattern", "solve", "other")]
+    return (f"| {r['case']} | {r['tets']:,} | {r['steps_per_s']:.2f} | "
+            f"{r['lowest_gap'] * 1e3:.3f} | {r['newton_per_step']:.2f} | "
+            f"{r['factorizations_per_step']:.2f} | {r['pattern_reanalyses']} | "
+            + " | ".join(pct) + " |")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--refine", type=int, nargs="*", default=[0])
-    ap.add_argument("--cases", nargs="*", default=["bunny_drop", "bunny_stack"])
+    ap.add_argument("--cases", nargs="*",
+                    default=["bunny_drop", "bunny_stack", "contact_stack", "contact_pile"])
+    ap.add_argument("--scene-steps", type=int, default=100,
+                    help="steps of the scene cases (contact_*)")
+    ap.add_argument("--no-newton", action="store_true",
+                    help="skip the Newton (VBD, CPU) peer of the bunny drop")
     ap.add_argument("--narrow-phase", default="additive")
     ap.add_argument("--newton-solver", nargs="*", default=["direct", "reuse"])
     ap.add_argument("--no-peer", action="store_true",
@@ -183,37 +283,30 @@ def main(argv=None) -> None:
     ap.add_argument("--markdown", type=Path)
     args = ap.parse_args(argv)
     rows = []
+    for case in (c for c in args.cases if c.startswith("contact_")):
+        for solver in args.newton_solver:
+            rows.append(run_scene_case(case, args.scene_steps, solver))
+            _print_row(rows[-1])
     for refine in args.refine:
-        for case in args.cases:
+        for case in (c for c in args.cases if not c.startswith("contact_")):
             steps = args.steps if refine == 0 else max(3, args.steps // (8 ** refine))
             runs = [(s, True) for s in args.newton_solver]
             if not args.no_peer and case == "bunny_drop":
                 runs.append(("direct", False))
             for solver, contact in runs:
-                r = run_case(case, refine, steps, args.narrow_phase, solver, contact)
-                rows.append(r)
-                s = r["seconds"]
-                split = "  ".join(f"{k} {v / r['wall']:.0%}" for k, v in sorted(s.items()))
-                print(f"{r['case']:28s} {r['tets']:7d} tets {r['steps']:4d} steps "
-                      f"{r['steps_per_s']:7.1f} steps/s  {r['newton_per_step']:.2f} Newton/step "
-                      f"{r['factorizations_per_step']:.2f} fact/step  re-analyses "
-                      f"{r['pattern_reanalyses']}  min y {r['lowest_gap']:.2e} | {split}",
-                      flush=True)
+                rows.append(run_case(case, refine, steps, args.narrow_phase, solver, contact))
+                _print_row(rows[-1])
+            if case == "bunny_drop" and refine == 0 and not args.no_newton:
+                rows.append(run_newton_peer(steps))
+                _print_row(rows[-1])
     if args.markdown:
-        lines = ["| case | tets | steps/s | Newton/step | factorizations/step | re-analyses | ccd "
-                 "| contact | elastic | pattern | solve | other |",
+        lines = ["| case | tets | steps/s | lowest vertex (mm) | Newton/step | "
+                 "factorizations/step | re-analyses | ccd | contact | elastic | pattern | solve "
+                 "| other |",
                  "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-                 "| ---: |"]
-        for r in rows:
-            s = r["seconds"]
-            pct = [f"{s.get(k, 0.0) / r['wall']:.0%}" for k in
-                   ("ccd", "contact", "elastic", "pattern", "solve", "other")]
-            lines.append(f"| {r['case']} | {r['tets']:,} | {r['steps_per_s']:.1f} | "
-                         f"{r['newton_per_step']:.2f} | {r['factorizations_per_step']:.2f} | "
-                         f"{r['pattern_reanalyses']} | "
-                         + " | ".join(pct) + " |")
+                 "| ---: | ---: |"]
+        lines += [_markdown_row(r) for r in rows]
         args.markdown.write_text("\n".join(lines) + "\n")
-
 
 if __name__ == "__main__":
     main()

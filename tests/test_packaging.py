@@ -39,7 +39,7 @@ def test_package_data_holds_every_scene_and_the_files_it_names() -> None:
         scene = load_scene(name)
         files = [Path(scene.source)] + [scene.path(b.mesh) for b in scene.bodies]
         files += [scene.path(b.skin) for b in scene.bodies if b.skin]
-        files += [scene.path(o.mesh) for o in scene.obstacles if getattr(o, "mesh", None)]
+        files += [scene.path(o.mesh.path) for o in scene.obstacles if o.mesh is not None]
         if any(f.suffix == ".node" for f in files):
             files += [f.with_suffix(".ele") for f in files if f.suffix == ".node"]
         for f in files:

@@ -1,0 +1,142 @@
+"""The contact pile (data/scenes/contact_pile.toml): 12 soft bodies in an open box.
+
+The whole pile (15,600 tets) is run to rest by ``python -m bench.pile_check`` (minutes; its
+figures are in docs/contact.md). Here, in seconds: the scene file meets its brief, its initial
+state is intersection-free and inside the box, and one corner column of the pile (a block, an
+upright bunny on it, a bunny lying on that one's ears: the scene's bodies 0, 4 and 8, built
+from the same file by overrides) falls through its impacts with every written frame checked by
+a test of its own: a fresh ``ipctk.CollisionMesh`` of the frame's triangles (all bodies in one
+group, so self-intersections count) and the box's bounds; neither is the solver's contact set.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import ipctk
+import meshio
+import numpy as np
+import pytest
+
+from bench.pile_check import box_bounds, check_frames, rest_step
+from fem3d.app.run import run_scene
+from fem3d.scene import apply_overrides, load_scene
+from fem3d.simulation import Simulation
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
+#: the corner column x, z < 0: block 1, bunny 1 (upright on it), bunny 5 (lying on bunny 1)
+COLUMN = (0, 4, 8)
+#: the block lands at step 2, bunny 1 on it at step 4, bunny 5 on bunny 1 at step 8; with
+#: ``contact.self_contact = false`` bunny 1's ears pass into its own body from frame 13 on
+#: (measured: frames 13-19 intersect, ``python -m bench.pile_check --bodies 0,4,8 --steps 30
+#: --set contact.self_contact=false``), so the column runs past that
+COLUMN_STEPS = 15
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_scene(str(SCENE))
+
+
+def test_the_pile_is_what_its_brief_asks(scene):
+    sim = Simulation(scene)
+    assert len(scene.bodies) >= 12 and sim.model.n_tets >= 15_000
+    assert sum("bunny" in b.mesh for b in scene.bodies) >= 4
+    assert sum("block" in b.mesh for b in scene.bodies) >= 2
+    c = scene.contact
+    assert c.enabled and c.self_contact and c.mu > 0
+    assert [o.mesh is not None for o in scene.obstacles] == [True]  # the box, a mesh obstacle
+    lower, upper = box_bounds(scene)
+    q = sim.q
+    assert (q[:, [0, 2]] > lower[[0, 2]]).all() and (q[:, [0, 2]] < upper[[0, 2]]).all()
+    assert (q[:, 1] > lower[1]).all()
+    assert not sim.contact.contact.has_intersections(q.reshape(-1))
+
+
+def _frames_like(tmp_path: Path, points: list[np.ndarray], cells) -> Path:
+    (tmp_path / "frames").mkdir()
+    for i, p in enumerate(points):
+        meshio.write(tmp_path / "frames" / f"frame_{i:05d}.vtu",
+                     meshio.Mesh(p, [("triangle", cells)]))
+    return tmp_path
+
+
+def test_the_frame_check_sees_intersections_and_vertices_outside(tmp_path):
+    """The independent check itself: two tets' surfaces pushed into each other, a vertex
+    moved out through a wall. (One group for all triangles: a body's own triangles that cross
+    are found the same way as two bodies'.)"""
+    lower, upper = np.array([-1.0, 0.0, -1.0]), np.array([1.0, 1.0, 1.0])
+    tet = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]], float) + [0, 0.1, 0]
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    apart = np.vstack([tet, tet + [0.5, 0, 0]])
+    cells = np.vstack([F, F + 4])
+    into = np.vstack([tet, tet + [0.05, 0.02, 0.03]])
+    out = apart.copy()
+    out[5, 0] = 1.2  # through the wall x = 1
+    rep = check_frames(_frames_like(tmp_path, [apart, into, out], cells), lower, upper)
+    assert rep.frames == 3
+    assert rep.intersecting == [1] and rep.outside == [2]
+    assert rest_step(np.array([0.0, 1.0, 0.5, 1e-7, 1e-8]), 1e-6) == 3
+    assert rest_step(np.array([0.0, 1.0, 1e-7, 0.5]), 1e-6) is None
+
+
+@pytest.mark.slow
+def test_a_corner_column_of_the_pile_lands_without_intersecting(scene, tmp_path):
+    d = scene.model_dump(mode="json")
+    column = apply_overrides(scene, {"bodies": [d["bodies"][i] for i in COLUMN],
+                                     "simulation.steps": COLUMN_STEPS})
+    out = tmp_path / "column"
+    summary = run_scene(column, out, quiet=True)
+    assert summary.status == "ok", summary.message
+    lower, upper = box_bounds(column)
+    rep = check_frames(out, lower, upper)
+    assert rep.frames == COLUMN_STEPS + 1
+    assert rep.intersecting == [], f"frames {rep.intersecting[:5]} intersect"
+    assert rep.outside == []
+    # the contacts the column is about were made by the end: the block on the floor, bunny 1
+    # on the block, bunny 5 on bunny 1 (surface pairs closer than 1 mm, by ipctk)
+    sim = Simulation(column)
+    last = meshio.read(sorted((out / "frames").glob("*.vtu"))[-1])
+    x = np.asarray(last.points, dtype=np.float64)
+    assert x.shape == sim.q.shape
+    touching = _touching_bodies(x, np.asarray(last.cells_dict["triangle"]),
+                                sim.assembled.body_vertices)
+    assert {(0, 1), (1, 2)} <= touching, touching
+    assert x[sim.assembled.body_vertices[0], 1].min() < 1e-3  # the block on the floor
+
+
+def _touching_bodies(x: np.ndarray, faces: np.ndarray, bodies) -> set[tuple[int, int]]:
+    """Pairs of bodies with surface primitives closer than 1 mm (ipctk's collision build)."""
+    body = np.full(len(x), -1)
+    for i, v in enumerate(bodies):
+        body[v] = i
+    F = np.asarray(faces, dtype=np.int32)
+    cm = ipctk.CollisionMesh(np.asfortranarray(x), ipctk.edges(F), F)
+    c = ipctk.NormalCollisions()
+    c.build(cm, np.asfortranarray(x), 1e-3)
+    pairs = set()
+    for p in [*c.ee_collisions, *c.fv_collisions, *c.ev_collisions, *c.vv_collisions]:
+        b = sorted({int(body[i]) for i in p.vertex_ids(cm.edges, cm.faces) if i >= 0})
+        pairs |= {(b[0], b[-1])} if len(b) > 1 else set()
+    return pairs
+
+
+def test_the_newton_peer_row_says_why_it_is_skipped(monkeypatch, capsys):
+    """``python -m bench.contact``'s Newton (VBD) row when Newton cannot be imported: a
+    skipped row with the reason, printed and tabulated, never an exception."""
+    import sys
+
+    from bench import Skip
+    from bench import contact as bench_contact
+    from bench.peers import newton_vbd
+
+    monkeypatch.setitem(sys.modules, "newton", None)  # import newton -> ImportError
+    with pytest.raises(Skip, match="newton not installed"):
+        newton_vbd.drop(np.zeros((4, 3)), np.array([[0, 1, 2, 3]]), steps=1, E=1e5, nu=0.3,
+                        rho=1e3, mu=0.3, particle_radius=1e-3)
+    row = bench_contact.run_newton_peer(1)
+    assert row["tets"] == 1518 and "newton not installed" in row["skipped"]
+    bench_contact._print_row(row)
+    assert "skipped: newton not installed" in capsys.readouterr().out
+    assert bench_contact._markdown_row(row).count("|") == 14  # 13 columns, like the others
