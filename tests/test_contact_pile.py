@@ -126,12 +126,15 @@ def test_the_newton_peer_row_says_why_it_is_skipped(monkeypatch, capsys):
     """``python -m bench.contact``'s Newton (VBD) row when Newton cannot be imported: a
     skipped row with the reason, printed and tabulated, never an exception."""
     import sys
+    import types
 
     from bench import Skip
     from bench import contact as bench_contact
     from bench.peers import newton_vbd
 
     monkeypatch.setitem(sys.modules, "newton", None)  # import newton -> ImportError
+    # Warp present (a stand-in where it is not installed): the row names newton itself
+    monkeypatch.setitem(sys.modules, "warp", types.ModuleType("warp"))
     with pytest.raises(Skip, match="newton not installed"):
         newton_vbd.drop(np.zeros((4, 3)), np.array([[0, 1, 2, 3]]), steps=1, E=1e5, nu=0.3,
                         rho=1e3, mu=0.3, particle_radius=1e-3)
