@@ -433,6 +433,33 @@ def test_newton_matrix_equals_the_reduced_full_matrix(backend: str, psd: bool):
     np.testing.assert_array_equal(A.data, before)
 
 
+@pytest.mark.parametrize("psd", [False, True])
+def test_lean_assembly_gives_the_same_newton_matrix_bit_for_bit(monkeypatch, psd: bool):
+    """Big meshes (``LEAN_ASSEMBLY_MIN_TETS``) sum on the full pattern and gather the kept
+    entries once (no element-to-reduced-slot map): the same bits as the direct path, and a
+    later matrix does not overwrite an earlier one's data."""
+    from fem3d.physics.springs import Pull
+    from fem3d.solve import system as system_module
+
+    sim = Simulation(box_scene())
+    model = sim.model
+    rng = np.random.default_rng(5)
+    q = model.X + 0.05 * rng.normal(size=model.X.shape)
+    pulled = np.array([int(np.argmax(model.X[:, 1]))])
+    pull = Pull.make(pulled, model.X[pulled] + 0.3, 1e4, model.n_vertices)
+    expected = sim.system.newton_matrix(q, 0.02, pull, psd=psd)
+    monkeypatch.setattr(system_module, "LEAN_ASSEMBLY_MIN_TETS", 0)
+    lean = system_module.System(model, sim.system.constraints)
+    assert lean._free_scatter is None
+    A = lean.newton_matrix(q, 0.02, pull, psd=psd)
+    np.testing.assert_array_equal(A.indptr, expected.indptr)
+    np.testing.assert_array_equal(A.indices, expected.indices)
+    np.testing.assert_array_equal(A.data, expected.data)
+    before = A.data.copy()
+    lean.newton_matrix(model.X, 0.02)
+    np.testing.assert_array_equal(A.data, before)
+
+
 # ---------------------------------------------------------------------------------------------
 # gravity, Rayleigh damping, moving pins, several pulls, objective terms
 

@@ -631,7 +631,9 @@ class NewtonMatrixBuilder:
     def _reduced(self) -> np.ndarray:
         """``_data`` with every contribution so far (gathers a lean full-pattern sum)."""
         if self._full is not None:
-            np.take(self._full, self.system._kept, out=self._data[:self._nnz])
+            # mode="clip": with mode="raise" (the default) NumPy buffers ``out`` (a copy of
+            # the whole array; 0.75 s of a 1e6-tet Newton matrix instead of 0.04 s)
+            np.take(self._full, self.system._kept, out=self._data[:self._nnz], mode="clip")
             self._full = None
             self._empty = False
         elif self._empty:
