@@ -40,6 +40,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from bench.contact_check import box_clearance, rest_step  # noqa: E402,F401  (rest_step: re-exported)
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
 
@@ -81,22 +83,11 @@ def check_frames(out: Path, lower: np.ndarray, upper: np.ndarray) -> FrameReport
         x = np.asfortranarray(meshio.read(f).points, dtype=np.float64)
         if ipctk.has_intersections(mesh, x):
             bad.append(i)
-        c = min(float((x[:, 0] - lower[0]).min()), float((upper[0] - x[:, 0]).min()),
-                float((x[:, 2] - lower[2]).min()), float((upper[2] - x[:, 2]).min()),
-                float((x[:, 1] - lower[1]).min()))
+        c = box_clearance(x, lower, upper)
         clearance = min(clearance, c)
         if c <= 0.0:
             outside.append(i)
     return FrameReport(len(files), bad, outside, clearance)
-
-
-def rest_step(kinetic: np.ndarray, rel: float) -> int | None:
-    """First step from which ``kinetic`` stays below ``rel`` times its peak (None: never)."""
-    below = kinetic < rel * kinetic.max()
-    if not below[-1]:
-        return None
-    above = np.flatnonzero(~below)
-    return int(above[-1] + 1) if above.size else 0
 
 
 def frame_kinetic(out: Path, scene) -> np.ndarray:

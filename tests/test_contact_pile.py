@@ -81,6 +81,31 @@ def test_the_frame_check_sees_intersections_and_vertices_outside(tmp_path):
     assert rest_step(np.array([0.0, 1.0, 1e-7, 0.5]), 1e-6) is None
 
 
+def test_the_state_check_sees_intersections_planes_boxes_and_obstacles():
+    """``bench.contact_check``'s per-state test: a body pushed into another, a vertex behind
+    a plane, one out of the box, and a body crossing a mesh obstacle's triangle (the
+    obstacle is in the same collision mesh), each flagged at its state only."""
+    from bench.contact_check import StateChecks
+
+    tet = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]], float) + [0, 0.1, 0]
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    apart = np.vstack([tet, tet + [0.5, 0, 0]])
+    wall = (np.array([[0.8, -1, -1], [0.8, 1, -1], [0.8, 0, 1]], float), np.array([[0, 1, 2]]))
+    checks = StateChecks(np.vstack([F, F + 4]), [(np.zeros(3), np.array([0.0, 1.0, 0.0]))],
+                         (np.array([-1.0, 0.0, -1.0]), np.array([1.0, 1.0, 1.0])))
+    into = np.vstack([tet, tet + [0.05, 0.02, 0.03]])
+    below = apart - [0, 0.15, 0]
+    through_wall = apart + [0.25, 0, 0]  # the second tet straddles the plane x = 0.8
+    outside = apart.copy()
+    outside[5, 2] = 1.2
+    for x in (apart, into, below, through_wall, outside):
+        checks.add(x, [wall])
+    assert checks.intersecting == [1, 3]
+    assert checks.behind_plane == [2]
+    assert checks.outside_box == [2, 4]  # below the floor y = 0 too
+    assert not checks.ok
+
+
 @pytest.mark.slow
 def test_a_corner_column_of_the_pile_lands_without_intersecting(scene, tmp_path):
     d = scene.model_dump(mode="json")
