@@ -133,7 +133,9 @@ class ContactAdjoint(AdjointTerm):
         self._dt = math.nan
         self._planes = None
         self._mesh = None
+        self._h = math.nan  # the scheme's dq_{n+1}/du (backward Euler: dt)
         self._HB: sp.csr_matrix | None = None
+        self._HD: sp.csr_matrix | None = None
         self._unit: dict[str, np.ndarray] = {}
 
     # -- the adjoint's term interface (fem3d.diff.terms.AdjointTerm) ----------------------------
@@ -148,25 +150,36 @@ class ContactAdjoint(AdjointTerm):
         return self.terms
 
     def linearize(self, pair: StepPair) -> None:
-        """Set up the step ``pair`` (:meth:`set_step`)."""
+        """Set up the step ``pair`` (:meth:`set_step`): the friction lagged at ``pair.q0``
+        (the step's start ``q_t``), the scheme's ``h`` (``pair.h``) scaling the term."""
         s0 = State(q=pair.q0.reshape(-1, 3), v=pair.v0.reshape(-1, 3), t=pair.t0,
                    step=pair.step)
         s1 = State(q=pair.q1.reshape(-1, 3), v=pair.u.reshape(-1, 3), t=pair.t1,
                    step=pair.step + 1)
         self.set_step(s0, s1, pair.dt, self.requested)
+        self._h = float(pair.h)
 
     def matrix(self) -> sp.csr_matrix:
-        """``dg/du = dt^2 (kappa H_B + H_D)``, exact (:meth:`hessian`)."""
-        return self._dt * self._dt * self.hessian()
+        """``dg/du = h^2 (kappa H_B + H_D)``, exact (:meth:`hessian`)."""
+        return self._h * self._h * self.hessian()
 
     def state_vjp(self, lf: np.ndarray):
-        """``(-lf^T dg/dq_n, None)``: ``-dt`` :meth:`lagged_vjp` (``g`` has no ``v_n``)."""
-        return -self._dt * self.lagged_vjp(lf), None
+        """``(-lf^T dg/dq_B, None)`` at fixed ``u``: ``q_{n+1} = q_B + h u`` moves, the lag
+        ``q_t`` does not, so ``-h (kappa H_B + H_D) lf`` (``g`` has no ``v_hat``)."""
+        return -self._h * (self.hessian() @ lf), None
+
+    def start_vjp(self, lf: np.ndarray):
+        """``-lf^T dg/dq_t`` at fixed ``q_{n+1}``: the slip ``q_{n+1} - q_t`` (``+h H_D lf``)
+        and the friction's lagged normal forces and bases (:meth:`friction_lag_vjp`). With
+        ``q_B = q_t`` (backward Euler) the two products sum to ``-h`` :meth:`lagged_vjp`."""
+        if not self.cm.n_friction_pairs:
+            return None
+        return self._h * (self._friction_hessian() @ lf - self.friction_lag_vjp(lf))
 
     def param_vjp(self, lf: np.ndarray, grads: Gradients) -> None:
         """``-lf^T dg/dp`` of the requested keys into ``grads.extra``."""
         for key in self.requested:
-            grads.extra[key] = grads.extra.get(key, 0.0) - self._dt * self.coefficient_vjp(
+            grads.extra[key] = grads.extra.get(key, 0.0) - self._h * self.coefficient_vjp(
                 key, lf)
 
     # -- the forward run ------------------------------------------------------------------------
@@ -203,7 +216,7 @@ class ContactAdjoint(AdjointTerm):
         cm.set_kappa(kappa_lag)
         cm.lag_friction(q0, dt, t_start=s0.t)
         self._q0, self._q1, self._kappa_lag, self._dt = q0, q1, kappa_lag, float(dt)
-        self._HB = None
+        self._HB = self._HD = None
         self._planes = self._plane_lag()
         self._mesh = self._mesh_lag(s0.t)
         self._unit = {}
@@ -217,8 +230,14 @@ class ContactAdjoint(AdjointTerm):
         in positions."""
         H = self._barrier_hessian()
         if self.cm.n_friction_pairs:
-            H = H + self.cm.friction_hessian(self._q1, project=False).tocsr()
+            H = H + self._friction_hessian()
         return H
+
+    def _friction_hessian(self) -> sp.csr_matrix:
+        """``H_D(q_{n+1}; q_n)``, unprojected (computed once per step)."""
+        if self._HD is None:
+            self._HD = self.cm.friction_hessian(self._q1, project=False).tocsr()
+        return self._HD
 
     def _barrier_hessian(self) -> sp.csr_matrix:
         """``kappa H_B(q_{n+1})``, unprojected (computed once per step)."""
@@ -229,11 +248,16 @@ class ContactAdjoint(AdjointTerm):
     def lagged_vjp(self, lf: np.ndarray) -> np.ndarray:
         """``d/dq_n`` of ``lf^T grad(B + D)(q_{n+1}; q_n)`` with the step's unknowns held:
         ``H_B lf`` plus the friction's lagged normal forces and bases, ``(3n,)``."""
-        cm = self.cm
         out = self._barrier_hessian() @ lf
-        if cm.n_friction_pairs:
-            out += self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
+        if self.cm.n_friction_pairs:
+            out += self.friction_lag_vjp(lf)
         return out
+
+    def friction_lag_vjp(self, lf: np.ndarray) -> np.ndarray:
+        """``d/dq_t`` of ``lf^T grad D(q_{n+1}; q_t)`` through what is lagged at ``q_t`` only
+        (the normal forces and, between meshes, tangent bases and closest points), the slip
+        held, ``(3n,)``."""
+        return self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
 
     def coefficient_vjp(self, key: str, lf: np.ndarray) -> float:
         """``lf^T d grad(B + D) / d key`` for a key of :attr:`keys`."""
