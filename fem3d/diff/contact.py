@@ -1,23 +1,29 @@
-"""IPC contact and friction in the adjoint of a backward-Euler trajectory.
+"""IPC contact and friction in the adjoint of a trajectory (every implicit scheme).
 
 A contact scene's step minimises the model's terms plus the contact group
 (:class:`~fem3d.physics.terms.contact.ContactTerm`): the barrier ``kappa B(q_{n+1})`` and the
-lagged friction ``D(q_{n+1}; q_n, mu)``, both in positions, so the step's stationarity
-condition (:mod:`fem3d.diff.adjoint`) gains ``g = dt (grad B(q_{n+1}) + grad_1 D(q_{n+1}; q_n))``.
+friction ``D(q_{n+1}; q_t, mu)`` lagged at the step's start ``q_t = q_n`` (its normal forces
+and bases there, its slip ``q_{n+1} - q_t`` against ``eps_v dt``), both in positions. With
+the scheme's step map ``q_{n+1} = q_B + h u`` (:mod:`fem3d.diff.schemes`: backward Euler
+``h = dt``, ``q_B = q_n``; BDF2, Newmark, static their own) the step's stationarity condition
+(:mod:`fem3d.diff.adjoint`) gains ``g = h (grad B(q_{n+1}) + grad_1 D(q_{n+1}; q_t))``.
 :class:`ContactAdjoint`, an :class:`~fem3d.diff.terms.AdjointTerm` registered with
 :func:`fem3d.diff.adjoint.register_term` for every scene with contact, supplies that term's
-three pieces of the adjoint step (``dg/du = dt^2 H`` with ``q_{n+1} = q_n + dt u``):
+pieces of the adjoint step:
 
 * :meth:`ContactAdjoint.hessian`: the **exact** Hessian ``kappa H_B + H_D`` at ``q_{n+1}``
   (not the per-pair PSD projection Newton uses: the adjoint differentiates what was
   minimised; ``ipctk``'s ``PSDProjectionMethod.NONE`` and the planes' unprojected blocks of
-  :class:`~fem3d.physics.contact.ContactModel`);
-* :meth:`ContactAdjoint.lagged_vjp`: ``d/dq_n`` of ``lambda^T grad(B + D)`` with the step's
-  unknowns held (``q_{n+1} = q_n + dt v_{n+1}``). The barrier gives ``H_B lambda``; the
-  friction's slip ``q_{n+1} - q_n`` does not change, so only its lagged quantities do: the
-  normal forces (and, between meshes, tangent bases and closest points) taken at ``q_n``.
+  :class:`~fem3d.physics.contact.ContactModel`), ``dg/du = h^2 (kappa H_B + H_D)``;
+* ``d/dq_B`` at fixed ``u`` (:meth:`ContactAdjoint.state_vjp`): ``q_{n+1}`` moves, the lag
+  does not: ``h (kappa H_B + H_D) lambda``;
+* ``d/dq_t`` at fixed ``q_{n+1}`` (:meth:`ContactAdjoint.start_vjp`): the slip (``-h H_D
+  lambda``) and the lagged quantities (:meth:`ContactAdjoint.friction_lag_vjp`): the normal
+  forces and, between meshes, the tangent bases and closest points taken at ``q_t``.
   Planes: ``d lambda_k / d s_k`` of IPC's normal force ``kappa |b'(s^2) 2 s|`` in NumPy;
-  meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``;
+  meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``. With ``q_B = q_t``
+  (backward Euler) the two friction Hessian products cancel: :meth:`ContactAdjoint.
+  lagged_vjp` is their sum there;
 * :meth:`ContactAdjoint.coefficient_vjp`: ``lambda^T d grad D / d mu`` (``mu``, ``mu_s``,
   ``mu_k``): the friction is linear in the two coefficients, so each derivative is the
   friction gradient lagged with that coefficient 1 and the other 0; ``d / d kappa`` (a fixed
