@@ -209,6 +209,24 @@ class ContactAdjoint(AdjointTerm):
         kappa = self.cm.kappa
         self._kappas[state.step] = (kappa if math.isnan(kappa_lag) else kappa_lag, kappa)
 
+    def start_force_vjp(self, q0: np.ndarray, t0: float, lf: np.ndarray,
+                        grads: Gradients) -> np.ndarray:
+        """The contact's part of an initial acceleration ``M a_0 = f(q_0)`` (Newmark's, as
+        :func:`fem3d.solve.newmark.initial_acceleration` takes it before the first step: the
+        barrier ``kappa grad B(q_0)`` at the stiffness then, the friction not lagged yet, so
+        zero): ``-lf^T d/dq_0`` of it, ``(3n,)``, and ``-lf^T d/d kappa`` into ``grads``."""
+        cm = self.cm
+        kappa_now, kappa = cm.kappa, float(self._before[0][0])  # the state before step 0
+        q0 = np.asarray(q0, dtype=np.float64).reshape(-1)
+        cm.set_time(t0)
+        cm.set_kappa(kappa)
+        out = -(cm.barrier_hessian(q0, project=False).tocsr() @ lf)
+        if "contact.kappa" in self.requested:
+            grads.extra["contact.kappa"] = grads.extra.get("contact.kappa", 0.0) - float(
+                lf @ cm.barrier_gradient(q0)) / kappa
+        cm.set_kappa(kappa_now)
+        return out
+
     # -- one adjoint step -----------------------------------------------------------------------
     def set_step(self, s0: State, s1: State, dt: float, keys) -> None:
         """Put the contact model in step ``s0 -> s1``'s configuration: the friction lagged at

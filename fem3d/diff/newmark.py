@@ -14,9 +14,10 @@ products).
 The state carries ``a``; the first state's ``a_0`` solves ``M a_0 + g(q_0, v_0) = 0`` on the
 free DOFs (:func:`fem3d.solve.newmark.initial_acceleration`: elasticity at ``q_0``,
 gravity, damping ``D(q_0) v_0``), whose adjoint :meth:`NewmarkAdjoint.finish` adds: one
-solve with the mass matrix, the same terms at ``h = 1``. A contact start whose barrier
-pushes already (a pair within ``dhat`` at ``q_0``: ``fem3d run``'s ``a_0`` holds that
-force) is refused: the adjoint's ``a_0`` is the model terms'.
+solve with the mass matrix, the same terms at ``h = 1``, and, with contact, the barrier's
+force at ``q_0`` where a pair is within ``dhat`` there (as ``fem3d run``'s ``a_0``: the
+stiffness before the first step, the friction not yet lagged:
+:meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ import scipy.sparse.linalg as spla
 
 from fem3d.diff.schemes import SchemeAdjoint, StepLin, converged_settings, register_scheme
 from fem3d.diff.terms import StepPair, sparse_of
-from fem3d.errors import ParameterError
 from fem3d.solve.backward_euler import model_terms
 from fem3d.solve.newmark import initial_acceleration, newmark, newmark_gamma
 
@@ -52,28 +52,15 @@ class NewmarkAdjoint(SchemeAdjoint):
         self.gamma = float(gamma)
 
     def start(self, run, state):
-        """``a_0`` (the model terms'); a contact run gets its own scheme with the forward
-        step's ``gamma`` (``run.scheme``).
-
-        Raises
-        ------
-        ParameterError
-            A contact start with a barrier force at ``q_0``.
-        """
-        extra = [t for term in run.terms for t in term.forward_terms()]
-        gamma = newmark_gamma([*model_terms(run.system), *extra])
+        """``a_0`` as the forward run takes it (every term, contact's barrier at ``q_0``
+        included); a contact run gets its own scheme with the forward step's ``gamma``
+        (``run.scheme``)."""
+        terms = [*model_terms(run.system), *(t for term in run.terms
+                                             for t in term.forward_terms())]
+        gamma = newmark_gamma(terms)
         if gamma != self.gamma:
             run.scheme = NewmarkAdjoint(gamma)
-        for term in extra:  # the contact group (fem3d.physics.terms.contact.ContactTerm)
-            barrier = getattr(term, "barrier", None)
-            if barrier is not None and np.any(barrier.gradient(state.q.reshape(-1))):
-                raise ParameterError(
-                    "trajectory_gradient: simulation.integrator = 'newmark' with contact: "
-                    "the start is within contact.dhat of a contact (its initial acceleration "
-                    "would hold the barrier's force, which the adjoint leaves out); start the "
-                    "bodies farther apart")
-        a0 = initial_acceleration(run.system, model_terms(run.system), state, run.dt)
-        return replace(state, a=a0)
+        return replace(state, a=initial_acceleration(run.system, terms, state, run.dt))
 
     def forward(self, run, state, terms):
         return newmark(run.system, terms, state, run.dt,
@@ -120,7 +107,10 @@ class NewmarkAdjoint(SchemeAdjoint):
         pair = StepPair(q0=q, v0=v, q1=q, u=v, dt=adj.dt, t1=s0.t, t0=s0.t, step=s0.step,
                         h=1.0, qb=q, vh=v - a)
         for term in adj.terms:
-            if term in adj.run.terms:  # registered (contact): not in a_0 (see start)
+            if term in adj.run.terms:  # registered (contact): its force at q_0 alone
+                force_vjp = getattr(term, "start_force_vjp", None)
+                if force_vjp is not None:
+                    bar0["q"] += force_vjp(q, s0.t, lf, adj.grads)
                 continue
             term.linearize(pair)
             m = term.matrix()
