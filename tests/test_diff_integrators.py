@@ -128,13 +128,21 @@ def test_static_initial_velocity_key_is_refused() -> None:
                             ["bodies[0].velocity"])
 
 
-@pytest.mark.parametrize("integrator", ["static", "bdf2", "newmark"])
-def test_contact_with_other_integrators_is_refused_in_one_line(integrator: str) -> None:
+def test_contact_with_a_scheme_without_contact_is_refused_in_one_line(monkeypatch) -> None:
+    """Every registered scheme differentiates contact (``tests/test_diff_contact_schemes.py``);
+    one registered without (``SchemeAdjoint.contact = False``) is refused in one line."""
     from test_diff_contact import drop_scene
 
-    scene = apply_overrides(drop_scene(), {"simulation.integrator": integrator})
-    with pytest.raises(ParameterError, match="contact is differentiated with "
-                       "simulation.integrator = 'implicit' only") as info:
+    from fem3d.diff.bdf2 import BDF2Adjoint
+    from fem3d.diff.schemes import SCHEMES
+
+    without = BDF2Adjoint()
+    without.contact = False
+    monkeypatch.setitem(SCHEMES, "bdf2", without)
+    scene = apply_overrides(drop_scene(), {"simulation.integrator": "bdf2"})
+    with pytest.raises(ParameterError, match="contact is not differentiated with "
+                       r"simulation.integrator = 'bdf2' \(differentiated with contact: "
+                       "implicit, newmark, static\\)") as info:
         trajectory_gradient(scene, PositionLoss({1: np.zeros((1, 3))}, vertices=[0]),
                             ["bodies[0].material.E"])
     assert "\n" not in str(info.value)

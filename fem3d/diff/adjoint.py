@@ -194,9 +194,10 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
                              f"(differentiated: {', '.join(sorted(SCHEMES))})")
     if accepted and not scheme.contact and scene.contact is not None and \
             getattr(scene.contact, "enabled", True):
-        raise ParameterError("trajectory_gradient: contact is differentiated with "
-                             "simulation.integrator = 'implicit' only, got "
-                             f"{scene.simulation.integrator!r}")
+        with_contact = ", ".join(sorted(n for n, s in SCHEMES.items() if s.contact))
+        raise ParameterError("trajectory_gradient: contact is not differentiated with "
+                             f"simulation.integrator = {scene.simulation.integrator!r} "
+                             f"(differentiated with contact: {with_contact})")
     built = build(scene)
     system = System(built.model, built.constraints, scene.simulation.linear_solver,
                     gravity=built.gravity, rayleigh_alpha=built.rayleigh_alpha,

@@ -7,6 +7,10 @@ with the secant velocity ``(p_{n+1} - q_n[F]) / dt``); the first step (no histor
 backward-Euler step. The state after a step carries ``q_n``, ``v_n`` as its history, so the
 backward pass carries the cotangents of two states: a state's ``q_prev``, ``v_prev``
 cotangents flow to the state before it.
+
+With contact the friction is lagged at ``q_n`` (the step's start, not ``q_B``) and its slip
+is ``q_{n+1} - q_n``: the contact term's ``q_B`` and ``q_t`` products
+(:class:`fem3d.diff.contact.ContactAdjoint`) carry the two apart.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ class BDF2Adjoint(SchemeAdjoint):
     """BDF2 (see the module docstring)."""
 
     name = "bdf2"
+    contact = True
 
     def forward(self, run, state, terms):
         return bdf2(run.system, terms, state, run.dt,

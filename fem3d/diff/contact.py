@@ -1,23 +1,29 @@
-"""IPC contact and friction in the adjoint of a backward-Euler trajectory.
+"""IPC contact and friction in the adjoint of a trajectory (every implicit scheme).
 
 A contact scene's step minimises the model's terms plus the contact group
 (:class:`~fem3d.physics.terms.contact.ContactTerm`): the barrier ``kappa B(q_{n+1})`` and the
-lagged friction ``D(q_{n+1}; q_n, mu)``, both in positions, so the step's stationarity
-condition (:mod:`fem3d.diff.adjoint`) gains ``g = dt (grad B(q_{n+1}) + grad_1 D(q_{n+1}; q_n))``.
+friction ``D(q_{n+1}; q_t, mu)`` lagged at the step's start ``q_t = q_n`` (its normal forces
+and bases there, its slip ``q_{n+1} - q_t`` against ``eps_v dt``), both in positions. With
+the scheme's step map ``q_{n+1} = q_B + h u`` (:mod:`fem3d.diff.schemes`: backward Euler
+``h = dt``, ``q_B = q_n``; BDF2, Newmark, static their own) the step's stationarity condition
+(:mod:`fem3d.diff.adjoint`) gains ``g = h (grad B(q_{n+1}) + grad_1 D(q_{n+1}; q_t))``.
 :class:`ContactAdjoint`, an :class:`~fem3d.diff.terms.AdjointTerm` registered with
 :func:`fem3d.diff.adjoint.register_term` for every scene with contact, supplies that term's
-three pieces of the adjoint step (``dg/du = dt^2 H`` with ``q_{n+1} = q_n + dt u``):
+pieces of the adjoint step:
 
 * :meth:`ContactAdjoint.hessian`: the **exact** Hessian ``kappa H_B + H_D`` at ``q_{n+1}``
   (not the per-pair PSD projection Newton uses: the adjoint differentiates what was
   minimised; ``ipctk``'s ``PSDProjectionMethod.NONE`` and the planes' unprojected blocks of
-  :class:`~fem3d.physics.contact.ContactModel`);
-* :meth:`ContactAdjoint.lagged_vjp`: ``d/dq_n`` of ``lambda^T grad(B + D)`` with the step's
-  unknowns held (``q_{n+1} = q_n + dt v_{n+1}``). The barrier gives ``H_B lambda``; the
-  friction's slip ``q_{n+1} - q_n`` does not change, so only its lagged quantities do: the
-  normal forces (and, between meshes, tangent bases and closest points) taken at ``q_n``.
+  :class:`~fem3d.physics.contact.ContactModel`), ``dg/du = h^2 (kappa H_B + H_D)``;
+* ``d/dq_B`` at fixed ``u`` (:meth:`ContactAdjoint.state_vjp`): ``q_{n+1}`` moves, the lag
+  does not: ``h (kappa H_B + H_D) lambda``;
+* ``d/dq_t`` at fixed ``q_{n+1}`` (:meth:`ContactAdjoint.start_vjp`): the slip (``-h H_D
+  lambda``) and the lagged quantities (:meth:`ContactAdjoint.friction_lag_vjp`): the normal
+  forces and, between meshes, the tangent bases and closest points taken at ``q_t``.
   Planes: ``d lambda_k / d s_k`` of IPC's normal force ``kappa |b'(s^2) 2 s|`` in NumPy;
-  meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``;
+  meshes: ``ipctk``'s ``force_jacobian(..., wrt=LAGGED_DISPLACEMENTS)``. With ``q_B = q_t``
+  (backward Euler) the two friction Hessian products cancel: :meth:`ContactAdjoint.
+  lagged_vjp` is their sum there;
 * :meth:`ContactAdjoint.coefficient_vjp`: ``lambda^T d grad D / d mu`` (``mu``, ``mu_s``,
   ``mu_k``): the friction is linear in the two coefficients, so each derivative is the
   friction gradient lagged with that coefficient 1 and the other 0; ``d / d kappa`` (a fixed
@@ -133,7 +139,9 @@ class ContactAdjoint(AdjointTerm):
         self._dt = math.nan
         self._planes = None
         self._mesh = None
+        self._h = math.nan  # the scheme's dq_{n+1}/du (backward Euler: dt)
         self._HB: sp.csr_matrix | None = None
+        self._HD: sp.csr_matrix | None = None
         self._unit: dict[str, np.ndarray] = {}
 
     # -- the adjoint's term interface (fem3d.diff.terms.AdjointTerm) ----------------------------
@@ -148,25 +156,36 @@ class ContactAdjoint(AdjointTerm):
         return self.terms
 
     def linearize(self, pair: StepPair) -> None:
-        """Set up the step ``pair`` (:meth:`set_step`)."""
+        """Set up the step ``pair`` (:meth:`set_step`): the friction lagged at ``pair.q0``
+        (the step's start ``q_t``), the scheme's ``h`` (``pair.h``) scaling the term."""
         s0 = State(q=pair.q0.reshape(-1, 3), v=pair.v0.reshape(-1, 3), t=pair.t0,
                    step=pair.step)
         s1 = State(q=pair.q1.reshape(-1, 3), v=pair.u.reshape(-1, 3), t=pair.t1,
                    step=pair.step + 1)
         self.set_step(s0, s1, pair.dt, self.requested)
+        self._h = float(pair.h)
 
     def matrix(self) -> sp.csr_matrix:
-        """``dg/du = dt^2 (kappa H_B + H_D)``, exact (:meth:`hessian`)."""
-        return self._dt * self._dt * self.hessian()
+        """``dg/du = h^2 (kappa H_B + H_D)``, exact (:meth:`hessian`)."""
+        return self._h * self._h * self.hessian()
 
     def state_vjp(self, lf: np.ndarray):
-        """``(-lf^T dg/dq_n, None)``: ``-dt`` :meth:`lagged_vjp` (``g`` has no ``v_n``)."""
-        return -self._dt * self.lagged_vjp(lf), None
+        """``(-lf^T dg/dq_B, None)`` at fixed ``u``: ``q_{n+1} = q_B + h u`` moves, the lag
+        ``q_t`` does not, so ``-h (kappa H_B + H_D) lf`` (``g`` has no ``v_hat``)."""
+        return -self._h * (self.hessian() @ lf), None
+
+    def start_vjp(self, lf: np.ndarray):
+        """``-lf^T dg/dq_t`` at fixed ``q_{n+1}``: the slip ``q_{n+1} - q_t`` (``+h H_D lf``)
+        and the friction's lagged normal forces and bases (:meth:`friction_lag_vjp`). With
+        ``q_B = q_t`` (backward Euler) the two products sum to ``-h`` :meth:`lagged_vjp`."""
+        if not self.cm.n_friction_pairs:
+            return None
+        return self._h * (self._friction_hessian() @ lf - self.friction_lag_vjp(lf))
 
     def param_vjp(self, lf: np.ndarray, grads: Gradients) -> None:
         """``-lf^T dg/dp`` of the requested keys into ``grads.extra``."""
         for key in self.requested:
-            grads.extra[key] = grads.extra.get(key, 0.0) - self._dt * self.coefficient_vjp(
+            grads.extra[key] = grads.extra.get(key, 0.0) - self._h * self.coefficient_vjp(
                 key, lf)
 
     # -- the forward run ------------------------------------------------------------------------
@@ -190,6 +209,24 @@ class ContactAdjoint(AdjointTerm):
         kappa = self.cm.kappa
         self._kappas[state.step] = (kappa if math.isnan(kappa_lag) else kappa_lag, kappa)
 
+    def start_force_vjp(self, q0: np.ndarray, t0: float, lf: np.ndarray,
+                        grads: Gradients) -> np.ndarray:
+        """The contact's part of an initial acceleration ``M a_0 = f(q_0)`` (Newmark's, as
+        :func:`fem3d.solve.newmark.initial_acceleration` takes it before the first step: the
+        barrier ``kappa grad B(q_0)`` at the stiffness then, the friction not lagged yet, so
+        zero): ``-lf^T d/dq_0`` of it, ``(3n,)``, and ``-lf^T d/d kappa`` into ``grads``."""
+        cm = self.cm
+        kappa_now, kappa = cm.kappa, float(self._before[0][0])  # the state before step 0
+        q0 = np.asarray(q0, dtype=np.float64).reshape(-1)
+        cm.set_time(t0)
+        cm.set_kappa(kappa)
+        out = -(cm.barrier_hessian(q0, project=False).tocsr() @ lf)
+        if "contact.kappa" in self.requested:
+            grads.extra["contact.kappa"] = grads.extra.get("contact.kappa", 0.0) - float(
+                lf @ cm.barrier_gradient(q0)) / kappa
+        cm.set_kappa(kappa_now)
+        return out
+
     # -- one adjoint step -----------------------------------------------------------------------
     def set_step(self, s0: State, s1: State, dt: float, keys) -> None:
         """Put the contact model in step ``s0 -> s1``'s configuration: the friction lagged at
@@ -203,7 +240,7 @@ class ContactAdjoint(AdjointTerm):
         cm.set_kappa(kappa_lag)
         cm.lag_friction(q0, dt, t_start=s0.t)
         self._q0, self._q1, self._kappa_lag, self._dt = q0, q1, kappa_lag, float(dt)
-        self._HB = None
+        self._HB = self._HD = None
         self._planes = self._plane_lag()
         self._mesh = self._mesh_lag(s0.t)
         self._unit = {}
@@ -217,8 +254,14 @@ class ContactAdjoint(AdjointTerm):
         in positions."""
         H = self._barrier_hessian()
         if self.cm.n_friction_pairs:
-            H = H + self.cm.friction_hessian(self._q1, project=False).tocsr()
+            H = H + self._friction_hessian()
         return H
+
+    def _friction_hessian(self) -> sp.csr_matrix:
+        """``H_D(q_{n+1}; q_n)``, unprojected (computed once per step)."""
+        if self._HD is None:
+            self._HD = self.cm.friction_hessian(self._q1, project=False).tocsr()
+        return self._HD
 
     def _barrier_hessian(self) -> sp.csr_matrix:
         """``kappa H_B(q_{n+1})``, unprojected (computed once per step)."""
@@ -229,11 +272,16 @@ class ContactAdjoint(AdjointTerm):
     def lagged_vjp(self, lf: np.ndarray) -> np.ndarray:
         """``d/dq_n`` of ``lf^T grad(B + D)(q_{n+1}; q_n)`` with the step's unknowns held:
         ``H_B lf`` plus the friction's lagged normal forces and bases, ``(3n,)``."""
-        cm = self.cm
         out = self._barrier_hessian() @ lf
-        if cm.n_friction_pairs:
-            out += self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
+        if self.cm.n_friction_pairs:
+            out += self.friction_lag_vjp(lf)
         return out
+
+    def friction_lag_vjp(self, lf: np.ndarray) -> np.ndarray:
+        """``d/dq_t`` of ``lf^T grad D(q_{n+1}; q_t)`` through what is lagged at ``q_t`` only
+        (the normal forces and, between meshes, tangent bases and closest points), the slip
+        held, ``(3n,)``."""
+        return self._plane_lag_vjp(lf) + self._mesh_lag_vjp(lf)
 
     def coefficient_vjp(self, key: str, lf: np.ndarray) -> float:
         """``lf^T d grad(B + D) / d key`` for a key of :attr:`keys`."""

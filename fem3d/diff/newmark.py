@@ -1,15 +1,23 @@
-"""The adjoint of ``simulation.integrator = "newmark"`` without contact (:mod:`fem3d.solve.
-newmark`: average acceleration, ``gamma = 1/2``, ``beta = 1/4``).
+"""The adjoint of ``simulation.integrator = "newmark"`` (:mod:`fem3d.solve.newmark`).
 
-A step is backward Euler's step equation with ``h = dt / 2``, ``q_B = q_n + dt/2 v_n``,
-``v_hat = v_n + dt/2 a_n``; after it ``a_{n+1} = 2 (v_{n+1} - v_n) / dt - a_n`` on the free
-DOFs and ``(v_{n+1} - v_n) / dt`` on the pinned ones. The state carries ``a``; the first
-state's ``a_0`` solves ``M a_0 + g(q_0, v_0) = 0`` on the free DOFs
-(:func:`fem3d.solve.newmark.initial_acceleration`: elasticity at ``q_0``, gravity, damping
-``D(q_0) v_0``), whose adjoint :meth:`NewmarkAdjoint.finish` adds: one solve with the mass
-matrix, the same terms at ``h = 1``. With contact Newmark changes ``gamma``
-(:data:`fem3d.solve.newmark.CONTACT_ALPHA`): refused (contact is differentiated with backward
-Euler only).
+A step is backward Euler's step equation with ``h = gamma dt``, ``q_B = q_n + (1 - gamma) dt
+v_n + (1/2 - gamma) dt^2 a_n``, ``v_hat = v_n + (1 - gamma) dt a_n`` (``beta = gamma^2``);
+after it ``a_{n+1} = (v_{n+1} - v_hat) / (gamma dt)`` on the free DOFs and
+``(v_{n+1} - v_n) / dt`` on the pinned ones. Without contact ``gamma = 1/2`` (average
+acceleration: ``h = dt / 2``, ``q_B = q_n + dt/2 v_n``, ``v_hat = v_n + dt/2 a_n``,
+``a_{n+1} = 2 (v_{n+1} - v_n) / dt - a_n``); with contact (IPC's barrier among the terms)
+``gamma = 1/2 +`` :data:`fem3d.solve.newmark.CONTACT_ALPHA`, as the forward step picks it
+(:func:`fem3d.solve.newmark.newmark_gamma`); the friction is lagged at ``q_n`` with the slip
+``q_{n+1} - q_n`` (:class:`fem3d.diff.contact.ContactAdjoint`'s ``q_B`` and ``q_t``
+products).
+
+The state carries ``a``; the first state's ``a_0`` solves ``M a_0 + g(q_0, v_0) = 0`` on the
+free DOFs (:func:`fem3d.solve.newmark.initial_acceleration`: elasticity at ``q_0``,
+gravity, damping ``D(q_0) v_0``), whose adjoint :meth:`NewmarkAdjoint.finish` adds: one
+solve with the mass matrix, the same terms at ``h = 1``, and, with contact, the barrier's
+force at ``q_0`` where a pair is within ``dhat`` there (as ``fem3d run``'s ``a_0``: the
+stiffness before the first step, the friction not yet lagged:
+:meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
 """
 
 from __future__ import annotations
@@ -22,19 +30,37 @@ import scipy.sparse.linalg as spla
 from fem3d.diff.schemes import SchemeAdjoint, StepLin, converged_settings, register_scheme
 from fem3d.diff.terms import StepPair, sparse_of
 from fem3d.solve.backward_euler import model_terms
-from fem3d.solve.newmark import initial_acceleration, newmark
+from fem3d.solve.newmark import initial_acceleration, newmark, newmark_gamma
 
 __all__ = ["NewmarkAdjoint"]
 
 
 class NewmarkAdjoint(SchemeAdjoint):
-    """Average acceleration (see the module docstring)."""
+    """Newmark with ``beta = gamma^2`` (see the module docstring).
+
+    Parameters
+    ----------
+    gamma : float, optional
+        1/2: average acceleration (no contact); :meth:`start` puts an instance with the
+        contact's ``gamma`` into a contact run.
+    """
 
     name = "newmark"
+    contact = True
+
+    def __init__(self, gamma: float = 0.5) -> None:
+        self.gamma = float(gamma)
 
     def start(self, run, state):
-        a0 = initial_acceleration(run.system, model_terms(run.system), state, run.dt)
-        return replace(state, a=a0)
+        """``a_0`` as the forward run takes it (every term, contact's barrier at ``q_0``
+        included); a contact run gets its own scheme with the forward step's ``gamma``
+        (``run.scheme``)."""
+        terms = [*model_terms(run.system), *(t for term in run.terms
+                                             for t in term.forward_terms())]
+        gamma = newmark_gamma(terms)
+        if gamma != self.gamma:
+            run.scheme = NewmarkAdjoint(gamma)
+        return replace(state, a=initial_acceleration(run.system, terms, state, run.dt))
 
     def forward(self, run, state, terms):
         return newmark(run.system, terms, state, run.dt,
@@ -43,24 +69,31 @@ class NewmarkAdjoint(SchemeAdjoint):
 
     def linear(self, s0, dt):
         q, v, a = s0.q.reshape(-1), s0.v.reshape(-1), s0.a.reshape(-1)
-        return StepLin(h=0.5 * dt, tau=dt, qb=q + 0.5 * dt * v, vh=v + 0.5 * dt * a)
+        g = self.gamma
+        if g == 0.5:  # as fem3d.solve.newmark computes it (bit for bit)
+            return StepLin(h=0.5 * dt, tau=dt, qb=q + 0.5 * dt * v, vh=v + 0.5 * dt * a)
+        return StepLin(h=g * dt, tau=dt,
+                       qb=q + ((1.0 - g) * dt * v + (0.5 - g) * dt * dt * a),
+                       vh=v + (1.0 - g) * dt * a)
 
     def split(self, s0, s1, bar1, fixed):
         bar0 = self.zero(s0)
         a_bar = bar1["a"]
         free = np.ones(a_bar.size, dtype=bool)
         free[fixed] = False
-        dt = s1.t - s0.t
-        dv = np.where(free, 2.0 / dt, 1.0 / dt) * a_bar  # a_{n+1} by v_{n+1}, by -v_n
+        dt, g = s1.t - s0.t, self.gamma
+        # a_{n+1} by v_{n+1} and by -v_n: 1 / (gamma dt) (free), 1 / dt (pinned)
+        dv = np.where(free, 1.0 / (g * dt), 1.0 / dt) * a_bar
         bar0["v"] -= dv
-        bar0["a"] -= np.where(free, a_bar, 0.0)
+        bar0["a"] -= np.where(free, (1.0 - g) / g * a_bar, 0.0)
         return bar1["q"], bar1["v"] + dv, bar0
 
     def pull_back(self, s0, lin, bar0, qb_bar, vh_bar):
-        dt = 2.0 * lin.h
+        g = self.gamma
+        dt = lin.h / g
         bar0["q"] += qb_bar
-        bar0["v"] += 0.5 * dt * qb_bar + vh_bar
-        bar0["a"] += 0.5 * dt * vh_bar
+        bar0["v"] += (1.0 - g) * dt * qb_bar + vh_bar
+        bar0["a"] += (0.5 - g) * dt * dt * qb_bar + (1.0 - g) * dt * vh_bar
 
     def finish(self, adj, s0, bar0):
         """``M a_0 + g(q_0, v_0) = 0``: the step equation's terms at ``h = 1`` with ``u = v_0``
@@ -74,6 +107,11 @@ class NewmarkAdjoint(SchemeAdjoint):
         pair = StepPair(q0=q, v0=v, q1=q, u=v, dt=adj.dt, t1=s0.t, t0=s0.t, step=s0.step,
                         h=1.0, qb=q, vh=v - a)
         for term in adj.terms:
+            if term in adj.run.terms:  # registered (contact): its force at q_0 alone
+                force_vjp = getattr(term, "start_force_vjp", None)
+                if force_vjp is not None:
+                    bar0["q"] += force_vjp(q, s0.t, lf, adj.grads)
+                continue
             term.linearize(pair)
             m = term.matrix()
             dq, dv = term.state_vjp(lf)  # dv: by v_hat = v_0 - a_0, with u = v_0 below

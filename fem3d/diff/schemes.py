@@ -17,7 +17,8 @@ flat arrays by :class:`~fem3d.solve.state.State` field (``q``, ``v``, and ``q_pr
 ``v_prev``, ``a`` where the scheme's state carries them).
 
 :func:`register_scheme` adds a scheme by its ``simulation.integrator`` name: backward Euler
-here, ``static`` (:mod:`fem3d.diff.static`) and ``bdf2`` (:mod:`fem3d.diff.bdf2`).
+here, ``static`` (:mod:`fem3d.diff.static`), ``bdf2`` (:mod:`fem3d.diff.bdf2`) and
+``newmark`` (:mod:`fem3d.diff.newmark`).
 """
 
 from __future__ import annotations
@@ -51,11 +52,14 @@ class SchemeAdjoint:
     name = ""
     #: inertia and Rayleigh damping in the step, ``v_{n+1} = u`` (False: static)
     dynamic = True
-    #: whether registered terms (contact) may join its steps
+    #: whether registered terms (contact) may join its steps (every scheme here: the contact
+    #: term reads the step map's ``h``, ``q_B`` and the step's start ``q_t`` apart)
     contact = False
 
     def start(self, run, state: State) -> State:
-        """The first state as the scheme's steps read it (default: ``state``)."""
+        """The first state as the scheme's steps read it (default: ``state``). Called once
+        the run's registered terms are made; a scheme whose step map depends on them puts an
+        instance of its own into ``run.scheme`` here (Newmark with contact: its ``gamma``)."""
         return state
 
     def finish(self, adj, s0: State, bar0: dict) -> None:

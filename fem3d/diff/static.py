@@ -5,8 +5,12 @@ end-of-step positions ``p_{n+1}``, ``q_{n+1} = q_n + x`` (``h = 1``, ``q_B = q_n
 inertia, no damping, velocities zero. Its adjoint is one solve with the exact (unprojected)
 Hessian ``H_ff(q_{n+1})`` per step; the cotangent of ``q_n`` through ``q_B`` cancels
 (``q_{n+1}`` does not depend on ``q_n`` where the equilibrium is unique: ``q_n`` is only
-Newton's start). The load path's increments (:data:`fem3d.solve.static.MAX_HALVINGS`) change
-how Newton gets there, not the equilibrium, so they are not differentiated.
+Newton's start). With contact the barrier ``kappa B(q_{n+1})`` joins the equilibrium, and
+the friction lagged at ``q_n`` (normal forces, slip ``q_{n+1} - q_n`` against ``eps_v dt``):
+through it, and only through it, ``q_{n+1}`` depends on ``q_n``
+(:meth:`fem3d.diff.contact.ContactAdjoint.start_vjp`). The load path's increments
+(:data:`fem3d.solve.static.MAX_HALVINGS`) change how Newton gets there, not the
+equilibrium, so they are not differentiated.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ class StaticAdjoint(SchemeAdjoint):
 
     name = "static"
     dynamic = False
+    contact = True
 
     def forward(self, run, state, terms):
         return static(run.system, terms, state, run.dt,
