@@ -29,14 +29,14 @@ from tests.test_contact import box_mesh
 from tests.test_contact_integrator import DT, free_system, independent_intersections
 
 
-def two_boxes(speed: float, gap: float = 0.03):
+def two_boxes(speed: float, gap: float = 0.03, mu: float = 0.0):
     """Box b (0.1 m) flies at ``speed`` toward box a, ``gap`` away, no gravity."""
     Xa, Ta = box_mesh((1, 1, 1), size=(0.1, 0.1, 0.1), origin=(0.0, 0.0, 0.0))
     Xb, Tb = box_mesh((1, 1, 1), size=(0.1, 0.1, 0.1), origin=(0.1 + gap, 0.02, 0.01))
     X, T = np.vstack([Xa, Xb]), np.vstack([Ta, Tb + len(Xa)])
     ids = np.r_[np.zeros(len(Xa), int), np.ones(len(Xb), int)]
     model, system = free_system(X, T, E=1e6, gravity=None)
-    term = ContactTerm(ContactModel(X, T, body_ids=ids, dhat=1e-3), tolerance=1e-2)
+    term = ContactTerm(ContactModel(X, T, body_ids=ids, dhat=1e-3, mu=mu), tolerance=1e-2)
     v = np.zeros_like(X)
     v[ids == 1, 0] = -speed
     return X, T, system, term, State(q=X.copy(), v=v)
@@ -55,18 +55,22 @@ def fail_first_check(term: ContactTerm) -> list:
 
 
 def test_a_substepped_step_is_two_steps_of_half_dt():
-    """At 1 m/s into the struck box (in contact within the step), a step whose check is made
-    to fail is redone as two substeps: the same state as two steps of dt/2 from the same
-    start, with the step's time and index."""
-    X, T, system, term, state = two_boxes(1.0, gap=0.005)
+    """At 1 m/s, sideways too, into the struck box (in contact within the step, friction
+    lagged at each substep's start), a step whose check is made to fail is redone as two
+    substeps: the same state as two steps of dt/2 from the same start (measured: bit for
+    bit; the tolerance allows the solver's round-off), with the step's time and index."""
+    X, T, system, term, state = two_boxes(1.0, gap=0.005, mu=0.5)
+    state = State(q=state.q, v=state.v + [0.0, 0.0, 0.3])
     calls = fail_first_check(term)
     sub, stats = implicit_euler(system, state, DT, terms=[term], max_substeps=4)
     assert stats.substeps == 2 and stats.converged and len(calls) == 3
     assert sub.t == DT and sub.step == 1 and sub.q_prev is None
-    X, T, system, term, half = two_boxes(1.0, gap=0.005)
+    X, T, system, term, half = two_boxes(1.0, gap=0.005, mu=0.5)
+    half = State(q=half.q, v=half.v + [0.0, 0.0, 0.3])
     for _ in range(2):
         half, _ = implicit_euler(system, half, DT / 2, terms=[term])
     assert term.contact.n_active(half.q.reshape(-1)) > 0  # the boxes touch
+    assert term.contact.n_friction_pairs > 0  # and friction acts
     np.testing.assert_allclose(sub.q, half.q, rtol=0, atol=1e-12)
     np.testing.assert_allclose(sub.v, half.v, rtol=0, atol=1e-10)
     assert not independent_intersections(X, T, sub.q)
