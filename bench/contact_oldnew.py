@@ -1,7 +1,7 @@
 """Contact scenes, this tree against an older checkout: speed and how far the trajectories part.
 
     python -m bench.contact_oldnew --old /path/to/old/checkout [--scenes contact_stack ...]
-                                   [--steps N] [--repeat 1]
+                                   [--steps N] [--repeat 1] [--new-set KEY=VALUE ...]
 
 Each scene runs in a fresh process per code version (``OMP_NUM_THREADS=1``, alternating old
 and new so both see the same load): steps per second by wall clock and by CPU time of the
@@ -34,15 +34,16 @@ from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 name, steps, out, ov = sys.argv[1], int(sys.argv[2]), sys.argv[3], json.loads(sys.argv[4])
 sim = Simulation(apply_overrides(load_scene(name), ov), scripted=True)
-Q, iters = [], 0
+Q, iters, substepped = [], 0, 0
 w0, c0 = time.perf_counter(), time.process_time()
 for _ in range(steps):
     sim.step()
     Q.append(sim.q.copy())
     iters += sim.last_stats.newton_iterations
+    substepped += getattr(sim.last_stats, "substeps", 1) > 1
 wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 np.save(out, np.array(Q))
-print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps}))
+print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps, "substepped": substepped}))
 """
 
 
@@ -73,7 +74,11 @@ def main(argv=None) -> None:
                                                     "contact_twisted_bar"])
     ap.add_argument("--steps", type=int, default=0, help="0: the scene's own duration")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--new-set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="scene overrides for the new tree only (VALUE as JSON), e.g. "
+                         "contact.max_substeps=8")
     args = ap.parse_args(argv)
+    new_overrides = {k: json.loads(v) for k, v in (a.split("=", 1) for a in args.new_set)}
     perturbed = {"simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes:
@@ -86,13 +91,14 @@ def main(argv=None) -> None:
             figures: dict[str, list[dict]] = {"old": [], "new": []}
             for _ in range(args.repeat):
                 for key, tree in (("old", args.old), ("new", ROOT)):
-                    figures[key].append(run(tree, scene, steps, paths[key], {}))
+                    figures[key].append(run(tree, scene, steps, paths[key],
+                                            new_overrides if key == "new" else {}))
             run(args.old, scene, steps, paths["pert"], perturbed)
             for key in ("old", "new"):
                 best = min(figures[key], key=lambda f: f["cpu"])
                 print(f"{scene:22s} {key}: {steps} steps  {steps / best['wall']:6.1f} steps/s wall"
-                      f"  {steps / best['cpu']:6.1f} steps/s CPU  {best['newton']:.2f} Newton/step",
-                      flush=True)
+                      f"  {steps / best['cpu']:6.1f} steps/s CPU  {best['newton']:.2f} Newton/step"
+                      f"  {best['substepped']} steps substepped", flush=True)
             old, new, pert = (np.load(paths[k]) for k in ("old", "new", "pert"))
             print(f"{'':22s} new vs old:               {parting(old, new)}")
             print(f"{'':22s} old vs old, gravity 1 ulp: {parting(old, pert)}", flush=True)

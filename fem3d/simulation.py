@@ -38,6 +38,7 @@ from fem3d.scene.build import build
 from fem3d.scene.spec import Scene
 from fem3d.solve.backward_euler import model_terms, newton_options
 from fem3d.solve.integrators import INTEGRATORS, TERM_INTEGRATORS, State, StepStats, System
+from fem3d.solve.substeps import step_with_substeps
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 
@@ -160,6 +161,10 @@ class Simulation:
         resolved); settable.
     max_newton_iterations, newton_hessian, newton_solver, newton_warm_start
         Backward Euler's Newton settings (``scene.simulation.newton``).
+    max_substeps : int
+        Contact steps whose straight motion passes through a surface are redone in up to
+        this many substeps (``scene.contact.max_substeps``; :mod:`fem3d.solve.substeps`;
+        not ``static``).
     last_stats : StepStats or None
         Details of the last step (Newton gradient norms, shifts, ...).
     """
@@ -202,6 +207,7 @@ class Simulation:
         self.newton_hessian = sim.newton.hessian
         self.newton_solver = sim.newton.solver
         self.newton_warm_start = sim.newton.warm_start
+        self.max_substeps = scene.contact.max_substeps
         self.pick_radius = built.pick_radius
         self.spring_k = built.spring_k
         self._W = None
@@ -603,11 +609,13 @@ class Simulation:
                 fixed_positions=fixed,
             )
         else:
-            new, stats = TERM_INTEGRATORS[self._integrator](
+            new, stats = step_with_substeps(
+                TERM_INTEGRATORS[self._integrator],
                 self.system, self.objective_terms(), self._state, self._dt,
                 max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
                 options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start),
-                fixed_positions=fixed,
+                fixed_positions=fixed, fixed_at=self.fixed_positions,
+                max_substeps=1 if self._integrator == "static" else self.max_substeps,
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)

@@ -199,6 +199,8 @@ def test_friction_iterations_and_contact_keys_without_their_term_are_refused() -
     loss = PositionLoss({1: np.zeros((27, 3))})
     with pytest.raises(ParameterError, match="friction_iterations = 3"):
         trajectory_gradient(scene, loss, [E_KEY])
+    with pytest.raises(ParameterError, match="max_substeps = 4: the adjoint differentiates"):
+        trajectory_gradient(drop_scene(contact={**CONTACT, "max_substeps": 4}), loss, [E_KEY])
     no_contact = drop_scene(contact={"enabled": False}, obstacles=[], **{
         "bodies[0].pins": [{"select": {"lowest_y": {"tol": 0.0}}}]})
     with pytest.raises(ParameterError, match="'contact.mu' in this scene"):

@@ -83,8 +83,9 @@ def contact_adjoint(scene, built) -> ContactAdjoint | None:
     Raises
     ------
     ParameterError
-        ``contact.friction_iterations > 1`` (friction re-lagged at the Newton solution), or a
-        start that intersects or touches.
+        ``contact.friction_iterations > 1`` (friction re-lagged at the Newton solution),
+        ``contact.max_substeps > 1`` (steps redone as substeps), or a start that intersects or
+        touches.
     """
     if built.contact is None:
         return None
@@ -93,6 +94,9 @@ def contact_adjoint(scene, built) -> ContactAdjoint | None:
         raise ParameterError("trajectory_gradient: contact.friction_iterations = "
                              f"{spec.friction_iterations}: the adjoint differentiates friction "
                              "lagged once per step (set it to 1)")
+    if spec.max_substeps != 1:
+        raise ParameterError(f"trajectory_gradient: contact.max_substeps = {spec.max_substeps}:"
+                             " the adjoint differentiates whole steps (set it to 1)")
     term = ContactTerm(built.contact.contact, tolerance=_NO_VELOCITY_STOP,
                        pattern_margin=built.contact.barrier.pattern_margin)
     return ContactAdjoint(term, {"mu_s": spec.mu_s is None, "mu_k": spec.mu_k is None})

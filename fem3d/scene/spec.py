@@ -379,6 +379,17 @@ class ContactSpec(_Spec):
     #: stop re-lagging when a solve moves the positions by less than this, relative to the
     #: scene's bounding-box diagonal
     friction_tolerance: Positive = 1e-6
+    #: a step whose own straight motion from q_t to q_t+1 passes through a surface (or whose
+    #: Newton solve fails) is redone as 2, 4, ... substeps of dt/n, up to this many (a power
+    #: of two; 1: never, the step is not checked). fem3d.solve.substeps
+    max_substeps: Annotated[StrictInt, Field(ge=1, le=1024)] = 1
+
+    @field_validator("max_substeps")
+    @classmethod
+    def _power_of_two(cls, n: int) -> int:
+        if n & (n - 1):
+            raise ValueError(f"must be a power of two (1, 2, 4, ..., 1024), got {n}")
+        return n
 
     @property
     def static_mu(self) -> float:

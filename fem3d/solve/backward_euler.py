@@ -63,6 +63,7 @@ from fem3d.solve.state import (
     pins_over_step,
     place_pins,
 )
+from fem3d.solve.substeps import step_with_substeps
 from fem3d.solve.system import System
 
 __all__ = ["implicit_euler", "backward_euler", "model_terms", "newton_options",
@@ -370,6 +371,7 @@ def implicit_euler(
     amg_budget: float = AMG_ITERATIONS_PER_DECADE,
     forcing_max: float = FORCING_MAX,
     warm_start: str = "previous",
+    max_substeps: int = 1,
 ) -> tuple[State, StepStats]:
     """One backward-Euler step of the system's model (:func:`model_terms`) plus ``terms``.
 
@@ -399,6 +401,10 @@ def implicit_euler(
     warm_start : {"previous", "extrapolate"}, optional
         Newton's start (:data:`WARM_STARTS`): ``"extrapolate"`` also tries ``2 v_t -
         v_t-1`` (the returned state carries ``v_prev`` for the next step).
+    max_substeps : int, optional
+        A power of two: a contact step whose own straight motion is not intersection-free
+        (or that fails) is redone as up to this many substeps
+        (:func:`fem3d.solve.substeps.step_with_substeps`); 1: never.
 
     Returns
     -------
@@ -407,8 +413,9 @@ def implicit_euler(
     options = newton_options(hessian, cg_rtol=cg_rtol, cg_maxiter=cg_maxiter,
                              amg_maxiter=amg_maxiter, amg_budget=amg_budget,
                              forcing_max=forcing_max, warm_start=warm_start)
-    return backward_euler(
-        system, [*model_terms(system, pull), *terms], state, dt,
+    return step_with_substeps(
+        backward_euler, system, [*model_terms(system, pull), *terms], state, dt,
+        max_substeps=max_substeps,
         fixed_positions=fixed_positions, max_iterations=max_iterations, rtol=rtol,
         atol_factor=atol_factor, linear_solver=linear_solver, options=options,
         converged_max_iterations=converged_max_iterations)

@@ -83,6 +83,9 @@ class StepStats:
     load_increments : int
         ``static``: the equilibrium solves of the step (1: the whole load at once; more: the
         load was applied in smaller increments after a Newton failure).
+    substeps : int
+        The substeps the step was taken in (:mod:`fem3d.solve.substeps`; 1: the whole step at
+        once). The other counts then sum every attempt, the rejected ones included.
     seconds : dict of str to float
         Wall time of the step's parts (implicit Euler): ``"matrix"`` (Newton-matrix
         assembly), ``"factorize"``, ``"cg"`` (CG iterations, preconditioner included),
@@ -101,6 +104,7 @@ class StepStats:
     amg_setups: int = 0
     lagged_matrices: int = 0
     load_increments: int = 0
+    substeps: int = 1
     seconds: dict[str, float] = field(default_factory=dict)
 
     def add_seconds(self, part: str, seconds: float) -> None:

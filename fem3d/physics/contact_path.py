@@ -1,0 +1,84 @@
+"""Whether a time step's own straight motion, from ``q_t`` to ``q_{t+1}``, is intersection-free.
+
+Newton's iterates of a contact step are each reached by a CCD-checked segment, so the chain
+of segments from ``q_t`` to ``q_{t+1}`` never passes through a surface; the straight motion
+between the two states, which is what the time discretisation (and any playback of the
+frames) assumes, may. A fast body can be steered by that chain around another one's corner
+(``docs/contact.md``, "The fast body through a free body"): then the straight motion
+intersects, and the step has to be shorter (:mod:`fem3d.solve.substeps`).
+
+The test here is Tight-Inclusion CCD (Wang et al. 2021, through ``ipctk``) on the straight
+motion of every collision vertex, the bodies from ``q0`` to ``q1`` and the mesh obstacles from
+where they are at ``t0`` to where they are at ``t1``, with the minimum distance the line search
+uses (0) and no conservative rescaling (``conservative_rescaling = 1``): it reports a time of
+impact only where primitives meet, to the CCD's tolerance, not where they merely come closer
+than a fraction of their start distance (the line search's additive CCD does, to keep the
+barrier finite: that would flag every landing). Planes need no test: each vertex moves on a
+line, so it crosses a plane within the step only if it ends below it, which the line search
+never accepts. The candidates are the step's own (:class:`~fem3d.physics.contact_candidates.
+StepCandidates`), grown when the motion leaves their boxes. The model's own CCD (additive by
+default) runs first: it flags every pair whose distance falls below a tenth of its start, so
+a motion it passes meets no surface, and only a flagged motion (a landing, a hit) needs the
+exact test; on the twisted bar this halves the check's cost (0.6 to 0.3 ms a step).
+"""
+
+from __future__ import annotations
+
+import time
+
+import ipctk
+import numpy as np
+
+__all__ = ["straight_path_is_free", "PATH_CCD_TOLERANCE"]
+
+#: Tight-Inclusion's tolerance (its default; in the time parameter, scaled down to half the
+#: initial distance of a pair where that is smaller).
+PATH_CCD_TOLERANCE = 1e-6
+
+#: Tight-Inclusion's iteration budget (its default).
+PATH_CCD_MAX_ITERATIONS = 10_000_000
+
+_CCD = ipctk.TightInclusionCCD(PATH_CCD_TOLERANCE, PATH_CCD_MAX_ITERATIONS, 1.0)
+
+
+def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
+                          t1: float) -> bool:
+    """Whether the straight motion from ``q0`` at ``t0`` to ``q1`` at ``t1`` meets no surface.
+
+    Parameters
+    ----------
+    contact : fem3d.physics.contact.ContactModel
+    q0, q1 : (3n,) or (n, 3) float64
+        The bodies' positions at the start and the end of the motion.
+    t0, t1 : float
+        The times of ``q0`` and ``q1`` (the kinematic mesh obstacles' positions).
+
+    Returns
+    -------
+    bool
+        True when no pair of primitives that can touch meets along the motion (always True
+        without mesh-mesh contact: a body against planes only).
+    """
+    parts = [p for p in contact._parts if p.mesh is contact.mesh]
+    if not parts:
+        return True
+    start = time.perf_counter()
+    V0 = contact.collision_vertices(q0, contact.obstacle_positions(t0))
+    V1 = contact.collision_vertices(q1, contact.obstacle_positions(t1))
+    free = True
+    for part in parts:
+        P0, P1 = np.asfortranarray(part.view(V0)), np.asfortranarray(part.view(V1))
+        cands = contact._candidates_along(part, P0, P1)
+        # the model's CCD first (additive by default, cheaper): it flags every pair that
+        # comes closer than a fraction of its start distance, so a motion it passes meets no
+        # surface; only a flagged motion needs the exact test
+        if cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
+                                        narrow_phase_ccd=contact._ccd):
+            continue
+        if not cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
+                                            narrow_phase_ccd=_CCD):
+            free = False
+            break
+    contact.stats.ccd_calls += 1
+    contact.stats.seconds_ccd += time.perf_counter() - start
+    return free
