@@ -20,6 +20,10 @@ candidates change (issue 21): the leaner contact pattern changes CHOLMOD's fill-
 ordering, so their round-off (the twisted bar moves 5e-17 m; the chaotic stack drifts no more
 than the old code does from itself with gravity one ulp off: ``python -m bench.contact_oldnew``
 prints both side by side). Every other case still holds the code before the restructuring.
+
+Scenes that changed since keep the settings they were recorded with (``record_trajectories``'s
+overrides): ``contact_bunny_drop`` without the self-contact and damping it gained, and
+``contact_stack`` without substeps (``contact.max_substeps = 1``; the default became 8).
 """
 
 from __future__ import annotations

@@ -176,6 +176,7 @@ class _Run:
             raise SimulationError("Newton did not converge: the adjoint needs converged steps",
                                   step=state.step)
         for term in self.terms:
+            term.check_step(state, new)
             term.after_step(state)
         return new
 

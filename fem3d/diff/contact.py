@@ -61,7 +61,7 @@ import scipy.sparse as sp
 
 from fem3d.diff.adjoint import register_term
 from fem3d.diff.terms import AdjointTerm, Gradients, StepPair
-from fem3d.errors import ParameterError
+from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.friction import point_plane_friction
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.state import State
@@ -83,9 +83,8 @@ def contact_adjoint(scene, built) -> ContactAdjoint | None:
     Raises
     ------
     ParameterError
-        ``contact.friction_iterations > 1`` (friction re-lagged at the Newton solution),
-        ``contact.max_substeps > 1`` (steps redone as substeps), or a start that intersects or
-        touches.
+        ``contact.friction_iterations > 1`` (friction re-lagged at the Newton solution), or a
+        start that intersects or touches.
     """
     if built.contact is None:
         return None
@@ -94,12 +93,10 @@ def contact_adjoint(scene, built) -> ContactAdjoint | None:
         raise ParameterError("trajectory_gradient: contact.friction_iterations = "
                              f"{spec.friction_iterations}: the adjoint differentiates friction "
                              "lagged once per step (set it to 1)")
-    if spec.max_substeps != 1:
-        raise ParameterError(f"trajectory_gradient: contact.max_substeps = {spec.max_substeps}:"
-                             " the adjoint differentiates whole steps (set it to 1)")
     term = ContactTerm(built.contact.contact, tolerance=_NO_VELOCITY_STOP,
                        pattern_margin=built.contact.barrier.pattern_margin)
-    return ContactAdjoint(term, {"mu_s": spec.mu_s is None, "mu_k": spec.mu_k is None})
+    return ContactAdjoint(term, {"mu_s": spec.mu_s is None, "mu_k": spec.mu_k is None},
+                          check_paths=spec.max_substeps > 1)
 
 
 class ContactAdjoint(AdjointTerm):
@@ -112,6 +109,9 @@ class ContactAdjoint(AdjointTerm):
     follows_mu : dict, optional
         ``{"mu_s": bool, "mu_k": bool}``: whether ``contact.mu`` sets that coefficient (the
         scene leaves its own key unset; default both).
+    check_paths : bool, optional
+        Check each forward step's straight motion as a run with ``contact.max_substeps > 1``
+        does (:mod:`fem3d.solve.substeps`), and stop where the run would take substeps.
 
     Attributes
     ----------
@@ -126,8 +126,10 @@ class ContactAdjoint(AdjointTerm):
 
     name = "contact"
 
-    def __init__(self, term: ContactTerm, follows_mu: dict | None = None) -> None:
+    def __init__(self, term: ContactTerm, follows_mu: dict | None = None, *,
+                 check_paths: bool = False) -> None:
         self.term = term
+        self.check_paths = check_paths
         self.follows_mu = follows_mu or {"mu_s": True, "mu_k": True}
         self.cm = term.contact
         self.keys = tuple(k for k in CONTACT_KEYS
@@ -212,6 +214,16 @@ class ContactAdjoint(AdjointTerm):
         kappa_lag = self.term.friction.lagged_stiffness
         kappa = self.cm.kappa
         self._kappas[state.step] = (kappa if math.isnan(kappa_lag) else kappa_lag, kappa)
+
+    def check_step(self, state: State, new: State) -> None:
+        """Stop where ``fem3d run`` would redo the step as substeps (its straight motion
+        passes through a surface): the adjoint differentiates whole steps."""
+        if self.check_paths and not self.term.straight_path_is_free(state.q, new.q, state.t,
+                                                                    new.t):
+            raise SimulationError(
+                f"step {state.step}: its straight motion passes through a surface, so a run "
+                "takes it as substeps (contact.max_substeps); the adjoint differentiates whole "
+                "steps only (a smaller simulation.dt avoids it)", step=state.step)
 
     def start_force_vjp(self, q0: np.ndarray, t0: float, lf: np.ndarray,
                         grads: Gradients) -> np.ndarray:

@@ -119,6 +119,10 @@ class AdjointTerm:
     def after_step(self, state) -> None:
         """Called after each forward step from ``state``."""
 
+    def check_step(self, state, new) -> None:
+        """Raise where the forward step from ``state`` to ``new`` is not one a run takes
+        (default: every step is)."""
+
     def linearize(self, pair: StepPair) -> None:
         """Keep what the step needs (matrices at ``q_{n+1}`` or ``q_n``)."""
 
