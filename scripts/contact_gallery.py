@@ -1,6 +1,7 @@
 """Render the contact gallery's previews: docs/gallery/contact_<scene>.gif (and a .png).
 
     python scripts/contact_gallery.py [SCENE ...]      # default: every data/scenes/contact_*
+    python scripts/contact_gallery.py contact_pile --frames runs/pile   # from a run's frames
 
 Each scene runs exactly as ``fem3d run`` steps it (``Simulation.step``); the picture holds every
 body's display mesh and the obstacles (a plane drawn as a square patch under the bodies, mesh
@@ -41,8 +42,9 @@ def plane_patch(point, normal, center, half):
     return V, F
 
 
-def render(name: str, out_dir: Path, frames_wanted: int = 60) -> None:
-    from fem3d.io.preview import render_preview
+def simulate(name: str, frames_wanted: int = 60):
+    """Step scene ``name`` as ``fem3d run`` does; every ``every``-th state's display mesh and
+    obstacles. Returns ``(sim, shots, obstacle_shots, every, seconds)``."""
     from fem3d.scene import DEFAULT_STEPS, load_scene
     from fem3d.simulation import Simulation
 
@@ -51,7 +53,6 @@ def render(name: str, out_dir: Path, frames_wanted: int = 60) -> None:
     sc = scene.simulation
     steps = sc.steps or (round(sc.duration / sc.dt) if sc.duration else DEFAULT_STEPS)
     every = max(1, steps // frames_wanted)
-    faces = sim.display_faces
     shots = [sim.skin_positions()]
     obstacle_shots = [sim.obstacles()]
     t0 = time.perf_counter()
@@ -60,7 +61,36 @@ def render(name: str, out_dir: Path, frames_wanted: int = 60) -> None:
         if (k + 1) % every == 0 or k + 1 == steps:
             shots.append(sim.skin_positions())
             obstacle_shots.append(sim.obstacles())
-    seconds = time.perf_counter() - t0
+    return sim, shots, obstacle_shots, every, time.perf_counter() - t0
+
+
+def from_frames(name: str, folder: Path, frames_wanted: int = 60):
+    """The same from the frames a run wrote (``fem3d run NAME --out FOLDER``, a scene without
+    a skin: the frames are the simulation surface), without stepping again."""
+    import meshio
+
+    from fem3d.scene import load_scene
+    from fem3d.simulation import Simulation
+
+    sim = Simulation(load_scene(name), scripted=True)
+    files = sorted((folder / "frames").glob("frame_*.vtu"))
+    every = max(1, (len(files) - 1) // frames_wanted)
+    picked = files[::every] if (len(files) - 1) % every == 0 else [*files[::every], files[-1]]
+    dt = sim.dt
+    shots, obstacle_shots = [], []
+    for f in picked:
+        shots.append(np.asarray(meshio.read(f).points, dtype=np.float64))
+        obstacle_shots.append(sim.obstacles(files.index(f) * dt))
+    return sim, shots, obstacle_shots, every, float("nan")
+
+
+def render(name: str, out_dir: Path, frames_wanted: int = 60, folder: Path | None = None) -> None:
+    from fem3d.io.preview import render_preview
+
+    sim, shots, obstacle_shots, every, seconds = (
+        simulate(name, frames_wanted) if folder is None else from_frames(name, folder,
+                                                                         frames_wanted))
+    faces = sim.display_faces
     allpts = np.vstack(shots)
     lo, hi = allpts.min(axis=0), allpts.max(axis=0)
     center = 0.5 * (lo + hi)
@@ -84,17 +114,24 @@ def render(name: str, out_dir: Path, frames_wanted: int = 60) -> None:
             all_faces = np.vstack(Fs)
     out_dir.mkdir(parents=True, exist_ok=True)
     gif = out_dir / f"{name}.gif"
-    render_preview(frames, all_faces, gif, fps=min(50.0, 1.0 / (every * sc.dt)),
+    render_preview(frames, all_faces, gif, fps=min(50.0, 1.0 / (every * sim.dt)),
                    view_bounds="all", max_frames=frames_wanted + 1,
-                   first_frame_png=out_dir / f"{name}.png", elev=35.0, azim=30.0)
-    print(f"{name}: {steps} steps in {seconds:.1f} s ({steps / seconds:.1f} steps/s), "
-          f"{len(frames)} frames -> {gif}", flush=True)
+                   first_frame_png=out_dir / f"{name}.png", azim=30.0,
+                   # from higher up where a mesh obstacle (an open box) would hide the bodies
+                   elev=65.0 if sim.contact.contact.meshes else 35.0)
+    steps = every * (len(shots) - 1)
+    print(f"{name}: ~{steps} steps ({seconds:.1f} s), {len(frames)} frames -> {gif}", flush=True)
 
 
 def main(argv: list[str]) -> None:
+    folder = None
+    if "--frames" in argv:  # --frames DIR: one scene, from the frames of a run in DIR
+        i = argv.index("--frames")
+        folder = Path(argv[i + 1])
+        argv = argv[:i] + argv[i + 2:]
     names = argv or sorted(p.stem for p in (ROOT / "data" / "scenes").glob("contact_*.toml"))
     for name in names:
-        render(name, ROOT / "docs" / "gallery")
+        render(name, ROOT / "docs" / "gallery", folder=folder)
 
 
 if __name__ == "__main__":
