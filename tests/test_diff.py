@@ -7,7 +7,8 @@ import pytest
 from test_assembly import box_mesh
 
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
-from fem3d.diff.adjoint import scene_with
+from fem3d.diff.adjoint import Stats, scene_with
+from fem3d.diff.damping import DEFAULT_CACHE_BYTES
 from fem3d.errors import ParameterError
 from fem3d.scene.load import scene_from_arrays
 
@@ -66,15 +67,26 @@ def test_adjoint_gradient_matches_central_differences(beta: float) -> None:
         assert error < 1e-6, f"{key}: adjoint {g}, differences {fd}, relative error {error:.2e}"
 
 
-def test_checkpointing_does_not_change_the_gradient() -> None:
-    scene, _ = box_scene(0.0)
+@pytest.mark.parametrize("beta", [0.0, 0.002])
+def test_checkpointing_does_not_change_the_gradient(beta: float) -> None:
+    """Every state kept (k = 1), segments recomputed (k = 3: with stiffness damping the
+    recomputed steps keep their damping linearizations for the backward steps, or not when
+    the byte budget is 0), one segment kept whole (k = 100): the same gradient."""
+    scene, _ = box_scene(beta)
     qs = simulate(scene, STEPS)
-    loss = PositionLoss({STEPS: qs[STEPS][[5, 7]] + 0.01}, vertices=[5, 7])
-    keys = ["bodies[0].material.E", "bodies[0].velocity"]
+    loss = PositionLoss({STEPS: qs[STEPS][[5, 7]] + 0.01, 4: qs[4][[5, 7]] - 0.01},
+                        vertices=[5, 7])
+    keys = ["bodies[0].material.E", "bodies[0].velocity",
+            *(["bodies[0].damping.rayleigh_stiffness"] if beta else [])]
     _, every = trajectory_gradient(scene, loss, keys, checkpoint_every=1)
-    _, once = trajectory_gradient(scene, loss, keys, checkpoint_every=100)
-    for key in keys:
-        np.testing.assert_allclose(every[key], once[key], rtol=1e-12)
+    stats = Stats()
+    for k, budget in ((3, DEFAULT_CACHE_BYTES), (3, 0), (100, DEFAULT_CACHE_BYTES)):
+        _, other = trajectory_gradient(scene, loss, keys, checkpoint_every=k,
+                                       cache_bytes=budget, stats=stats)
+        for key in keys:
+            np.testing.assert_allclose(every[key], other[key], rtol=1e-12, err_msg=f"k={k}")
+    assert stats.recomputed_steps == 2 * 6  # steps 1, 2, 4, 5, 7, 8 (9, 10: the last segment)
+    assert (stats.peak_damping_bytes > 0) == (beta > 0)
 
 
 def test_unknown_parameter_is_refused() -> None:
@@ -304,3 +316,34 @@ def test_projected_bilinear_derivative_matches_differences_where_indefinite(
         # per element, relative to its largest entry (a zero row: to the batch's)
         scale = np.maximum(np.abs(ref).max(axis=1), 1e-3 * np.abs(ref).max())[:, None]
         assert (np.abs(got - ref) / scale).max() < 1e-6
+
+
+def test_damping_linearization_matches_the_kernels_damping_matrix() -> None:
+    """``D(q)`` built from one eigendecomposition per indefinite element (what the backward
+    pass keeps) is the C/NumPy kernels' ``matrix_data`` to round-off on a deformed box where
+    every element is projected, and the adjoint's products from its eigendecompositions are
+    those from ``eigh`` of their own."""
+    from fem3d.diff.adjoint import _prepare
+    from fem3d.diff.damping import linearize_damping, psd_elements
+    from fem3d.diff.terms import psd_bilinear_vjp
+
+    scene, _ = box_scene(0.002)
+    run = _prepare(scene, 1e-11, 1e-16)
+    model, term = run.system.model, run.system.damping_term
+    rng = np.random.default_rng(3)
+    q = (model.X * [1.0, 0.6, 1.0] + 0.05 * rng.normal(size=model.X.shape)).reshape(-1)
+    lin = linearize_damping(term, run.groups, q)
+    ref = term.matrix_data(q)
+    assert np.abs(lin.data - ref).max() < 1e-12 * np.abs(ref).max()
+    (g, els, params, inputs), = run.groups
+    bad, values, V = lin.eig[0]
+    assert bad.size > els.size // 2
+    x = q.reshape(-1, 3)
+    F = np.einsum("evc,evj->ecj", x[model.T[els]], model.dphi_dX[els])
+    a, b = rng.normal(size=(els.size, 9)), rng.normal(size=(els.size, 9))
+    own = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params)
+    kept = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params, lin.eig[0])
+    for x1, x2 in zip(own, kept, strict=True):
+        np.testing.assert_allclose(x1, x2, rtol=1e-10, atol=1e-12 * np.abs(x1).max())
+    A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
+    assert not psd_elements(A[bad]).any() and psd_elements(A[:1] * 0 + np.eye(9)).all()

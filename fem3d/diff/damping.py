@@ -1,0 +1,179 @@
+"""Stiffness damping's matrix with its eigendecompositions, kept for the backward pass.
+
+``D(q) = alpha M + beta K_psd(q)``: ``K_psd`` is the elastic Hessian with each element's
+``A = dP/dF`` (9x9) projected to positive semi-definite. The backward pass needs, at each
+step's start ``q_n``, both ``D(q_n)`` (in the transposed Newton matrix) and the eigenvectors
+and eigenvalues of every projected ``A`` (the projection's derivative, Daleckii-Krein:
+:func:`fem3d.diff.terms.psd_bilinear_vjp`). :func:`linearize_damping` computes both from one
+eigendecomposition per indefinite element; :class:`RecordingDamping` is the forward step's
+damping term in :mod:`fem3d.diff` runs: it builds ``D`` that way and, while recording (the
+recomputation of a segment, the last segment of the first forward run), keeps each step's
+:class:`DampingLinearization` for the backward step that reads it (at most ``k`` of them,
+within a byte budget), so that a backward step neither assembles ``D`` nor decomposes an
+element again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fem3d.physics.terms.damping import RayleighDamping
+
+__all__ = ["DampingLinearization", "linearize_damping", "psd_elements", "RecordingDamping",
+           "DEFAULT_CACHE_BYTES"]
+
+#: Default byte budget of the kept linearizations (``trajectory_gradient(cache_bytes=...)``).
+DEFAULT_CACHE_BYTES = 1 << 30
+
+
+@dataclass
+class DampingLinearization:
+    """``D`` at ``q`` and the eigendecompositions of its projected element blocks.
+
+    Attributes
+    ----------
+    q : (3n,) float64
+        The positions (a copy; a kept linearization is used only at these exact positions).
+    data : (nnz,) float64
+        ``D = alpha M + beta K_psd(q)`` on ``model.pattern``.
+    eig : list of (bad, values, V)
+        Per material group (:func:`fem3d.diff.terms.element_groups`' order): the group-local
+        indices ``(k,)`` of the elements whose ``A`` has a negative eigenvalue (projected), its
+        eigenvalues ``(k, 9)`` and eigenvectors ``(k, 9, 9)`` (columns); every other element's
+        ``A`` is kept exactly.
+    """
+
+    q: np.ndarray
+    data: np.ndarray
+    eig: list
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held."""
+        return int(self.q.nbytes + self.data.nbytes +
+                   sum(b.nbytes + w.nbytes + v.nbytes for b, w, v in self.eig))
+
+
+def psd_elements(A: np.ndarray) -> np.ndarray:
+    """Which symmetric ``A`` (``(m, n, n)``) an LDL^T without pivoting proves positive
+    semi-definite (every pivot ``>= -tol``, no zero pivot with coupling; ``tol = 1e-12
+    |A|_F``, as the C kernels' projection decides): ``(m,) bool``. The others need an
+    eigendecomposition (one with no negative eigenvalue is kept too)."""
+    m, n, _ = A.shape
+    tol = 1e-12 * np.sqrt(np.einsum("eij,eij->e", A, A))
+    L = np.zeros_like(A)
+    d = np.zeros((m, n))
+    ok = np.ones(m, dtype=bool)
+    for k in range(n):
+        Ld = L[:, :, :k] * d[:, None, :k]  # (m, n, k): L_ij d_j
+        dk = A[:, k, k] - np.einsum("ej,ej->e", Ld[:, k], L[:, k, :k])
+        ok &= dk >= -tol
+        d[:, k] = dk
+        s = A[:, k + 1:, k] - np.einsum("eij,ej->ei", Ld[:, k + 1:], L[:, k, :k])
+        big = dk > tol
+        L[:, k + 1:, k] = s / np.where(big, dk, 1.0)[:, None] * big[:, None]
+        ok &= ~((~big)[:, None] & (np.abs(s) > tol[:, None])).any(axis=1)
+    return ok
+
+
+def _element_blocks(Dm: np.ndarray, A: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``w_e B_e^T A_e B_e`` (``(m, 12, 12)``, rows and columns ``(vertex, component)``) with
+    ``B``: ``dF/dx`` (``F_cj = sum_v x_vc Dm_vj``)."""
+    m = A.shape[0]
+    A5 = A.reshape(m, 3, 3, 9)  # (c, j, (d, l))
+    T1 = np.stack([Dm @ A5[:, c] for c in range(3)], axis=2)  # (m, 4 v, 3 c, 9 (d, l))
+    # ((v, c), d, l) @ Dm^T: ((v, c), d, w)
+    H = (T1.reshape(m, 36, 3) @ Dm.transpose(0, 2, 1)).reshape(m, 12, 3, 4)
+    H = H.transpose(0, 1, 3, 2).reshape(m, 12, 12)
+    H *= w[:, None, None]
+    return H
+
+
+def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray
+                      ) -> DampingLinearization:
+    """``D(q)`` of a Rayleigh damping term and its eigendecompositions (see
+    :class:`DampingLinearization`): the same matrix as ``term.matrix_data(q)`` up to
+    round-off (the projection by LAPACK's ``eigh`` instead of the C kernels' Jacobi
+    rotations).
+
+    Parameters
+    ----------
+    term : RayleighDamping
+        Its ``alpha M`` and ``beta vol`` (active).
+    groups : list
+        :func:`fem3d.diff.terms.element_groups` of its model.
+    q : (3n,) or (n, 3) float64
+    """
+    model = term.model
+    q = np.array(q, dtype=np.float64).reshape(-1)
+    data = np.zeros(model.nnz)
+    eig = []
+    beta_vol = term._beta_vol
+    if beta_vol is not None:
+        x = q.reshape(-1, 3)
+        blocks = np.empty((model.n_tets, 12, 12))
+        for g, els, params, inputs in groups:
+            Dm = model.dphi_dX[els]
+            F = np.einsum("evc,evj->ecj", x[model.T[els]], Dm)
+            A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
+            bad = np.flatnonzero(~psd_elements(A))
+            values, V = np.linalg.eigh(A[bad])
+            neg = (values < 0.0).any(axis=1)  # a PSD A is kept exactly
+            bad, values, V = bad[neg], values[neg], V[neg]
+            A[bad] = (V * np.maximum(values, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
+            blocks[els] = _element_blocks(Dm, A, beta_vol[els])
+            eig.append((bad, values, V))
+        data += model.assemble_blocks(blocks)
+    if term._alpha_mass is not None:
+        data += term._alpha_mass
+    return DampingLinearization(q=q, data=data, eig=eig)
+
+
+class RecordingDamping(RayleighDamping):
+    """The forward step's Rayleigh damping in :mod:`fem3d.diff` runs: ``D`` from
+    :func:`linearize_damping`; while :attr:`recording`, each step's linearization is kept by
+    the step's number (:meth:`take`), up to ``cache_bytes`` in all.
+
+    Parameters
+    ----------
+    term : RayleighDamping
+        The system's damping term (its model and coefficients).
+    groups : list
+        :func:`fem3d.diff.terms.element_groups` of the model.
+    cache_bytes : int
+    """
+
+    def __init__(self, term: RayleighDamping, groups: list[tuple],
+                 cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
+        super().__init__(term.model, term.alpha, term.beta)
+        self.groups, self.cache_bytes = groups, int(cache_bytes)
+        self.recording = False
+        self.kept: dict[int, DampingLinearization] = {}
+        self.peak_bytes = 0
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes of the linearizations kept now."""
+        return sum(lin.nbytes for lin in self.kept.values())
+
+    def begin_step(self, step) -> None:
+        self._step = step
+        lin = linearize_damping(self, self.groups, step.q_t)
+        self._data = lin.data
+        self._D = self.model.csr(lin.data)
+        if self.recording and self.held_bytes + lin.nbytes <= self.cache_bytes:
+            self.kept[int(step.step)] = lin
+            self.peak_bytes = max(self.peak_bytes, self.held_bytes)
+
+    def take(self, step: int, q: np.ndarray) -> DampingLinearization | None:
+        """The linearization kept for ``step`` (removed) if it was made at ``q``, else None."""
+        lin = self.kept.pop(int(step), None)
+        if lin is None or not np.array_equal(lin.q, np.asarray(q).reshape(-1)):
+            return None
+        return lin
+
+    def clear(self) -> None:
+        """Drop every kept linearization."""
+        self.kept.clear()
