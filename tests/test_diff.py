@@ -347,3 +347,44 @@ def test_damping_linearization_matches_the_kernels_damping_matrix() -> None:
         np.testing.assert_allclose(x1, x2, rtol=1e-10, atol=1e-12 * np.abs(x1).max())
     A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
     assert not psd_elements(A[bad]).any() and psd_elements(A[:1] * 0 + np.eye(9)).all()
+
+
+def test_psd_eigen_decomposes_the_indefinite_blocks(monkeypatch) -> None:
+    """The C extension's ``psd_eigen`` (LDL^T test, else tridiagonal QL) against LAPACK on
+    indefinite, positive semi-definite, zero and repeated-eigenvalue blocks, n = 1 .. 12; the
+    NumPy fallback of :func:`projected_eigen` picks the same blocks."""
+    from fem3d.diff import damping
+    from fem3d.kernels.backend import c_extension
+
+    ext = c_extension()
+    if ext is None or not hasattr(ext, "psd_eigen"):
+        pytest.skip("the C extension is not built (or is older than psd_eigen)")
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 9, 12):
+        m = 300
+        G = rng.normal(size=(m, n, n))
+        A = G + G.transpose(0, 2, 1)
+        A[:60] = G[:60] @ G[:60].transpose(0, 2, 1)  # PSD
+        A[60:65] = 0.0
+        Q = np.linalg.qr(rng.normal(size=(10, n, n)))[0]
+        A[65:75] = (Q * np.r_[-1.0, np.ones(n - 1)]) @ Q.transpose(0, 2, 1)  # repeated
+        values, V = np.empty((m, n)), np.empty((m, n, n))
+        flags = np.empty(m, dtype=np.int32)
+        ext.psd_eigen(A, values, V, flags)
+        ref = np.linalg.eigvalsh(A)
+        np.testing.assert_array_equal(flags == 1, (ref < 0).any(axis=1))
+        done = flags > 0
+        scale = np.abs(A).max()
+        np.testing.assert_allclose(values[done], ref[done], atol=1e-13 * scale)
+        back = (V[done] * values[done][:, None, :]) @ V[done].transpose(0, 2, 1)
+        np.testing.assert_allclose(back, A[done], atol=1e-13 * scale)
+        np.testing.assert_allclose(V[done].transpose(0, 2, 1) @ V[done],
+                                   np.broadcast_to(np.eye(n), back.shape), atol=1e-13)
+        with monkeypatch.context() as mp:  # the NumPy fallback
+            mp.setattr(damping, "c_extension", lambda: None)
+            bad, lapack_values, _ = damping.projected_eigen(A)
+        np.testing.assert_array_equal(bad, np.flatnonzero(flags == 1))
+        np.testing.assert_allclose(lapack_values, values[bad], atol=1e-13 * scale)
+        assert np.array_equal(damping.psd_elements(A)[:65], np.ones(65, dtype=bool))
+    with pytest.raises(ValueError, match="psd_eigen"):
+        ext.psd_eigen(np.zeros(10), np.empty(6), np.empty(18), np.empty(2, dtype=np.int32))

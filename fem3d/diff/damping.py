@@ -19,9 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fem3d.kernels.backend import c_extension
 from fem3d.physics.terms.damping import RayleighDamping
 
-__all__ = ["DampingLinearization", "linearize_damping", "psd_elements", "RecordingDamping",
+__all__ = ["DampingLinearization", "linearize_damping", "projected_eigen", "psd_elements",
+           "strain_operators", "RecordingDamping",
            "DEFAULT_CACHE_BYTES"]
 
 #: Default byte budget of the kept linearizations (``trajectory_gradient(cache_bytes=...)``).
@@ -63,39 +65,54 @@ def psd_elements(A: np.ndarray) -> np.ndarray:
     eigendecomposition (one with no negative eigenvalue is kept too)."""
     m, n, _ = A.shape
     tol = 1e-12 * np.sqrt(np.einsum("eij,eij->e", A, A))
-    L = np.zeros_like(A)
-    d = np.zeros((m, n))
+    S = np.array(A, dtype=np.float64)  # right-looking: the Schur complements in place
     ok = np.ones(m, dtype=bool)
     for k in range(n):
-        Ld = L[:, :, :k] * d[:, None, :k]  # (m, n, k): L_ij d_j
-        dk = A[:, k, k] - np.einsum("ej,ej->e", Ld[:, k], L[:, k, :k])
-        ok &= dk >= -tol
-        d[:, k] = dk
-        s = A[:, k + 1:, k] - np.einsum("eij,ej->ei", Ld[:, k + 1:], L[:, k, :k])
+        dk, col = S[:, k, k], S[:, k + 1:, k]
         big = dk > tol
-        L[:, k + 1:, k] = s / np.where(big, dk, 1.0)[:, None] * big[:, None]
-        ok &= ~((~big)[:, None] & (np.abs(s) > tol[:, None])).any(axis=1)
+        ok &= (dk >= -tol) & ~((~big)[:, None] & (np.abs(col) > tol[:, None])).any(axis=1)
+        lk = col / np.where(big, dk, 1.0)[:, None] * big[:, None]
+        S[:, k + 1:, k + 1:] -= lk[:, :, None] * col[:, None, :]
     return ok
 
 
-def _element_blocks(Dm: np.ndarray, A: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``w_e B_e^T A_e B_e`` (``(m, 12, 12)``, rows and columns ``(vertex, component)``) with
-    ``B``: ``dF/dx`` (``F_cj = sum_v x_vc Dm_vj``)."""
-    m = A.shape[0]
-    A5 = A.reshape(m, 3, 3, 9)  # (c, j, (d, l))
-    T1 = np.stack([Dm @ A5[:, c] for c in range(3)], axis=2)  # (m, 4 v, 3 c, 9 (d, l))
-    # ((v, c), d, l) @ Dm^T: ((v, c), d, w)
-    H = (T1.reshape(m, 36, 3) @ Dm.transpose(0, 2, 1)).reshape(m, 12, 3, 4)
-    H = H.transpose(0, 1, 3, 2).reshape(m, 12, 12)
-    H *= w[:, None, None]
-    return H
+def projected_eigen(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blocks of ``A`` (``(m, n, n)`` symmetric) with a negative eigenvalue, and their
+    eigendecompositions: ``(indices (k,), values (k, n), vectors (k, n, n))`` (columns).
+
+    The C extension's ``psd_eigen`` (an LDL^T test per block, a tridiagonal QL
+    decomposition where it fails) when built, else :func:`psd_elements` and LAPACK's
+    ``eigh``; the others are positive semi-definite (kept exactly by the projection).
+    """
+    ext = c_extension()
+    if ext is not None and hasattr(ext, "psd_eigen"):
+        m, n, _ = A.shape
+        values, V = np.empty((m, n)), np.empty((m, n, n))
+        flags = np.empty(m, dtype=np.int32)
+        ext.psd_eigen(np.ascontiguousarray(A), values, V, flags)
+        bad = np.flatnonzero(flags == 1)
+        return bad, values[bad], V[bad]
+    bad = np.flatnonzero(~psd_elements(A))
+    values, V = np.linalg.eigh(A[bad])
+    neg = (values < 0.0).any(axis=1)  # a PSD A is kept exactly
+    return bad[neg], values[neg], V[neg]
 
 
-def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray
-                      ) -> DampingLinearization:
+def strain_operators(Dm: np.ndarray) -> np.ndarray:
+    """``B = dF/dx`` of each element, ``(m, 9, 12)``: ``F_cj = sum_v x_vc Dm_vj`` with ``F``
+    row-major ``(c, j)`` and ``x`` ``(v, c)``."""
+    m = Dm.shape[0]
+    B = np.zeros((m, 3, 3, 4, 3))
+    for c in range(3):
+        B[:, c, :, :, c] = Dm.transpose(0, 2, 1)
+    return B.reshape(m, 9, 12)
+
+
+def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray,
+                      B: np.ndarray | None = None) -> DampingLinearization:
     """``D(q)`` of a Rayleigh damping term and its eigendecompositions (see
     :class:`DampingLinearization`): the same matrix as ``term.matrix_data(q)`` up to
-    round-off (the projection by LAPACK's ``eigh`` instead of the C kernels' Jacobi
+    round-off (the projection by :func:`projected_eigen` instead of the C kernels' Jacobi
     rotations).
 
     Parameters
@@ -105,27 +122,34 @@ def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray
     groups : list
         :func:`fem3d.diff.terms.element_groups` of its model.
     q : (3n,) or (n, 3) float64
+    B : (m, 9, 12) float64, optional
+        :func:`strain_operators` of the model (made here when not given).
     """
     model = term.model
     q = np.array(q, dtype=np.float64).reshape(-1)
-    data = np.zeros(model.nnz)
     eig = []
     beta_vol = term._beta_vol
     if beta_vol is not None:
+        B = strain_operators(model.dphi_dX) if B is None else B
         x = q.reshape(-1, 3)
-        blocks = np.empty((model.n_tets, 12, 12))
+        whole = len(groups) == 1 and groups[0][1].size == model.n_tets
+        blocks = None if whole else np.empty((model.n_tets, 12, 12))
         for g, els, params, inputs in groups:
-            Dm = model.dphi_dX[els]
-            F = np.einsum("evc,evj->ecj", x[model.T[els]], Dm)
+            F = np.einsum("evc,evj->ecj", x[model.T[els]], model.dphi_dX[els])
             A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
-            bad = np.flatnonzero(~psd_elements(A))
-            values, V = np.linalg.eigh(A[bad])
-            neg = (values < 0.0).any(axis=1)  # a PSD A is kept exactly
-            bad, values, V = bad[neg], values[neg], V[neg]
+            bad, values, V = projected_eigen(A)
             A[bad] = (V * np.maximum(values, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
-            blocks[els] = _element_blocks(Dm, A, beta_vol[els])
+            Be = B if whole else B[els]
+            H = Be.transpose(0, 2, 1) @ (A @ Be)
+            H *= beta_vol[els, None, None]
+            if whole:
+                blocks = H
+            else:
+                blocks[els] = H
             eig.append((bad, values, V))
-        data += model.assemble_blocks(blocks)
+        data = model.assemble_blocks(blocks)
+    else:
+        data = np.zeros(model.nnz)
     if term._alpha_mass is not None:
         data += term._alpha_mass
     return DampingLinearization(q=q, data=data, eig=eig)
@@ -149,6 +173,7 @@ class RecordingDamping(RayleighDamping):
                  cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         super().__init__(term.model, term.alpha, term.beta)
         self.groups, self.cache_bytes = groups, int(cache_bytes)
+        self.B = strain_operators(term.model.dphi_dX)
         self.recording = False
         self.kept: dict[int, DampingLinearization] = {}
         self.peak_bytes = 0
@@ -160,7 +185,7 @@ class RecordingDamping(RayleighDamping):
 
     def begin_step(self, step) -> None:
         self._step = step
-        lin = linearize_damping(self, self.groups, step.q_t)
+        lin = linearize_damping(self, self.groups, step.q_t, self.B)
         self._data = lin.data
         self._D = self.model.csr(lin.data)
         if self.recording and self.held_bytes + lin.nbytes <= self.cache_bytes:

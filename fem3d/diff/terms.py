@@ -279,7 +279,8 @@ class DampingAdjoint(AdjointTerm):
         rec = self.recorder
         if rec is not None:  # D and the eigendecompositions of one linearization
             lin = rec.take(pair.step, pair.q0)
-            self.lin = lin if lin is not None else linearize_damping(rec, self.groups, pair.q0)
+            self.lin = lin if lin is not None else linearize_damping(rec, self.groups, pair.q0,
+                                                                     rec.B)
             self.D = pair.h * self.lin.data
             return
         data = self.system.damping_data(pair.q0)
