@@ -36,9 +36,13 @@ What is exact and what is not:
 * Not supported: contact and friction (unless a registered term handles them), pull
   springs, angular velocity.
 
-Memory: the states at every ``checkpoint_every``-th step are kept; the backward pass
-recomputes each segment from its checkpoint (one extra forward run in total), so memory is
-``O(N / k + k)`` states for ``N`` steps.
+Memory: the states at every ``checkpoint_every``-th step are kept, and the whole last
+segment (where the backward pass starts); the backward pass recomputes each other segment
+from its checkpoint (at most one extra forward run in total), so memory is ``O(N / k + k)``
+states for ``N`` steps. With stiffness damping the forward steps of the segment about to be
+read back keep their damping linearizations (:mod:`fem3d.diff.damping`: ``D(q_n)`` and the
+projected elements' eigendecompositions, at most ``k``, within ``cache_bytes``), so its
+backward steps neither assemble ``D`` nor decompose an element again.
 """
 
 from __future__ import annotations
