@@ -318,11 +318,12 @@ def test_projected_bilinear_derivative_matches_differences_where_indefinite(
         assert (np.abs(got - ref) / scale).max() < 1e-6
 
 
-def test_damping_linearization_matches_the_kernels_damping_matrix() -> None:
+def test_damping_linearization_matches_the_kernels_damping_matrix(monkeypatch) -> None:
     """``D(q)`` built from one eigendecomposition per indefinite element (what the backward
     pass keeps) is the C/NumPy kernels' ``matrix_data`` to round-off on a deformed box where
     every element is projected, and the adjoint's products from its eigendecompositions are
     those from ``eigh`` of their own."""
+    from fem3d.diff import damping
     from fem3d.diff.adjoint import _prepare
     from fem3d.diff.damping import linearize_damping, psd_elements
     from fem3d.diff.terms import psd_bilinear_vjp
@@ -347,6 +348,11 @@ def test_damping_linearization_matches_the_kernels_damping_matrix() -> None:
         np.testing.assert_allclose(x1, x2, rtol=1e-10, atol=1e-12 * np.abs(x1).max())
     A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
     assert not psd_elements(A[bad]).any() and psd_elements(A[:1] * 0 + np.eye(9)).all()
+    monkeypatch.setattr(damping, "CHUNK", 7)  # by chunks: the same matrix and elements
+    chunked = linearize_damping(term, run.groups, q)
+    np.testing.assert_allclose(chunked.data, lin.data, rtol=0, atol=1e-13 * np.abs(ref).max())
+    for x1, x2 in zip(chunked.eig[0], lin.eig[0], strict=True):
+        np.testing.assert_allclose(x1, x2, rtol=1e-12, atol=1e-12 * np.abs(x2).max())
 
 
 def test_psd_eigen_decomposes_the_indefinite_blocks(monkeypatch) -> None:

@@ -108,12 +108,25 @@ def strain_operators(Dm: np.ndarray) -> np.ndarray:
     return B.reshape(m, 9, 12)
 
 
+#: Elements per chunk of :func:`linearize_damping` (bounds its temporaries, about 5 kB a tet:
+#: the element blocks, strain operators, slots and eigendecompositions of one chunk).
+CHUNK = 1 << 16
+
+
+def _add_blocks(data: np.ndarray, slots: np.ndarray, blocks: np.ndarray) -> None:
+    """``data[slots] += blocks`` with repeated slots summed (one ``bincount`` over the range
+    of slots the chunk touches)."""
+    lo, hi = int(slots.min()), int(slots.max()) + 1
+    data[lo:hi] += np.bincount(slots.reshape(-1) - lo, weights=blocks.reshape(-1),
+                               minlength=hi - lo)
+
+
 def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray,
                       B: np.ndarray | None = None) -> DampingLinearization:
     """``D(q)`` of a Rayleigh damping term and its eigendecompositions (see
     :class:`DampingLinearization`): the same matrix as ``term.matrix_data(q)`` up to
     round-off (the projection by :func:`projected_eigen` instead of the C kernels' Jacobi
-    rotations).
+    rotations). Elements go by chunks of :data:`CHUNK`.
 
     Parameters
     ----------
@@ -123,33 +136,32 @@ def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray,
         :func:`fem3d.diff.terms.element_groups` of its model.
     q : (3n,) or (n, 3) float64
     B : (m, 9, 12) float64, optional
-        :func:`strain_operators` of the model (made here when not given).
+        :func:`strain_operators` of the model (None: made per chunk).
     """
     model = term.model
     q = np.array(q, dtype=np.float64).reshape(-1)
+    data = np.zeros(model.nnz)
     eig = []
     beta_vol = term._beta_vol
-    if beta_vol is not None:
-        B = strain_operators(model.dphi_dX) if B is None else B
-        x = q.reshape(-1, 3)
-        whole = len(groups) == 1 and groups[0][1].size == model.n_tets
-        blocks = None if whole else np.empty((model.n_tets, 12, 12))
-        for g, els, params, inputs in groups:
-            F = np.einsum("evc,evj->ecj", x[model.T[els]], model.dphi_dX[els])
-            A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
+    x = q.reshape(-1, 3)
+    scatter = model.scatter.reshape(-1, 144)
+    for g, els, params, inputs in groups if beta_vol is not None else ():
+        parts = [(np.zeros(0, dtype=np.int64), np.zeros((0, 9)), np.zeros((0, 9, 9)))]
+        for lo in range(0, els.size, CHUNK):
+            cut = slice(lo, lo + CHUNK)
+            e = els[cut]
+            whole = e.size == model.n_tets  # every element, in order: no copies
+            Dm = model.dphi_dX if whole else model.dphi_dX[e]
+            Be = strain_operators(Dm) if B is None else B if whole else B[e]
+            F = np.einsum("evc,evj->ecj", x[model.T[e]], Dm)
+            A = g.kernels.d2psi_dF2(F, *(v[cut] for v in inputs), params[cut]).reshape(-1, 9, 9)
             bad, values, V = projected_eigen(A)
             A[bad] = (V * np.maximum(values, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
-            Be = B if whole else B[els]
             H = Be.transpose(0, 2, 1) @ (A @ Be)
-            H *= beta_vol[els, None, None]
-            if whole:
-                blocks = H
-            else:
-                blocks[els] = H
-            eig.append((bad, values, V))
-        data = model.assemble_blocks(blocks)
-    else:
-        data = np.zeros(model.nnz)
+            H *= beta_vol[e, None, None]
+            _add_blocks(data, scatter if whole else scatter[e], H)
+            parts.append((bad + lo, values, V))
+        eig.append(tuple(np.concatenate(p) for p in zip(*parts, strict=True)))
     if term._alpha_mass is not None:
         data += term._alpha_mass
     return DampingLinearization(q=q, data=data, eig=eig)
@@ -173,7 +185,8 @@ class RecordingDamping(RayleighDamping):
                  cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         super().__init__(term.model, term.alpha, term.beta)
         self.groups, self.cache_bytes = groups, int(cache_bytes)
-        self.B = strain_operators(term.model.dphi_dX)
+        #: the strain operators, kept for a model of one chunk (else made per chunk)
+        self.B = strain_operators(term.model.dphi_dX) if term.model.n_tets <= CHUNK else None
         self.recording = False
         self.kept: dict[int, DampingLinearization] = {}
         self.peak_bytes = 0
