@@ -159,7 +159,10 @@ def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray,
             A[bad] = (V * np.maximum(values, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
             H = Be.transpose(0, 2, 1) @ (A @ Be)
             H *= beta_vol[e, None, None]
-            _add_blocks(data, scatter if whole else scatter[e], H)
+            if whole:
+                data += np.bincount(model.scatter, weights=H.reshape(-1), minlength=data.size)
+            else:
+                _add_blocks(data, scatter[e], H)
             parts.append((bad + lo, values, V))
         eig.append(tuple(np.concatenate(p) for p in zip(*parts, strict=True)))
     if term._alpha_mass is not None:
