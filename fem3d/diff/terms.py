@@ -251,8 +251,12 @@ class DampingAdjoint(AdjointTerm):
     and density (through ``M``). ``K_psd``'s derivatives by ``q_n`` and by the kernel
     parameters: exact, from the generated ``d3psi_contract`` (the third derivative of ``psi``
     contracted with a 9x9 matrix) and the derivative of the PSD projection (Daleckii-Krein:
-    :func:`projection_weights`); central differences per element (relative step ``1e-6``)
-    only for a kernel module without ``d3psi_contract`` (an old C build)."""
+    :func:`projection_weights`), from the eigendecompositions of the step's
+    :class:`~fem3d.diff.damping.DampingLinearization` (kept by the run's
+    :class:`~fem3d.diff.damping.RecordingDamping` when the forward step was recorded, else
+    made here, once for ``D`` and the derivative); central differences per element
+    (relative step ``1e-6``) only for a kernel module without ``d3psi_contract`` (an old C
+    build)."""
 
     name = "damping"
     variable = "velocity"
