@@ -11,7 +11,8 @@ trajectory_gradient` of the loss ``1/2 |q_n - target_n|^2`` over every frame wit
 parameters ``--params``. Printed: CPU seconds (``time.process_time``; one BLAS thread) of
 the forward run, of the gradient's own forward run, its recomputation of the segments and its
 backward (adjoint) steps; the ratio of the adjoint pass (recomputation + backward) to the
-forward run; the most states held at once and their size; the peak RSS. Timings on a shared
+forward run; the most states held at once and their size; with stiffness damping, the most
+megabytes of damping linearizations kept for the backward steps; the peak RSS. Timings on a shared
 machine are noisy: read the ratios, and the load printed with them.
 """
 
@@ -61,6 +62,7 @@ def _one(args: argparse.Namespace) -> dict:
             "gradient_forward": stats.forward_seconds, "recompute": stats.recompute_seconds,
             "backward": stats.backward_seconds, "recomputed_steps": stats.recomputed_steps,
             "peak_states": stats.peak_states, "state_mb": state_bytes / 2**20,
+            "damping_mb": stats.peak_damping_bytes / 2**20,
             "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "vertices": int(qs[0].shape[0])}
 
@@ -82,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
           f"sets {args.set or 'none'}; load {os.getloadavg()[0]:.1f}; CPU seconds")
     print("| k | forward run | gradient: forward | recompute | backward (adjoint) | "
           "adjoint / forward | (recompute + backward) / forward | states held (MB) | "
-          "peak RSS MB |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "damping kept MB | peak RSS MB |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for k in (int(x) for x in args.ks.split(",")):
         cmd = [sys.executable, "-m", "bench.adjoint", "--scene", args.scene, "--steps",
                str(args.steps), "--params", args.params, "--k", str(k),
@@ -95,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({r['recomputed_steps']} steps) | {r['backward']:.2f} s | "
               f"{r['backward'] / f:.2f} | {(r['recompute'] + r['backward']) / f:.2f} | "
               f"{r['peak_states']} ({r['peak_states'] * r['state_mb']:.2f}) | "
-              f"{r['rss_mb']:.0f} |", flush=True)
+              f"{r.get('damping_mb', 0.0):.1f} | {r['rss_mb']:.0f} |", flush=True)
     return 0
 
 

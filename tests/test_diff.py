@@ -7,7 +7,8 @@ import pytest
 from test_assembly import box_mesh
 
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
-from fem3d.diff.adjoint import scene_with
+from fem3d.diff.adjoint import Stats, scene_with
+from fem3d.diff.damping import DEFAULT_CACHE_BYTES
 from fem3d.errors import ParameterError
 from fem3d.scene.load import scene_from_arrays
 
@@ -66,15 +67,26 @@ def test_adjoint_gradient_matches_central_differences(beta: float) -> None:
         assert error < 1e-6, f"{key}: adjoint {g}, differences {fd}, relative error {error:.2e}"
 
 
-def test_checkpointing_does_not_change_the_gradient() -> None:
-    scene, _ = box_scene(0.0)
+@pytest.mark.parametrize("beta", [0.0, 0.002])
+def test_checkpointing_does_not_change_the_gradient(beta: float) -> None:
+    """Every state kept (k = 1), segments recomputed (k = 3: with stiffness damping the
+    recomputed steps keep their damping linearizations for the backward steps, or not when
+    the byte budget is 0), one segment kept whole (k = 100): the same gradient."""
+    scene, _ = box_scene(beta)
     qs = simulate(scene, STEPS)
-    loss = PositionLoss({STEPS: qs[STEPS][[5, 7]] + 0.01}, vertices=[5, 7])
-    keys = ["bodies[0].material.E", "bodies[0].velocity"]
+    loss = PositionLoss({STEPS: qs[STEPS][[5, 7]] + 0.01, 4: qs[4][[5, 7]] - 0.01},
+                        vertices=[5, 7])
+    keys = ["bodies[0].material.E", "bodies[0].velocity",
+            *(["bodies[0].damping.rayleigh_stiffness"] if beta else [])]
     _, every = trajectory_gradient(scene, loss, keys, checkpoint_every=1)
-    _, once = trajectory_gradient(scene, loss, keys, checkpoint_every=100)
-    for key in keys:
-        np.testing.assert_allclose(every[key], once[key], rtol=1e-12)
+    stats = Stats()
+    for k, budget in ((3, DEFAULT_CACHE_BYTES), (3, 0), (100, DEFAULT_CACHE_BYTES)):
+        _, other = trajectory_gradient(scene, loss, keys, checkpoint_every=k,
+                                       cache_bytes=budget, stats=stats)
+        for key in keys:
+            np.testing.assert_allclose(every[key], other[key], rtol=1e-12, err_msg=f"k={k}")
+    assert stats.recomputed_steps == 2 * 6  # steps 1, 2, 4, 5, 7, 8 (9, 10: the last segment)
+    assert (stats.peak_damping_bytes > 0) == (beta > 0)
 
 
 def test_unknown_parameter_is_refused() -> None:
@@ -304,3 +316,81 @@ def test_projected_bilinear_derivative_matches_differences_where_indefinite(
         # per element, relative to its largest entry (a zero row: to the batch's)
         scale = np.maximum(np.abs(ref).max(axis=1), 1e-3 * np.abs(ref).max())[:, None]
         assert (np.abs(got - ref) / scale).max() < 1e-6
+
+
+def test_damping_linearization_matches_the_kernels_damping_matrix(monkeypatch) -> None:
+    """``D(q)`` built from one eigendecomposition per indefinite element (what the backward
+    pass keeps) is the C/NumPy kernels' ``matrix_data`` to round-off on a deformed box where
+    every element is projected, and the adjoint's products from its eigendecompositions are
+    those from ``eigh`` of their own."""
+    from fem3d.diff import damping
+    from fem3d.diff.adjoint import _prepare
+    from fem3d.diff.damping import linearize_damping, psd_elements
+    from fem3d.diff.terms import psd_bilinear_vjp
+
+    scene, _ = box_scene(0.002)
+    run = _prepare(scene, 1e-11, 1e-16)
+    model, term = run.system.model, run.system.damping_term
+    rng = np.random.default_rng(3)
+    q = (model.X * [1.0, 0.6, 1.0] + 0.05 * rng.normal(size=model.X.shape)).reshape(-1)
+    lin = linearize_damping(term, run.groups, q)
+    ref = term.matrix_data(q)
+    assert np.abs(lin.data - ref).max() < 1e-12 * np.abs(ref).max()
+    (g, els, params, inputs), = run.groups
+    bad, values, V = lin.eig[0]
+    assert bad.size > els.size // 2
+    x = q.reshape(-1, 3)
+    F = np.einsum("evc,evj->ecj", x[model.T[els]], model.dphi_dX[els])
+    a, b = rng.normal(size=(els.size, 9)), rng.normal(size=(els.size, 9))
+    own = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params)
+    kept = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params, lin.eig[0])
+    for x1, x2 in zip(own, kept, strict=True):
+        np.testing.assert_allclose(x1, x2, rtol=1e-10, atol=1e-12 * np.abs(x1).max())
+    A = g.kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
+    assert not psd_elements(A[bad]).any() and psd_elements(A[:1] * 0 + np.eye(9)).all()
+    monkeypatch.setattr(damping, "CHUNK", 7)  # by chunks: the same matrix and elements
+    chunked = linearize_damping(term, run.groups, q)
+    np.testing.assert_allclose(chunked.data, lin.data, rtol=0, atol=1e-13 * np.abs(ref).max())
+    for x1, x2 in zip(chunked.eig[0], lin.eig[0], strict=True):
+        np.testing.assert_allclose(x1, x2, rtol=1e-12, atol=1e-12 * np.abs(x2).max())
+
+
+def test_psd_eigen_decomposes_the_indefinite_blocks(monkeypatch) -> None:
+    """The C extension's ``psd_eigen`` (LDL^T test, else tridiagonal QL) against LAPACK on
+    indefinite, positive semi-definite, zero and repeated-eigenvalue blocks, n = 1 .. 12; the
+    NumPy fallback of :func:`projected_eigen` picks the same blocks."""
+    from fem3d.diff import damping
+    from fem3d.kernels.backend import c_extension
+
+    ext = c_extension()
+    if ext is None or not hasattr(ext, "psd_eigen"):
+        pytest.skip("the C extension is not built (or is older than psd_eigen)")
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 9, 12):
+        m = 300
+        G = rng.normal(size=(m, n, n))
+        A = G + G.transpose(0, 2, 1)
+        A[:60] = G[:60] @ G[:60].transpose(0, 2, 1)  # PSD
+        A[60:65] = 0.0
+        Q = np.linalg.qr(rng.normal(size=(10, n, n)))[0]
+        A[65:75] = (Q * np.r_[-1.0, np.ones(n - 1)]) @ Q.transpose(0, 2, 1)  # repeated
+        values, V = np.empty((m, n)), np.empty((m, n, n))
+        flags = np.empty(m, dtype=np.int32)
+        ext.psd_eigen(A, values, V, flags)
+        ref = np.linalg.eigvalsh(A)
+        np.testing.assert_array_equal(flags == 1, (ref < 0).any(axis=1))
+        done = flags > 0
+        scale = np.abs(A).max()
+        np.testing.assert_allclose(values[done], ref[done], atol=1e-13 * scale)
+        back = (V[done] * values[done][:, None, :]) @ V[done].transpose(0, 2, 1)
+        np.testing.assert_allclose(back, A[done], atol=1e-13 * scale)
+        np.testing.assert_allclose(V[done].transpose(0, 2, 1) @ V[done],
+                                   np.broadcast_to(np.eye(n), back.shape), atol=1e-13)
+        with monkeypatch.context() as mp:  # the NumPy fallback
+            mp.setattr(damping, "c_extension", lambda: None)
+            bad, lapack_values, _ = damping.projected_eigen(A)
+        np.testing.assert_array_equal(bad, np.flatnonzero(flags == 1))
+        np.testing.assert_allclose(lapack_values, values[bad], atol=1e-13 * scale)
+        assert np.array_equal(damping.psd_elements(A)[:65], np.ones(65, dtype=bool))
+    with pytest.raises(ValueError, match="psd_eigen"):
+        ext.psd_eigen(np.zeros(10), np.empty(6), np.empty(18), np.empty(2, dtype=np.int32))

@@ -36,9 +36,13 @@ What is exact and what is not:
 * Not supported: contact and friction (unless a registered term handles them), pull
   springs, angular velocity.
 
-Memory: the states at every ``checkpoint_every``-th step are kept; the backward pass
-recomputes each segment from its checkpoint (one extra forward run in total), so memory is
-``O(N / k + k)`` states for ``N`` steps.
+Memory: the states at every ``checkpoint_every``-th step are kept, and the whole last
+segment (where the backward pass starts); the backward pass recomputes each other segment
+from its checkpoint (at most one extra forward run in total), so memory is ``O(N / k + k)``
+states for ``N`` steps. With stiffness damping the forward steps of the segment about to be
+read back keep their damping linearizations (:mod:`fem3d.diff.damping`: ``D(q_n)`` and the
+projected elements' eigendecompositions, at most ``k``, within ``cache_bytes``), so its
+backward steps neither assemble ``D`` nor decompose an element again.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse.linalg as spla
 
+from fem3d.diff.damping import DEFAULT_CACHE_BYTES, RecordingDamping
 from fem3d.diff.params import (
     PARAMETER_KEYS,
     ParamKey,
@@ -156,6 +161,10 @@ class _Run:
     scheme: SchemeAdjoint | None = None  # the integrator (fem3d.diff.schemes)
     terms: list[AdjointTerm] = field(default_factory=list)  # registered (extra) terms
     extra_keys: tuple[str, ...] = ()  # the registered terms' keys asked for
+    groups: list = field(default_factory=list)  # element_groups(model)
+    #: the forward step's stiffness damping, keeping its linearizations for the backward
+    #: pass (None: no stiffness damping, or kernels without d3psi_contract)
+    damping: RecordingDamping | None = None
 
     def fixed_positions(self, t: float) -> np.ndarray | None:
         """The pinned vertices' positions at ``t`` (None: no moving pin), as a run's."""
@@ -167,11 +176,18 @@ class _Run:
             p[slots] = kf.apply(rest, t)
         return p
 
-    def step(self, state: State) -> State:
+    def step(self, state: State, record: bool = False) -> State:
+        """One converged step from ``state``; ``record``: keep its damping linearization
+        (:class:`~fem3d.diff.damping.RecordingDamping`) for the backward pass."""
         extra = [t for term in self.terms for t in term.forward_terms()]
         for term in self.terms:
             term.before_step(state)
-        new, stats = self.scheme.forward(self, state, [*model_terms(self.system), *extra])
+        own = self.system.damping_term
+        terms = [self.damping if t is own and self.damping is not None else t
+                 for t in model_terms(self.system)]
+        if self.damping is not None:
+            self.damping.recording = record
+        new, stats = self.scheme.forward(self, state, [*terms, *extra])
         if not stats.converged:
             raise SimulationError("Newton did not converge: the adjoint needs converged steps",
                                   step=state.step)
@@ -181,7 +197,8 @@ class _Run:
         return new
 
 
-def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
+def _prepare(scene: Scene, rtol: float, atol_factor: float,
+             cache_bytes: int = DEFAULT_CACHE_BYTES) -> _Run:
     accepted = any(a is not None and a(scene) for _, _, a in _FACTORIES)
     if scene.contact is not None and getattr(scene.contact, "enabled", True) and not accepted:
         raise ParameterError("trajectory_gradient: contact scenes are not supported yet")
@@ -209,6 +226,12 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float) -> _Run:
     state = State(q=built.model.X.copy(), v=v0, t=0.0, step=0)
     run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor,
                scheme)
+    run.groups = element_groups(built.model)
+    term = system.damping_term
+    if scheme.dynamic and term is not None and term._beta_vol is not None and all(
+            hasattr(g.kernels, "d3psi_contract") and hasattr(g.kernels, "d2psi_dF2")
+            for g, _, _, _ in run.groups):
+        run.damping = RecordingDamping(term, run.groups, cache_bytes)
     run.terms = [t for f, _, _ in _FACTORIES if (t := f(run)) is not None]
     run.state0 = scheme.start(run, state)
     return run
@@ -234,6 +257,9 @@ class Stats:
     recomputed_steps: int = 0
     backward_steps: int = 0
     peak_states: int = 0
+    #: the most bytes of stiffness damping's linearizations kept at once (``D(q_n)`` and the
+    #: eigendecompositions of the projected elements: :mod:`fem3d.diff.damping`)
+    peak_damping_bytes: int = 0
     #: CPU seconds (``time.process_time``) of the forward run, of the recomputation of the
     #: segments and of the backward (adjoint) steps
     forward_seconds: float = 0.0
@@ -251,6 +277,7 @@ def trajectory_gradient(
     rtol: float = 1e-11,
     atol_factor: float = 1e-16,
     stats: Stats | None = None,
+    cache_bytes: int = DEFAULT_CACHE_BYTES,
 ) -> tuple[float, dict[str, float | np.ndarray]]:
     """The loss of a backward-Euler run of ``scene`` and its gradient by ``params``.
 
@@ -266,11 +293,17 @@ def trajectory_gradient(
     steps : int, optional
         Steps to run (default: ``loss.last_step``).
     checkpoint_every : int, optional
-        States kept every ``k`` steps; the backward pass recomputes the others.
+        States kept every ``k`` steps (and the last segment's: the backward pass starts
+        there); the backward pass recomputes the others, one segment at a time.
     rtol, atol_factor : float, optional
         Newton's tolerances (run to convergence: see the module docstring).
     stats : Stats, optional
         Filled with the steps run and the most states held at once.
+    cache_bytes : int, optional
+        With stiffness damping: the most bytes of the damping's linearizations (``D(q_n)``
+        and the projected elements' eigendecompositions) kept from the forward steps of a
+        segment for its backward steps (at most ``k`` of them); a step beyond it makes its
+        own in the backward pass.
 
     Returns
     -------
@@ -279,7 +312,7 @@ def trajectory_gradient(
     """
     extra = tuple(p for _, keys, _ in _FACTORIES for p in keys)
     parsed = [parse_param_key(k, extra) for k in params]
-    run = _prepare(scene, rtol, atol_factor)
+    run = _prepare(scene, rtol, atol_factor, cache_bytes)
     run.extra_keys = tuple(p.key for p in parsed if p.kind == "extra")
     sources = TetSources(scene, run.built.arrays) if any(
         p.kind in ("material", "field") for p in parsed) else None
@@ -290,11 +323,12 @@ def trajectory_gradient(
     k = max(1, int(checkpoint_every))
     checkpoints = {0: run.state0}
     state, value = run.state0, 0.0
+    last = (max(n_steps - 1, 0) // k) * k  # the last segment's start: kept, not recomputed
     t0 = time.process_time()
     for n in range(n_steps):
-        state = run.step(state)
+        state = run.step(state, record=n >= last)
         value += loss.frame(n + 1, state.q)[0]
-        if (n + 1) % k == 0 or n + 1 == n_steps:  # the last state too: never recomputed
+        if (n + 1) % k == 0 or n + 1 >= last:  # the last segment too: never recomputed
             checkpoints[n + 1] = state
     stats.forward_steps += n_steps
     stats.forward_seconds += time.process_time() - t0
@@ -332,21 +366,23 @@ def _check_key(run: _Run, sources: TetSources | None, p: ParamKey) -> None:
 def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k: int,
               stats: Stats) -> None:
     bar = None
-    for start in sorted(checkpoints, reverse=True):
-        if start == n_steps:
-            continue
+    starts = sorted((n for n in checkpoints if n % k == 0 and n < n_steps), reverse=True)
+    stats.peak_states = max(stats.peak_states, len(checkpoints))
+    for start in starts:
         t0 = time.process_time()
         segment = [checkpoints[start]]
         for _ in range(start, min(start + k, n_steps)):
             kept = checkpoints.get(start + len(segment))
             if kept is None:
-                kept = run.step(segment[-1])
+                kept = run.step(segment[-1], record=True)
                 stats.recomputed_steps += 1
             segment.append(kept)
         t1 = time.process_time()
         stats.recompute_seconds += t1 - t0
         held = sum(1 for n in range(start + 1, start + len(segment)) if n not in checkpoints)
         stats.peak_states = max(stats.peak_states, len(checkpoints) + held)
+        if run.damping is not None:
+            stats.peak_damping_bytes = max(stats.peak_damping_bytes, run.damping.peak_bytes)
         for i in range(len(segment) - 1, 0, -1):
             n = start + i  # the state after step n
             if bar is None:
@@ -356,6 +392,10 @@ def _backward(run: _Run, adj: _Adjoint, loss, checkpoints: dict, n_steps: int, k
                 bar["q"] += grad.reshape(-1)
             bar = adj.step(segment[i - 1], segment[i], bar)
             stats.backward_steps += 1
+        for n in [n for n in checkpoints if n > start]:  # read: no longer needed
+            del checkpoints[n]
+        if run.damping is not None:
+            run.damping.clear()
         stats.backward_seconds += time.process_time() - t1
     if bar is None:
         bar = run.scheme.zero(run.state0)
@@ -375,14 +415,15 @@ class _Adjoint:
         self.fixed = (3 * fv[:, None] + np.arange(3)).reshape(-1)
         self.dt = run.dt
         a = run.built.arrays
-        self.groups = element_groups(self.model)
+        self.groups = run.groups
         density = np.array([float(b.material.density) for b in run.scene.bodies])
         dynamic = run.scheme.dynamic  # static: no inertia, no damping
         self.terms: list[AdjointTerm] = [
             *([InertiaAdjoint(self.model, a, density)] if dynamic else []),
             ElasticAdjoint(self.model, self.groups),
             GravityAdjoint(self.model, a, run.built.gravity, density),
-            *([DampingAdjoint(system, a, self.groups, density)] if dynamic else []),
+            *([DampingAdjoint(system, a, self.groups, density, run.damping)] if dynamic
+              else []),
             *run.terms]
         n_bodies = len(run.scene.bodies)
         wants_material = any(p.kind in ("material", "field") for p in params)

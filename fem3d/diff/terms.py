@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from fem3d.diff.damping import DampingLinearization, linearize_damping
 from fem3d.physics.assembly import hessian_data
 from fem3d.physics.materials import info
 
@@ -254,14 +255,23 @@ class DampingAdjoint(AdjointTerm):
     and density (through ``M``). ``K_psd``'s derivatives by ``q_n`` and by the kernel
     parameters: exact, from the generated ``d3psi_contract`` (the third derivative of ``psi``
     contracted with a 9x9 matrix) and the derivative of the PSD projection (Daleckii-Krein:
-    :func:`projection_weights`); central differences per element (relative step ``1e-6``)
-    only for a kernel module without ``d3psi_contract`` (an old C build)."""
+    :func:`projection_weights`), from the eigendecompositions of the step's
+    :class:`~fem3d.diff.damping.DampingLinearization` (kept by the run's
+    :class:`~fem3d.diff.damping.RecordingDamping` when the forward step was recorded, else
+    made here, once for ``D`` and the derivative); central differences per element
+    (relative step ``1e-6``) only for a kernel module without ``d3psi_contract`` (an old C
+    build)."""
 
     name = "damping"
     variable = "velocity"
 
-    def __init__(self, system, arrays, groups: list[tuple], density: np.ndarray) -> None:
+    def __init__(self, system, arrays, groups: list[tuple], density: np.ndarray,
+                 recorder=None) -> None:
         self.system, self.model, self.groups = system, system.model, groups
+        #: the run's :class:`~fem3d.diff.damping.RecordingDamping` (None: the system's own
+        #: damping term builds ``D``, as in an old C build without ``d3psi_contract``)
+        self.recorder = recorder
+        self.lin = None
         self.bodies, self.rho = _Bodies(arrays), density
         n_tets = self.model.n_tets
         self.alpha_b = np.array([float(np.broadcast_to(system.rayleigh_alpha,
@@ -274,6 +284,13 @@ class DampingAdjoint(AdjointTerm):
     def linearize(self, pair: StepPair) -> None:
         self.pair = pair
         self._exact = None
+        rec = self.recorder
+        if rec is not None:  # D and the eigendecompositions of one linearization
+            lin = rec.take(pair.step, pair.q0)
+            self.lin = lin if lin is not None else linearize_damping(rec, self.groups, pair.q0,
+                                                                     rec.B)
+            self.D = pair.h * self.lin.data
+            return
         data = self.system.damping_data(pair.q0)
         self.D = None if data is None else pair.h * data
 
@@ -290,7 +307,7 @@ class DampingAdjoint(AdjointTerm):
         if not self.beta_any:
             return None
         if self.exact:
-            self._exact = _damping_exact(self, lf)
+            self._exact = _damping_exact(self, lf, None if self.recorder is None else self.lin)
             return -self.pair.h * self._exact[0]
         return -self.pair.h * _damping_state_vjp(self, self.pair.q0, lf, self.pair.u)
 
@@ -327,7 +344,7 @@ def projection_weights(values: np.ndarray) -> np.ndarray:
 
 
 def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, inputs,
-                     params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     params, eig=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``s = a^T A_psd(F) b`` per element and its exact derivatives by ``F`` and by the
     parameters (``A = dP/dF``, projected to PSD where indefinite, as ``hessian_psd`` does).
 
@@ -340,18 +357,24 @@ def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, input
     inputs : tuple of (k, ...) float64
         The material's per-element inputs.
     params : (k, n_params) float64
+    eig : (bad, values, V), optional
+        The projected elements and their eigendecompositions at ``F``
+        (:class:`fem3d.diff.damping.DampingLinearization`); None: from ``eigh`` here.
 
     Returns
     -------
     s : (k,), dF : (k, 3, 3), dparams : (k, n_params)
     """
     A = kernels.d2psi_dF2(F, *inputs, params).reshape(-1, 9, 9)
-    values, V = np.linalg.eigh(A)
-    bad = (values < 0.0).any(axis=1)  # as hessian_psd: a PSD A is kept exactly
+    if eig is None:
+        values, V = np.linalg.eigh(A)
+        bad = np.flatnonzero((values < 0.0).any(axis=1))  # as hessian_psd: PSD A kept
+        lb, Vb = values[bad], V[bad]
+    else:
+        bad, lb, Vb = eig
     C = a[:, :, None] * b[:, None, :]
-    s = np.sum((A @ b[:, :, None])[:, :, 0] * a, axis=1)
-    if bad.any():  # batched matmul (BLAS), not einsum: 4x faster on 9x9 blocks
-        Vb, lb = V[bad], values[bad]
+    s = np.einsum("ei,eij,ej->e", a, A, b)
+    if bad.size:  # batched matmul (BLAS), not einsum: 4x faster on 9x9 blocks
         VbT = Vb.transpose(0, 2, 1)
         at, bt = (VbT @ a[bad][:, :, None])[:, :, 0], (VbT @ b[bad][:, :, None])[:, :, 0]
         G = projection_weights(lb) * at[:, :, None] * bt[:, None, :]
@@ -361,25 +384,30 @@ def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, input
     return s, dF, dp
 
 
-def _damping_exact(adj: DampingAdjoint, lf: np.ndarray):
+def _damping_exact(adj: DampingAdjoint, lf: np.ndarray,
+                   lin: DampingLinearization | None = None):
     """Exact ``d/dq_n`` and ``d/dparams`` of ``sum_e beta_e vol_e a_e^T A_psd(F_e) b_e``
     (``a = B lambda_e``, ``b = B u_e``; ``B``: ``dF/dx``) and the per-element
     ``vol_e a_e^T A_psd b_e`` (for ``d/dbeta``): ``(dq (n_dofs,), (n_tets,), [per group
-    (k, n_params)])``."""
+    (k, n_params)])``; ``lin``: the eigendecompositions at ``q_n`` (None: computed here)."""
     model, pair = adj.model, adj.pair
     x = pair.q0.reshape(-1, 3)
     lam, u = lf.reshape(-1, 3), pair.u.reshape(-1, 3)
     dq = np.zeros((model.n_vertices, 3))
     per_tet = np.zeros(model.n_tets)
     per_group = []
-    for g, els, params, inputs in adj.groups:
+    for i, (g, els, params, inputs) in enumerate(adj.groups):
         T, D = model.T[els], model.dphi_dX[els]
         F = np.einsum("evc,evj->ecj", x[T], D)
         a = np.einsum("evc,evj->ecj", lam[T], D).reshape(-1, 9)
         b = np.einsum("evc,evj->ecj", u[T], D).reshape(-1, 9)
-        s, dF, dp = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params)
+        s, dF, dp = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params,
+                                     None if lin is None else lin.eig[i])
         w = adj.beta[els] * model.vol[els]
-        np.add.at(dq, T, w[:, None, None] * np.einsum("ecj,evj->evc", dF, D))
+        f = (w[:, None, None] * dF) @ D.transpose(0, 2, 1)  # (k, 3 c, 4 v)
+        for c in range(3):
+            dq[:, c] += np.bincount(T.reshape(-1), weights=f[:, c, :].reshape(-1),
+                                    minlength=model.n_vertices)
         per_tet[els] = model.vol[els] * s
         per_group.append(w[:, None] * dp)
     return dq.reshape(-1), per_tet, per_group
