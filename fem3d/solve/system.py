@@ -463,7 +463,7 @@ class System:
             if entry[0] is have and np.array_equal(entry[1], keys):
                 return entry[2], entry[3]
         if keys.size > _SORTED_LOOKUP_MIN:
-            order = np.argsort(keys)
+            order = np.argsort(keys, kind="stable")  # runs of sorted keys: near O(n)
             pos = np.empty(keys.size, dtype=np.intp)
             pos[order] = np.searchsorted(have, keys[order])
         else:
@@ -495,17 +495,21 @@ class System:
         wanted = np.concatenate([keys, c * nf + r])
         # the (few) keys not in the sorted, unique ``old`` yet, inserted in order: the same
         # array as ``np.union1d(old, wanted)`` without sorting the whole pattern again
+        wanted = np.unique(wanted)  # sorted: the search below sweeps ``old`` in order
         pos = np.minimum(np.searchsorted(old, wanted), old.size - 1)
-        fresh = np.unique(wanted[old[pos] != wanted])
-        union = np.insert(old, np.searchsorted(old, fresh), fresh)
+        fresh = wanted[old[pos] != wanted]
+        at = np.searchsorted(old, fresh)
+        union = np.insert(old, at, fresh)
+        # where each old key went: its index plus the fresh keys inserted before it
+        moved = np.arange(old.size) + np.cumsum(np.bincount(at, minlength=old.size)[:old.size])
+        base_pos = moved if self._ext is None else moved[self._ext.base_pos]
         rows, cols = np.divmod(union, nf)
         indptr = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=indptr[1:])
         pattern = sp.csr_matrix((np.zeros(union.size), cols.astype(np.int32), indptr),
                                 shape=(nf, nf))
         pattern.has_sorted_indices = True
-        ext = _ExtendedPattern(pattern=pattern, keys=union,
-                               base_pos=np.searchsorted(union, self._base_key_array()))
+        ext = _ExtendedPattern(pattern=pattern, keys=union, base_pos=base_pos)
         self._ext = ext
         # analysed when a factorization is next needed (several widenings between two
         # factorizations: one analysis, of the pattern they make together)
