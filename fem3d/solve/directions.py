@@ -255,12 +255,8 @@ class ReuseDirection(DirectDirection):
     def __init__(self, *args, lag_matrices: bool = True, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         opts = self.options
-        # a factorization made on this step's patterns preconditions CG even after a contact
-        # term widened the pattern (System.kept_factor): no refactorization forced by it
-        self.start_generation = self.system.pattern_generation
-        self.pcg = PreconditionedCG(self.system.kept_factor(self.start_generation),
-                                    rtol=opts.cg_rtol, maxiter=opts.cg_maxiter,
-                                    refactorize_on_stall=False)
+        self.pcg = PreconditionedCG(self.system.solver, rtol=opts.cg_rtol,
+                                    maxiter=opts.cg_maxiter, refactorize_on_stall=False)
         self.lag_matrices = lag_matrices
         self.lagged: LaggedMatrix | None = None  # the last Newton matrix (lagging)
         self.psd_rest_of_step = opts.psd  # the PSD-projected Hessian for the rest of the step
@@ -278,8 +274,7 @@ class ReuseDirection(DirectDirection):
         the direction (None when CG fails) and whether it met negative curvature."""
         stats, pcg = self.stats, self.pcg
         t0 = time.perf_counter()
-        # the last factorization, on the current pattern or one this step widened
-        pcg.solver = self.system.kept_factor(self.start_generation)
+        pcg.solver = self.system.solver  # an objective term may have widened the pattern
         pcg.rtol = eta
         result = pcg.solve(A_free, -g)
         stats.add_seconds("cg", time.perf_counter() - t0)
@@ -305,8 +300,7 @@ class ReuseDirection(DirectDirection):
         # an aged preconditioner (the last solve needed over half the budget) is replaced now
         # rather than after another long CG run
         half = opts.cg_maxiter // 2
-        use_cg = self.system.kept_factor(self.start_generation) is not None and \
-            self.last_cg <= half
+        use_cg = self.system.factorized_data is not None and self.last_cg <= half
         lagged, self.lagged = self.lagged, None
         if use_cg and lagged is not None and \
                 lagged.lag(x, gn, REUSE_LAG_FRACTION * progress.tol):

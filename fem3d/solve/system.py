@@ -117,10 +117,6 @@ class System:
         self._solver: SparseSPDSolver | None = None
         #: Symbolic analyses of the direct solver so far (one per pattern it factorized on).
         self.analyses = 0
-        # the solver holding the last factorization and the pattern generation it was made
-        # on: after a widening it still preconditions CG (kept_factor) until a new one is made
-        self._last_factor: SparseSPDSolver | None = None
-        self._factor_generation = -1
         self._amg: AMGPreconditioner | None = None
         if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
             self._solver = self._new_direct_solver(self.pattern_free)
@@ -340,23 +336,7 @@ class System:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
         # the matrix actually factorized: a checkpoint rebuilds exactly this factor
         self.factorized_data = A_free.data + mu * mass.data if mu else np.array(A_free.data)
-        self._last_factor, self._factor_generation = self.solver, self.pattern_generation
         return mu
-
-    def kept_factor(self, since_generation: int) -> SparseSPDSolver | None:
-        """The solver holding the last factorization when it was made on the pattern of
-        generation ``since_generation`` or later (None otherwise, or when its last attempt
-        failed): a preconditioner for CG even after objective terms widened the pattern.
-
-        ``"reuse"`` passes the generation at its step's start, so a factorization made on an
-        older pattern serves only the rest of the step in which the pattern grew (a checkpoint
-        between steps holds no such factorization: a resumed run takes the same steps).
-        """
-        solver = self._last_factor
-        if solver is None or not solver._factored or \
-                self._factor_generation < since_generation:
-            return None
-        return solver
 
     # -- objective terms' Hessian entries -----------------------------------------------------
     def on_solver_pattern(self, A: sp.csr_matrix) -> sp.csr_matrix:
