@@ -197,18 +197,20 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict
     overrides = {} if newton_solver == "direct" else {"simulation.newton.solver": newton_solver}
     sim = Simulation(load_scene(name, overrides))
     timers = _install_timers()
-    newton = factorizations = 0
+    newton = factorizations = cg = 0
     generations0 = sim.system.pattern_generation
+    analyses0 = getattr(sim.system, "analyses", 0)
     lowest = np.inf
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         for _ in range(steps):
             sim.step()
             newton += sim.last_stats.newton_iterations
             factorizations += sim.last_stats.factorizations
+            cg += sim.last_stats.cg_iterations
             lowest = min(lowest, float(sim.q[:, 1].min()))
     finally:
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         timers.restore()
     sec = dict(timers.seconds)
     sec["other"] = wall - sum(sec.values())
@@ -218,6 +220,8 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict
         "steps": steps, "wall": wall, "steps_per_s": steps / wall,
         "newton_per_step": newton / steps,
         "pattern_reanalyses": sim.system.pattern_generation - generations0,
+        "analyses": getattr(sim.system, "analyses", 0) - analyses0,
+        "cg_per_step": cg / steps, "cpu_steps_per_s": steps / cpu,
         "lowest_gap": lowest, "seconds": sec,
     }
 
@@ -247,6 +251,9 @@ def _print_row(r: dict) -> None:
     fem = "" if s is None else (
         f"{r['newton_per_step']:.2f} Newton/step {r['factorizations_per_step']:.2f} fact/step  "
         f"re-analyses {r['pattern_reanalyses']}  ")
+    if "analyses" in r:  # the scene cases: CHOLMOD analyses, CG iterations, CPU time
+        fem += (f"(analyses {r['analyses']}, CG/step {r['cg_per_step']:.1f}, "
+                f"{r['cpu_steps_per_s']:.2f} steps/s CPU)  ")
     print(f"{r['case']:28s} {r['tets']:7d} tets {r['steps']:4d} steps "
           f"{r['steps_per_s']:7.2f} steps/s  {fem}min y {r['lowest_gap']:.2e} | {split}",
           flush=True)

@@ -34,16 +34,22 @@ from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 name, steps, out, ov = sys.argv[1], int(sys.argv[2]), sys.argv[3], json.loads(sys.argv[4])
 sim = Simulation(apply_overrides(load_scene(name), ov), scripted=True)
-Q, iters, substepped = [], 0, 0
+Q, iters, facts, cg, substepped = [], 0, 0, 0, 0
+a0 = getattr(sim.system, "analyses", 0)
 w0, c0 = time.perf_counter(), time.process_time()
 for _ in range(steps):
     sim.step()
     Q.append(sim.q.copy())
     iters += sim.last_stats.newton_iterations
+    facts += sim.last_stats.factorizations
+    cg += sim.last_stats.cg_iterations
     substepped += getattr(sim.last_stats, "substeps", 1) > 1
 wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 np.save(out, np.array(Q))
-print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps, "substepped": substepped}))
+print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps, "fact": facts / steps,
+                  "cg": cg / steps, "analyses": getattr(sim.system, "analyses", -1) - a0,
+                  "widenings": getattr(sim.system, "pattern_generation", -1),
+                  "substepped": substepped}))
 """
 
 
@@ -74,12 +80,17 @@ def main(argv=None) -> None:
                                                     "contact_twisted_bar"])
     ap.add_argument("--steps", type=int, default=0, help="0: the scene's own duration")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--newton-solver", default="", help="simulation.newton.solver of both "
+                    "(default: the scene's)")
+    ap.add_argument("--no-parting", action="store_true",
+                    help="speed only: skip the run with gravity one ulp off")
     ap.add_argument("--new-set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="scene overrides for the new tree only (VALUE as JSON), e.g. "
                          "contact.max_substeps=8")
     args = ap.parse_args(argv)
     new_overrides = {k: json.loads(v) for k, v in (a.split("=", 1) for a in args.new_set)}
-    perturbed = {"simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
+    base = {"simulation.newton.solver": args.newton_solver} if args.newton_solver else {}
+    perturbed = {**base, "simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes:
             if args.steps:
@@ -92,15 +103,21 @@ def main(argv=None) -> None:
             for _ in range(args.repeat):
                 for key, tree in (("old", args.old), ("new", ROOT)):
                     figures[key].append(run(tree, scene, steps, paths[key],
-                                            new_overrides if key == "new" else {}))
-            run(args.old, scene, steps, paths["pert"], perturbed)
+                                            {**base, **new_overrides} if key == "new" else base))
             for key in ("old", "new"):
                 best = min(figures[key], key=lambda f: f["cpu"])
-                print(f"{scene:22s} {key}: {steps} steps  {steps / best['wall']:6.1f} steps/s wall"
-                      f"  {steps / best['cpu']:6.1f} steps/s CPU  {best['newton']:.2f} Newton/step"
-                      f"  {best['substepped']} steps substepped", flush=True)
-            old, new, pert = (np.load(paths[k]) for k in ("old", "new", "pert"))
+                print(f"{scene:22s} {key}: {steps} steps  {steps / best['wall']:6.2f} steps/s wall"
+                      f"  {steps / best['cpu']:6.2f} steps/s CPU  {best['newton']:.2f} Newton/step"
+                      f"  {best.get('fact', float('nan')):.2f} fact/step  "
+                      f"{best.get('cg', float('nan')):.1f} CG/step  widenings "
+                      f"{best.get('widenings')}  analyses {best.get('analyses')}  "
+                      f"{best.get('substepped', 0)} steps substepped", flush=True)
+            old, new = (np.load(paths[k]) for k in ("old", "new"))
             print(f"{'':22s} new vs old:               {parting(old, new)}")
+            if args.no_parting:
+                continue
+            run(args.old, scene, steps, paths["pert"], perturbed)
+            pert = np.load(paths["pert"])
             print(f"{'':22s} old vs old, gravity 1 ulp: {parting(old, pert)}", flush=True)
 
 

@@ -41,6 +41,9 @@ LEAN_ASSEMBLY_MIN_TETS = 250_000
 SHIFT_LADDER_START = 1e-4
 SHIFT_LADDER_GROWTH = 10.0
 
+#: :meth:`System._locate`: how many answers are kept.
+_LOCATE_CACHE_SIZE = 4
+
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 
@@ -111,6 +114,8 @@ class System:
         self.linear_backend = choose_backend(solver_backend, constraints.n_free)
         self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
         self._solver: SparseSPDSolver | None = None
+        #: Symbolic analyses of the direct solver so far (one per pattern it factorized on).
+        self.analyses = 0
         self._amg: AMGPreconditioner | None = None
         if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
             self._solver = self._new_direct_solver(self.pattern_free)
@@ -128,6 +133,8 @@ class System:
         #: built on an older pattern are stale).
         self.pattern_generation = 0
         self._base_keys: np.ndarray | None = None
+        # the last answers of _locate: (pattern keys, keys, positions, all inside)
+        self._locate_cache: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool]] = []
         self._physics_cache()
 
     def with_model(self, model: Model) -> System:
@@ -395,20 +402,18 @@ class System:
             return A
         nf = self.constraints.n_free
         keys = rows * nf + cols
-        if self._ext is None:
-            base = self._base_key_array()
-            pos = np.minimum(np.searchsorted(base, keys), base.size - 1)
-            if np.array_equal(base[pos], keys):
-                data = np.array(A.data)
-                np.add.at(data, pos, vals)
-                return self._like(A, data)
         ext = self._ext
-        if ext is None or not np.array_equal(
-                ext.keys[np.minimum(np.searchsorted(ext.keys, keys), ext.keys.size - 1)], keys):
+        pos, inside = self._locate(keys)
+        if inside and ext is None:
+            data = np.array(A.data)
+            np.add.at(data, pos, vals)
+            return self._like(A, data)
+        if not inside:
             ext = self._extend(keys)
+            pos = self._locate(keys)[0]
         A = self.on_solver_pattern(A)
         data = np.array(A.data)
-        np.add.at(data, np.searchsorted(ext.keys, keys), vals)
+        np.add.at(data, pos, vals)
         return ext.csr(data)
 
     def pattern_covers(self, rows: np.ndarray, cols: np.ndarray) -> bool:
@@ -419,11 +424,29 @@ class System:
         c = new[np.asarray(cols, dtype=np.int64)]
         keep = (r >= 0) & (c >= 0)
         keys = r[keep] * self.constraints.n_free + c[keep]
-        if keys.size == 0:
-            return True
+        return keys.size == 0 or self._locate(keys)[1]
+
+    def _locate(self, keys: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Positions of ``keys`` (``row * n_free + col``) in the solver's sorted pattern keys
+        (clipped to the last one), and whether every key is there.
+
+        The contact terms ask for the same keys several times (whether the pattern covers a
+        barrier Hessian, then adding it; Newton iterates with the same contact set), so the
+        last few answers are kept for the current pattern (each search of 3e4 keys in the
+        pile's 5e5 takes a few milliseconds).
+        """
         have = self._base_key_array() if self._ext is None else self._ext.keys
-        pos = np.minimum(np.searchsorted(have, keys), have.size - 1)
-        return bool(np.array_equal(have[pos], keys))
+        cache = self._locate_cache
+        for entry in cache:
+            if entry[0] is have and np.array_equal(entry[1], keys):
+                return entry[2], entry[3]
+        pos = np.searchsorted(have, keys)
+        np.minimum(pos, have.size - 1, out=pos)
+        inside = bool(np.array_equal(have[pos], keys))
+        pos.setflags(write=False)
+        cache.insert(0, (have, np.array(keys), pos, inside))
+        del cache[_LOCATE_CACHE_SIZE:]
+        return pos, inside
 
     def _like(self, A: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
         B = sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape, copy=False)
@@ -457,8 +480,9 @@ class System:
         ext = _ExtendedPattern(pattern=pattern, keys=union,
                                base_pos=np.searchsorted(union, self._base_key_array()))
         self._ext = ext
-        self._solver = None if self.linear_backend == "amg" else \
-            self._new_direct_solver(pattern)
+        # analysed when a factorization is next needed (several widenings between two
+        # factorizations: one analysis, of the pattern they make together)
+        self._solver = None
         self.factorized_data = None
         self.pattern_generation += 1
         return ext
@@ -494,6 +518,7 @@ class System:
 
     def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
         solver = SparseSPDSolver(pattern, backend=self._direct_backend)
+        self.analyses += 1
         if solver.backend == "superlu" and pattern is self.pattern_free and \
                 self.mass_free.shape[0]:
             # SuperLU orders on its first factorization and takes another code path (explicit
