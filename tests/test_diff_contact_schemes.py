@@ -5,17 +5,10 @@ pressed onto the plane and dragged sideways by its pinned top."""
 
 from __future__ import annotations
 
-import json
-import textwrap
-from pathlib import Path
-
 import numpy as np
 import pytest
 from test_diff_contact import E_KEY, drop_scene, variant
 
-from fem3d.app.cli import main
-from fem3d.app.fit.run import scene_toml
-from fem3d.app.run import run_scene
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
 from fem3d.diff.adjoint import _prepare, scene_with
 from fem3d.scene import apply_overrides
@@ -138,30 +131,3 @@ def test_newmark_contact_start_within_dhat_gradients() -> None:
     found = errors(scene, noisy(qs, 0), steps)
     print("newmark start in contact", {k: f"{e:.1e}" for k, e in found.items()})
     assert max(found.values()) < 1e-6, found
-
-
-def test_fit_recovers_E_through_a_bdf2_contact_landing(tmp_path: Path) -> None:
-    """``fem3d fit`` on a ``fem3d run`` of the landing with ``bdf2`` (6 steps, E = 3e4; its
-    VTU frames with the ground as a second part), from E = 1e4, the fit's scene ``bdf2``
-    too. The target runs with IPC's default stopping rule (``contact.tolerance = 1e-2``),
-    a slightly different map from the fit's converged one."""
-    base = {"simulation.steps": 6, "output.every": 1, "simulation.integrator": "bdf2"}
-    summary = run_scene(drop_scene(**base, **{E_KEY: 3e4}), tmp_path / "target", quiet=True,
-                        preview=False)
-    assert summary.status == "ok"
-    (tmp_path / "box.toml").write_text(scene_toml(drop_scene(**base)))
-    fit_file = tmp_path / "fit.toml"
-    fit_file.write_text(textwrap.dedent("""\
-        scene = "box.toml"
-        target = "target"
-        [[params]]
-        key = "bodies[0].material.E"
-        start = 1e4
-        bounds = [1e3, 1e6]
-    """))
-    out = tmp_path / "out"
-    assert main(["fit", str(fit_file), "--out", str(out), "--quiet"]) == 0
-    doc = json.loads((out / "fit.json").read_text())
-    print("fitted", doc["params"][E_KEY], doc["result"])
-    assert doc["params"][E_KEY] == pytest.approx(3e4, rel=1e-2)
-    assert doc["result"]["success"] and doc["frames"] == list(range(1, 7))
