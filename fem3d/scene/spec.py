@@ -382,7 +382,7 @@ class ContactSpec(_Spec):
     #: a step whose own straight motion from q_t to q_t+1 passes through a surface (or whose
     #: Newton solve fails) is redone as 2, 4, ... substeps of dt/n, up to this many (a power
     #: of two; 1: never, the step is not checked). fem3d.solve.substeps
-    max_substeps: Annotated[StrictInt, Field(ge=1, le=1024)] = 8
+    max_substeps: Annotated[StrictInt, Field(ge=1, le=1024)] = 1
 
     @field_validator("max_substeps")
     @classmethod
