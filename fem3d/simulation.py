@@ -158,7 +158,7 @@ class Simulation:
     pick_radius, spring_k : float
         Interactive picking radius and pull-spring stiffness (``scene.interaction``,
         resolved); settable.
-    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start
+    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start, newton_line_search
         Backward Euler's Newton settings (``scene.simulation.newton``).
     last_stats : StepStats or None
         Details of the last step (Newton gradient norms, shifts, ...).
@@ -202,6 +202,7 @@ class Simulation:
         self.newton_hessian = sim.newton.hessian
         self.newton_solver = sim.newton.solver
         self.newton_warm_start = sim.newton.warm_start
+        self.newton_line_search = sim.newton.line_search
         self.pick_radius = built.pick_radius
         self.spring_k = built.spring_k
         self._W = None
@@ -606,7 +607,8 @@ class Simulation:
             new, stats = TERM_INTEGRATORS[self._integrator](
                 self.system, self.objective_terms(), self._state, self._dt,
                 max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
-                options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start),
+                options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start,
+                                       line_search=self.newton_line_search),
                 fixed_positions=fixed,
             )
         seconds = time.perf_counter() - t0
