@@ -154,34 +154,43 @@ def _install_timers() -> Timers:
     return timers
 
 
+def _label(newton_solver: str, line_search: str) -> str:
+    tags = [t for t, default in ((newton_solver, "direct"), (line_search, "backtrack"))
+            if t != default]
+    return f" [{', '.join(tags)}]" if tags else ""
+
+
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
-             newton_solver: str = "direct", contact: bool = True) -> dict:
+             newton_solver: str = "direct", contact: bool = True,
+             line_search: str = "backtrack") -> dict:
     import fem3d.solve.integrators as integ
 
     model, system, term, state, dt = build_case(name, refine, narrow_phase)
     timers = _install_timers()
-    newton = factorizations = 0
+    newton = factorizations = halvings = 0
     terms = [term] if contact else []
     generations0 = getattr(system, "pattern_generation", 0)
     lowest = np.inf
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         for _ in range(steps):
             state, stats = integ.implicit_euler(system, state, dt, terms=terms,
-                                                linear_solver=newton_solver)
+                                                linear_solver=newton_solver,
+                                                line_search=line_search)
             newton += stats.newton_iterations
             factorizations += stats.factorizations
+            halvings += stats.line_search_halvings
             lowest = min(lowest, float(state.q[:, 1].min()))
     finally:
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         timers.restore()
     sec = dict(timers.seconds)
     # nested calls: CCD inside contact wrappers never happens; elastic includes none of these
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + ("" if contact else " (no contact)") + (
-            "" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "case": name + ("" if contact else " (no contact)") + _label(newton_solver, line_search),
         "tets": model.n_tets, "factorizations_per_step": factorizations / steps,
+        "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall,
         "steps_per_s": steps / wall, "newton_per_step": newton / steps,
         "pattern_reanalyses": getattr(system, "pattern_generation", 0) - generations0,
@@ -189,32 +198,37 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     }
 
 
-def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict:
+def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
+                   line_search: str = "backtrack") -> dict:
     """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it."""
     from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
 
     overrides = {} if newton_solver == "direct" else {"simulation.newton.solver": newton_solver}
+    if line_search != "backtrack":
+        overrides["simulation.newton.line_search"] = line_search
     sim = Simulation(load_scene(name, overrides))
     timers = _install_timers()
-    newton = factorizations = 0
+    newton = factorizations = halvings = 0
     generations0 = sim.system.pattern_generation
     lowest = np.inf
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         for _ in range(steps):
             sim.step()
             newton += sim.last_stats.newton_iterations
             factorizations += sim.last_stats.factorizations
+            halvings += sim.last_stats.line_search_halvings
             lowest = min(lowest, float(sim.q[:, 1].min()))
     finally:
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         timers.restore()
     sec = dict(timers.seconds)
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + ("" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "case": name + _label(newton_solver, line_search),
         "tets": sim.model.n_tets, "factorizations_per_step": factorizations / steps,
+        "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall, "steps_per_s": steps / wall,
         "newton_per_step": newton / steps,
         "pattern_reanalyses": sim.system.pattern_generation - generations0,
@@ -246,6 +260,7 @@ def _print_row(r: dict) -> None:
         f"vertex contact radius {r['particle_radius']:.2e} m")
     fem = "" if s is None else (
         f"{r['newton_per_step']:.2f} Newton/step {r['factorizations_per_step']:.2f} fact/step  "
+        f"{r['halvings_per_step']:.2f} halvings/step  {r['steps'] / r['cpu']:.2f} steps/s CPU  "
         f"re-analyses {r['pattern_reanalyses']}  ")
     print(f"{r['case']:28s} {r['tets']:7d} tets {r['steps']:4d} steps "
           f"{r['steps_per_s']:7.2f} steps/s  {fem}min y {r['lowest_gap']:.2e} | {split}",
@@ -279,6 +294,8 @@ def main(argv=None) -> None:
                     help="skip the Newton (VBD, CPU) peer of the bunny drop")
     ap.add_argument("--narrow-phase", default="additive")
     ap.add_argument("--newton-solver", nargs="*", default=["direct", "reuse"])
+    ap.add_argument("--line-search", nargs="*", default=["backtrack"],
+                    help="Newton's line searches to run (backtrack, parabolic), one row each")
     ap.add_argument("--no-peer", action="store_true",
                     help="skip the contact-free peer row (same mesh, free fall)")
     ap.add_argument("--markdown", type=Path)
@@ -286,8 +303,9 @@ def main(argv=None) -> None:
     rows = []
     for case in (c for c in args.cases if c.startswith("contact_")):
         for solver in args.newton_solver:
-            rows.append(run_scene_case(case, args.scene_steps, solver))
-            _print_row(rows[-1])
+            for search in args.line_search:
+                rows.append(run_scene_case(case, args.scene_steps, solver, search))
+                _print_row(rows[-1])
     for refine in args.refine:
         for case in (c for c in args.cases if not c.startswith("contact_")):
             steps = args.steps if refine == 0 else max(3, args.steps // (8 ** refine))
@@ -295,8 +313,10 @@ def main(argv=None) -> None:
             if not args.no_peer and case == "bunny_drop":
                 runs.append(("direct", False))
             for solver, contact in runs:
-                rows.append(run_case(case, refine, steps, args.narrow_phase, solver, contact))
-                _print_row(rows[-1])
+                for search in (args.line_search if contact else ["backtrack"]):
+                    rows.append(run_case(case, refine, steps, args.narrow_phase, solver,
+                                         contact, search))
+                    _print_row(rows[-1])
             if case == "bunny_drop" and refine == 0 and not args.no_newton:
                 rows.append(run_newton_peer(steps))
                 _print_row(rows[-1])

@@ -1,7 +1,7 @@
 """Contact scenes, this tree against an older checkout: speed and how far the trajectories part.
 
     python -m bench.contact_oldnew --old /path/to/old/checkout [--scenes contact_stack ...]
-                                   [--steps N] [--repeat 1]
+                                   [--steps N] [--repeat 1] [--new-set KEY=VALUE ...]
 
 Each scene runs in a fresh process per code version (``OMP_NUM_THREADS=1``, alternating old
 and new so both see the same load): steps per second by wall clock and by CPU time of the
@@ -11,6 +11,10 @@ the old code against itself with gravity changed by one unit in the last place
 tumble and slide (``contact_stack``) amplifies any last-bit difference to centimetres within
 a hundred steps; a change that moves only round-off then parts from the old trajectory no
 faster than the old code parts from itself.
+
+``--new-set KEY=VALUE`` (repeatable) runs the new tree with scene overrides, e.g.
+``--new-set simulation.newton.line_search=parabolic``: an opt-in algorithm against the old
+default, side by side.
 """
 
 from __future__ import annotations
@@ -34,15 +38,18 @@ from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 name, steps, out, ov = sys.argv[1], int(sys.argv[2]), sys.argv[3], json.loads(sys.argv[4])
 sim = Simulation(apply_overrides(load_scene(name), ov), scripted=True)
-Q, iters = [], 0
+Q, iters, facts, halvings = [], 0, 0, 0
 w0, c0 = time.perf_counter(), time.process_time()
 for _ in range(steps):
     sim.step()
     Q.append(sim.q.copy())
     iters += sim.last_stats.newton_iterations
+    facts += sim.last_stats.factorizations
+    halvings += sim.last_stats.line_search_halvings
 wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 np.save(out, np.array(Q))
-print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps}))
+print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps, "fact": facts / steps,
+                  "halvings": halvings / steps}))
 """
 
 
@@ -73,7 +80,18 @@ def main(argv=None) -> None:
                                                     "contact_twisted_bar"])
     ap.add_argument("--steps", type=int, default=0, help="0: the scene's own duration")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--new-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scene override for the new tree only (repeatable)")
     args = ap.parse_args(argv)
+    new_overrides = {}
+    for item in args.new_set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--new-set {item!r}: expected KEY=VALUE")
+        try:
+            new_overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            new_overrides[key] = value
     perturbed = {"simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes:
@@ -86,13 +104,15 @@ def main(argv=None) -> None:
             figures: dict[str, list[dict]] = {"old": [], "new": []}
             for _ in range(args.repeat):
                 for key, tree in (("old", args.old), ("new", ROOT)):
-                    figures[key].append(run(tree, scene, steps, paths[key], {}))
+                    figures[key].append(run(tree, scene, steps, paths[key],
+                                            new_overrides if key == "new" else {}))
             run(args.old, scene, steps, paths["pert"], perturbed)
             for key in ("old", "new"):
                 best = min(figures[key], key=lambda f: f["cpu"])
                 print(f"{scene:22s} {key}: {steps} steps  {steps / best['wall']:6.1f} steps/s wall"
-                      f"  {steps / best['cpu']:6.1f} steps/s CPU  {best['newton']:.2f} Newton/step",
-                      flush=True)
+                      f"  {steps / best['cpu']:6.1f} steps/s CPU  {best['newton']:.2f} Newton/step"
+                      f"  {best.get('fact', float('nan')):.2f} fact/step"
+                      f"  {best.get('halvings', float('nan')):.2f} halvings/step", flush=True)
             old, new, pert = (np.load(paths[k]) for k in ("old", "new", "pert"))
             print(f"{'':22s} new vs old:               {parting(old, new)}")
             print(f"{'':22s} old vs old, gravity 1 ulp: {parting(old, pert)}", flush=True)

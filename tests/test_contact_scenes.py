@@ -14,7 +14,7 @@ from fem3d.errors import InputError, ParameterError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
 from fem3d.mesh.tetmesh import boundary_faces
-from fem3d.scene import load_scene
+from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 from tests.conftest_mesh_helpers import medit_text
 from tests.test_contact import box_mesh
@@ -82,6 +82,25 @@ def test_stack_scene_never_intersects_and_the_upper_block_lands(tmp_path):
     assert sim.q[upper, 1].min() < y0 - 0.01  # it fell onto the lower block
 
 
+def test_stack_with_the_parabolic_line_search_stays_valid():
+    """The gallery stack with ``simulation.newton.line_search = "parabolic"`` through the
+    bunny's landing on the bottom block (step 10) and the top block's on the bunny (18):
+    every step converges, no surfaces intersect (a fresh ipctk mesh), nothing goes below the
+    ground, and the line search took halvings (so the refinement had work to do)."""
+    scene = apply_overrides(load_scene("contact_stack"),
+                            {"simulation.newton.line_search": "parabolic"})
+    sim = Simulation(scene)
+    assert sim.newton_line_search == "parabolic"
+    halvings = 0
+    for _ in range(22):
+        sim.step()
+        assert sim.last_stats.converged
+        halvings += sim.last_stats.line_search_halvings
+        assert sim.q[:, 1].min() > 0.0
+        assert not surfaces_intersect(sim)
+    assert halvings > 0
+
+
 def test_cli_runs_a_contact_scene_and_writes_every_body(tmp_path, capsys):
     scene = write_scene(tmp_path)
     out = tmp_path / "run"
@@ -137,11 +156,13 @@ def test_obstacles_without_contact_are_refused(tmp_path):
         Simulation(load_scene(str(scene)))
 
 
-def test_contact_checkpoint_resume_is_bit_exact(tmp_path, capsys):
+@pytest.mark.parametrize("line_search", ["backtrack", "parabolic"])
+def test_contact_checkpoint_resume_is_bit_exact(tmp_path, capsys, line_search):
     """Split while the blocks are in contact (the solver pattern has grown by the contact
     pairs and the barrier stiffness has adapted): the resumed run equals the straight one."""
     scene = write_scene(tmp_path)
-    common = ["--quiet", "--no-preview", "--frame-every", "3"]
+    common = ["--quiet", "--no-preview", "--frame-every", "3",
+              "--set", f"simulation.newton.line_search={line_search}"]
     a, b = tmp_path / "straight", tmp_path / "resumed"
     assert main(["run", str(scene), "--steps", "12", "--checkpoint-every", "12", "--out",
                  str(a), *common]) == 0

@@ -376,6 +376,7 @@ def implicit_euler(
     amg_budget: float = AMG_ITERATIONS_PER_DECADE,
     forcing_max: float = FORCING_MAX,
     warm_start: str = "previous",
+    line_search: str = "backtrack",
 ) -> tuple[State, StepStats]:
     """One backward-Euler step of the system's model (:func:`model_terms`) plus ``terms``.
 
@@ -405,6 +406,8 @@ def implicit_euler(
     warm_start : {"previous", "extrapolate"}, optional
         Newton's start (:data:`WARM_STARTS`): ``"extrapolate"`` also tries ``2 v_t -
         v_t-1`` (the returned state carries ``v_prev`` for the next step).
+    line_search : {"backtrack", "parabolic"}, optional
+        Newton's line search (:data:`fem3d.solve.newton.LINE_SEARCHES`).
 
     Returns
     -------
@@ -412,7 +415,8 @@ def implicit_euler(
     """
     options = newton_options(hessian, cg_rtol=cg_rtol, cg_maxiter=cg_maxiter,
                              amg_maxiter=amg_maxiter, amg_budget=amg_budget,
-                             forcing_max=forcing_max, warm_start=warm_start)
+                             forcing_max=forcing_max, warm_start=warm_start,
+                             line_search=line_search)
     return backward_euler(
         system, [*model_terms(system, pull), *terms], state, dt,
         fixed_positions=fixed_positions, max_iterations=max_iterations, rtol=rtol,
