@@ -387,6 +387,9 @@ class ContactSpec(_Spec):
     #: stop re-lagging when a solve moves the positions by less than this, relative to the
     #: scene's bounding-box diagonal
     friction_tolerance: Positive = 1e-6
+    #: where Newton starts when CCD cuts the step's free flight: v_t scaled back by CCD, or
+    #: q_t (v = 0, IPC's start; fewer Newton iterations at impacts and resting contacts)
+    newton_start: Literal["clamped", "q_t"] = "clamped"
 
     @property
     def static_mu(self) -> float:

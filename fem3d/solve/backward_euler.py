@@ -313,18 +313,25 @@ def _start(objective: Objective, state: State) -> tuple[np.ndarray, float]:
     """Newton's start and its energy: ``v_hat`` (clamped by the terms' ``max_step`` from
     ``x_start``, where the free DOFs are at ``q_t``: a start that tunnelled through an
     obstacle would be finite but wrong), or ``x_start`` itself when that is inadmissible
-    (backward Euler: ``v_t`` clamped from ``v = 0``)."""
+    (backward Euler: ``v_t`` clamped from ``v = 0``) or when the clamp cut the step and a
+    term asks for it (:attr:`Objective.restart_when_clamped`)."""
     step = objective.step
     vt_free = step.v_hat_free
+    restart = objective.restart_when_clamped
     if step.x_start is None:
         x0 = vt_free.copy()
         if objective.clamps:
-            x0 *= objective.max_step(np.zeros_like(vt_free), vt_free)
+            a = objective.max_step(np.zeros_like(vt_free), vt_free)
+            if restart and a < 1.0:
+                x0 = np.zeros_like(vt_free)
+            else:
+                x0 *= a
     else:
         x0 = vt_free.copy()
         if objective.clamps:
             d = vt_free - step.x_start
-            x0 = step.x_start + objective.max_step(step.x_start, d) * d
+            a = objective.max_step(step.x_start, d)
+            x0 = step.x_start.copy() if restart and a < 1.0 else step.x_start + a * d
     e0 = objective.energy(x0)
     if not math.isfinite(e0):
         x0 = np.zeros_like(vt_free) if step.x_start is None else step.x_start.copy()
