@@ -94,7 +94,7 @@ class Timers:
         self._undo.clear()
 
 
-def build_case(name: str, refine: int, narrow_phase: str):
+def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "clamped"):
     """(model, system, contact term, initial state, dt) of a case."""
     from fem3d.mesh.formats import read_tet_mesh
     from fem3d.physics.constraints import Constraints
@@ -125,7 +125,7 @@ def build_case(name: str, refine: int, narrow_phase: str):
     L = float(np.linalg.norm(np.ptp(X, axis=0)))
     cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
                       dhat=1e-3 * L, mu=0.3, eps_v=1e-3 * L, narrow_phase=narrow_phase)
-    term = ContactTerm(cm, tolerance=1e-2)
+    term = ContactTerm(cm, tolerance=1e-2, newton_start=newton_start)
     return model, system, term, State.at_rest(model), 0.01
 
 
@@ -154,18 +154,18 @@ def _install_timers() -> Timers:
     return timers
 
 
-def _label(newton_solver: str, line_search: str) -> str:
-    tags = [t for t, default in ((newton_solver, "direct"), (line_search, "backtrack"))
-            if t != default]
+def _label(newton_solver: str, line_search: str, newton_start: str = "clamped") -> str:
+    tags = [t for t, default in ((newton_solver, "direct"), (line_search, "backtrack"),
+                                 (newton_start, "clamped")) if t != default]
     return f" [{', '.join(tags)}]" if tags else ""
 
 
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
              newton_solver: str = "direct", contact: bool = True,
-             line_search: str = "backtrack") -> dict:
+             line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
     import fem3d.solve.integrators as integ
 
-    model, system, term, state, dt = build_case(name, refine, narrow_phase)
+    model, system, term, state, dt = build_case(name, refine, narrow_phase, newton_start)
     timers = _install_timers()
     newton = factorizations = halvings = 0
     terms = [term] if contact else []
@@ -188,7 +188,8 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     # nested calls: CCD inside contact wrappers never happens; elastic includes none of these
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + ("" if contact else " (no contact)") + _label(newton_solver, line_search),
+        "case": name + ("" if contact else " (no contact)") + _label(
+            newton_solver, line_search, newton_start),
         "tets": model.n_tets, "factorizations_per_step": factorizations / steps,
         "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall,
@@ -199,7 +200,7 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
 
 
 def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
-                   line_search: str = "backtrack") -> dict:
+                   line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
     """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it."""
     from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
@@ -207,6 +208,8 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
     overrides = {} if newton_solver == "direct" else {"simulation.newton.solver": newton_solver}
     if line_search != "backtrack":
         overrides["simulation.newton.line_search"] = line_search
+    if newton_start != "clamped":
+        overrides["contact.newton_start"] = newton_start
     sim = Simulation(load_scene(name, overrides))
     timers = _install_timers()
     newton = factorizations = halvings = 0
@@ -226,7 +229,7 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
     sec = dict(timers.seconds)
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + _label(newton_solver, line_search),
+        "case": name + _label(newton_solver, line_search, newton_start),
         "tets": sim.model.n_tets, "factorizations_per_step": factorizations / steps,
         "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall, "steps_per_s": steps / wall,
@@ -296,6 +299,8 @@ def main(argv=None) -> None:
     ap.add_argument("--newton-solver", nargs="*", default=["direct", "reuse"])
     ap.add_argument("--line-search", nargs="*", default=["backtrack"],
                     help="Newton's line searches to run (backtrack, parabolic), one row each")
+    ap.add_argument("--newton-start", nargs="*", default=["clamped"],
+                    help="contact.newton_start values to run (clamped, q_t), one row each")
     ap.add_argument("--no-peer", action="store_true",
                     help="skip the contact-free peer row (same mesh, free fall)")
     ap.add_argument("--markdown", type=Path)
@@ -304,8 +309,9 @@ def main(argv=None) -> None:
     for case in (c for c in args.cases if c.startswith("contact_")):
         for solver in args.newton_solver:
             for search in args.line_search:
-                rows.append(run_scene_case(case, args.scene_steps, solver, search))
-                _print_row(rows[-1])
+                for start in args.newton_start:
+                    rows.append(run_scene_case(case, args.scene_steps, solver, search, start))
+                    _print_row(rows[-1])
     for refine in args.refine:
         for case in (c for c in args.cases if not c.startswith("contact_")):
             steps = args.steps if refine == 0 else max(3, args.steps // (8 ** refine))
@@ -314,9 +320,10 @@ def main(argv=None) -> None:
                 runs.append(("direct", False))
             for solver, contact in runs:
                 for search in (args.line_search if contact else ["backtrack"]):
-                    rows.append(run_case(case, refine, steps, args.narrow_phase, solver,
-                                         contact, search))
-                    _print_row(rows[-1])
+                    for start in (args.newton_start if contact else ["clamped"]):
+                        rows.append(run_case(case, refine, steps, args.narrow_phase, solver,
+                                             contact, search, start))
+                        _print_row(rows[-1])
             if case == "bunny_drop" and refine == 0 and not args.no_newton:
                 rows.append(run_newton_peer(steps))
                 _print_row(rows[-1])
