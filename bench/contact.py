@@ -3,6 +3,10 @@
     python -m bench.contact [--steps 150] [--refine 0 1] [--narrow-phase additive]
                             [--cases bunny_drop bunny_stack contact_stack contact_pile]
                             [--scene-steps 100] [--no-newton] [--markdown FILE]
+                            [--line-search backtrack parabolic] [--newton-start clamped q_t]
+
+``--line-search`` and ``--newton-start`` run each contact case once per value (issue 21's
+opt-in Newton settings, ``simulation.newton.line_search`` and ``contact.newton_start``).
 
 Cases: the coarse bunny (``data/coarser_bunny.mesh``, 1,518 tets) dropped on a ground plane,
 bouncing and coming to rest, and a stack of two bunnies dropped onto each other and the
