@@ -3,6 +3,10 @@
     python -m bench.contact [--steps 150] [--refine 0 1] [--narrow-phase additive]
                             [--cases bunny_drop bunny_stack contact_stack contact_pile]
                             [--scene-steps 100] [--no-newton] [--markdown FILE]
+                            [--line-search backtrack parabolic] [--newton-start clamped q_t]
+
+``--line-search`` and ``--newton-start`` run each contact case once per value (issue 21's
+opt-in Newton settings, ``simulation.newton.line_search`` and ``contact.newton_start``).
 
 Cases: the coarse bunny (``data/coarser_bunny.mesh``, 1,518 tets) dropped on a ground plane,
 bouncing and coming to rest, and a stack of two bunnies dropped onto each other and the
@@ -94,7 +98,7 @@ class Timers:
         self._undo.clear()
 
 
-def build_case(name: str, refine: int, narrow_phase: str):
+def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "clamped"):
     """(model, system, contact term, initial state, dt) of a case."""
     from fem3d.mesh.formats import read_tet_mesh
     from fem3d.physics.constraints import Constraints
@@ -125,7 +129,7 @@ def build_case(name: str, refine: int, narrow_phase: str):
     L = float(np.linalg.norm(np.ptp(X, axis=0)))
     cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
                       dhat=1e-3 * L, mu=0.3, eps_v=1e-3 * L, narrow_phase=narrow_phase)
-    term = ContactTerm(cm, tolerance=1e-2)
+    term = ContactTerm(cm, tolerance=1e-2, newton_start=newton_start)
     return model, system, term, State.at_rest(model), 0.01
 
 
@@ -154,34 +158,44 @@ def _install_timers() -> Timers:
     return timers
 
 
+def _label(newton_solver: str, line_search: str, newton_start: str = "clamped") -> str:
+    tags = [t for t, default in ((newton_solver, "direct"), (line_search, "backtrack"),
+                                 (newton_start, "clamped")) if t != default]
+    return f" [{', '.join(tags)}]" if tags else ""
+
+
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
-             newton_solver: str = "direct", contact: bool = True) -> dict:
+             newton_solver: str = "direct", contact: bool = True,
+             line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
     import fem3d.solve.integrators as integ
 
-    model, system, term, state, dt = build_case(name, refine, narrow_phase)
+    model, system, term, state, dt = build_case(name, refine, narrow_phase, newton_start)
     timers = _install_timers()
-    newton = factorizations = 0
+    newton = factorizations = halvings = 0
     terms = [term] if contact else []
     generations0 = getattr(system, "pattern_generation", 0)
     lowest = np.inf
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         for _ in range(steps):
             state, stats = integ.implicit_euler(system, state, dt, terms=terms,
-                                                linear_solver=newton_solver)
+                                                linear_solver=newton_solver,
+                                                line_search=line_search)
             newton += stats.newton_iterations
             factorizations += stats.factorizations
+            halvings += stats.line_search_halvings
             lowest = min(lowest, float(state.q[:, 1].min()))
     finally:
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         timers.restore()
     sec = dict(timers.seconds)
     # nested calls: CCD inside contact wrappers never happens; elastic includes none of these
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + ("" if contact else " (no contact)") + (
-            "" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "case": name + ("" if contact else " (no contact)") + _label(
+            newton_solver, line_search, newton_start),
         "tets": model.n_tets, "factorizations_per_step": factorizations / steps,
+        "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall,
         "steps_per_s": steps / wall, "newton_per_step": newton / steps,
         "pattern_reanalyses": getattr(system, "pattern_generation", 0) - generations0,
@@ -189,15 +203,20 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     }
 
 
-def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict:
+def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
+                   line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
     """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it."""
     from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
 
     overrides = {} if newton_solver == "direct" else {"simulation.newton.solver": newton_solver}
+    if line_search != "backtrack":
+        overrides["simulation.newton.line_search"] = line_search
+    if newton_start != "clamped":
+        overrides["contact.newton_start"] = newton_start
     sim = Simulation(load_scene(name, overrides))
     timers = _install_timers()
-    newton = factorizations = cg = 0
+    newton = factorizations = cg = halvings = 0
     generations0 = sim.system.pattern_generation
     analyses0 = getattr(sim.system, "analyses", 0)
     lowest = np.inf
@@ -208,6 +227,7 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict
             newton += sim.last_stats.newton_iterations
             factorizations += sim.last_stats.factorizations
             cg += sim.last_stats.cg_iterations
+            halvings += sim.last_stats.line_search_halvings
             lowest = min(lowest, float(sim.q[:, 1].min()))
     finally:
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -215,8 +235,9 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct") -> dict
     sec = dict(timers.seconds)
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + ("" if newton_solver == "direct" else f" [{newton_solver}]"),
+        "case": name + _label(newton_solver, line_search, newton_start),
         "tets": sim.model.n_tets, "factorizations_per_step": factorizations / steps,
+        "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall, "steps_per_s": steps / wall,
         "newton_per_step": newton / steps,
         "pattern_reanalyses": sim.system.pattern_generation - generations0,
@@ -250,6 +271,7 @@ def _print_row(r: dict) -> None:
         f"vertex contact radius {r['particle_radius']:.2e} m")
     fem = "" if s is None else (
         f"{r['newton_per_step']:.2f} Newton/step {r['factorizations_per_step']:.2f} fact/step  "
+        f"{r['halvings_per_step']:.2f} halvings/step  {r['steps'] / r['cpu']:.2f} steps/s CPU  "
         f"re-analyses {r['pattern_reanalyses']}  ")
     if "analyses" in r:  # the scene cases: CHOLMOD analyses, CG iterations, CPU time
         fem += (f"(analyses {r['analyses']}, CG/step {r['cg_per_step']:.1f}, "
@@ -286,6 +308,10 @@ def main(argv=None) -> None:
                     help="skip the Newton (VBD, CPU) peer of the bunny drop")
     ap.add_argument("--narrow-phase", default="additive")
     ap.add_argument("--newton-solver", nargs="*", default=["direct", "reuse"])
+    ap.add_argument("--line-search", nargs="*", default=["backtrack"],
+                    help="Newton's line searches to run (backtrack, parabolic), one row each")
+    ap.add_argument("--newton-start", nargs="*", default=["clamped"],
+                    help="contact.newton_start values to run (clamped, q_t), one row each")
     ap.add_argument("--no-peer", action="store_true",
                     help="skip the contact-free peer row (same mesh, free fall)")
     ap.add_argument("--markdown", type=Path)
@@ -293,8 +319,10 @@ def main(argv=None) -> None:
     rows = []
     for case in (c for c in args.cases if c.startswith("contact_")):
         for solver in args.newton_solver:
-            rows.append(run_scene_case(case, args.scene_steps, solver))
-            _print_row(rows[-1])
+            for search in args.line_search:
+                for start in args.newton_start:
+                    rows.append(run_scene_case(case, args.scene_steps, solver, search, start))
+                    _print_row(rows[-1])
     for refine in args.refine:
         for case in (c for c in args.cases if not c.startswith("contact_")):
             steps = args.steps if refine == 0 else max(3, args.steps // (8 ** refine))
@@ -302,8 +330,11 @@ def main(argv=None) -> None:
             if not args.no_peer and case == "bunny_drop":
                 runs.append(("direct", False))
             for solver, contact in runs:
-                rows.append(run_case(case, refine, steps, args.narrow_phase, solver, contact))
-                _print_row(rows[-1])
+                for search in (args.line_search if contact else ["backtrack"]):
+                    for start in (args.newton_start if contact else ["clamped"]):
+                        rows.append(run_case(case, refine, steps, args.narrow_phase, solver,
+                                             contact, search, start))
+                        _print_row(rows[-1])
             if case == "bunny_drop" and refine == 0 and not args.no_newton:
                 rows.append(run_newton_peer(steps))
                 _print_row(rows[-1])

@@ -11,6 +11,10 @@ the old code against itself with gravity changed by one unit in the last place
 tumble and slide (``contact_stack``) amplifies any last-bit difference to centimetres within
 a hundred steps; a change that moves only round-off then parts from the old trajectory no
 faster than the old code parts from itself.
+
+``--new-set KEY=VALUE`` (repeatable) runs the new tree with scene overrides, e.g.
+``--new-set simulation.newton.line_search=parabolic``: an opt-in algorithm against the old
+default, side by side.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 name, steps, out, ov = sys.argv[1], int(sys.argv[2]), sys.argv[3], json.loads(sys.argv[4])
 sim = Simulation(apply_overrides(load_scene(name), ov), scripted=True)
-Q, iters, facts, cg, substepped = [], 0, 0, 0, 0
+Q, iters, facts, cg, halvings, substepped = [], 0, 0, 0, 0, 0
 a0 = getattr(sim.system, "analyses", 0)
 w0, c0 = time.perf_counter(), time.process_time()
 for _ in range(steps):
@@ -43,11 +47,13 @@ for _ in range(steps):
     iters += sim.last_stats.newton_iterations
     facts += sim.last_stats.factorizations
     cg += sim.last_stats.cg_iterations
+    halvings += sim.last_stats.line_search_halvings
     substepped += getattr(sim.last_stats, "substeps", 1) > 1
 wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 np.save(out, np.array(Q))
 print(json.dumps({"wall": wall, "cpu": cpu, "newton": iters / steps, "fact": facts / steps,
-                  "cg": cg / steps, "analyses": getattr(sim.system, "analyses", -1) - a0,
+                  "cg": cg / steps, "halvings": halvings / steps,
+                  "analyses": getattr(sim.system, "analyses", -1) - a0,
                   "widenings": getattr(sim.system, "pattern_generation", -1),
                   "substepped": substepped}))
 """
@@ -84,11 +90,19 @@ def main(argv=None) -> None:
                     "(default: the scene's)")
     ap.add_argument("--no-parting", action="store_true",
                     help="speed only: skip the run with gravity one ulp off")
-    ap.add_argument("--new-set", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="scene overrides for the new tree only (VALUE as JSON), e.g. "
-                         "contact.max_substeps=8")
+    ap.add_argument("--new-set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="scene overrides for the new tree only (VALUE as JSON, else a string; "
+                         "repeatable), e.g. contact.max_substeps=8")
     args = ap.parse_args(argv)
-    new_overrides = {k: json.loads(v) for k, v in (a.split("=", 1) for a in args.new_set)}
+    new_overrides = {}
+    for item in args.new_set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--new-set {item!r}: expected KEY=VALUE")
+        try:
+            new_overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            new_overrides[key] = value
     base = {"simulation.newton.solver": args.newton_solver} if args.newton_solver else {}
     perturbed = {**base, "simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
     with tempfile.TemporaryDirectory() as tmp:
@@ -109,6 +123,7 @@ def main(argv=None) -> None:
                 print(f"{scene:22s} {key}: {steps} steps  {steps / best['wall']:6.2f} steps/s wall"
                       f"  {steps / best['cpu']:6.2f} steps/s CPU  {best['newton']:.2f} Newton/step"
                       f"  {best.get('fact', float('nan')):.2f} fact/step  "
+                      f"{best.get('halvings', float('nan')):.2f} halvings/step  "
                       f"{best.get('cg', float('nan')):.1f} CG/step  widenings "
                       f"{best.get('widenings')}  analyses {best.get('analyses')}  "
                       f"{best.get('substepped', 0)} steps substepped", flush=True)

@@ -159,7 +159,7 @@ class Simulation:
     pick_radius, spring_k : float
         Interactive picking radius and pull-spring stiffness (``scene.interaction``,
         resolved); settable.
-    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start
+    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start, newton_line_search
         Backward Euler's Newton settings (``scene.simulation.newton``).
     max_substeps : int
         Contact steps whose straight motion passes through a surface are redone in up to
@@ -208,6 +208,7 @@ class Simulation:
         self.newton_solver = sim.newton.solver
         self.newton_warm_start = sim.newton.warm_start
         self.max_substeps = scene.contact.max_substeps
+        self.newton_line_search = sim.newton.line_search
         self.pick_radius = built.pick_radius
         self.spring_k = built.spring_k
         self._W = None
@@ -613,7 +614,8 @@ class Simulation:
                 TERM_INTEGRATORS[self._integrator],
                 self.system, self.objective_terms(), self._state, self._dt,
                 max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
-                options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start),
+                options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start,
+                                       line_search=self.newton_line_search),
                 fixed_positions=fixed, fixed_at=self.fixed_positions,
                 max_substeps=1 if self._integrator == "static" else self.max_substeps,
             )

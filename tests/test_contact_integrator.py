@@ -41,18 +41,26 @@ def total_energy(model, state, contact):
             + contact.barrier_energy(q))
 
 
-def test_drop_on_ground_never_penetrates_never_gains_energy_and_comes_to_rest():
+#: The default Newton of a contact step and issue 21's opt-in settings (the start at q_t
+#: when CCD cuts the free flight, the parabolic line search): (newton_start, line_search).
+NEWTON_SETTINGS = pytest.mark.parametrize(("newton_start", "line_search"), [
+    ("clamped", "backtrack"), ("q_t", "parabolic")], ids=["default", "q_t-parabolic"])
+
+
+@NEWTON_SETTINGS
+def test_drop_on_ground_never_penetrates_never_gains_energy_and_comes_to_rest(newton_start,
+                                                                              line_search):
     dhat = 1e-3
     X, T = box_mesh((2, 2, 2), size=(0.1, 0.1, 0.1), origin=(0.0, 0.02, 0.0))
     model, system = free_system(X, T)
     cm = ContactModel(X, T, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])], dhat=dhat)
-    term = ContactTerm(cm, tolerance=1e-2)
+    term = ContactTerm(cm, tolerance=1e-2, newton_start=newton_start)
     state = State.at_rest(model)
     e_prev = total_energy(model, state, cm)
     e0 = e_prev
     kinetic = []
     for _ in range(60):
-        state, stats = implicit_euler(system, state, DT, terms=[term])
+        state, stats = implicit_euler(system, state, DT, terms=[term], line_search=line_search)
         assert stats.converged
         # independent of the contact set: every vertex strictly above the plane
         assert state.q[:, 1].min() > 0.0
@@ -66,17 +74,18 @@ def test_drop_on_ground_never_penetrates_never_gains_energy_and_comes_to_rest():
     assert kinetic[-1] < 1e-15 * max(kinetic)
 
 
-def test_a_fast_body_does_not_tunnel_through_the_ground_in_one_step():
+@NEWTON_SETTINGS
+def test_a_fast_body_does_not_tunnel_through_the_ground_in_one_step(newton_start, line_search):
     # 50 m/s toward a ground 0.05 m away: v_t dt alone would put the box 0.45 m below it
     X, T = box_mesh((1, 1, 1), size=(0.1, 0.1, 0.1), origin=(0.0, 0.05, 0.0))
     model, system = free_system(X, T, E=1e6, gravity=None)
     cm = ContactModel(X, T, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])], dhat=1e-3)
-    term = ContactTerm(cm)
+    term = ContactTerm(cm, newton_start=newton_start)
     v = np.zeros_like(X)
     v[:, 1] = -50.0
     state = State(q=X.copy(), v=v)
     for _ in range(3):
-        state, stats = implicit_euler(system, state, DT, terms=[term])
+        state, stats = implicit_euler(system, state, DT, terms=[term], line_search=line_search)
         assert stats.converged
         assert state.q[:, 1].min() > 0.0
     # stopped by the barrier, not merely slowed: after three steps the box is no longer
@@ -181,7 +190,9 @@ def independent_intersections(X, T, q):
     return ipctk.has_intersections(cm, cm.vertices(np.asfortranarray(q)))
 
 
-def test_two_boxes_fall_onto_each_other_and_the_ground_without_intersecting():
+@NEWTON_SETTINGS
+def test_two_boxes_fall_onto_each_other_and_the_ground_without_intersecting(newton_start,
+                                                                            line_search):
     Xa, Ta = box_mesh((2, 1, 2), size=(0.1, 0.05, 0.1), origin=(0.0, 0.005, 0.0))
     Xb, Tb = box_mesh((2, 1, 2), size=(0.1, 0.05, 0.1), origin=(0.03, 0.07, 0.02))
     X = np.vstack([Xa, Xb])
@@ -190,11 +201,11 @@ def test_two_boxes_fall_onto_each_other_and_the_ground_without_intersecting():
     model, system = free_system(X, T, E=2e5)
     cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
                       dhat=5e-4, mu=0.2, eps_v=1e-3)
-    term = ContactTerm(cm, tolerance=1e-2)
+    term = ContactTerm(cm, tolerance=1e-2, newton_start=newton_start)
     state = State.at_rest(model)
     min_between = np.inf
     for _ in range(25):
-        state, stats = implicit_euler(system, state, DT, terms=[term])
+        state, stats = implicit_euler(system, state, DT, terms=[term], line_search=line_search)
         assert stats.converged
         assert state.q[:, 1].min() > 0.0
         assert not independent_intersections(X, T, state.q)

@@ -85,6 +85,38 @@ def test_newtons_method_on_a_convex_function():
     assert capped.iterations == 2 and not capped.converged
 
 
+def test_parabolic_line_search_lands_nearer_the_minimum_along_the_direction():
+    """A friction-like objective: weak curvature (``m``) plus a smoothed ``k |x|`` whose
+    curvature jumps near 0. The full Newton step from the sliding side overshoots far past
+    the kink; backtracking accepts the first halving that passes Armijo, the parabolic
+    search then moves it to the parabola's vertex through the bracket: the same minimiser
+    in fewer iterations."""
+    m, b, k, eps = 0.1, 0.5, 1.0, 1e-3
+
+    def energy(x):
+        return 0.5 * m * float((x[0] - b) ** 2) + k * math.sqrt(float(x[0]) ** 2 + eps * eps)
+
+    def grad(x):
+        return np.array([m * (x[0] - b) + k * x[0] / math.sqrt(x[0] ** 2 + eps * eps)])
+
+    def direction(x, g):
+        h = m + k * eps * eps / (x[0] ** 2 + eps * eps) ** 1.5
+        return -g / h
+
+    x0 = np.array([2.0])
+    seen = {}
+    for search in ("backtrack", "parabolic"):
+        res = newtons_method(x0, energy, grad, direction, max_iterations=None, rtol=1e-10,
+                             line_search=search)
+        assert res.converged
+        seen[search] = res
+    back, para = seen["backtrack"], seen["parabolic"]
+    assert abs(para.x[0] - back.x[0]) < 1e-9  # the same minimiser (near 0: it sticks)
+    assert para.iterations < back.iterations
+    with pytest.raises(ValueError, match="line_search"):
+        newtons_method(x0, energy, grad, direction, line_search="golden")
+
+
 def test_newton_judges_round_off_by_the_energy_scale():
     """An objective that is a difference of large terms (an elastic energy near rest: element
     energies of size E vol cancel) rounds to multiples of ulp(C) far above its value: with

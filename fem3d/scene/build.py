@@ -382,4 +382,5 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
                       eps_v=spec.eps_v * L, self_contact=spec.self_contact)
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
-                       friction_tolerance=spec.friction_tolerance)
+                       friction_tolerance=spec.friction_tolerance,
+                       newton_start=spec.newton_start)

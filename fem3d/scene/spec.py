@@ -309,6 +309,10 @@ class NewtonSpec(_Spec):
     #: where each step's Newton starts: the last velocity, or the lower-energy of it and its
     #: linear extrapolation (fewer iterations on smooth drags; backward Euler only)
     warm_start: Literal["previous", "extrapolate"] = "previous"
+    #: Newton's line search: Armijo backtracking by halving, or the same with the accepted
+    #: step moved to the minimum of a parabola through the bracket when it took a halving
+    #: (fewer Newton iterations where lagged friction makes full steps overshoot)
+    line_search: Literal["backtrack", "parabolic"] = "backtrack"
 
 
 class SimulationSpec(_Spec):
@@ -329,6 +333,10 @@ class SimulationSpec(_Spec):
         if self.newton.warm_start != "previous" and self.integrator != "implicit":
             raise ValueError(f"newton.warm_start = {self.newton.warm_start!r} applies to "
                              f"integrator = 'implicit' only, not {self.integrator!r}")
+        if self.newton.line_search != "backtrack" and self.integrator == "linear":
+            raise ValueError(f"newton.line_search = {self.newton.line_search!r} needs a Newton "
+                             "solve (integrator = 'implicit', 'bdf2', 'newmark' or 'static'); "
+                             "the linearly-implicit scheme has no line search")
         return self
 
     @property
@@ -390,6 +398,9 @@ class ContactSpec(_Spec):
         if n & (n - 1):
             raise ValueError(f"must be a power of two (1, 2, 4, ..., 1024), got {n}")
         return n
+    #: where Newton starts when CCD cuts the step's free flight: v_t scaled back by CCD, or
+    #: q_t (v = 0, IPC's start; fewer Newton iterations at impacts and resting contacts)
+    newton_start: Literal["clamped", "q_t"] = "clamped"
 
     @property
     def static_mu(self) -> float:

@@ -53,7 +53,7 @@ from fem3d.solve.directions import (
     NewtonProgress,
     ReuseDirection,
 )
-from fem3d.solve.newton import newtons_method
+from fem3d.solve.newton import LINE_SEARCHES, newtons_method
 from fem3d.solve.objective import Objective
 from fem3d.solve.state import (
     State,
@@ -93,12 +93,17 @@ def model_terms(system: System, pull: Pull | None = None) -> list:
 
 def newton_options(hessian: str = "exact", **settings) -> NewtonOptions:
     """:class:`NewtonOptions` with the Hessian named (``"exact"`` or ``"psd"``; the warm
-    start, when given, one of :data:`WARM_STARTS`)."""
+    start, when given, one of :data:`WARM_STARTS`; the line search one of
+    :data:`fem3d.solve.newton.LINE_SEARCHES`)."""
     if hessian not in ("exact", "psd"):
         raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
     warm = settings.get("warm_start", "previous")
     if warm not in WARM_STARTS:
         raise ValueError(f"warm_start must be one of {', '.join(WARM_STARTS)}, got {warm!r}")
+    search = settings.get("line_search", "backtrack")
+    if search not in LINE_SEARCHES:
+        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
+                         f"{search!r}")
     return NewtonOptions(psd=hessian == "psd", **settings)
 
 
@@ -284,6 +289,7 @@ def minimise_step(
                 else None,
                 roundoff_rtol=AMG_ROUNDOFF_RTOL if linear_solver == "amg" else 0.0,
                 f0=f0, energy_scale=objective.energy_scale if linear_solver != "amg" else 0.0,
+                line_search=options.line_search,
             )
         except SimulationError as exc:
             if exc.step is not None:
@@ -308,18 +314,25 @@ def _start(objective: Objective, state: State) -> tuple[np.ndarray, float]:
     """Newton's start and its energy: ``v_hat`` (clamped by the terms' ``max_step`` from
     ``x_start``, where the free DOFs are at ``q_t``: a start that tunnelled through an
     obstacle would be finite but wrong), or ``x_start`` itself when that is inadmissible
-    (backward Euler: ``v_t`` clamped from ``v = 0``)."""
+    (backward Euler: ``v_t`` clamped from ``v = 0``) or when the clamp cut the step and a
+    term asks for it (:attr:`Objective.restart_when_clamped`)."""
     step = objective.step
     vt_free = step.v_hat_free
+    restart = objective.restart_when_clamped
     if step.x_start is None:
         x0 = vt_free.copy()
         if objective.clamps:
-            x0 *= objective.max_step(np.zeros_like(vt_free), vt_free)
+            a = objective.max_step(np.zeros_like(vt_free), vt_free)
+            if restart and a < 1.0:
+                x0 = np.zeros_like(vt_free)
+            else:
+                x0 *= a
     else:
         x0 = vt_free.copy()
         if objective.clamps:
             d = vt_free - step.x_start
-            x0 = step.x_start + objective.max_step(step.x_start, d) * d
+            a = objective.max_step(step.x_start, d)
+            x0 = step.x_start.copy() if restart and a < 1.0 else step.x_start + a * d
     e0 = objective.energy(x0)
     if not math.isfinite(e0):
         x0 = np.zeros_like(vt_free) if step.x_start is None else step.x_start.copy()
@@ -372,6 +385,7 @@ def implicit_euler(
     forcing_max: float = FORCING_MAX,
     warm_start: str = "previous",
     max_substeps: int = 1,
+    line_search: str = "backtrack",
 ) -> tuple[State, StepStats]:
     """One backward-Euler step of the system's model (:func:`model_terms`) plus ``terms``.
 
@@ -405,6 +419,8 @@ def implicit_euler(
         A power of two: a contact step whose own straight motion is not intersection-free
         (or that fails) is redone as up to this many substeps
         (:func:`fem3d.solve.substeps.step_with_substeps`); 1: never.
+    line_search : {"backtrack", "parabolic"}, optional
+        Newton's line search (:data:`fem3d.solve.newton.LINE_SEARCHES`).
 
     Returns
     -------
@@ -412,7 +428,8 @@ def implicit_euler(
     """
     options = newton_options(hessian, cg_rtol=cg_rtol, cg_maxiter=cg_maxiter,
                              amg_maxiter=amg_maxiter, amg_budget=amg_budget,
-                             forcing_max=forcing_max, warm_start=warm_start)
+                             forcing_max=forcing_max, warm_start=warm_start,
+                             line_search=line_search)
     return step_with_substeps(
         backward_euler, system, [*model_terms(system, pull), *terms], state, dt,
         max_substeps=max_substeps,

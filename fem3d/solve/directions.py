@@ -68,6 +68,7 @@ class NewtonOptions:
     amg_budget: float = AMG_ITERATIONS_PER_DECADE
     forcing_max: float = FORCING_MAX
     warm_start: str = "previous"
+    line_search: str = "backtrack"
 
 
 @dataclass

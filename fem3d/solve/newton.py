@@ -10,11 +10,21 @@ import numpy as np
 
 from fem3d.errors import SimulationError
 
-__all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT_FACTOR"]
+__all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT_FACTOR",
+           "LINE_SEARCHES", "PARABOLIC_TRIALS"]
 
 #: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
 #: round-off (measured floors on the swinging box: 10-20 tolerances).
 ROUNDOFF_GRADIENT_FACTOR = 1e3
+
+#: The line searches of :func:`newtons_method`: ``"backtrack"`` accepts the first trial of
+#: ``a0, a0 p, a0 p^2, ...`` that passes Armijo's test; ``"parabolic"`` does the same and then,
+#: when that took a halving, moves the accepted step to the minimum of the parabola through
+#: the energies at the bracket ``0 < a < a / p`` (at most :data:`PARABOLIC_TRIALS` more
+#: energy evaluations, each kept only where it lowers the energy).
+LINE_SEARCHES = ("backtrack", "parabolic")
+#: ``"parabolic"``: the most extra energy evaluations per line search.
+PARABOLIC_TRIALS = 2
 
 
 @dataclass
@@ -78,6 +88,7 @@ def newtons_method(
     after_step: Callable[[np.ndarray], bool] | None = None,
     roundoff_rtol: float = 0.0,
     f0: float | None = None,
+    line_search: str = "backtrack",
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -133,6 +144,11 @@ def newtons_method(
         rather than halve through noise. 0 (default): plain backtracking.
     f0 : float, optional
         ``energy(x0)`` when the caller has it already (saves one evaluation).
+    line_search : {"backtrack", "parabolic"}, optional
+        :data:`LINE_SEARCHES`. ``"parabolic"`` pays off where the energy's curvature jumps
+        along ``d`` (lagged friction with a small ``eps_v``: a full Newton step carries a
+        slip far past the static zone, and the halved step that passes Armijo's test is
+        often far from the minimum along ``d``).
 
     Returns
     -------
@@ -140,6 +156,10 @@ def newtons_method(
         A line search that finds only finite, non-decreasing trial points means round-off
         has been reached: Newton stops there and reports ``converged=True``.
     """
+    if line_search not in LINE_SEARCHES:
+        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
+                         f"{line_search!r}")
+    refine = PARABOLIC_TRIALS if line_search == "parabolic" else 0
     x = np.array(x0, dtype=np.float64)
     fx = energy(x) if f0 is None else float(f0)
     g = gradient(x)
@@ -178,7 +198,7 @@ def newtons_method(
             continue
         search = _backtrack(x, fx, gn, d, slope, a0, energy, gradient, p=p, c=c,
                             max_halvings=max_halvings, roundoff_rtol=roundoff_rtol,
-                            end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * tol)
+                            end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * tol, refine=refine)
         halvings += search.halvings
         if search.outcome == "round-off":
             return NewtonResult(x, it, norms, True, halvings)
@@ -219,13 +239,16 @@ class _Search:
 def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float, a0: float,
                energy: Callable[[np.ndarray], float],
                gradient: Callable[[np.ndarray], np.ndarray], *, p: float, c: float,
-               max_halvings: int, roundoff_rtol: float, end_game: bool) -> _Search:
+               max_halvings: int, roundoff_rtol: float, end_game: bool,
+               refine: int = 0) -> _Search:
     """Armijo backtracking from the step ``a0`` along ``d`` (see :func:`newtons_method`'s
     ``alpha, p, c``, ``max_halvings`` and ``roundoff_rtol``; ``end_game``: ``||g||`` within
-    :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance)."""
+    :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance; ``refine``: the parabolic
+    refinement's trials, 0 for none)."""
     a = a0
     any_finite = False
     halvings = 0
+    rejected = math.inf  # the energy at the last rejected trial, a / p
     for _ in range(max_halvings):
         xt = x + a * d
         if not (xt != x).any():
@@ -234,6 +257,9 @@ def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float,
         if math.isfinite(ft):
             any_finite = True
             if ft <= fx + c * a * slope:
+                if refine and halvings and math.isfinite(rejected) and ft < fx:
+                    a, xt, ft = _parabolic(x, fx, d, slope, c, energy,
+                                           [(0.0, fx), (a, ft), (a / p, rejected)], refine)
                 return _Search("accepted", halvings, True, xt, ft)
             if roundoff_rtol and a == a0:
                 # near the tolerance a Newton step changes the energy by less than its
@@ -247,6 +273,41 @@ def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float,
                     # a full step that does not shrink the gradient there is the
                     # gradient's round-off: stop rather than halve through noise
                     return _Search("round-off", halvings, True)
+        rejected = ft
         a *= p
         halvings += 1
     return _Search("failed", halvings, any_finite)
+
+
+def _parabolic(x: np.ndarray, fx: float, d: np.ndarray, slope: float, c: float,
+               energy: Callable[[np.ndarray], float], points: list[tuple[float, float]],
+               trials: int) -> tuple[float, np.ndarray, float]:
+    """Successive parabolic interpolation along ``d`` from a bracket ``points`` (three
+    ``(a, E(x + a d))`` in increasing ``a``, the middle one the lowest and Armijo-accepted):
+    up to ``trials`` evaluations at the vertex of the parabola through the three lowest
+    points around the best; returns the best ``(a, x + a d, E)`` seen (one that also passes
+    Armijo's test). Every trial lies inside the bracket, so within the line search's first
+    (CCD-limited) step."""
+    best_a, best_f = points[1]
+    best_x = None
+    for _ in range(trials):
+        (a1, f1), (a2, f2), (a3, f3) = points
+        den = (a2 - a1) * (f2 - f3) - (a2 - a3) * (f2 - f1)
+        if not den < 0.0:  # not convex through the three points
+            break
+        v = a2 - 0.5 * ((a2 - a1) ** 2 * (f2 - f3) - (a2 - a3) ** 2 * (f2 - f1)) / den
+        if not (a1 < v < a3) or abs(v - a2) <= 1e-3 * a2:
+            break
+        xv = x + v * d
+        fv = energy(xv)
+        if not math.isfinite(fv):
+            break
+        if fv < best_f and fv <= fx + c * v * slope:
+            best_a, best_x, best_f = v, xv, fv
+        # the new bracket: the best point and its neighbours
+        pts = sorted([*points, (v, fv)])
+        i = min(range(4), key=lambda k: (pts[k][1], pts[k][0]))
+        if i in (0, 3):
+            break
+        points = pts[i - 1:i + 2]
+    return best_a, (x + best_a * d if best_x is None else best_x), best_f

@@ -44,6 +44,7 @@ class Objective:
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
+        self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
         self._positional = [t for t in self.terms if t.variable == "position"]
         self._velocity = [t for t in self.terms if t.variable != "position"]
         self._clamping = [t for t in self.terms if overrides(t, "max_step")]

@@ -133,6 +133,11 @@ class Term:
         The term stiffens by orders of magnitude within a step (a log barrier at contact): a
         scheme without numerical dissipation (Newmark) damps its highest modes while it is
         active.
+    restart_when_clamped : bool
+        When the term's ``max_step`` cuts the way from the scheme's start ``x_start`` to its
+        target ``v_hat`` (free flight into a contact), Newton starts at ``x_start`` itself
+        (backward Euler: ``q_t``) instead of the clamped target, whose contacts are squeezed
+        to a tenth of their gap and more (IPC's own start).
     inertial, dissipative : bool
         The term is the kinetic (mass) term, or a dissipation in the velocities: a static
         equilibrium leaves both out, an initial acceleration ``M a = f`` every inertial one.
@@ -149,6 +154,7 @@ class Term:
     requires_convergence: ClassVar[bool] = False
     allows_lagged_matrix: ClassVar[bool] = True
     stiff_barrier: ClassVar[bool] = False
+    restart_when_clamped: bool = False
     inertial: ClassVar[bool] = False
     dissipative: ClassVar[bool] = False
     energy_scale: float = 0.0
@@ -249,6 +255,7 @@ class TermGroup(Term):
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.stiff_barrier = any(t.stiff_barrier for t in self.terms)
+        self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
 
     @property

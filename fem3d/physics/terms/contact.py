@@ -18,7 +18,10 @@ from fem3d.physics.contact import ContactModel
 from fem3d.physics.contact_path import straight_path_is_free
 from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
 
-__all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm"]
+__all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS"]
+
+#: Where a contact step's Newton starts when CCD cuts its free flight (:class:`BarrierTerm`).
+NEWTON_STARTS = ("clamped", "q_t")
 
 
 class BarrierTerm(Term):
@@ -44,6 +47,10 @@ class BarrierTerm(Term):
         than ``pattern_margin * dhat`` there, so that the contact region can spread without
         a re-analysis per new pair (0: only by the active blocks).
         ``python -m bench.contact`` measures it.
+    newton_start : {"clamped", "q_t"}, optional
+        Where Newton starts when CCD cuts the step's free flight (``v_t``): at ``v_t`` scaled
+        back by CCD (``"clamped"``, the default) or at ``q_t`` (``"q_t"``: ``v = 0``, IPC's
+        start; :attr:`Term.restart_when_clamped`).
     """
 
     name = "barrier"
@@ -54,7 +61,11 @@ class BarrierTerm(Term):
     stiff_barrier = True
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
-                 pattern_margin: float = 4.0) -> None:
+                 pattern_margin: float = 4.0, newton_start: str = "clamped") -> None:
+        if newton_start not in NEWTON_STARTS:
+            raise ParameterError(f"contact.newton_start must be one of "
+                                 f"{', '.join(NEWTON_STARTS)}, got {newton_start!r}")
+        self.restart_when_clamped = newton_start == "q_t"
         tolerance = float(tolerance)
         if not (math.isfinite(tolerance) and tolerance > 0):
             raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
@@ -283,7 +294,7 @@ class ContactTerm(TermGroup):
     Parameters
     ----------
     contact : ContactModel
-    tolerance, pattern_margin : float, optional
+    tolerance, pattern_margin, newton_start : optional
         The barrier's (:class:`BarrierTerm`).
     friction_iterations, friction_tolerance : optional
         The friction's re-lagging (:class:`FrictionTerm` ``iterations``, ``tolerance``).
@@ -293,9 +304,10 @@ class ContactTerm(TermGroup):
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
                  pattern_margin: float = 4.0, friction_iterations: int = 1,
-                 friction_tolerance: float = 1e-6) -> None:
+                 friction_tolerance: float = 1e-6, newton_start: str = "clamped") -> None:
         self.contact = contact
-        self.barrier = BarrierTerm(contact, tolerance=tolerance, pattern_margin=pattern_margin)
+        self.barrier = BarrierTerm(contact, tolerance=tolerance, pattern_margin=pattern_margin,
+                                   newton_start=newton_start)
         self.friction = FrictionTerm(contact, iterations=friction_iterations,
                                      tolerance=friction_tolerance)
         super().__init__([self.barrier, self.friction])
