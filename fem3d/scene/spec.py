@@ -398,8 +398,11 @@ class ContactSpec(_Spec):
         if n & (n - 1):
             raise ValueError(f"must be a power of two (1, 2, 4, ..., 1024), got {n}")
         return n
-    #: where Newton starts when CCD cuts the step's free flight: v_t scaled back by CCD, or
-    #: q_t (v = 0, IPC's start; fewer Newton iterations at impacts and resting contacts)
+    #: where Newton starts when CCD cuts the step's free flight: v_t scaled back by CCD
+    #: ("clamped"; it lets a resting vertex creep toward a plane while the barrier's gradient
+    #: grows) or q_t (v = 0, IPC's start; fewer Newton iterations at impacts and resting
+    #: contacts; the gallery's contact scenes set it). The default stays "clamped": a
+    #: checkpoint written before the key existed resumes as it was run
     newton_start: Literal["clamped", "q_t"] = "clamped"
 
     @property
