@@ -83,7 +83,7 @@ def test_stack_scene_never_intersects_and_the_upper_block_lands(tmp_path):
 
 
 @pytest.mark.parametrize("overrides", [
-    {"simulation.newton.line_search": "parabolic"},
+    {"simulation.newton.line_search": "parabolic", "contact.newton_start": "clamped"},
     {"contact.newton_start": "q_t"},
     {"simulation.newton.line_search": "parabolic", "contact.newton_start": "q_t"},
 ], ids=["parabolic", "q_t", "both"])
