@@ -68,9 +68,12 @@ def test_bunny_drop_never_intersects_and_comes_to_rest(name):
     (lowest vertex within 1 mm) with kinetic energy below 5 % of the potential energy it
     lost (measured, kinetic / drop: implicit 0.021 / 2.25 J, bdf2 0.030 / 2.19 J,
     newmark 0.059 / 2.20 J, static 0 / 2.27 J)."""
+    # the scene as measured: without the self-contact, damping and q_t start it gained in
+    # issue 21 (with self-contact the static scheme's run took 311 s instead of 2)
     sim = Simulation(load_scene("contact_bunny_drop", {
-        "simulation.integrator": name, "bodies[0].transform.translate": TRANSLATE}),
-        scripted=True)
+        "simulation.integrator": name, "bodies[0].transform.translate": TRANSLATE,
+        "contact.self_contact": False, "bodies[0].damping.rayleigh_stiffness": 0.0,
+        "contact.newton_start": "clamped"}), scripted=True)
     check = GroundCheck(sim.model.X, np.asarray(sim.model.T))
     e0 = sim.energies()
     for _ in range(STEPS[name]):
