@@ -40,7 +40,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench.contact_check import box_clearance, rest_step  # noqa: E402,F401  (rest_step: re-exported)
+from bench.contact_check import StateChecks, rest_step  # noqa: E402,F401  (rest_step: re-exported)
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
@@ -67,27 +67,20 @@ def box_bounds(scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_frames(out: Path, lower: np.ndarray, upper: np.ndarray) -> FrameReport:
-    """Check every ``frames/frame_*.vtu`` of a run in ``out`` (see the module)."""
-    import ipctk
+    """Check every ``frames/frame_*.vtu`` of a run in ``out`` (see the module) with
+    :class:`bench.contact_check.StateChecks` (the box's floor and walls at ``lower``,
+    ``upper``; the box's own triangles are not in the frames)."""
     import meshio
 
     files = sorted((out / "frames").glob("frame_*.vtu"))
     if not files:
         raise FileNotFoundError(f"no frames in {out / 'frames'}")
-    first = meshio.read(files[0])
-    faces = np.asarray(first.cells_dict["triangle"], dtype=np.int32)
-    rest = np.asfortranarray(first.points, dtype=np.float64)
-    mesh = ipctk.CollisionMesh(rest, ipctk.edges(faces), faces)  # one group: self-contact too
-    bad, outside, clearance = [], [], np.inf
-    for i, f in enumerate(files):
-        x = np.asfortranarray(meshio.read(f).points, dtype=np.float64)
-        if ipctk.has_intersections(mesh, x):
-            bad.append(i)
-        c = box_clearance(x, lower, upper)
-        clearance = min(clearance, c)
-        if c <= 0.0:
-            outside.append(i)
-    return FrameReport(len(files), bad, outside, clearance)
+    faces = np.asarray(meshio.read(files[0]).cells_dict["triangle"], dtype=np.int64)
+    checks = StateChecks(faces, [], (lower, upper))
+    for f in files:
+        checks.add(np.asarray(meshio.read(f).points, dtype=np.float64), [])
+    return FrameReport(checks.states, checks.intersecting, checks.outside_box,
+                       checks.min_box_clearance)
 
 
 def frame_kinetic(out: Path, scene) -> np.ndarray:

@@ -75,12 +75,11 @@ def from_frames(name: str, folder: Path, frames_wanted: int = 60):
     sim = Simulation(load_scene(name), scripted=True)
     files = sorted((folder / "frames").glob("frame_*.vtu"))
     every = max(1, (len(files) - 1) // frames_wanted)
-    picked = files[::every] if (len(files) - 1) % every == 0 else [*files[::every], files[-1]]
-    dt = sim.dt
-    shots, obstacle_shots = [], []
-    for f in picked:
-        shots.append(np.asarray(meshio.read(f).points, dtype=np.float64))
-        obstacle_shots.append(sim.obstacles(files.index(f) * dt))
+    picked = list(range(0, len(files), every))
+    if picked[-1] != len(files) - 1:
+        picked.append(len(files) - 1)
+    shots = [np.asarray(meshio.read(files[k]).points, dtype=np.float64) for k in picked]
+    obstacle_shots = [sim.obstacles(k * sim.dt) for k in picked]
     return sim, shots, obstacle_shots, every, float("nan")
 
 
