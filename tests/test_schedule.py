@@ -54,11 +54,20 @@ def _serial(model, kernel: str, q: np.ndarray, index: np.ndarray, n_out: int) ->
 def _race_free(schedule, index: np.ndarray) -> bool:
     """No entry of out is written by two blocks of one colour."""
     k = index.size // schedule.order.size
-    colour = np.repeat(schedule.element_colours(), k)
-    block = np.repeat(schedule.element_blocks(), k)
-    pairs = np.unique(np.stack([colour, index.reshape(-1).astype(np.int64), block]), axis=1)
-    writers = np.unique(pairs[:2], axis=1)  # (colour, slot) with one or more blocks
-    return writers.shape[1] == pairs.shape[1]
+    colour = np.repeat(schedule.element_colours().astype(np.int64), k)
+    block = np.repeat(schedule.element_blocks().astype(np.int64), k)
+    slot = index.reshape(-1).astype(np.int64)
+    # (colour, slot, block) as one integer key: far faster than np.unique(axis=1)
+    n_slots, n_blocks = int(slot.max()) + 1, int(block.max()) + 1
+    pairs = _distinct((colour * n_slots + slot) * n_blocks + block)
+    writers = _distinct(pairs // n_blocks)  # (colour, slot) with one or more blocks
+    return writers.size == pairs.size
+
+
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    """The sorted distinct values (``np.unique``'s hash path is ~10x slower on 5M keys)."""
+    keys = np.sort(keys)
+    return keys[np.r_[True, keys[1:] != keys[:-1]]]
 
 
 def test_threaded_equals_serial_and_is_independent_of_thread_count(big) -> None:
@@ -103,8 +112,10 @@ def test_schedules_are_race_free_and_cover_every_element(big) -> None:
     colour, block = s.element_colours(), s.element_blocks()
     for c in range(s.n_colours):
         e = np.flatnonzero(colour == c)
-        pairs = np.unique(np.stack([np.repeat(block[e], 4), model.T[e].reshape(-1)]), axis=1)
-        assert np.unique(pairs[1]).size == pairs.shape[1]
+        n_vertices = len(model.X)
+        pairs = _distinct(np.repeat(block[e].astype(np.int64), 4) * n_vertices
+                          + model.T[e].reshape(-1))  # (block, vertex) as one key
+        assert _distinct(pairs % n_vertices).size == pairs.size
 
 
 def test_a_shuffled_element_order_is_still_scheduled_and_correct(big) -> None:
