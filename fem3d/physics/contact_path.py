@@ -15,7 +15,7 @@ impact only where primitives meet, not where they merely come closer than a frac
 start distance (the line search's additive CCD does, to keep the barrier finite: that would
 flag every landing). Tight-Inclusion decides to a tolerance: at ipctk's default (1e-6 m) it
 also flags a pair that comes within about 1e-7 m without meeting, which a pair pressed into
-resting contact by the barrier does (the pile, step 12: an edge pair 3e-7 m apart at its
+resting contact by the barrier does (the pile, step 13: an edge pair 3e-7 m apart at its
 closest); a motion it flags is checked again at 1e-9 and 1e-12 m
 (:data:`PATH_CCD_TOLERANCES`), and it meets a surface only when every one flags it. Planes need no test: each vertex moves on a
 line, so it crosses a plane within the step only if it ends below it, which the line search
