@@ -17,13 +17,14 @@ flag every landing). Tight-Inclusion decides to a tolerance: at ipctk's default 
 also flags a pair that comes within about 1e-7 m without meeting, which a pair pressed into
 resting contact by the barrier does (the pile, step 13: an edge pair 3e-7 m apart at its
 closest); a motion it flags is checked again at 1e-9 and 1e-12 m
-(:data:`PATH_CCD_TOLERANCES`), and it meets a surface only when every one flags it. Planes need no test: each vertex moves on a
-line, so it crosses a plane within the step only if it ends below it, which the line search
-never accepts. The candidates are the step's own (:class:`~fem3d.physics.contact_candidates.
-StepCandidates`), grown when the motion leaves their boxes. The model's own CCD (additive by
-default) runs first: it flags every pair whose distance falls below a tenth of its start, so
-a motion it passes meets no surface, and only a flagged motion (a landing, a hit) needs the
-exact test; on the twisted bar this halves the check's cost (0.6 to 0.3 ms a step).
+(:data:`PATH_CCD_TOLERANCES`), and it meets a surface only when every one flags it. Planes
+need no test: each vertex moves on a line, so it crosses a plane within the step only if it
+ends below it, which the line search never accepts. The candidates are the step's own
+(:class:`~fem3d.physics.contact_candidates.StepCandidates`), grown when the motion leaves
+their boxes. The model's own CCD (additive by default) runs first: it flags every pair whose
+distance falls below a tenth of its start, so a motion it passes meets no surface, and only
+a flagged motion (a landing, a hit) needs the exact test; on the twisted bar this halves the
+check's cost (0.6 to 0.3 ms a step).
 """
 
 from __future__ import annotations
@@ -38,10 +39,10 @@ __all__ = ["straight_path_is_free", "PATH_CCD_TOLERANCE", "PATH_CCD_TOLERANCES"]
 #: Tight-Inclusion's tolerances (co-domain widths, m), tried in turn: the first is ipctk's
 #: default; a motion it flags is checked again at the next, and it meets a surface only when
 #: the last flags it too. Tight-Inclusion reports a pair whose distance along the motion
-#: falls below about its tolerance (scaled down to half the pair's start distance where that
-#: is smaller), whether or not it reaches 0: a pair in resting contact, pressed to a gap of
-#: a micrometre or less by the barrier, is flagged at 1e-6 without crossing anything. A
-#: crossing (distance 0) is flagged at every tolerance.
+#: falls below a fraction of its tolerance (scaled down to half the pair's start distance
+#: where that is smaller; measured: about a tenth, faces off the axes), whether or not it
+#: reaches 0: a pair pressed into resting contact by the barrier is flagged at 1e-6 without
+#: crossing anything. A crossing (distance 0) is flagged at every tolerance.
 PATH_CCD_TOLERANCES = (1e-6, 1e-9, 1e-12)
 
 #: The first (ipctk's default).
