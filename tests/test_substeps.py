@@ -4,8 +4,9 @@ through a surface is redone as 2, 4, ... substeps of dt/n.
 Checked here: a substepped step equals two steps of dt/2 (up to the solver's round-off); a
 step that needs no substeps is bit for bit the step without the check; the step counter and
 time; pins at the substep times; a resume across a substepped step is bit-exact; the cap
-fails with one line naming the setting. The fast body itself is
-``tests/test_contact_integrator.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
+fails with one line naming the setting; a pair pressed closer than Tight-Inclusion's default
+tolerance catches is not a crossing, one pushed into or through the other is. The fast body
+itself is ``tests/test_contact_integrator.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
 """
 
 from __future__ import annotations
