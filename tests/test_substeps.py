@@ -4,8 +4,9 @@ through a surface is redone as 2, 4, ... substeps of dt/n.
 Checked here: a substepped step equals two steps of dt/2 (up to the solver's round-off); a
 step that needs no substeps is bit for bit the step without the check; the step counter and
 time; pins at the substep times; a resume across a substepped step is bit-exact; the cap
-fails with one line naming the setting. The fast body itself is
-``tests/test_contact_integrator.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
+fails with one line naming the setting; a pair pressed closer than Tight-Inclusion's default
+tolerance catches is not a crossing, one pushed into or through the other is. The fast body
+itself is ``tests/test_contact_integrator.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import pytest
 from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
+from fem3d.physics import contact_path
 from fem3d.physics.contact import ContactModel
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.scene import apply_overrides, load_scene
@@ -208,3 +210,50 @@ def test_a_scene_over_the_cap_fails_with_one_line(tmp_path, capsys):
     assert "contact.max_substeps" in err
     with pytest.raises(InputError, match="max_substeps: must be a power of two"):
         apply_overrides(load_scene(str(scene)), {"contact.max_substeps": 6})
+
+
+#: A rotation taking the boxes off the axes (Tight-Inclusion's boxes are axis-aligned: faces
+#: along the axes make its test exact).
+TILT = np.linalg.qr(np.array([[1.0, 0.3, -0.2], [0.1, 1.0, 0.4], [-0.3, 0.2, 1.0]]))[0]
+
+
+def resting_boxes(gap: float):
+    """Box b (0.1 m) resting ``gap`` above box a, offset sideways, both tilted by
+    :data:`TILT`: a ContactModel with ``dhat`` 1 mm, the rest positions ``(n, 3)``, b's
+    vertices, and ``move(d)``: the positions with b moved by ``d`` (in the boxes' frame)."""
+    Xa, Ta = box_mesh((1, 1, 1), size=(0.1, 0.1, 0.1))
+    Xb, Tb = box_mesh((1, 1, 1), size=(0.1, 0.1, 0.1), origin=(0.02, 0.1 + gap, 0.01))
+    X, T = np.vstack([Xa, Xb]), np.vstack([Ta, Tb + len(Xa)])
+    b = np.r_[np.zeros(len(Xa), bool), np.ones(len(Xb), bool)]
+
+    def move(d):
+        Y = X.copy()
+        Y[b] += d
+        return Y @ TILT.T
+
+    return ContactModel(X @ TILT.T, T, body_ids=b.astype(int), dhat=1e-3), move
+
+
+def test_a_resting_pair_closer_than_the_ccd_tolerance_is_not_a_crossing():
+    """Box b settles from 20 um to 0.1 um above box a while sliding 5 mm: its straight
+    motion comes closer than Tight-Inclusion's default tolerance (1e-6 m, which flags it)
+    but never meets a; the check passes it. The same box pushed 1 mm into a, or moved
+    through a to below it (ending intersection-free), is a crossing."""
+    import ipctk
+
+    contact, move = resting_boxes(2e-5)
+    q0, q1 = move([0.0, 0.0, 0.0]), move([0.005, 1e-7 - 2e-5, 0.0])
+    assert not contact.has_intersections(q1.reshape(-1))
+    # the old check (Tight-Inclusion at its default tolerance alone) reports a hit
+    part = contact._parts[0]
+    V0, V1 = (np.asfortranarray(contact.collision_vertices(q)) for q in (q0, q1))
+    cands = contact._candidates_along(part, V0, V1)
+    assert not cands.is_step_collision_free(
+        part.mesh, V0, V1, min_distance=0.0,
+        narrow_phase_ccd=ipctk.TightInclusionCCD(1e-6, 10_000_000, 1.0))
+    assert contact_path.straight_path_is_free(contact, q0, q1, 0.0, DT)
+    pressed = move([0.005, -1e-3 - 2e-5, 0.0])
+    assert not contact_path.straight_path_is_free(contact, q0, pressed, 0.0, DT)
+    through = move([0.005, -0.2 - 2e-5 - 1e-3, 0.0])
+    assert not contact.has_intersections(through.reshape(-1))
+    assert not contact_path.straight_path_is_free(contact, q0, through, 0.0, DT)

@@ -11,15 +11,20 @@ The test here is Tight-Inclusion CCD (Wang et al. 2021, through ``ipctk``) on th
 motion of every collision vertex, the bodies from ``q0`` to ``q1`` and the mesh obstacles from
 where they are at ``t0`` to where they are at ``t1``, with the minimum distance the line search
 uses (0) and no conservative rescaling (``conservative_rescaling = 1``): it reports a time of
-impact only where primitives meet, to the CCD's tolerance, not where they merely come closer
-than a fraction of their start distance (the line search's additive CCD does, to keep the
-barrier finite: that would flag every landing). Planes need no test: each vertex moves on a
-line, so it crosses a plane within the step only if it ends below it, which the line search
-never accepts. The candidates are the step's own (:class:`~fem3d.physics.contact_candidates.
-StepCandidates`), grown when the motion leaves their boxes. The model's own CCD (additive by
-default) runs first: it flags every pair whose distance falls below a tenth of its start, so
-a motion it passes meets no surface, and only a flagged motion (a landing, a hit) needs the
-exact test; on the twisted bar this halves the check's cost (0.6 to 0.3 ms a step).
+impact only where primitives meet, not where they merely come closer than a fraction of their
+start distance (the line search's additive CCD does, to keep the barrier finite: that would
+flag every landing). Tight-Inclusion decides to a tolerance: at ipctk's default (1e-6 m) it
+also flags a pair that comes within about 1e-7 m without meeting, which a pair pressed into
+resting contact by the barrier does (the pile, step 13: an edge pair 3e-7 m apart at its
+closest); a motion it flags is checked again at 1e-9 and 1e-12 m
+(:data:`PATH_CCD_TOLERANCES`), and it meets a surface only when every one flags it. Planes
+need no test: each vertex moves on a line, so it crosses a plane within the step only if it
+ends below it, which the line search never accepts. The candidates are the step's own
+(:class:`~fem3d.physics.contact_candidates.StepCandidates`), grown when the motion leaves
+their boxes. The model's own CCD (additive by default) runs first: it flags every pair whose
+distance falls below a tenth of its start, so a motion it passes meets no surface, and only
+a flagged motion (a landing, a hit) needs the exact test; on the twisted bar this halves the
+check's cost (0.6 to 0.3 ms a step).
 """
 
 from __future__ import annotations
@@ -29,16 +34,25 @@ import time
 import ipctk
 import numpy as np
 
-__all__ = ["straight_path_is_free", "PATH_CCD_TOLERANCE"]
+__all__ = ["straight_path_is_free", "PATH_CCD_TOLERANCE", "PATH_CCD_TOLERANCES"]
 
-#: Tight-Inclusion's tolerance (its default; in the time parameter, scaled down to half the
-#: initial distance of a pair where that is smaller).
-PATH_CCD_TOLERANCE = 1e-6
+#: Tight-Inclusion's tolerances (co-domain widths, m), tried in turn: the first is ipctk's
+#: default; a motion it flags is checked again at the next, and it meets a surface only when
+#: the last flags it too. Tight-Inclusion reports a pair whose distance along the motion
+#: falls below a fraction of its tolerance (scaled down to half the pair's start distance
+#: where that is smaller; measured: about a tenth, faces off the axes), whether or not it
+#: reaches 0: a pair pressed into resting contact by the barrier is flagged at 1e-6 without
+#: crossing anything. A crossing (distance 0) is flagged at every tolerance.
+PATH_CCD_TOLERANCES = (1e-6, 1e-9, 1e-12)
 
-#: Tight-Inclusion's iteration budget (its default).
+#: The first (ipctk's default).
+PATH_CCD_TOLERANCE = PATH_CCD_TOLERANCES[0]
+
+#: Tight-Inclusion's iteration budget (its default; past it, it reports a hit).
 PATH_CCD_MAX_ITERATIONS = 10_000_000
 
-_CCD = ipctk.TightInclusionCCD(PATH_CCD_TOLERANCE, PATH_CCD_MAX_ITERATIONS, 1.0)
+_CCDS = tuple(ipctk.TightInclusionCCD(tol, PATH_CCD_MAX_ITERATIONS, 1.0)
+              for tol in PATH_CCD_TOLERANCES)
 
 
 def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
@@ -75,8 +89,8 @@ def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
         if cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
                                         narrow_phase_ccd=contact._ccd):
             continue
-        if not cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
-                                            narrow_phase_ccd=_CCD):
+        if not any(cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
+                                                narrow_phase_ccd=ccd) for ccd in _CCDS):
             free = False
             break
     contact.stats.ccd_calls += 1
