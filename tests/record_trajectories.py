@@ -29,9 +29,9 @@ FIXED_TETWILD = Path(__file__).resolve().parent / "data" / "tetwild"
 BUNNY_DROP_AS_RECORDED = {"contact.self_contact": False,
                           "bodies[0].damping.rayleigh_stiffness": 0.0,
                           "contact.newton_start": "clamped", "contact.max_substeps": 1}
-#: contact scenes as recorded: Newton started from the CCD-clamped velocity (since issue 21's
-#: round the default starts at q_t) and no substeps (the gallery's contact scenes set
-#: contact.max_substeps = 8 since issue 21's substeps round)
+#: contact scenes as recorded: Newton started from the CCD-clamped velocity and no substeps
+#: (the spec's defaults; the gallery's drop, stack and fold set newton_start = "q_t", and
+#: all but the pile contact.max_substeps = 8, since issue 21's rounds)
 CONTACT_AS_RECORDED = {"contact.newton_start": "clamped", "contact.max_substeps": 1}
 
 # (case name, scene name, steps, --set overrides; "_backend" picks the kernel back end)

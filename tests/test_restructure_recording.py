@@ -23,7 +23,8 @@ prints both side by side). Every other case still holds the code before the rest
 
 Scenes that changed since keep the settings they were recorded with (``record_trajectories``'s
 overrides): ``contact_bunny_drop`` without the self-contact and damping it gained, and
-``contact_stack`` without substeps (``contact.max_substeps = 1``; the default became 8).
+the contact scenes without the Newton start and substeps the gallery's scene files set since
+(``contact.newton_start = "clamped"``, ``contact.max_substeps = 1``, the spec's defaults).
 """
 
 from __future__ import annotations
