@@ -2,10 +2,15 @@
 
 The C extension (``fem3d._ckernels``, rendered from ``templates/c/amg.c.jinja``) provides
 BSR mat-vecs, block Gauss-Seidel sweeps, a CSR mat-vec, a dot product and BSR x BSR products
-(:func:`bsr_product`: the Galerkin products of a setup), all on the OpenMP threads
-(``OMP_NUM_THREADS``, ``threadpoolctl``). Every row's sum runs in storage order whichever
-thread computes it, and a dot product adds fixed chunks in order, so the results do not depend
-on the number of threads.
+(:func:`bsr_product`: the Galerkin products of a setup), all on OpenMP threads. Every row's sum
+runs in storage order whichever thread computes it, and a dot product adds fixed chunks in
+order, so the results do not depend on the number of threads.
+
+How many threads: every kernel takes ``n_threads`` (0: OpenMP's count, ``OMP_NUM_THREADS``;
+else that many, capped at OpenMP's). An AMG setup asks :mod:`fem3d.kernels.threads` for one
+count per family, measured on its own data the first time in a process
+(:func:`matvec_threads`, :func:`product_threads`, :func:`sweep_threads`: a few ms), or forced
+by ``FEM3D_THREADS``.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and
@@ -28,10 +33,12 @@ from types import ModuleType
 import numpy as np
 import scipy.sparse as sp
 
+from fem3d.kernels import threads
 from fem3d.kernels.backend import c_extension
 
-__all__ = ["SweepSchedule", "bsr_product", "c_kernels", "reference_sweep", "split_triangles",
-           "sweep_schedule"]
+__all__ = ["PRODUCT_SAMPLE_ROWS", "SweepSchedule", "bsr_product", "c_kernels",
+           "matvec_threads", "product_threads", "reference_sweep", "split_triangles",
+           "sweep_schedule", "sweep_threads"]
 
 #: A schedule cuts the rows into ``MAX_BLOCKS``, ``MAX_BLOCKS / 2``, ... (at least 2) blocks of
 #: at least ``MIN_BLOCK_ROWS`` rows each and keeps the cut whose colouring needs the fewest
@@ -40,6 +47,9 @@ __all__ = ["SweepSchedule", "bsr_product", "c_kernels", "reference_sweep", "spli
 #: blocks in 2 colours, the CG iterations of pyamg's row-order sweeps). Else one block.
 MIN_BLOCK_ROWS = 256
 MAX_BLOCKS = 64
+#: The Galerkin products' thread count is measured on the product of this many block rows of
+#: the finest matrix (the whole matrix when smaller) with the first tentative prolongator.
+PRODUCT_SAMPLE_ROWS = 4096
 
 
 def c_kernels() -> ModuleType | None:
@@ -181,10 +191,11 @@ def split_triangles(A: sp.bsr_matrix, rank: np.ndarray | None
     return part(rank_cols < rank_rows), part(rank_cols > rank_rows)
 
 
-def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_matrix:
-    """``A @ B`` of two BSR matrices on the C kernels (threads over the rows of the product,
-    each row's blocks summed in ``A``'s then ``B``'s storage order: the same bits on any
-    thread count); sorted int32 indices."""
+def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix, n_threads: int = 0
+                ) -> sp.bsr_matrix:
+    """``A @ B`` of two BSR matrices on the C kernels (``n_threads`` threads, 0: OpenMP's
+    count, over the rows of the product, each row's blocks summed in ``A``'s then ``B``'s
+    storage order: the same bits on any thread count); sorted int32 indices."""
     R, K = A.blocksize
     C = B.blocksize[1]
     if B.blocksize[0] != K or A.shape[1] != B.shape[0]:
@@ -198,7 +209,7 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_m
     b = [np.ascontiguousarray(B.indptr, dtype=np.int32),
          np.ascontiguousarray(B.indices, dtype=np.int32), np.ascontiguousarray(B.data)]
     counts = np.empty(n_rows, dtype=np.int64)
-    ext.bsr_matmat_count(a[0], a[1], b[0], b[1], n_cols, counts)
+    ext.bsr_matmat_count(a[0], a[1], b[0], b[1], n_cols, counts, n_threads)
     indptr = np.zeros(n_rows + 1, dtype=np.int64)
     np.cumsum(counts, out=indptr[1:])
     if indptr[-1] >= 2**31:
@@ -206,10 +217,61 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_m
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), R, C))
     ext.bsr_matmat_fill(a[0], a[1], a[2], R, K, b[0], b[1], b[2], C, n_cols, indptr, indices,
-                        data)
+                        data, n_threads)
     M = sp.bsr_matrix((data, indices, indptr.astype(np.int32)), shape=(A.shape[0], B.shape[1]))
     M.has_sorted_indices = True
     return M
+
+
+def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
+    """The thread count of the ``"matvecs"`` family (mat-vecs, dot products), measured the
+    first time in a process on three mat-vecs with ``A`` (CSR or BSR, int32 indices) and a
+    dot product."""
+    x = np.ones(A.shape[1])
+    y = np.empty(A.shape[0])
+    data = np.ascontiguousarray(A.data)
+    indptr = A.indptr.astype(np.int32, copy=False)
+    indices = A.indices.astype(np.int32, copy=False)
+
+    def trial(n: int) -> None:
+        for _ in range(3):
+            if isinstance(A, sp.bsr_matrix):
+                ext.bsr_matvec(indptr, indices, data, *A.blocksize, x, None, 1.0, y, n)
+            else:
+                ext.csr_matvec(indptr, indices, data, x, y, n)
+        ext.dot(y, y, n)
+
+    return threads.measure("matvecs", trial)
+
+
+def product_threads(ext: ModuleType, A: sp.bsr_matrix, T: sp.bsr_matrix) -> int:
+    """The thread count of the ``"products"`` family (:func:`bsr_product`), measured the first
+    time in a process on the product of :data:`PRODUCT_SAMPLE_ROWS` block rows of ``A`` with
+    ``T``."""
+    R = A.blocksize[0]
+    rows = min(A.shape[0] // R, PRODUCT_SAMPLE_ROWS)
+    stop = int(A.indptr[rows])
+    sample = sp.bsr_matrix((A.data[:stop], A.indices[:stop], A.indptr[:rows + 1]),
+                           shape=(rows * R, A.shape[1]))
+    return threads.measure("products", lambda n: bsr_product(ext, sample, T, n), repeats=2)
+
+
+def sweep_threads(ext: ModuleType, L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
+                  schedule: SweepSchedule) -> int:
+    """The thread count of the ``"sweeps"`` family, measured the first time in a process on a
+    forward and a backward sweep of the finest level (``L``, ``U``, ``Dinv`` split in
+    ``schedule``'s order, as the V-cycle runs them)."""
+    x = np.zeros(L.shape[0])
+    b = np.ones(L.shape[0])
+    s = schedule
+
+    def trial(n: int) -> None:
+        ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, Dinv, s.order, s.blocks,
+                        s.colours, x, b, n)
+        ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, Dinv, s.order,
+                        s.blocks, s.colours, x, b, n)
+
+    return threads.measure("sweeps", trial)
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
