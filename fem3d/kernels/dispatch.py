@@ -20,9 +20,9 @@ from functools import cache
 import numpy as np
 
 from fem3d._generated import MATERIALS, MODULES
-from fem3d.kernels import threads
 from fem3d.kernels.backend import c_extension, resolve_backend
 from fem3d.kernels.schedule import schedule_for
+from fem3d.kernels.threads import adaptive
 
 
 class KernelModule:
@@ -188,7 +188,7 @@ def _assemble_wrapper(fused: Callable[..., None], name: str) -> Callable[..., np
         if schedule is None:
             fused(*args)
         else:
-            threads.adaptive(key, "assembly", lambda n: fused(*args, *schedule.arrays(), n))
+            adaptive(key, "assembly", lambda n: fused(*args, *schedule.arrays(), n))
         return out
 
     key = f"assembly {name}"

@@ -240,9 +240,9 @@ def choices() -> list[Choice]:
     return list(_CHOICES.values())
 
 
-def report() -> str:
-    """The choices as lines (empty when nothing ran threaded)."""
-    made = choices()
+def report(since: int = 0) -> str:
+    """The choices as lines, from the ``since``-th made on (empty when there is none)."""
+    made = choices()[since:]
     if not made:
         return ""
     return "\n".join(["threads per kernel family (fem3d.kernels.threads; "

@@ -33,8 +33,8 @@ from types import ModuleType
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.kernels import threads
 from fem3d.kernels.backend import c_extension
+from fem3d.kernels.threads import measure
 
 __all__ = ["PRODUCT_SAMPLE_ROWS", "SweepSchedule", "bsr_product", "c_kernels",
            "matvec_threads", "product_threads", "reference_sweep", "split_triangles",
@@ -241,7 +241,7 @@ def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
                 ext.csr_matvec(indptr, indices, data, x, y, n)
         ext.dot(y, y, n)
 
-    return threads.measure("matvecs", trial)
+    return measure("matvecs", trial)
 
 
 def product_threads(ext: ModuleType, A: sp.bsr_matrix, T: sp.bsr_matrix) -> int:
@@ -253,7 +253,7 @@ def product_threads(ext: ModuleType, A: sp.bsr_matrix, T: sp.bsr_matrix) -> int:
     stop = int(A.indptr[rows])
     sample = sp.bsr_matrix((A.data[:stop], A.indices[:stop], A.indptr[:rows + 1]),
                            shape=(rows * R, A.shape[1]))
-    return threads.measure("products", lambda n: bsr_product(ext, sample, T, n), repeats=2)
+    return measure("products", lambda n: bsr_product(ext, sample, T, n), repeats=2)
 
 
 def sweep_threads(ext: ModuleType, L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
@@ -271,7 +271,7 @@ def sweep_threads(ext: ModuleType, L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.
         ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, Dinv, s.order,
                         s.blocks, s.colours, x, b, n)
 
-    return threads.measure("sweeps", trial)
+    return measure("sweeps", trial)
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
