@@ -68,6 +68,7 @@ def test_the_measured_choice_keeps_the_faster_count(monkeypatch, faster):
         calls.append(n)
         time.sleep(0.001 if n == faster else 0.006)
 
+    monkeypatch.setattr(threads, "MIN_MEASURE_SECONDS", 0.0)
     assert threads.measure("products", trial, repeats=2) == faster
     assert calls == [4, 1, 4, 1, 4]  # a warm-up, then alternately
     assert threads.measure("products", trial) == faster and len(calls) == 5  # cached
@@ -78,9 +79,16 @@ def test_the_measured_choice_keeps_the_faster_count(monkeypatch, faster):
     assert threads.choices() == [] and threads.measure("products", trial) == faster
 
 
-def test_an_equal_time_keeps_one_thread(monkeypatch):
+def test_an_equal_time_keeps_one_thread_and_short_trials_repeat(monkeypatch):
     _fake_machine(monkeypatch, 2)
-    assert threads.measure("sweeps", lambda n: time.sleep(0.002)) == 1  # within MARGIN
+    calls = []
+
+    def trial(n):
+        calls.append(n)
+        time.sleep(0.001)
+
+    assert threads.measure("sweeps", trial) == 1  # equal within MARGIN: one thread
+    assert len(calls) >= 1 + 2 * 3 and len(calls) <= 1 + 2 * threads.MAX_ROUNDS
 
 
 def test_adaptive_measures_on_the_calls_themselves(monkeypatch):

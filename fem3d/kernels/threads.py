@@ -52,6 +52,10 @@ FAMILIES: dict[str, str] = {
 
 #: More threads are kept only when they take at most ``1 - MARGIN`` of one thread's time.
 MARGIN = 0.05
+#: :func:`measure` runs more rounds (up to :data:`MAX_ROUNDS`) while its trials took less than
+#: this many seconds in all: a best of many short trials is steadier on a busy machine.
+MIN_MEASURE_SECONDS = 0.05
+MAX_ROUNDS = 10
 
 _log = logging.getLogger("fem3d.threads")
 
@@ -189,8 +193,9 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
         One of :data:`FAMILIES` (:data:`ENV` may force its count).
     trial : callable
         ``trial(n)`` runs a short representative piece of the family's work on ``n`` threads
-        (any result is ignored). Called once to warm up, then ``repeats`` times on one thread
-        and on all available ones, alternately; the best time of each counts.
+        (any result is ignored). Called once to warm up, then ``repeats`` times (more, up to
+        :data:`MAX_ROUNDS`, while the trials took under :data:`MIN_MEASURE_SECONDS` in all)
+        on one thread and on all available ones, alternately; the best time of each counts.
     repeats : int, optional
     key : str, optional
         Choices are cached per key for the process (:func:`reset` forgets them).
@@ -207,11 +212,15 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
     available = available_threads()
     trial(available)
     times = {1: float("inf"), available: float("inf")}
-    for _ in range(max(1, repeats)):
+    rounds, spent = 0, 0.0
+    while rounds < max(1, repeats) or (spent < MIN_MEASURE_SECONDS and rounds < MAX_ROUNDS):
         for n in (1, available):
             t0 = time.perf_counter()
             trial(n)
-            times[n] = min(times[n], time.perf_counter() - t0)
+            seconds = time.perf_counter() - t0
+            times[n] = min(times[n], seconds)
+            spent += seconds
+        rounds += 1
     return _decide(key, family, times, available).threads
 
 
