@@ -11,6 +11,7 @@ import pytest
 
 import fem3d.kernels.threads as threads
 from fem3d.app.profile import profiled
+from fem3d.errors import InputError
 from fem3d.kernels.backend import c_extension
 
 
@@ -42,7 +43,7 @@ def test_the_override_parses_counts_and_families(monkeypatch):
     assert threads.forced_threads("products") == 2
     for bad in ("0", "two", "-1", "sweep=1", "sweeps=0", "sweeps", "sweeps=1,,"):
         monkeypatch.setenv(threads.ENV, bad)
-        with pytest.raises(ValueError, match=rf"^{threads.ENV}='{bad}': "):
+        with pytest.raises(InputError, match=rf"^{threads.ENV}='{bad}': "):
             threads.forced_threads("sweeps")
 
 
@@ -207,3 +208,28 @@ def test_the_c_kernels_refuse_a_bad_thread_count():
     for n in (0, 1, 2, 64):  # any count (capped at OpenMP's), the same result
         ext.csr_matvec(indptr, indices, data, x, y, n)
         assert y.tolist() == [2.0, 3.0] and ext.dot(x, x, n) == 4.0
+
+
+@needs_c
+def test_fem3d_run_profile_reports_the_counts_and_refuses_a_bad_override(tmp_path, monkeypatch,
+                                                                          capsys):
+    """What the user sees: ``fem3d run --profile`` on a mesh above the threaded-assembly size
+    lists the counts below its stage table; a bad FEM3D_THREADS is one line, status 2."""
+    from fem3d.app.cli import main
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh, box_tet_mesh
+
+    mesh = tmp_path / "box.mesh"
+    write_tet_mesh(mesh, TetMesh(*box_tet_mesh((24, 16, 15), size=(3.0, 2.0, 2.0))))
+    run = ["run", str(mesh), "--steps", "1", "--quiet", "--no-preview", "--profile"]
+    monkeypatch.setenv(threads.ENV, "assembly=1")
+    assert main([*run, "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    policy = err.split("threads per kernel family", 1)[1]
+    assert ".energy: 1 of " in policy and "(forced by FEM3D_THREADS=assembly=1)" in policy
+    threads.reset()
+    monkeypatch.setenv(threads.ENV, "assembly=lots")
+    assert main([*run, "--out", str(tmp_path / "b")]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
+    assert lines == ["fem3d run: error: FEM3D_THREADS='assembly=lots': a thread count must be "
+                     "'auto' or a whole number >= 1, got 'lots'"]

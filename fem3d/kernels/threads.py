@@ -34,6 +34,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from fem3d.errors import InputError
 from fem3d.kernels.backend import c_extension
 
 __all__ = ["ENV", "FAMILIES", "MARGIN", "Choice", "adaptive", "available_threads", "choices",
@@ -122,7 +123,7 @@ def _parse_count(text: str, value: str) -> int | None:
     if text == "auto":
         return None
     if not text.isdigit() or int(text) < 1:
-        raise ValueError(f"{ENV}={value!r}: a thread count must be 'auto' or a whole number "
+        raise InputError(f"{ENV}={value!r}: a thread count must be 'auto' or a whole number "
                          f">= 1, got {text!r}")
     return int(text)
 
@@ -132,8 +133,8 @@ def forced_threads(family: str) -> int | None:
 
     Raises
     ------
-    ValueError
-        One line naming the variable when its value is not ``auto``, a count, or
+    fem3d.errors.InputError
+        (a ValueError) One line naming the variable when its value is not ``auto``, a count, or
         ``family=count`` pairs of known families separated by commas.
     """
     value = os.environ.get(ENV, "").strip()
@@ -146,7 +147,7 @@ def forced_threads(family: str) -> int | None:
         name, sep, count = item.partition("=")
         name = name.strip()
         if not sep or name not in FAMILIES:
-            raise ValueError(f"{ENV}={value!r}: expected 'auto', a count, or family=count "
+            raise InputError(f"{ENV}={value!r}: expected 'auto', a count, or family=count "
                              f"pairs separated by commas (families: {', '.join(FAMILIES)})")
         if name == family:
             forced = _parse_count(count, value)
