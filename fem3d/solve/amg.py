@@ -518,9 +518,6 @@ class AMGPreconditioner:
                 sweep = self._sweep_schedule(len(levels), Al)
                 L, U = sparse_threads.split_triangles(Al, sweep.rank)
                 levels.append(_ThreadedLevel(L, U, np.ascontiguousarray(Dinv), sweep, P, R))
-                if "sweeps" not in counts:
-                    counts["sweeps"] = sparse_threads.sweep_threads(ext, L, U, levels[-1].Dinv,
-                                                                    sweep)
             Al = Ac
         Ac = Al.toarray()
         Ac = 0.5 * (Ac + Ac.T)
@@ -531,6 +528,8 @@ class AMGPreconditioner:
         self._levels = levels
         self._threads = ext
         self.thread_counts = counts
+        if ext is not None and levels:
+            self._measure_sweeps(n)
         self.level_sizes = [lvl.P.shape[0] for lvl in levels] + [Ac.shape[0]]
         self.pattern_key = pattern_key
         self.setups += 1
@@ -548,6 +547,19 @@ class AMGPreconditioner:
         if self._plan.T:
             counts["products"] = sparse_threads.product_threads(ext, Al, self._plan.T[0])
         return counts
+
+    def _measure_sweeps(self, n: int) -> None:
+        """The sweeps' thread count (:func:`~fem3d.solve.sparse_threads.sweep_threads`):
+        V-cycles of the new hierarchy on a fixed right-hand side, the first time in a
+        process."""
+        b = np.ones(n)
+        counts = self.thread_counts
+
+        def vcycle(threads: int) -> None:
+            counts["sweeps"] = threads
+            self._apply_threaded(b)
+
+        counts["sweeps"] = sparse_threads.sweep_threads(vcycle)
 
     def _sweep_schedule(self, level: int, A: sp.bsr_matrix) -> sparse_threads.SweepSchedule:
         """The sweep order of level ``level``'s pattern (cached while the pattern stays: a

@@ -9,8 +9,8 @@ order, so the results do not depend on the number of threads.
 How many threads: every kernel takes ``n_threads`` (0: OpenMP's count, ``OMP_NUM_THREADS``;
 else that many, capped at OpenMP's). An AMG setup asks :mod:`fem3d.kernels.threads` for one
 count per family, measured on its own data the first time in a process
-(:func:`matvec_threads`, :func:`product_threads`, :func:`sweep_threads`: a few ms), or forced
-by ``FEM3D_THREADS``.
+(:func:`matvec_threads`, :func:`product_threads`, :func:`sweep_threads`: a few mat-vecs, a
+sample of a product, a few V-cycles), or forced by ``FEM3D_THREADS``.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and
@@ -27,6 +27,7 @@ that of the mat-vecs.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -225,10 +226,12 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix, n_threads: 
 
 def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
     """The thread count of the ``"matvecs"`` family (mat-vecs, dot products), measured the
-    first time in a process on three mat-vecs with ``A`` (CSR or BSR, int32 indices) and a
-    dot product."""
+    first time in a process on three CG-like rounds with ``A`` (CSR or BSR, int32 indices): a
+    mat-vec, a serial NumPy vector update (so that the threads wake up between kernels as in
+    CG) and a dot product."""
     x = np.ones(A.shape[1])
     y = np.empty(A.shape[0])
+    z = np.zeros(A.shape[0])
     data = np.ascontiguousarray(A.data)
     indptr = A.indptr.astype(np.int32, copy=False)
     indices = A.indices.astype(np.int32, copy=False)
@@ -239,7 +242,8 @@ def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
                 ext.bsr_matvec(indptr, indices, data, *A.blocksize, x, None, 1.0, y, n)
             else:
                 ext.csr_matvec(indptr, indices, data, x, y, n)
-        ext.dot(y, y, n)
+            np.multiply(y, 0.5, out=z)
+            ext.dot(y, z, n)
 
     return measure("matvecs", trial)
 
@@ -256,22 +260,11 @@ def product_threads(ext: ModuleType, A: sp.bsr_matrix, T: sp.bsr_matrix) -> int:
     return measure("products", lambda n: bsr_product(ext, sample, T, n), repeats=2)
 
 
-def sweep_threads(ext: ModuleType, L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
-                  schedule: SweepSchedule) -> int:
-    """The thread count of the ``"sweeps"`` family, measured the first time in a process on a
-    forward and a backward sweep of the finest level (``L``, ``U``, ``Dinv`` split in
-    ``schedule``'s order, as the V-cycle runs them)."""
-    x = np.zeros(L.shape[0])
-    b = np.ones(L.shape[0])
-    s = schedule
-
-    def trial(n: int) -> None:
-        ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, Dinv, s.order, s.blocks,
-                        s.colours, x, b, n)
-        ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, Dinv, s.order,
-                        s.blocks, s.colours, x, b, n)
-
-    return measure("sweeps", trial)
+def sweep_threads(vcycle: Callable[[int], object]) -> int:
+    """The thread count of the ``"sweeps"`` family, measured the first time in a process on
+    whole V-cycles (``vcycle(n)``: one with its sweeps on ``n`` threads), so that the serial
+    work between the sweeps (coarse solve, vector copies) counts as it does in CG."""
+    return measure("sweeps", vcycle)
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
