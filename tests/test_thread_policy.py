@@ -4,7 +4,6 @@ the measured choice, the report, and the same bits whatever count is chosen."""
 from __future__ import annotations
 
 import io
-import time
 
 import numpy as np
 import pytest
@@ -31,6 +30,18 @@ def _fresh_policy(monkeypatch):
 
 def _fake_machine(monkeypatch, available: int) -> None:
     monkeypatch.setattr(threads, "available_threads", lambda: available)
+
+
+class _Clock:
+    """A fake ``time.perf_counter`` the trials advance (timings without a real machine's
+    noise)."""
+
+    def __init__(self, monkeypatch):
+        self.now = 0.0
+        monkeypatch.setattr(threads.time, "perf_counter", lambda: self.now)
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
 
 
 def test_the_override_parses_counts_and_families(monkeypatch):
@@ -62,17 +73,20 @@ def test_a_forced_count_is_capped_by_openmp_and_reported(monkeypatch):
 
 @pytest.mark.parametrize("faster", [1, 4])
 def test_the_measured_choice_keeps_the_faster_count(monkeypatch, faster):
+    clock = _Clock(monkeypatch)
     _fake_machine(monkeypatch, 4)
     calls = []
 
     def trial(n):  # the faster count takes 1 ms, the other 6 ms
         calls.append(n)
-        time.sleep(0.001 if n == faster else 0.006)
+        clock.sleep(0.001 if n == faster else 0.006)
 
     monkeypatch.setattr(threads, "MIN_MEASURE_SECONDS", 0.0)
     assert threads.measure("products", trial, repeats=2) == faster
-    assert calls == [4, 1, 4, 1, 4]  # a warm-up, then alternately
-    assert threads.measure("products", trial) == faster and len(calls) == 5  # cached
+    # a warm-up, then alternately (a clear loss of 4 threads: one round only)
+    assert calls == ([4, 1, 4] if faster == 1 else [4, 1, 4, 1, 4])
+    made = len(calls)
+    assert threads.measure("products", trial) == faster and len(calls) == made  # cached
     (choice,) = threads.choices()
     assert choice.how == "measured" and choice.available == 4 and choice.threads == faster
     assert f"{faster} of 4 threads (measured" in choice.line()
@@ -81,30 +95,53 @@ def test_the_measured_choice_keeps_the_faster_count(monkeypatch, faster):
 
 
 def test_an_equal_time_keeps_one_thread_and_short_trials_repeat(monkeypatch):
+    clock = _Clock(monkeypatch)
     _fake_machine(monkeypatch, 2)
     calls = []
 
     def trial(n):
         calls.append(n)
-        time.sleep(0.001)
+        clock.sleep(0.001)
 
     assert threads.measure("sweeps", trial) == 1  # equal within MARGIN: one thread
     assert len(calls) >= 1 + 2 * 3 and len(calls) <= 1 + 2 * threads.MAX_ROUNDS
 
 
 def test_adaptive_measures_on_the_calls_themselves(monkeypatch):
+    clock = _Clock(monkeypatch)
     _fake_machine(monkeypatch, 2)
     counts = []
 
     def run(n):
         counts.append(n)
-        time.sleep(0.004 if n == 1 else 0.001)
+        clock.sleep(0.004 if n == 1 else 0.001)
         return n
 
     results = [threads.adaptive("assembly x.hessian", "assembly", run) for _ in range(6)]
     assert counts == [1, 2, 1, 2, 2, 2] and results == counts
     assert threads.choices()[0].key == "assembly x.hessian"
     assert "fused assembly x.hessian: 2 of 2 threads" in threads.report()
+    counts.clear()
+
+    def loses(n):  # a clear loss ends the measurement after one pair of calls
+        counts.append(n)
+        clock.sleep(0.001 if n == 1 else 0.005)
+
+    for _ in range(4):
+        threads.adaptive("assembly x.energy", "assembly", loses)
+    assert counts == [1, 2, 1, 1]
+
+
+def test_a_clear_loss_stops_measuring_early(monkeypatch):
+    clock = _Clock(monkeypatch)
+    _fake_machine(monkeypatch, 2)
+    calls = []
+
+    def trial(n):
+        calls.append(n)
+        clock.sleep(0.001 if n == 1 else 0.005)
+
+    assert threads.measure("matvecs", trial) == 1 and calls == [2, 1, 2]
 
 
 def test_one_available_thread_measures_nothing(monkeypatch):

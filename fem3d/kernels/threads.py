@@ -57,6 +57,10 @@ MARGIN = 0.05
 #: this many seconds in all: a best of many short trials is steadier on a busy machine.
 MIN_MEASURE_SECONDS = 0.05
 MAX_ROUNDS = 10
+#: Measuring stops after the first round (:func:`measure`) or pair of calls (:func:`adaptive`)
+#: when all threads took more than this many times one thread's time (a loaded machine: a
+#: clear loss, not worth confirming at that price). Only a loss ends it early, never a gain.
+CLEAR_LOSS = 2.0
 
 _log = logging.getLogger("fem3d.threads")
 
@@ -195,8 +199,9 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
     trial : callable
         ``trial(n)`` runs a short representative piece of the family's work on ``n`` threads
         (any result is ignored). Called once to warm up, then ``repeats`` times (more, up to
-        :data:`MAX_ROUNDS`, while the trials took under :data:`MIN_MEASURE_SECONDS` in all)
-        on one thread and on all available ones, alternately; the best time of each counts.
+        :data:`MAX_ROUNDS`, while the trials took under :data:`MIN_MEASURE_SECONDS` in all;
+        fewer when all threads lose clearly, :data:`CLEAR_LOSS`) on one thread and on all
+        available ones, alternately; the best time of each counts.
     repeats : int, optional
     key : str, optional
         Choices are cached per key for the process (:func:`reset` forgets them).
@@ -222,6 +227,8 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
             times[n] = min(times[n], seconds)
             spent += seconds
         rounds += 1
+        if times[available] > CLEAR_LOSS * times[1]:
+            break
     return _decide(key, family, times, available).threads
 
 
@@ -229,7 +236,8 @@ def adaptive(key: str, family: str, run: Callable[[int], object], *, repeats: in
              ) -> object:
     """``run(n)`` on the chosen count ``n`` of ``key``; while it is being measured, the calls
     themselves are the measurement (alternately one thread and all available ones,
-    ``repeats`` times each, then the faster is kept). Returns ``run``'s result."""
+    ``repeats`` times each, or once each on a :data:`CLEAR_LOSS`, then the faster is kept).
+    Returns ``run``'s result."""
     choice = _settled(key, family)
     if choice is not None:
         return run(choice.threads)
@@ -239,9 +247,10 @@ def adaptive(key: str, family: str, run: Callable[[int], object], *, repeats: in
     t0 = time.perf_counter()
     result = run(n)
     trials.append((n, time.perf_counter() - t0))
-    if len(trials) >= 2 * max(1, repeats):
+    if len(trials) % 2 == 0:
         times = {c: min(s for m, s in trials if m == c) for c in (1, available)}
-        _decide(key, family, times, available)
+        if len(trials) >= 2 * max(1, repeats) or times[available] > CLEAR_LOSS * times[1]:
+            _decide(key, family, times, available)
     return result
 
 
