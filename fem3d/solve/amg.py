@@ -538,14 +538,14 @@ class AMGPreconditioner:
     def _measure_threads(self, ext: object, A: sp.csr_matrix, Al: sp.bsr_matrix
                          ) -> dict[str, int]:
         """Threads of the mat-vecs and the products on the threaded kernels (``ext``; none
-        without): measured on ``A`` (or its BSR copy ``Al``) and the first prolongator the first
-        time in a process (:mod:`fem3d.kernels.threads`)."""
+        without): measured on ``A`` (or its BSR copy ``Al``) the first time in a process
+        (:mod:`fem3d.kernels.threads`)."""
         if ext is None:
             return {}
         int32 = A.indptr.dtype == np.int32 and A.indices.dtype == np.int32
         counts = {"matvecs": sparse_threads.matvec_threads(ext, A if int32 else _c_bsr(Al))}
         if self._plan.T:
-            counts["products"] = sparse_threads.product_threads(ext, Al, self._plan.T[0])
+            counts["products"] = sparse_threads.product_threads(ext, _c_bsr(Al))
         return counts
 
     def _measure_sweeps(self, n: int) -> None:

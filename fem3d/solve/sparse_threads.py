@@ -49,8 +49,10 @@ __all__ = ["PRODUCT_SAMPLE_ROWS", "SweepSchedule", "bsr_product", "c_kernels",
 MIN_BLOCK_ROWS = 256
 MAX_BLOCKS = 64
 #: The Galerkin products' thread count is measured on the product of this many block rows of
-#: the finest matrix (the whole matrix when smaller) with the first tentative prolongator.
-PRODUCT_SAMPLE_ROWS = 4096
+#: the finest matrix (the whole matrix when smaller) with the matrix itself: as dense a product
+#: per row as the setup's ``A P`` and ``R (A P)`` (``A T`` is far lighter); 2048 rows: the
+#: fewest the C products split over threads (FEM3D_AMG_PARALLEL_ROWS).
+PRODUCT_SAMPLE_ROWS = 2048
 
 
 def c_kernels() -> ModuleType | None:
@@ -248,16 +250,16 @@ def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
     return measure("matvecs", trial)
 
 
-def product_threads(ext: ModuleType, A: sp.bsr_matrix, T: sp.bsr_matrix) -> int:
+def product_threads(ext: ModuleType, A: sp.bsr_matrix) -> int:
     """The thread count of the ``"products"`` family (:func:`bsr_product`), measured the first
-    time in a process on the product of :data:`PRODUCT_SAMPLE_ROWS` block rows of ``A`` with
-    ``T``."""
+    time in a process on the product of :data:`PRODUCT_SAMPLE_ROWS` block rows of the square
+    BSR matrix ``A`` with ``A``."""
     R = A.blocksize[0]
     rows = min(A.shape[0] // R, PRODUCT_SAMPLE_ROWS)
     stop = int(A.indptr[rows])
     sample = sp.bsr_matrix((A.data[:stop], A.indices[:stop], A.indptr[:rows + 1]),
                            shape=(rows * R, A.shape[1]))
-    return measure("products", lambda n: bsr_product(ext, sample, T, n), repeats=2)
+    return measure("products", lambda n: bsr_product(ext, sample, A, n))
 
 
 def sweep_threads(vcycle: Callable[[int], object]) -> int:
