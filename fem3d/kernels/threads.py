@@ -2,9 +2,10 @@
 
 The threaded C kernels (the AMG-PCG kernels of :mod:`fem3d.solve.sparse_threads`, the fused
 assemblies of :mod:`fem3d.kernels.dispatch`) give the same bits on any number of threads, so
-the count is a matter of speed alone, and the speed differs by kernel: on a 2-core machine the
-AMG setup's Galerkin products (compute-bound) gain from a second thread while the mat-vecs,
-the Gauss-Seidel sweeps and the Newton matrices' assembly (memory-bound) lose. So every
+the count is a matter of speed alone, and the speed differs by kernel: on a quiet 2-vCPU VM
+the AMG setup's Galerkin products (compute-bound) gained from a second thread while the
+mat-vecs, CG and the Newton matrices' assembly (memory-bound) lost; on a loaded machine
+nearly everything loses (a barrier waits for a descheduled thread). So every
 family gets its own count (:data:`FAMILIES`), passed to the C kernels (their ``n_threads``
 argument: OpenMP's ``num_threads`` clause), chosen once per process:
 
@@ -12,11 +13,11 @@ argument: OpenMP's ``num_threads`` clause), chosen once per process:
   family), ``sweeps=1,products=2`` (those families; the others measured) or ``auto``
   (the default: measure all);
 * else **measured** on the real data: the work runs on one thread and on all available ones,
-  alternately, ``repeats`` times each (:func:`measure`: a few extra mat-vecs, a sweep, a
-  sample of a product at an AMG setup; :func:`adaptive`: the first calls of a fused assembly
-  themselves, no extra work), and the family keeps the faster count (more threads only when
-  at least :data:`MARGIN` faster: each one costs a core the other processes on the machine
-  could use);
+  alternately, ``repeats`` times each (:func:`measure`: a few extra mat-vecs, V-cycles and
+  a sample of a product at an AMG setup; :func:`adaptive`: the first calls of a fused
+  assembly themselves, no extra work), and the family keeps the faster count (more threads
+  only when at least :data:`MARGIN` faster: each one costs a core the other processes on the
+  machine could use);
 * one thread when only one is available.
 
 ``OMP_NUM_THREADS`` (OpenMP's count, :func:`available_threads`) caps every count, a forced one
