@@ -117,7 +117,10 @@ def test_adaptive_measures_on_the_calls_themselves(monkeypatch):
         clock.sleep(0.004 if n == 1 else 0.001)
         return n
 
-    results = [threads.adaptive("assembly x.hessian", "assembly", run) for _ in range(6)]
+    threads.adaptive("assembly x.hessian", "assembly", run)
+    assert threads.report().splitlines()[1] == ("  fused assembly x.hessian: still measuring "
+                                                "after 1 call (4.00 ms on 1)")
+    results = [1] + [threads.adaptive("assembly x.hessian", "assembly", run) for _ in range(5)]
     assert counts == [1, 2, 1, 2, 2, 2] and results == counts
     assert threads.choices()[0].key == "assembly x.hessian"
     assert "fused assembly x.hessian: 2 of 2 threads" in threads.report()
@@ -159,13 +162,21 @@ def test_the_profile_lists_the_choices_made_during_the_run(monkeypatch):
     _fake_machine(monkeypatch, 2)
     monkeypatch.setenv(threads.ENV, "1")
     threads.measure("matvecs", lambda n: None)  # before the run: not listed
+    monkeypatch.setenv(threads.ENV, "sweeps=1")
+    threads.adaptive("assembly x.energy", "assembly", lambda n: None)  # begun before: neither
     out = io.StringIO()
     with profiled(out=out):
         threads.measure("sweeps", lambda n: None)
+        threads.adaptive("assembly x.energy", "assembly", lambda n: None)
+        threads.adaptive("assembly x.hessian", "assembly", lambda n: None)
     text = out.getvalue()
-    assert "threads per kernel family" in text
-    assert "AMG Gauss-Seidel sweeps: 1 of 2 threads (forced by FEM3D_THREADS=1)" in text
-    assert "mat-vecs" not in text
+    assert text.splitlines()[-3] == ("threads per kernel family (fem3d.kernels.threads; "
+                                     "FEM3D_THREADS forces them):")
+    assert text.splitlines()[-2] == ("  AMG Gauss-Seidel sweeps: 1 of 2 threads (forced by "
+                                     "FEM3D_THREADS=sweeps=1)")
+    assert text.splitlines()[-1].startswith("  fused assembly x.hessian: still measuring after "
+                                            "1 call (")
+    assert "mat-vecs" not in text and "x.energy" not in text
     out = io.StringIO()
     with profiled(out=out):
         pass

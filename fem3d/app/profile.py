@@ -28,7 +28,7 @@ import time
 from collections.abc import Iterator
 from typing import TextIO
 
-from fem3d.kernels.threads import choices, report
+from fem3d.kernels.threads import mark, report
 
 __all__ = ["STAGES_LOGGER", "Stage", "StageProfile", "profiled"]
 
@@ -145,7 +145,7 @@ def profiled(enabled: bool = True, out: TextIO | None = None,
     logger = logging.getLogger(STAGES_LOGGER)
     prof = StageProfile()
     prof.mark("start-up (Python, imports)")
-    chosen_before = len(choices())
+    chosen_before = mark()
     saved = (logger.level, logger.propagate)
     logger.addHandler(prof)
     logger.setLevel(logging.DEBUG)

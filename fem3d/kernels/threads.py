@@ -39,7 +39,7 @@ from fem3d.errors import InputError
 from fem3d.kernels.backend import c_extension
 
 __all__ = ["ENV", "FAMILIES", "MARGIN", "Choice", "adaptive", "available_threads", "choices",
-           "forced_threads", "measure", "report", "reset"]
+           "forced_threads", "mark", "measure", "report", "reset"]
 
 #: The environment variable forcing thread counts (see the module's docstring).
 ENV = "FEM3D_THREADS"
@@ -114,6 +114,15 @@ class Choice:
 
 _CHOICES: dict[str, Choice] = {}
 _TRIALS: dict[str, list[tuple[int, float]]] = {}
+#: When (a count of events: choices made, measurements begun) each choice was made and each
+#: pending measurement began; :func:`mark` reads the count.
+_WHEN: dict[str, int] = {}
+_EVENTS = [0]
+
+
+def _event(key: str) -> None:
+    _EVENTS[0] += 1
+    _WHEN[key] = _EVENTS[0]
 
 
 def available_threads() -> int:
@@ -167,6 +176,7 @@ def _decide(key: str, family: str, times: dict[int, float], available: int) -> C
 def _record(choice: Choice) -> Choice:
     _CHOICES[choice.key] = choice
     _TRIALS.pop(choice.key, None)
+    _event(choice.key)
     _log.info("threads: %s", choice.line())
     return choice
 
@@ -243,6 +253,8 @@ def adaptive(key: str, family: str, run: Callable[[int], object], *, repeats: in
     if choice is not None:
         return run(choice.threads)
     available = available_threads()
+    if key not in _TRIALS:
+        _event(key)
     trials = _TRIALS.setdefault(key, [])
     n = 1 if len(trials) % 2 == 0 else available
     t0 = time.perf_counter()
@@ -260,16 +272,32 @@ def choices() -> list[Choice]:
     return list(_CHOICES.values())
 
 
+def mark() -> int:
+    """A point in time for :func:`report`'s ``since``."""
+    return _EVENTS[0]
+
+
 def report(since: int = 0) -> str:
-    """The choices as lines, from the ``since``-th made on (empty when there is none)."""
-    made = choices()[since:]
-    if not made:
+    """The choices made after ``since`` (a :func:`mark`; 0: all) as lines, then the fused
+    assemblies whose measurement began after it and goes on (too few calls yet); empty when
+    there is none."""
+    lines = [f"  {c.line()}" for c in choices() if _WHEN[c.key] > since]
+    for key, trials in _TRIALS.items():
+        if _WHEN[key] <= since:
+            continue
+        family = key.split(" ", 1)[0]
+        name = FAMILIES[family] + key[len(family):]
+        runs = ", ".join(f"{1e3 * seconds:.2f} ms on {n}" for n, seconds in trials)
+        lines.append(f"  {name}: still measuring after {len(trials)} call"
+                     f"{'s' if len(trials) > 1 else ''} ({runs})")
+    if not lines:
         return ""
-    return "\n".join(["threads per kernel family (fem3d.kernels.threads; "
-                      f"{ENV} forces them):"] + [f"  {c.line()}" for c in made])
+    return "\n".join([f"threads per kernel family (fem3d.kernels.threads; {ENV} forces them):",
+                      *lines])
 
 
 def reset() -> None:
     """Forget every choice (the next threaded kernels measure, or read :data:`ENV`, again)."""
     _CHOICES.clear()
     _TRIALS.clear()
+    _WHEN.clear()
