@@ -9,6 +9,10 @@ benchmark prints (``bench.scenes``, ``bench.contact``, ``bench.newton_step``,
 
     git worktree add /tmp/fem3d-old 6cbcdd9 && cp fem3d/_ckernels*.so /tmp/fem3d-old/fem3d/
     python -m bench.compare_versions --old /tmp/fem3d-old --new . --rounds 3
+
+Every command runs with ``OMP_NUM_THREADS=1`` unless ``--threads`` lists counts (e.g.
+``--threads 1,2``: each case on each count, the figures labelled ``OMP=n``; the thread policy
+of issue 23, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -45,7 +49,10 @@ def _kernels(out: str, _: Path) -> dict[str, float]:
 
 def _amg(_: str, jsonl: Path) -> dict[str, float]:
     rec = json.loads(jsonl.read_text().splitlines()[-1])
-    return {"1e5-tet box, one AMG step (ms)": 1e3 * rec["seconds_per_step"]}
+    parts = {f"1e5-tet box, AMG step: {k} (ms)": 1e3 * v
+             for k, v in rec.get("parts_per_step", {}).items()}
+    return {"1e5-tet box, one AMG step (ms)": 1e3 * rec["seconds_per_step"],
+            "1e5-tet box, one AMG step, CPU (ms)": 1e3 * rec["cpu_seconds_per_step"], **parts}
 
 
 CASES = {
@@ -60,13 +67,13 @@ CASES = {
 }
 
 
-def run(checkout: Path, case: str) -> dict[str, float]:
-    """One case in one checkout: its figures."""
+def run(checkout: Path, case: str, threads: str = "1") -> dict[str, float]:
+    """One case in one checkout (``OMP_NUM_THREADS=threads``): its figures."""
     args, parse = CASES[case]
     with tempfile.TemporaryDirectory() as tmp:
         jsonl = Path(tmp) / "rec.jsonl"
         cmd = [sys.executable] + [a.replace("{jsonl}", str(jsonl)) for a in args]
-        env = dict(os.environ, PYTHONPATH=str(checkout), OMP_NUM_THREADS="1",
+        env = dict(os.environ, PYTHONPATH=str(checkout), OMP_NUM_THREADS=threads,
                    OPENBLAS_NUM_THREADS="1")
         proc = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True,
                               timeout=1800)
@@ -81,18 +88,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--new", type=Path, default=Path("."), help="checkout of the new version")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    p.add_argument("--threads", default="1",
+                   help="OMP_NUM_THREADS of the commands; several separated by commas")
     a = p.parse_args(argv)
+    counts = [t.strip() for t in a.threads.split(",") if t.strip()]
     figures: dict[str, dict[str, list[float]]] = {"old": {}, "new": {}}
     for r in range(a.rounds):
         order = [("old", a.old), ("new", a.new)]
         if r % 2:
             order.reverse()
         for case in a.cases:
-            for label, checkout in order:
-                for name, value in run(checkout.resolve(), case).items():
-                    figures[label].setdefault(name, []).append(value)
+            for threads in counts:
+                tag = f"OMP={threads}, " if len(counts) > 1 else ""
+                for label, checkout in order:
+                    for name, value in run(checkout.resolve(), case, threads).items():
+                        figures[label].setdefault(tag + name, []).append(value)
         print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
-    print(f"| {a.rounds} rounds, median, one thread | old | new | new / old |")
+    threads = "one thread" if counts == ["1"] else f"OMP_NUM_THREADS {', '.join(counts)}"
+    print(f"| {a.rounds} rounds, median, {threads} | old | new | new / old |")
     print("| --- | ---: | ---: | ---: |")
     for name, old in figures["old"].items():
         new = figures["new"].get(name)

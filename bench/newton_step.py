@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.meshes import box_mesh, refine_tets
+from fem3d.kernels.threads import report as thread_report
 from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
@@ -276,6 +277,8 @@ def main(argv: list[str] | None = None) -> None:
                                free_dofs=work.constraints.n_free, pieces=p)
                 with args.jsonl.open("a") as f:
                     f.write(json.dumps(record) + "\n")
+    if thread_report():
+        print(thread_report(), flush=True)
 
 
 if __name__ == "__main__":

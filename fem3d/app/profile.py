@@ -10,6 +10,11 @@ gets the wall and CPU seconds (user and system) since the previous mark, the res
 at its end and the peak during it (Linux: ``VmRSS``/``VmHWM`` of ``/proc/self/status``, the
 peak reset at every mark through ``/proc/self/clear_refs``; elsewhere the process's peak so
 far). The first stage runs from the process's start (the interpreter and the imports).
+
+Below the table: the thread count each family of threaded C kernels got during the run and
+why (measured times on one and on all threads, or ``FEM3D_THREADS``;
+:func:`fem3d.kernels.threads.report`), when a kernel chose one (large systems only; choices
+are made once per process, so a later run in the same process reuses them silently).
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ import sys
 import time
 from collections.abc import Iterator
 from typing import TextIO
+
+from fem3d.kernels.threads import mark, report
 
 __all__ = ["STAGES_LOGGER", "Stage", "StageProfile", "profiled"]
 
@@ -138,6 +145,7 @@ def profiled(enabled: bool = True, out: TextIO | None = None,
     logger = logging.getLogger(STAGES_LOGGER)
     prof = StageProfile()
     prof.mark("start-up (Python, imports)")
+    chosen_before = mark()
     saved = (logger.level, logger.propagate)
     logger.addHandler(prof)
     logger.setLevel(logging.DEBUG)
@@ -151,4 +159,6 @@ def profiled(enabled: bool = True, out: TextIO | None = None,
         logger.removeHandler(prof)
         logger.setLevel(saved[0])
         logger.propagate = saved[1]
-        print(f"{title}:\n{prof.table()}", file=out or sys.stderr, flush=True)
+        policy = report(since=chosen_before)
+        print(f"{title}:\n{prof.table()}" + (f"\n{policy}" if policy else ""),
+              file=out or sys.stderr, flush=True)

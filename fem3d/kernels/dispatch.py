@@ -22,6 +22,7 @@ import numpy as np
 from fem3d._generated import MATERIALS, MODULES
 from fem3d.kernels.backend import c_extension, resolve_backend
 from fem3d.kernels.schedule import schedule_for
+from fem3d.kernels.threads import adaptive
 
 
 class KernelModule:
@@ -50,7 +51,8 @@ class KernelModule:
                 function = _c_wrapper(name, kernel, self.SIGNATURES[kernel])
                 fused = getattr(c_extension(), f"{name}_{kernel}_assemble", None)
                 if fused is not None:
-                    setattr(self, f"{kernel}_assemble", _assemble_wrapper(fused))
+                    setattr(self, f"{kernel}_assemble",
+                            _assemble_wrapper(fused, f"{name}.{kernel}"))
             setattr(self, kernel, function)
 
     def has_assemble(self, kernel: str) -> bool:
@@ -145,15 +147,16 @@ def _numpy_wrapper(function: Callable[..., object], module: str, kernel: str):
     return call
 
 
-def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
+def _assemble_wrapper(fused: Callable[..., None], name: str) -> Callable[..., np.ndarray]:
     """``kernel_assemble(q, T, *inputs, params, index, out)``: adds every element's output into
     ``out[index[e]]``, gathering ``x_e = q[T[e]]`` itself (one pass, no temporaries).
 
     Meshes of at least :data:`fem3d.kernels.schedule.PARALLEL_MIN_TETS` tets whose ``T`` and
     ``index`` are read-only (a model's) run on OpenMP's threads along a race-free schedule
     built on the first call (:func:`fem3d.kernels.schedule.schedule_for`): the result does not
-    depend
-    on the thread count. Other calls run serially in element order.
+    depend on the thread count, which :func:`fem3d.kernels.threads.adaptive` chooses per kernel
+    (``name``, e.g. ``neo_hookean.hessian``) from the times of its first calls (family
+    ``"assembly"``; ``FEM3D_THREADS`` forces it). Other calls run serially in element order.
 
     Parameters
     ----------
@@ -174,16 +177,21 @@ def _assemble_wrapper(fused: Callable[..., None]) -> Callable[..., np.ndarray]:
         T = np.ascontiguousarray(T, dtype=np.int64)
         index = _as_index32(index)
         schedule = schedule_for(T, index, out.size) if isinstance(out, np.ndarray) else None
-        fused(
+        args = (
             np.ascontiguousarray(q, dtype=np.float64),
             T,
             *(np.ascontiguousarray(a, dtype=np.float64) for a in inputs),
             np.ascontiguousarray(np.atleast_1d(np.asarray(params, dtype=np.float64))),
             index,
             out,
-            *(schedule.arrays() if schedule is not None else ()),
         )
+        if schedule is None:
+            fused(*args)
+        else:
+            adaptive(key, "assembly", lambda n: fused(*args, *schedule.arrays(), n))
         return out
+
+    key = f"assembly {name}"
 
     call.__doc__ = _assemble_wrapper.__doc__
     return call

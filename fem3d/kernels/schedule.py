@@ -16,7 +16,9 @@ loop, so small scenes are bit-identical to the serial path. When the mesh's elem
 needs too many colours (elements in random order), the blocks are taken along a reverse
 Cuthill-McKee order of the vertices instead (the schedule's order only; the mesh is unchanged).
 
-Threads: the loops use OpenMP's thread count (``OMP_NUM_THREADS``, ``threadpoolctl``).
+Threads: each fused kernel runs on the count :func:`fem3d.kernels.threads.adaptive` chose for
+it from the times of its first calls (one thread or OpenMP's count, ``OMP_NUM_THREADS``; the
+environment variable ``FEM3D_THREADS`` forces one), passed to the C loop.
 """
 
 from __future__ import annotations

@@ -84,7 +84,9 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
 #:     colour/block order: the same bits on any number of threads); smaller ones, or any
 #:     without the C extension, keep pyamg's Gauss-Seidel in row order and SciPy's mat-vecs
 #:     (the classic scenes' bits). 6144 vertices: about 3e4 tets, where the fused assemblies
-#:     start their threads too.
+#:     start their threads too. How many threads each family of those kernels gets (sweeps,
+#:     mat-vecs, products) is measured at the first such setup of a process, or forced by
+#:     ``FEM3D_THREADS`` (:mod:`fem3d.kernels.threads`).
 AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=6,
                          threads_min_rows=6144)
 
@@ -306,12 +308,12 @@ def _block_rows_times(Dinv: np.ndarray, M: sp.bsr_matrix) -> sp.bsr_matrix:
 
 
 def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int,
-                     ext: object = None) -> float:
+                     ext: object = None, n_threads: int = 0) -> float:
     """Largest eigenvalue of ``D^-1 A`` (Arnoldi from a fixed start vector); NumPy's inner
-    products and SciPy's mat-vecs, or the C extension's ``ext`` (threaded)."""
+    products and SciPy's mat-vecs, or the C extension's ``ext`` (on ``n_threads``)."""
     n = A.shape[0]
     Dinv = _block_diagonal(Dinv)
-    dot = None if ext is None else ext.dot
+    dot = None
     if ext is None:
         def operator(v):
             return Dinv @ (A @ v)
@@ -320,10 +322,14 @@ def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int,
 
         def operator(v):
             Av, w = np.empty(n), np.empty(n)
-            ext.bsr_matvec(A.indptr, A.indices, A.data, *A.blocksize, v, None, 1.0, Av)
+            ext.bsr_matvec(A.indptr, A.indices, A.data, *A.blocksize, v, None, 1.0, Av,
+                           n_threads)
             ext.bsr_matvec(Dinv.indptr, Dinv.indices, Dinv.data, *Dinv.blocksize, Av, None, 1.0,
-                           w)
+                           w, n_threads)
             return w
+
+        def dot(x, y):
+            return ext.dot(x, y, n_threads)
     v = np.random.default_rng(12345).random(n)
     if dot is None:
         def dot(x, y):
@@ -351,9 +357,11 @@ def _spectral_radius(A: sp.bsr_matrix, Dinv: np.ndarray, iterations: int,
 
 
 def _galerkin(A: sp.bsr_matrix, T: sp.bsr_matrix, Dinv: np.ndarray, scale: float,
-              ext: object) -> tuple[sp.bsr_matrix, sp.bsr_matrix, sp.bsr_matrix]:
+              ext: object, n_threads: int = 0
+              ) -> tuple[sp.bsr_matrix, sp.bsr_matrix, sp.bsr_matrix]:
     """``P = T - scale D^-1 A T``, ``R = P^T`` and the coarse matrix ``R A P`` (sorted
-    indices): SciPy's products, or the threaded C ones when ``ext`` is the C extension."""
+    indices): SciPy's products, or the threaded C ones (on ``n_threads``) when ``ext`` is the
+    C extension."""
     if ext is None:
         P = T - scale * _block_rows_times(Dinv, A @ T)
         P = sp.bsr_matrix(P, blocksize=T.blocksize)
@@ -361,11 +369,13 @@ def _galerkin(A: sp.bsr_matrix, T: sp.bsr_matrix, Dinv: np.ndarray, scale: float
         Ac = sp.bsr_matrix(R @ (A @ P))  # (the product A P is the largest transient)
         Ac.sort_indices()
         return P, R, Ac
-    product = sparse_threads.bsr_product
-    P = T - scale * _block_rows_times(Dinv, product(ext, A, T))
+    def product(X: sp.bsr_matrix, Y: sp.bsr_matrix) -> sp.bsr_matrix:
+        return sparse_threads.bsr_product(ext, X, Y, n_threads)
+
+    P = T - scale * _block_rows_times(Dinv, product(A, T))
     P = _c_bsr(sp.bsr_matrix(P, blocksize=T.blocksize))
     R = _c_bsr(sp.bsr_matrix(P.T))
-    return P, R, product(ext, R, product(ext, A, P))
+    return P, R, product(R, product(A, P))
 
 
 class AMGPreconditioner:
@@ -398,6 +408,9 @@ class AMGPreconditioner:
         Total CG iterations.
     level_sizes : list of int
         DOFs per level of the current hierarchy, finest first.
+    thread_counts : dict
+        Threads per kernel family (``"matvecs"``, ``"products"``, ``"sweeps"``) of a hierarchy
+        on the threaded kernels (:mod:`fem3d.kernels.threads`); empty otherwise.
     """
 
     def __init__(self, near_nullspace: np.ndarray, options: dict | None = None) -> None:
@@ -411,6 +424,7 @@ class AMGPreconditioner:
         self._levels: list = []  # _AMGLevel, or _ThreadedLevel when threaded
         self._coarse: tuple | None = None
         self._threads = None  # the C kernels while the hierarchy runs on them
+        self.thread_counts: dict[str, int] = {}  # per kernel family, while threaded
         self._sweeps: list[tuple[np.ndarray, np.ndarray, sparse_threads.SweepSchedule]] = []
         self.pattern_key: object = None
         self.setups = 0
@@ -492,11 +506,12 @@ class AMGPreconditioner:
                            shape=(n, n))
         omega, iters = self.options["omega"], self.options["rho_iterations"]
         ext = sparse_threads.c_kernels() if n // 3 >= self.options["threads_min_rows"] else None
+        counts = self._measure_threads(ext, A, Al)
         levels = []
         for T in plan.T:
             Dinv = _block_inverses(Al)
-            rho = _spectral_radius(Al, Dinv, iters, ext)
-            P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext)
+            rho = _spectral_radius(Al, Dinv, iters, ext, counts.get("matvecs", 0))
+            P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext, counts.get("products", 0))
             if ext is None:
                 levels.append(_AMGLevel.make(Al, Dinv, P, R))
             else:
@@ -512,10 +527,39 @@ class AMGPreconditioner:
             self._coarse = ("pinv", scipy.linalg.pinvh(Ac))
         self._levels = levels
         self._threads = ext
+        self.thread_counts = counts
+        if ext is not None and levels:
+            self._measure_sweeps(n)
         self.level_sizes = [lvl.P.shape[0] for lvl in levels] + [Ac.shape[0]]
         self.pattern_key = pattern_key
         self.setups += 1
         self.setup_seconds += time.perf_counter() - t0
+
+    def _measure_threads(self, ext: object, A: sp.csr_matrix, Al: sp.bsr_matrix
+                         ) -> dict[str, int]:
+        """Threads of the mat-vecs and the products on the threaded kernels (``ext``; none
+        without): measured on ``A`` (or its BSR copy ``Al``) the first time in a process
+        (:mod:`fem3d.kernels.threads`)."""
+        if ext is None:
+            return {}
+        int32 = A.indptr.dtype == np.int32 and A.indices.dtype == np.int32
+        counts = {"matvecs": sparse_threads.matvec_threads(ext, A if int32 else _c_bsr(Al))}
+        if self._plan.T:
+            counts["products"] = sparse_threads.product_threads(ext, _c_bsr(Al))
+        return counts
+
+    def _measure_sweeps(self, n: int) -> None:
+        """The sweeps' thread count (:func:`~fem3d.solve.sparse_threads.sweep_threads`):
+        V-cycles of the new hierarchy on a fixed right-hand side, the first time in a
+        process."""
+        b = np.ones(n)
+        counts = self.thread_counts
+
+        def vcycle(threads: int) -> None:
+            counts["sweeps"] = threads
+            self._apply_threaded(b)
+
+        counts["sweeps"] = sparse_threads.sweep_threads(vcycle)
 
     def _sweep_schedule(self, level: int, A: sp.bsr_matrix) -> sparse_threads.SweepSchedule:
         """The sweep order of level ``level``'s pattern (cached while the pattern stays: a
@@ -575,24 +619,25 @@ class AMGPreconditioner:
         schedule order on its triangles in that order (the backward sweep reads ``L`` of the
         old ``x`` itself: one pass for ``b - L x`` and the sweep)."""
         ext = self._threads
+        sweeps, matvecs = (self.thread_counts.get(k, 0) for k in ("sweeps", "matvecs"))
         xs, bs = [], []
         for lvl in self._levels:
             L, U, s, R = lvl.L, lvl.U, lvl.sweep, lvl.R
             x = np.zeros_like(b)
             ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, lvl.Dinv, s.order,
-                            s.blocks, s.colours, x, b)
+                            s.blocks, s.colours, x, b, sweeps)
             xs.append(x)
             bs.append(b)
             r = np.empty_like(b)  # b - A x = -U x after a forward sweep from zero
-            ext.bsr_matvec(U.indptr, U.indices, U.data, *U.blocksize, x, None, -1.0, r)
+            ext.bsr_matvec(U.indptr, U.indices, U.data, *U.blocksize, x, None, -1.0, r, matvecs)
             b = np.empty(R.shape[0])
-            ext.bsr_matvec(R.indptr, R.indices, R.data, *R.blocksize, r, None, 1.0, b)
+            ext.bsr_matvec(R.indptr, R.indices, R.data, *R.blocksize, r, None, 1.0, b, matvecs)
         x = self._coarse_solve(b)
         for lvl, xf, bf in zip(reversed(self._levels), reversed(xs), reversed(bs), strict=True):
             L, U, s, P = lvl.L, lvl.U, lvl.sweep, lvl.P
-            ext.bsr_matvec(P.indptr, P.indices, P.data, *P.blocksize, x, xf, 1.0, xf)
+            ext.bsr_matvec(P.indptr, P.indices, P.data, *P.blocksize, x, xf, 1.0, xf, matvecs)
             ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, lvl.Dinv,
-                            s.order, s.blocks, s.colours, xf, bf)
+                            s.order, s.blocks, s.colours, xf, bf, sweeps)
             x = xf
         return x
 
@@ -603,16 +648,21 @@ class AMGPreconditioner:
         if ext is None:
             # bitwise the classic float(r @ z), np.linalg.norm(r) (its square root of r @ r)
             return (lambda x, y: float(x @ y)), (lambda p: A @ p)
+        n_threads = self.thread_counts["matvecs"]
+
+        def dot(x: np.ndarray, y: np.ndarray) -> float:
+            return ext.dot(x, y, n_threads)
+
         if A.indptr.dtype != np.int32 or A.indices.dtype != np.int32:
-            return ext.dot, (lambda p: A @ p)
+            return dot, (lambda p: A @ p)
         data = np.ascontiguousarray(A.data, dtype=np.float64)
 
         def matvec(p: np.ndarray) -> np.ndarray:
             y = np.empty(A.shape[0])
-            ext.csr_matvec(A.indptr, A.indices, data, p, y)
+            ext.csr_matvec(A.indptr, A.indices, data, p, y, n_threads)
             return y
 
-        return ext.dot, matvec
+        return dot, matvec
 
     def solve(self, A: sp.spmatrix | sp.sparray, b: np.ndarray, *, rtol: float,
               maxiter: int) -> CGResult:

@@ -2,10 +2,15 @@
 
 The C extension (``fem3d._ckernels``, rendered from ``templates/c/amg.c.jinja``) provides
 BSR mat-vecs, block Gauss-Seidel sweeps, a CSR mat-vec, a dot product and BSR x BSR products
-(:func:`bsr_product`: the Galerkin products of a setup), all on the OpenMP threads
-(``OMP_NUM_THREADS``, ``threadpoolctl``). Every row's sum runs in storage order whichever
-thread computes it, and a dot product adds fixed chunks in order, so the results do not depend
-on the number of threads.
+(:func:`bsr_product`: the Galerkin products of a setup), all on OpenMP threads. Every row's sum
+runs in storage order whichever thread computes it, and a dot product adds fixed chunks in
+order, so the results do not depend on the number of threads.
+
+How many threads: every kernel takes ``n_threads`` (0: OpenMP's count, ``OMP_NUM_THREADS``;
+else that many, capped at OpenMP's). An AMG setup asks :mod:`fem3d.kernels.threads` for one
+count per family, measured on its own data the first time in a process
+(:func:`matvec_threads`, :func:`product_threads`, :func:`sweep_threads`: a few mat-vecs, a
+sample of a product, a few V-cycles), or forced by ``FEM3D_THREADS``.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and
@@ -22,6 +27,7 @@ that of the mat-vecs.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -29,9 +35,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.kernels.backend import c_extension
+from fem3d.kernels.threads import measure
 
-__all__ = ["SweepSchedule", "bsr_product", "c_kernels", "reference_sweep", "split_triangles",
-           "sweep_schedule"]
+__all__ = ["PRODUCT_SAMPLE_ROWS", "SweepSchedule", "bsr_product", "c_kernels",
+           "matvec_threads", "product_threads", "reference_sweep", "split_triangles",
+           "sweep_schedule", "sweep_threads"]
 
 #: A schedule cuts the rows into ``MAX_BLOCKS``, ``MAX_BLOCKS / 2``, ... (at least 2) blocks of
 #: at least ``MIN_BLOCK_ROWS`` rows each and keeps the cut whose colouring needs the fewest
@@ -40,6 +48,11 @@ __all__ = ["SweepSchedule", "bsr_product", "c_kernels", "reference_sweep", "spli
 #: blocks in 2 colours, the CG iterations of pyamg's row-order sweeps). Else one block.
 MIN_BLOCK_ROWS = 256
 MAX_BLOCKS = 64
+#: The Galerkin products' thread count is measured on the product of this many block rows of
+#: the finest matrix (the whole matrix when smaller) with the matrix itself: as dense a product
+#: per row as the setup's ``A P`` and ``R (A P)`` (``A T`` is far lighter); 2048 rows: the
+#: fewest the C products split over threads (FEM3D_AMG_PARALLEL_ROWS).
+PRODUCT_SAMPLE_ROWS = 2048
 
 
 def c_kernels() -> ModuleType | None:
@@ -181,10 +194,11 @@ def split_triangles(A: sp.bsr_matrix, rank: np.ndarray | None
     return part(rank_cols < rank_rows), part(rank_cols > rank_rows)
 
 
-def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_matrix:
-    """``A @ B`` of two BSR matrices on the C kernels (threads over the rows of the product,
-    each row's blocks summed in ``A``'s then ``B``'s storage order: the same bits on any
-    thread count); sorted int32 indices."""
+def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix, n_threads: int = 0
+                ) -> sp.bsr_matrix:
+    """``A @ B`` of two BSR matrices on the C kernels (``n_threads`` threads, 0: OpenMP's
+    count, over the rows of the product, each row's blocks summed in ``A``'s then ``B``'s
+    storage order: the same bits on any thread count); sorted int32 indices."""
     R, K = A.blocksize
     C = B.blocksize[1]
     if B.blocksize[0] != K or A.shape[1] != B.shape[0]:
@@ -198,7 +212,7 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_m
     b = [np.ascontiguousarray(B.indptr, dtype=np.int32),
          np.ascontiguousarray(B.indices, dtype=np.int32), np.ascontiguousarray(B.data)]
     counts = np.empty(n_rows, dtype=np.int64)
-    ext.bsr_matmat_count(a[0], a[1], b[0], b[1], n_cols, counts)
+    ext.bsr_matmat_count(a[0], a[1], b[0], b[1], n_cols, counts, n_threads)
     indptr = np.zeros(n_rows + 1, dtype=np.int64)
     np.cumsum(counts, out=indptr[1:])
     if indptr[-1] >= 2**31:
@@ -206,10 +220,53 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix) -> sp.bsr_m
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), R, C))
     ext.bsr_matmat_fill(a[0], a[1], a[2], R, K, b[0], b[1], b[2], C, n_cols, indptr, indices,
-                        data)
+                        data, n_threads)
     M = sp.bsr_matrix((data, indices, indptr.astype(np.int32)), shape=(A.shape[0], B.shape[1]))
     M.has_sorted_indices = True
     return M
+
+
+def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
+    """The thread count of the ``"matvecs"`` family (mat-vecs, dot products), measured the
+    first time in a process on three CG-like rounds with ``A`` (CSR or BSR, int32 indices): a
+    mat-vec, a serial NumPy vector update (so that the threads wake up between kernels as in
+    CG) and a dot product."""
+    x = np.ones(A.shape[1])
+    y = np.empty(A.shape[0])
+    z = np.zeros(A.shape[0])
+    data = np.ascontiguousarray(A.data)
+    indptr = A.indptr.astype(np.int32, copy=False)
+    indices = A.indices.astype(np.int32, copy=False)
+
+    def trial(n: int) -> None:
+        for _ in range(3):
+            if isinstance(A, sp.bsr_matrix):
+                ext.bsr_matvec(indptr, indices, data, *A.blocksize, x, None, 1.0, y, n)
+            else:
+                ext.csr_matvec(indptr, indices, data, x, y, n)
+            np.multiply(y, 0.5, out=z)
+            ext.dot(y, z, n)
+
+    return measure("matvecs", trial)
+
+
+def product_threads(ext: ModuleType, A: sp.bsr_matrix) -> int:
+    """The thread count of the ``"products"`` family (:func:`bsr_product`), measured the first
+    time in a process on the product of :data:`PRODUCT_SAMPLE_ROWS` block rows of the square
+    BSR matrix ``A`` with ``A``."""
+    R = A.blocksize[0]
+    rows = min(A.shape[0] // R, PRODUCT_SAMPLE_ROWS)
+    stop = int(A.indptr[rows])
+    sample = sp.bsr_matrix((A.data[:stop], A.indices[:stop], A.indptr[:rows + 1]),
+                           shape=(rows * R, A.shape[1]))
+    return measure("products", lambda n: bsr_product(ext, sample, A, n))
+
+
+def sweep_threads(vcycle: Callable[[int], object]) -> int:
+    """The thread count of the ``"sweeps"`` family, measured the first time in a process on
+    whole V-cycles (``vcycle(n)``: one with its sweeps on ``n`` threads), so that the serial
+    work between the sweeps (coarse solve, vector copies) counts as it does in CG."""
+    return measure("sweeps", vcycle)
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,

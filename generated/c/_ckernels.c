@@ -29,6 +29,20 @@
 #define FEM3D_PRAGMA(text)
 #endif
 
+// The team size of a parallel region asked for `requested` threads: that count capped at
+// OpenMP's (OMP_NUM_THREADS, set_max_threads), or OpenMP's when requested is 0 or less; 1
+// without OpenMP. Every threaded kernel gives the same bits on any team size.
+static inline int fem3d_team(int requested)
+{
+#ifdef _OPENMP
+    const int available = omp_get_max_threads();
+    return requested > 0 && requested < available ? requested : available;
+#else
+    (void)requested;
+    return 1;
+#endif
+}
+
 // Integer power of a compound expression, evaluated once (gcc unrolls it at -O3).
 static inline double fem3d_powi(double x, int n)
 {
@@ -263,12 +277,14 @@ static Py_ssize_t fem3d_first_error(const Py_ssize_t *status, Py_ssize_t b0, Py_
 // partial (n_blocks * stride zeros) are the caller's scratch. Returns as the range function.
 static Py_ssize_t fem3d_run_assemble(assemble_range_fn fn, const fem3d_assembly *job,
                                      const fem3d_schedule *s, Py_ssize_t *status, double *partial,
-                                     Py_ssize_t stride, double *out)
+                                     Py_ssize_t stride, double *out, int n_threads)
 {
     if (s == NULL) return fn(job, NULL, 0, job->m, out);
     const Py_ssize_t n_blocks = s->n_blocks;
     const int private_out = job->n_out <= FEM3D_PRIVATE_MAX_OUT;
-    FEM3D_PRAGMA("omp parallel if (n_blocks > 1)")
+    const int team = fem3d_team(n_threads);
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_blocks > 1 && team > 1) num_threads(team)")
     {
         if (private_out) {
             FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
@@ -346,11 +362,22 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_range_f
     Py_ssize_t *status = NULL;
     double *partial = NULL;
     const Py_ssize_t given = PyTuple_GET_SIZE(args);
-    if (given != n_args && given != n_args + 3) {
+    if (given != n_args && given != n_args + 3 && given != n_args + 4) {
         PyErr_Format(PyExc_TypeError, "%s takes %d arguments (q, T, %d inputs, params, index, out)"
-                     " or %d (and order, blocks, colours), got %zd", name, n_args, n_rest,
-                     n_args + 3, given);
+                     " or %d (and order, blocks, colours) or %d (and n_threads), got %zd", name,
+                     n_args, n_rest, n_args + 3, n_args + 4, given);
         return NULL;
+    }
+    int n_threads = 0;  // 0: OpenMP's count
+    if (given == n_args + 4) {
+        const long value = PyLong_AsLong(PyTuple_GET_ITEM(args, n_args + 3));
+        if (value == -1 && PyErr_Occurred()) return NULL;
+        if (value < 0 || value > 4096) {
+            PyErr_Format(PyExc_ValueError, "%s: n_threads must lie in [0, 4096], got %ld", name,
+                         value);
+            return NULL;
+        }
+        n_threads = (int)value;
     }
     for (int i = 0; i < n_args; ++i) {
         const int is_out = i == n_args - 1;
@@ -424,7 +451,7 @@ static PyObject *run_assemble(PyObject *args, const char *name, assemble_range_f
         double *out = (double *)views[n_args - 1].buf;
         Py_ssize_t bad;
         Py_BEGIN_ALLOW_THREADS
-        bad = fem3d_run_assemble(fn, &job, s, status, partial, stride, out);
+        bad = fem3d_run_assemble(fn, &job, s, status, partial, stride, out, n_threads);
         Py_END_ALLOW_THREADS
         if (bad == FEM3D_BAD_ORDER) {
             PyErr_Format(PyExc_ValueError, "%s: the schedule's order has an element outside "
@@ -556,6 +583,10 @@ done:
 //
 // A sweep takes the matrix split in its order: L holds the blocks of the rows that come earlier
 // in the sweep, U those of later rows (fem3d.solve.sparse_threads.split_triangles).
+//
+// Every kernel takes an optional trailing n_threads (0, the default: OpenMP's count; else that
+// count capped at OpenMP's, see fem3d_team): fem3d.kernels.threads picks one per kernel family
+// (sweeps, mat-vecs, products) from measured times. The bits do not depend on it.
 // ---------------------------------------------------------------------------------------------
 
 // Loops over fewer rows (or entries, for the dot product) than this run on one thread.
@@ -564,11 +595,11 @@ done:
 // y_i = b_i + alpha * A_i x, 3 x 3 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
 static void fem3d_bsr_mv_3x3(Py_ssize_t n_rows, const int *indptr, const int *indices,
                                   const double *data, const double *x, const double *b,
-                                  double alpha, double *y)
+                                  double alpha, double *y, int team)
 {
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
         double acc1 = 0.0;
@@ -592,11 +623,11 @@ static void fem3d_bsr_mv_3x3(Py_ssize_t n_rows, const int *indptr, const int *in
 // y_i = b_i + alpha * A_i x, 6 x 6 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
 static void fem3d_bsr_mv_6x6(Py_ssize_t n_rows, const int *indptr, const int *indices,
                                   const double *data, const double *x, const double *b,
-                                  double alpha, double *y)
+                                  double alpha, double *y, int team)
 {
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
         double acc1 = 0.0;
@@ -632,11 +663,11 @@ static void fem3d_bsr_mv_6x6(Py_ssize_t n_rows, const int *indptr, const int *in
 // y_i = b_i + alpha * A_i x, 3 x 6 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
 static void fem3d_bsr_mv_3x6(Py_ssize_t n_rows, const int *indptr, const int *indices,
                                   const double *data, const double *x, const double *b,
-                                  double alpha, double *y)
+                                  double alpha, double *y, int team)
 {
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
         double acc1 = 0.0;
@@ -663,11 +694,11 @@ static void fem3d_bsr_mv_3x6(Py_ssize_t n_rows, const int *indptr, const int *in
 // y_i = b_i + alpha * A_i x, 6 x 3 blocks; alpha is +1 or -1 (exact: acc = -A_i x).
 static void fem3d_bsr_mv_6x3(Py_ssize_t n_rows, const int *indptr, const int *indices,
                                   const double *data, const double *x, const double *b,
-                                  double alpha, double *y)
+                                  double alpha, double *y, int team)
 {
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+    FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
     for (Py_ssize_t i = 0; i < n_rows; ++i) {
         double acc0 = 0.0;
         double acc1 = 0.0;
@@ -698,7 +729,7 @@ static void fem3d_bsr_mv_6x3(Py_ssize_t n_rows, const int *indptr, const int *in
 }
 
 typedef void (*fem3d_bsr_mv_fn)(Py_ssize_t, const int *, const int *, const double *,
-                                const double *, const double *, double, double *);
+                                const double *, const double *, double, double *, int);
 
 // The mat-vec of R x C blocks, or NULL.
 static fem3d_bsr_mv_fn fem3d_bsr_mv_kernel(int R, int C)
@@ -721,12 +752,13 @@ static void fem3d_sweep_3(const int *l_indptr, const int *l_indices, const doubl
                               const int *u_indptr, const int *u_indices, const double *u_data,
                               const double *Dinv, const int *order, const long long *blocks,
                               const long long *colours, Py_ssize_t n_colours, Py_ssize_t n_rows,
-                              double *x, const double *b)
+                              double *x, const double *b, int team)
 {
     const int backward = u_data != NULL;
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours &&
+                        team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel if (threads)")
+    FEM3D_PRAGMA("omp parallel if (threads) num_threads(team)")
     for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
         const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
         FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
@@ -791,12 +823,13 @@ static void fem3d_sweep_6(const int *l_indptr, const int *l_indices, const doubl
                               const int *u_indptr, const int *u_indices, const double *u_data,
                               const double *Dinv, const int *order, const long long *blocks,
                               const long long *colours, Py_ssize_t n_colours, Py_ssize_t n_rows,
-                              double *x, const double *b)
+                              double *x, const double *b, int team)
 {
     const int backward = u_data != NULL;
-    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours;
+    const int threads = n_rows >= FEM3D_AMG_PARALLEL_ROWS && colours[n_colours] > n_colours &&
+                        team > 1;
     (void)threads;  // (unused without OpenMP)
-    FEM3D_PRAGMA("omp parallel if (threads)")
+    FEM3D_PRAGMA("omp parallel if (threads) num_threads(team)")
     for (Py_ssize_t cc = 0; cc < n_colours; ++cc) {
         const Py_ssize_t c = backward ? n_colours - 1 - cc : cc;
         FEM3D_PRAGMA("omp for schedule(dynamic, 1)")
@@ -927,19 +960,20 @@ static int fem3d_amg_check_pattern(const char *fn, const int *indptr, Py_ssize_t
 
 // bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y): y = b + alpha * A x with A
 // (n_rows R) x (n_cols C) in BSR (int32 indptr, indices; float64 data of R x C blocks: 3 x 3,
-// 6 x 6, 3 x 6 or 6 x 3), b None for zero, alpha +1 or -1. y may be b (in place).
+// 6 x 6, 3 x 6 or 6 x 3), b None for zero, alpha +1 or -1. y may be b (in place). Optional
+// n_threads (see the top).
 static PyObject *py_bsr_matvec(PyObject *self, PyObject *args)
 {
     static const char *fn = "bsr_matvec";
     PyObject *o[6];
-    int R, C;
+    int R, C, n_threads = 0;
     double alpha;
     Py_buffer views[6];
     int n_views = 0;
     PyObject *result = NULL;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OOOiiOOdO:bsr_matvec", &o[0], &o[1], &o[2], &R, &C, &o[3],
-                          &o[4], &alpha, &o[5]))
+    if (!PyArg_ParseTuple(args, "OOOiiOOdO|i:bsr_matvec", &o[0], &o[1], &o[2], &R, &C, &o[3],
+                          &o[4], &alpha, &o[5], &n_threads))
         return NULL;
     const void *buf[6];
     Py_ssize_t count[6];
@@ -963,7 +997,8 @@ static PyObject *py_bsr_matvec(PyObject *self, PyObject *args)
         if (fem3d_amg_check_pattern(fn, buf[0], n_rows, buf[1], count[1], count[3] / C) != 0)
             goto done;
         Py_BEGIN_ALLOW_THREADS
-        kernel(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], alpha, (double *)buf[5]);
+        kernel(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], alpha, (double *)buf[5],
+               fem3d_team(n_threads));
         Py_END_ALLOW_THREADS
     }
     result = Py_NewRef(Py_None);
@@ -976,17 +1011,18 @@ done:
 // colours, x, b): one block Gauss-Seidel sweep in place on x (see fem3d_sweep_k): forward when
 // the U arrays are None, backward otherwise. L and U: BSR (int32 indptr, indices) of k x k
 // blocks, k 3 or 6 from Dinv (n_rows k x k); order int32 (n_rows, or None: the row order),
-// blocks and colours int64 offsets.
+// blocks and colours int64 offsets. Optional n_threads (see the top).
 static PyObject *py_block_sweep(PyObject *self, PyObject *args)
 {
     static const char *fn = "block_sweep";
     PyObject *o[12];
+    int n_threads = 0;
     Py_buffer views[12];
     int n_views = 0;
     PyObject *result = NULL;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOO:block_sweep", &o[0], &o[1], &o[2], &o[3], &o[4],
-                          &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11]))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOO|i:block_sweep", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &n_threads))
         return NULL;
     const void *buf[12];
     Py_ssize_t count[12];
@@ -1028,7 +1064,8 @@ static PyObject *py_block_sweep(PyObject *self, PyObject *args)
         Py_BEGIN_ALLOW_THREADS
         (k == 3 ? fem3d_sweep_3 : fem3d_sweep_6)(buf[0], buf[1], buf[2], buf[3], buf[4], buf[5],
                                                  buf[6], order, blocks, colours, n_colours,
-                                                 n_rows, (double *)buf[10], buf[11]);
+                                                 n_rows, (double *)buf[10], buf[11],
+                                                 fem3d_team(n_threads));
         Py_END_ALLOW_THREADS
     }
     result = Py_NewRef(Py_None);
@@ -1037,7 +1074,8 @@ done:
     return result;
 }
 
-// dot(x, y): sum of x * y over fixed chunks (four running sums each), chunk sums in order.
+// dot(x, y[, n_threads]): sum of x * y over fixed chunks (four running sums each), chunk sums
+// in order.
 static PyObject *py_dot(PyObject *self, PyObject *args)
 {
     PyObject *o[2];
@@ -1045,8 +1083,9 @@ static PyObject *py_dot(PyObject *self, PyObject *args)
     int n_views = 0;
     PyObject *result = NULL;
     double *partial = NULL;
+    int n_threads = 0;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OO:dot", &o[0], &o[1])) return NULL;
+    if (!PyArg_ParseTuple(args, "OO|i:dot", &o[0], &o[1], &n_threads)) return NULL;
     const void *buf[2];
     Py_ssize_t count[2];
     for (int a = 0; a < 2; ++a)
@@ -1066,10 +1105,11 @@ static PyObject *py_dot(PyObject *self, PyObject *args)
             goto done;
         }
         double total = 0.0;
+        const int team = fem3d_team(n_threads);
         Py_BEGIN_ALLOW_THREADS
-        const int threads = n >= 16 * FEM3D_DOT_CHUNK;
+        const int threads = n >= 16 * FEM3D_DOT_CHUNK && team > 1;
         (void)threads;  // (unused without OpenMP)
-        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
         for (Py_ssize_t c = 0; c < n_chunks; ++c) {
             const Py_ssize_t lo = c * FEM3D_DOT_CHUNK;
             const Py_ssize_t hi = lo + FEM3D_DOT_CHUNK < n ? lo + FEM3D_DOT_CHUNK : n;
@@ -1090,16 +1130,19 @@ done:
     return result;
 }
 
-// csr_matvec(indptr, indices, data, x, y): y = A x for a CSR matrix (int32 indptr, indices).
+// csr_matvec(indptr, indices, data, x, y[, n_threads]): y = A x for a CSR matrix (int32
+// indptr, indices).
 static PyObject *py_csr_matvec(PyObject *self, PyObject *args)
 {
     static const char *fn = "csr_matvec";
     PyObject *o[5];
+    int n_threads = 0;
     Py_buffer views[5];
     int n_views = 0;
     PyObject *result = NULL;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OOOOO:csr_matvec", &o[0], &o[1], &o[2], &o[3], &o[4]))
+    if (!PyArg_ParseTuple(args, "OOOOO|i:csr_matvec", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &n_threads))
         return NULL;
     const void *buf[5];
     Py_ssize_t count[5];
@@ -1121,10 +1164,11 @@ static PyObject *py_csr_matvec(PyObject *self, PyObject *args)
         const int *indptr = buf[0], *indices = buf[1];
         const double *data = buf[2], *x = buf[3];
         double *y = (double *)buf[4];
+        const int team = fem3d_team(n_threads);
         Py_BEGIN_ALLOW_THREADS
-        const int threads = n_rows >= 4 * FEM3D_AMG_PARALLEL_ROWS;
+        const int threads = n_rows >= 4 * FEM3D_AMG_PARALLEL_ROWS && team > 1;
         (void)threads;  // (unused without OpenMP)
-        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads)")
+        FEM3D_PRAGMA("omp parallel for schedule(static) if (threads) num_threads(team)")
         for (Py_ssize_t i = 0; i < n_rows; ++i) {
             double s = 0.0;
             for (Py_ssize_t jj = indptr[i]; jj < indptr[i + 1]; ++jj) s += data[jj] * x[indices[jj]];
@@ -1157,10 +1201,11 @@ static int *fem3d_marks(Py_ssize_t n_cols)
 // memory.
 static int fem3d_matmat_count(Py_ssize_t n_rows, const int *a_indptr, const int *a_indices,
                               const int *b_indptr, const int *b_indices, Py_ssize_t n_cols,
-                              long long *counts)
+                              long long *counts, int team)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *mark = fem3d_marks(n_cols);
         if (mark == NULL) {
@@ -1207,10 +1252,11 @@ static void fem3d_sort_ints(int *a, Py_ssize_t n)
 static int fem3d_matmat_fill_3x3x6(
     Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
     const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
-    const long long *c_indptr, int *c_indices, double *c_data)
+    const long long *c_indptr, int *c_indices, double *c_data, int team)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *pos = fem3d_marks(n_cols);
         if (pos == NULL) {
@@ -1274,10 +1320,11 @@ static int fem3d_matmat_fill_3x3x6(
 static int fem3d_matmat_fill_6x3x6(
     Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
     const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
-    const long long *c_indptr, int *c_indices, double *c_data)
+    const long long *c_indptr, int *c_indices, double *c_data, int team)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *pos = fem3d_marks(n_cols);
         if (pos == NULL) {
@@ -1359,10 +1406,11 @@ static int fem3d_matmat_fill_6x3x6(
 static int fem3d_matmat_fill_6x6x6(
     Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
     const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
-    const long long *c_indptr, int *c_indices, double *c_data)
+    const long long *c_indptr, int *c_indices, double *c_data, int team)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *pos = fem3d_marks(n_cols);
         if (pos == NULL) {
@@ -1444,10 +1492,11 @@ static int fem3d_matmat_fill_6x6x6(
 static int fem3d_matmat_fill_3x3x3(
     Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
     const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
-    const long long *c_indptr, int *c_indices, double *c_data)
+    const long long *c_indptr, int *c_indices, double *c_data, int team)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *pos = fem3d_marks(n_cols);
         if (pos == NULL) {
@@ -1502,10 +1551,11 @@ static int fem3d_matmat_fill_3x3x3(
 static int fem3d_matmat_fill_generic(
     Py_ssize_t n_rows, const int *a_indptr, const int *a_indices, const double *a_data,
     const int *b_indptr, const int *b_indices, const double *b_data, Py_ssize_t n_cols,
-    const long long *c_indptr, int *c_indices, double *c_data, int R, int K, int C)
+    const long long *c_indptr, int *c_indices, double *c_data, int team, int R, int K, int C)
 {
     int failed = 0;
-    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS)")
+    (void)team;  // (unused without OpenMP)
+    FEM3D_PRAGMA("omp parallel if (n_rows >= FEM3D_AMG_PARALLEL_ROWS && team > 1) num_threads(team)")
     {
         int *pos = fem3d_marks(n_cols);
         if (pos == NULL) {
@@ -1570,17 +1620,19 @@ static int fem3d_matmat_patterns(const char *fn, const void **buf, const Py_ssiz
 
 // bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): the number of
 // blocks of every row of A B (int32 patterns; n_cols block columns of B; counts int64 n_rows).
+// Optional n_threads (see the top).
 static PyObject *py_bsr_matmat_count(PyObject *self, PyObject *args)
 {
     static const char *fn = "bsr_matmat_count";
     PyObject *o[5];
     Py_ssize_t n_cols;
+    int n_threads = 0;
     Py_buffer views[5];
     int n_views = 0;
     PyObject *result = NULL;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OOOOnO:bsr_matmat_count", &o[0], &o[1], &o[2], &o[3], &n_cols,
-                          &o[4]))
+    if (!PyArg_ParseTuple(args, "OOOOnO|i:bsr_matmat_count", &o[0], &o[1], &o[2], &o[3],
+                          &n_cols, &o[4], &n_threads))
         return NULL;
     const void *buf[5];
     Py_ssize_t count[5];
@@ -1599,7 +1651,7 @@ static PyObject *py_bsr_matmat_count(PyObject *self, PyObject *args)
         int failed;
         Py_BEGIN_ALLOW_THREADS
         failed = fem3d_matmat_count(count[0] - 1, buf[0], buf[1], buf[2], buf[3], n_cols,
-                                    (long long *)buf[4]);
+                                    (long long *)buf[4], fem3d_team(n_threads));
         Py_END_ALLOW_THREADS
         if (failed) {
             PyErr_NoMemory();
@@ -1615,18 +1667,19 @@ done:
 // bsr_matmat_fill(a_indptr, a_indices, a_data, R, K, b_indptr, b_indices, b_data, C, n_cols,
 // c_indptr, c_indices, c_data): the product A B (R x K times K x C blocks, any sizes up to 8)
 // into c_indptr (int64, from bsr_matmat_count's counts), c_indices (int32), c_data (float64).
+// Optional n_threads (see the top).
 static PyObject *py_bsr_matmat_fill(PyObject *self, PyObject *args)
 {
     static const char *fn = "bsr_matmat_fill";
     PyObject *o[9];
-    int R, K, C;
+    int R, K, C, n_threads = 0;
     Py_ssize_t n_cols;
     Py_buffer views[9];
     int n_views = 0;
     PyObject *result = NULL;
     (void)self;
-    if (!PyArg_ParseTuple(args, "OOOiiOOOinOOO:bsr_matmat_fill", &o[0], &o[1], &o[2], &R, &K,
-                          &o[3], &o[4], &o[5], &C, &n_cols, &o[6], &o[7], &o[8]))
+    if (!PyArg_ParseTuple(args, "OOOiiOOOinOOO|i:bsr_matmat_fill", &o[0], &o[1], &o[2], &R, &K,
+                          &o[3], &o[4], &o[5], &C, &n_cols, &o[6], &o[7], &o[8], &n_threads))
         return NULL;
     const void *buf[9];
     Py_ssize_t count[9];
@@ -1655,22 +1708,23 @@ static PyObject *py_bsr_matmat_fill(PyObject *self, PyObject *args)
             goto done;
         }
         int failed;
+        const int team = fem3d_team(n_threads);
         Py_BEGIN_ALLOW_THREADS
         if (R == 3 && K == 3 && C == 6)
             failed = fem3d_matmat_fill_3x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
-                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+                                                c_indptr, (int *)buf[7], (double *)buf[8], team);
         else if (R == 6 && K == 3 && C == 6)
             failed = fem3d_matmat_fill_6x3x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
-                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+                                                c_indptr, (int *)buf[7], (double *)buf[8], team);
         else if (R == 6 && K == 6 && C == 6)
             failed = fem3d_matmat_fill_6x6x6(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
-                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+                                                c_indptr, (int *)buf[7], (double *)buf[8], team);
         else if (R == 3 && K == 3 && C == 3)
             failed = fem3d_matmat_fill_3x3x3(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], n_cols,
-                                                c_indptr, (int *)buf[7], (double *)buf[8]);
+                                                c_indptr, (int *)buf[7], (double *)buf[8], team);
         else
             failed = fem3d_matmat_fill_generic(n_rows, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5],
-                                               n_cols, c_indptr, (int *)buf[7], (double *)buf[8], R, K, C);
+                                               n_cols, c_indptr, (int *)buf[7], (double *)buf[8], team, R, K, C);
         Py_END_ALLOW_THREADS
         if (failed) {
             PyErr_NoMemory();
@@ -1685,15 +1739,15 @@ done:
 
 #define FEM3D_AMG_METHODS \
     {"bsr_matvec", py_bsr_matvec, METH_VARARGS, \
-     "bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y): y = b + alpha * A x (BSR), alpha = +1 or -1."}, \
+     "bsr_matvec(indptr, indices, data, R, C, x, b, alpha, y[, n_threads]): y = b + alpha * A x (BSR), alpha = +1 or -1."}, \
     {"block_sweep", py_block_sweep, METH_VARARGS, \
-     "block_sweep(L (indptr, indices, data), U (or None x 3), Dinv, order, blocks, colours, x, b): block Gauss-Seidel over a schedule."}, \
-    {"dot", py_dot, METH_VARARGS, "dot(x, y): x . y, the same bits on any number of threads."}, \
-    {"csr_matvec", py_csr_matvec, METH_VARARGS, "csr_matvec(indptr, indices, data, x, y): y = A x (CSR)."}, \
+     "block_sweep(L (indptr, indices, data), U (or None x 3), Dinv, order, blocks, colours, x, b[, n_threads]): block Gauss-Seidel over a schedule."}, \
+    {"dot", py_dot, METH_VARARGS, "dot(x, y[, n_threads]): x . y, the same bits on any number of threads."}, \
+    {"csr_matvec", py_csr_matvec, METH_VARARGS, "csr_matvec(indptr, indices, data, x, y[, n_threads]): y = A x (CSR)."}, \
     {"bsr_matmat_count", py_bsr_matmat_count, METH_VARARGS, \
-     "bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts): blocks per row of A B."}, \
+     "bsr_matmat_count(a_indptr, a_indices, b_indptr, b_indices, n_cols, counts[, n_threads]): blocks per row of A B."}, \
     {"bsr_matmat_fill", py_bsr_matmat_fill, METH_VARARGS, \
-     "bsr_matmat_fill(A (indptr, indices, data), R, K, B (indptr, indices, data), C, n_cols, c_indptr, c_indices, c_data): A B (BSR)."},
+     "bsr_matmat_fill(A (indptr, indices, data), R, K, B (indptr, indices, data), C, n_cols, c_indptr, c_indices, c_data[, n_threads]): A B (BSR)."},
 
 // ---------------------------------------------------------------------------------------------
 // Batched symmetric eigendecompositions of small blocks for the PSD projection's users that need
@@ -1989,10 +2043,10 @@ static PyMethodDef methods[] = {
     {"tet_mass_matrix", py_tet_mass_matrix, METH_VARARGS, "Exact consistent mass matrix rho * integral N^T N dV (12x12)."},
     {"tet_deformation_gradient", py_tet_deformation_gradient, METH_VARARGS, "Deformation gradient F = sum_v x_v dphi_v/dX^T."},
     {"tet_deformation_gradient_assemble", py_tet_deformation_gradient_assemble, METH_VARARGS,
-     "tet_deformation_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "tet_deformation_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"tet_deformed_volume", py_tet_deformed_volume, METH_VARARGS, "Signed volume of deformed tets (<= 0: inverted or flat)."},
     {"tet_deformed_volume_assemble", py_tet_deformed_volume_assemble, METH_VARARGS,
-     "tet_deformed_volume_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "tet_deformed_volume_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"spring_energy", py_spring_energy, METH_VARARGS, "Spring energy 1/2 k |x_a - x_b|^2."},
     {"spring_gradient", py_spring_gradient, METH_VARARGS, "Spring gradient (d/dx_a, d/dx_b), length 6."},
     {"spring_hessian", py_spring_hessian, METH_VARARGS, "Spring Hessian (6x6)."},
@@ -2001,137 +2055,137 @@ static PyMethodDef methods[] = {
     {"fibre_reinforced_d2psi_dF2", py_fibre_reinforced_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"fibre_reinforced_energy", py_fibre_reinforced_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"fibre_reinforced_energy_assemble", py_fibre_reinforced_energy_assemble, METH_VARARGS,
-     "fibre_reinforced_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fibre_reinforced_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fibre_reinforced_gradient", py_fibre_reinforced_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"fibre_reinforced_gradient_assemble", py_fibre_reinforced_gradient_assemble, METH_VARARGS,
-     "fibre_reinforced_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fibre_reinforced_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fibre_reinforced_dgradient_dparams", py_fibre_reinforced_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"fibre_reinforced_d3psi_contract", py_fibre_reinforced_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"fibre_reinforced_hessian", py_fibre_reinforced_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"fibre_reinforced_hessian_assemble", py_fibre_reinforced_hessian_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fibre_reinforced_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fibre_reinforced_hessian_psd", py_fibre_reinforced_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"fibre_reinforced_hessian_psd_assemble", py_fibre_reinforced_hessian_psd_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fibre_reinforced_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_psi", py_fung_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"fung_dpsi_dF", py_fung_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"fung_d2psi_dF2", py_fung_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"fung_energy", py_fung_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"fung_energy_assemble", py_fung_energy_assemble, METH_VARARGS,
-     "fung_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fung_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_gradient", py_fung_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"fung_gradient_assemble", py_fung_gradient_assemble, METH_VARARGS,
-     "fung_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fung_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_dgradient_dparams", py_fung_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"fung_d3psi_contract", py_fung_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"fung_hessian", py_fung_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"fung_hessian_assemble", py_fung_hessian_assemble, METH_VARARGS,
-     "fung_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fung_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_hessian_psd", py_fung_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"fung_hessian_psd_assemble", py_fung_hessian_psd_assemble, METH_VARARGS,
-     "fung_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "fung_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_psi", py_linear_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"linear_dpsi_dF", py_linear_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"linear_d2psi_dF2", py_linear_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"linear_energy", py_linear_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"linear_energy_assemble", py_linear_energy_assemble, METH_VARARGS,
-     "linear_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "linear_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_gradient", py_linear_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"linear_gradient_assemble", py_linear_gradient_assemble, METH_VARARGS,
-     "linear_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "linear_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_dgradient_dparams", py_linear_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"linear_d3psi_contract", py_linear_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"linear_hessian", py_linear_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"linear_hessian_assemble", py_linear_hessian_assemble, METH_VARARGS,
-     "linear_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "linear_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_hessian_psd", py_linear_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"linear_hessian_psd_assemble", py_linear_hessian_psd_assemble, METH_VARARGS,
-     "linear_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "linear_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_psi", py_mooney_rivlin_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"mooney_rivlin_dpsi_dF", py_mooney_rivlin_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"mooney_rivlin_d2psi_dF2", py_mooney_rivlin_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"mooney_rivlin_energy", py_mooney_rivlin_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"mooney_rivlin_energy_assemble", py_mooney_rivlin_energy_assemble, METH_VARARGS,
-     "mooney_rivlin_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "mooney_rivlin_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_gradient", py_mooney_rivlin_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"mooney_rivlin_gradient_assemble", py_mooney_rivlin_gradient_assemble, METH_VARARGS,
-     "mooney_rivlin_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "mooney_rivlin_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_dgradient_dparams", py_mooney_rivlin_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"mooney_rivlin_d3psi_contract", py_mooney_rivlin_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"mooney_rivlin_hessian", py_mooney_rivlin_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"mooney_rivlin_hessian_assemble", py_mooney_rivlin_hessian_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "mooney_rivlin_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_hessian_psd", py_mooney_rivlin_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"mooney_rivlin_hessian_psd_assemble", py_mooney_rivlin_hessian_psd_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "mooney_rivlin_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_psi", py_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"neo_hookean_energy", py_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"neo_hookean_energy_assemble", py_neo_hookean_energy_assemble, METH_VARARGS,
-     "neo_hookean_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_gradient", py_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"neo_hookean_gradient_assemble", py_neo_hookean_gradient_assemble, METH_VARARGS,
-     "neo_hookean_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_dgradient_dparams", py_neo_hookean_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"neo_hookean_d3psi_contract", py_neo_hookean_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"neo_hookean_hessian", py_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"neo_hookean_hessian_assemble", py_neo_hookean_hessian_assemble, METH_VARARGS,
-     "neo_hookean_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"neo_hookean_hessian_psd_assemble", py_neo_hookean_hessian_psd_assemble, METH_VARARGS,
-     "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_psi", py_neo_hookean_lame_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_lame_dpsi_dF", py_neo_hookean_lame_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_lame_d2psi_dF2", py_neo_hookean_lame_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"neo_hookean_lame_energy", py_neo_hookean_lame_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"neo_hookean_lame_energy_assemble", py_neo_hookean_lame_energy_assemble, METH_VARARGS,
-     "neo_hookean_lame_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_lame_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_gradient", py_neo_hookean_lame_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"neo_hookean_lame_gradient_assemble", py_neo_hookean_lame_gradient_assemble, METH_VARARGS,
-     "neo_hookean_lame_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_lame_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_dgradient_dparams", py_neo_hookean_lame_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"neo_hookean_lame_d3psi_contract", py_neo_hookean_lame_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"neo_hookean_lame_hessian", py_neo_hookean_lame_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"neo_hookean_lame_hessian_assemble", py_neo_hookean_lame_hessian_assemble, METH_VARARGS,
-     "neo_hookean_lame_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_lame_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_hessian_psd", py_neo_hookean_lame_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"neo_hookean_lame_hessian_psd_assemble", py_neo_hookean_lame_hessian_psd_assemble, METH_VARARGS,
-     "neo_hookean_lame_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "neo_hookean_lame_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_psi", py_stable_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stable_neo_hookean_dpsi_dF", py_stable_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stable_neo_hookean_d2psi_dF2", py_stable_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"stable_neo_hookean_energy", py_stable_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"stable_neo_hookean_energy_assemble", py_stable_neo_hookean_energy_assemble, METH_VARARGS,
-     "stable_neo_hookean_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stable_neo_hookean_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_gradient", py_stable_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"stable_neo_hookean_gradient_assemble", py_stable_neo_hookean_gradient_assemble, METH_VARARGS,
-     "stable_neo_hookean_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stable_neo_hookean_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_dgradient_dparams", py_stable_neo_hookean_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"stable_neo_hookean_d3psi_contract", py_stable_neo_hookean_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"stable_neo_hookean_hessian", py_stable_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"stable_neo_hookean_hessian_assemble", py_stable_neo_hookean_hessian_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stable_neo_hookean_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_hessian_psd", py_stable_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stable_neo_hookean_hessian_psd_assemble", py_stable_neo_hookean_hessian_psd_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stable_neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
     {"stvk_energy", py_stvk_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
     {"stvk_energy_assemble", py_stvk_energy_assemble, METH_VARARGS,
-     "stvk_energy_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stvk_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_gradient", py_stvk_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
     {"stvk_gradient_assemble", py_stvk_gradient_assemble, METH_VARARGS,
-     "stvk_gradient_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stvk_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_dgradient_dparams", py_stvk_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
     {"stvk_d3psi_contract", py_stvk_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
     {"stvk_hessian", py_stvk_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
     {"stvk_hessian_assemble", py_stvk_hessian_assemble, METH_VARARGS,
-     "stvk_hessian_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stvk_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stvk_hessian_psd_assemble", py_stvk_hessian_psd_assemble, METH_VARARGS,
-     "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out): out[index] += kernel(q[T], ...)."},
+     "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"colour_blocks", py_colour_blocks, METH_VARARGS,
      "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
     FEM3D_AMG_METHODS
