@@ -404,12 +404,6 @@ class ContactSpec(_Spec):
     #: contacts; the gallery's contact scenes set it). The default stays "clamped": a
     #: checkpoint written before the key existed resumes as it was run
     newton_start: Literal["clamped", "q_t"] = "clamped"
-    #: when a contact pair appears outside the linear solver's sparsity pattern (a new
-    #: symbolic analysis), the pattern grows also by the pairs closer than this many dhat
-    #: (and the step's candidates are padded by half of it), so that a spreading contact
-    #: region re-analyses less often; larger: fewer analyses, more fill. 0: the active pairs
-    #: alone. docs/contact.md "Where a contact step's time goes"
-    pattern_margin: NonNegative = 4.0
 
     @property
     def static_mu(self) -> float:
