@@ -48,18 +48,3 @@ def test_locate_reuses_a_kept_answer_for_the_first_keys_exactly():
     assert np.array_equal(both[0], np.searchsorted(have, np.concatenate([inside, inside[:7]])))
     assert not system._locate(np.concatenate([inside, outside]))[1]
 
-
-def test_pattern_margin_reaches_the_contact_term_and_bad_values_are_one_clear_line():
-    import pytest
-
-    from fem3d.errors import InputError
-    from fem3d.scene import apply_overrides, load_scene
-    from fem3d.simulation import Simulation
-
-    scene = load_scene("contact_stack")
-    assert scene.contact.pattern_margin == 4.0  # the default: the behaviour as recorded
-    wide = apply_overrides(scene, {"contact.pattern_margin": 12})
-    assert Simulation(wide, scripted=True).contact.barrier.pattern_margin == 12.0
-    with pytest.raises(InputError, match=r"contact\.pattern_margin: .*greater than or equal "
-                                         r"to 0, got -1"):
-        apply_overrides(scene, {"contact.pattern_margin": -1.0})
