@@ -48,3 +48,20 @@ def test_locate_reuses_a_kept_answer_for_the_first_keys_exactly():
     assert np.array_equal(both[0], np.searchsorted(have, np.concatenate([inside, inside[:7]])))
     assert not system._locate(np.concatenate([inside, outside]))[1]
 
+
+
+def test_contact_entries_outside_the_pattern_are_added_where_they_belong():
+    system = _system()
+    n = 3 * system.model.n_vertices
+    rng = np.random.default_rng(7)
+    for _ in range(2):  # the first widens from the mesh's pattern, the second from a wider one
+        rows, cols = rng.integers(0, n, 200), rng.integers(0, n, 200)
+        vals = rng.standard_normal(200)
+        A = system.mass_free
+        B = system.add_hessian(A, (rows, cols, vals), 0.5)
+        expected = A.toarray()
+        r, c = system.constraints._new_index[rows], system.constraints._new_index[cols]
+        keep = (r >= 0) & (c >= 0)
+        np.add.at(expected, (r[keep], c[keep]), 0.5 * vals[keep])
+        assert np.array_equal(B.toarray(), expected)
+        assert B.nnz == system._ext.keys.size and system.pattern_covers(rows, cols)

@@ -409,8 +409,15 @@ class System:
             np.add.at(data, pos, vals)
             return self._like(A, data)
         if not inside:
-            ext = self._extend(keys)
-            pos = self._locate(keys)[0]
+            have = self._base_key_array() if ext is None else ext.keys
+            missing = have[pos] != keys
+            ext, moved = self._widen(keys[missing])
+            # the keys found before move up with the pattern; the missing ones are searched
+            pos = pos + moved[pos]
+            pos[missing] = np.searchsorted(ext.keys, keys[missing])
+            pos.setflags(write=False)
+            self._locate_cache.insert(0, (ext.keys, np.array(keys), pos, True))
+            del self._locate_cache[_LOCATE_CACHE_SIZE:]
         A = self.on_solver_pattern(A)
         data = np.array(A.data)
         np.add.at(data, pos, vals)
@@ -473,14 +480,20 @@ class System:
 
     def _extend(self, keys: np.ndarray) -> _ExtendedPattern:
         """Widen the solver's pattern by ``keys`` (and their transposes); new analysis."""
+        old = self._base_key_array() if self._ext is None else self._ext.keys
+        pos = np.minimum(np.searchsorted(old, keys), old.size - 1)
+        return self._widen(keys[old[pos] != keys])[0]
+
+    def _widen(self, missing: np.ndarray) -> tuple[_ExtendedPattern, np.ndarray]:
+        """Widen the solver's pattern by the keys ``missing`` from it and their transposes
+        (those are missing too: the pattern is structurally symmetric); new analysis.
+        Returns the pattern and, for each old key's position, how far it moved up."""
         nf = self.constraints.n_free
         old = self._base_key_array() if self._ext is None else self._ext.keys
-        r, c = np.divmod(keys, nf)
-        wanted = np.concatenate([keys, c * nf + r])
-        # the (few) keys not in the sorted, unique ``old`` yet, inserted in order: the same
-        # array as ``np.union1d(old, wanted)`` without sorting the whole pattern again
-        pos = np.minimum(np.searchsorted(old, wanted), old.size - 1)
-        fresh = np.unique(wanted[old[pos] != wanted])
+        r, c = np.divmod(missing, nf)
+        # the (few) new keys inserted in order: the same array as ``np.union1d(old,
+        # wanted)`` without sorting or searching the whole pattern again
+        fresh = np.unique(np.concatenate([missing, c * nf + r]))
         before = np.searchsorted(old, fresh)
         union = np.insert(old, before, fresh)
         # each old key moves up by the fresh keys inserted at or before it: the base keys'
@@ -501,7 +514,7 @@ class System:
         self._solver = None
         self.factorized_data = None
         self.pattern_generation += 1
-        return ext
+        return ext, moved
 
     def pattern_keys(self) -> np.ndarray:
         """Keys (``row * n_free + col``) of the solver's pattern when objective terms have
