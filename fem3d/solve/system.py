@@ -409,8 +409,15 @@ class System:
             np.add.at(data, pos, vals)
             return self._like(A, data)
         if not inside:
-            ext = self._extend(keys)
-            pos = self._locate(keys)[0]
+            have = self._base_key_array() if ext is None else ext.keys
+            missing = have[pos] != keys
+            ext, moved = self._widen(keys[missing])
+            # the keys found before move up with the pattern; the missing ones are searched
+            pos = pos + moved[pos]
+            pos[missing] = np.searchsorted(ext.keys, keys[missing])
+            pos.setflags(write=False)
+            self._locate_cache.insert(0, (ext.keys, np.array(keys), pos, True))
+            del self._locate_cache[_LOCATE_CACHE_SIZE:]
         A = self.on_solver_pattern(A)
         data = np.array(A.data)
         np.add.at(data, pos, vals)
@@ -433,16 +440,27 @@ class System:
         The contact terms ask for the same keys several times (whether the pattern covers a
         barrier Hessian, then adding it; Newton iterates with the same contact set), so the
         last few answers are kept for the current pattern (each search of 3e4 keys in the
-        pile's 5e5 takes a few milliseconds).
+        pile's 5e5 takes a few milliseconds); keys that begin with a kept answer's (the
+        barrier's entries asked about alone, then with the friction's) search only the rest.
         """
         have = self._base_key_array() if self._ext is None else self._ext.keys
         cache = self._locate_cache
+        known = None  # a cached answer for the first keys (the barrier's, then friction's)
         for entry in cache:
-            if entry[0] is have and np.array_equal(entry[1], keys):
+            if entry[0] is not have or entry[1].size > keys.size:
+                continue
+            if entry[1].size == keys.size and np.array_equal(entry[1], keys):
                 return entry[2], entry[3]
-        pos = np.searchsorted(have, keys)
+            if (known is None or entry[1].size > known[1].size) and \
+                    np.array_equal(entry[1], keys[:entry[1].size]):
+                known = entry
+        start = 0 if known is None else known[1].size
+        pos = np.searchsorted(have, keys[start:])
         np.minimum(pos, have.size - 1, out=pos)
-        inside = bool(np.array_equal(have[pos], keys))
+        inside = bool(np.array_equal(have[pos], keys[start:]))
+        if known is not None:
+            pos = np.concatenate([known[2], pos])
+            inside = inside and known[3]
         pos.setflags(write=False)
         cache.insert(0, (have, np.array(keys), pos, inside))
         del cache[_LOCATE_CACHE_SIZE:]
@@ -462,15 +480,26 @@ class System:
 
     def _extend(self, keys: np.ndarray) -> _ExtendedPattern:
         """Widen the solver's pattern by ``keys`` (and their transposes); new analysis."""
+        old = self._base_key_array() if self._ext is None else self._ext.keys
+        pos = np.minimum(np.searchsorted(old, keys), old.size - 1)
+        return self._widen(keys[old[pos] != keys])[0]
+
+    def _widen(self, missing: np.ndarray) -> tuple[_ExtendedPattern, np.ndarray]:
+        """Widen the solver's pattern by the keys ``missing`` from it and their transposes
+        (those are missing too: the pattern is structurally symmetric); new analysis.
+        Returns the pattern and, for each old key's position, how far it moved up."""
         nf = self.constraints.n_free
         old = self._base_key_array() if self._ext is None else self._ext.keys
-        r, c = np.divmod(keys, nf)
-        wanted = np.concatenate([keys, c * nf + r])
-        # the (few) keys not in the sorted, unique ``old`` yet, inserted in order: the same
-        # array as ``np.union1d(old, wanted)`` without sorting the whole pattern again
-        pos = np.minimum(np.searchsorted(old, wanted), old.size - 1)
-        fresh = np.unique(wanted[old[pos] != wanted])
-        union = np.insert(old, np.searchsorted(old, fresh), fresh)
+        r, c = np.divmod(missing, nf)
+        # the (few) new keys inserted in order: the same array as ``np.union1d(old,
+        # wanted)`` without sorting or searching the whole pattern again
+        fresh = np.unique(np.concatenate([missing, c * nf + r]))
+        before = np.searchsorted(old, fresh)
+        union = np.insert(old, before, fresh)
+        # each old key moves up by the fresh keys inserted at or before it: the base keys'
+        # positions follow without searching the whole union (0.1 s at the pile's 6e5 keys)
+        moved = np.cumsum(np.bincount(before, minlength=old.size))
+        prev = np.arange(old.size) if self._ext is None else self._ext.base_pos
         rows, cols = np.divmod(union, nf)
         indptr = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=indptr[1:])
@@ -478,14 +507,14 @@ class System:
                                 shape=(nf, nf))
         pattern.has_sorted_indices = True
         ext = _ExtendedPattern(pattern=pattern, keys=union,
-                               base_pos=np.searchsorted(union, self._base_key_array()))
+                               base_pos=prev + moved[prev])
         self._ext = ext
         # analysed when a factorization is next needed (several widenings between two
         # factorizations: one analysis, of the pattern they make together)
         self._solver = None
         self.factorized_data = None
         self.pattern_generation += 1
-        return ext
+        return ext, moved
 
     def pattern_keys(self) -> np.ndarray:
         """Keys (``row * n_free + col``) of the solver's pattern when objective terms have

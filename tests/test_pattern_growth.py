@@ -1,0 +1,67 @@
+"""The solver pattern's widening by contact entries (fem3d.solve.system.System._extend)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.model import build_model
+from fem3d.solve.system import System
+from tests.test_contact import two_boxes
+
+
+def _system() -> System:
+    X, T, _ = two_boxes(0.01)
+    model = build_model(X, T, E=1e5, nu=0.3, rho=1000.0)
+    return System(model, Constraints.from_fixed_vertices(X, np.array([0, 1])))
+
+
+def test_widened_pattern_keeps_every_base_entry_where_a_search_finds_it():
+    system = _system()
+    nf = system.constraints.n_free
+    rng = np.random.default_rng(3)
+    for _ in range(3):  # each widening moves the base entries up by the keys inserted below
+        keys = rng.integers(0, nf, 40) * nf + rng.integers(0, nf, 40)
+        ext = system._extend(keys)
+        assert np.array_equal(ext.base_pos, np.searchsorted(ext.keys, system._base_key_array()))
+        assert np.array_equal(ext.keys, np.unique(ext.keys))
+        r, c = np.divmod(keys, nf)
+        assert np.isin(keys, ext.keys).all() and np.isin(c * nf + r, ext.keys).all()
+    saved = system.pattern_keys()
+    fresh = _system()
+    fresh.restore_pattern(saved)  # a checkpoint's pattern: the same keys and positions
+    assert np.array_equal(fresh._ext.keys, saved)
+    assert np.array_equal(fresh._ext.base_pos, system._ext.base_pos)
+
+
+def test_locate_reuses_a_kept_answer_for_the_first_keys_exactly():
+    system = _system()
+    nf = system.constraints.n_free
+    rng = np.random.default_rng(5)
+    system._extend(rng.integers(0, nf * nf, 30))
+    have = system._ext.keys
+    inside = have[rng.integers(0, have.size, 50)]
+    outside = np.setdiff1d(rng.integers(0, nf * nf, 50), have)[:5]
+    first = system._locate(inside)
+    both = system._locate(np.concatenate([inside, inside[:7]]))
+    assert both[1] and np.array_equal(both[0][:50], first[0])
+    assert np.array_equal(both[0], np.searchsorted(have, np.concatenate([inside, inside[:7]])))
+    assert not system._locate(np.concatenate([inside, outside]))[1]
+
+
+
+def test_contact_entries_outside_the_pattern_are_added_where_they_belong():
+    system = _system()
+    n = 3 * system.model.n_vertices
+    rng = np.random.default_rng(7)
+    for _ in range(2):  # the first widens from the mesh's pattern, the second from a wider one
+        rows, cols = rng.integers(0, n, 200), rng.integers(0, n, 200)
+        vals = rng.standard_normal(200)
+        A = system.mass_free
+        B = system.add_hessian(A, (rows, cols, vals), 0.5)
+        expected = A.toarray()
+        r, c = system.constraints._new_index[rows], system.constraints._new_index[cols]
+        keep = (r >= 0) & (c >= 0)
+        np.add.at(expected, (r[keep], c[keep]), 0.5 * vals[keep])
+        assert np.array_equal(B.toarray(), expected)
+        assert B.nnz == system._ext.keys.size and system.pattern_covers(rows, cols)
