@@ -404,6 +404,12 @@ class ContactSpec(_Spec):
     #: contacts; the gallery's contact scenes set it). The default stays "clamped": a
     #: checkpoint written before the key existed resumes as it was run
     newton_start: Literal["clamped", "q_t"] = "clamped"
+    #: how the per-pair barrier and friction Hessians enter Newton's matrix: negative
+    #: eigenvalues clamped at zero ("clamp"), mirrored to their absolute value ("abs", Chen et
+    #: al. 2024), or not projected ("exact": Newton's shift ladder handles an indefinite
+    #: matrix; clamped only where Newton asks for a PSD one). docs/contact.md. The default
+    #: stays "clamp": recorded runs and old checkpoints resume as they were run
+    hessian_projection: Literal["clamp", "abs", "exact"] = "clamp"
 
     @property
     def static_mu(self) -> float:
