@@ -106,6 +106,13 @@ HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
 }
 
 
+def _choice(table: dict, name: str, what: str):
+    """``table[name]``; a :class:`ParameterError` naming ``what`` and the choices if absent."""
+    if name not in table:
+        raise ParameterError(f"{what} must be one of {sorted(table)}, got {name!r}")
+    return table[name]
+
+
 @dataclass(frozen=True, eq=False)
 class PlaneObstacle:
     """A static plane; the half-space ``(x - point) . normal < 0`` is solid.
@@ -321,17 +328,11 @@ class ContactModel(PlanePairs):
         # ipctk's multithreaded assembly sums per-thread parts in a varying order: the same
         # step differs in the last bits from run to run, which breaks bit-exact resume
         ipctk.set_num_threads(1)
-        if narrow_phase not in NARROW_PHASES:
-            raise ParameterError(f"contact CCD must be one of {sorted(NARROW_PHASES)}, "
-                                 f"got {narrow_phase!r}")
-        if hessian_projection not in HESSIAN_PROJECTIONS:
-            raise ParameterError(f"contact.hessian_projection must be one of "
-                                 f"{sorted(HESSIAN_PROJECTIONS)}, got {hessian_projection!r}")
+        self._ccd = _choice(NARROW_PHASES, narrow_phase, "contact CCD")()
+        self._psd = _choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
         self.hessian_projection = hessian_projection
-        self._psd = HESSIAN_PROJECTIONS[hessian_projection]
         self.broad_phase_name = broad_phase
         self._broad_phase = BROAD_PHASES[broad_phase]()
-        self._ccd = NARROW_PHASES[narrow_phase]()
         self.planes = tuple(planes)
         self.meshes = tuple(meshes)
 
