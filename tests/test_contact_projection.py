@@ -88,6 +88,12 @@ def test_a_bad_projection_is_one_line_naming_the_key():
         apply_overrides(load_scene("contact_stack"), {"contact.hessian_projection": "mirror"})
     msg = str(info.value)
     assert "contact.hessian_projection" in msg and "\n" not in msg
+    with pytest.raises(InputError) as info:  # "reuse" refactorizes its kept matrix as is
+        apply_overrides(load_scene("contact_stack"), {"contact.hessian_projection": "exact",
+                                                      "simulation.newton.solver": "reuse"})
+    msg = str(info.value)
+    assert "contact.hessian_projection = 'exact' needs simulation.newton.solver = 'direct'" \
+        in msg and "\n" not in msg, msg
     X, T = apexes()
     with pytest.raises(ParameterError, match="contact.hessian_projection must be one of"):
         ContactModel(X, T, body_ids=np.r_[0, 0, 0, 0, 1, 1, 1, 1], dhat=0.05,

@@ -502,6 +502,15 @@ class Scene(_Spec):
     interaction: InteractionSpec = InteractionSpec()
 
     @model_validator(mode="after")
+    def _exact_contact_hessian(self) -> Scene:
+        if self.contact.hessian_projection == "exact" and self.simulation.newton.solver != \
+                "direct":
+            raise ValueError("contact.hessian_projection = 'exact' needs simulation.newton."
+                             "solver = 'direct' (its shift ladder takes an indefinite Newton "
+                             f"matrix), not {self.simulation.newton.solver!r}")
+        return self
+
+    @model_validator(mode="after")
     def _pull_bodies(self) -> Scene:
         for i, p in enumerate(self.pulls):
             if p.body >= len(self.bodies):

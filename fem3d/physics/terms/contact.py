@@ -83,7 +83,9 @@ class BarrierTerm(Term):
         return self.contact.barrier_gradient(q)
 
     def hessian(self, q: np.ndarray, covered=None, psd: bool = True):
-        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs. When
+        """Hessian as ``(rows, cols, values)`` triplets in full DOFs, PSD-projected per pair
+        unless ``contact.hessian_projection = "exact"`` and Newton did not ask for a PSD
+        matrix (``psd``; :meth:`ContactModel.projects`). When
         ``covered(rows, cols)`` (the solver's pattern holds those entries) says no, explicit
         zeros are added on the blocks of the pairs within the pattern margin at ``q`` (see
         :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
