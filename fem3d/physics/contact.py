@@ -23,7 +23,9 @@ Potentials, in positions ``q`` (fem3d's ``(3n,)`` vertex-major DOF order)
       displacement, ``lambda_k`` the normal force and ``T_k`` the tangent basis of the contact
       pairs at the lagged positions (the start of the step), and IPC's smoothing of Coulomb's
       law below the slip displacement ``eps_v * dt`` (``ipctk.FrictionPotential``);
-    * Hessians PSD-projected per pair by ``ipctk`` (eigenvalues clamped at zero).
+    * Hessians PSD-projected per pair by ``ipctk``: negative eigenvalues clamped at zero
+      (``hessian_projection="clamp"``, the default) or mirrored to their absolute value
+      (``"abs"``, Chen et al. 2024, "Trust-Region Eigenvalue Filtering for Projected Newton").
 
 Determinism
     ``ipctk`` runs single-threaded (``ipctk.set_num_threads(1)`` when a model is built): its
@@ -74,6 +76,7 @@ __all__ = [
     "ContactModel",
     "BROAD_PHASES",
     "NARROW_PHASES",
+    "HESSIAN_PROJECTIONS",
 ]
 
 #: Broad phases by name (``ipctk`` classes).
@@ -91,8 +94,23 @@ NARROW_PHASES: dict[str, Callable[[], object]] = {
     "tight_inclusion": lambda: ipctk.TightInclusionCCD(1e-6, 10_000),
 }
 
-#: PSD projection of the per-pair Hessians.
-_PSD = ipctk.PSDProjectionMethod.CLAMP
+#: PSD projections of the per-pair Hessians by name: negative eigenvalues clamped at zero, or
+#: mirrored to their absolute value (Chen et al. 2024: fewer Newton iterations on nonconvex
+#: configurations).
+#: ``"exact"``: no projection in Newton's own matrix (its shift ladder handles an indefinite
+#: one) but clamped where Newton asks for a PSD matrix (:meth:`ContactModel.projects`).
+HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
+    "clamp": ipctk.PSDProjectionMethod.CLAMP,
+    "abs": ipctk.PSDProjectionMethod.ABS,
+    "exact": ipctk.PSDProjectionMethod.CLAMP,
+}
+
+
+def _choice(table: dict, name: str, what: str):
+    """``table[name]``; a :class:`ParameterError` naming ``what`` and the choices if absent."""
+    if name not in table:
+        raise ParameterError(f"{what} must be one of {sorted(table)}, got {name!r}")
+    return table[name]
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,6 +267,10 @@ class ContactModel(PlanePairs):
     narrow_phase : str, optional
         A key of :data:`NARROW_PHASES` (CCD): ``"additive"`` (default; Li et al. 2021's
         conservative additive CCD, 0.9 of the time of impact) or ``"tight_inclusion"``.
+    hessian_projection : str, optional
+        A key of :data:`HESSIAN_PROJECTIONS`: how the per-pair barrier and friction Hessians
+        are made PSD (``"clamp"``, default; ``"abs"``), or ``"exact"``: left as they are in
+        the Newton matrix unless Newton asks for a PSD one (:meth:`projects`).
 
     Attributes
     ----------
@@ -279,6 +301,7 @@ class ContactModel(PlanePairs):
         self_contact: bool = False,
         broad_phase: str = "hash_grid",
         narrow_phase: str = "additive",
+        hessian_projection: str = "clamp",
     ) -> None:
         X = np.ascontiguousarray(X, dtype=np.float64)
         T = np.ascontiguousarray(T, dtype=np.int64)
@@ -305,12 +328,11 @@ class ContactModel(PlanePairs):
         # ipctk's multithreaded assembly sums per-thread parts in a varying order: the same
         # step differs in the last bits from run to run, which breaks bit-exact resume
         ipctk.set_num_threads(1)
-        if narrow_phase not in NARROW_PHASES:
-            raise ParameterError(f"contact CCD must be one of {sorted(NARROW_PHASES)}, "
-                                 f"got {narrow_phase!r}")
+        self._ccd = _choice(NARROW_PHASES, narrow_phase, "contact CCD")()
+        self._psd = _choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
+        self.hessian_projection = hessian_projection
         self.broad_phase_name = broad_phase
         self._broad_phase = BROAD_PHASES[broad_phase]()
-        self._ccd = NARROW_PHASES[narrow_phase]()
         self.planes = tuple(planes)
         self.meshes = tuple(meshes)
 
@@ -397,6 +419,11 @@ class ContactModel(PlanePairs):
         """Set the barrier stiffness (the cached collision set stays valid)."""
         self.kappa = float(kappa)
         self._barrier = ipctk.BarrierPotential(self.dhat, self.kappa)
+
+    def projects(self, psd: bool) -> bool:
+        """Whether the contact Hessians of a Newton matrix are PSD-projected: always, except
+        with ``hessian_projection="exact"`` where only a PSD matrix (``psd``) asks for it."""
+        return psd or self.hessian_projection != "exact"
 
     # -- positions ----------------------------------------------------------------------------
     def obstacle_positions(self, t: float) -> np.ndarray:
@@ -536,7 +563,7 @@ class ContactModel(PlanePairs):
         (``triplets``: its ``row, col, data`` arrays alone, :class:`Entries`)."""
         active = self._active_sets(q)
         t0 = time.perf_counter()
-        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        how = self._psd if project else ipctk.PSDProjectionMethod.NONE
         Hs = [self._barrier.hessian(p.collisions, p.mesh, V, how) for p, V in active]
         if self.planes:
             Hs.append(self._plane_barrier(q, 2, project=project))
@@ -611,7 +638,7 @@ class ContactModel(PlanePairs):
                          triplets: bool = False) -> sp.coo_matrix | Entries:
         """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO
         (``triplets``: :class:`Entries`)."""
-        how = _PSD if project else ipctk.PSDProjectionMethod.NONE
+        how = self._psd if project else ipctk.PSDProjectionMethod.NONE
         Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
         if self._plane_lag is not None:
             Hs.append(self._plane_friction(q, 2, project=project))

@@ -66,10 +66,15 @@ class PlanePairs:
             return g.reshape(-1)
         b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
         c = k * (4.0 * z * b2 + 2.0 * b1)
-        if project:
-            c = np.maximum(c, 0.0)
+        if project:  # (c > 0 for s in (0, dhat): both projections keep it)
+            c = np.abs(c) if self._plane_projection(project) == "abs" else np.maximum(c, 0.0)
         blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
         return self._blocks_matrix(vi, blocks)
+
+    def _plane_projection(self, project: bool) -> bool | str:
+        """``project`` for :func:`point_plane_friction`: ``"abs"`` when the model mirrors
+        negative eigenvalues (``hessian_projection``)."""
+        return "abs" if project and self.hessian_projection == "abs" else project
 
     def _blocks_matrix(self, vi: np.ndarray, blocks: np.ndarray) -> Entries:
         """``(k, 3, 3)`` blocks on the diagonal of collision vertices ``vi``, as COO triplets
@@ -106,7 +111,7 @@ class PlanePairs:
         P = np.asarray(q, dtype=np.float64).reshape(-1, 3)[self.surface]
         out = point_plane_friction(self._plane_n[pl], P[vi] - self._lagged_V[vi], lam,
                                    self.eps_v * self._dt, self.mu, self.mu_k, order,
-                                   project=project)
+                                   project=self._plane_projection(project))
         if order == 1:
             g = np.zeros((ns, 3))
             np.add.at(g, vi, out)

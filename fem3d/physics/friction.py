@@ -61,7 +61,8 @@ def friction_profile(y: np.ndarray, eps: float, mu_s: float, mu_k: float
 
 
 def point_plane_friction(n: np.ndarray, w: np.ndarray, lam: np.ndarray, eps: float,
-                         mu_s: float, mu_k: float, order: int, *, project: bool = True):
+                         mu_s: float, mu_k: float, order: int, *,
+                         project: bool | str = True):
     """Lagged point-plane friction ``sum lambda F(|P w|)`` of points displaced by ``w``
     (``(k, 3)``) from their lagged positions, against planes of unit normals ``n``
     (``(k, 3)``; ``P = I - n n^T``), normal forces ``lam`` (``(k,)``).
@@ -70,7 +71,8 @@ def point_plane_friction(n: np.ndarray, w: np.ndarray, lam: np.ndarray, eps: flo
     -------
     float, (k, 3) or (k, 3, 3)
         The energy (``order`` 0), each point's gradient (1) or Hessian block (2,
-        PSD-projected when ``project``).
+        PSD-projected when ``project``: negative eigenvalues clamped at zero, or mirrored to
+        their absolute value when ``project == "abs"``).
     """
     u = w - (w * n).sum(axis=1, keepdims=True) * n
     y = np.sqrt((u * u).sum(axis=1))
@@ -86,7 +88,7 @@ def point_plane_friction(n: np.ndarray, w: np.ndarray, lam: np.ndarray, eps: flo
     Pm = np.eye(3) - n[:, :, None] * n[:, None, :]
     blocks = lam[:, None, None] * (g_y[:, None, None] * Pm
                                    + c2[:, None, None] * uh[:, :, None] * uh[:, None, :])
-    return _project(blocks) if project else blocks
+    return _project(blocks, project == "abs") if project else blocks
 
 
 def _single(n, u, y, lam, eps, mu, order, project):
@@ -108,10 +110,11 @@ def _single(n, u, y, lam, eps, mu, order, project):
     Pm = np.eye(3) - n[:, :, None] * n[:, None, :]
     blocks = ml[:, None, None] * (f1_y[:, None, None] * Pm
                                   + c2[:, None, None] * uh[:, :, None] * uh[:, None, :])
-    return _project(blocks) if project else blocks
+    return _project(blocks, project == "abs") if project else blocks
 
 
-def _project(blocks: np.ndarray) -> np.ndarray:
-    """Eigenvalues of each symmetric block clamped at zero."""
+def _project(blocks: np.ndarray, mirror: bool = False) -> np.ndarray:
+    """Eigenvalues of each symmetric block clamped at zero (``mirror``: made absolute)."""
     w_, V_ = np.linalg.eigh(blocks)
-    return (V_ * np.maximum(w_, 0.0)[:, None, :]) @ V_.transpose(0, 2, 1)
+    w_ = np.abs(w_) if mirror else np.maximum(w_, 0.0)
+    return (V_ * w_[:, None, :]) @ V_.transpose(0, 2, 1)

@@ -379,7 +379,8 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
     cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
                       meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa,
                       mu=spec.static_mu, mu_k=spec.kinetic_mu,
-                      eps_v=spec.eps_v * L, self_contact=spec.self_contact)
+                      eps_v=spec.eps_v * L, self_contact=spec.self_contact,
+                      hessian_projection=spec.hessian_projection)
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
                        friction_tolerance=spec.friction_tolerance,

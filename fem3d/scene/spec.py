@@ -404,6 +404,12 @@ class ContactSpec(_Spec):
     #: contacts; the gallery's contact scenes set it). The default stays "clamped": a
     #: checkpoint written before the key existed resumes as it was run
     newton_start: Literal["clamped", "q_t"] = "clamped"
+    #: how the per-pair barrier and friction Hessians enter Newton's matrix: negative
+    #: eigenvalues clamped at zero ("clamp"), mirrored to their absolute value ("abs", Chen et
+    #: al. 2024), or not projected ("exact": Newton's shift ladder handles an indefinite
+    #: matrix; clamped only where Newton asks for a PSD one). docs/contact.md. The default
+    #: stays "clamp": recorded runs and old checkpoints resume as they were run
+    hessian_projection: Literal["clamp", "abs", "exact"] = "clamp"
 
     @property
     def static_mu(self) -> float:
@@ -494,6 +500,15 @@ class Scene(_Spec):
     obstacles: list[ObstacleSpec] = Field(default_factory=list)
     output: OutputSpec = OutputSpec()
     interaction: InteractionSpec = InteractionSpec()
+
+    @model_validator(mode="after")
+    def _exact_contact_hessian(self) -> Scene:
+        if self.contact.hessian_projection == "exact" and self.simulation.newton.solver != \
+                "direct":
+            raise ValueError("contact.hessian_projection = 'exact' needs simulation.newton."
+                             "solver = 'direct' (its shift ladder takes an indefinite Newton "
+                             f"matrix), not {self.simulation.newton.solver!r}")
+        return self
 
     @model_validator(mode="after")
     def _pull_bodies(self) -> Scene:

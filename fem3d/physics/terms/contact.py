@@ -82,13 +82,15 @@ class BarrierTerm(Term):
     def gradient(self, q: np.ndarray) -> np.ndarray:
         return self.contact.barrier_gradient(q)
 
-    def hessian(self, q: np.ndarray, covered=None):
-        """PSD-projected Hessian as ``(rows, cols, values)`` triplets in full DOFs. When
+    def hessian(self, q: np.ndarray, covered=None, psd: bool = True):
+        """Hessian as ``(rows, cols, values)`` triplets in full DOFs, PSD-projected per pair
+        unless ``contact.hessian_projection = "exact"`` and Newton did not ask for a PSD
+        matrix (``psd``; :meth:`ContactModel.projects`). When
         ``covered(rows, cols)`` (the solver's pattern holds those entries) says no, explicit
         zeros are added on the blocks of the pairs within the pattern margin at ``q`` (see
         :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
         the contact set."""
-        H = self.contact.barrier_hessian(q, triplets=True)
+        H = self.contact.barrier_hessian(q, project=self.contact.projects(psd), triplets=True)
         if covered is None or not self.contact._parts or self.pattern_margin <= 0 or \
                 covered(H.row, H.col):  # planes' blocks are in the elastic pattern
             return H.row, H.col, H.data
@@ -102,7 +104,7 @@ class BarrierTerm(Term):
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
         system = getattr(sink, "system", None)
         covered = getattr(system, "pattern_covers", None)
-        sink.add_entries(self.hessian(q, covered), sink.position_scale)
+        sink.add_entries(self.hessian(q, covered, sink.psd), sink.position_scale)
 
     def max_step(self, q: np.ndarray, dq: np.ndarray) -> float:
         """CCD: the largest collision-free fraction of ``dq``."""
@@ -241,7 +243,8 @@ class FrictionTerm(Term):
 
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
         if self.contact.n_friction_pairs:
-            H = self.contact.friction_hessian(q, triplets=True)
+            H = self.contact.friction_hessian(q, project=self.contact.projects(sink.psd),
+                                              triplets=True)
             sink.add_entries((H.row, H.col, H.data), sink.position_scale)
 
     def begin_step(self, step_map: StepMap) -> None:
