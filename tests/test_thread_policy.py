@@ -46,29 +46,29 @@ class _Clock:
 
 def test_the_override_parses_counts_and_families(monkeypatch):
     for value, expected in [("", None), ("auto", None), ("3", 3), (" 1 ", 1),
-                            ("sweeps=1,products=2", 1), ("products=2", None),
-                            ("sweeps=auto,matvecs=2", None)]:
+                            ("solve=1,products=2", 1), ("products=2", None),
+                            ("solve=auto,products=2", None)]:
         monkeypatch.setenv(threads.ENV, value)
-        assert threads.forced_threads("sweeps") == expected, value
-    monkeypatch.setenv(threads.ENV, "sweeps=1,products=2")
+        assert threads.forced_threads("solve") == expected, value
+    monkeypatch.setenv(threads.ENV, "solve=1,products=2")
     assert threads.forced_threads("products") == 2
-    for bad in ("0", "two", "-1", "sweep=1", "sweeps=0", "sweeps", "sweeps=1,,"):
+    for bad in ("0", "two", "-1", "sweep=1", "solve=0", "solve", "solve=1,,"):
         monkeypatch.setenv(threads.ENV, bad)
         with pytest.raises(InputError, match=rf"^{threads.ENV}='{bad}': "):
-            threads.forced_threads("sweeps")
+            threads.forced_threads("solve")
 
 
 def test_a_forced_count_is_capped_by_openmp_and_reported(monkeypatch):
     _fake_machine(monkeypatch, 2)
-    monkeypatch.setenv(threads.ENV, "matvecs=8,sweeps=1")
+    monkeypatch.setenv(threads.ENV, "products=8,solve=1")
     ran = []
-    assert threads.measure("matvecs", ran.append) == 2  # capped at OpenMP's 2
-    assert threads.measure("sweeps", ran.append) == 1
+    assert threads.measure("products", ran.append) == 2  # capped at OpenMP's 2
+    assert threads.measure("solve", ran.append) == 1
     assert ran == []  # forced: nothing measured
     lines = threads.report().splitlines()
-    assert lines[1].strip() == ("AMG/CG mat-vecs and dot products: 2 of 2 threads (forced by "
-                                "FEM3D_THREADS=matvecs=8,sweeps=1)")
-    assert "sweeps: 1 of 2 threads" in lines[2]
+    assert lines[1].strip() == ("AMG setup Galerkin products: 2 of 2 threads (forced by "
+                                "FEM3D_THREADS=products=8,solve=1)")
+    assert "dot products): 1 of 2 threads" in lines[2]
 
 
 @pytest.mark.parametrize("faster", [1, 4])
@@ -103,7 +103,7 @@ def test_an_equal_time_keeps_one_thread_and_short_trials_repeat(monkeypatch):
         calls.append(n)
         clock.sleep(0.001)
 
-    assert threads.measure("sweeps", trial) == 1  # equal within MARGIN: one thread
+    assert threads.measure("solve", trial) == 1  # equal within MARGIN: one thread
     assert len(calls) >= 1 + 2 * 3 and len(calls) <= 1 + 2 * threads.MAX_ROUNDS
 
 
@@ -144,12 +144,12 @@ def test_a_clear_loss_stops_measuring_early(monkeypatch):
         calls.append(n)
         clock.sleep(0.001 if n == 1 else 0.005)
 
-    assert threads.measure("matvecs", trial) == 1 and calls == [2, 1, 2]
+    assert threads.measure("products", trial) == 1 and calls == [2, 1, 2]
 
 
 def test_one_available_thread_measures_nothing(monkeypatch):
     _fake_machine(monkeypatch, 1)
-    assert threads.measure("sweeps", lambda n: pytest.fail("measured")) == 1
+    assert threads.measure("solve", lambda n: pytest.fail("measured")) == 1
     assert threads.choices()[0].how == "single"
 
 
@@ -161,22 +161,23 @@ def test_unknown_family_is_refused():
 def test_the_profile_lists_the_choices_made_during_the_run(monkeypatch):
     _fake_machine(monkeypatch, 2)
     monkeypatch.setenv(threads.ENV, "1")
-    threads.measure("matvecs", lambda n: None)  # before the run: not listed
-    monkeypatch.setenv(threads.ENV, "sweeps=1")
+    threads.measure("products", lambda n: None)  # before the run: not listed
+    monkeypatch.setenv(threads.ENV, "solve=1")
     threads.adaptive("assembly x.energy", "assembly", lambda n: None)  # begun before: neither
     out = io.StringIO()
     with profiled(out=out):
-        threads.measure("sweeps", lambda n: None)
+        threads.measure("solve", lambda n: None)
         threads.adaptive("assembly x.energy", "assembly", lambda n: None)
         threads.adaptive("assembly x.hessian", "assembly", lambda n: None)
     text = out.getvalue()
     assert text.splitlines()[-3] == ("threads per kernel family (fem3d.kernels.threads; "
                                      "FEM3D_THREADS forces them):")
-    assert text.splitlines()[-2] == ("  AMG Gauss-Seidel sweeps: 1 of 2 threads (forced by "
-                                     "FEM3D_THREADS=sweeps=1)")
+    assert text.splitlines()[-2] == ("  AMG-PCG solve (Gauss-Seidel sweeps, mat-vecs, dot "
+                                     "products): 1 of 2 threads (forced by "
+                                     "FEM3D_THREADS=solve=1)")
     assert text.splitlines()[-1].startswith("  fused assembly x.hessian: still measuring after "
                                             "1 call (")
-    assert "mat-vecs" not in text and "x.energy" not in text
+    assert "Galerkin" not in text and "x.energy" not in text
     out = io.StringIO()
     with profiled(out=out):
         pass
@@ -204,10 +205,9 @@ def test_forced_one_and_two_threads_give_the_same_amg_solve(monkeypatch):
         res = amg.solve(A, b[:A.shape[0]], rtol=1e-8, maxiter=100)
         results.append((amg.apply(b[:A.shape[0]]), res.x, res.iterations))
         if forced != "auto":
-            assert amg.thread_counts == dict.fromkeys(("matvecs", "products", "sweeps"),
-                                                      int(forced))
+            assert amg.thread_counts == dict.fromkeys(("products", "solve"), int(forced))
         else:  # measured: a valid count per family
-            assert set(amg.thread_counts) == {"matvecs", "products", "sweeps"}
+            assert set(amg.thread_counts) == {"products", "solve"}
             assert set(amg.thread_counts.values()) <= {1, 2}
             assert {c.how for c in threads.choices()} == {"measured"}
     (z1, x1, it1), *others = results

@@ -5,16 +5,20 @@ assemblies of :mod:`fem3d.kernels.dispatch`) give the same bits on any number of
 the count is a matter of speed alone, and the speed differs by kernel: on a quiet 2-vCPU VM
 the AMG setup's Galerkin products (compute-bound) gained from a second thread while the
 mat-vecs, CG and the Newton matrices' assembly (memory-bound) lost; on a loaded machine
-nearly everything loses (a barrier waits for a descheduled thread). So every
+nearly everything loses (a barrier waits for a descheduled thread). The kernels of one
+solve (sweeps, mat-vecs, dot products) share one count, measured on whole PCG rounds: measured
+apart, mat-vecs on two threads looked 1.1-1.3x faster, yet CG with them between one-thread
+sweeps took 1.5x as long (each vector moves between the cores' caches twice per round). So
+every
 family gets its own count (:data:`FAMILIES`), passed to the C kernels (their ``n_threads``
 argument: OpenMP's ``num_threads`` clause), chosen once per process:
 
 * **forced** by the environment variable :data:`ENV` (``FEM3D_THREADS``): ``2`` (every
-  family), ``sweeps=1,products=2`` (those families; the others measured) or ``auto``
+  family), ``solve=1,products=2`` (those families; the others measured) or ``auto``
   (the default: measure all);
 * else **measured** on the real data: the work runs on one thread and on all available ones,
-  alternately, ``repeats`` times each (:func:`measure`: a few extra mat-vecs, V-cycles and
-  a sample of a product at an AMG setup; :func:`adaptive`: the first calls of a fused
+  alternately, ``repeats`` times each (:func:`measure`: a few PCG rounds and a sample of a
+  product at an AMG setup; :func:`adaptive`: the first calls of a fused
   assembly themselves, no extra work), and the family keeps the faster count (more threads
   only when at least :data:`MARGIN` faster: each one costs a core the other processes on the
   machine could use);
@@ -39,15 +43,14 @@ from fem3d.errors import InputError
 from fem3d.kernels.backend import c_extension
 
 __all__ = ["ENV", "FAMILIES", "MARGIN", "Choice", "adaptive", "available_threads", "choices",
-           "forced_threads", "mark", "measure", "report", "reset"]
+           "forced_threads", "mark", "measure", "report", "reset", "settled_threads"]
 
 #: The environment variable forcing thread counts (see the module's docstring).
 ENV = "FEM3D_THREADS"
 
 #: The kernel families with a count of their own, and how a report names them.
 FAMILIES: dict[str, str] = {
-    "sweeps": "AMG Gauss-Seidel sweeps",
-    "matvecs": "AMG/CG mat-vecs and dot products",
+    "solve": "AMG-PCG solve (Gauss-Seidel sweeps, mat-vecs, dot products)",
     "products": "AMG setup Galerkin products",
     "assembly": "fused assembly",
 }
@@ -140,6 +143,13 @@ def _parse_count(text: str, value: str) -> int | None:
         raise InputError(f"{ENV}={value!r}: a thread count must be 'auto' or a whole number "
                          f">= 1, got {text!r}")
     return int(text)
+
+
+def settled_threads(family: str) -> int | None:
+    """The count of ``family`` when it is chosen (measured before in this process, forced,
+    or one thread available), else None; measures nothing."""
+    choice = _settled(family, family)
+    return None if choice is None else choice.threads
 
 
 def forced_threads(family: str) -> int | None:

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from fem3d.kernels import threads
 from fem3d.solve import sparse_threads
 from fem3d.solve.krylov import CGResult
 from fem3d.solve.linear import _as_csr
@@ -409,8 +410,8 @@ class AMGPreconditioner:
     level_sizes : list of int
         DOFs per level of the current hierarchy, finest first.
     thread_counts : dict
-        Threads per kernel family (``"matvecs"``, ``"products"``, ``"sweeps"``) of a hierarchy
-        on the threaded kernels (:mod:`fem3d.kernels.threads`); empty otherwise.
+        Threads per kernel family (``"products"``, ``"solve"``) of a hierarchy on the
+        threaded kernels (:mod:`fem3d.kernels.threads`); empty otherwise.
     """
 
     def __init__(self, near_nullspace: np.ndarray, options: dict | None = None) -> None:
@@ -510,7 +511,7 @@ class AMGPreconditioner:
         levels = []
         for T in plan.T:
             Dinv = _block_inverses(Al)
-            rho = _spectral_radius(Al, Dinv, iters, ext, counts.get("matvecs", 0))
+            rho = _spectral_radius(Al, Dinv, iters, ext, counts.get("solve", 0))
             P, R, Ac = _galerkin(Al, T, Dinv, omega / rho, ext, counts.get("products", 0))
             if ext is None:
                 levels.append(_AMGLevel.make(Al, Dinv, P, R))
@@ -529,7 +530,7 @@ class AMGPreconditioner:
         self._threads = ext
         self.thread_counts = counts
         if ext is not None and levels:
-            self._measure_sweeps(n)
+            self._measure_solve(A)
         self.level_sizes = [lvl.P.shape[0] for lvl in levels] + [Ac.shape[0]]
         self.pattern_key = pattern_key
         self.setups += 1
@@ -537,29 +538,32 @@ class AMGPreconditioner:
 
     def _measure_threads(self, ext: object, A: sp.csr_matrix, Al: sp.bsr_matrix
                          ) -> dict[str, int]:
-        """Threads of the mat-vecs and the products on the threaded kernels (``ext``; none
-        without): measured on ``A`` (or its BSR copy ``Al``) the first time in a process
-        (:mod:`fem3d.kernels.threads`)."""
+        """Threads of the products on the threaded kernels (``ext``; none without), measured
+        on ``Al`` (``A``'s BSR copy) the first time in a process
+        (:mod:`fem3d.kernels.threads`), and of the setup's mat-vecs: the solve's count once
+        it is chosen (:meth:`_measure_solve`), one thread before."""
         if ext is None:
             return {}
-        int32 = A.indptr.dtype == np.int32 and A.indices.dtype == np.int32
-        counts = {"matvecs": sparse_threads.matvec_threads(ext, A if int32 else _c_bsr(Al))}
+        counts = {"solve": threads.settled_threads("solve") or 1}
         if self._plan.T:
             counts["products"] = sparse_threads.product_threads(ext, _c_bsr(Al))
         return counts
 
-    def _measure_sweeps(self, n: int) -> None:
-        """The sweeps' thread count (:func:`~fem3d.solve.sparse_threads.sweep_threads`):
-        V-cycles of the new hierarchy on a fixed right-hand side, the first time in a
-        process."""
-        b = np.ones(n)
+    def _measure_solve(self, A: sp.csr_matrix) -> None:
+        """The solve's thread count (sweeps, mat-vecs and dot products together), measured
+        the first time in a process on PCG rounds of the new hierarchy: a V-cycle, a mat-vec
+        with ``A`` and a dot product, all on the count tried (their vectors pass from kernel
+        to kernel as in CG, so a count that moves them between cores pays for it here)."""
+        b = np.ones(A.shape[0])
         counts = self.thread_counts
 
-        def vcycle(threads: int) -> None:
-            counts["sweeps"] = threads
-            self._apply_threaded(b)
+        def pcg_round(n_threads: int) -> None:
+            counts["solve"] = n_threads
+            dot, matvec = self._cg_operations(A)
+            z = self._apply_threaded(b)
+            dot(matvec(z), z)
 
-        counts["sweeps"] = sparse_threads.sweep_threads(vcycle)
+        counts["solve"] = threads.measure("solve", pcg_round)
 
     def _sweep_schedule(self, level: int, A: sp.bsr_matrix) -> sparse_threads.SweepSchedule:
         """The sweep order of level ``level``'s pattern (cached while the pattern stays: a
@@ -619,7 +623,7 @@ class AMGPreconditioner:
         schedule order on its triangles in that order (the backward sweep reads ``L`` of the
         old ``x`` itself: one pass for ``b - L x`` and the sweep)."""
         ext = self._threads
-        sweeps, matvecs = (self.thread_counts.get(k, 0) for k in ("sweeps", "matvecs"))
+        sweeps = matvecs = self.thread_counts.get("solve", 0)
         xs, bs = [], []
         for lvl in self._levels:
             L, U, s, R = lvl.L, lvl.U, lvl.sweep, lvl.R
@@ -648,7 +652,7 @@ class AMGPreconditioner:
         if ext is None:
             # bitwise the classic float(r @ z), np.linalg.norm(r) (its square root of r @ r)
             return (lambda x, y: float(x @ y)), (lambda p: A @ p)
-        n_threads = self.thread_counts["matvecs"]
+        n_threads = self.thread_counts["solve"]
 
         def dot(x: np.ndarray, y: np.ndarray) -> float:
             return ext.dot(x, y, n_threads)

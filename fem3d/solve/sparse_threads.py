@@ -9,8 +9,8 @@ order, so the results do not depend on the number of threads.
 How many threads: every kernel takes ``n_threads`` (0: OpenMP's count, ``OMP_NUM_THREADS``;
 else that many, capped at OpenMP's). An AMG setup asks :mod:`fem3d.kernels.threads` for one
 count per family, measured on its own data the first time in a process
-(:func:`matvec_threads`, :func:`product_threads`, :func:`sweep_threads`: a few mat-vecs, a
-sample of a product, a few V-cycles), or forced by ``FEM3D_THREADS``.
+(:func:`product_threads`: a sample of a product; the solve's kernels together, on a few PCG
+rounds: :meth:`fem3d.solve.amg.AMGPreconditioner.setup`), or forced by ``FEM3D_THREADS``.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and
@@ -27,7 +27,6 @@ that of the mat-vecs.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -38,8 +37,8 @@ from fem3d.kernels.backend import c_extension
 from fem3d.kernels.threads import measure
 
 __all__ = ["PRODUCT_SAMPLE_ROWS", "SweepSchedule", "bsr_product", "c_kernels",
-           "matvec_threads", "product_threads", "reference_sweep", "split_triangles",
-           "sweep_schedule", "sweep_threads"]
+           "product_threads", "reference_sweep", "split_triangles",
+           "sweep_schedule"]
 
 #: A schedule cuts the rows into ``MAX_BLOCKS``, ``MAX_BLOCKS / 2``, ... (at least 2) blocks of
 #: at least ``MIN_BLOCK_ROWS`` rows each and keeps the cut whose colouring needs the fewest
@@ -226,30 +225,6 @@ def bsr_product(ext: ModuleType, A: sp.bsr_matrix, B: sp.bsr_matrix, n_threads: 
     return M
 
 
-def matvec_threads(ext: ModuleType, A: sp.csr_matrix | sp.bsr_matrix) -> int:
-    """The thread count of the ``"matvecs"`` family (mat-vecs, dot products), measured the
-    first time in a process on three CG-like rounds with ``A`` (CSR or BSR, int32 indices): a
-    mat-vec, a serial NumPy vector update (so that the threads wake up between kernels as in
-    CG) and a dot product."""
-    x = np.ones(A.shape[1])
-    y = np.empty(A.shape[0])
-    z = np.zeros(A.shape[0])
-    data = np.ascontiguousarray(A.data)
-    indptr = A.indptr.astype(np.int32, copy=False)
-    indices = A.indices.astype(np.int32, copy=False)
-
-    def trial(n: int) -> None:
-        for _ in range(3):
-            if isinstance(A, sp.bsr_matrix):
-                ext.bsr_matvec(indptr, indices, data, *A.blocksize, x, None, 1.0, y, n)
-            else:
-                ext.csr_matvec(indptr, indices, data, x, y, n)
-            np.multiply(y, 0.5, out=z)
-            ext.dot(y, z, n)
-
-    return measure("matvecs", trial)
-
-
 def product_threads(ext: ModuleType, A: sp.bsr_matrix) -> int:
     """The thread count of the ``"products"`` family (:func:`bsr_product`), measured the first
     time in a process on the product of :data:`PRODUCT_SAMPLE_ROWS` block rows of the square
@@ -260,13 +235,6 @@ def product_threads(ext: ModuleType, A: sp.bsr_matrix) -> int:
     sample = sp.bsr_matrix((A.data[:stop], A.indices[:stop], A.indptr[:rows + 1]),
                            shape=(rows * R, A.shape[1]))
     return measure("products", lambda n: bsr_product(ext, sample, A, n))
-
-
-def sweep_threads(vcycle: Callable[[int], object]) -> int:
-    """The thread count of the ``"sweeps"`` family, measured the first time in a process on
-    whole V-cycles (``vcycle(n)``: one with its sweeps on ``n`` threads), so that the serial
-    work between the sweeps (coarse solve, vector copies) counts as it does in CG."""
-    return measure("sweeps", vcycle)
 
 
 def reference_sweep(L: sp.bsr_matrix, U: sp.bsr_matrix, Dinv: np.ndarray,
