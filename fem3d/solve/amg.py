@@ -623,25 +623,25 @@ class AMGPreconditioner:
         schedule order on its triangles in that order (the backward sweep reads ``L`` of the
         old ``x`` itself: one pass for ``b - L x`` and the sweep)."""
         ext = self._threads
-        sweeps = matvecs = self.thread_counts.get("solve", 0)
+        n_threads = self.thread_counts.get("solve", 0)
         xs, bs = [], []
         for lvl in self._levels:
             L, U, s, R = lvl.L, lvl.U, lvl.sweep, lvl.R
             x = np.zeros_like(b)
             ext.block_sweep(L.indptr, L.indices, L.data, None, None, None, lvl.Dinv, s.order,
-                            s.blocks, s.colours, x, b, sweeps)
+                            s.blocks, s.colours, x, b, n_threads)
             xs.append(x)
             bs.append(b)
             r = np.empty_like(b)  # b - A x = -U x after a forward sweep from zero
-            ext.bsr_matvec(U.indptr, U.indices, U.data, *U.blocksize, x, None, -1.0, r, matvecs)
+            ext.bsr_matvec(U.indptr, U.indices, U.data, *U.blocksize, x, None, -1.0, r, n_threads)
             b = np.empty(R.shape[0])
-            ext.bsr_matvec(R.indptr, R.indices, R.data, *R.blocksize, r, None, 1.0, b, matvecs)
+            ext.bsr_matvec(R.indptr, R.indices, R.data, *R.blocksize, r, None, 1.0, b, n_threads)
         x = self._coarse_solve(b)
         for lvl, xf, bf in zip(reversed(self._levels), reversed(xs), reversed(bs), strict=True):
             L, U, s, P = lvl.L, lvl.U, lvl.sweep, lvl.P
-            ext.bsr_matvec(P.indptr, P.indices, P.data, *P.blocksize, x, xf, 1.0, xf, matvecs)
+            ext.bsr_matvec(P.indptr, P.indices, P.data, *P.blocksize, x, xf, 1.0, xf, n_threads)
             ext.block_sweep(L.indptr, L.indices, L.data, U.indptr, U.indices, U.data, lvl.Dinv,
-                            s.order, s.blocks, s.colours, xf, bf, sweeps)
+                            s.order, s.blocks, s.colours, xf, bf, n_threads)
             x = xf
         return x
 
