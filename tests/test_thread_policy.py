@@ -44,6 +44,14 @@ class _Clock:
         self.now += seconds
 
 
+def _timed(clock, calls: list, one: float, many: float):
+    """A trial that records its thread count and takes ``one`` s on 1 thread, else ``many``."""
+    def trial(n):
+        calls.append(n)
+        clock.sleep(one if n == 1 else many)
+    return trial
+
+
 def test_the_override_parses_counts_and_families(monkeypatch):
     for value, expected in [("", None), ("auto", None), ("3", 3), (" 1 ", 1),
                             ("solve=1,products=2", 1), ("products=2", None),
@@ -98,11 +106,7 @@ def test_an_equal_time_keeps_one_thread_and_short_trials_repeat(monkeypatch):
     clock = _Clock(monkeypatch)
     _fake_machine(monkeypatch, 2)
     calls = []
-
-    def trial(n):
-        calls.append(n)
-        clock.sleep(0.001)
-
+    trial = _timed(clock, calls, 0.001, 0.001)
     assert threads.measure("solve", trial) == 1  # equal within MARGIN: one thread
     assert len(calls) >= 1 + 2 * 3 and len(calls) <= 1 + 2 * threads.MAX_ROUNDS
 
@@ -125,11 +129,7 @@ def test_adaptive_measures_on_the_calls_themselves(monkeypatch):
     assert threads.choices()[0].key == "assembly x.hessian"
     assert "fused assembly x.hessian: 2 of 2 threads" in threads.report()
     counts.clear()
-
-    def loses(n):  # a clear loss ends the measurement after one pair of calls
-        counts.append(n)
-        clock.sleep(0.001 if n == 1 else 0.005)
-
+    loses = _timed(clock, counts, 0.001, 0.005)  # a clear loss: one pair of calls measured
     for _ in range(4):
         threads.adaptive("assembly x.energy", "assembly", loses)
     assert counts == [1, 2, 1, 1]
@@ -139,11 +139,7 @@ def test_a_clear_loss_stops_measuring_early(monkeypatch):
     clock = _Clock(monkeypatch)
     _fake_machine(monkeypatch, 2)
     calls = []
-
-    def trial(n):
-        calls.append(n)
-        clock.sleep(0.001 if n == 1 else 0.005)
-
+    trial = _timed(clock, calls, 0.001, 0.005)
     assert threads.measure("products", trial) == 1 and calls == [2, 1, 2]
 
 
