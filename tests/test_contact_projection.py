@@ -103,5 +103,6 @@ def test_a_bad_projection_is_one_line_naming_the_key():
 def test_the_default_stays_clamp_and_the_key_reaches_the_model():
     assert ContactSpec().hessian_projection == "clamp"
     sim = Simulation(apply_overrides(load_scene("contact_stack"),
-                                     {"contact.hessian_projection": "exact"}))
+                                     {"contact.hessian_projection": "exact",
+                                      "simulation.newton.solver": "direct"}))
     assert sim.contact.contact.hessian_projection == "exact"
