@@ -182,7 +182,8 @@ class Simulation:
         gravity, alpha, beta = built.gravity, built.rayleigh_alpha, built.rayleigh_beta
         try:
             self.system = System(self.model, self.constraints, sim.linear_solver,
-                                 gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta)
+                                 gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta,
+                                 cholmod_mode=sim.cholmod)
         except ParameterError as exc:
             raise scene.error("simulation", str(exc)) from None
         except (ValueError, ImportError) as exc:

@@ -325,11 +325,18 @@ class SimulationSpec(_Spec):
     gravity: Vec3 = ZERO3
     newton: NewtonSpec = NewtonSpec()
     linear_solver: Literal["auto", "cholmod", "pardiso", "superlu", "amg"] = "auto"
+    #: CHOLMOD's factorization: chosen from the pattern ("auto": simplicial for small factors
+    #: with short columns), or forced (multi-body contact patterns mislead the rule: the
+    #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
+    cholmod: Literal["auto", "simplicial", "supernodal"] = "auto"
 
     @model_validator(mode="after")
     def _one_length(self) -> SimulationSpec:
         if self.steps is not None and self.duration is not None:
             raise ValueError("give steps or duration, not both")
+        if self.cholmod != "auto" and self.linear_solver not in ("auto", "cholmod"):
+            raise ValueError(f"cholmod = {self.cholmod!r} applies to linear_solver = 'cholmod' "
+                             f"(or 'auto'), not {self.linear_solver!r}")
         if self.newton.warm_start != "previous" and self.integrator != "implicit":
             raise ValueError(f"newton.warm_start = {self.newton.warm_start!r} applies to "
                              f"integrator = 'implicit' only, not {self.integrator!r}")

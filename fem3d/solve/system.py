@@ -57,6 +57,10 @@ class System:
         Fixed vertices.
     solver_backend : str, optional
         Passed to :class:`fem3d.solve.linear.SparseSPDSolver` (default ``"auto"``).
+    gravity, rayleigh_alpha, rayleigh_beta : optional
+        Gravity and the Rayleigh damping coefficients (per vertex / per tet, or one value).
+    cholmod_mode : {"auto", "simplicial", "supernodal"}, optional
+        CHOLMOD's factorization (``SparseSPDSolver``'s ``cholmod_mode``).
 
     Attributes
     ----------
@@ -84,6 +88,7 @@ class System:
         gravity=None,
         rayleigh_alpha=0.0,
         rayleigh_beta=0.0,
+        cholmod_mode: str = "auto",
     ):
         if constraints.n_dofs != model.n_dofs:
             raise ValueError("constraints and model have different DOF counts")
@@ -96,6 +101,9 @@ class System:
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
+        #: CHOLMOD's factorization (:class:`~fem3d.solve.linear.SparseSPDSolver`'s
+        #: ``cholmod_mode``; the other back ends ignore it)
+        self.cholmod_mode = cholmod_mode
         kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
         self.mass_free = self._reduced_mass(model, kept)
         self._kept = kept
@@ -546,7 +554,8 @@ class System:
             self.factorize(A)
 
     def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
-        solver = SparseSPDSolver(pattern, backend=self._direct_backend)
+        solver = SparseSPDSolver(pattern, backend=self._direct_backend,
+                                 cholmod_mode=self.cholmod_mode)
         self.analyses += 1
         if solver.backend == "superlu" and pattern is self.pattern_free and \
                 self.mass_free.shape[0]:
