@@ -32,9 +32,9 @@ BUNNY_DROP_AS_RECORDED = {"contact.self_contact": False,
 #: contact scenes as recorded: Newton started from the CCD-clamped velocity and no substeps
 #: (the spec's defaults; the gallery's drop, stack and fold set newton_start = "q_t", and
 #: all but the pile contact.max_substeps = 8, since issue 21's rounds; the stack the reuse
-#: Newton solver since stop 28)
+#: Newton solver and simplicial CHOLMOD since stop 28)
 CONTACT_AS_RECORDED = {"contact.newton_start": "clamped", "contact.max_substeps": 1,
-                       "simulation.newton.solver": "direct"}
+                       "simulation.newton.solver": "direct", "simulation.cholmod": "auto"}
 
 # (case name, scene name, steps, --set overrides; "_backend" picks the kernel back end)
 CASES: list[tuple[str, str, int, dict]] = [
