@@ -4,6 +4,7 @@
                             [--cases bunny_drop bunny_stack contact_stack contact_pile]
                             [--scene-steps 100] [--no-newton] [--markdown FILE]
                             [--line-search backtrack parabolic] [--newton-start clamped q_t]
+                            [--cholmod auto|simplicial|supernodal]
 
 ``--line-search`` and ``--newton-start`` run each contact case once per value (issue 21's
 opt-in Newton settings, ``simulation.newton.line_search`` and ``contact.newton_start``).
@@ -98,8 +99,10 @@ class Timers:
         self._undo.clear()
 
 
-def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "clamped"):
-    """(model, system, contact term, initial state, dt) of a case."""
+def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "clamped",
+               cholmod: str | None = None):
+    """(model, system, contact term, initial state, dt) of a case (``cholmod``: CHOLMOD's
+    factorization, None: its own rule)."""
     from fem3d.mesh.formats import read_tet_mesh
     from fem3d.physics.constraints import Constraints
     from fem3d.physics.contact import ContactModel, PlaneObstacle
@@ -125,7 +128,7 @@ def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "c
         raise ValueError(name)
     model = build_model(X, T, E=2e5, nu=0.4, rho=1000.0)
     system = System(model, Constraints.from_fixed_vertices(X, np.zeros(0, np.int64)),
-                    gravity=[0.0, -9.81, 0.0])
+                    gravity=[0.0, -9.81, 0.0], cholmod_mode=cholmod or "auto")
     L = float(np.linalg.norm(np.ptp(X, axis=0)))
     cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
                       dhat=1e-3 * L, mu=0.3, eps_v=1e-3 * L, narrow_phase=narrow_phase)
@@ -158,18 +161,21 @@ def _install_timers() -> Timers:
     return timers
 
 
-def _label(newton_solver: str, line_search: str, newton_start: str = "clamped") -> str:
+def _label(newton_solver: str, line_search: str, newton_start: str = "clamped",
+           cholmod: str | None = None) -> str:
     tags = [t for t, default in ((newton_solver, "direct"), (line_search, "backtrack"),
-                                 (newton_start, "clamped")) if t != default]
+                                 (newton_start, "clamped"), (cholmod, None)) if t != default]
     return f" [{', '.join(tags)}]" if tags else ""
 
 
 def run_case(name: str, refine: int, steps: int, narrow_phase: str,
              newton_solver: str = "direct", contact: bool = True,
-             line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
+             line_search: str = "backtrack", newton_start: str = "clamped",
+             cholmod: str | None = None) -> dict:
     import fem3d.solve.integrators as integ
 
-    model, system, term, state, dt = build_case(name, refine, narrow_phase, newton_start)
+    model, system, term, state, dt = build_case(name, refine, narrow_phase, newton_start,
+                                                cholmod)
     timers = _install_timers()
     newton = factorizations = halvings = 0
     terms = [term] if contact else []
@@ -193,7 +199,7 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
     sec["other"] = wall - sum(sec.values())
     return {
         "case": name + ("" if contact else " (no contact)") + _label(
-            newton_solver, line_search, newton_start),
+            newton_solver, line_search, newton_start, cholmod),
         "tets": model.n_tets, "factorizations_per_step": factorizations / steps,
         "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall,
@@ -204,8 +210,10 @@ def run_case(name: str, refine: int, steps: int, narrow_phase: str,
 
 
 def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
-                   line_search: str = "backtrack", newton_start: str = "clamped") -> dict:
-    """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it."""
+                   line_search: str = "backtrack", newton_start: str = "clamped",
+                   cholmod: str | None = None) -> dict:
+    """A gallery scene (``data/scenes/<name>.toml``) stepped as ``fem3d run`` steps it
+    (``cholmod``: overrides the scene's ``simulation.cholmod``)."""
     from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
 
@@ -214,6 +222,8 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
         overrides["simulation.newton.line_search"] = line_search
     if newton_start != "clamped":
         overrides["contact.newton_start"] = newton_start
+    if cholmod is not None:
+        overrides["simulation.cholmod"] = cholmod
     sim = Simulation(load_scene(name, overrides))
     timers = _install_timers()
     newton = factorizations = cg = halvings = 0
@@ -235,7 +245,7 @@ def run_scene_case(name: str, steps: int, newton_solver: str = "direct",
     sec = dict(timers.seconds)
     sec["other"] = wall - sum(sec.values())
     return {
-        "case": name + _label(newton_solver, line_search, newton_start),
+        "case": name + _label(newton_solver, line_search, newton_start, cholmod),
         "tets": sim.model.n_tets, "factorizations_per_step": factorizations / steps,
         "halvings_per_step": halvings / steps, "cpu": cpu,
         "steps": steps, "wall": wall, "steps_per_s": steps / wall,
@@ -311,6 +321,9 @@ def main(argv=None) -> None:
                     help="Newton's line searches to run (backtrack, parabolic), one row each")
     ap.add_argument("--newton-start", nargs="*", default=["clamped"],
                     help="contact.newton_start values to run (clamped, q_t), one row each")
+    ap.add_argument("--cholmod", choices=["auto", "simplicial", "supernodal"],
+                    help="CHOLMOD's factorization in every case (default: the case's own, "
+                         "simulation.cholmod of a scene)")
     ap.add_argument("--no-peer", action="store_true",
                     help="skip the contact-free peer row (same mesh, free fall)")
     ap.add_argument("--markdown", type=Path)
@@ -320,7 +333,8 @@ def main(argv=None) -> None:
         for solver in args.newton_solver:
             for search in args.line_search:
                 for start in args.newton_start:
-                    rows.append(run_scene_case(case, args.scene_steps, solver, search, start))
+                    rows.append(run_scene_case(case, args.scene_steps, solver, search, start,
+                                               args.cholmod))
                     _print_row(rows[-1])
     for refine in args.refine:
         for case in (c for c in args.cases if not c.startswith("contact_")):
@@ -332,7 +346,7 @@ def main(argv=None) -> None:
                 for search in (args.line_search if contact else ["backtrack"]):
                     for start in (args.newton_start if contact else ["clamped"]):
                         rows.append(run_case(case, refine, steps, args.narrow_phase, solver,
-                                             contact, search, start))
+                                             contact, search, start, args.cholmod))
                         _print_row(rows[-1])
             if case == "bunny_drop" and refine == 0 and not args.no_newton:
                 rows.append(run_newton_peer(steps))
