@@ -66,8 +66,8 @@ class PlanePairs:
             return g.reshape(-1)
         b2 = -2.0 * np.log(z / zh) - 4.0 * (z - zh) / z + (z - zh) ** 2 / (z * z)
         c = k * (4.0 * z * b2 + 2.0 * b1)
-        if project:  # (c > 0 for s in (0, dhat): both projections keep it)
-            c = np.abs(c) if self._plane_projection(project) == "abs" else np.maximum(c, 0.0)
+        if project:  # a guard: c > 0 for s in (0, dhat), so clamping and mirroring agree
+            c = np.maximum(c, 0.0)
         blocks = c[:, None, None] * n[:, :, None] * n[:, None, :]
         return self._blocks_matrix(vi, blocks)
 
