@@ -102,9 +102,7 @@ class Choice:
     def line(self) -> str:
         """One line for a log or a profile, e.g. ``AMG Gauss-Seidel sweeps: 1 of 2 threads
         (measured 4.10 ms on 1, 5.30 ms on 2: 2 threads 0.77x)``."""
-        name = FAMILIES[self.family] + (self.key[len(self.family):] if self.key != self.family
-                                        else "")
-        head = f"{name}: {self.threads} of {self.available} thread" + \
+        head = f"{_display_name(self.key)}: {self.threads} of {self.available} thread" + \
             ("s" if self.available > 1 else "")
         if self.how == "forced":
             return f"{head} (forced by {self.note})"
@@ -113,6 +111,13 @@ class Choice:
         one, many = self.seconds[1], self.seconds[self.available]
         return (f"{head} (measured {1e3 * one:.2f} ms on 1, {1e3 * many:.2f} ms on "
                 f"{self.available}: {self.available} threads {one / many:.2f}x)")
+
+
+def _display_name(key: str) -> str:
+    """How a report names ``key``: its family's name, then what follows the family in the key
+    (``"assembly neo_hookean.hessian"`` -> ``"fused assembly neo_hookean.hessian"``)."""
+    family, _, rest = key.partition(" ")
+    return FAMILIES[family] + (f" {rest}" if rest else "")
 
 
 _CHOICES: dict[str, Choice] = {}
@@ -209,9 +214,9 @@ def _settled(key: str, family: str) -> Choice | None:
     return None
 
 
-def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
-            key: str | None = None) -> int:
-    """The thread count of ``key`` (default: the family), measured the first time.
+def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3) -> int:
+    """The thread count of ``family``, measured the first time in the process (then cached:
+    :func:`reset` forgets it).
 
     Parameters
     ----------
@@ -224,16 +229,13 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
         fewer when all threads lose clearly, :data:`CLEAR_LOSS`) on one thread and on all
         available ones, alternately; the best time of each counts.
     repeats : int, optional
-    key : str, optional
-        Choices are cached per key for the process (:func:`reset` forgets them).
 
     Returns
     -------
     int
         The count to pass to the family's kernels.
     """
-    key = key or family
-    choice = _settled(key, family)
+    choice = _settled(family, family)
     if choice is not None:
         return choice.threads
     available = available_threads()
@@ -250,7 +252,7 @@ def measure(family: str, trial: Callable[[int], object], *, repeats: int = 3,
         rounds += 1
         if times[available] > CLEAR_LOSS * times[1]:
             break
-    return _decide(key, family, times, available).threads
+    return _decide(family, family, times, available).threads
 
 
 def adaptive(key: str, family: str, run: Callable[[int], object], *, repeats: int = 2
@@ -295,10 +297,8 @@ def report(since: int = 0) -> str:
     for key, trials in _TRIALS.items():
         if _WHEN[key] <= since:
             continue
-        family = key.split(" ", 1)[0]
-        name = FAMILIES[family] + key[len(family):]
         runs = ", ".join(f"{1e3 * seconds:.2f} ms on {n}" for n, seconds in trials)
-        lines.append(f"  {name}: still measuring after {len(trials)} call"
+        lines.append(f"  {_display_name(key)}: still measuring after {len(trials)} call"
                      f"{'s' if len(trials) > 1 else ''} ({runs})")
     if not lines:
         return ""
