@@ -172,6 +172,8 @@ def _assemble_wrapper(fused: Callable[..., None], name: str) -> Callable[..., np
     out : (N,) float64
         Accumulated into (not cleared) and returned.
     """
+    key = f"assembly {name}"  # its thread count's key (fem3d.kernels.threads)
+
     def call(q, T, *rest):
         *inputs, params, index, out = rest
         T = np.ascontiguousarray(T, dtype=np.int64)
@@ -190,8 +192,6 @@ def _assemble_wrapper(fused: Callable[..., None], name: str) -> Callable[..., np
         else:
             adaptive(key, "assembly", lambda n: fused(*args, *schedule.arrays(), n))
         return out
-
-    key = f"assembly {name}"
 
     call.__doc__ = _assemble_wrapper.__doc__
     return call

@@ -398,13 +398,6 @@ class ContactSpec(_Spec):
     #: Newton solve fails) is redone as 2, 4, ... substeps of dt/n, up to this many (a power
     #: of two; 1: never, the step is not checked). fem3d.solve.substeps
     max_substeps: Annotated[StrictInt, Field(ge=1, le=1024)] = 1
-
-    @field_validator("max_substeps")
-    @classmethod
-    def _power_of_two(cls, n: int) -> int:
-        if n & (n - 1):
-            raise ValueError(f"must be a power of two (1, 2, 4, ..., 1024), got {n}")
-        return n
     #: where Newton starts when CCD cuts the step's free flight: v_t scaled back by CCD
     #: ("clamped"; it lets a resting vertex creep toward a plane while the barrier's gradient
     #: grows) or q_t (v = 0, IPC's start; fewer Newton iterations at impacts and resting
@@ -417,6 +410,13 @@ class ContactSpec(_Spec):
     #: matrix; clamped only where Newton asks for a PSD one). docs/contact.md. The default
     #: stays "clamp": recorded runs and old checkpoints resume as they were run
     hessian_projection: Literal["clamp", "abs", "exact"] = "clamp"
+
+    @field_validator("max_substeps")
+    @classmethod
+    def _power_of_two(cls, n: int) -> int:
+        if n & (n - 1):
+            raise ValueError(f"must be a power of two (1, 2, 4, ..., 1024), got {n}")
+        return n
 
     @property
     def static_mu(self) -> float:

@@ -53,7 +53,7 @@ from fem3d.solve.directions import (
     NewtonProgress,
     ReuseDirection,
 )
-from fem3d.solve.newton import LINE_SEARCHES, newtons_method
+from fem3d.solve.newton import newtons_method
 from fem3d.solve.objective import Objective
 from fem3d.solve.state import (
     State,
@@ -93,17 +93,13 @@ def model_terms(system: System, pull: Pull | None = None) -> list:
 
 def newton_options(hessian: str = "exact", **settings) -> NewtonOptions:
     """:class:`NewtonOptions` with the Hessian named (``"exact"`` or ``"psd"``; the warm
-    start, when given, one of :data:`WARM_STARTS`; the line search one of
-    :data:`fem3d.solve.newton.LINE_SEARCHES`)."""
+    start, when given, one of :data:`WARM_STARTS`; the line search, one of
+    :data:`fem3d.solve.newton.LINE_SEARCHES`, is checked by :func:`newtons_method`)."""
     if hessian not in ("exact", "psd"):
         raise ValueError(f"hessian must be 'exact' or 'psd', got {hessian!r}")
     warm = settings.get("warm_start", "previous")
     if warm not in WARM_STARTS:
         raise ValueError(f"warm_start must be one of {', '.join(WARM_STARTS)}, got {warm!r}")
-    search = settings.get("line_search", "backtrack")
-    if search not in LINE_SEARCHES:
-        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
-                         f"{search!r}")
     return NewtonOptions(psd=hessian == "psd", **settings)
 
 
