@@ -85,9 +85,10 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
 #:     colour/block order: the same bits on any number of threads); smaller ones, or any
 #:     without the C extension, keep pyamg's Gauss-Seidel in row order and SciPy's mat-vecs
 #:     (the classic scenes' bits). 6144 vertices: about 3e4 tets, where the fused assemblies
-#:     start their threads too. How many threads each family of those kernels gets (sweeps,
-#:     mat-vecs, products) is measured at the first such setup of a process, or forced by
-#:     ``FEM3D_THREADS`` (:mod:`fem3d.kernels.threads`).
+#:     start their threads too. How many threads each family of those kernels gets (the
+#:     solve's sweeps, mat-vecs and dot products together; the products) is measured at the
+#:     first such setup of a process, or forced by ``FEM3D_THREADS``
+#:     (:mod:`fem3d.kernels.threads`).
 AMG_OPTIONS: dict = dict(max_coarse=500, max_levels=10, omega=4.0 / 3.0, rho_iterations=6,
                          threads_min_rows=6144)
 
@@ -507,7 +508,7 @@ class AMGPreconditioner:
                            shape=(n, n))
         omega, iters = self.options["omega"], self.options["rho_iterations"]
         ext = sparse_threads.c_kernels() if n // 3 >= self.options["threads_min_rows"] else None
-        counts = self._measure_threads(ext, A, Al)
+        counts = self._setup_thread_counts(ext, Al)
         levels = []
         for T in plan.T:
             Dinv = _block_inverses(Al)
@@ -536,10 +537,9 @@ class AMGPreconditioner:
         self.setups += 1
         self.setup_seconds += time.perf_counter() - t0
 
-    def _measure_threads(self, ext: object, A: sp.csr_matrix, Al: sp.bsr_matrix
-                         ) -> dict[str, int]:
+    def _setup_thread_counts(self, ext: object, Al: sp.bsr_matrix) -> dict[str, int]:
         """Threads of the products on the threaded kernels (``ext``; none without), measured
-        on ``Al`` (``A``'s BSR copy) the first time in a process
+        on ``Al`` (the setup matrix in BSR) the first time in a process
         (:mod:`fem3d.kernels.threads`), and of the setup's mat-vecs: the solve's count once
         it is chosen (:meth:`_measure_solve`), one thread before."""
         if ext is None:
