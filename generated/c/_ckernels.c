@@ -586,7 +586,8 @@ done:
 //
 // Every kernel takes an optional trailing n_threads (0, the default: OpenMP's count; else that
 // count capped at OpenMP's, see fem3d_team): fem3d.kernels.threads picks one per kernel family
-// (sweeps, mat-vecs, products) from measured times. The bits do not depend on it.
+// (the solve's sweeps, mat-vecs and dot products together; the products) from measured times.
+// The bits do not depend on it.
 // ---------------------------------------------------------------------------------------------
 
 // Loops over fewer rows (or entries, for the dot product) than this run on one thread.
