@@ -37,13 +37,12 @@ def _one(args: argparse.Namespace) -> dict:
 
     import numpy as np
 
-    from fem3d.app.cli import _parse_value
+    from fem3d.app.cli import parse_assignments
     from fem3d.diff import PositionLoss, simulate, trajectory_gradient
     from fem3d.diff.adjoint import Stats
     from fem3d.scene import load_scene
 
-    overrides = {k.strip(): _parse_value(v.strip())
-                 for k, _, v in (item.partition("=") for item in args.set)}
+    overrides = dict(parse_assignments(args.set))
     scene = load_scene(args.scene, overrides)
     t0 = time.process_time()
     qs = simulate(scene, args.steps)

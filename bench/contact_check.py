@@ -169,7 +169,7 @@ def report(name: str, checks: StateChecks, kinetic: np.ndarray, figures: dict, r
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fem3d.app.cli import _parse_value
+    from fem3d.app.cli import parse_assignments
     from fem3d.scene import apply_overrides, load_scene
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -179,10 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rest", type=float, default=1e-6)
     args = ap.parse_args(argv)
     names = args.scenes or sorted(p.stem for p in SCENES.glob("contact_*.toml"))
-    overrides = {}
-    for s in args.set:
-        key, _, value = s.partition("=")
-        overrides[key.strip()] = _parse_value(value.strip())
+    overrides = dict(parse_assignments(args.set))
     ok = True
     for name in names:
         scene = apply_overrides(load_scene(name), overrides)

@@ -91,18 +91,12 @@ def main(argv=None) -> None:
     ap.add_argument("--no-parting", action="store_true",
                     help="speed only: skip the run with gravity one ulp off")
     ap.add_argument("--new-set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
-                    help="scene overrides for the new tree only (VALUE as JSON, else a string; "
-                         "repeatable), e.g. contact.max_substeps=8")
+                    help="scene overrides for the new tree only (VALUE as fem3d run --set "
+                         "reads it; repeatable), e.g. contact.max_substeps=8")
     args = ap.parse_args(argv)
-    new_overrides = {}
-    for item in args.new_set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--new-set {item!r}: expected KEY=VALUE")
-        try:
-            new_overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            new_overrides[key] = value
+    from fem3d.app.cli import parse_assignments
+
+    new_overrides = dict(parse_assignments(args.new_set, "--new-set"))
     base = {"simulation.newton.solver": args.newton_solver} if args.newton_solver else {}
     perturbed = {**base, "simulation.gravity": [0.0, float(np.nextafter(-9.81, -10.0)), 0.0]}
     with tempfile.TemporaryDirectory() as tmp:

@@ -23,7 +23,6 @@ if __name__ == "__main__":  # one core, as the runs the figures are compared wit
 
 import argparse  # noqa: E402
 import importlib.util  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -77,15 +76,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--old", required=True, type=Path, help="the older checkout")
     parser.add_argument("--steps", type=int, default=None, help="default: the scene's")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="a scene override (VALUE as JSON, else a string), repeatable")
+                        help="a scene override (VALUE as fem3d run --set reads it), repeatable")
     args = parser.parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    from fem3d.app.cli import parse_assignments
+
+    overrides = dict(parse_assignments(args.set))
     old = old_check(args.old)
     for name in args.scenes:
         print(measure(name, args.steps, old, overrides), flush=True)

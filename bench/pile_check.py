@@ -130,7 +130,7 @@ def check_run(out: Path, scene, rest: float) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fem3d.app.cli import _parse_value
+    from fem3d.app.cli import parse_assignments
     from fem3d.app.run import run_scene
     from fem3d.scene import apply_overrides, load_scene
 
@@ -144,10 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--check", type=Path, default=None, metavar="DIR",
                     help="check the frames of a run in DIR instead of running")
     args = ap.parse_args(argv)
-    overrides = {}
-    for s in args.set:
-        key, _, value = s.partition("=")
-        overrides[key.strip()] = _parse_value(value.strip())
+    overrides = dict(parse_assignments(args.set))
     if args.steps is not None:
         overrides["simulation.steps"] = args.steps
     scene = load_scene(str(SCENE))

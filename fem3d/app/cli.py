@@ -67,7 +67,8 @@ from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 
-__all__ = ["main", "build_parser", "scene_from_args", "SUBCOMMANDS", "RUN_FLAGS"]
+__all__ = ["main", "build_parser", "scene_from_args", "parse_assignments", "SUBCOMMANDS",
+           "RUN_FLAGS"]
 
 _stages = logging.getLogger(STAGES_LOGGER)  # stage marks (fem3d.app.profile)
 
@@ -242,6 +243,24 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+def parse_assignments(items: list[str], flag: str = "--set") -> list[tuple[str, Any]]:
+    """``KEY=VALUE`` items (``--set``) as ``(key, value)`` scene overrides in their order,
+    each value as :func:`_parse_value` reads it.
+
+    Raises
+    ------
+    InputError
+        ``FLAG 'item': expected KEY=VALUE, ...`` for an item without ``=`` or a key.
+    """
+    pairs = []
+    for item in items:
+        k, sep, v = item.partition("=")
+        if not sep or not k.strip():
+            raise InputError(f"{flag} {item!r}: expected KEY=VALUE, e.g. simulation.dt=0.005")
+        pairs.append((k.strip(), _parse_value(v.strip())))
+    return pairs
+
+
 def scene_from_args(args: argparse.Namespace):
     """The scene of ``fem3d run`` arguments: loaded, then every flag applied as an override.
 
@@ -260,11 +279,8 @@ def scene_from_args(args: argparse.Namespace):
         keys = ([key.format(body=i) for i in range(len(scene.bodies))] if "{body}" in key
                 else [key])
         scene = apply_overrides(scene, {k: value for k in keys}, source=flag)
-    for item in args.set:
-        k, sep, v = item.partition("=")
-        if not sep or not k.strip():
-            raise InputError(f"--set {item!r}: expected KEY=VALUE, e.g. simulation.dt=0.005")
-        scene = apply_overrides(scene, {k.strip(): _parse_value(v.strip())}, source="--set")
+    for key, value in parse_assignments(args.set):
+        scene = apply_overrides(scene, {key: value}, source="--set")
     if args.no_pull:
         scene = apply_overrides(scene, {"pulls": []}, source="--no-pull")
     return scene
