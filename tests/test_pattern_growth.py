@@ -49,7 +49,6 @@ def test_locate_reuses_a_kept_answer_for_the_first_keys_exactly():
     assert not system._locate(np.concatenate([inside, outside]))[1]
 
 
-
 def test_contact_entries_outside_the_pattern_are_added_where_they_belong():
     system = _system()
     n = 3 * system.model.n_vertices
