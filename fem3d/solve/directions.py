@@ -27,6 +27,7 @@ import scipy.sparse as sp
 
 from fem3d.errors import SimulationError
 from fem3d.solve.krylov import PreconditionedCG, iterations_per_decade
+from fem3d.solve.linear import NotPositiveDefinite
 from fem3d.solve.objective import Objective
 from fem3d.solve.state import StepStats
 from fem3d.solve.system import SHIFT_LADDER_GROWTH, SHIFT_LADDER_START, System
@@ -277,7 +278,12 @@ class ReuseDirection(DirectDirection):
         t0 = time.perf_counter()
         pcg.solver = self.system.solver  # an objective term may have widened the pattern
         pcg.rtol = eta
-        result = pcg.solve(A_free, -g)
+        try:
+            result = pcg.solve(A_free, -g)
+        except NotPositiveDefinite:
+            # no kept factorization (the pattern was widened) and this matrix has none
+            stats.add_seconds("cg", time.perf_counter() - t0)
+            return None, True
         stats.add_seconds("cg", time.perf_counter() - t0)
         stats.cg_iterations += result.iterations
         self.last_cg = result.iterations

@@ -1,0 +1,109 @@
+"""CCD in the frame moving with the bodies (``ContactModel._common_frame``): bodies that travel
+far along one CCD query (``static``'s first load step drops them to the ground in one Newton
+direction) are checked on their motion relative to each other, with the same steps as in the
+world frame, and a query that deforms them by more than a tenth of their size is cut to that
+length.
+"""
+
+from __future__ import annotations
+
+import ipctk
+import numpy as np
+import pytest
+
+from fem3d.physics.contact import COMMON_FRAME_TRAVEL, ContactModel, MeshObstacle
+from fem3d.scene import load_scene
+from fem3d.simulation import Simulation
+from tests.test_contact import independent_intersection, two_boxes
+
+
+@pytest.fixture(scope="module")
+def one_body():
+    """The two boxes of ``two_boxes`` as one body with self-contact (0.05 apart)."""
+    X, T, _ = two_boxes(gap=0.05)
+    cm = ContactModel(X, T, dhat=0.01, kappa=1.0, self_contact=True)
+    upper = X[:, 1] > 1.0 + 1e-9
+    return X, T, cm, upper
+
+
+def world_frame_step(cm: ContactModel, q0: np.ndarray, q1: np.ndarray) -> float:
+    """The world-frame CCD step with a fresh brute-force broad phase (the reference)."""
+    V0, V1 = cm.collision_vertices(q0), cm.collision_vertices(q1)
+    return float(ipctk.compute_collision_free_stepsize(
+        cm.mesh, V0, V1, broad_phase=ipctk.BruteForce(), narrow_phase_ccd=cm._ccd))
+
+
+def test_a_far_travelling_body_gets_the_world_frames_step(one_body):
+    X, T, cm, upper = one_body
+    q0 = X.copy()
+    q1 = X + [3.0, -100.0, 1.0]  # travels 100 times its size
+    q1[upper, 1] -= 0.5  # and its upper half moves through the lower one
+    before = cm.stats.common_frame_ccd_calls
+    a = cm.max_step(q0.reshape(-1), q1.reshape(-1))
+    assert cm.stats.common_frame_ccd_calls == before + 1
+    reference = world_frame_step(cm, q0, q1)
+    assert 0.0 < reference < 0.1
+    assert a == pytest.approx(reference, rel=1e-6)
+    ids = np.zeros(len(X), int)
+    assert not independent_intersection(X, T, ids, q0 + a * (q1 - q0))
+
+
+def test_a_short_query_uses_the_steps_shared_candidates(one_body):
+    X, _, cm, upper = one_body
+    q0 = X.copy()
+    q1 = X.copy()
+    q1[upper, 1] -= 0.5  # the same collision, no travel
+    before = cm.stats.common_frame_ccd_calls
+    a = cm.max_step(q0.reshape(-1), q1.reshape(-1))
+    assert cm.stats.common_frame_ccd_calls == before
+    assert a == pytest.approx(world_frame_step(cm, q0, q1), rel=1e-6)
+
+
+def test_a_query_that_deforms_the_body_by_kilometres_is_cut(one_body):
+    X, _, cm, _ = one_body
+    centre = X.mean(axis=0)
+    q0 = X.copy()
+    q1 = centre + 1e5 * (X - centre) + [0.0, -1e4, 0.0]  # blown up: nothing collides
+    assert world_frame_step(cm, q0, q1) == 1.0
+    a = cm.max_step(q0.reshape(-1), q1.reshape(-1))
+    size = np.linalg.norm(np.ptp(X, axis=0))
+    largest = np.abs((q1 - q1.mean(axis=0)) - (q0 - q0.mean(axis=0))).max()
+    assert a == pytest.approx(COMMON_FRAME_TRAVEL * size / largest, rel=1e-12)
+
+
+def test_two_bodies_travelling_together_get_the_world_frames_step():
+    X, T, ids = two_boxes(gap=0.05)
+    cm = ContactModel(X, T, body_ids=ids, dhat=0.01, kappa=1.0)
+    q0 = X.copy()
+    q1 = X + [0.0, -100.0, 2.0]
+    q1[ids == 1, 1] -= 0.5  # the upper box through the lower one on the way
+    a = cm.max_step(q0.reshape(-1), q1.reshape(-1))
+    assert cm.stats.common_frame_ccd_calls == 1
+    reference = world_frame_step(cm, q0, q1)
+    assert 0.0 < reference < 0.1
+    assert a == pytest.approx(reference, rel=1e-6)
+
+
+def test_a_mesh_obstacle_keeps_the_query_in_the_world_frame():
+    X, T, _ = two_boxes(gap=0.05)
+    floor = MeshObstacle(np.array([[-5.0, -1.0, -5.0], [5.0, -1.0, -5.0], [0.0, -1.0, 5.0]]),
+                         np.array([[0, 2, 1]]), name="floor")
+    cm = ContactModel(X, T, meshes=[floor], dhat=0.01, kappa=1.0)
+    q1 = X + [0.0, -100.0, 0.0]  # through the floor: the obstacle does not travel along
+    a = cm.max_step(X.reshape(-1), q1.reshape(-1))
+    assert cm.stats.common_frame_ccd_calls == 0
+    assert 0.0 < a < 0.011
+
+
+def test_static_settles_the_self_contact_bunny_drop():
+    """The gallery drop as shipped (self-contact) under ``static``: its first load step took
+    51 s (every surface pair a CCD candidate along the fall), now under a second."""
+    sim = Simulation(load_scene("contact_bunny_drop", {"simulation.integrator": "static"}),
+                     scripted=True)
+    cm = sim.contact.contact
+    assert not cm.has_intersections(sim.q.reshape(-1))
+    for _ in range(3):
+        sim.step()
+        assert not cm.has_intersections(sim.q.reshape(-1))
+    assert cm.stats.common_frame_ccd_calls > 0
+    assert 0.0 < sim.q[:, 1].min() < 1e-3  # on the ground, not through it
