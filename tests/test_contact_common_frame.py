@@ -1,4 +1,4 @@
-"""CCD in the frame moving with the bodies (``ContactModel._common_frame``): bodies that travel
+"""CCD in the frame moving with the bodies (:mod:`fem3d.physics.contact_frame`): bodies that travel
 far along one CCD query (``static``'s first load step drops them to the ground in one Newton
 direction) are checked on their motion relative to each other, with the same steps as in the
 world frame, and a query that deforms them by more than a tenth of their size is cut to that
@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from fem3d.errors import SimulationError
-from fem3d.physics.contact import COMMON_FRAME_TRAVEL, ContactModel, MeshObstacle
+from fem3d.physics.contact import ContactModel, MeshObstacle
+from fem3d.physics.contact_frame import COMMON_FRAME_TRAVEL
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from tests.test_contact import independent_intersection, two_boxes

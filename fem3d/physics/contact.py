@@ -68,6 +68,7 @@ import scipy.sparse as sp
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.contact_candidates import StepCandidates
+from fem3d.physics.contact_frame import CommonFrameCCD
 from fem3d.physics.contact_planes import Entries, PlanePairs
 
 __all__ = [
@@ -104,13 +105,6 @@ HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
     "abs": ipctk.PSDProjectionMethod.ABS,
     "exact": ipctk.PSDProjectionMethod.CLAMP,
 }
-
-#: Bodies (no mesh obstacle) whose mean position moves more than this fraction of their
-#: size along a CCD query are checked in the frame that moves with them
-#: (:meth:`ContactModel._common_frame`). A tenth: 3.3 m/s for the gallery's 0.33 m bunny at
-#: dt = 0.01, above any dynamic step the recorded runs take, so they keep the step's shared
-#: candidates and their bits.
-COMMON_FRAME_TRAVEL = 0.1
 
 
 def _choice(table: dict, name: str, what: str):
@@ -209,8 +203,8 @@ class ContactStats:
         Candidate-set builds (:class:`~fem3d.physics.contact_candidates.StepCandidates`).
     ccd_calls : int
     common_frame_ccd_calls : int
-        CCD calls run in the frame moving with the bodies
-        (:meth:`ContactModel._common_frame`).
+        CCD calls answered in the frame moving with the bodies
+        (:mod:`fem3d.physics.contact_frame`).
     seconds_build, seconds_ccd, seconds_derivatives : float
         Wall time in collision-set builds (broad phases included), CCD, and barrier/friction
         evaluation.
@@ -344,8 +338,7 @@ class ContactModel(PlanePairs):
         self.hessian_projection = hessian_projection
         self.broad_phase_name = broad_phase
         self._broad_phase = BROAD_PHASES[broad_phase]()
-        self.planes = tuple(planes)
-        self.meshes = tuple(meshes)
+        self.planes, self.meshes = tuple(planes), tuple(meshes)
 
         if body_ids is None:
             body_ids = np.zeros(n, dtype=np.int64)
@@ -392,11 +385,7 @@ class ContactModel(PlanePairs):
         self._parts: list[_Part] = []
         if self.self_contact or np.unique(self._groups).size > 1:
             self._parts.append(_Part(self.mesh, offset, self._broad_phase, 2.0 * dhat))
-        # no mesh obstacle: every mesh pair is between (or within) bodies, and CCD depends
-        # only on the pairs' motion relative to each other (see max_step)
-        self._frame_free = surface.size > 0 and not self.meshes
-        self._bodies_size = float(np.linalg.norm(np.ptp(X[surface], axis=0))) \
-            if surface.size else 0.0
+        self._frame = CommonFrameCCD(X[surface], not self.meshes, self._broad_phase, self._ccd)
         self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
         self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
         self._plane_lag: tuple[np.ndarray, ...] | None = None
@@ -706,9 +695,10 @@ class ContactModel(PlanePairs):
             if part.mesh is not self.mesh:
                 continue  # planes: below
             P0, P1 = part.view(V0), part.view(V1)
-            shift = self._common_frame(P0, P1)
-            if shift is not None:
-                a = min(a, self._common_frame_step(part, P0 - shift[0], P1 - shift[1]))
+            far = self._frame.step(part.mesh, P0, P1)  # None: the bodies stay near
+            if far is not None:
+                self.stats.common_frame_ccd_calls += 1
+                a = min(a, far)
                 continue
             cands = self._candidates_along(part, P0, P1)
             a = min(a, float(cands.compute_collision_free_stepsize(
@@ -717,41 +707,6 @@ class ContactModel(PlanePairs):
         self.stats.ccd_calls += 1
         self.stats.seconds_ccd += time.perf_counter() - t0
         return a
-
-    def _common_frame(self, P0: np.ndarray, P1: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(c0, c1)``, the bodies' mean surface position at both ends, when they travel
-        more than :data:`COMMON_FRAME_TRAVEL` of their size between ``P0`` and ``P1`` and no
-        mesh obstacle stays behind; else None.
-
-        Subtracting ``c0 + t (c1 - c0)`` from every vertex moves no pair relative to itself,
-        so the times of impact are the same in that frame; but the world frame's swept boxes
-        span the whole travel and make every pair of the surface a candidate (``static``'s
-        first load step drops a body to the ground in one Newton direction: millions of
-        pairs at each CCD call). Below the threshold the step's shared candidates are used.
-        """
-        if not self._frame_free:
-            return None
-        c0, c1 = P0.mean(axis=0), P1.mean(axis=0)
-        if not np.linalg.norm(c1 - c0) > COMMON_FRAME_TRAVEL * self._bodies_size:
-            return None
-        return c0, c1
-
-    def _common_frame_step(self, part: _Part, Q0: np.ndarray, Q1: np.ndarray) -> float:
-        """CCD step of the motion ``Q0 -> Q1`` in the bodies' common frame, its broad phase
-        on that motion alone. A segment on which some vertex moves relative to the frame by
-        more than :data:`COMMON_FRAME_TRAVEL` of the bodies' size is first cut to that length
-        (the step is then at most the cut): the Newton directions that travel this far come
-        from unsupported bodies (``static`` before the first contact: the stiffness is
-        singular along the fall) and deform them by kilometres, which no broad phase sorts."""
-        self.stats.common_frame_ccd_calls += 1
-        reach = COMMON_FRAME_TRAVEL * self._bodies_size
-        rel = float(np.abs(Q1 - Q0).max())
-        cut = min(1.0, reach / rel) if rel > 0.0 else 1.0
-        if cut < 1.0:
-            Q1 = Q0 + cut * (Q1 - Q0)
-        return cut * float(ipctk.compute_collision_free_stepsize(
-            part.mesh, Q0, Q1, broad_phase=self._broad_phase, narrow_phase_ccd=self._ccd))
 
     def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
         """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at
