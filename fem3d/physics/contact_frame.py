@@ -36,11 +36,6 @@ class CommonFrameCCD:
         False when some primitive stays behind (a mesh obstacle).
     broad_phase, narrow_phase
         ipctk's broad phase and narrow-phase CCD objects.
-
-    Attributes
-    ----------
-    calls : int
-        Queries answered in the common frame.
     """
 
     def __init__(self, rest_surface: np.ndarray, enabled: bool, broad_phase,
@@ -49,7 +44,6 @@ class CommonFrameCCD:
         self.size = float(np.linalg.norm(np.ptp(rest_surface, axis=0))) if self.enabled \
             else 0.0
         self._broad_phase, self._ccd = broad_phase, narrow_phase
-        self.calls = 0
 
     def step(self, mesh: ipctk.CollisionMesh, P0: np.ndarray, P1: np.ndarray) -> float | None:
         """The largest collision-free fraction of ``P0 -> P1`` (every vertex of ``mesh``),
@@ -66,7 +60,6 @@ class CommonFrameCCD:
         reach = COMMON_FRAME_TRAVEL * self.size
         if not np.linalg.norm(c1 - c0) > reach:
             return None
-        self.calls += 1
         Q0, Q1 = P0 - c0, P1 - c1
         rel = float(np.abs(Q1 - Q0).max())
         cut = min(1.0, reach / rel) if rel > 0.0 else 1.0

@@ -282,9 +282,9 @@ class ReuseDirection(DirectDirection):
             result = pcg.solve(A_free, -g)
         except NotPositiveDefinite:
             # no kept factorization (the pattern was widened) and this matrix has none
-            stats.add_seconds("cg", time.perf_counter() - t0)
             return None, True
-        stats.add_seconds("cg", time.perf_counter() - t0)
+        finally:
+            stats.add_seconds("cg", time.perf_counter() - t0)
         stats.cg_iterations += result.iterations
         self.last_cg = result.iterations
         # CG can converge on an indefinite A to a direction that is not a descent one;
