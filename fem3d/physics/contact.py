@@ -68,7 +68,7 @@ import scipy.sparse as sp
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.contact_candidates import StepCandidates
-from fem3d.physics.contact_frame import CommonFrameCCD
+from fem3d.physics.contact_frame import FarTravelCCD
 from fem3d.physics.contact_planes import Entries, PlanePairs
 
 __all__ = [
@@ -202,9 +202,8 @@ class ContactStats:
     broad_phases : int
         Candidate-set builds (:class:`~fem3d.physics.contact_candidates.StepCandidates`).
     ccd_calls : int
-    common_frame_ccd_calls : int
-        CCD calls answered in the frame moving with the bodies
-        (:mod:`fem3d.physics.contact_frame`).
+    far_ccd_calls : int
+        CCD calls that carried the bodies far (:mod:`fem3d.physics.contact_frame`).
     seconds_build, seconds_ccd, seconds_derivatives : float
         Wall time in collision-set builds (broad phases included), CCD, and barrier/friction
         evaluation.
@@ -213,7 +212,7 @@ class ContactStats:
     builds: int = 0
     broad_phases: int = 0
     ccd_calls: int = 0
-    common_frame_ccd_calls: int = 0
+    far_ccd_calls: int = 0
     seconds_build: float = 0.0
     seconds_ccd: float = 0.0
     seconds_derivatives: float = 0.0
@@ -228,13 +227,14 @@ class _Part:
     cached for the last configuration, the lagged tangential set for friction."""
 
     def __init__(self, mesh: ipctk.CollisionMesh, n_vertices: int, broad_phase,
-                 pad: float) -> None:
+                 pad: float, reach: float) -> None:
         self.mesh = mesh
         self.n = n_vertices
         self.key: bytes | None = None
         self.collisions = ipctk.NormalCollisions()
         self.tangential: ipctk.TangentialCollisions | None = None
-        self.step = StepCandidates(mesh, broad_phase, pad)  # the model pads by 2 dhat
+        # the model pads by 2 dhat; the boxes grow no wider than a far query's reach
+        self.step = StepCandidates(mesh, broad_phase, pad, max_extent=reach)
 
     def view(self, V: np.ndarray) -> np.ndarray:
         """This part's rows of the full collision-vertex array (Fortran order)."""
@@ -352,8 +352,7 @@ class ContactModel(PlanePairs):
 
         # dynamic part: the boundary surface, renumbered
         F = boundary_faces(T)
-        surface = np.unique(F)
-        self.surface = surface
+        self.surface = surface = np.unique(F)
         renum = np.full(n, -1, dtype=np.int64)
         renum[surface] = np.arange(surface.size)
         faces = [renum[F]]
@@ -382,10 +381,11 @@ class ContactModel(PlanePairs):
         # triangle meshes against each other through ipctk, only when two groups can touch
         # at all (a lone body without self-contact skips the mesh broad phase); the planes
         # are point-plane pairs evaluated here, vectorized (see the module's note)
+        self._far = FarTravelCCD(X[surface], bool(self.meshes), self._broad_phase, self._ccd)
         self._parts: list[_Part] = []
         if self.self_contact or np.unique(self._groups).size > 1:
-            self._parts.append(_Part(self.mesh, offset, self._broad_phase, 2.0 * dhat))
-        self._frame = CommonFrameCCD(X[surface], not self.meshes, self._broad_phase, self._ccd)
+            self._parts.append(_Part(self.mesh, offset, self._broad_phase, 2.0 * dhat,
+                                     self._far.reach))
         self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
         self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
         self._plane_lag: tuple[np.ndarray, ...] | None = None
@@ -695,9 +695,9 @@ class ContactModel(PlanePairs):
             if part.mesh is not self.mesh:
                 continue  # planes: below
             P0, P1 = part.view(V0), part.view(V1)
-            far = self._frame.step(part.mesh, P0, P1)  # None: the bodies stay near
+            far = self._far.step(part.mesh, P0, P1)  # None: the bodies stay near
             if far is not None:
-                self.stats.common_frame_ccd_calls += 1
+                self.stats.far_ccd_calls += 1
                 a = min(a, far)
                 continue
             cands = self._candidates_along(part, P0, P1)

@@ -21,6 +21,7 @@ start); on the gallery's stack none did.
 
 from __future__ import annotations
 
+import math
 import time
 
 import ipctk
@@ -39,6 +40,10 @@ class StepCandidates:
     pad : float
         Added on every side of a box when it is (re)built, so that iterates moving a little
         further reuse the set.
+    max_extent : float, optional
+        A box grows to hold a query only while no box gets wider than this; beyond, the set
+        is rebuilt around the query alone (a step whose iterates travel far, as ``static``'s
+        first load step, would otherwise make every pair a candidate).
 
     Attributes
     ----------
@@ -48,10 +53,12 @@ class StepCandidates:
         Wall time in them.
     """
 
-    def __init__(self, mesh: ipctk.CollisionMesh, broad_phase, pad: float) -> None:
+    def __init__(self, mesh: ipctk.CollisionMesh, broad_phase, pad: float,
+                 max_extent: float = math.inf) -> None:
         self.mesh = mesh
         self._broad_phase = broad_phase
         self.pad = float(pad)
+        self.max_extent = float(max_extent)
         self.lo: np.ndarray | None = None
         self.hi: np.ndarray | None = None
         self.candidates: ipctk.Candidates | None = None
@@ -75,7 +82,9 @@ class StepCandidates:
             return self.candidates
         lo, hi = lo - self.pad, hi + self.pad
         if self.candidates is not None:
-            lo, hi = np.minimum(lo, self.lo), np.maximum(hi, self.hi)
+            grown_lo, grown_hi = np.minimum(lo, self.lo), np.maximum(hi, self.hi)
+            if (grown_hi - grown_lo).max() <= self.max_extent:
+                lo, hi = grown_lo, grown_hi
         self._build(lo, hi)
         return self.candidates
 

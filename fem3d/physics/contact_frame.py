@@ -1,4 +1,4 @@
-"""CCD in the frame that moves with the bodies, for queries that carry them far.
+"""CCD of queries that carry the bodies far: in the frame that moves with them, and cut short.
 
 Subtracting ``c0 + t (c1 - c0)`` from every vertex of a linear motion moves no pair of
 vertices relative to each other, so the times of impact between bodies (and within one) are
@@ -7,8 +7,10 @@ the bodies far span the whole travel and make every pair of surface primitives a
 ``static``'s first load step is such a query: an unsupported body's stiffness is singular
 along its fall, so Newton's first directions drop it kilometres (and deform it by
 kilometres): the self-contact bunny drop spent 51 s of CPU in one step's CCD, the gallery
-stack ran out of memory in ipctk's broad phase. A mesh obstacle does not travel with the
-bodies, so a scene with one keeps the world frame.
+stack ran out of memory in ipctk's broad phase, the pile did not finish its first step in
+minutes. A mesh obstacle does not travel with the bodies, so with one the query stays in the
+world frame; in either frame a query that moves some vertex further than the reach is cut to
+the reach first (the step is then at most the cut), which bounds the boxes.
 """
 
 from __future__ import annotations
@@ -16,51 +18,52 @@ from __future__ import annotations
 import ipctk
 import numpy as np
 
-__all__ = ["COMMON_FRAME_TRAVEL", "CommonFrameCCD"]
+__all__ = ["FAR_TRAVEL", "FarTravelCCD"]
 
 #: Bodies whose mean position moves more than this fraction of their size along a CCD query
 #: are checked in the frame moving with them. A tenth: 3.3 m/s for the gallery's 0.33 m
 #: bunny at dt = 0.01, above any dynamic step the recorded runs take (none of the gallery's
 #: contact scenes asks for it), so they keep the step's shared candidates and their bits.
-COMMON_FRAME_TRAVEL = 0.1
+FAR_TRAVEL = 0.1
 
 
-class CommonFrameCCD:
-    """CCD of the bodies' motion relative to their mean position, when they travel far.
+class FarTravelCCD:
+    """CCD of a query that carries the bodies far, with a broad phase of its own.
 
     Parameters
     ----------
     rest_surface : (k, 3) float64
-        The bodies' surface vertices at rest (their size: the bounding-box diagonal).
-    enabled : bool
-        False when some primitive stays behind (a mesh obstacle).
+        The bodies' surface vertices at rest, the first ``k`` rows of every query (their
+        size, the bounding-box diagonal, sets the reach).
+    obstacles : bool
+        Whether mesh obstacles follow them in the queries (they stay behind: world frame).
     broad_phase, narrow_phase
         ipctk's broad phase and narrow-phase CCD objects.
     """
 
-    def __init__(self, rest_surface: np.ndarray, enabled: bool, broad_phase,
+    def __init__(self, rest_surface: np.ndarray, obstacles: bool, broad_phase,
                  narrow_phase) -> None:
-        self.enabled = bool(enabled) and len(rest_surface) > 0
-        self.size = float(np.linalg.norm(np.ptp(rest_surface, axis=0))) if self.enabled \
-            else 0.0
+        self.n_surface = len(rest_surface)
+        size = float(np.linalg.norm(np.ptp(rest_surface, axis=0))) if self.n_surface else 0.0
+        #: how far the bodies' mean position moves before a query is far, and how far a
+        #: far query may move a vertex (relative to its frame)
+        self.reach = FAR_TRAVEL * size
+        self.obstacles = bool(obstacles)
         self._broad_phase, self._ccd = broad_phase, narrow_phase
 
     def step(self, mesh: ipctk.CollisionMesh, P0: np.ndarray, P1: np.ndarray) -> float | None:
         """The largest collision-free fraction of ``P0 -> P1`` (every vertex of ``mesh``),
-        or None when the bodies travel less than :data:`COMMON_FRAME_TRAVEL` of their size
-        (the caller's world-frame CCD then answers).
-
-        A query on which some vertex moves relative to the frame by more than that is first
-        cut to that length, and the step is then at most the cut: no broad phase sorts a
-        deformation of kilometres.
+        or None when the bodies' mean position moves less than :data:`FAR_TRAVEL`
+        of their size (the caller's CCD on the step's shared candidates then answers).
         """
-        if not self.enabled:
+        n = self.n_surface
+        if not n:
             return None
-        c0, c1 = P0.mean(axis=0), P1.mean(axis=0)
-        reach = COMMON_FRAME_TRAVEL * self.size
+        c0, c1 = P0[:n].mean(axis=0), P1[:n].mean(axis=0)
+        reach = self.reach
         if not np.linalg.norm(c1 - c0) > reach:
             return None
-        Q0, Q1 = P0 - c0, P1 - c1
+        Q0, Q1 = (P0, P1) if self.obstacles else (P0 - c0, P1 - c1)
         rel = float(np.abs(Q1 - Q0).max())
         cut = min(1.0, reach / rel) if rel > 0.0 else 1.0
         if cut < 1.0:
