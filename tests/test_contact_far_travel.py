@@ -106,7 +106,7 @@ def test_with_a_mesh_obstacle_a_far_query_is_cut_in_the_world_frame():
     assert cm.max_step(X.reshape(-1), up.reshape(-1)) == pytest.approx(cut, rel=1e-12)
 
 
-def test_static_settles_the_self_contact_bunny_drop():
+def test_static_lands_the_self_contact_bunny_drop_without_intersecting():
     """The gallery drop as shipped (self-contact) under ``static``: its first load step took
     51 s (every surface pair a CCD candidate along the fall), now under a second."""
     sim = Simulation(load_scene("contact_bunny_drop", {"simulation.integrator": "static"}),
