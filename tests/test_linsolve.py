@@ -113,6 +113,41 @@ def test_indefinite_raises_and_shift_recovers(backend: str) -> None:
     assert solver.factorize_shifted(Aind, mu0=mu, try_unshifted=False) == mu
 
 
+@pytest.mark.parametrize("needed", [0, 3, 7, 12])
+def test_ladder_from_the_bottom_bisects_to_the_lowest_rung(backend: str, needed: int) -> None:
+    """An indefinite matrix whose lowest positive-definite rung is ``mu0 10^needed``: the
+    ladder started at ``A`` itself finds that rung (what climbing it finds) in about
+    ``log2(13)`` attempts, and the factorization left in place is that rung's."""
+    A = grid_laplacian(4)
+    lam_min = float(np.linalg.eigvalsh(A.toarray()).min())
+    mu0, growth, tries = 1e-4, 10.0, 13
+    target = mu0 * growth**needed
+    # S = I, A - c I with c between the rung below and the rung needed (geometric middle)
+    c = lam_min + target / np.sqrt(growth)
+    Aind = (A - c * sp.identity(A.shape[0])).tocsr()
+    solver = make_solver(A, backend)
+    attempts: list[float] = []
+    factorize_data = solver._factorize_data
+
+    def counted(data: np.ndarray) -> None:
+        attempts.append(float(data[solver._diag_pos][0] - Aind.diagonal()[0]))
+        factorize_data(data)
+
+    solver._factorize_data = counted
+    eye = np.ones(A.shape[0])
+    mu = solver.factorize_shifted(Aind, eye, mu0=mu0, growth=growth, max_tries=tries)
+    assert mu == pytest.approx(target, rel=1e-12) and solver.shift == mu
+    assert len(attempts) <= 1 + 4 + 1  # A itself, bisection over 13 rungs, one redo
+    b = np.arange(1.0, A.shape[0] + 1)
+    expected = spla.spsolve((Aind + mu * sp.identity(A.shape[0])).tocsc(), b)
+    np.testing.assert_allclose(solver.solve(b), expected, rtol=1e-8)
+    # the climb from a hint (no unshifted attempt) finds the same rung
+    attempts.clear()
+    assert solver.factorize_shifted(Aind, eye, mu0=mu0, growth=growth, max_tries=tries,
+                                    try_unshifted=False) == mu
+    assert len(attempts) == needed + 1
+
+
 def test_shift_gives_up(backend: str) -> None:
     A = grid_laplacian(3)
     solver = make_solver(A, backend)

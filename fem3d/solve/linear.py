@@ -41,6 +41,7 @@ import functools
 import os
 import time
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -374,10 +375,21 @@ class SparseSPDSolver:
     ) -> float:
         """Factorize ``A``, or ``A + mu S`` with the smallest ``mu`` in a geometric ladder.
 
-        Tries ``mu = 0, mu0, mu0 * growth, ...`` (``max_tries`` shifted attempts) and keeps the
-        first positive-definite one. With ``S = |diag(A)|`` (default) the shifted matrix tends to
-        the positive diagonal as ``mu`` grows, so the ladder ends in an SPD matrix; the resulting
-        solve is a damped (Levenberg-Marquardt-like) Newton direction, still a descent direction.
+        The rungs are ``mu0, mu0 * growth, ...`` (``max_tries`` of them), tried after ``A``
+        itself (``try_unshifted``); the factorization kept is that of the smallest rung whose
+        matrix is positive definite. With ``S = |diag(A)|`` (default) the shifted matrix tends
+        to the positive diagonal as ``mu`` grows, so the ladder ends in an SPD matrix; the
+        resulting solve is a damped (Levenberg-Marquardt-like) Newton direction, still a
+        descent direction.
+
+        The rungs are searched upward from ``mu0`` when the unshifted matrix was not tried
+        (``mu0`` is a hint: the rung needed is usually ``mu0`` or the next one), and by
+        bisection when it was tried and failed: then nothing is known of the rung needed, which
+        an indefinite contact Hessian puts anywhere from ``1e-4`` to ``1e6`` (a failed attempt
+        costs up to a whole factorization; bisection takes about ``log2(max_tries)`` of them
+        where climbing takes as many as the rung's index). ``S`` is positive definite, so a
+        rung above a positive-definite one is positive definite too: both searches find the
+        same rung.
 
         Parameters
         ----------
@@ -421,20 +433,53 @@ class SparseSPDSolver:
                 raise ValueError(f"shift must be (n,) = ({self.n},) or sparse, got {s.shape}")
             s_data = np.zeros_like(data)
             s_data[self._diag_pos] = s
-        last: NotPositiveDefinite | None = None
-        mus = [0.0] * try_unshifted + [mu0 * growth**k for k in range(max_tries)]
-        for mu in mus:
+        rungs = [mu0 * growth**k for k in range(max_tries)]
+        failures: list[NotPositiveDefinite] = []
+
+        def attempt(mu: float) -> bool:
             try:
                 self._factorize_data(data + mu * s_data if mu else data)
             except NotPositiveDefinite as err:
-                last = err
-                continue
-            self.shift = mu
-            return mu
-        raise NotPositiveDefinite(
-            f"still not positive definite with shift mu = {mus[-1]:g} ({last})",
-            backend=self.backend,
-        )
+                failures.append(err)
+                return False
+            return True
+
+        if try_unshifted and attempt(0.0):
+            self.shift = 0.0
+            return 0.0
+        if try_unshifted:
+            k = self._lowest_rung(rungs, attempt)
+        else:
+            k = next((i for i, mu in enumerate(rungs) if attempt(mu)), None)
+        if k is None:
+            raise NotPositiveDefinite(
+                f"still not positive definite with shift mu = {rungs[-1] if rungs else 0.0:g} "
+                f"({failures[-1] if failures else 'no shift tried'})",
+                backend=self.backend,
+            )
+        self.shift = rungs[k]
+        return rungs[k]
+
+    def _lowest_rung(self, rungs: list[float], attempt: Callable[[float], bool]) -> int | None:
+        """Bisection for the lowest rung whose attempt succeeds (None: not even the top one);
+        leaves that rung's factorization in place."""
+        lo, hi = 0, len(rungs)  # the rung needed is in [lo, hi]; hi: none found yet
+        last_ok = False
+        while lo < hi:
+            mid = (lo + hi) // 2
+            last_ok = attempt(rungs[mid])
+            if last_ok:
+                hi = mid
+            else:
+                lo = mid + 1
+        if hi == len(rungs):
+            return None
+        if not last_ok:  # the last attempt was the rung below: factorize this one again
+            if not attempt(rungs[hi]):
+                raise NotPositiveDefinite(
+                    f"shift mu = {rungs[hi]:g} was positive definite and is not now",
+                    backend=self.backend)
+        return hi
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` with the last factorization.
