@@ -85,6 +85,26 @@ def test_newtons_method_on_a_convex_function():
     assert capped.iterations == 2 and not capped.converged
 
 
+def test_the_step_rule_does_not_judge_the_gradient_fallback():
+    """``converged_step`` (IPC's rule on the Newton step's length) is not asked about the
+    ``-g`` that replaces a failed direction: a short gradient step says nothing of the way
+    left to the minimum."""
+    A = np.diag([1.0, 1e-3])
+    directions, judged = [], []
+
+    def direction(x, g):  # a linear solver that fails from the second iteration on
+        directions.append(x)
+        return -0.5 * np.linalg.solve(A, g) if len(directions) == 1 else np.full_like(g, np.nan)
+
+    def rule(x, d):
+        judged.append(d)
+        return True
+
+    res = newtons_method(np.array([1.0, 1.0]), lambda x: 0.5 * float(x @ A @ x),
+                         lambda x: A @ x, direction, max_iterations=4, converged_step=rule)
+    assert res.iterations == 4 and judged == []
+
+
 def test_parabolic_line_search_lands_nearer_the_minimum_along_the_direction():
     """A friction-like objective: weak curvature (``m``) plus a smoothed ``k |x|`` whose
     curvature jumps near 0. The full Newton step from the sliding side overshoots far past

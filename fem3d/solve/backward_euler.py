@@ -279,7 +279,7 @@ def minimise_step(
                 x0, _timed(objective.energy, stats), _timed(objective.gradient, stats),
                 direction, max_iterations=max_iterations, rtol=rtol, atol=atol,
                 on_no_step=no_step, max_step=objective.max_step if objective.clamps else None,
-                converged_step=objective.step_converged if objective.has_stopping_rule
+                converged_step=direction.step_converged if objective.has_stopping_rule
                 else None,
                 after_step=objective.after_iteration if objective.changes_between_iterates
                 else None,

@@ -179,6 +179,17 @@ class NewtonDirection:
         self.progress = progress
         self.options = options
 
+    #: the shift ``mu`` of the matrix that gave the last direction (0: Newton's own matrix, or
+    #: a PSD-projected one)
+    last_shift = 0.0
+
+    def step_converged(self, x: np.ndarray, d: np.ndarray) -> bool:
+        """The objective's stopping rule on the step ``d`` (IPC's: its length), which only a
+        Newton step can pass: a shifted matrix's step is short because of its shift (a
+        Levenberg-Marquardt shift of ``1e4 M`` makes a falling body's step look converged
+        and stops it in mid-air)."""
+        return self.last_shift == 0.0 and self.objective.step_converged(x, d)
+
     def matrix(self, x: np.ndarray, psd: bool) -> sp.csr_matrix:
         """The objective's Newton matrix at ``x``, timed as ``"matrix"``."""
         t0 = time.perf_counter()
@@ -228,6 +239,7 @@ class DirectDirection(NewtonDirection):
         stats.shifted_factorizations += int(mu > 0)
         stats.factorizations += 1
         self.last_cg = 0
+        self.last_shift = mu
         d = -system.solve(g)
         stats.add_seconds("factorize", time.perf_counter() - t_factor)
         return d, (A_free if mu == 0.0 else None)
@@ -237,7 +249,27 @@ class DirectDirection(NewtonDirection):
         A_free = self.matrix(x, psd)
         if not np.isfinite(A_free.data).all():
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
-        return self.factorized(x, g, A_free, psd, ladder=True)[0]
+        d = self.factorized(x, g, A_free, psd, ladder=True)[0]
+        if self.last_shift > 0.0 and self.objective.has_stopping_rule and \
+                self.objective.step_converged(x, d):
+            # the shifted step passes the rule on a step's length: Newton's own step decides,
+            # where the matrix has become positive definite (the ladder's hint lags behind)
+            d = self._newton_step(g, A_free, d)
+        return d
+
+    def _newton_step(self, g: np.ndarray, A_free: sp.csr_matrix,
+                     shifted: np.ndarray) -> np.ndarray:
+        """``-A^{-1} g`` when ``A`` is positive definite, else the ``shifted`` direction."""
+        t0 = time.perf_counter()
+        try:
+            self.system.factorize(A_free, shifts=False)
+        except SimulationError:
+            return shifted
+        finally:
+            self.stats.add_seconds("factorize", time.perf_counter() - t0)
+        self.stats.factorizations += 1
+        self.last_shift = self.shift_hint = 0.0
+        return -self.system.solve(g)
 
 
 class ReuseDirection(DirectDirection):

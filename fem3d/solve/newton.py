@@ -129,8 +129,9 @@ def newtons_method(
         A non-positive value stops Newton at ``x`` (not converged).
     converged_step : callable ``(x, d) -> bool``, optional
         A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
-        from the second iteration on (the first step is always taken): True stops Newton at
-        ``x``, converged.
+        from the second iteration on (the first step is always taken) and not on the
+        gradient fallback (``-g`` says nothing of the step to the minimum): True stops Newton
+        at ``x``, converged.
     after_step : callable ``(x) -> bool``, optional
         Called at every accepted iterate; True means the objective itself changed there
         (IPC's adaptive barrier stiffness), so its value is re-evaluated.
@@ -173,10 +174,11 @@ def newtons_method(
             return NewtonResult(x, it, norms, True, halvings)
         d = newton_direction(x, g)
         slope = float(g @ d)
-        if not (slope < 0 and np.isfinite(d).all()):  # not a descent direction: fall back
+        newton_step = slope < 0 and np.isfinite(d).all()
+        if not newton_step:  # not a descent direction: fall back
             d = -g
             slope = -gn * gn
-        if converged_step is not None and it > 0 and converged_step(x, d):
+        if converged_step is not None and it > 0 and newton_step and converged_step(x, d):
             return NewtonResult(x, it, norms, True, halvings)
         a0 = alpha
         if max_step is not None:
