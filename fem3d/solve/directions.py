@@ -202,7 +202,12 @@ class NewtonDirection:
 
 
 class DirectDirection(NewtonDirection):
-    """``-A^{-1} g`` by a fresh factorization at every iteration (``"direct"``)."""
+    """``-A^{-1} g`` by a fresh factorization at every iteration (``"direct"``).
+
+    An indefinite ``A`` is shifted up the ladder (:meth:`System.factorize`); a shifted step
+    that would pass the objective's stopping rule is replaced by Newton's own step when ``A``
+    has become positive definite (:meth:`NewtonDirection.step_converged` judges only those).
+    """
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
