@@ -176,8 +176,7 @@ def newtons_method(
         slope = float(g @ d)
         newton_step = slope < 0 and np.isfinite(d).all()
         if not newton_step:  # not a descent direction: fall back
-            d = -g
-            slope = -gn * gn
+            d, slope = -g, -gn * gn
         if converged_step is not None and it > 0 and newton_step and converged_step(x, d):
             return NewtonResult(x, it, norms, True, halvings)
         a0 = alpha
