@@ -138,7 +138,7 @@ class BarrierTerm(Term):
         # at the scheme's target velocity (where Newton starts, clamped); grown when an
         # iterate leaves them
         q_free = np.asarray(step_map.positions(step_map.v_hat_free), dtype=np.float64)
-        cm.start_step(q_t, q_base, q_free, pad=0.5 * self.pattern_margin * cm.dhat)
+        cm.start_step(q_t, q_base, q_free)
         if not np.array_equal(q_base, q_t) and cm.max_step(q_t, q_base) < 1.0:
             raise SimulationError("contact: the moving pins would drive the surface through "
                                   "itself or an obstacle within one step; use a smaller dt",
@@ -159,7 +159,7 @@ class BarrierTerm(Term):
         rows, cols = [], []
         for part in parts:
             Vp = part.view(V)
-            cands = cm.candidates_near(part, Vp, 0.5 * margin)
+            cands = cm.candidates_within(part, Vp, 0.5 * margin)
             col = ipctk.NormalCollisions()
             col.build(cands, part.mesh, Vp, margin)
             if not len(col):
