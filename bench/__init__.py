@@ -28,11 +28,23 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
-import numpy as np
+#: Commands whose figures are per core (``python -m bench.contact_check`` ...): one thread
+#: unless the caller says otherwise. Set here, before this package imports NumPy and with it
+#: the BLAS that reads the variables once (a module's own ``__main__`` block comes too late).
+ONE_CORE_COMMANDS = frozenset({"bench.adjoint", "bench.contact", "bench.contact_check",
+                               "bench.path_check", "bench.pile_check"})
+_argv = getattr(sys, "orig_argv", [])
+if "-m" in _argv[:-1] and _argv[_argv.index("-m") + 1] in ONE_CORE_COMMANDS:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 
 #: What each group measures (the tables' captions), in report order.
 GROUPS: dict[str, str] = {

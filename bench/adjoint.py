@@ -25,10 +25,6 @@ import subprocess
 import sys
 import time
 
-if __name__ == "__main__":  # one core for its own runs, not for a process importing it
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 PARAMS = "bodies[0].material.E,bodies[0].material.nu"
 
 

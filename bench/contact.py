@@ -35,17 +35,12 @@ solves); ``other`` is the rest (Python, line search bookkeeping).
 
 from __future__ import annotations
 
-import os
+import argparse
+import time
+from collections import defaultdict
+from pathlib import Path
 
-if __name__ == "__main__":  # one core for its own runs, not for a process importing it
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-
-import argparse  # noqa: E402
-import time  # noqa: E402
-from collections import defaultdict  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -24,18 +24,13 @@ the pile's run through ``fem3d run`` with its frames checked the same way.
 
 from __future__ import annotations
 
-import os
+import argparse
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
-if __name__ == "__main__":  # one core for its own runs, not for a process importing it
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "data" / "scenes"

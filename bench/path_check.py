@@ -16,16 +16,11 @@ flagged step would be redone in substeps).
 
 from __future__ import annotations
 
-import os
-
-if __name__ == "__main__":  # one core, as the runs the figures are compared with
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-
-import argparse  # noqa: E402
-import importlib.util  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
 
 
 def old_check(old: Path):

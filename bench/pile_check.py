@@ -26,21 +26,16 @@ Prints one line per figure and exits 1 when a check fails.
 
 from __future__ import annotations
 
-import os
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
 
-if __name__ == "__main__":  # one core for its own runs, not for a process importing it
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+import numpy as np
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from bench.contact_check import StateChecks, rest_step  # noqa: E402,F401  (rest_step: re-exported)
+from bench.contact_check import StateChecks, rest_step  # noqa: F401 (rest_step: re-exported)
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
