@@ -290,11 +290,14 @@ def material_module(name: str) -> ModuleSpec:
         *_hessian_contraction(A_sym, D, vol, stress_derivative)))
     # Projecting dP/dF (not the 12x12) keeps B^T A B positive semi-definite at a 9x9 cost.
     A_psd = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"Ap_{a}_{b}"))
-    projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)))
-    kernels.append(make_kernel(
-        name, "hessian_psd", hess_doc[:-1] + " with dP/dF projected to positive semi-definite.",
-        element_inputs, params,
-        *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
+    for kernel_name, method, how in (("hessian_psd", "ql", ""),
+                                     ("hessian_psd_jacobi", "jacobi", " by cyclic Jacobi")):
+        projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)), method)
+        kernels.append(make_kernel(
+            name, kernel_name,
+            hess_doc[:-1] + f" with dP/dF projected to positive semi-definite{how}.",
+            element_inputs, params,
+            *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),

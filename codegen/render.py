@@ -150,7 +150,8 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
     for step in kernel.intermediates:
         if isinstance(step, Projection):
             used |= set(step.inputs)
-            steps.append({"kind": "project", "n": step.n, "inputs": [str(s) for s in step.inputs],
+            steps.append({"kind": "project", "n": step.n, "method": step.method,
+                          "inputs": [str(s) for s in step.inputs],
                           "outputs": [str(s) for s in step.outputs]})
         else:
             used |= step[1].free_symbols

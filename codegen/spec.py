@@ -61,11 +61,15 @@ class Output:
 class Projection:
     """Project a symmetric ``n x n`` matrix to positive semi-definite: eigenvalues below zero
     are clamped to zero. An intermediate step between assignments; ``inputs`` and ``outputs``
-    are the row-major entries before and after."""
+    are the row-major entries before and after. ``method`` names the C kernels' eigen-solver
+    where the matrix is indefinite: ``"ql"`` (Householder tridiagonalization and implicit QL)
+    or ``"jacobi"`` (cyclic Jacobi rotations: slower; kept because its round-off is that of
+    every run before it was replaced); the NumPy kernels use LAPACK's for both."""
 
     n: int
     inputs: tuple[sp.Symbol, ...]
     outputs: tuple[sp.Symbol, ...]
+    method: str = "ql"
 
 
 Step = tuple[sp.Symbol, sp.Expr] | Projection

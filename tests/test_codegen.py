@@ -138,11 +138,12 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
     return (x, dphi), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T]
 
 
-# hessian_psd has no closed form to compare with; it has its own tests below.
+# hessian_psd (and its Jacobi twin) has no closed form to compare with; it has its own tests
+# below.
 # d3psi_contract: SymPy's third derivatives take minutes per material; it is compared with
 # SymPy's dP/dF differenced in 40-digit arithmetic below.
 EXACT_CASES = [case for case in kernel_cases()
-               if case[1] not in ("hessian_psd", "d3psi_contract")]
+               if case[1] not in ("hessian_psd", "hessian_psd_jacobi", "d3psi_contract")]
 
 
 # The element kernels of these materials are compared with SymPy's direct differentiation by
@@ -384,6 +385,22 @@ def test_projected_hessian_is_psd_and_projects_dP_dF(material: str, backend: str
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_the_jacobi_projection_equals_the_ql_one_to_round_off(material: str,
+                                                              backend: str) -> None:
+    k = material_kernels(material, backend)
+    p = material_args(material, 64)
+    _, x, dphi, vol = random_elements(np.random.default_rng(6), 64)
+    H = k.hessian(x, dphi, vol, *p)
+    ql, jacobi = k.hessian_psd(x, dphi, vol, *p), k.hessian_psd_jacobi(x, dphi, vol, *p)
+    changed = np.abs(ql - H).max(axis=(1, 2)) > 1e-9 * np.abs(H).max()
+    assert changed.any() or material == "linear"  # both meet indefinite elements
+    np.testing.assert_allclose(jacobi, ql, rtol=1e-9, atol=1e-11 * np.abs(H).max())
+    # where neither projects, both return the exact Hessian bit for bit
+    np.testing.assert_array_equal(jacobi[~changed], ql[~changed])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_mass_matrix_closed_form(backend: str) -> None:
     rho, vol = 0.37, np.array([0.5, 2.0, 1e-3])
     M = kernel_module("tet", backend).mass_matrix(vol, (rho,))
@@ -530,7 +547,8 @@ def test_show_prints_one_kernel() -> None:
 
 @pytest.mark.skipif(c_extension() is None, reason="C extension not built")
 @pytest.mark.parametrize("material", sorted(MATERIALS))
-@pytest.mark.parametrize("kernel", ["energy", "gradient", "hessian", "hessian_psd"])
+@pytest.mark.parametrize("kernel", ["energy", "gradient", "hessian", "hessian_psd",
+                                    "hessian_psd_jacobi"])
 def test_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str) -> None:
     rng = np.random.default_rng(12)
     m = 80

@@ -120,7 +120,7 @@ def hessian_data(model: Model, q: np.ndarray, *, psd: bool = False) -> np.ndarra
     -------
     (nnz,) float64
     """
-    name = "hessian_psd" if psd else "hessian"
+    name = model.psd_hessian if psd else "hessian"
     if model.mat.has_assemble(name):  # C: no (m, 12, 12) intermediate, one pass
         out = np.zeros(model.nnz)
         return getattr(model.mat, f"{name}_assemble")(

@@ -345,7 +345,6 @@ class ContactModel(PlanePairs):
         self.hessian_projection = hessian_projection
         self.broad_phase_name = broad_phase
         self._broad_phase = BROAD_PHASES[broad_phase]()
-        self._unordered_broad_phase = ipctk.LBVH()
         self.planes, self.meshes = tuple(planes), tuple(meshes)
 
         if body_ids is None:
@@ -491,7 +490,7 @@ class ContactModel(PlanePairs):
         order it lists pairs in, which moves round-off elsewhere, does not matter here."""
         t0 = time.perf_counter()
         cands = ipctk.Candidates()
-        cands.build(part.mesh, V, radius, broad_phase=self._unordered_broad_phase)
+        cands.build(part.mesh, V, radius, broad_phase=ipctk.LBVH())
         self.stats.broad_phases += 1
         self.stats.seconds_build += time.perf_counter() - t0
         return cands

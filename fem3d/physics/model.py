@@ -469,6 +469,8 @@ class Model:
         :func:`build_model`).
     density : (m,) float64 or None
         Per-element density when one was given, else None (``rho`` everywhere).
+    psd_projection : {"ql", "jacobi"}
+        Eigen-solver of the per-element PSD projection (:attr:`psd_hessian`).
     """
 
     X: np.ndarray
@@ -488,6 +490,14 @@ class Model:
     backend: str | None = None
     groups: tuple[GroupData, ...] = field(default=(), repr=False)
     density: np.ndarray | None = field(default=None, repr=False)
+    psd_projection: str = "ql"
+
+    @property
+    def psd_hessian(self) -> str:
+        """Name of the element-Hessian kernel with ``dP/dF`` projected to positive
+        semi-definite by :attr:`psd_projection`'s eigen-solver."""
+        suffix = "" if self.psd_projection == "ql" else f"_{self.psd_projection}"
+        return f"hessian_psd{suffix}"
 
     @property
     def allows_inversion(self) -> bool:

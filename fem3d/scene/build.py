@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import meshio
@@ -128,7 +128,8 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     """
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
-    model = model_from_scene(scene, a, backend)
+    model = replace(model_from_scene(scene, a, backend),
+                    psd_projection=scene.simulation.psd_projection)
     if a.fixed.size == 0 and not scene.contact.enabled:
         raise scene.error(
             "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "

@@ -329,6 +329,10 @@ class SimulationSpec(_Spec):
     #: with short columns), or forced (multi-body contact patterns mislead the rule: the
     #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
     cholmod: Literal["auto", "simplicial", "supernodal"] = "auto"
+    #: eigen-solver of the per-element PSD projection (Newton's "psd" Hessian, stiffness
+    #: damping) where dP/dF is indefinite: "ql" (tridiagonal QL, 2.7x faster on 9x9) or
+    #: "jacobi" (cyclic Jacobi: the round-off of every run before stop 31, replayed bit for bit)
+    psd_projection: Literal["ql", "jacobi"] = "ql"
 
     @model_validator(mode="after")
     def _one_length(self) -> SimulationSpec:

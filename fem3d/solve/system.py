@@ -285,7 +285,7 @@ class System:
         """
         builder = NewtonMatrixBuilder(self, dt * dt, psd)
         builder.add_pattern_values(self.model.mass.data, reduced=self.mass_free.data)
-        builder.add_elements(self.model, "hessian_psd" if psd else "hessian", q)
+        builder.add_elements(self.model, self.model.psd_hessian if psd else "hessian", q)
         if pull is not None and pull.vertices.size:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
             builder.add_vertex_blocks(pull.vertices, pull.hessian_blocks(self.spring, q3),

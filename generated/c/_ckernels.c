@@ -53,7 +53,9 @@ static inline double fem3d_powi(double x, int n)
 
 // Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
 // zero, in place: cyclic Jacobi rotations, then a = V max(L, 0) V^T (unchanged if PSD).
-static void fem3d_project_psd(int n, double *a)
+// The projection of the "hessian_psd_jacobi" kernels: 2-3x slower than fem3d_project_psd's
+// QL (eigen.c), kept for its round-off, that of every run before stop 31.
+static void fem3d_project_psd_jacobi(int n, double *a)
 {
     double v[144], original[144], ldl[144], pivot[12];
     double scale = 0.0;
@@ -1751,11 +1753,11 @@ done:
      "bsr_matmat_fill(A (indptr, indices, data), R, K, B (indptr, indices, data), C, n_cols, c_indptr, c_indices, c_data[, n_threads]): A B (BSR)."},
 
 // ---------------------------------------------------------------------------------------------
-// Batched symmetric eigendecompositions of small blocks for the PSD projection's users that need
-// its eigenvectors (fem3d.diff.damping: stiffness damping's adjoint): per block an LDL^T test
-// (the same as fem3d_project_psd's fast path), and only where it fails a Householder
-// tridiagonalization and implicit QL iterations (EISPACK tred2/tql2, as in JAMA), several times
-// faster than cyclic Jacobi on 9x9 blocks.
+// Symmetric eigendecompositions of small blocks: the PSD projection of the "hessian_psd"
+// kernels (fem3d_project_psd) and, batched, its users that need the eigenvectors
+// (fem3d.diff.damping: stiffness damping's adjoint). Per block an LDL^T test, and only where
+// it fails a Householder tridiagonalization and implicit QL iterations (EISPACK tred2/tql2, as
+// in JAMA): 2.7x faster than cyclic Jacobi on indefinite 9x9 blocks (2.6 against 7.0 us).
 // ---------------------------------------------------------------------------------------------
 
 // a (n x n, row-major, symmetric) = V diag(d) V^T: d ascending, V's columns the eigenvectors
@@ -1931,6 +1933,28 @@ static int fem3d_ldl_psd(int n, const double *a)
     return 1;
 }
 
+// Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
+// zero, in place: a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
+// where the LDL^T test or the eigenvalues show it positive semi-definite.
+static void fem3d_project_psd(int n, double *a)
+{
+    double d[12], v[144];
+    if (fem3d_ldl_psd(n, a)) return;
+    fem3d_sym_eigen(n, a, d, v);
+    int negative = 0;
+    for (int i = 0; i < n; ++i) {
+        negative |= d[i] < 0.0;
+        d[i] = d[i] > 0.0 ? d[i] : 0.0;
+    }
+    if (!negative) return;
+    for (int i = 0; i < n; ++i)
+        for (int j = i; j < n; ++j) {
+            double sum = 0.0;
+            for (int k = 0; k < n; ++k) sum += v[i * n + k] * d[k] * v[j * n + k];
+            a[i * n + j] = a[j * n + i] = sum;
+        }
+}
+
 // psd_eigen(A, values, vectors, flags): for each of the m symmetric n x n blocks of A (float64,
 // m*n*n; n = len(values) / m, m = len(flags), n <= 12) flags[e] = 0 where the LDL^T test proves
 // it positive semi-definite (values, vectors not written), else its eigenvalues (ascending) into
@@ -2068,6 +2092,9 @@ static PyMethodDef methods[] = {
     {"fibre_reinforced_hessian_psd", py_fibre_reinforced_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"fibre_reinforced_hessian_psd_assemble", py_fibre_reinforced_hessian_psd_assemble, METH_VARARGS,
      "fibre_reinforced_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"fibre_reinforced_hessian_psd_jacobi", py_fibre_reinforced_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"fibre_reinforced_hessian_psd_jacobi_assemble", py_fibre_reinforced_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "fibre_reinforced_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_psi", py_fung_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"fung_dpsi_dF", py_fung_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"fung_d2psi_dF2", py_fung_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2085,6 +2112,9 @@ static PyMethodDef methods[] = {
     {"fung_hessian_psd", py_fung_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"fung_hessian_psd_assemble", py_fung_hessian_psd_assemble, METH_VARARGS,
      "fung_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"fung_hessian_psd_jacobi", py_fung_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"fung_hessian_psd_jacobi_assemble", py_fung_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "fung_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_psi", py_linear_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"linear_dpsi_dF", py_linear_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"linear_d2psi_dF2", py_linear_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2102,6 +2132,9 @@ static PyMethodDef methods[] = {
     {"linear_hessian_psd", py_linear_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"linear_hessian_psd_assemble", py_linear_hessian_psd_assemble, METH_VARARGS,
      "linear_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"linear_hessian_psd_jacobi", py_linear_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"linear_hessian_psd_jacobi_assemble", py_linear_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "linear_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_psi", py_mooney_rivlin_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"mooney_rivlin_dpsi_dF", py_mooney_rivlin_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"mooney_rivlin_d2psi_dF2", py_mooney_rivlin_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2119,6 +2152,9 @@ static PyMethodDef methods[] = {
     {"mooney_rivlin_hessian_psd", py_mooney_rivlin_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"mooney_rivlin_hessian_psd_assemble", py_mooney_rivlin_hessian_psd_assemble, METH_VARARGS,
      "mooney_rivlin_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_hessian_psd_jacobi", py_mooney_rivlin_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"mooney_rivlin_hessian_psd_jacobi_assemble", py_mooney_rivlin_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "mooney_rivlin_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_psi", py_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2136,6 +2172,9 @@ static PyMethodDef methods[] = {
     {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"neo_hookean_hessian_psd_assemble", py_neo_hookean_hessian_psd_assemble, METH_VARARGS,
      "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_hessian_psd_jacobi", py_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"neo_hookean_hessian_psd_jacobi_assemble", py_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_psi", py_neo_hookean_lame_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_lame_dpsi_dF", py_neo_hookean_lame_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_lame_d2psi_dF2", py_neo_hookean_lame_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2153,6 +2192,9 @@ static PyMethodDef methods[] = {
     {"neo_hookean_lame_hessian_psd", py_neo_hookean_lame_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"neo_hookean_lame_hessian_psd_assemble", py_neo_hookean_lame_hessian_psd_assemble, METH_VARARGS,
      "neo_hookean_lame_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_hessian_psd_jacobi", py_neo_hookean_lame_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"neo_hookean_lame_hessian_psd_jacobi_assemble", py_neo_hookean_lame_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "neo_hookean_lame_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_psi", py_stable_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stable_neo_hookean_dpsi_dF", py_stable_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stable_neo_hookean_d2psi_dF2", py_stable_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2170,6 +2212,9 @@ static PyMethodDef methods[] = {
     {"stable_neo_hookean_hessian_psd", py_stable_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stable_neo_hookean_hessian_psd_assemble", py_stable_neo_hookean_hessian_psd_assemble, METH_VARARGS,
      "stable_neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_hessian_psd_jacobi", py_stable_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"stable_neo_hookean_hessian_psd_jacobi_assemble", py_stable_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "stable_neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2187,6 +2232,9 @@ static PyMethodDef methods[] = {
     {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
     {"stvk_hessian_psd_assemble", py_stvk_hessian_psd_assemble, METH_VARARGS,
      "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"stvk_hessian_psd_jacobi", py_stvk_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
+    {"stvk_hessian_psd_jacobi_assemble", py_stvk_hessian_psd_jacobi_assemble, METH_VARARGS,
+     "stvk_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"colour_blocks", py_colour_blocks, METH_VARARGS,
      "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
     FEM3D_AMG_METHODS

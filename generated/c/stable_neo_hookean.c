@@ -1837,3 +1837,462 @@ static PyObject *py_stable_neo_hookean_hessian_psd_assemble(PyObject *self, PyOb
                         2, rest_sizes, 2,
                         144);
 }
+
+// Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi.
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
+// outputs: hessian (m, 12, 12); operation count per element: 1291
+static inline void stable_neo_hookean_hessian_psd_jacobi_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    const double mu = params[0];
+    const double lam = params[1];
+    (void)params;
+    // inputs
+    const double *restrict in_x_e = in[0];
+    const double x_0_0 = in_x_e[0];
+    const double x_0_1 = in_x_e[1];
+    const double x_0_2 = in_x_e[2];
+    const double x_1_0 = in_x_e[3];
+    const double x_1_1 = in_x_e[4];
+    const double x_1_2 = in_x_e[5];
+    const double x_2_0 = in_x_e[6];
+    const double x_2_1 = in_x_e[7];
+    const double x_2_2 = in_x_e[8];
+    const double x_3_0 = in_x_e[9];
+    const double x_3_1 = in_x_e[10];
+    const double x_3_2 = in_x_e[11];
+    const double *restrict in_dphi_dX = in[1];
+    const double dphi_0_0 = in_dphi_dX[0];
+    const double dphi_0_1 = in_dphi_dX[1];
+    const double dphi_0_2 = in_dphi_dX[2];
+    const double dphi_1_0 = in_dphi_dX[3];
+    const double dphi_1_1 = in_dphi_dX[4];
+    const double dphi_1_2 = in_dphi_dX[5];
+    const double dphi_2_0 = in_dphi_dX[6];
+    const double dphi_2_1 = in_dphi_dX[7];
+    const double dphi_2_2 = in_dphi_dX[8];
+    const double dphi_3_0 = in_dphi_dX[9];
+    const double dphi_3_1 = in_dphi_dX[10];
+    const double dphi_3_2 = in_dphi_dX[11];
+    const double *restrict in_vol = in[2];
+    const double vol = in_vol[0];
+    // intermediates (192)
+    const double F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0;
+    const double F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0;
+    const double F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0;
+    const double F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1;
+    const double F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1;
+    const double F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1;
+    const double F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2;
+    const double F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2;
+    const double F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
+    const double dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1;
+    const double dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0;
+    const double dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0;
+    const double dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1;
+    const double dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0;
+    const double dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0;
+    const double dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1;
+    const double dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0;
+    const double dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0;
+    const double J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2;
+    const double I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2);
+    const double h0 = I1 + 1;
+    const double h1 = 2*mu/(h0*h0);
+    const double h2 = mu - mu/h0;
+    const double h3 = dJ_0_0*lam;
+    const double h4 = F_0_0*h1;
+    const double h5 = lam*(J - 1) - 3.0/4.0*mu;
+    const double h6 = F_2_2*h5;
+    const double h7 = F_2_1*h5;
+    const double h8 = F_1_2*h5;
+    const double h9 = F_1_1*h5;
+    const double h10 = dJ_0_1*lam;
+    const double h11 = F_0_1*h1;
+    const double h12 = F_2_0*h5;
+    const double h13 = F_1_0*h5;
+    const double h14 = dJ_0_2*lam;
+    const double h15 = F_0_2*h1;
+    const double h16 = dJ_1_0*lam;
+    const double h17 = F_1_0*h1;
+    const double h18 = F_0_2*h5;
+    const double h19 = F_0_1*h5;
+    const double h20 = dJ_1_1*lam;
+    const double h21 = F_1_1*h1;
+    const double h22 = F_0_0*h5;
+    const double h23 = dJ_1_2*lam;
+    const double h24 = F_1_2*h1;
+    const double h25 = dJ_2_0*lam;
+    const double h26 = F_2_0*h1;
+    const double A_0_0 = (F_0_0*F_0_0)*h1 + (dJ_0_0*dJ_0_0)*lam + h2;
+    const double A_0_1 = F_0_1*h4 + dJ_0_1*h3;
+    const double A_0_2 = F_0_2*h4 + dJ_0_2*h3;
+    const double A_0_3 = F_1_0*h4 + dJ_1_0*h3;
+    const double A_0_4 = F_1_1*h4 + dJ_1_1*h3 + h6;
+    const double A_0_5 = F_1_2*h4 + dJ_1_2*h3 - h7;
+    const double A_0_6 = F_2_0*h4 + dJ_2_0*h3;
+    const double A_0_7 = F_2_1*h4 + dJ_2_1*h3 - h8;
+    const double A_0_8 = F_2_2*h4 + dJ_2_2*h3 + h9;
+    const double A_1_1 = (F_0_1*F_0_1)*h1 + (dJ_0_1*dJ_0_1)*lam + h2;
+    const double A_1_2 = F_0_2*h11 + dJ_0_2*h10;
+    const double A_1_3 = F_1_0*h11 + dJ_1_0*h10 - h6;
+    const double A_1_4 = F_1_1*h11 + dJ_1_1*h10;
+    const double A_1_5 = F_1_2*h11 + dJ_1_2*h10 + h12;
+    const double A_1_6 = F_2_0*h11 + dJ_2_0*h10 + h8;
+    const double A_1_7 = F_2_1*h11 + dJ_2_1*h10;
+    const double A_1_8 = F_2_2*h11 + dJ_2_2*h10 - h13;
+    const double A_2_2 = (F_0_2*F_0_2)*h1 + (dJ_0_2*dJ_0_2)*lam + h2;
+    const double A_2_3 = F_1_0*h15 + dJ_1_0*h14 + h7;
+    const double A_2_4 = F_1_1*h15 + dJ_1_1*h14 - h12;
+    const double A_2_5 = F_1_2*h15 + dJ_1_2*h14;
+    const double A_2_6 = F_2_0*h15 + dJ_2_0*h14 - h9;
+    const double A_2_7 = F_2_1*h15 + dJ_2_1*h14 + h13;
+    const double A_2_8 = F_2_2*h15 + dJ_2_2*h14;
+    const double A_3_3 = (F_1_0*F_1_0)*h1 + (dJ_1_0*dJ_1_0)*lam + h2;
+    const double A_3_4 = F_1_1*h17 + dJ_1_1*h16;
+    const double A_3_5 = F_1_2*h17 + dJ_1_2*h16;
+    const double A_3_6 = F_2_0*h17 + dJ_2_0*h16;
+    const double A_3_7 = F_2_1*h17 + dJ_2_1*h16 + h18;
+    const double A_3_8 = F_2_2*h17 + dJ_2_2*h16 - h19;
+    const double A_4_4 = (F_1_1*F_1_1)*h1 + (dJ_1_1*dJ_1_1)*lam + h2;
+    const double A_4_5 = F_1_2*h21 + dJ_1_2*h20;
+    const double A_4_6 = F_2_0*h21 + dJ_2_0*h20 - h18;
+    const double A_4_7 = F_2_1*h21 + dJ_2_1*h20;
+    const double A_4_8 = F_2_2*h21 + dJ_2_2*h20 + h22;
+    const double A_5_5 = (F_1_2*F_1_2)*h1 + (dJ_1_2*dJ_1_2)*lam + h2;
+    const double A_5_6 = F_2_0*h24 + dJ_2_0*h23 + h19;
+    const double A_5_7 = F_2_1*h24 + dJ_2_1*h23 - h22;
+    const double A_5_8 = F_2_2*h24 + dJ_2_2*h23;
+    const double A_6_6 = (F_2_0*F_2_0)*h1 + (dJ_2_0*dJ_2_0)*lam + h2;
+    const double A_6_7 = F_2_1*h26 + dJ_2_1*h25;
+    const double A_6_8 = F_2_2*h26 + dJ_2_2*h25;
+    const double A_7_7 = (F_2_1*F_2_1)*h1 + (dJ_2_1*dJ_2_1)*lam + h2;
+    const double A_7_8 = F_2_1*F_2_2*h1 + dJ_2_1*dJ_2_2*lam;
+    const double A_8_8 = (F_2_2*F_2_2)*h1 + (dJ_2_2*dJ_2_2)*lam + h2;
+    double projected_92[81] = { A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8 };
+    fem3d_project_psd_jacobi(9, projected_92);
+    const double Ap_0_0 = projected_92[0];
+    const double Ap_0_1 = projected_92[1];
+    const double Ap_0_2 = projected_92[2];
+    const double Ap_0_3 = projected_92[3];
+    const double Ap_0_4 = projected_92[4];
+    const double Ap_0_5 = projected_92[5];
+    const double Ap_0_6 = projected_92[6];
+    const double Ap_0_7 = projected_92[7];
+    const double Ap_0_8 = projected_92[8];
+    const double Ap_1_0 = projected_92[9];
+    const double Ap_1_1 = projected_92[10];
+    const double Ap_1_2 = projected_92[11];
+    const double Ap_1_3 = projected_92[12];
+    const double Ap_1_4 = projected_92[13];
+    const double Ap_1_5 = projected_92[14];
+    const double Ap_1_6 = projected_92[15];
+    const double Ap_1_7 = projected_92[16];
+    const double Ap_1_8 = projected_92[17];
+    const double Ap_2_0 = projected_92[18];
+    const double Ap_2_1 = projected_92[19];
+    const double Ap_2_2 = projected_92[20];
+    const double Ap_2_3 = projected_92[21];
+    const double Ap_2_4 = projected_92[22];
+    const double Ap_2_5 = projected_92[23];
+    const double Ap_2_6 = projected_92[24];
+    const double Ap_2_7 = projected_92[25];
+    const double Ap_2_8 = projected_92[26];
+    const double Ap_3_0 = projected_92[27];
+    const double Ap_3_1 = projected_92[28];
+    const double Ap_3_2 = projected_92[29];
+    const double Ap_3_3 = projected_92[30];
+    const double Ap_3_4 = projected_92[31];
+    const double Ap_3_5 = projected_92[32];
+    const double Ap_3_6 = projected_92[33];
+    const double Ap_3_7 = projected_92[34];
+    const double Ap_3_8 = projected_92[35];
+    const double Ap_4_0 = projected_92[36];
+    const double Ap_4_1 = projected_92[37];
+    const double Ap_4_2 = projected_92[38];
+    const double Ap_4_3 = projected_92[39];
+    const double Ap_4_4 = projected_92[40];
+    const double Ap_4_5 = projected_92[41];
+    const double Ap_4_6 = projected_92[42];
+    const double Ap_4_7 = projected_92[43];
+    const double Ap_4_8 = projected_92[44];
+    const double Ap_5_0 = projected_92[45];
+    const double Ap_5_1 = projected_92[46];
+    const double Ap_5_2 = projected_92[47];
+    const double Ap_5_3 = projected_92[48];
+    const double Ap_5_4 = projected_92[49];
+    const double Ap_5_5 = projected_92[50];
+    const double Ap_5_6 = projected_92[51];
+    const double Ap_5_7 = projected_92[52];
+    const double Ap_5_8 = projected_92[53];
+    const double Ap_6_0 = projected_92[54];
+    const double Ap_6_1 = projected_92[55];
+    const double Ap_6_2 = projected_92[56];
+    const double Ap_6_3 = projected_92[57];
+    const double Ap_6_4 = projected_92[58];
+    const double Ap_6_5 = projected_92[59];
+    const double Ap_6_6 = projected_92[60];
+    const double Ap_6_7 = projected_92[61];
+    const double Ap_6_8 = projected_92[62];
+    const double Ap_7_0 = projected_92[63];
+    const double Ap_7_1 = projected_92[64];
+    const double Ap_7_2 = projected_92[65];
+    const double Ap_7_3 = projected_92[66];
+    const double Ap_7_4 = projected_92[67];
+    const double Ap_7_5 = projected_92[68];
+    const double Ap_7_6 = projected_92[69];
+    const double Ap_7_7 = projected_92[70];
+    const double Ap_7_8 = projected_92[71];
+    const double Ap_8_0 = projected_92[72];
+    const double Ap_8_1 = projected_92[73];
+    const double Ap_8_2 = projected_92[74];
+    const double Ap_8_3 = projected_92[75];
+    const double Ap_8_4 = projected_92[76];
+    const double Ap_8_5 = projected_92[77];
+    const double Ap_8_6 = projected_92[78];
+    const double Ap_8_7 = projected_92[79];
+    const double Ap_8_8 = projected_92[80];
+    const double T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2;
+    const double T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2;
+    const double T_0_2 = Ap_0_6*dphi_0_0 + Ap_0_7*dphi_0_1 + Ap_0_8*dphi_0_2;
+    const double T_0_3 = Ap_0_0*dphi_1_0 + Ap_0_1*dphi_1_1 + Ap_0_2*dphi_1_2;
+    const double T_0_4 = Ap_0_3*dphi_1_0 + Ap_0_4*dphi_1_1 + Ap_0_5*dphi_1_2;
+    const double T_0_5 = Ap_0_6*dphi_1_0 + Ap_0_7*dphi_1_1 + Ap_0_8*dphi_1_2;
+    const double T_0_6 = Ap_0_0*dphi_2_0 + Ap_0_1*dphi_2_1 + Ap_0_2*dphi_2_2;
+    const double T_0_7 = Ap_0_3*dphi_2_0 + Ap_0_4*dphi_2_1 + Ap_0_5*dphi_2_2;
+    const double T_0_8 = Ap_0_6*dphi_2_0 + Ap_0_7*dphi_2_1 + Ap_0_8*dphi_2_2;
+    const double T_0_9 = Ap_0_0*dphi_3_0 + Ap_0_1*dphi_3_1 + Ap_0_2*dphi_3_2;
+    const double T_0_10 = Ap_0_3*dphi_3_0 + Ap_0_4*dphi_3_1 + Ap_0_5*dphi_3_2;
+    const double T_0_11 = Ap_0_6*dphi_3_0 + Ap_0_7*dphi_3_1 + Ap_0_8*dphi_3_2;
+    const double T_1_0 = Ap_1_0*dphi_0_0 + Ap_1_1*dphi_0_1 + Ap_1_2*dphi_0_2;
+    const double T_1_1 = Ap_1_3*dphi_0_0 + Ap_1_4*dphi_0_1 + Ap_1_5*dphi_0_2;
+    const double T_1_2 = Ap_1_6*dphi_0_0 + Ap_1_7*dphi_0_1 + Ap_1_8*dphi_0_2;
+    const double T_1_3 = Ap_1_0*dphi_1_0 + Ap_1_1*dphi_1_1 + Ap_1_2*dphi_1_2;
+    const double T_1_4 = Ap_1_3*dphi_1_0 + Ap_1_4*dphi_1_1 + Ap_1_5*dphi_1_2;
+    const double T_1_5 = Ap_1_6*dphi_1_0 + Ap_1_7*dphi_1_1 + Ap_1_8*dphi_1_2;
+    const double T_1_6 = Ap_1_0*dphi_2_0 + Ap_1_1*dphi_2_1 + Ap_1_2*dphi_2_2;
+    const double T_1_7 = Ap_1_3*dphi_2_0 + Ap_1_4*dphi_2_1 + Ap_1_5*dphi_2_2;
+    const double T_1_8 = Ap_1_6*dphi_2_0 + Ap_1_7*dphi_2_1 + Ap_1_8*dphi_2_2;
+    const double T_1_9 = Ap_1_0*dphi_3_0 + Ap_1_1*dphi_3_1 + Ap_1_2*dphi_3_2;
+    const double T_1_10 = Ap_1_3*dphi_3_0 + Ap_1_4*dphi_3_1 + Ap_1_5*dphi_3_2;
+    const double T_1_11 = Ap_1_6*dphi_3_0 + Ap_1_7*dphi_3_1 + Ap_1_8*dphi_3_2;
+    const double T_2_0 = Ap_2_0*dphi_0_0 + Ap_2_1*dphi_0_1 + Ap_2_2*dphi_0_2;
+    const double T_2_1 = Ap_2_3*dphi_0_0 + Ap_2_4*dphi_0_1 + Ap_2_5*dphi_0_2;
+    const double T_2_2 = Ap_2_6*dphi_0_0 + Ap_2_7*dphi_0_1 + Ap_2_8*dphi_0_2;
+    const double T_2_3 = Ap_2_0*dphi_1_0 + Ap_2_1*dphi_1_1 + Ap_2_2*dphi_1_2;
+    const double T_2_4 = Ap_2_3*dphi_1_0 + Ap_2_4*dphi_1_1 + Ap_2_5*dphi_1_2;
+    const double T_2_5 = Ap_2_6*dphi_1_0 + Ap_2_7*dphi_1_1 + Ap_2_8*dphi_1_2;
+    const double T_2_6 = Ap_2_0*dphi_2_0 + Ap_2_1*dphi_2_1 + Ap_2_2*dphi_2_2;
+    const double T_2_7 = Ap_2_3*dphi_2_0 + Ap_2_4*dphi_2_1 + Ap_2_5*dphi_2_2;
+    const double T_2_8 = Ap_2_6*dphi_2_0 + Ap_2_7*dphi_2_1 + Ap_2_8*dphi_2_2;
+    const double T_2_9 = Ap_2_0*dphi_3_0 + Ap_2_1*dphi_3_1 + Ap_2_2*dphi_3_2;
+    const double T_2_10 = Ap_2_3*dphi_3_0 + Ap_2_4*dphi_3_1 + Ap_2_5*dphi_3_2;
+    const double T_2_11 = Ap_2_6*dphi_3_0 + Ap_2_7*dphi_3_1 + Ap_2_8*dphi_3_2;
+    const double T_3_1 = Ap_3_3*dphi_0_0 + Ap_3_4*dphi_0_1 + Ap_3_5*dphi_0_2;
+    const double T_3_2 = Ap_3_6*dphi_0_0 + Ap_3_7*dphi_0_1 + Ap_3_8*dphi_0_2;
+    const double T_3_3 = Ap_3_0*dphi_1_0 + Ap_3_1*dphi_1_1 + Ap_3_2*dphi_1_2;
+    const double T_3_4 = Ap_3_3*dphi_1_0 + Ap_3_4*dphi_1_1 + Ap_3_5*dphi_1_2;
+    const double T_3_5 = Ap_3_6*dphi_1_0 + Ap_3_7*dphi_1_1 + Ap_3_8*dphi_1_2;
+    const double T_3_6 = Ap_3_0*dphi_2_0 + Ap_3_1*dphi_2_1 + Ap_3_2*dphi_2_2;
+    const double T_3_7 = Ap_3_3*dphi_2_0 + Ap_3_4*dphi_2_1 + Ap_3_5*dphi_2_2;
+    const double T_3_8 = Ap_3_6*dphi_2_0 + Ap_3_7*dphi_2_1 + Ap_3_8*dphi_2_2;
+    const double T_3_9 = Ap_3_0*dphi_3_0 + Ap_3_1*dphi_3_1 + Ap_3_2*dphi_3_2;
+    const double T_3_10 = Ap_3_3*dphi_3_0 + Ap_3_4*dphi_3_1 + Ap_3_5*dphi_3_2;
+    const double T_3_11 = Ap_3_6*dphi_3_0 + Ap_3_7*dphi_3_1 + Ap_3_8*dphi_3_2;
+    const double T_4_1 = Ap_4_3*dphi_0_0 + Ap_4_4*dphi_0_1 + Ap_4_5*dphi_0_2;
+    const double T_4_2 = Ap_4_6*dphi_0_0 + Ap_4_7*dphi_0_1 + Ap_4_8*dphi_0_2;
+    const double T_4_3 = Ap_4_0*dphi_1_0 + Ap_4_1*dphi_1_1 + Ap_4_2*dphi_1_2;
+    const double T_4_4 = Ap_4_3*dphi_1_0 + Ap_4_4*dphi_1_1 + Ap_4_5*dphi_1_2;
+    const double T_4_5 = Ap_4_6*dphi_1_0 + Ap_4_7*dphi_1_1 + Ap_4_8*dphi_1_2;
+    const double T_4_6 = Ap_4_0*dphi_2_0 + Ap_4_1*dphi_2_1 + Ap_4_2*dphi_2_2;
+    const double T_4_7 = Ap_4_3*dphi_2_0 + Ap_4_4*dphi_2_1 + Ap_4_5*dphi_2_2;
+    const double T_4_8 = Ap_4_6*dphi_2_0 + Ap_4_7*dphi_2_1 + Ap_4_8*dphi_2_2;
+    const double T_4_9 = Ap_4_0*dphi_3_0 + Ap_4_1*dphi_3_1 + Ap_4_2*dphi_3_2;
+    const double T_4_10 = Ap_4_3*dphi_3_0 + Ap_4_4*dphi_3_1 + Ap_4_5*dphi_3_2;
+    const double T_4_11 = Ap_4_6*dphi_3_0 + Ap_4_7*dphi_3_1 + Ap_4_8*dphi_3_2;
+    const double T_5_1 = Ap_5_3*dphi_0_0 + Ap_5_4*dphi_0_1 + Ap_5_5*dphi_0_2;
+    const double T_5_2 = Ap_5_6*dphi_0_0 + Ap_5_7*dphi_0_1 + Ap_5_8*dphi_0_2;
+    const double T_5_3 = Ap_5_0*dphi_1_0 + Ap_5_1*dphi_1_1 + Ap_5_2*dphi_1_2;
+    const double T_5_4 = Ap_5_3*dphi_1_0 + Ap_5_4*dphi_1_1 + Ap_5_5*dphi_1_2;
+    const double T_5_5 = Ap_5_6*dphi_1_0 + Ap_5_7*dphi_1_1 + Ap_5_8*dphi_1_2;
+    const double T_5_6 = Ap_5_0*dphi_2_0 + Ap_5_1*dphi_2_1 + Ap_5_2*dphi_2_2;
+    const double T_5_7 = Ap_5_3*dphi_2_0 + Ap_5_4*dphi_2_1 + Ap_5_5*dphi_2_2;
+    const double T_5_8 = Ap_5_6*dphi_2_0 + Ap_5_7*dphi_2_1 + Ap_5_8*dphi_2_2;
+    const double T_5_9 = Ap_5_0*dphi_3_0 + Ap_5_1*dphi_3_1 + Ap_5_2*dphi_3_2;
+    const double T_5_10 = Ap_5_3*dphi_3_0 + Ap_5_4*dphi_3_1 + Ap_5_5*dphi_3_2;
+    const double T_5_11 = Ap_5_6*dphi_3_0 + Ap_5_7*dphi_3_1 + Ap_5_8*dphi_3_2;
+    const double T_6_2 = Ap_6_6*dphi_0_0 + Ap_6_7*dphi_0_1 + Ap_6_8*dphi_0_2;
+    const double T_6_3 = Ap_6_0*dphi_1_0 + Ap_6_1*dphi_1_1 + Ap_6_2*dphi_1_2;
+    const double T_6_4 = Ap_6_3*dphi_1_0 + Ap_6_4*dphi_1_1 + Ap_6_5*dphi_1_2;
+    const double T_6_5 = Ap_6_6*dphi_1_0 + Ap_6_7*dphi_1_1 + Ap_6_8*dphi_1_2;
+    const double T_6_6 = Ap_6_0*dphi_2_0 + Ap_6_1*dphi_2_1 + Ap_6_2*dphi_2_2;
+    const double T_6_7 = Ap_6_3*dphi_2_0 + Ap_6_4*dphi_2_1 + Ap_6_5*dphi_2_2;
+    const double T_6_8 = Ap_6_6*dphi_2_0 + Ap_6_7*dphi_2_1 + Ap_6_8*dphi_2_2;
+    const double T_6_9 = Ap_6_0*dphi_3_0 + Ap_6_1*dphi_3_1 + Ap_6_2*dphi_3_2;
+    const double T_6_10 = Ap_6_3*dphi_3_0 + Ap_6_4*dphi_3_1 + Ap_6_5*dphi_3_2;
+    const double T_6_11 = Ap_6_6*dphi_3_0 + Ap_6_7*dphi_3_1 + Ap_6_8*dphi_3_2;
+    const double T_7_2 = Ap_7_6*dphi_0_0 + Ap_7_7*dphi_0_1 + Ap_7_8*dphi_0_2;
+    const double T_7_3 = Ap_7_0*dphi_1_0 + Ap_7_1*dphi_1_1 + Ap_7_2*dphi_1_2;
+    const double T_7_4 = Ap_7_3*dphi_1_0 + Ap_7_4*dphi_1_1 + Ap_7_5*dphi_1_2;
+    const double T_7_5 = Ap_7_6*dphi_1_0 + Ap_7_7*dphi_1_1 + Ap_7_8*dphi_1_2;
+    const double T_7_6 = Ap_7_0*dphi_2_0 + Ap_7_1*dphi_2_1 + Ap_7_2*dphi_2_2;
+    const double T_7_7 = Ap_7_3*dphi_2_0 + Ap_7_4*dphi_2_1 + Ap_7_5*dphi_2_2;
+    const double T_7_8 = Ap_7_6*dphi_2_0 + Ap_7_7*dphi_2_1 + Ap_7_8*dphi_2_2;
+    const double T_7_9 = Ap_7_0*dphi_3_0 + Ap_7_1*dphi_3_1 + Ap_7_2*dphi_3_2;
+    const double T_7_10 = Ap_7_3*dphi_3_0 + Ap_7_4*dphi_3_1 + Ap_7_5*dphi_3_2;
+    const double T_7_11 = Ap_7_6*dphi_3_0 + Ap_7_7*dphi_3_1 + Ap_7_8*dphi_3_2;
+    const double T_8_2 = Ap_8_6*dphi_0_0 + Ap_8_7*dphi_0_1 + Ap_8_8*dphi_0_2;
+    const double T_8_3 = Ap_8_0*dphi_1_0 + Ap_8_1*dphi_1_1 + Ap_8_2*dphi_1_2;
+    const double T_8_4 = Ap_8_3*dphi_1_0 + Ap_8_4*dphi_1_1 + Ap_8_5*dphi_1_2;
+    const double T_8_5 = Ap_8_6*dphi_1_0 + Ap_8_7*dphi_1_1 + Ap_8_8*dphi_1_2;
+    const double T_8_6 = Ap_8_0*dphi_2_0 + Ap_8_1*dphi_2_1 + Ap_8_2*dphi_2_2;
+    const double T_8_7 = Ap_8_3*dphi_2_0 + Ap_8_4*dphi_2_1 + Ap_8_5*dphi_2_2;
+    const double T_8_8 = Ap_8_6*dphi_2_0 + Ap_8_7*dphi_2_1 + Ap_8_8*dphi_2_2;
+    const double T_8_9 = Ap_8_0*dphi_3_0 + Ap_8_1*dphi_3_1 + Ap_8_2*dphi_3_2;
+    const double T_8_10 = Ap_8_3*dphi_3_0 + Ap_8_4*dphi_3_1 + Ap_8_5*dphi_3_2;
+    const double T_8_11 = Ap_8_6*dphi_3_0 + Ap_8_7*dphi_3_1 + Ap_8_8*dphi_3_2;
+    // outputs
+    double *restrict out_hessian = out[0];
+    out_hessian[0] = vol*(T_0_0*dphi_0_0 + T_1_0*dphi_0_1 + T_2_0*dphi_0_2);
+    out_hessian[1] = out_hessian[12] = vol*(T_0_1*dphi_0_0 + T_1_1*dphi_0_1 + T_2_1*dphi_0_2);
+    out_hessian[2] = out_hessian[24] = vol*(T_0_2*dphi_0_0 + T_1_2*dphi_0_1 + T_2_2*dphi_0_2);
+    out_hessian[3] = out_hessian[36] = vol*(T_0_3*dphi_0_0 + T_1_3*dphi_0_1 + T_2_3*dphi_0_2);
+    out_hessian[4] = out_hessian[48] = vol*(T_0_4*dphi_0_0 + T_1_4*dphi_0_1 + T_2_4*dphi_0_2);
+    out_hessian[5] = out_hessian[60] = vol*(T_0_5*dphi_0_0 + T_1_5*dphi_0_1 + T_2_5*dphi_0_2);
+    out_hessian[6] = out_hessian[72] = vol*(T_0_6*dphi_0_0 + T_1_6*dphi_0_1 + T_2_6*dphi_0_2);
+    out_hessian[7] = out_hessian[84] = vol*(T_0_7*dphi_0_0 + T_1_7*dphi_0_1 + T_2_7*dphi_0_2);
+    out_hessian[8] = out_hessian[96] = vol*(T_0_8*dphi_0_0 + T_1_8*dphi_0_1 + T_2_8*dphi_0_2);
+    out_hessian[9] = out_hessian[108] = vol*(T_0_9*dphi_0_0 + T_1_9*dphi_0_1 + T_2_9*dphi_0_2);
+    out_hessian[10] = out_hessian[120] = vol*(T_0_10*dphi_0_0 + T_1_10*dphi_0_1 + T_2_10*dphi_0_2);
+    out_hessian[11] = out_hessian[132] = vol*(T_0_11*dphi_0_0 + T_1_11*dphi_0_1 + T_2_11*dphi_0_2);
+    out_hessian[13] = vol*(T_3_1*dphi_0_0 + T_4_1*dphi_0_1 + T_5_1*dphi_0_2);
+    out_hessian[14] = out_hessian[25] = vol*(T_3_2*dphi_0_0 + T_4_2*dphi_0_1 + T_5_2*dphi_0_2);
+    out_hessian[15] = out_hessian[37] = vol*(T_3_3*dphi_0_0 + T_4_3*dphi_0_1 + T_5_3*dphi_0_2);
+    out_hessian[16] = out_hessian[49] = vol*(T_3_4*dphi_0_0 + T_4_4*dphi_0_1 + T_5_4*dphi_0_2);
+    out_hessian[17] = out_hessian[61] = vol*(T_3_5*dphi_0_0 + T_4_5*dphi_0_1 + T_5_5*dphi_0_2);
+    out_hessian[18] = out_hessian[73] = vol*(T_3_6*dphi_0_0 + T_4_6*dphi_0_1 + T_5_6*dphi_0_2);
+    out_hessian[19] = out_hessian[85] = vol*(T_3_7*dphi_0_0 + T_4_7*dphi_0_1 + T_5_7*dphi_0_2);
+    out_hessian[20] = out_hessian[97] = vol*(T_3_8*dphi_0_0 + T_4_8*dphi_0_1 + T_5_8*dphi_0_2);
+    out_hessian[21] = out_hessian[109] = vol*(T_3_9*dphi_0_0 + T_4_9*dphi_0_1 + T_5_9*dphi_0_2);
+    out_hessian[22] = out_hessian[121] = vol*(T_3_10*dphi_0_0 + T_4_10*dphi_0_1 + T_5_10*dphi_0_2);
+    out_hessian[23] = out_hessian[133] = vol*(T_3_11*dphi_0_0 + T_4_11*dphi_0_1 + T_5_11*dphi_0_2);
+    out_hessian[26] = vol*(T_6_2*dphi_0_0 + T_7_2*dphi_0_1 + T_8_2*dphi_0_2);
+    out_hessian[27] = out_hessian[38] = vol*(T_6_3*dphi_0_0 + T_7_3*dphi_0_1 + T_8_3*dphi_0_2);
+    out_hessian[28] = out_hessian[50] = vol*(T_6_4*dphi_0_0 + T_7_4*dphi_0_1 + T_8_4*dphi_0_2);
+    out_hessian[29] = out_hessian[62] = vol*(T_6_5*dphi_0_0 + T_7_5*dphi_0_1 + T_8_5*dphi_0_2);
+    out_hessian[30] = out_hessian[74] = vol*(T_6_6*dphi_0_0 + T_7_6*dphi_0_1 + T_8_6*dphi_0_2);
+    out_hessian[31] = out_hessian[86] = vol*(T_6_7*dphi_0_0 + T_7_7*dphi_0_1 + T_8_7*dphi_0_2);
+    out_hessian[32] = out_hessian[98] = vol*(T_6_8*dphi_0_0 + T_7_8*dphi_0_1 + T_8_8*dphi_0_2);
+    out_hessian[33] = out_hessian[110] = vol*(T_6_9*dphi_0_0 + T_7_9*dphi_0_1 + T_8_9*dphi_0_2);
+    out_hessian[34] = out_hessian[122] = vol*(T_6_10*dphi_0_0 + T_7_10*dphi_0_1 + T_8_10*dphi_0_2);
+    out_hessian[35] = out_hessian[134] = vol*(T_6_11*dphi_0_0 + T_7_11*dphi_0_1 + T_8_11*dphi_0_2);
+    out_hessian[39] = vol*(T_0_3*dphi_1_0 + T_1_3*dphi_1_1 + T_2_3*dphi_1_2);
+    out_hessian[40] = out_hessian[51] = vol*(T_0_4*dphi_1_0 + T_1_4*dphi_1_1 + T_2_4*dphi_1_2);
+    out_hessian[41] = out_hessian[63] = vol*(T_0_5*dphi_1_0 + T_1_5*dphi_1_1 + T_2_5*dphi_1_2);
+    out_hessian[42] = out_hessian[75] = vol*(T_0_6*dphi_1_0 + T_1_6*dphi_1_1 + T_2_6*dphi_1_2);
+    out_hessian[43] = out_hessian[87] = vol*(T_0_7*dphi_1_0 + T_1_7*dphi_1_1 + T_2_7*dphi_1_2);
+    out_hessian[44] = out_hessian[99] = vol*(T_0_8*dphi_1_0 + T_1_8*dphi_1_1 + T_2_8*dphi_1_2);
+    out_hessian[45] = out_hessian[111] = vol*(T_0_9*dphi_1_0 + T_1_9*dphi_1_1 + T_2_9*dphi_1_2);
+    out_hessian[46] = out_hessian[123] = vol*(T_0_10*dphi_1_0 + T_1_10*dphi_1_1 + T_2_10*dphi_1_2);
+    out_hessian[47] = out_hessian[135] = vol*(T_0_11*dphi_1_0 + T_1_11*dphi_1_1 + T_2_11*dphi_1_2);
+    out_hessian[52] = vol*(T_3_4*dphi_1_0 + T_4_4*dphi_1_1 + T_5_4*dphi_1_2);
+    out_hessian[53] = out_hessian[64] = vol*(T_3_5*dphi_1_0 + T_4_5*dphi_1_1 + T_5_5*dphi_1_2);
+    out_hessian[54] = out_hessian[76] = vol*(T_3_6*dphi_1_0 + T_4_6*dphi_1_1 + T_5_6*dphi_1_2);
+    out_hessian[55] = out_hessian[88] = vol*(T_3_7*dphi_1_0 + T_4_7*dphi_1_1 + T_5_7*dphi_1_2);
+    out_hessian[56] = out_hessian[100] = vol*(T_3_8*dphi_1_0 + T_4_8*dphi_1_1 + T_5_8*dphi_1_2);
+    out_hessian[57] = out_hessian[112] = vol*(T_3_9*dphi_1_0 + T_4_9*dphi_1_1 + T_5_9*dphi_1_2);
+    out_hessian[58] = out_hessian[124] = vol*(T_3_10*dphi_1_0 + T_4_10*dphi_1_1 + T_5_10*dphi_1_2);
+    out_hessian[59] = out_hessian[136] = vol*(T_3_11*dphi_1_0 + T_4_11*dphi_1_1 + T_5_11*dphi_1_2);
+    out_hessian[65] = vol*(T_6_5*dphi_1_0 + T_7_5*dphi_1_1 + T_8_5*dphi_1_2);
+    out_hessian[66] = out_hessian[77] = vol*(T_6_6*dphi_1_0 + T_7_6*dphi_1_1 + T_8_6*dphi_1_2);
+    out_hessian[67] = out_hessian[89] = vol*(T_6_7*dphi_1_0 + T_7_7*dphi_1_1 + T_8_7*dphi_1_2);
+    out_hessian[68] = out_hessian[101] = vol*(T_6_8*dphi_1_0 + T_7_8*dphi_1_1 + T_8_8*dphi_1_2);
+    out_hessian[69] = out_hessian[113] = vol*(T_6_9*dphi_1_0 + T_7_9*dphi_1_1 + T_8_9*dphi_1_2);
+    out_hessian[70] = out_hessian[125] = vol*(T_6_10*dphi_1_0 + T_7_10*dphi_1_1 + T_8_10*dphi_1_2);
+    out_hessian[71] = out_hessian[137] = vol*(T_6_11*dphi_1_0 + T_7_11*dphi_1_1 + T_8_11*dphi_1_2);
+    out_hessian[78] = vol*(T_0_6*dphi_2_0 + T_1_6*dphi_2_1 + T_2_6*dphi_2_2);
+    out_hessian[79] = out_hessian[90] = vol*(T_0_7*dphi_2_0 + T_1_7*dphi_2_1 + T_2_7*dphi_2_2);
+    out_hessian[80] = out_hessian[102] = vol*(T_0_8*dphi_2_0 + T_1_8*dphi_2_1 + T_2_8*dphi_2_2);
+    out_hessian[81] = out_hessian[114] = vol*(T_0_9*dphi_2_0 + T_1_9*dphi_2_1 + T_2_9*dphi_2_2);
+    out_hessian[82] = out_hessian[126] = vol*(T_0_10*dphi_2_0 + T_1_10*dphi_2_1 + T_2_10*dphi_2_2);
+    out_hessian[83] = out_hessian[138] = vol*(T_0_11*dphi_2_0 + T_1_11*dphi_2_1 + T_2_11*dphi_2_2);
+    out_hessian[91] = vol*(T_3_7*dphi_2_0 + T_4_7*dphi_2_1 + T_5_7*dphi_2_2);
+    out_hessian[92] = out_hessian[103] = vol*(T_3_8*dphi_2_0 + T_4_8*dphi_2_1 + T_5_8*dphi_2_2);
+    out_hessian[93] = out_hessian[115] = vol*(T_3_9*dphi_2_0 + T_4_9*dphi_2_1 + T_5_9*dphi_2_2);
+    out_hessian[94] = out_hessian[127] = vol*(T_3_10*dphi_2_0 + T_4_10*dphi_2_1 + T_5_10*dphi_2_2);
+    out_hessian[95] = out_hessian[139] = vol*(T_3_11*dphi_2_0 + T_4_11*dphi_2_1 + T_5_11*dphi_2_2);
+    out_hessian[104] = vol*(T_6_8*dphi_2_0 + T_7_8*dphi_2_1 + T_8_8*dphi_2_2);
+    out_hessian[105] = out_hessian[116] = vol*(T_6_9*dphi_2_0 + T_7_9*dphi_2_1 + T_8_9*dphi_2_2);
+    out_hessian[106] = out_hessian[128] = vol*(T_6_10*dphi_2_0 + T_7_10*dphi_2_1 + T_8_10*dphi_2_2);
+    out_hessian[107] = out_hessian[140] = vol*(T_6_11*dphi_2_0 + T_7_11*dphi_2_1 + T_8_11*dphi_2_2);
+    out_hessian[117] = vol*(T_0_9*dphi_3_0 + T_1_9*dphi_3_1 + T_2_9*dphi_3_2);
+    out_hessian[118] = out_hessian[129] = vol*(T_0_10*dphi_3_0 + T_1_10*dphi_3_1 + T_2_10*dphi_3_2);
+    out_hessian[119] = out_hessian[141] = vol*(T_0_11*dphi_3_0 + T_1_11*dphi_3_1 + T_2_11*dphi_3_2);
+    out_hessian[130] = vol*(T_3_10*dphi_3_0 + T_4_10*dphi_3_1 + T_5_10*dphi_3_2);
+    out_hessian[131] = out_hessian[142] = vol*(T_3_11*dphi_3_0 + T_4_11*dphi_3_1 + T_5_11*dphi_3_2);
+    out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
+}
+
+static void stable_neo_hookean_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
+        double *out[] = { outputs[0] + 144 * e, };
+        stable_neo_hookean_hessian_psd_jacobi_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_stable_neo_hookean_hessian_psd_jacobi(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 12, 12, 1, };
+    static const Py_ssize_t output_sizes[] = { 144, };
+    (void)self;
+    return run_kernel(args, "stable_neo_hookean_hessian_psd_jacobi", stable_neo_hookean_hessian_psd_jacobi,
+                      3, input_sizes, 2,
+                      1, output_sizes);
+}
+
+// Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t stable_neo_hookean_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
+{
+    double x[12], local[144];
+    const double *in[] = { x, NULL, NULL, };
+    double *result[] = { local };
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        stable_neo_hookean_hessian_psd_jacobi_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 144 * e;
+        for (int j = 0; j < 144; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_stable_neo_hookean_hessian_psd_jacobi_assemble(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t rest_sizes[] = { 12, 1, };
+    (void)self;
+    return run_assemble(args, "stable_neo_hookean_hessian_psd_jacobi_assemble", stable_neo_hookean_hessian_psd_jacobi_assemble_range,
+                        2, rest_sizes, 2,
+                        144);
+}

@@ -100,6 +100,12 @@ SIGNATURES = {
         "outputs": (("hessian", (12, 12)), ),
         "op_count": 1549,
     },
+    "hessian_psd_jacobi": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("mu", "kappa", "b", ),
+        "outputs": (("hessian", (12, 12)), ),
+        "op_count": 1549,
+    },
 }
 
 
@@ -1559,6 +1565,434 @@ def hessian(x_e, dphi_dX, vol, params):
 
 def hessian_psd(x_e, dphi_dX, vol, params):
     """Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite.
+
+    Parameters
+    ----------
+    x_e : (m, 4, 3) float64
+        deformed vertex positions of each tet.
+    dphi_dX : (m, 4, 3) float64
+        rest-shape gradients of the shape functions.
+    vol : (m) float64
+        rest volumes.
+    params : (n_params,) or (m, n_params) float64
+        (mu, kappa, b), shared or per element.
+
+    Returns
+    -------
+    hessian : (m, 12, 12) float64
+
+    Operation count per element: 1549.
+    """
+    m, (_in_x_e, _in_dphi_dX, _in_vol, ) = _elements((x_e, "x_e", (4, 3)), (dphi_dX, "dphi_dX", (4, 3)), (vol, "vol", ()), )
+    mu, kappa, b, = _params(params, ('mu', 'kappa', 'b'), m)
+    # inputs
+    x_0_0 = _in_x_e[0]
+    x_0_1 = _in_x_e[1]
+    x_0_2 = _in_x_e[2]
+    x_1_0 = _in_x_e[3]
+    x_1_1 = _in_x_e[4]
+    x_1_2 = _in_x_e[5]
+    x_2_0 = _in_x_e[6]
+    x_2_1 = _in_x_e[7]
+    x_2_2 = _in_x_e[8]
+    x_3_0 = _in_x_e[9]
+    x_3_1 = _in_x_e[10]
+    x_3_2 = _in_x_e[11]
+    dphi_0_0 = _in_dphi_dX[0]
+    dphi_0_1 = _in_dphi_dX[1]
+    dphi_0_2 = _in_dphi_dX[2]
+    dphi_1_0 = _in_dphi_dX[3]
+    dphi_1_1 = _in_dphi_dX[4]
+    dphi_1_2 = _in_dphi_dX[5]
+    dphi_2_0 = _in_dphi_dX[6]
+    dphi_2_1 = _in_dphi_dX[7]
+    dphi_2_2 = _in_dphi_dX[8]
+    dphi_3_0 = _in_dphi_dX[9]
+    dphi_3_1 = _in_dphi_dX[10]
+    dphi_3_2 = _in_dphi_dX[11]
+    vol = _in_vol[0]
+    # intermediates (230)
+    F_0_0 = dphi_0_0*x_0_0 + dphi_1_0*x_1_0 + dphi_2_0*x_2_0 + dphi_3_0*x_3_0
+    F_0_1 = dphi_0_1*x_0_0 + dphi_1_1*x_1_0 + dphi_2_1*x_2_0 + dphi_3_1*x_3_0
+    F_0_2 = dphi_0_2*x_0_0 + dphi_1_2*x_1_0 + dphi_2_2*x_2_0 + dphi_3_2*x_3_0
+    F_1_0 = dphi_0_0*x_0_1 + dphi_1_0*x_1_1 + dphi_2_0*x_2_1 + dphi_3_0*x_3_1
+    F_1_1 = dphi_0_1*x_0_1 + dphi_1_1*x_1_1 + dphi_2_1*x_2_1 + dphi_3_1*x_3_1
+    F_1_2 = dphi_0_2*x_0_1 + dphi_1_2*x_1_1 + dphi_2_2*x_2_1 + dphi_3_2*x_3_1
+    F_2_0 = dphi_0_0*x_0_2 + dphi_1_0*x_1_2 + dphi_2_0*x_2_2 + dphi_3_0*x_3_2
+    F_2_1 = dphi_0_1*x_0_2 + dphi_1_1*x_1_2 + dphi_2_1*x_2_2 + dphi_3_1*x_3_2
+    F_2_2 = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2
+    dJ_0_0 = F_1_1*F_2_2 - F_1_2*F_2_1
+    dJ_0_1 = -F_1_0*F_2_2 + F_1_2*F_2_0
+    dJ_0_2 = F_1_0*F_2_1 - F_1_1*F_2_0
+    dJ_1_0 = -F_0_1*F_2_2 + F_0_2*F_2_1
+    dJ_1_1 = F_0_0*F_2_2 - F_0_2*F_2_0
+    dJ_1_2 = -F_0_0*F_2_1 + F_0_1*F_2_0
+    dJ_2_0 = F_0_1*F_1_2 - F_0_2*F_1_1
+    dJ_2_1 = -F_0_0*F_1_2 + F_0_2*F_1_0
+    dJ_2_2 = F_0_0*F_1_1 - F_0_1*F_1_0
+    J = F_0_0*dJ_0_0 + F_0_1*dJ_0_1 + F_0_2*dJ_0_2
+    rcbrt_J = (numpy.cbrt(J)**2/(J))
+    I1 = (F_0_0*F_0_0) + (F_0_1*F_0_1) + (F_0_2*F_0_2) + (F_1_0*F_1_0) + (F_1_1*F_1_1) + (F_1_2*F_1_2) + (F_2_0*F_2_0) + (F_2_1*F_2_1) + (F_2_2*F_2_2)
+    h0 = (rcbrt_J*rcbrt_J)
+    h1 = I1*h0
+    h2 = numpy.exp(b*(h1 - 3))
+    h3 = h2*mu
+    h4 = h0*h3
+    h5 = F_0_0*h3
+    h6 = rcbrt_J/J
+    h7 = 3*b
+    h8 = rcbrt_J*(b*h1 + 1)
+    h9 = F_0_0*h7 - dJ_0_0*h8
+    h10 = h6*h9
+    h11 = (rcbrt_J*rcbrt_J)/J
+    h12 = 6*h11
+    h13 = I1*h3
+    h14 = 6*b*h13*rcbrt_J/(J*J)
+    h15 = 2*(I1*I1)*b*h3*rcbrt_J/(J*J*J) + 9*kappa + 5*h13*(rcbrt_J*rcbrt_J)/(J*J)
+    h16 = F_0_0*h14 - dJ_0_0*h15 + h12*h5
+    h17 = F_0_1*h3
+    h18 = 6*h10
+    h19 = h18*h3
+    h20 = 3*h11*h13 - 9*kappa*(J - 1)
+    h21 = F_2_2*h20
+    h22 = F_2_1*h20
+    h23 = F_1_2*h20
+    h24 = F_1_1*h20
+    h25 = F_0_1*h7 - dJ_0_1*h8
+    h26 = h25*h6
+    h27 = h12*h3
+    h28 = F_0_1*h14 + F_0_1*h27 - dJ_0_1*h15
+    h29 = F_0_2*h3
+    h30 = 6*h26
+    h31 = h3*h30
+    h32 = F_2_0*h20
+    h33 = F_1_0*h20
+    h34 = F_0_2*h7 - dJ_0_2*h8
+    h35 = h34*h6
+    h36 = F_0_2*h14 + F_0_2*h27 - dJ_0_2*h15
+    h37 = 6*h3*h35
+    h38 = F_1_0*h7 - dJ_1_0*h8
+    h39 = h38*h6
+    h40 = F_1_0*h14 + F_1_0*h27 - dJ_1_0*h15
+    h41 = F_1_1*h3
+    h42 = 6*h39
+    h43 = h3*h42
+    h44 = F_0_2*h20
+    h45 = F_0_1*h20
+    h46 = F_1_1*h7 - dJ_1_1*h8
+    h47 = h46*h6
+    h48 = F_1_1*h14 + F_1_1*h27 - dJ_1_1*h15
+    h49 = F_1_2*h3
+    h50 = 6*h47
+    h51 = h3*h50
+    h52 = F_0_0*h20
+    h53 = F_1_2*h7 - dJ_1_2*h8
+    h54 = h53*h6
+    h55 = F_1_2*h14 + F_1_2*h27 - dJ_1_2*h15
+    h56 = 6*h3*h54
+    h57 = h6*(F_2_0*h7 - dJ_2_0*h8)
+    h58 = F_2_0*h14 + F_2_0*h27 - dJ_2_0*h15
+    h59 = F_2_1*h3
+    h60 = 6*h57
+    h61 = F_2_2*h3
+    h62 = h6*(F_2_1*h7 - dJ_2_1*h8)
+    h63 = F_2_1*h14 + F_2_1*h27 - dJ_2_1*h15
+    A_0_0 = -1/9*dJ_0_0*h16 + (2/3)*h10*h5 + h4
+    A_0_1 = -1/9*dJ_0_1*h16 + (1/9)*h17*h18
+    A_0_2 = (1/9)*F_0_2*h19 - 1/9*dJ_0_2*h16
+    A_0_3 = (1/9)*F_1_0*h19 - 1/9*dJ_1_0*h16
+    A_0_4 = (2/3)*F_1_1*h2*h6*h9*mu - 1/9*dJ_1_1*h16 - 1/9*h21
+    A_0_5 = (1/9)*F_1_2*h19 - 1/9*dJ_1_2*h16 + (1/9)*h22
+    A_0_6 = (1/9)*F_2_0*h19 - 1/9*dJ_2_0*h16
+    A_0_7 = (1/9)*F_2_1*h19 - 1/9*dJ_2_1*h16 + (1/9)*h23
+    A_0_8 = (2/3)*F_2_2*h2*h6*h9*mu - 1/9*dJ_2_2*h16 - 1/9*h24
+    A_1_1 = -1/9*dJ_0_1*h28 + (2/3)*h17*h26 + h4
+    A_1_2 = -1/9*dJ_0_2*h28 + (1/9)*h29*h30
+    A_1_3 = (1/9)*F_1_0*h31 - 1/9*dJ_1_0*h28 + (1/9)*h21
+    A_1_4 = (1/9)*F_1_1*h31 - 1/9*dJ_1_1*h28
+    A_1_5 = (2/3)*F_1_2*h2*h25*h6*mu - 1/9*dJ_1_2*h28 - 1/9*h32
+    A_1_6 = (2/3)*F_2_0*h2*h25*h6*mu - 1/9*dJ_2_0*h28 - 1/9*h23
+    A_1_7 = (1/9)*F_2_1*h31 - 1/9*dJ_2_1*h28
+    A_1_8 = (1/9)*F_2_2*h31 - 1/9*dJ_2_2*h28 + (1/9)*h33
+    A_2_2 = -1/9*dJ_0_2*h36 + (2/3)*h29*h35 + h4
+    A_2_3 = (2/3)*F_1_0*h2*h34*h6*mu - 1/9*dJ_1_0*h36 - 1/9*h22
+    A_2_4 = (1/9)*F_1_1*h37 - 1/9*dJ_1_1*h36 + (1/9)*h32
+    A_2_5 = (1/9)*F_1_2*h37 - 1/9*dJ_1_2*h36
+    A_2_6 = (1/9)*F_2_0*h37 - 1/9*dJ_2_0*h36 + (1/9)*h24
+    A_2_7 = (2/3)*F_2_1*h2*h34*h6*mu - 1/9*dJ_2_1*h36 - 1/9*h33
+    A_2_8 = (1/9)*F_2_2*h37 - 1/9*dJ_2_2*h36
+    A_3_3 = (2/3)*F_1_0*h3*h39 - 1/9*dJ_1_0*h40 + h4
+    A_3_4 = -1/9*dJ_1_1*h40 + (1/9)*h41*h42
+    A_3_5 = (1/9)*F_1_2*h43 - 1/9*dJ_1_2*h40
+    A_3_6 = (1/9)*F_2_0*h43 - 1/9*dJ_2_0*h40
+    A_3_7 = (2/3)*F_2_1*h2*h38*h6*mu - 1/9*dJ_2_1*h40 - 1/9*h44
+    A_3_8 = (1/9)*F_2_2*h43 - 1/9*dJ_2_2*h40 + (1/9)*h45
+    A_4_4 = -1/9*dJ_1_1*h48 + h4 + (2/3)*h41*h47
+    A_4_5 = -1/9*dJ_1_2*h48 + (1/9)*h49*h50
+    A_4_6 = (1/9)*F_2_0*h51 - 1/9*dJ_2_0*h48 + (1/9)*h44
+    A_4_7 = (1/9)*F_2_1*h51 - 1/9*dJ_2_1*h48
+    A_4_8 = (2/3)*F_2_2*h2*h46*h6*mu - 1/9*dJ_2_2*h48 - 1/9*h52
+    A_5_5 = -1/9*dJ_1_2*h55 + h4 + (2/3)*h49*h54
+    A_5_6 = (2/3)*F_2_0*h2*h53*h6*mu - 1/9*dJ_2_0*h55 - 1/9*h45
+    A_5_7 = (1/9)*F_2_1*h56 - 1/9*dJ_2_1*h55 + (1/9)*h52
+    A_5_8 = (1/9)*F_2_2*h56 - 1/9*dJ_2_2*h55
+    A_6_6 = (2/3)*F_2_0*h3*h57 - 1/9*dJ_2_0*h58 + h4
+    A_6_7 = -1/9*dJ_2_1*h58 + (1/9)*h59*h60
+    A_6_8 = -1/9*dJ_2_2*h58 + (1/9)*h60*h61
+    A_7_7 = -1/9*dJ_2_1*h63 + h4 + (2/3)*h59*h62
+    A_7_8 = -1/9*dJ_2_2*h63 + (2/3)*h61*h62
+    A_8_8 = -1/9*dJ_2_2*(F_2_2*h14 + F_2_2*h27 - dJ_2_2*h15) + h4 + (2/3)*h6*h61*(F_2_2*h7 - dJ_2_2*h8)
+    Ap_0_0, Ap_0_1, Ap_0_2, Ap_0_3, Ap_0_4, Ap_0_5, Ap_0_6, Ap_0_7, Ap_0_8, Ap_1_0, Ap_1_1, Ap_1_2, Ap_1_3, Ap_1_4, Ap_1_5, Ap_1_6, Ap_1_7, Ap_1_8, Ap_2_0, Ap_2_1, Ap_2_2, Ap_2_3, Ap_2_4, Ap_2_5, Ap_2_6, Ap_2_7, Ap_2_8, Ap_3_0, Ap_3_1, Ap_3_2, Ap_3_3, Ap_3_4, Ap_3_5, Ap_3_6, Ap_3_7, Ap_3_8, Ap_4_0, Ap_4_1, Ap_4_2, Ap_4_3, Ap_4_4, Ap_4_5, Ap_4_6, Ap_4_7, Ap_4_8, Ap_5_0, Ap_5_1, Ap_5_2, Ap_5_3, Ap_5_4, Ap_5_5, Ap_5_6, Ap_5_7, Ap_5_8, Ap_6_0, Ap_6_1, Ap_6_2, Ap_6_3, Ap_6_4, Ap_6_5, Ap_6_6, Ap_6_7, Ap_6_8, Ap_7_0, Ap_7_1, Ap_7_2, Ap_7_3, Ap_7_4, Ap_7_5, Ap_7_6, Ap_7_7, Ap_7_8, Ap_8_0, Ap_8_1, Ap_8_2, Ap_8_3, Ap_8_4, Ap_8_5, Ap_8_6, Ap_8_7, Ap_8_8, = _project_psd(m, 9, (A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8, ))
+    T_0_0 = Ap_0_0*dphi_0_0 + Ap_0_1*dphi_0_1 + Ap_0_2*dphi_0_2
+    T_0_1 = Ap_0_3*dphi_0_0 + Ap_0_4*dphi_0_1 + Ap_0_5*dphi_0_2
+    T_0_2 = Ap_0_6*dphi_0_0 + Ap_0_7*dphi_0_1 + Ap_0_8*dphi_0_2
+    T_0_3 = Ap_0_0*dphi_1_0 + Ap_0_1*dphi_1_1 + Ap_0_2*dphi_1_2
+    T_0_4 = Ap_0_3*dphi_1_0 + Ap_0_4*dphi_1_1 + Ap_0_5*dphi_1_2
+    T_0_5 = Ap_0_6*dphi_1_0 + Ap_0_7*dphi_1_1 + Ap_0_8*dphi_1_2
+    T_0_6 = Ap_0_0*dphi_2_0 + Ap_0_1*dphi_2_1 + Ap_0_2*dphi_2_2
+    T_0_7 = Ap_0_3*dphi_2_0 + Ap_0_4*dphi_2_1 + Ap_0_5*dphi_2_2
+    T_0_8 = Ap_0_6*dphi_2_0 + Ap_0_7*dphi_2_1 + Ap_0_8*dphi_2_2
+    T_0_9 = Ap_0_0*dphi_3_0 + Ap_0_1*dphi_3_1 + Ap_0_2*dphi_3_2
+    T_0_10 = Ap_0_3*dphi_3_0 + Ap_0_4*dphi_3_1 + Ap_0_5*dphi_3_2
+    T_0_11 = Ap_0_6*dphi_3_0 + Ap_0_7*dphi_3_1 + Ap_0_8*dphi_3_2
+    T_1_0 = Ap_1_0*dphi_0_0 + Ap_1_1*dphi_0_1 + Ap_1_2*dphi_0_2
+    T_1_1 = Ap_1_3*dphi_0_0 + Ap_1_4*dphi_0_1 + Ap_1_5*dphi_0_2
+    T_1_2 = Ap_1_6*dphi_0_0 + Ap_1_7*dphi_0_1 + Ap_1_8*dphi_0_2
+    T_1_3 = Ap_1_0*dphi_1_0 + Ap_1_1*dphi_1_1 + Ap_1_2*dphi_1_2
+    T_1_4 = Ap_1_3*dphi_1_0 + Ap_1_4*dphi_1_1 + Ap_1_5*dphi_1_2
+    T_1_5 = Ap_1_6*dphi_1_0 + Ap_1_7*dphi_1_1 + Ap_1_8*dphi_1_2
+    T_1_6 = Ap_1_0*dphi_2_0 + Ap_1_1*dphi_2_1 + Ap_1_2*dphi_2_2
+    T_1_7 = Ap_1_3*dphi_2_0 + Ap_1_4*dphi_2_1 + Ap_1_5*dphi_2_2
+    T_1_8 = Ap_1_6*dphi_2_0 + Ap_1_7*dphi_2_1 + Ap_1_8*dphi_2_2
+    T_1_9 = Ap_1_0*dphi_3_0 + Ap_1_1*dphi_3_1 + Ap_1_2*dphi_3_2
+    T_1_10 = Ap_1_3*dphi_3_0 + Ap_1_4*dphi_3_1 + Ap_1_5*dphi_3_2
+    T_1_11 = Ap_1_6*dphi_3_0 + Ap_1_7*dphi_3_1 + Ap_1_8*dphi_3_2
+    T_2_0 = Ap_2_0*dphi_0_0 + Ap_2_1*dphi_0_1 + Ap_2_2*dphi_0_2
+    T_2_1 = Ap_2_3*dphi_0_0 + Ap_2_4*dphi_0_1 + Ap_2_5*dphi_0_2
+    T_2_2 = Ap_2_6*dphi_0_0 + Ap_2_7*dphi_0_1 + Ap_2_8*dphi_0_2
+    T_2_3 = Ap_2_0*dphi_1_0 + Ap_2_1*dphi_1_1 + Ap_2_2*dphi_1_2
+    T_2_4 = Ap_2_3*dphi_1_0 + Ap_2_4*dphi_1_1 + Ap_2_5*dphi_1_2
+    T_2_5 = Ap_2_6*dphi_1_0 + Ap_2_7*dphi_1_1 + Ap_2_8*dphi_1_2
+    T_2_6 = Ap_2_0*dphi_2_0 + Ap_2_1*dphi_2_1 + Ap_2_2*dphi_2_2
+    T_2_7 = Ap_2_3*dphi_2_0 + Ap_2_4*dphi_2_1 + Ap_2_5*dphi_2_2
+    T_2_8 = Ap_2_6*dphi_2_0 + Ap_2_7*dphi_2_1 + Ap_2_8*dphi_2_2
+    T_2_9 = Ap_2_0*dphi_3_0 + Ap_2_1*dphi_3_1 + Ap_2_2*dphi_3_2
+    T_2_10 = Ap_2_3*dphi_3_0 + Ap_2_4*dphi_3_1 + Ap_2_5*dphi_3_2
+    T_2_11 = Ap_2_6*dphi_3_0 + Ap_2_7*dphi_3_1 + Ap_2_8*dphi_3_2
+    T_3_1 = Ap_3_3*dphi_0_0 + Ap_3_4*dphi_0_1 + Ap_3_5*dphi_0_2
+    T_3_2 = Ap_3_6*dphi_0_0 + Ap_3_7*dphi_0_1 + Ap_3_8*dphi_0_2
+    T_3_3 = Ap_3_0*dphi_1_0 + Ap_3_1*dphi_1_1 + Ap_3_2*dphi_1_2
+    T_3_4 = Ap_3_3*dphi_1_0 + Ap_3_4*dphi_1_1 + Ap_3_5*dphi_1_2
+    T_3_5 = Ap_3_6*dphi_1_0 + Ap_3_7*dphi_1_1 + Ap_3_8*dphi_1_2
+    T_3_6 = Ap_3_0*dphi_2_0 + Ap_3_1*dphi_2_1 + Ap_3_2*dphi_2_2
+    T_3_7 = Ap_3_3*dphi_2_0 + Ap_3_4*dphi_2_1 + Ap_3_5*dphi_2_2
+    T_3_8 = Ap_3_6*dphi_2_0 + Ap_3_7*dphi_2_1 + Ap_3_8*dphi_2_2
+    T_3_9 = Ap_3_0*dphi_3_0 + Ap_3_1*dphi_3_1 + Ap_3_2*dphi_3_2
+    T_3_10 = Ap_3_3*dphi_3_0 + Ap_3_4*dphi_3_1 + Ap_3_5*dphi_3_2
+    T_3_11 = Ap_3_6*dphi_3_0 + Ap_3_7*dphi_3_1 + Ap_3_8*dphi_3_2
+    T_4_1 = Ap_4_3*dphi_0_0 + Ap_4_4*dphi_0_1 + Ap_4_5*dphi_0_2
+    T_4_2 = Ap_4_6*dphi_0_0 + Ap_4_7*dphi_0_1 + Ap_4_8*dphi_0_2
+    T_4_3 = Ap_4_0*dphi_1_0 + Ap_4_1*dphi_1_1 + Ap_4_2*dphi_1_2
+    T_4_4 = Ap_4_3*dphi_1_0 + Ap_4_4*dphi_1_1 + Ap_4_5*dphi_1_2
+    T_4_5 = Ap_4_6*dphi_1_0 + Ap_4_7*dphi_1_1 + Ap_4_8*dphi_1_2
+    T_4_6 = Ap_4_0*dphi_2_0 + Ap_4_1*dphi_2_1 + Ap_4_2*dphi_2_2
+    T_4_7 = Ap_4_3*dphi_2_0 + Ap_4_4*dphi_2_1 + Ap_4_5*dphi_2_2
+    T_4_8 = Ap_4_6*dphi_2_0 + Ap_4_7*dphi_2_1 + Ap_4_8*dphi_2_2
+    T_4_9 = Ap_4_0*dphi_3_0 + Ap_4_1*dphi_3_1 + Ap_4_2*dphi_3_2
+    T_4_10 = Ap_4_3*dphi_3_0 + Ap_4_4*dphi_3_1 + Ap_4_5*dphi_3_2
+    T_4_11 = Ap_4_6*dphi_3_0 + Ap_4_7*dphi_3_1 + Ap_4_8*dphi_3_2
+    T_5_1 = Ap_5_3*dphi_0_0 + Ap_5_4*dphi_0_1 + Ap_5_5*dphi_0_2
+    T_5_2 = Ap_5_6*dphi_0_0 + Ap_5_7*dphi_0_1 + Ap_5_8*dphi_0_2
+    T_5_3 = Ap_5_0*dphi_1_0 + Ap_5_1*dphi_1_1 + Ap_5_2*dphi_1_2
+    T_5_4 = Ap_5_3*dphi_1_0 + Ap_5_4*dphi_1_1 + Ap_5_5*dphi_1_2
+    T_5_5 = Ap_5_6*dphi_1_0 + Ap_5_7*dphi_1_1 + Ap_5_8*dphi_1_2
+    T_5_6 = Ap_5_0*dphi_2_0 + Ap_5_1*dphi_2_1 + Ap_5_2*dphi_2_2
+    T_5_7 = Ap_5_3*dphi_2_0 + Ap_5_4*dphi_2_1 + Ap_5_5*dphi_2_2
+    T_5_8 = Ap_5_6*dphi_2_0 + Ap_5_7*dphi_2_1 + Ap_5_8*dphi_2_2
+    T_5_9 = Ap_5_0*dphi_3_0 + Ap_5_1*dphi_3_1 + Ap_5_2*dphi_3_2
+    T_5_10 = Ap_5_3*dphi_3_0 + Ap_5_4*dphi_3_1 + Ap_5_5*dphi_3_2
+    T_5_11 = Ap_5_6*dphi_3_0 + Ap_5_7*dphi_3_1 + Ap_5_8*dphi_3_2
+    T_6_2 = Ap_6_6*dphi_0_0 + Ap_6_7*dphi_0_1 + Ap_6_8*dphi_0_2
+    T_6_3 = Ap_6_0*dphi_1_0 + Ap_6_1*dphi_1_1 + Ap_6_2*dphi_1_2
+    T_6_4 = Ap_6_3*dphi_1_0 + Ap_6_4*dphi_1_1 + Ap_6_5*dphi_1_2
+    T_6_5 = Ap_6_6*dphi_1_0 + Ap_6_7*dphi_1_1 + Ap_6_8*dphi_1_2
+    T_6_6 = Ap_6_0*dphi_2_0 + Ap_6_1*dphi_2_1 + Ap_6_2*dphi_2_2
+    T_6_7 = Ap_6_3*dphi_2_0 + Ap_6_4*dphi_2_1 + Ap_6_5*dphi_2_2
+    T_6_8 = Ap_6_6*dphi_2_0 + Ap_6_7*dphi_2_1 + Ap_6_8*dphi_2_2
+    T_6_9 = Ap_6_0*dphi_3_0 + Ap_6_1*dphi_3_1 + Ap_6_2*dphi_3_2
+    T_6_10 = Ap_6_3*dphi_3_0 + Ap_6_4*dphi_3_1 + Ap_6_5*dphi_3_2
+    T_6_11 = Ap_6_6*dphi_3_0 + Ap_6_7*dphi_3_1 + Ap_6_8*dphi_3_2
+    T_7_2 = Ap_7_6*dphi_0_0 + Ap_7_7*dphi_0_1 + Ap_7_8*dphi_0_2
+    T_7_3 = Ap_7_0*dphi_1_0 + Ap_7_1*dphi_1_1 + Ap_7_2*dphi_1_2
+    T_7_4 = Ap_7_3*dphi_1_0 + Ap_7_4*dphi_1_1 + Ap_7_5*dphi_1_2
+    T_7_5 = Ap_7_6*dphi_1_0 + Ap_7_7*dphi_1_1 + Ap_7_8*dphi_1_2
+    T_7_6 = Ap_7_0*dphi_2_0 + Ap_7_1*dphi_2_1 + Ap_7_2*dphi_2_2
+    T_7_7 = Ap_7_3*dphi_2_0 + Ap_7_4*dphi_2_1 + Ap_7_5*dphi_2_2
+    T_7_8 = Ap_7_6*dphi_2_0 + Ap_7_7*dphi_2_1 + Ap_7_8*dphi_2_2
+    T_7_9 = Ap_7_0*dphi_3_0 + Ap_7_1*dphi_3_1 + Ap_7_2*dphi_3_2
+    T_7_10 = Ap_7_3*dphi_3_0 + Ap_7_4*dphi_3_1 + Ap_7_5*dphi_3_2
+    T_7_11 = Ap_7_6*dphi_3_0 + Ap_7_7*dphi_3_1 + Ap_7_8*dphi_3_2
+    T_8_2 = Ap_8_6*dphi_0_0 + Ap_8_7*dphi_0_1 + Ap_8_8*dphi_0_2
+    T_8_3 = Ap_8_0*dphi_1_0 + Ap_8_1*dphi_1_1 + Ap_8_2*dphi_1_2
+    T_8_4 = Ap_8_3*dphi_1_0 + Ap_8_4*dphi_1_1 + Ap_8_5*dphi_1_2
+    T_8_5 = Ap_8_6*dphi_1_0 + Ap_8_7*dphi_1_1 + Ap_8_8*dphi_1_2
+    T_8_6 = Ap_8_0*dphi_2_0 + Ap_8_1*dphi_2_1 + Ap_8_2*dphi_2_2
+    T_8_7 = Ap_8_3*dphi_2_0 + Ap_8_4*dphi_2_1 + Ap_8_5*dphi_2_2
+    T_8_8 = Ap_8_6*dphi_2_0 + Ap_8_7*dphi_2_1 + Ap_8_8*dphi_2_2
+    T_8_9 = Ap_8_0*dphi_3_0 + Ap_8_1*dphi_3_1 + Ap_8_2*dphi_3_2
+    T_8_10 = Ap_8_3*dphi_3_0 + Ap_8_4*dphi_3_1 + Ap_8_5*dphi_3_2
+    T_8_11 = Ap_8_6*dphi_3_0 + Ap_8_7*dphi_3_1 + Ap_8_8*dphi_3_2
+    # outputs
+    _out_hessian = numpy.empty((144, m))
+    _out_hessian[0] = vol*(T_0_0*dphi_0_0 + T_1_0*dphi_0_1 + T_2_0*dphi_0_2)
+    _out_hessian[1] = vol*(T_0_1*dphi_0_0 + T_1_1*dphi_0_1 + T_2_1*dphi_0_2)
+    _out_hessian[12] = _out_hessian[1]
+    _out_hessian[2] = vol*(T_0_2*dphi_0_0 + T_1_2*dphi_0_1 + T_2_2*dphi_0_2)
+    _out_hessian[24] = _out_hessian[2]
+    _out_hessian[3] = vol*(T_0_3*dphi_0_0 + T_1_3*dphi_0_1 + T_2_3*dphi_0_2)
+    _out_hessian[36] = _out_hessian[3]
+    _out_hessian[4] = vol*(T_0_4*dphi_0_0 + T_1_4*dphi_0_1 + T_2_4*dphi_0_2)
+    _out_hessian[48] = _out_hessian[4]
+    _out_hessian[5] = vol*(T_0_5*dphi_0_0 + T_1_5*dphi_0_1 + T_2_5*dphi_0_2)
+    _out_hessian[60] = _out_hessian[5]
+    _out_hessian[6] = vol*(T_0_6*dphi_0_0 + T_1_6*dphi_0_1 + T_2_6*dphi_0_2)
+    _out_hessian[72] = _out_hessian[6]
+    _out_hessian[7] = vol*(T_0_7*dphi_0_0 + T_1_7*dphi_0_1 + T_2_7*dphi_0_2)
+    _out_hessian[84] = _out_hessian[7]
+    _out_hessian[8] = vol*(T_0_8*dphi_0_0 + T_1_8*dphi_0_1 + T_2_8*dphi_0_2)
+    _out_hessian[96] = _out_hessian[8]
+    _out_hessian[9] = vol*(T_0_9*dphi_0_0 + T_1_9*dphi_0_1 + T_2_9*dphi_0_2)
+    _out_hessian[108] = _out_hessian[9]
+    _out_hessian[10] = vol*(T_0_10*dphi_0_0 + T_1_10*dphi_0_1 + T_2_10*dphi_0_2)
+    _out_hessian[120] = _out_hessian[10]
+    _out_hessian[11] = vol*(T_0_11*dphi_0_0 + T_1_11*dphi_0_1 + T_2_11*dphi_0_2)
+    _out_hessian[132] = _out_hessian[11]
+    _out_hessian[13] = vol*(T_3_1*dphi_0_0 + T_4_1*dphi_0_1 + T_5_1*dphi_0_2)
+    _out_hessian[14] = vol*(T_3_2*dphi_0_0 + T_4_2*dphi_0_1 + T_5_2*dphi_0_2)
+    _out_hessian[25] = _out_hessian[14]
+    _out_hessian[15] = vol*(T_3_3*dphi_0_0 + T_4_3*dphi_0_1 + T_5_3*dphi_0_2)
+    _out_hessian[37] = _out_hessian[15]
+    _out_hessian[16] = vol*(T_3_4*dphi_0_0 + T_4_4*dphi_0_1 + T_5_4*dphi_0_2)
+    _out_hessian[49] = _out_hessian[16]
+    _out_hessian[17] = vol*(T_3_5*dphi_0_0 + T_4_5*dphi_0_1 + T_5_5*dphi_0_2)
+    _out_hessian[61] = _out_hessian[17]
+    _out_hessian[18] = vol*(T_3_6*dphi_0_0 + T_4_6*dphi_0_1 + T_5_6*dphi_0_2)
+    _out_hessian[73] = _out_hessian[18]
+    _out_hessian[19] = vol*(T_3_7*dphi_0_0 + T_4_7*dphi_0_1 + T_5_7*dphi_0_2)
+    _out_hessian[85] = _out_hessian[19]
+    _out_hessian[20] = vol*(T_3_8*dphi_0_0 + T_4_8*dphi_0_1 + T_5_8*dphi_0_2)
+    _out_hessian[97] = _out_hessian[20]
+    _out_hessian[21] = vol*(T_3_9*dphi_0_0 + T_4_9*dphi_0_1 + T_5_9*dphi_0_2)
+    _out_hessian[109] = _out_hessian[21]
+    _out_hessian[22] = vol*(T_3_10*dphi_0_0 + T_4_10*dphi_0_1 + T_5_10*dphi_0_2)
+    _out_hessian[121] = _out_hessian[22]
+    _out_hessian[23] = vol*(T_3_11*dphi_0_0 + T_4_11*dphi_0_1 + T_5_11*dphi_0_2)
+    _out_hessian[133] = _out_hessian[23]
+    _out_hessian[26] = vol*(T_6_2*dphi_0_0 + T_7_2*dphi_0_1 + T_8_2*dphi_0_2)
+    _out_hessian[27] = vol*(T_6_3*dphi_0_0 + T_7_3*dphi_0_1 + T_8_3*dphi_0_2)
+    _out_hessian[38] = _out_hessian[27]
+    _out_hessian[28] = vol*(T_6_4*dphi_0_0 + T_7_4*dphi_0_1 + T_8_4*dphi_0_2)
+    _out_hessian[50] = _out_hessian[28]
+    _out_hessian[29] = vol*(T_6_5*dphi_0_0 + T_7_5*dphi_0_1 + T_8_5*dphi_0_2)
+    _out_hessian[62] = _out_hessian[29]
+    _out_hessian[30] = vol*(T_6_6*dphi_0_0 + T_7_6*dphi_0_1 + T_8_6*dphi_0_2)
+    _out_hessian[74] = _out_hessian[30]
+    _out_hessian[31] = vol*(T_6_7*dphi_0_0 + T_7_7*dphi_0_1 + T_8_7*dphi_0_2)
+    _out_hessian[86] = _out_hessian[31]
+    _out_hessian[32] = vol*(T_6_8*dphi_0_0 + T_7_8*dphi_0_1 + T_8_8*dphi_0_2)
+    _out_hessian[98] = _out_hessian[32]
+    _out_hessian[33] = vol*(T_6_9*dphi_0_0 + T_7_9*dphi_0_1 + T_8_9*dphi_0_2)
+    _out_hessian[110] = _out_hessian[33]
+    _out_hessian[34] = vol*(T_6_10*dphi_0_0 + T_7_10*dphi_0_1 + T_8_10*dphi_0_2)
+    _out_hessian[122] = _out_hessian[34]
+    _out_hessian[35] = vol*(T_6_11*dphi_0_0 + T_7_11*dphi_0_1 + T_8_11*dphi_0_2)
+    _out_hessian[134] = _out_hessian[35]
+    _out_hessian[39] = vol*(T_0_3*dphi_1_0 + T_1_3*dphi_1_1 + T_2_3*dphi_1_2)
+    _out_hessian[40] = vol*(T_0_4*dphi_1_0 + T_1_4*dphi_1_1 + T_2_4*dphi_1_2)
+    _out_hessian[51] = _out_hessian[40]
+    _out_hessian[41] = vol*(T_0_5*dphi_1_0 + T_1_5*dphi_1_1 + T_2_5*dphi_1_2)
+    _out_hessian[63] = _out_hessian[41]
+    _out_hessian[42] = vol*(T_0_6*dphi_1_0 + T_1_6*dphi_1_1 + T_2_6*dphi_1_2)
+    _out_hessian[75] = _out_hessian[42]
+    _out_hessian[43] = vol*(T_0_7*dphi_1_0 + T_1_7*dphi_1_1 + T_2_7*dphi_1_2)
+    _out_hessian[87] = _out_hessian[43]
+    _out_hessian[44] = vol*(T_0_8*dphi_1_0 + T_1_8*dphi_1_1 + T_2_8*dphi_1_2)
+    _out_hessian[99] = _out_hessian[44]
+    _out_hessian[45] = vol*(T_0_9*dphi_1_0 + T_1_9*dphi_1_1 + T_2_9*dphi_1_2)
+    _out_hessian[111] = _out_hessian[45]
+    _out_hessian[46] = vol*(T_0_10*dphi_1_0 + T_1_10*dphi_1_1 + T_2_10*dphi_1_2)
+    _out_hessian[123] = _out_hessian[46]
+    _out_hessian[47] = vol*(T_0_11*dphi_1_0 + T_1_11*dphi_1_1 + T_2_11*dphi_1_2)
+    _out_hessian[135] = _out_hessian[47]
+    _out_hessian[52] = vol*(T_3_4*dphi_1_0 + T_4_4*dphi_1_1 + T_5_4*dphi_1_2)
+    _out_hessian[53] = vol*(T_3_5*dphi_1_0 + T_4_5*dphi_1_1 + T_5_5*dphi_1_2)
+    _out_hessian[64] = _out_hessian[53]
+    _out_hessian[54] = vol*(T_3_6*dphi_1_0 + T_4_6*dphi_1_1 + T_5_6*dphi_1_2)
+    _out_hessian[76] = _out_hessian[54]
+    _out_hessian[55] = vol*(T_3_7*dphi_1_0 + T_4_7*dphi_1_1 + T_5_7*dphi_1_2)
+    _out_hessian[88] = _out_hessian[55]
+    _out_hessian[56] = vol*(T_3_8*dphi_1_0 + T_4_8*dphi_1_1 + T_5_8*dphi_1_2)
+    _out_hessian[100] = _out_hessian[56]
+    _out_hessian[57] = vol*(T_3_9*dphi_1_0 + T_4_9*dphi_1_1 + T_5_9*dphi_1_2)
+    _out_hessian[112] = _out_hessian[57]
+    _out_hessian[58] = vol*(T_3_10*dphi_1_0 + T_4_10*dphi_1_1 + T_5_10*dphi_1_2)
+    _out_hessian[124] = _out_hessian[58]
+    _out_hessian[59] = vol*(T_3_11*dphi_1_0 + T_4_11*dphi_1_1 + T_5_11*dphi_1_2)
+    _out_hessian[136] = _out_hessian[59]
+    _out_hessian[65] = vol*(T_6_5*dphi_1_0 + T_7_5*dphi_1_1 + T_8_5*dphi_1_2)
+    _out_hessian[66] = vol*(T_6_6*dphi_1_0 + T_7_6*dphi_1_1 + T_8_6*dphi_1_2)
+    _out_hessian[77] = _out_hessian[66]
+    _out_hessian[67] = vol*(T_6_7*dphi_1_0 + T_7_7*dphi_1_1 + T_8_7*dphi_1_2)
+    _out_hessian[89] = _out_hessian[67]
+    _out_hessian[68] = vol*(T_6_8*dphi_1_0 + T_7_8*dphi_1_1 + T_8_8*dphi_1_2)
+    _out_hessian[101] = _out_hessian[68]
+    _out_hessian[69] = vol*(T_6_9*dphi_1_0 + T_7_9*dphi_1_1 + T_8_9*dphi_1_2)
+    _out_hessian[113] = _out_hessian[69]
+    _out_hessian[70] = vol*(T_6_10*dphi_1_0 + T_7_10*dphi_1_1 + T_8_10*dphi_1_2)
+    _out_hessian[125] = _out_hessian[70]
+    _out_hessian[71] = vol*(T_6_11*dphi_1_0 + T_7_11*dphi_1_1 + T_8_11*dphi_1_2)
+    _out_hessian[137] = _out_hessian[71]
+    _out_hessian[78] = vol*(T_0_6*dphi_2_0 + T_1_6*dphi_2_1 + T_2_6*dphi_2_2)
+    _out_hessian[79] = vol*(T_0_7*dphi_2_0 + T_1_7*dphi_2_1 + T_2_7*dphi_2_2)
+    _out_hessian[90] = _out_hessian[79]
+    _out_hessian[80] = vol*(T_0_8*dphi_2_0 + T_1_8*dphi_2_1 + T_2_8*dphi_2_2)
+    _out_hessian[102] = _out_hessian[80]
+    _out_hessian[81] = vol*(T_0_9*dphi_2_0 + T_1_9*dphi_2_1 + T_2_9*dphi_2_2)
+    _out_hessian[114] = _out_hessian[81]
+    _out_hessian[82] = vol*(T_0_10*dphi_2_0 + T_1_10*dphi_2_1 + T_2_10*dphi_2_2)
+    _out_hessian[126] = _out_hessian[82]
+    _out_hessian[83] = vol*(T_0_11*dphi_2_0 + T_1_11*dphi_2_1 + T_2_11*dphi_2_2)
+    _out_hessian[138] = _out_hessian[83]
+    _out_hessian[91] = vol*(T_3_7*dphi_2_0 + T_4_7*dphi_2_1 + T_5_7*dphi_2_2)
+    _out_hessian[92] = vol*(T_3_8*dphi_2_0 + T_4_8*dphi_2_1 + T_5_8*dphi_2_2)
+    _out_hessian[103] = _out_hessian[92]
+    _out_hessian[93] = vol*(T_3_9*dphi_2_0 + T_4_9*dphi_2_1 + T_5_9*dphi_2_2)
+    _out_hessian[115] = _out_hessian[93]
+    _out_hessian[94] = vol*(T_3_10*dphi_2_0 + T_4_10*dphi_2_1 + T_5_10*dphi_2_2)
+    _out_hessian[127] = _out_hessian[94]
+    _out_hessian[95] = vol*(T_3_11*dphi_2_0 + T_4_11*dphi_2_1 + T_5_11*dphi_2_2)
+    _out_hessian[139] = _out_hessian[95]
+    _out_hessian[104] = vol*(T_6_8*dphi_2_0 + T_7_8*dphi_2_1 + T_8_8*dphi_2_2)
+    _out_hessian[105] = vol*(T_6_9*dphi_2_0 + T_7_9*dphi_2_1 + T_8_9*dphi_2_2)
+    _out_hessian[116] = _out_hessian[105]
+    _out_hessian[106] = vol*(T_6_10*dphi_2_0 + T_7_10*dphi_2_1 + T_8_10*dphi_2_2)
+    _out_hessian[128] = _out_hessian[106]
+    _out_hessian[107] = vol*(T_6_11*dphi_2_0 + T_7_11*dphi_2_1 + T_8_11*dphi_2_2)
+    _out_hessian[140] = _out_hessian[107]
+    _out_hessian[117] = vol*(T_0_9*dphi_3_0 + T_1_9*dphi_3_1 + T_2_9*dphi_3_2)
+    _out_hessian[118] = vol*(T_0_10*dphi_3_0 + T_1_10*dphi_3_1 + T_2_10*dphi_3_2)
+    _out_hessian[129] = _out_hessian[118]
+    _out_hessian[119] = vol*(T_0_11*dphi_3_0 + T_1_11*dphi_3_1 + T_2_11*dphi_3_2)
+    _out_hessian[141] = _out_hessian[119]
+    _out_hessian[130] = vol*(T_3_10*dphi_3_0 + T_4_10*dphi_3_1 + T_5_10*dphi_3_2)
+    _out_hessian[131] = vol*(T_3_11*dphi_3_0 + T_4_11*dphi_3_1 + T_5_11*dphi_3_2)
+    _out_hessian[142] = _out_hessian[131]
+    _out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2)
+    return _finish(_out_hessian, m, (12, 12))
+
+
+def hessian_psd_jacobi(x_e, dphi_dX, vol, params):
+    """Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi.
 
     Parameters
     ----------

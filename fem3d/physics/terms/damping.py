@@ -103,7 +103,7 @@ class RayleighDamping(Term):
             return None
         data = np.zeros(self.model.nnz)
         if self._beta_vol is not None:
-            add_element_hessians(self.model, "hessian_psd", q, self._beta_vol,
+            add_element_hessians(self.model, self.model.psd_hessian, q, self._beta_vol,
                                  self.model.scatter, data)
         if self._alpha_mass is not None:
             data += self._alpha_mass

@@ -40,7 +40,7 @@ class Elasticity(Term):
         return assemble_gradient(self.model, q)
 
     def add_hessian(self, q: np.ndarray, sink: HessianSink) -> None:
-        sink.add_elements(self.model, "hessian_psd" if sink.psd else "hessian", q)
+        sink.add_elements(self.model, self.model.psd_hessian if sink.psd else "hessian", q)
 
     def with_model(self, model: Model) -> Elasticity:
         return Elasticity(model)
