@@ -25,6 +25,10 @@ Scenes that changed since keep the settings they were recorded with (``record_tr
 overrides): ``contact_bunny_drop`` without the self-contact and damping it gained, and
 the contact scenes without the Newton start and substeps the gallery's scene files set since
 (``contact.newton_start = "clamped"``, ``contact.max_substeps = 1``, the spec's defaults).
+The four cases that project an indefinite ``dP/dF`` (Newton's ``psd`` Hessian, stiffness
+damping: ``arma_psd``, ``cantilever``, ``cantilever_amg``, ``armadillo_surface``) keep the
+cyclic Jacobi projection they were recorded with (``simulation.psd_projection = "jacobi"``;
+QL replaced it as the default at stop 31).
 
 The last bits of some cases depend on the CPU (the BLAS and NumPy kernels a machine's
 instruction set selects: dot products in CG and in the energies): on an AMD EPYC with
