@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 from types import ModuleType
 
@@ -293,11 +293,12 @@ def material_module(name: str) -> ModuleSpec:
     for kernel_name, method, how in (("hessian_psd", "ql", ""),
                                      ("hessian_psd_jacobi", "jacobi", " by cyclic Jacobi")):
         projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)), method)
-        kernels.append(make_kernel(
+        kernel = make_kernel(
             name, kernel_name,
             hess_doc[:-1] + f" with dP/dF projected to positive semi-definite{how}.",
             element_inputs, params,
-            *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
+            *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection]))
+        kernels.append(kernel if method == "ql" else replace(kernel, numpy_alias="hessian_psd"))
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),

@@ -162,6 +162,7 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
             used |= e.free_symbols
     return {
         "name": kernel.name,
+        "numpy_alias": kernel.numpy_alias,
         "qualified_name": kernel.qualified_name,
         "doc": kernel.doc,
         "inputs": [_arg_view(a, used) for a in kernel.inputs],

@@ -86,6 +86,9 @@ class KernelSpec:
     params: tuple[Argument, ...]
     intermediates: tuple[Step, ...]
     outputs: tuple[Output, ...]
+    numpy_alias: str | None = None
+    """The NumPy back end's kernel of that name computes this one too (a twin that differs
+    only in its C projection's method): rendered as an alias, not a second copy."""
 
     @property
     def op_count(self) -> int:
