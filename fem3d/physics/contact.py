@@ -71,12 +71,13 @@ from fem3d.physics.contact_candidates import StepCandidates
 from fem3d.physics.contact_frame import FarTravelCCD
 from fem3d.physics.contact_planes import Entries, PlanePairs
 
-#: Padding of the step's candidate boxes, in ``dhat``: above the collision sets' own
-#: ``dhat / 2``, so that iterates a quarter ``dhat`` outside the step's predicted region
-#: reuse the set. Every query pays for every candidate (CCD runs over all of them): on the
-#: pile 2 ``dhat`` made 1e5 candidates where an iterate's swept boxes hold 5e3, and 0.75
-#: ran its first 60 steps 1.16x faster with the same trajectory bit for bit (docs/contact.md).
+#: Padding of the step's candidate boxes, in ``dhat``, when a step starts (the collision
+#: sets need ``dhat / 2``). Every query pays for every candidate: on the pile 2 ``dhat``
+#: made 1e5 where an iterate's swept boxes hold 5e3 (docs/contact.md, "Stop 31").
 STEP_PAD = 0.75
+#: ... and once an iterate has left them (moving more than predicted, as a tumbling stack):
+#: 0.75 there re-ran the stack's broad phase 1.7x as often.
+GROWTH_PAD = 2.0
 
 __all__ = [
     "PlaneObstacle",
@@ -240,7 +241,7 @@ class _Part:
         self.key: bytes | None = None
         self.collisions = ipctk.NormalCollisions()
         self.tangential: ipctk.TangentialCollisions | None = None
-        # the model pads by STEP_PAD dhat; the boxes grow no wider than a far query's reach
+        # grown boxes padded by GROWTH_PAD dhat, no wider than a far query's reach
         self.step = StepCandidates(mesh, broad_phase, pad, max_extent=reach)
 
     def view(self, V: np.ndarray) -> np.ndarray:
@@ -392,7 +393,7 @@ class ContactModel(PlanePairs):
         self._parts: list[_Part] = []
         if self.self_contact or np.unique(self._groups).size > 1:
             self._parts.append(_Part(self.mesh, offset, self._broad_phase,
-                                     STEP_PAD * dhat, self._far.reach))
+                                     GROWTH_PAD * dhat, self._far.reach))
         self._plane_n = np.array([p.normal for p in self.planes]).reshape(-1, 3)
         self._plane_o = np.array([p.point @ p.normal for p in self.planes]).reshape(-1)
         self._plane_lag: tuple[np.ndarray, ...] | None = None
@@ -459,17 +460,18 @@ class ContactModel(PlanePairs):
         return V
 
     # -- collision sets -----------------------------------------------------------------------
-    def start_step(self, *configurations: np.ndarray, pad: float = 0.0) -> None:
+    def start_step(self, *configurations: np.ndarray, pad: float | None = None) -> None:
         """A new time step from ``configurations[0]`` (positions ``q``): the step's
         candidates are built around every configuration given (where the step is expected
-        to go), inflated by ``pad`` (at least the parts' own), and grown only when a later
-        query leaves them."""
+        to go), inflated by ``pad`` (default :data:`STEP_PAD` ``dhat``), and grown only when
+        a later query leaves them."""
         if not configurations:
             raise ValueError("start_step needs the step's start positions")
         Vs = [self.collision_vertices(q) for q in configurations]
         for part in self._parts:
             builds = part.step.builds
-            part.step.reset(*[part.view(V) for V in Vs], pad=pad)
+            part.step.reset(*[part.view(V) for V in Vs],
+                            pad=STEP_PAD * self.dhat if pad is None else pad)
             self.stats.broad_phases += part.step.builds - builds
             part.key = None
 

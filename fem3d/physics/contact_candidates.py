@@ -38,8 +38,9 @@ class StepCandidates:
     mesh : ipctk.CollisionMesh
     broad_phase : ipctk.BroadPhase
     pad : float
-        Added on every side of a box when it is (re)built, so that iterates moving a little
-        further reuse the set.
+        Added on every side of a box when it grows (and when a step's set is built, unless
+        :meth:`reset` is given its own), so that iterates moving a little further reuse the
+        set.
     max_extent : float, optional
         A box grows to hold a query only while no box gets wider than this; beyond, the set
         is rebuilt around the query alone (a step whose iterates travel far, as ``static``'s
@@ -68,12 +69,12 @@ class StepCandidates:
     def reset(self, *configurations: np.ndarray, pad: float | None = None) -> None:
         """Forget the boxes (a new step); with ``configurations`` (``(k, 3)`` each), build the
         set at once around the boxes that hold them (inflated by ``pad``, default
-        :attr:`pad`)."""
+        :attr:`pad`, the padding of grown boxes)."""
         self.lo = self.hi = self.candidates = None
         if configurations:
             lo = np.minimum.reduce(configurations)
             hi = np.maximum.reduce(configurations)
-            p = self.pad if pad is None else max(float(pad), self.pad)
+            p = self.pad if pad is None else float(pad)
             self._build(lo - p, hi + p)
 
     def covering(self, lo: np.ndarray, hi: np.ndarray) -> ipctk.Candidates:
