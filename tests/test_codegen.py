@@ -396,8 +396,6 @@ def test_the_jacobi_projection_equals_the_ql_one_to_round_off(material: str,
     changed = np.abs(ql - H).max(axis=(1, 2)) > 1e-9 * np.abs(H).max()
     assert changed.any() or material == "linear"  # both meet indefinite elements
     np.testing.assert_allclose(jacobi, ql, rtol=1e-9, atol=1e-11 * np.abs(H).max())
-    # where neither projects, both return the exact Hessian bit for bit
-    np.testing.assert_array_equal(jacobi[~changed], ql[~changed])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
