@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
 
@@ -290,15 +290,13 @@ def material_module(name: str) -> ModuleSpec:
         *_hessian_contraction(A_sym, D, vol, stress_derivative)))
     # Projecting dP/dF (not the 12x12) keeps B^T A B positive semi-definite at a 9x9 cost.
     A_psd = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"Ap_{a}_{b}"))
-    for kernel_name, method, how in (("hessian_psd", "ql", ""),
-                                     ("hessian_psd_jacobi", "jacobi", " by cyclic Jacobi")):
-        projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)), method)
-        kernel = make_kernel(
-            name, kernel_name,
-            hess_doc[:-1] + f" with dP/dF projected to positive semi-definite{how}.",
-            element_inputs, params,
-            *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection]))
-        kernels.append(kernel if method == "ql" else replace(kernel, numpy_alias="hessian_psd"))
+    projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)))
+    psd_doc = hess_doc[:-1] + " with dP/dF projected to positive semi-definite"
+    kernels.append(make_kernel(
+        name, "hessian_psd", psd_doc + ".", element_inputs, params,
+        *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
+    kernels.append(kernels[-1].projected_by("hessian_psd_jacobi", "jacobi",
+                                            psd_doc + " by cyclic Jacobi."))
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),

@@ -150,8 +150,7 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
     for step in kernel.intermediates:
         if isinstance(step, Projection):
             used |= set(step.inputs)
-            steps.append({"kind": "project", "n": step.n, "method": step.method,
-                          "inputs": [str(s) for s in step.inputs],
+            steps.append({"kind": "project", "n": step.n, "inputs": [str(s) for s in step.inputs],
                           "outputs": [str(s) for s in step.outputs]})
         else:
             used |= step[1].free_symbols
@@ -162,7 +161,8 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
             used |= e.free_symbols
     return {
         "name": kernel.name,
-        "numpy_alias": kernel.numpy_alias,
+        "twin_of": kernel.twin_of,
+        "projection_method": kernel.projection_method,
         "qualified_name": kernel.qualified_name,
         "doc": kernel.doc,
         "inputs": [_arg_view(a, used) for a in kernel.inputs],

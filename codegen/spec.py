@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import sympy as sp
 
@@ -86,9 +86,25 @@ class KernelSpec:
     params: tuple[Argument, ...]
     intermediates: tuple[Step, ...]
     outputs: tuple[Output, ...]
-    numpy_alias: str | None = None
-    """The NumPy back end's kernel of that name computes this one too (a twin that differs
-    only in its C projection's method): rendered as an alias, not a second copy."""
+    twin_of: str | None = None
+    """This kernel is that one of the same module with its :class:`Projection` steps by
+    another method: the C back end renders a wrapper passing its projection to the twin's
+    element body, the NumPy back end (LAPACK for every method) an alias; neither a copy."""
+
+    @property
+    def projection_method(self) -> str | None:
+        """The method of its :class:`Projection` steps (None without one)."""
+        methods = {s.method for s in self.intermediates if isinstance(s, Projection)}
+        if len(methods) > 1:
+            raise ValueError(f"{self.qualified_name}: projections by several methods")
+        return methods.pop() if methods else None
+
+    def projected_by(self, name: str, method: str, doc: str) -> KernelSpec:
+        """This kernel as ``name`` with its projections by ``method`` (a twin, not derived
+        again)."""
+        steps = tuple(replace(s, method=method) if isinstance(s, Projection) else s
+                      for s in self.intermediates)
+        return replace(self, name=name, doc=doc, intermediates=steps, twin_of=self.name)
 
     @property
     def op_count(self) -> int:
