@@ -32,7 +32,7 @@ BUNNY_DROP_AS_RECORDED = {"contact.self_contact": False,
 #: contact scenes as recorded: Newton started from the CCD-clamped velocity and no substeps
 #: (the spec's defaults; the gallery's drop, stack and fold set newton_start = "q_t", and
 #: all but the pile contact.max_substeps = 8, since issue 21's rounds; the stack the reuse
-#: Newton solver and simplicial CHOLMOD since stop 28)
+#: Newton solver since stop 28 and CHOLMOD simplicial in stops 28-31, supernodal since)
 CONTACT_AS_RECORDED = {"contact.newton_start": "clamped", "contact.max_substeps": 1,
                        "simulation.newton.solver": "direct", "simulation.cholmod": "auto"}
 

@@ -3,6 +3,10 @@ always."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -253,3 +257,31 @@ def test_cholmod_auto_mode_follows_the_factor_cost() -> None:
     assert linsolve.SIMPLICIAL_MAX_N >= 400
     with pytest.raises(ValueError, match="cholmod_mode"):
         SparseSPDSolver(small, "cholmod", cholmod_mode="fast")
+
+
+@pytest.mark.skipif("cholmod" not in AVAILABLE, reason="CHOLMOD not installed")
+def test_cholmod_runs_on_the_calling_thread_alone() -> None:
+    # CHOLMOD 3's supernodal code opens a 4-thread OpenMP region per supernode whatever
+    # OMP_NUM_THREADS says; fem3d runs those regions on one thread (a factorization of the
+    # pile's matrix: 93 ms with the team on 2 cores, 24 ms without). A fresh process: the
+    # team, once started, stays alive, and other tests start OpenMP teams of their own.
+    script = """
+import os, numpy as np, scipy.sparse as sp
+from fem3d.solve.linear import SparseSPDSolver
+n = 24
+lap = sp.diags([-1.0, 2.01, -1.0], [-1, 0, 1], shape=(n, n))
+eye = sp.identity(n)
+A = (sp.kron(sp.kron(lap, eye), eye) + sp.kron(sp.kron(eye, lap), eye)
+     + sp.kron(sp.kron(eye, eye), lap)).tocsr()
+solver = SparseSPDSolver(A, "cholmod", cholmod_mode="supernodal")
+solver.factorize(A)
+x = solver.solve(np.ones(A.shape[0]))
+assert np.allclose(A @ x, 1.0)
+print(len(os.listdir("/proc/self/task")))
+"""
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("needs Linux's /proc to count threads")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, check=True, timeout=120)
+    assert int(out.stdout.split()[-1]) == 1
