@@ -68,8 +68,10 @@ import scipy.sparse as sp
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.contact_candidates import StepCandidates
+from fem3d.physics.contact_diagnostics import group_chain, intersecting_pairs
 from fem3d.physics.contact_frame import FarTravelCCD
 from fem3d.physics.contact_planes import Entries, PlanePairs
+from fem3d.physics.friction_majorizer import FrictionMajorizer
 
 #: Padding of the step's candidate boxes, in ``dhat``, when a step starts (the collision
 #: sets need ``dhat / 2``). Every query pays for every candidate: on the pile 2 ``dhat``
@@ -113,6 +115,9 @@ HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
     "abs": ipctk.PSDProjectionMethod.ABS,
     "exact": ipctk.PSDProjectionMethod.CLAMP,
 }
+#: The friction's part of Newton's matrix: ipctk's Hessian (projected as the barrier's), or the
+#: Hessian of a quadratic majorizer (:mod:`fem3d.physics.friction_majorizer`).
+FRICTION_HESSIANS = {"exact": "exact", "majorizer": "majorizer"}
 
 
 def _choice(table: dict, name: str, what: str):
@@ -241,6 +246,7 @@ class _Part:
         self.key: bytes | None = None
         self.collisions = ipctk.NormalCollisions()
         self.tangential: ipctk.TangentialCollisions | None = None
+        self.majorizer: FrictionMajorizer | None = None  # of ``tangential``, when asked
         # grown boxes padded by GROWTH_PAD dhat, no wider than a far query's reach
         self.step = StepCandidates(mesh, broad_phase, pad, max_extent=reach)
 
@@ -284,6 +290,9 @@ class ContactModel(PlanePairs):
         A key of :data:`HESSIAN_PROJECTIONS`: how the per-pair barrier and friction Hessians
         are made PSD (``"clamp"``, default; ``"abs"``), or ``"exact"``: left as they are in
         the Newton matrix unless Newton asks for a PSD one (:meth:`projects`).
+    friction_hessian : str, optional
+        A key of :data:`FRICTION_HESSIANS`: ``"exact"`` (default; ipctk's, projected as the
+        barrier's) or ``"majorizer"`` (:mod:`fem3d.physics.friction_majorizer`).
 
     Attributes
     ----------
@@ -315,6 +324,7 @@ class ContactModel(PlanePairs):
         broad_phase: str = "hash_grid",
         narrow_phase: str = "additive",
         hessian_projection: str = "clamp",
+        friction_hessian: str = "exact",
     ) -> None:
         X = np.ascontiguousarray(X, dtype=np.float64)
         T = np.ascontiguousarray(T, dtype=np.int64)
@@ -344,6 +354,8 @@ class ContactModel(PlanePairs):
         self._ccd = _choice(NARROW_PHASES, narrow_phase, "contact CCD")()
         self._psd = _choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
         self.hessian_projection = hessian_projection
+        self.friction_hessian_kind = _choice(FRICTION_HESSIANS, friction_hessian, "contact."
+                                             "friction_hessian")
         self.broad_phase_name = broad_phase
         self._broad_phase = BROAD_PHASES[broad_phase]()
         self.planes, self.meshes = tuple(planes), tuple(meshes)
@@ -354,9 +366,8 @@ class ContactModel(PlanePairs):
         if body_ids.shape != (n,):
             raise ValueError(f"body_ids must be ({n},), got {body_ids.shape}")
         self.body_ids = body_ids
-        n_bodies = int(body_ids.max()) + 1 if n else 0
-        self.body_names = (list(body_names) if body_names is not None
-                           else [f"body {i}" for i in range(n_bodies)])
+        self.body_names = (list(body_names) if body_names is not None else
+                           [f"body {i}" for i in range(int(body_ids.max()) + 1 if n else 0)])
 
         # dynamic part: the boundary surface, renumbered
         F = boundary_faces(T)
@@ -377,10 +388,8 @@ class ContactModel(PlanePairs):
             offset += m.vertices.shape[0]
         self.n_surface = surface.size
         self.n_collision_vertices = offset
-        Fc = np.ascontiguousarray(np.concatenate(faces), dtype=np.int32)
-        self.faces = Fc
-        V0 = np.asfortranarray(np.concatenate(verts))
-        self._rest = V0
+        self.faces = Fc = np.ascontiguousarray(np.concatenate(faces), dtype=np.int32)
+        self._rest = V0 = np.asfortranarray(np.concatenate(verts))
         E = ipctk.edges(Fc)
         self._groups = np.concatenate(groups)
         #: Every surface and mesh obstacle (no planes): intersection checks and messages.
@@ -425,7 +434,7 @@ class ContactModel(PlanePairs):
         if self.self_contact:
             return ipctk.make_static_obstacle_filter(self.n_surface)
         # ipctk's connected-components filter over synthetic faces chaining each group
-        chain = self._chain(groups)
+        chain = group_chain(groups)
         return ipctk.make_connected_components_filter(chain)
 
     def set_kappa(self, kappa: float) -> None:
@@ -626,7 +635,7 @@ class ContactModel(PlanePairs):
             q_lag, V = q_basis, self.collision_vertices(q_basis)
         self._lag_planes(q_lag)
         for part in self._parts:
-            part.tangential = None
+            part.tangential = part.majorizer = None
             if self.mu == 0.0:
                 continue
             Vp = part.view(V)
@@ -666,10 +675,19 @@ class ContactModel(PlanePairs):
         """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO
         (``triplets``: :class:`Entries`)."""
         how = self._psd if project else ipctk.PSDProjectionMethod.NONE
-        Hs = [self._friction.hessian(p.tangential, p.mesh, U, how) for p, U in self._slips(q)]
+        if self.friction_hessian_kind == "majorizer":
+            Hs = [self._majorizer(p).hessian(U) for p, U in self._slips(q)]
+        else:
+            Hs = [self._friction.hessian(p.tangential, p.mesh, U, how)
+                  for p, U in self._slips(q)]
         if self._plane_lag is not None:
             Hs.append(self._plane_friction(q, 2, project=project))
         return self._to_full_matrix(Hs, triplets)
+
+    def _majorizer(self, part: _Part) -> FrictionMajorizer:
+        if part.majorizer is None:  # read once per lagging
+            part.majorizer = FrictionMajorizer(part.tangential, part.mesh, self._friction.eps_v)
+        return part.majorizer
 
     @property
     def n_friction_pairs(self) -> int:
@@ -768,61 +786,6 @@ class ContactModel(PlanePairs):
             return True
         return bool(ipctk.has_intersections(self.mesh, V, broad_phase=self._broad_phase))
 
-    def intersecting_pairs(self, q: np.ndarray) -> list[tuple[str, str]]:
-        """Names of the (body/obstacle, body/obstacle) pairs that intersect at ``q``.
-
-        Slow (one collision mesh per pair); meant for error messages.
-        """
-        q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
-        out: list[tuple[str, str]] = []
-        names = list(self.body_names)
-        V = self.collision_vertices(q3)
-        groups = self._groups.copy()
-        # each mesh obstacle its own group for the names
-        for i, off in enumerate(self._mesh_offsets):
-            k = self.meshes[i].vertices.shape[0]
-            groups[off:off + k] = len(names) + i
-        names += [m.name for m in self.meshes]
-        present = np.unique(groups)
-        faces_group = groups[self.faces[:, 0]]
-        for ia, a in enumerate(present):
-            for b in present[ia:]:
-                if a == b and (a >= len(self.body_names) or not self.self_contact):
-                    continue
-                sel = np.flatnonzero((faces_group == a) | (faces_group == b))
-                F = self.faces[sel]
-                used = np.unique(F)
-                ren = np.full(V.shape[0], -1, dtype=np.int64)
-                ren[used] = np.arange(used.size)
-                Fs = np.ascontiguousarray(ren[F], dtype=np.int32)
-                Vs = np.asfortranarray(V[used])
-                cm = ipctk.CollisionMesh(Vs, ipctk.edges(Fs), Fs)
-                if a != b:
-                    ga = groups[used]
-                    cm.can_collide = ipctk.make_connected_components_filter(
-                        self._chain(ga))
-                if ipctk.has_intersections(cm, Vs):
-                    out.append((names[a], names[b]))
-        for p in self.planes:
-            gaps = p.signed_distance(V[: self.n_surface])
-            for b in np.unique(self._groups[: self.n_surface][gaps <= 0]):
-                out.append((names[b], p.name))
-        return out
-
-    @staticmethod
-    def _chain(groups: np.ndarray) -> np.ndarray:
-        """Synthetic triangles ``(k, 3) int32`` that connect each group's vertices (a fan; a
-        degenerate triangle for a pair): one connected component per group."""
-        tris = [np.zeros((0, 3), dtype=np.int64)]
-        for g in np.unique(groups):
-            ids = np.flatnonzero(groups == g)
-            if ids.size >= 3:
-                tris.append(np.stack([np.full(ids.size - 2, ids[0]), ids[1:-1], ids[2:]],
-                                     axis=1))
-            elif ids.size == 2:
-                tris.append(np.array([[ids[0], ids[1], ids[1]]]))
-        return np.ascontiguousarray(np.concatenate(tris), dtype=np.int32)
-
     def check_admissible(self, q: np.ndarray, *, step: int | None = None) -> None:
         """Raise :class:`SimulationError` naming the bodies when ``q`` intersects or touches.
 
@@ -832,7 +795,7 @@ class ContactModel(PlanePairs):
             Intersecting bodies/obstacles, or primitives at distance 0 (infinite barrier).
         """
         if self.has_intersections(q):
-            pairs = self.intersecting_pairs(q)
+            pairs = intersecting_pairs(self, q)
             what = "; ".join(f"{a} and {b}" if a != b else f"{a} with itself"
                              for a, b in pairs) or "the collision surfaces"
             raise SimulationError(f"contact: the state is not intersection-free: {what} "

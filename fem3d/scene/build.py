@@ -381,7 +381,8 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
                       meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa,
                       mu=spec.static_mu, mu_k=spec.kinetic_mu,
                       eps_v=spec.eps_v * L, self_contact=spec.self_contact,
-                      hessian_projection=spec.hessian_projection)
+                      hessian_projection=spec.hessian_projection,
+                      friction_hessian=spec.friction_hessian)
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
                        friction_tolerance=spec.friction_tolerance,

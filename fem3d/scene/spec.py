@@ -414,6 +414,11 @@ class ContactSpec(_Spec):
     #: matrix; clamped only where Newton asks for a PSD one). docs/contact.md. The default
     #: stays "clamp": recorded runs and old checkpoints resume as they were run
     hessian_projection: Literal["clamp", "abs", "exact"] = "clamp"
+    #: the friction's part of Newton's matrix: ipctk's Hessian ("exact"), or that of a
+    #: quadratic that lies above the friction and touches it at the iterate ("majorizer":
+    #: no overshoot when a step carries a slip back into the static zone, fewer line-search
+    #: halvings at impacts; the solution is the same). fem3d.physics.friction_majorizer
+    friction_hessian: Literal["exact", "majorizer"] = "exact"
 
     @field_validator("max_substeps")
     @classmethod
