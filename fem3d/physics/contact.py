@@ -672,8 +672,8 @@ class ContactModel(PlanePairs):
 
     def friction_hessian(self, q: np.ndarray, *, project: bool = True,
                          triplets: bool = False) -> sp.coo_matrix | Entries:
-        """``d2D/dq2`` (PSD-projected per pair when ``project``), ``(3n, 3n)`` COO
-        (``triplets``: :class:`Entries`)."""
+        """``d2D/dq2`` (PSD-projected per pair when ``project``; the majorizer's is PSD as it
+        is), ``(3n, 3n)`` COO (``triplets``: :class:`Entries`)."""
         how = self._psd if project else ipctk.PSDProjectionMethod.NONE
         if self.friction_hessian_kind == "majorizer":
             Hs = [self._majorizer(p).hessian(U) for p, U in self._slips(q)]

@@ -20,8 +20,11 @@ for every ``du``: ``w lambda (g / y) T^T T`` is the Hessian of a quadratic that 
 friction at ``u`` (same value and gradient) and lies above it everywhere (iteratively
 reweighted least squares, Weiszfeld's step for ``|u|``). In Newton's matrix it makes the
 friction's part of every step a descent that never overshoots; the objective, its gradient and
-the solution are IPC's own. It is positive semi-definite by construction (no eigen
-projection) and equals the exact Hessian at zero slip.
+its minimiser are IPC's own. It is positive semi-definite by construction (no eigen
+projection) and equals the exact Hessian at zero slip. Where a pair slides, its step is
+shorter than the exact Hessian's (the majorizer is stiffer along the slip), so IPC's stopping
+rule on the step's length stops further from the minimiser at the same tolerance
+(docs/contact.md "Stop 32").
 """
 
 from __future__ import annotations

@@ -417,7 +417,8 @@ class ContactSpec(_Spec):
     #: the friction's part of Newton's matrix: ipctk's Hessian ("exact"), or that of a
     #: quadratic that lies above the friction and touches it at the iterate ("majorizer":
     #: no overshoot when a step carries a slip back into the static zone, fewer line-search
-    #: halvings at impacts; the solution is the same). fem3d.physics.friction_majorizer
+    #: halvings at impacts; the same minimiser, but IPC's stopping rule then measures a
+    #: shorter step). fem3d.physics.friction_majorizer, docs/contact.md "Stop 32"
     friction_hessian: Literal["exact", "majorizer"] = "exact"
 
     @field_validator("max_substeps")
