@@ -105,6 +105,16 @@ NARROW_PHASES: dict[str, Callable[[], object]] = {
     "tight_inclusion": lambda: ipctk.TightInclusionCCD(1e-6, 10_000),
 }
 
+#: Additive CCD (ipctk 1.6.1) can miss a crossing that starts closer than this fraction of the
+#: scene's diagonal (IPC's adaptive stiffness acts below 1e-9 too). The pile's step 184: an
+#: edge-edge pair 2.5e-11 m apart crosses at 0.67 of a step; ipctk's 1e7 conservative
+#: advancements (of about 2e-7 of the step each) pass the crossing in round-off and call the
+#: step free (bench/results/accd_miss_pile_step184.npz). From such a start the step is checked
+#: again with at most :data:`CCD_GUARD_ITERATIONS` advancements: additive CCD that runs out of
+#: them reports a collision where it stands (here at 0.11), before the round-off.
+CCD_GUARD_DISTANCE = 1e-9
+CCD_GUARD_ITERATIONS = 100_000
+
 #: PSD projections of the per-pair Hessians by name: negative eigenvalues clamped at zero, or
 #: mirrored to their absolute value (Chen et al. 2024: fewer Newton iterations on nonconvex
 #: configurations).
@@ -118,6 +128,13 @@ HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
 #: The friction's part of Newton's matrix: ipctk's Hessian (projected as the barrier's), or the
 #: Hessian of a quadratic majorizer (:mod:`fem3d.physics.friction_majorizer`).
 FRICTION_HESSIANS = {"exact": "exact", "majorizer": "majorizer"}
+
+
+def _narrow_phases(name: str) -> tuple[object, object | None]:
+    """The CCD ``name`` and its guard for nearly touching starts (:data:`CCD_GUARD_DISTANCE`;
+    None: the CCD needs none)."""
+    ccd = _choice(NARROW_PHASES, name, "contact CCD")()
+    return ccd, (ipctk.AdditiveCCD(CCD_GUARD_ITERATIONS) if name == "additive" else None)
 
 
 def _choice(table: dict, name: str, what: str):
@@ -351,7 +368,7 @@ class ContactModel(PlanePairs):
         # ipctk's multithreaded assembly sums per-thread parts in a varying order: the same
         # step differs in the last bits from run to run, which breaks bit-exact resume
         ipctk.set_num_threads(1)
-        self._ccd = _choice(NARROW_PHASES, narrow_phase, "contact CCD")()
+        self._ccd, self._ccd_guard = _narrow_phases(narrow_phase)
         self._psd = _choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
         self.hessian_projection = hessian_projection
         self.friction_hessian_kind = _choice(FRICTION_HESSIANS, friction_hessian, "contact."
@@ -743,10 +760,20 @@ class ContactModel(PlanePairs):
             cands = self._candidates_along(part, P0, P1)
             a = min(a, float(cands.compute_collision_free_stepsize(
                 part.mesh, P0, P1, narrow_phase_ccd=self._ccd)))
+            if self._ccd_guard is not None and self._nearly_touching(q0):
+                a = min(a, float(cands.compute_collision_free_stepsize(
+                    part.mesh, P0, P1, narrow_phase_ccd=self._ccd_guard)))
         a = min(a, self._plane_step(V0[: self.n_surface], V1[: self.n_surface]))
         self.stats.ccd_calls += 1
         self.stats.seconds_ccd += time.perf_counter() - t0
         return a
+
+    def _nearly_touching(self, q: np.ndarray) -> bool:
+        """Some mesh-mesh pair at ``q`` is closer than :data:`CCD_GUARD_DISTANCE` x the
+        diagonal (ipctk returns squared distances)."""
+        limit = (CCD_GUARD_DISTANCE * self.bbox_diagonal) ** 2
+        return any(float(p.collisions.compute_minimum_distance(p.mesh, V)) < limit
+                   for p, V in self._active_sets(q))
 
     def obstacle_step(self, q: np.ndarray, t0: float, t1: float) -> float:
         """CCD step of the kinematic obstacles moving from ``t0`` to ``t1`` with the bodies at
