@@ -51,84 +51,6 @@ static inline double fem3d_powi(double x, int n)
     return r;
 }
 
-// Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
-// zero, in place: cyclic Jacobi rotations, then a = V max(L, 0) V^T (unchanged if PSD).
-// The projection of the "hessian_psd_jacobi" kernels: 2-3x slower than fem3d_project_psd's
-// QL (eigen.c), kept for its round-off, that of every run before stop 31.
-static void fem3d_project_psd_jacobi(int n, double *a)
-{
-    double v[144], original[144], ldl[144], pivot[12];
-    double scale = 0.0;
-    for (int i = 0; i < n * n; ++i) scale += a[i] * a[i];
-    if (scale == 0.0) return;
-    // Fast path: an LDL^T without pivoting whose pivots are all >= -tol proves a is PSD
-    // (near rest most elements are), so the eigen-solve is skipped.
-    const double tol = 1e-12 * sqrt(scale);
-    int psd = 1;
-    for (int k = 0; k < n && psd; ++k) {
-        double d = a[k * n + k];
-        for (int j = 0; j < k; ++j) d -= ldl[k * n + j] * ldl[k * n + j] * pivot[j];
-        if (d < -tol) psd = 0;
-        pivot[k] = d;
-        for (int i = k + 1; i < n; ++i) {
-            double sum = a[i * n + k];
-            for (int j = 0; j < k; ++j) sum -= ldl[i * n + j] * ldl[k * n + j] * pivot[j];
-            ldl[i * n + k] = d > tol ? sum / d : 0.0;
-            if (d <= tol && fabs(sum) > tol) psd = 0;  // zero pivot with coupling: indefinite
-        }
-    }
-    if (psd) return;
-    memcpy(original, a, sizeof(double) * n * n);
-    for (int i = 0; i < n; ++i)
-        for (int j = 0; j < n; ++j) v[i * n + j] = (i == j);
-    for (int sweep = 0; sweep < 30; ++sweep) {
-        double off = 0.0;
-        for (int p = 0; p < n; ++p)
-            for (int q = p + 1; q < n; ++q) off += a[p * n + q] * a[p * n + q];
-        if (off <= 1e-26 * scale) break;
-        for (int p = 0; p < n; ++p) {
-            for (int q = p + 1; q < n; ++q) {
-                const double apq = a[p * n + q];
-                if (fabs(apq) <= 1e-18 * sqrt(scale)) continue;
-                const double theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
-                const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
-                const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
-                for (int k = 0; k < n; ++k) {  // columns p, q
-                    const double akp = a[k * n + p], akq = a[k * n + q];
-                    a[k * n + p] = c * akp - s * akq;
-                    a[k * n + q] = s * akp + c * akq;
-                }
-                for (int k = 0; k < n; ++k) {  // rows p, q
-                    const double apk = a[p * n + k], aqk = a[q * n + k];
-                    a[p * n + k] = c * apk - s * aqk;
-                    a[q * n + k] = s * apk + c * aqk;
-                }
-                for (int k = 0; k < n; ++k) {
-                    const double vkp = v[k * n + p], vkq = v[k * n + q];
-                    v[k * n + p] = c * vkp - s * vkq;
-                    v[k * n + q] = s * vkp + c * vkq;
-                }
-            }
-        }
-    }
-    double lambda[12];
-    int negative = 0;
-    for (int i = 0; i < n; ++i) {
-        lambda[i] = a[i * n + i] > 0.0 ? a[i * n + i] : 0.0;
-        negative |= a[i * n + i] < 0.0;
-    }
-    if (!negative) {  // already positive semi-definite: keep the input exactly
-        memcpy(a, original, sizeof(double) * n * n);
-        return;
-    }
-    for (int i = 0; i < n; ++i)
-        for (int j = i; j < n; ++j) {
-            double sum = 0.0;
-            for (int k = 0; k < n; ++k) sum += v[i * n + k] * lambda[k] * v[j * n + k];
-            a[i * n + j] = a[j * n + i] = sum;
-        }
-}
-
 typedef void (*kernel_fn)(Py_ssize_t, const double *const *, const double *, Py_ssize_t,
                           double *const *);
 
@@ -1951,6 +1873,68 @@ static void fem3d_project_psd(int n, double *a)
         for (int j = i; j < n; ++j) {
             double sum = 0.0;
             for (int k = 0; k < n; ++k) sum += v[i * n + k] * d[k] * v[j * n + k];
+            a[i * n + j] = a[j * n + i] = sum;
+        }
+}
+
+// Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
+// zero, in place: cyclic Jacobi rotations, then a = V max(L, 0) V^T (unchanged if PSD).
+// The projection of the "hessian_psd_jacobi" kernels: 2-3x slower than fem3d_project_psd's
+// QL (above), kept for its round-off, that of every run before stop 31; the same LDL^T
+// fast path.
+static void fem3d_project_psd_jacobi(int n, double *a)
+{
+    double v[144], original[144];
+    double scale = 0.0;
+    for (int i = 0; i < n * n; ++i) scale += a[i] * a[i];
+    if (scale == 0.0 || fem3d_ldl_psd(n, a)) return;  // near rest most elements are PSD
+    memcpy(original, a, sizeof(double) * n * n);
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < n; ++j) v[i * n + j] = (i == j);
+    for (int sweep = 0; sweep < 30; ++sweep) {
+        double off = 0.0;
+        for (int p = 0; p < n; ++p)
+            for (int q = p + 1; q < n; ++q) off += a[p * n + q] * a[p * n + q];
+        if (off <= 1e-26 * scale) break;
+        for (int p = 0; p < n; ++p) {
+            for (int q = p + 1; q < n; ++q) {
+                const double apq = a[p * n + q];
+                if (fabs(apq) <= 1e-18 * sqrt(scale)) continue;
+                const double theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
+                const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
+                for (int k = 0; k < n; ++k) {  // columns p, q
+                    const double akp = a[k * n + p], akq = a[k * n + q];
+                    a[k * n + p] = c * akp - s * akq;
+                    a[k * n + q] = s * akp + c * akq;
+                }
+                for (int k = 0; k < n; ++k) {  // rows p, q
+                    const double apk = a[p * n + k], aqk = a[q * n + k];
+                    a[p * n + k] = c * apk - s * aqk;
+                    a[q * n + k] = s * apk + c * aqk;
+                }
+                for (int k = 0; k < n; ++k) {
+                    const double vkp = v[k * n + p], vkq = v[k * n + q];
+                    v[k * n + p] = c * vkp - s * vkq;
+                    v[k * n + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    double lambda[12];
+    int negative = 0;
+    for (int i = 0; i < n; ++i) {
+        lambda[i] = a[i * n + i] > 0.0 ? a[i * n + i] : 0.0;
+        negative |= a[i * n + i] < 0.0;
+    }
+    if (!negative) {  // already positive semi-definite: keep the input exactly
+        memcpy(a, original, sizeof(double) * n * n);
+        return;
+    }
+    for (int i = 0; i < n; ++i)
+        for (int j = i; j < n; ++j) {
+            double sum = 0.0;
+            for (int k = 0; k < n; ++k) sum += v[i * n + k] * lambda[k] * v[j * n + k];
             a[i * n + j] = a[j * n + i] = sum;
         }
 }
