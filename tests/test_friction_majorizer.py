@@ -51,6 +51,17 @@ def test_its_gradient_is_ipctks(mu_s: float, mu_k: float) -> None:
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
 
 
+@pytest.mark.parametrize("mu_s, mu_k", [(0.5, 0.5), (0.6, 0.3), (0.8, 0.0)])
+def test_its_force_over_slip_is_ipctks(mu_s: float, mu_k: float) -> None:
+    import ipctk
+
+    _, _, maj = lagged_pairs(mu_s, mu_k)
+    y = np.linspace(0.0, 3.0, 601) * maj.eps
+    maj.mu = np.tile([mu_s, mu_k], (y.size, 1))
+    want = [ipctk.smooth_mu_f1_over_x(float(v), mu_s, mu_k, maj.eps) for v in y]
+    np.testing.assert_allclose(maj.force_over_slip(y), want, rtol=1e-14)
+
+
 def test_at_zero_slip_it_is_ipctks_hessian() -> None:
     import ipctk
 

@@ -56,6 +56,7 @@ class FrictionMajorizer:
                                  collisions.ee_collisions, collisions.fv_collisions)
                  for c in group]
         m = len(pairs)
+        # ipctk hands out its pairs one by one (no arrays): read once per lagging, here
         self.ids = np.full((m, 4), -1, dtype=np.int64)  # stencil vertices (-1: none)
         self.T = np.zeros((m, 2, 12))  # slip of the stencil's displacements
         self.scale = np.empty(m)  # w lambda
@@ -87,14 +88,17 @@ class FrictionMajorizer:
         return np.einsum("mij,mj->mi", self.T, stencil)
 
     def force_over_slip(self, y: np.ndarray) -> np.ndarray:
-        """``mu(y) f1(y) / y`` per pair (its limit ``2 mu_s / eps`` at ``y = 0``)."""
+        """``mu(y) f1(y) / y`` per pair (its limit ``2 mu_s / eps`` at ``y = 0``):
+        ``ipctk.smooth_mu_f1_over_x`` vectorized. ipctk's ``mu(y)`` falls from ``mu_s`` to
+        ``mu_k`` over ``y < eps`` as ``1 - 2 t^2`` then ``2 (1 - t)^2`` (``t = y / eps``; a test
+        holds it to ipctk's friction gradient)."""
         eps = self.eps
         mu_s, mu_k = self.mu[:, 0], self.mu[:, 1]
-        if np.array_equal(mu_s, mu_k):
-            f1_y = np.where(y < eps, 2.0 / eps - y / (eps * eps), 1.0 / np.maximum(y, eps))
-            return mu_k * f1_y
-        return np.array([ipctk.smooth_mu_f1_over_x(float(a), float(s), float(k), eps)
-                         for a, s, k in zip(y, mu_s, mu_k, strict=True)])
+        small = y < eps
+        f1_y = np.where(small, 2.0 / eps - y / (eps * eps), 1.0 / np.maximum(y, eps))
+        t = np.minimum(y / eps, 1.0)
+        blend = np.where(t < 0.5, 1.0 - 2.0 * t * t, 2.0 * (1.0 - t) ** 2)
+        return (mu_k + (mu_s - mu_k) * blend) * f1_y
 
     def gradient(self, U: np.ndarray) -> np.ndarray:
         """The friction's gradient at ``U`` (the majorizer's is the same), ``(3n,)``."""
