@@ -59,7 +59,9 @@ def test_its_force_over_slip_is_ipctks(mu_s: float, mu_k: float) -> None:
     y = np.linspace(0.0, 3.0, 601) * maj.eps
     maj.mu = np.tile([mu_s, mu_k], (y.size, 1))
     want = [ipctk.smooth_mu_f1_over_x(float(v), mu_s, mu_k, maj.eps) for v in y]
-    np.testing.assert_allclose(maj.force_over_slip(y), want, rtol=1e-14)
+    # round-off of ipctk's own cancellations near y = eps, relative to the largest value
+    np.testing.assert_allclose(maj.force_over_slip(y), want, rtol=1e-12,
+                               atol=1e-14 * max(want))
 
 
 def test_at_zero_slip_it_is_ipctks_hessian() -> None:
