@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import build_model
@@ -64,3 +65,35 @@ def test_contact_entries_outside_the_pattern_are_added_where_they_belong():
         np.add.at(expected, (r[keep], c[keep]), 0.5 * vals[keep])
         assert np.array_equal(B.toarray(), expected)
         assert B.nnz == system._ext.keys.size and system.pattern_covers(rows, cols)
+
+
+def test_the_c_search_finds_the_positions_numpy_finds(monkeypatch):
+    """System._search: the C extension's per-row search against NumPy's search of all keys,
+    on the base and on a widened pattern, keys inside, missing, and past the last one."""
+    from fem3d.kernels.backend import c_extension
+
+    if c_extension() is None:
+        pytest.skip("the C extension is not built")
+    import fem3d.solve.system as system_module
+
+    system = _system()
+    nf = system.constraints.n_free
+    rng = np.random.default_rng(11)
+    for widen in (False, True):
+        if widen:
+            system._extend(rng.integers(0, nf * nf, 40))
+        have = system._base_key_array() if system._ext is None else system._ext.keys
+        missing = np.setdiff1d(rng.integers(0, nf * nf, 60), have)
+        for keys in (have[rng.integers(0, have.size, 80)],
+                     np.concatenate([have[:5], missing, [nf * nf - 1, have[-1]]])):
+            pos, inside = system._search(have, keys)
+            expected = np.minimum(np.searchsorted(have, keys), have.size - 1)
+            assert np.array_equal(pos, expected)
+            assert inside == bool(np.array_equal(have[expected], keys))
+            monkeypatch.setattr(system_module, "c_extension", lambda: None)
+            assert np.array_equal(system._search(have, keys)[0], pos)
+            assert system._search(have, keys)[1] == inside
+            monkeypatch.undo()
+        assert not system._search(have, missing)[1]
+    with pytest.raises(ValueError, match="outside the"):
+        system._search(have, np.array([nf * nf]))
