@@ -496,7 +496,8 @@ class System:
 
     def _like(self, A: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
         B = sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape, copy=False)
-        B.has_sorted_indices = True
+        # the solver's patterns hold sorted, unique columns: scipy need not scan for them
+        B.has_canonical_format = True
         return B
 
     def _base_key_array(self) -> np.ndarray:
@@ -672,7 +673,7 @@ class _ExtendedPattern:
     def csr(self, data: np.ndarray) -> sp.csr_matrix:
         A = sp.csr_matrix((data, self.pattern.indices, self.pattern.indptr),
                           shape=self.pattern.shape, copy=False)
-        A.has_sorted_indices = True
+        A.has_canonical_format = True  # sorted unique keys
         return A
 
 
@@ -821,5 +822,5 @@ class NewtonMatrixBuilder:
         pf = self.system.pattern_free
         A = sp.csr_matrix((data[:self._nnz], pf.indices, pf.indptr), shape=pf.shape,
                           copy=False)
-        A.has_sorted_indices = True
+        A.has_canonical_format = True
         return A

@@ -91,6 +91,10 @@ class RayleighDamping(Term):
         self._step: StepMap | None = None
         self._data: np.ndarray | None = None
         self._D: sp.csr_matrix | None = None
+        # h D's values, and gathered to a system's reduced pattern: constant within a step,
+        # so each Newton matrix adds them without scaling and gathering 1e5-1e6 values again
+        self._scaled: np.ndarray | None = None
+        self._reduced: tuple[np.ndarray, np.ndarray] | None = None  # (kept slots, values)
 
     @property
     def active(self) -> bool:
@@ -113,6 +117,7 @@ class RayleighDamping(Term):
         self._step = step
         self._data = self.matrix_data(step.q_t)
         self._D = None if self._data is None else self.model.csr(self._data)
+        self._scaled = self._reduced = None
 
     def energy(self, x: np.ndarray) -> float:
         v = self._step.velocity(x)
@@ -123,7 +128,15 @@ class RayleighDamping(Term):
         return step.h * (self._D @ step.velocity(x))[step.constraints.free_dofs]
 
     def add_hessian(self, x: np.ndarray, sink: HessianSink) -> None:
-        sink.add_pattern_values(self._data, self._step.h)
+        if self._scaled is None:
+            self._scaled = self._step.h * self._data
+        kept = getattr(getattr(sink, "system", None), "_kept", None)
+        if kept is None:
+            sink.add_pattern_values(self._scaled)
+            return
+        if self._reduced is None or self._reduced[0] is not kept:
+            self._reduced = (kept, self._scaled[kept])
+        sink.add_pattern_values(self._scaled, reduced=self._reduced[1])
 
     def with_model(self, model: Model) -> RayleighDamping:
         return RayleighDamping(model, self.alpha, self.beta)
