@@ -696,12 +696,20 @@ class NewtonMatrixBuilder:
         ``h^2``: what position terms' Hessians are scaled by (the chain rule).
     psd : bool
         Terms add their PSD-projected Hessians.
+
+    Attributes
+    ----------
+    kept : (nnz_free,) int
+        The slot in ``model.pattern``'s data of every entry of :attr:`System.pattern_free`:
+        a term whose values stay the same over a step gathers them once (``values[kept]``)
+        and passes them as ``reduced`` to :meth:`add_pattern_values`.
     """
 
     def __init__(self, system: System, position_scale: float, psd: bool) -> None:
         self.system = system
         self.position_scale = position_scale
         self.psd = psd
+        self.kept = system._kept
         nnz = system.pattern_free.nnz
         self._nnz = nnz
         self._data = np.empty(nnz + 1)  # the last slot is the sink of fixed-DOF entries

@@ -130,7 +130,7 @@ class RayleighDamping(Term):
     def add_hessian(self, x: np.ndarray, sink: HessianSink) -> None:
         if self._scaled is None:
             self._scaled = self._step.h * self._data
-        kept = getattr(getattr(sink, "system", None), "_kept", None)
+        kept = getattr(sink, "kept", None)  # NewtonMatrixBuilder's reduced-pattern slots
         if kept is None:
             sink.add_pattern_values(self._scaled)
             return
