@@ -97,3 +97,38 @@ def test_the_c_search_finds_the_positions_numpy_finds(monkeypatch):
         assert not system._search(have, missing)[1]
     with pytest.raises(ValueError, match="outside the"):
         system._search(have, np.array([nf * nf]))
+
+
+def test_the_pattern_hint_holds_whole_blocks_of_every_pair_within_the_margin():
+    """BarrierTerm._pattern_hint: the 3 x 3 blocks of every pair of vertices of a pair of
+    primitives within the margin, a superset of ipctk's barrier Hessian there (which leaves
+    out its exact zeros: the boxes' faces are axis-aligned)."""
+    import ipctk
+
+    from fem3d.physics.contact import ContactModel
+    from fem3d.physics.terms.contact import ContactTerm
+
+    X, T, ids = two_boxes(0.01)
+    cm = ContactModel(X, T, body_ids=ids, dhat=0.02)
+    term = ContactTerm(cm).barrier
+    q = X.reshape(-1)
+    rows, cols = term._pattern_hint(q)
+    n = 3 * X.shape[0]
+    hint = np.unique(rows.astype(np.int64) * n + cols)
+    V = cm.collision_vertices(q)
+    part = cm._parts[0]
+    Vp = part.view(V)
+    margin = term.pattern_margin * cm.dhat
+    cands = ipctk.Candidates()
+    cands.build(part.mesh, Vp, 0.5 * margin)
+    col = ipctk.NormalCollisions()
+    col.build(cands, part.mesh, Vp, margin)
+    H = cm._to_full_matrix([ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)])
+    exact = np.unique(H.row.astype(np.int64) * n + H.col)
+    assert np.isin(exact, hint).all()
+    assert hint.size > exact.size  # the Hessian's exact zeros
+    r, c = np.divmod(hint, n)
+    blocks, counts = np.unique((r // 3) * n + c // 3, return_counts=True)
+    assert (counts == 9).all()  # whole 3 x 3 blocks
+    vi, vj = np.divmod(blocks, n)
+    assert (ids[vi] != ids[vj]).any()  # it couples the two boxes
