@@ -291,22 +291,18 @@ def _vertex_pairs(collisions: ipctk.NormalCollisions, edges: np.ndarray,
     """Keys ``i * 2**32 + j`` of every ordered pair of collision-mesh vertices that share one
     of ``collisions`` (its 2-4 vertices: both ends, the edges', the face's)."""
     E, F = np.asarray(edges, dtype=np.int64), np.asarray(faces, dtype=np.int64)
-    sets = []
-    for kind, a, b in (("vv", None, None), ("ev", E, None), ("ee", E, E), ("fv", F, None)):
-        items = getattr(collisions, f"{kind}_collisions")
-        if not len(items):
-            continue
-        if kind == "vv":
-            sets.append(np.array([(c.vertex0_id, c.vertex1_id) for c in items], np.int64))
-        elif kind == "ev":
-            ids = np.array([(c.edge_id, c.vertex_id) for c in items], np.int64)
-            sets.append(np.c_[a[ids[:, 0]], ids[:, 1]])
-        elif kind == "ee":
-            ids = np.array([(c.edge0_id, c.edge1_id) for c in items], np.int64)
-            sets.append(np.c_[a[ids[:, 0]], b[ids[:, 1]]])
-        else:
-            ids = np.array([(c.face_id, c.vertex_id) for c in items], np.int64)
-            sets.append(np.c_[a[ids[:, 0]], ids[:, 1]])
+    sets = []  # (k, 2-4) vertices of each kind's k pairs
+    if len(vv := collisions.vv_collisions):
+        sets.append(np.array([(c.vertex0_id, c.vertex1_id) for c in vv], np.int64))
+    if len(ev := collisions.ev_collisions):
+        ids = np.array([(c.edge_id, c.vertex_id) for c in ev], np.int64)
+        sets.append(np.c_[E[ids[:, 0]], ids[:, 1]])
+    if len(ee := collisions.ee_collisions):
+        ids = np.array([(c.edge0_id, c.edge1_id) for c in ee], np.int64)
+        sets.append(np.c_[E[ids[:, 0]], E[ids[:, 1]]])
+    if len(fv := collisions.fv_collisions):
+        ids = np.array([(c.face_id, c.vertex_id) for c in fv], np.int64)
+        sets.append(np.c_[F[ids[:, 0]], ids[:, 1]])
     return [(np.repeat(s, s.shape[1], axis=1) << 32 | np.tile(s, (1, s.shape[1]))).ravel()
             for s in sets]
 
