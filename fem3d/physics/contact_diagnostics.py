@@ -54,6 +54,7 @@ def intersecting_pairs(model: ContactModel, q: np.ndarray) -> list[tuple[str, st
             out.append((names[b], p.name))
     return out
 
+
 def group_chain(groups: np.ndarray) -> np.ndarray:
     """Synthetic triangles ``(k, 3) int32`` that connect each group's vertices (a fan; a
     degenerate triangle for a pair): one connected component per group."""
