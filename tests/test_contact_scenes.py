@@ -144,6 +144,34 @@ def test_newton_start_q_t_starts_an_impact_step_at_the_start_positions(monkeypat
     assert "q_t" not in kinds["clamped"] and "clamped" in kinds["clamped"]
 
 
+def test_first_step_accept_ends_a_resting_step_after_one_factorization(tmp_path):
+    """``contact.first_step = "accept"``: once the blocks rest on the ground and on each
+    other, a step's first Newton direction already passes IPC's rule; it is taken and ends
+    the step (one factorization) where ``"confirm"`` factorizes again to judge a second
+    direction (two). Until then both runs are the same to the bit, and where they differ the
+    states stay within the rule's tolerance of each other."""
+    base = load_scene(str(write_scene(tmp_path, upper_y=0.056)))
+    runs = {}
+    for first_step in ("confirm", "accept"):
+        sim = Simulation(apply_overrides(base, {"contact.first_step": first_step,
+                                                "simulation.steps": 40}))
+        factorizations, states = [], []
+        for _ in range(40):
+            sim.step()
+            assert sim.last_stats.converged
+            factorizations.append(sim.last_stats.factorizations)
+            states.append(sim.q.copy())
+        assert not surfaces_intersect(sim) and sim.q[:, 1].min() > 0.0
+        runs[first_step] = np.array(factorizations), states
+    (f_confirm, q_confirm), (f_accept, q_accept) = runs["confirm"], runs["accept"]
+    same = next(k for k in range(40) if f_accept[k] != f_confirm[k])
+    assert same > 0 and all(np.array_equal(q_accept[k], q_confirm[k]) for k in range(same))
+    assert (f_confirm[-10:] == 2).all() and (f_accept[-10:] == 1).all()
+    # the rule's tolerance: 1e-2 of the scene's diagonal per second, over one dt
+    diagonal = float(np.linalg.norm(np.ptp(sim.model.X, axis=0)))
+    assert np.abs(q_accept[-1] - q_confirm[-1]).max() < 1e-2 * diagonal * 0.01
+
+
 def test_cli_runs_a_contact_scene_and_writes_every_body(tmp_path, capsys):
     scene = write_scene(tmp_path)
     out = tmp_path / "run"

@@ -105,6 +105,43 @@ def test_the_step_rule_does_not_judge_the_gradient_fallback():
     assert res.iterations == 4 and judged == []
 
 
+def test_a_first_step_that_passes_the_rule_ends_the_solve_only_when_accepted():
+    """``accept_first_step``: a first Newton direction that passes ``converged_step`` is
+    taken and ends the solve (one direction); without it the rule is first asked at the
+    second direction, which confirms the step (two directions, the same point here: a
+    quadratic's Newton step lands on its minimum). A first direction that fails the rule,
+    and a stiffness change at the accepted point (``after_step``), keep Newton going."""
+    A = np.diag([2.0, 1.0])
+    b = np.array([1e-3, -2e-3])
+
+    def solve(accept, x0, limit=1e-2, changed=False):
+        directions = []
+
+        def direction(x, g):
+            directions.append(x.copy())
+            return -np.linalg.solve(A, g)
+
+        res = newtons_method(x0, lambda x: 0.5 * float(x @ A @ x) - float(b @ x),
+                             lambda x: A @ x - b, direction, max_iterations=None,
+                             rtol=0.0, atol=1e-300,
+                             converged_step=lambda x, d: float(np.abs(d).max()) < limit,
+                             after_step=lambda x: changed, accept_first_step=accept)
+        return res, len(directions)
+
+    minimum = np.linalg.solve(A, b)
+    x0 = minimum + np.array([4e-3, 1e-3])  # a first step of 4e-3: passes 1e-2
+    taken, n_taken = solve(True, x0)
+    confirmed, n_confirmed = solve(False, x0)
+    assert (n_taken, taken.iterations, taken.converged) == (1, 1, True)
+    assert (n_confirmed, confirmed.iterations, confirmed.converged) == (2, 1, True)
+    np.testing.assert_allclose(taken.x, minimum, atol=1e-15)
+    np.testing.assert_array_equal(taken.x, confirmed.x)
+    # a first step longer than the rule allows is judged again at the second direction
+    assert solve(True, x0, limit=1e-3)[1] == 2
+    # the objective changed at the accepted point: its step is judged again, not accepted
+    assert solve(True, x0, changed=True)[1] == 2
+
+
 def test_parabolic_line_search_lands_nearer_the_minimum_along_the_direction():
     """A friction-like objective: weak curvature (``m``) plus a smoothed ``k |x|`` whose
     curvature jumps near 0. The full Newton step from the sliding side overshoots far past

@@ -386,4 +386,4 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
                        friction_tolerance=spec.friction_tolerance,
-                       newton_start=spec.newton_start)
+                       newton_start=spec.newton_start, first_step=spec.first_step)

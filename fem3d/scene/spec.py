@@ -408,6 +408,11 @@ class ContactSpec(_Spec):
     #: contacts; the gallery's contact scenes set it). The default stays "clamped": a
     #: checkpoint written before the key existed resumes as it was run
     newton_start: Literal["clamped", "q_t"] = "clamped"
+    #: IPC's stopping rule (tolerance) on Newton's first direction: "confirm" (the first step
+    #: is always taken and a second direction judged, as every run before this key did) or
+    #: "accept" (a first direction that already passes is taken and ends the step's solve:
+    #: one factorization instead of two in a resting step). docs/contact.md "Stop 34"
+    first_step: Literal["confirm", "accept"] = "confirm"
     #: how the per-pair barrier and friction Hessians enter Newton's matrix: negative
     #: eigenvalues clamped at zero ("clamp"), mirrored to their absolute value ("abs", Chen et
     #: al. 2024), or not projected ("exact": Newton's shift ladder handles an indefinite

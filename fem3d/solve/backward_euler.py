@@ -281,6 +281,7 @@ def minimise_step(
                 on_no_step=no_step, max_step=objective.max_step if objective.clamps else None,
                 converged_step=direction.step_converged if objective.has_stopping_rule
                 else None,
+                accept_first_step=objective.accepts_first_step,
                 after_step=objective.after_iteration if objective.changes_between_iterates
                 else None,
                 roundoff_rtol=AMG_ROUNDOFF_RTOL if linear_solver == "amg" else 0.0,

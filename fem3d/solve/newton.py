@@ -85,6 +85,7 @@ def newtons_method(
     on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None,
     max_step: Callable[[np.ndarray, np.ndarray], float] | None = None,
     converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+    accept_first_step: bool = False,
     after_step: Callable[[np.ndarray], bool] | None = None,
     roundoff_rtol: float = 0.0,
     f0: float | None = None,
@@ -129,9 +130,12 @@ def newtons_method(
         A non-positive value stops Newton at ``x`` (not converged).
     converged_step : callable ``(x, d) -> bool``, optional
         A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
-        from the second iteration on (the first step is always taken) and not on the
-        gradient fallback (``-g`` says nothing of the step to the minimum): True stops Newton
-        at ``x``, converged.
+        from the second iteration on and not on the gradient fallback (``-g`` says nothing
+        of the step to the minimum): True stops Newton at ``x``, converged.
+    accept_first_step : bool, optional
+        Judge the first direction too: one that passes is taken and ends the solve, unless
+        ``after_step`` changes the objective there. Default False: always take it and judge
+        the second.
     after_step : callable ``(x) -> bool``, optional
         Called at every accepted iterate; True means the objective itself changed there
         (IPC's adaptive barrier stiffness), so its value is re-evaluated.
@@ -157,10 +161,7 @@ def newtons_method(
         A line search that finds only finite, non-decreasing trial points means round-off
         has been reached: Newton stops there and reports ``converged=True``.
     """
-    if line_search not in LINE_SEARCHES:
-        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
-                         f"{line_search!r}")
-    refine = PARABOLIC_TRIALS if line_search == "parabolic" else 0
+    refine = _parabolic_trials(line_search)
     x = np.array(x0, dtype=np.float64)
     fx = energy(x) if f0 is None else float(f0)
     g = gradient(x)
@@ -177,7 +178,10 @@ def newtons_method(
         newton_step = slope < 0 and np.isfinite(d).all()
         if not newton_step:  # not a descent direction: fall back
             d, slope = -g, -gn * gn
-        if converged_step is not None and it > 0 and newton_step and converged_step(x, d):
+        # the rule stops Newton at x; a first direction that passes is taken, then stops it
+        last = converged_step is not None and newton_step and \
+            (it > 0 or accept_first_step) and converged_step(x, d)
+        if last and it > 0:
             return NewtonResult(x, it, norms, True, halvings)
         a0 = alpha
         if max_step is not None:
@@ -187,13 +191,10 @@ def newtons_method(
         if -slope <= decrement_rtol * (abs(fx) + energy_scale):
             # The predicted decrease is below the objective's round-off, so Armijo tests are
             # noise: take the full step while it is admissible and shrinks the gradient.
-            xt = x + d if a0 == 1.0 else x + a0 * d
-            ft = energy(xt)
-            gt = gradient(xt) if math.isfinite(ft) else None
-            gtn = math.inf if gt is None or not np.isfinite(gt).all() else gradient_norm(gt)
-            if not gtn < gn:
+            taken = _roundoff_step(x, d, a0, gn, energy, gradient)
+            if taken is None:
                 return NewtonResult(x, it, norms, True, halvings)
-            x, fx, g, gn = xt, ft, gt, gtn
+            x, fx, g, gn = taken
             norms.append(gn)
             it += 1
             continue
@@ -201,22 +202,41 @@ def newtons_method(
                             max_halvings=max_halvings, roundoff_rtol=roundoff_rtol,
                             end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * tol, refine=refine)
         halvings += search.halvings
-        if search.outcome == "round-off":
-            return NewtonResult(x, it, norms, True, halvings)
-        if search.outcome == "failed":
+        if search.outcome != "accepted":  # round-off (converged, any_finite) or failed
             if not search.any_finite and on_no_step is not None:
                 on_no_step(x, d)
             return NewtonResult(x, it, norms, search.any_finite, halvings)
-        xt, ft, gt = search.x, search.f, search.g
-        x, fx = xt, ft
+        x, fx, gt = search.x, search.f, search.g
         if after_step is not None and after_step(x):
             fx = energy(x)  # the objective changed at x (barrier stiffness)
-            gt = None
+            gt, last = None, False
         g = gradient(x) if gt is None else gt
         gn = gradient_norm(g)
         norms.append(gn)
         it += 1
+        if last:
+            return NewtonResult(x, it, norms, True, halvings)
     return NewtonResult(x, it, norms, gn <= tol, halvings)
+
+
+def _parabolic_trials(line_search: str) -> int:
+    """The parabolic refinement's trials of ``line_search`` (:data:`LINE_SEARCHES`)."""
+    if line_search not in LINE_SEARCHES:
+        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
+                         f"{line_search!r}")
+    return PARABOLIC_TRIALS if line_search == "parabolic" else 0
+
+
+def _roundoff_step(x: np.ndarray, d: np.ndarray, a0: float, gn: float,
+                   energy: Callable[[np.ndarray], float],
+                   gradient: Callable[[np.ndarray], np.ndarray]):
+    """The full (clamped) step ``x + a0 d`` with its energy, gradient and ``||g||`` when it
+    is admissible and shrinks the gradient below ``gn``; else None (converged at round-off)."""
+    xt = x + d if a0 == 1.0 else x + a0 * d
+    ft = energy(xt)
+    gt = gradient(xt) if math.isfinite(ft) else None
+    gtn = math.inf if gt is None or not np.isfinite(gt).all() else gradient_norm(gt)
+    return (xt, ft, gt, gtn) if gtn < gn else None
 
 
 @dataclass

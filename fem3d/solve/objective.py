@@ -45,6 +45,7 @@ class Objective:
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
         self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
+        self.accepts_first_step = any(t.accepts_first_step for t in self.terms)
         self._positional = [t for t in self.terms if t.variable == "position"]
         self._velocity = [t for t in self.terms if t.variable != "position"]
         self._clamping = [t for t in self.terms if overrides(t, "max_step")]

@@ -138,6 +138,10 @@ class Term:
         target ``v_hat`` (free flight into a contact), Newton starts at ``x_start`` itself
         (backward Euler: ``q_t``) instead of the clamped target, whose contacts are squeezed
         to a tenth of their gap and more (IPC's own start).
+    accepts_first_step : bool
+        The term's stopping rule (:meth:`newton_converged`) also judges Newton's first
+        direction: one that passes is taken and ends the solve, where a second direction
+        would otherwise confirm it (one factorization instead of two in a resting step).
     inertial, dissipative : bool
         The term is the kinetic (mass) term, or a dissipation in the velocities: a static
         equilibrium leaves both out, an initial acceleration ``M a = f`` every inertial one.
@@ -155,6 +159,7 @@ class Term:
     allows_lagged_matrix: ClassVar[bool] = True
     stiff_barrier: ClassVar[bool] = False
     restart_when_clamped: bool = False
+    accepts_first_step: bool = False
     inertial: ClassVar[bool] = False
     dissipative: ClassVar[bool] = False
     energy_scale: float = 0.0
@@ -256,6 +261,7 @@ class TermGroup(Term):
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.stiff_barrier = any(t.stiff_barrier for t in self.terms)
         self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
+        self.accepts_first_step = any(t.accepts_first_step for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
 
     @property

@@ -18,10 +18,14 @@ from fem3d.physics.contact import ContactModel
 from fem3d.physics.contact_path import straight_path_is_free
 from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
 
-__all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS"]
+__all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS", "FIRST_STEPS"]
 
 #: Where a contact step's Newton starts when CCD cuts its free flight (:class:`BarrierTerm`).
 NEWTON_STARTS = ("clamped", "q_t")
+#: What IPC's stopping rule does with Newton's first direction: nothing ("confirm": the
+#: first step is always taken and judged by a second direction) or judge it ("accept": one
+#: that passes is taken and ends the solve; :attr:`Term.accepts_first_step`).
+FIRST_STEPS = ("confirm", "accept")
 
 
 class BarrierTerm(Term):
@@ -51,6 +55,10 @@ class BarrierTerm(Term):
         Where Newton starts when CCD cuts the step's free flight (``v_t``): at ``v_t`` scaled
         back by CCD (``"clamped"``, the default) or at ``q_t`` (``"q_t"``: ``v = 0``, IPC's
         start; :attr:`Term.restart_when_clamped`).
+    first_step : {"confirm", "accept"}, optional
+        :data:`FIRST_STEPS`: whether a first Newton direction that already passes the
+        stopping rule ends the solve once taken (``"accept"``) or is confirmed by a second
+        one (``"confirm"``, the default).
     """
 
     name = "barrier"
@@ -61,11 +69,15 @@ class BarrierTerm(Term):
     stiff_barrier = True
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
-                 pattern_margin: float = 4.0, newton_start: str = "clamped") -> None:
-        if newton_start not in NEWTON_STARTS:
-            raise ParameterError(f"contact.newton_start must be one of "
-                                 f"{', '.join(NEWTON_STARTS)}, got {newton_start!r}")
+                 pattern_margin: float = 4.0, newton_start: str = "clamped",
+                 first_step: str = "confirm") -> None:
+        for key, value, allowed in (("newton_start", newton_start, NEWTON_STARTS),
+                                    ("first_step", first_step, FIRST_STEPS)):
+            if value not in allowed:
+                raise ParameterError(f"contact.{key} must be one of {', '.join(allowed)}, "
+                                     f"got {value!r}")
         self.restart_when_clamped = newton_start == "q_t"
+        self.accepts_first_step = first_step == "accept"
         tolerance = float(tolerance)
         if not (math.isfinite(tolerance) and tolerance > 0):
             raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
@@ -327,7 +339,7 @@ class ContactTerm(TermGroup):
     Parameters
     ----------
     contact : ContactModel
-    tolerance, pattern_margin, newton_start : optional
+    tolerance, pattern_margin, newton_start, first_step : optional
         The barrier's (:class:`BarrierTerm`).
     friction_iterations, friction_tolerance : optional
         The friction's re-lagging (:class:`FrictionTerm` ``iterations``, ``tolerance``).
@@ -337,10 +349,11 @@ class ContactTerm(TermGroup):
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
                  pattern_margin: float = 4.0, friction_iterations: int = 1,
-                 friction_tolerance: float = 1e-6, newton_start: str = "clamped") -> None:
+                 friction_tolerance: float = 1e-6, newton_start: str = "clamped",
+                 first_step: str = "confirm") -> None:
         self.contact = contact
         self.barrier = BarrierTerm(contact, tolerance=tolerance, pattern_margin=pattern_margin,
-                                   newton_start=newton_start)
+                                   newton_start=newton_start, first_step=first_step)
         self.friction = FrictionTerm(contact, iterations=friction_iterations,
                                      tolerance=friction_tolerance)
         super().__init__([self.barrier, self.friction])
