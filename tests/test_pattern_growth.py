@@ -28,6 +28,10 @@ def test_widened_pattern_keeps_every_base_entry_where_a_search_finds_it():
         assert np.array_equal(ext.keys, np.unique(ext.keys))
         r, c = np.divmod(keys, nf)
         assert np.isin(keys, ext.keys).all() and np.isin(c * nf + r, ext.keys).all()
+        # structurally symmetric: the direct solver takes System's patterns unchecked
+        ones = ext.pattern.copy()
+        ones.data[:] = 1.0
+        assert (ones != ones.T).nnz == 0
     saved = system.pattern_keys()
     fresh = _system()
     fresh.restore_pattern(saved)  # a checkpoint's pattern: the same keys and positions

@@ -575,8 +575,9 @@ class System:
             self.factorize(A)
 
     def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
+        # the reduced elastic pattern and its widenings (which add each key's transpose)
         solver = SparseSPDSolver(pattern, backend=self._direct_backend,
-                                 cholmod_mode=self.cholmod_mode)
+                                 cholmod_mode=self.cholmod_mode, symmetric=True)
         self.analyses += 1
         if solver.backend == "superlu" and pattern is self.pattern_free and \
                 self.mass_free.shape[0]:
