@@ -28,13 +28,16 @@ FIXED_TETWILD = Path(__file__).resolve().parent / "data" / "tetwild"
 #: stiffness damping (issue 21: it intersected itself at landing and did not come to rest)
 BUNNY_DROP_AS_RECORDED = {"contact.self_contact": False,
                           "bodies[0].damping.rayleigh_stiffness": 0.0,
-                          "contact.newton_start": "clamped", "contact.max_substeps": 1}
+                          "contact.newton_start": "clamped", "contact.max_substeps": 1,
+                          "contact.first_step": "confirm"}
 #: contact scenes as recorded: Newton started from the CCD-clamped velocity and no substeps
 #: (the spec's defaults; the gallery's drop, stack and fold set newton_start = "q_t", and
 #: all but the pile contact.max_substeps = 8, since issue 21's rounds; the stack the reuse
-#: Newton solver since stop 28 and CHOLMOD simplicial in stops 28-31, supernodal since)
+#: Newton solver since stop 28 and CHOLMOD simplicial in stops 28-31, supernodal since;
+#: every contact scene contact.first_step = "accept" since stop 34)
 CONTACT_AS_RECORDED = {"contact.newton_start": "clamped", "contact.max_substeps": 1,
-                       "simulation.newton.solver": "direct", "simulation.cholmod": "auto"}
+                       "simulation.newton.solver": "direct", "simulation.cholmod": "auto",
+                       "contact.first_step": "confirm"}
 
 #: the PSD projection as recorded: cyclic Jacobi (QL replaced it at stop 31; the cases that
 #: project an indefinite dP/dF, Newton's "psd" Hessian and stiffness damping, keep Jacobi)
