@@ -154,38 +154,3 @@ def test_the_steps_candidates_grow_only_up_to_a_limit():
     fresh.build(cm.mesh, far, 0.01, broad_phase=ipctk.BruteForce())
     assert len(pairs) >= len(fresh)
 
-
-def _collision_ids(col: ipctk.NormalCollisions) -> list:
-    return ([(c.vertex0_id, c.vertex1_id) for c in col.vv_collisions]
-            + [(c.edge_id, c.vertex_id) for c in col.ev_collisions]
-            + [(c.edge0_id, c.edge1_id) for c in col.ee_collisions]
-            + [(c.face_id, c.vertex_id) for c in col.fv_collisions])
-
-
-def test_a_resting_step_keeps_the_last_steps_candidates_and_their_collision_set():
-    """A new step whose boxes the last step's still hold (inflated by ``KEEP_INSIDE`` of the
-    pad, and no wider than ``KEEP_WITHIN`` pads around them) keeps that set: no broad phase,
-    and the collision set built from it is the fresh one's, pair for pair in the same order
-    (the hash grid lists pairs sorted). A step that moved further, or whose set had grown
-    around a far query, builds anew."""
-    X, T, _ = two_boxes(gap=0.005)
-    cm = ContactModel(X, T, dhat=0.01, kappa=1.0, self_contact=True)
-    V = cm.collision_vertices(X.reshape(-1))
-    pad = 0.01
-    step = StepCandidates(cm.mesh, ipctk.HashGrid(), pad=pad)
-    step.reset(V)
-    held = V + 0.2 * pad  # moved less than (1 - KEEP_INSIDE) pad: held
-    step.reset(held)
-    assert (step.builds, step.kept) == (1, 1)
-    kept = ipctk.NormalCollisions()
-    kept.build(step.near(held, 0.005), cm.mesh, held, 0.01)
-    fresh_step = StepCandidates(cm.mesh, ipctk.HashGrid(), pad=pad)
-    fresh_step.reset(held)
-    fresh = ipctk.NormalCollisions()
-    fresh.build(fresh_step.near(held, 0.005), cm.mesh, held, 0.01)
-    assert len(fresh) > 0 and _collision_ids(kept) == _collision_ids(fresh)
-    step.reset(V + 0.8 * pad)  # out of the boxes inflated by KEEP_INSIDE pads: rebuilt
-    assert (step.builds, step.kept) == (2, 1)
-    step.near(V + [0.0, -0.1, 0.0], 0.005)  # grown far below
-    step.reset(V + 0.8 * pad)  # held, but within boxes far wider than its own: rebuilt
-    assert (step.builds, step.kept) == (4, 1)

@@ -27,14 +27,7 @@ import time
 import ipctk
 import numpy as np
 
-__all__ = ["StepCandidates", "KEEP_INSIDE", "KEEP_WITHIN"]
-
-#: :meth:`StepCandidates.reset` keeps the last step's set when its boxes hold the new step's
-#: inflated by this fraction of the pad ...
-KEEP_INSIDE = 0.5
-#: ... and are no wider than the new step's inflated by this multiple of it (a set grown
-#: around an impact's iterates is rebuilt rather than carried into the steps after it)
-KEEP_WITHIN = 2.0
+__all__ = ["StepCandidates"]
 
 
 class StepCandidates:
@@ -57,8 +50,6 @@ class StepCandidates:
     ----------
     builds : int
         Broad phases run.
-    kept : int
-        Steps that kept the last step's set (:meth:`reset`).
     seconds : float
         Wall time in them.
     """
@@ -73,33 +64,18 @@ class StepCandidates:
         self.hi: np.ndarray | None = None
         self.candidates: ipctk.Candidates | None = None
         self.builds = 0
-        self.kept = 0
         self.seconds = 0.0
 
     def reset(self, *configurations: np.ndarray, pad: float | None = None) -> None:
         """Forget the boxes (a new step); with ``configurations`` (``(k, 3)`` each), build the
         set at once around the boxes that hold them (inflated by ``pad``, default
-        :attr:`pad`, the padding of grown boxes).
-
-        The last step's set is kept instead when its boxes hold the new ones inflated by
-        ``KEEP_INSIDE * pad`` and lie within them inflated by ``KEEP_WITHIN * pad`` (a
-        resting step moves microns: its broad phase would list the same pairs). Kept or
-        built, the set holds every pair a fresh build would; the hash grid lists them
-        sorted, so the collision sets built from it are the same, in the same order."""
-        if not configurations:
-            self.lo = self.hi = self.candidates = None
-            return
-        lo = np.minimum.reduce(configurations)
-        hi = np.maximum.reduce(configurations)
-        p = self.pad if pad is None else float(pad)
-        if self.candidates is not None and \
-                (lo - KEEP_INSIDE * p >= self.lo).all() and \
-                (hi + KEEP_INSIDE * p <= self.hi).all() and \
-                (lo - KEEP_WITHIN * p <= self.lo).all() and \
-                (hi + KEEP_WITHIN * p >= self.hi).all():
-            self.kept += 1
-            return
-        self._build(lo - p, hi + p)
+        :attr:`pad`, the padding of grown boxes)."""
+        self.lo = self.hi = self.candidates = None
+        if configurations:
+            lo = np.minimum.reduce(configurations)
+            hi = np.maximum.reduce(configurations)
+            p = self.pad if pad is None else float(pad)
+            self._build(lo - p, hi + p)
 
     def covering(self, lo: np.ndarray, hi: np.ndarray) -> ipctk.Candidates:
         """Candidates whose boxes hold the per-vertex boxes ``[lo, hi]`` (``(k, 3)`` each)."""
