@@ -153,4 +153,3 @@ def test_the_steps_candidates_grow_only_up_to_a_limit():
     fresh = ipctk.Candidates()
     fresh.build(cm.mesh, far, 0.01, broad_phase=ipctk.BruteForce())
     assert len(pairs) >= len(fresh)
-
