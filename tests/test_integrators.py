@@ -110,11 +110,12 @@ def test_a_first_step_that_passes_the_rule_ends_the_solve_only_when_accepted():
     taken and ends the solve (one direction); without it the rule is first asked at the
     second direction, which confirms the step (two directions, the same point here: a
     quadratic's Newton step lands on its minimum). A first direction that fails the rule,
-    and a stiffness change at the accepted point (``after_step``), keep Newton going."""
+    and a stiffness change at the accepted point (``after_step``), keep Newton going; a first
+    step too small for Armijo's test (the round-off branch) ends it as well."""
     A = np.diag([2.0, 1.0])
     b = np.array([1e-3, -2e-3])
 
-    def solve(accept, x0, limit=1e-2, changed=False):
+    def solve(accept, x0, limit=1e-2, changed=False, energy_scale=0.0):
         directions = []
 
         def direction(x, g):
@@ -125,7 +126,8 @@ def test_a_first_step_that_passes_the_rule_ends_the_solve_only_when_accepted():
                              lambda x: A @ x - b, direction, max_iterations=None,
                              rtol=0.0, atol=1e-300,
                              converged_step=lambda x, d: float(np.abs(d).max()) < limit,
-                             after_step=lambda x: changed, accept_first_step=accept)
+                             after_step=lambda x: changed, accept_first_step=accept,
+                             energy_scale=energy_scale)
         return res, len(directions)
 
     minimum = np.linalg.solve(A, b)
@@ -140,6 +142,10 @@ def test_a_first_step_that_passes_the_rule_ends_the_solve_only_when_accepted():
     assert solve(True, x0, limit=1e-3)[1] == 2
     # the objective changed at the accepted point: its step is judged again, not accepted
     assert solve(True, x0, changed=True)[1] == 2
+    # a decrease below the objective's round-off (the full step taken without Armijo's
+    # test) ends the solve the same way
+    assert solve(True, x0, energy_scale=1e30)[1] == 1
+    assert solve(False, x0, energy_scale=1e30)[1] == 2
 
 
 def test_parabolic_line_search_lands_nearer_the_minimum_along_the_direction():

@@ -133,9 +133,8 @@ def newtons_method(
         from the second iteration on and not on the gradient fallback (``-g`` says nothing
         of the step to the minimum): True stops Newton at ``x``, converged.
     accept_first_step : bool, optional
-        Judge the first direction too: one that passes is taken and ends the solve, unless
-        ``after_step`` changes the objective there. Default False: always take it and judge
-        the second.
+        Judge the first direction too: one that passes is taken and ends the solve unless
+        ``after_step`` changes the objective there (default False: the second is judged).
     after_step : callable ``(x) -> bool``, optional
         Called at every accepted iterate; True means the objective itself changed there
         (IPC's adaptive barrier stiffness), so its value is re-evaluated.
@@ -151,9 +150,8 @@ def newtons_method(
         ``energy(x0)`` when the caller has it already (saves one evaluation).
     line_search : {"backtrack", "parabolic"}, optional
         :data:`LINE_SEARCHES`. ``"parabolic"`` pays off where the energy's curvature jumps
-        along ``d`` (lagged friction with a small ``eps_v``: a full Newton step carries a
-        slip far past the static zone, and the halved step that passes Armijo's test is
-        often far from the minimum along ``d``).
+        along ``d`` (lagged friction, small ``eps_v``: a full step carries a slip far past
+        the static zone; the halving that passes Armijo is far from the minimum along ``d``).
 
     Returns
     -------
@@ -197,6 +195,8 @@ def newtons_method(
             x, fx, g, gn = taken
             norms.append(gn)
             it += 1
+            if last:
+                return NewtonResult(x, it, norms, True, halvings)
             continue
         search = _backtrack(x, fx, gn, d, slope, a0, energy, gradient, p=p, c=c,
                             max_halvings=max_halvings, roundoff_rtol=roundoff_rtol,
