@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import random
 from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
@@ -48,6 +50,34 @@ def material_decomposition(name: str) -> Decomposition | None:
     """``psi`` of material ``name`` through its invariants (``None`` when it holds none)."""
     d = derive_material(name)
     return decompose(d.psi, d.F, d.inputs)
+
+
+@cache
+def is_isotropic(name: str) -> bool:
+    """Whether material ``name``'s ``psi(F)`` is unchanged by rotations on both sides,
+    ``psi(Q F R) == psi(F)`` (frame-indifferent and isotropic), checked to 1e-10 relative at
+    random ``F`` (``J > 0``), rotations, parameters in ``[0.5, 2]`` and element inputs."""
+    d = derive_material(name)
+    inputs = [s for m in d.inputs.values() for s in flatten(m)]
+    psi = sp.lambdify([*flatten(d.F), *d.params.values(), *inputs], d.psi, "math")
+    rng = random.Random(f"isotropy of {name}")
+
+    def rotation() -> sp.Matrix:
+        w, x, y, z = (rng.gauss(0, 1) for _ in range(4))
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / n, x / n, y / n, z / n
+        return sp.Matrix([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+    for _ in range(4):
+        F = sp.eye(3) + sp.Matrix(3, 3, lambda i, j: rng.uniform(-0.3, 0.3))
+        rest = [rng.uniform(0.5, 2.0) for _ in d.params] + [rng.uniform(-1, 1) for _ in inputs]
+        value = psi(*[float(v) for v in F], *rest)
+        turned = psi(*[float(v) for v in rotation() * F * rotation()], *rest)
+        if not abs(turned - value) <= 1e-10 * max(abs(value), 1.0):
+            return False
+    return True
 
 
 def _steps_ops(steps: list) -> int:
@@ -290,13 +320,18 @@ def material_module(name: str) -> ModuleSpec:
         *_hessian_contraction(A_sym, D, vol, stress_derivative)))
     # Projecting dP/dF (not the 12x12) keeps B^T A B positive semi-definite at a 9x9 cost.
     A_psd = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"Ap_{a}_{b}"))
-    projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)))
+    # F is the singular frame the "svd" projection needs, given where psi is isotropic
+    frame = tuple(flatten(d.F)) if is_isotropic(name) else ()
+    projection = Projection(9, tuple(flatten(A_sym)), tuple(flatten(A_psd)), frame=frame)
     psd_doc = hess_doc[:-1] + " with dP/dF projected to positive semi-definite"
     kernels.append(make_kernel(
         name, "hessian_psd", psd_doc + ".", element_inputs, params,
         *_hessian_contraction(A_psd, D, vol, [*stress_derivative, projection])))
-    kernels.append(kernels[-1].projected_by("hessian_psd_jacobi", "jacobi",
-                                            psd_doc + " by cyclic Jacobi."))
+    psd = kernels[-1]
+    kernels.append(psd.projected_by("hessian_psd_jacobi", "jacobi", psd_doc + " by cyclic Jacobi."))
+    svd_doc = (" in the singular frame of F (block diagonal there: psi is isotropic)." if frame
+               else " by QL (psi is not isotropic: no block-diagonal frame).")
+    kernels.append(psd.projected_by("hessian_psd_svd", "svd", psd_doc + svd_doc))
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),

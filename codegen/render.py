@@ -149,9 +149,10 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
     steps = []
     for step in kernel.intermediates:
         if isinstance(step, Projection):
-            used |= set(step.inputs)
+            used |= set(step.inputs) | set(step.frame)
             steps.append({"kind": "project", "n": step.n, "inputs": [str(s) for s in step.inputs],
-                          "outputs": [str(s) for s in step.outputs]})
+                          "outputs": [str(s) for s in step.outputs],
+                          "frame": [str(s) for s in step.frame]})
         else:
             used |= step[1].free_symbols
             steps.append({"kind": "assign", "name": str(step[0]),

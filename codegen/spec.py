@@ -64,12 +64,15 @@ class Projection:
     are the row-major entries before and after. ``method`` names the C kernels' eigen-solver
     where the matrix is indefinite: ``"ql"`` (Householder tridiagonalization and implicit QL)
     or ``"jacobi"`` (cyclic Jacobi rotations: slower; kept because its round-off is that of
-    every run before it was replaced); the NumPy kernels use LAPACK's for both."""
+    every run before it was replaced) or ``"svd"`` (``dP/dF`` of an isotropic ``psi`` rotated
+    into the singular frame of ``frame``, the entries of ``F``, where it is block diagonal;
+    QL where ``frame`` is empty); the NumPy kernels use LAPACK's for all."""
 
     n: int
     inputs: tuple[sp.Symbol, ...]
     outputs: tuple[sp.Symbol, ...]
     method: str = "ql"
+    frame: tuple[sp.Symbol, ...] = ()
 
 
 Step = tuple[sp.Symbol, sp.Expr] | Projection

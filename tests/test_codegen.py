@@ -138,12 +138,13 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
     return (x, dphi), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T]
 
 
-# hessian_psd (and its Jacobi twin) has no closed form to compare with; it has its own tests
+# hessian_psd (and its Jacobi and svd twins) has no closed form to compare with; it has its own tests
 # below.
 # d3psi_contract: SymPy's third derivatives take minutes per material; it is compared with
 # SymPy's dP/dF differenced in 40-digit arithmetic below.
 EXACT_CASES = [case for case in kernel_cases()
-               if case[1] not in ("hessian_psd", "hessian_psd_jacobi", "d3psi_contract")]
+               if case[1] not in ("hessian_psd", "hessian_psd_jacobi", "hessian_psd_svd",
+                                    "d3psi_contract")]
 
 
 # The element kernels of these materials are compared with SymPy's direct differentiation by
@@ -386,16 +387,17 @@ def test_projected_hessian_is_psd_and_projects_dP_dF(material: str, backend: str
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("material", sorted(MATERIALS))
-def test_the_jacobi_projection_equals_the_ql_one_to_round_off(material: str,
-                                                              backend: str) -> None:
+@pytest.mark.parametrize("method", ["jacobi", "svd"])
+def test_each_projection_equals_the_ql_one_to_round_off(material: str, backend: str,
+                                                        method: str) -> None:
     k = material_kernels(material, backend)
     p = material_args(material, 64)
     _, x, dphi, vol = random_elements(np.random.default_rng(6), 64)
     H = k.hessian(x, dphi, vol, *p)
-    ql, jacobi = k.hessian_psd(x, dphi, vol, *p), k.hessian_psd_jacobi(x, dphi, vol, *p)
+    ql, twin = k.hessian_psd(x, dphi, vol, *p), getattr(k, f"hessian_psd_{method}")(x, dphi, vol, *p)
     changed = np.abs(ql - H).max(axis=(1, 2)) > 1e-9 * np.abs(H).max()
     assert changed.any() or material == "linear"  # both meet indefinite elements
-    np.testing.assert_allclose(jacobi, ql, rtol=1e-9, atol=1e-11 * np.abs(H).max())
+    np.testing.assert_allclose(twin, ql, rtol=1e-9, atol=1e-11 * np.abs(H).max())
     if backend != "c":
         return  # NumPy's twin is the QL kernel itself
     # where the shared LDL^T test proves dP/dF PSD neither projects: one element body, the same
@@ -409,7 +411,40 @@ def test_the_jacobi_projection_equals_the_ql_one_to_round_off(material: str,
     c_extension().psd_eigen(A, values, vectors, flags)
     proven = flags == 0
     assert proven.any()
-    np.testing.assert_array_equal(jacobi[proven], ql[proven])
+    np.testing.assert_array_equal(twin[proven], ql[proven])
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    Q, R = np.linalg.qr(rng.normal(size=(3, 3)))
+    Q = Q * np.sign(np.diag(R))
+    return Q * [np.sign(np.linalg.det(Q)), 1.0, 1.0]  # proper: J > 0
+
+
+@pytest.mark.skipif(c_extension() is None, reason="C extension not built")
+@pytest.mark.parametrize("material", sorted(MATERIALS))
+def test_the_svd_projection_holds_in_degenerate_singular_frames(material: str) -> None:
+    """Repeated, nearly repeated and small singular values, rigid rotations and the identity:
+    the singular frame is not unique there, and the svd projection must not care."""
+    rng = np.random.default_rng(21)
+    stretches = [(1.0, 1.0, 1.0), (0.8, 0.8, 0.8), (1.3, 1.3, 0.7), (0.6, 1.2, 1.2),
+                 (0.7, 0.7 + 1e-9, 1.1), (0.9, 0.9 - 1e-13, 0.9 + 1e-13), (1.5, 0.5, 0.02),
+                 (0.55, 0.6, 0.65), (1.0, 1.0, 0.999999)]
+    F = np.array([_rotation(rng) @ np.diag(s) @ _rotation(rng).T for s in stretches
+                  for _ in range(3)] + [_rotation(rng) for _ in range(3)])
+    m = len(F)
+    X = REST_TET + 0.2 * rng.normal(size=(m, 4, 3))
+    X[np.linalg.det(X[:, 1:] - X[:, :1]) < 0, :2] = X[np.linalg.det(X[:, 1:] - X[:, :1]) < 0, 1::-1]
+    dphi, vol = kernel_module("tet", "numpy").rest_shape(X)
+    x = np.einsum("mij,mvj->mvi", F, X)
+    k = material_kernels(material, "c")
+    p = material_args(material, m)
+    H = k.hessian(x, dphi, vol, *p)
+    svd, ql = k.hessian_psd_svd(x, dphi, vol, *p), k.hessian_psd(x, dphi, vol, *p)
+    scale = np.abs(H).max(axis=(1, 2))[:, None, None]
+    assert (np.abs(ql - H) > 1e-9 * scale).any() or material == "linear"
+    error = (np.abs(svd - ql) / scale).max(axis=(1, 2))  # relative to each element's H
+    assert error.max() <= 1e-11, (error.argmax(), error.max())
+    assert np.linalg.eigvalsh(svd).min(axis=1).min() >= -1e-12 * scale.max()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -560,7 +595,7 @@ def test_show_prints_one_kernel() -> None:
 @pytest.mark.skipif(c_extension() is None, reason="C extension not built")
 @pytest.mark.parametrize("material", sorted(MATERIALS))
 @pytest.mark.parametrize("kernel", ["energy", "gradient", "hessian", "hessian_psd",
-                                    "hessian_psd_jacobi"])
+                                    "hessian_psd_jacobi", "hessian_psd_svd"])
 def test_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str) -> None:
     rng = np.random.default_rng(12)
     m = 80

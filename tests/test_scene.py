@@ -249,14 +249,16 @@ def test_psd_projection_picks_the_models_kernel():
     from fem3d.physics.assembly import hessian_data
 
     scene = load_scene("cantilever")
-    assert Simulation(scene).model.psd_hessian == "hessian_psd"
+    assert Simulation(scene).model.psd_hessian == "hessian_psd_svd"
     model = Simulation(apply_overrides(scene, {"simulation.psd_projection": "jacobi"})).model
     assert model.psd_hessian == "hessian_psd_jacobi"
-    # squashed: compressed elements have an indefinite dP/dF, which both project
+    # squashed: compressed elements have an indefinite dP/dF, which all three project
     q = model.X * np.array([1.0, 0.6, 1.0]) + 1e-3 * np.random.default_rng(3).normal(
         size=model.X.shape)
     jacobi = hessian_data(model, q, psd=True)
     ql = hessian_data(replace(model, psd_projection="ql"), q, psd=True)
-    assert not np.array_equal(jacobi, ql)  # another eigen-solver, another round-off
-    np.testing.assert_allclose(jacobi, ql, rtol=1e-9, atol=1e-12 * np.abs(ql).max())
+    svd = hessian_data(replace(model, psd_projection="svd"), q, psd=True)
+    for other in (jacobi, svd):
+        assert not np.array_equal(other, ql)  # another eigen-solver, another round-off
+        np.testing.assert_allclose(other, ql, rtol=1e-9, atol=1e-12 * np.abs(ql).max())
     assert not np.allclose(ql, hessian_data(model, q), rtol=1e-6)  # something was projected

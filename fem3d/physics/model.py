@@ -469,7 +469,7 @@ class Model:
         :func:`build_model`).
     density : (m,) float64 or None
         Per-element density when one was given, else None (``rho`` everywhere).
-    psd_projection : {"ql", "jacobi"}
+    psd_projection : {"svd", "ql", "jacobi"}
         Eigen-solver of the per-element PSD projection (:attr:`psd_hessian`).
     """
 
@@ -490,7 +490,7 @@ class Model:
     backend: str | None = None
     groups: tuple[GroupData, ...] = field(default=(), repr=False)
     density: np.ndarray | None = field(default=None, repr=False)
-    psd_projection: str = "ql"
+    psd_projection: str = "svd"
 
     @property
     def psd_hessian(self) -> str:

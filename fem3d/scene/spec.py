@@ -330,9 +330,10 @@ class SimulationSpec(_Spec):
     #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
     cholmod: Literal["auto", "simplicial", "supernodal"] = "auto"
     #: eigen-solver of the per-element PSD projection (Newton's "psd" Hessian, stiffness
-    #: damping) where dP/dF is indefinite: "ql" (tridiagonal QL, 2.7x faster on 9x9) or
-    #: "jacobi" (cyclic Jacobi: the round-off of every run before stop 31, replayed bit for bit)
-    psd_projection: Literal["ql", "jacobi"] = "ql"
+    #: damping) where dP/dF is indefinite: "svd" (dP/dF block diagonal in F's singular frame,
+    #: for isotropic materials; QL for the others), "ql" (tridiagonal QL: the round-off of
+    #: stops 31-35) or "jacobi" (cyclic Jacobi: that of every run before stop 31)
+    psd_projection: Literal["svd", "ql", "jacobi"] = "svd"
 
     @model_validator(mode="after")
     def _one_length(self) -> SimulationSpec:

@@ -1924,11 +1924,12 @@ static int fem3d_ldl_psd(int n, const double *a)
 }
 
 // Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
-// zero, in place: a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
+// zero, in place (frame: unused, see fem3d_project_psd_svd): a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
 // where the LDL^T test or the eigenvalues show it positive semi-definite.
-static void fem3d_project_psd(int n, double *a)
+static void fem3d_project_psd(int n, double *a, const double *frame)
 {
     double d[12], v[144];
+    (void)frame;
     if (fem3d_ldl_psd(n, a)) return;
     fem3d_sym_eigen(n, a, d, v);
     int negative = 0;
@@ -1950,9 +1951,10 @@ static void fem3d_project_psd(int n, double *a)
 // The projection of the "hessian_psd_jacobi" kernels: 2-3x slower than fem3d_project_psd's
 // QL (above), kept for its round-off, that of every run before stop 31; the same LDL^T
 // fast path.
-static void fem3d_project_psd_jacobi(int n, double *a)
+static void fem3d_project_psd_jacobi(int n, double *a, const double *frame)
 {
     double v[144], original[144];
+    (void)frame;
     double scale = 0.0;
     for (int i = 0; i < n * n; ++i) scale += a[i] * a[i];
     if (scale == 0.0 || fem3d_ldl_psd(n, a)) return;  // near rest most elements are PSD
@@ -2005,6 +2007,188 @@ static void fem3d_project_psd_jacobi(int n, double *a)
             for (int k = 0; k < n; ++k) sum += v[i * n + k] * lambda[k] * v[j * n + k];
             a[i * n + j] = a[j * n + i] = sum;
         }
+}
+
+// a -= lambda w w^T for the 9 x 9 a (row-major, symmetric).
+static inline void fem3d_remove_mode(double *a, double lambda, const double *w)
+{
+    for (int i = 0; i < 9; ++i)
+        for (int j = i; j < 9; ++j) {
+            const double value = a[i * 9 + j] - lambda * w[i] * w[j];
+            a[i * 9 + j] = a[j * 9 + i] = value;
+        }
+}
+
+// a (3 x 3, row-major, symmetric) = V diag(d) V^T by cyclic Jacobi rotations (a not changed;
+// d unordered, v's columns the eigenvectors): accurate for clustered eigenvalues, as F^T F of
+// a nearly rigid element has, and 5x cheaper than fem3d_sym_eigen at this size.
+static void fem3d_sym_eigen3(const double *a, double *d, double *v)
+{
+    double b[9];
+    memcpy(b, a, sizeof(double) * 9);
+    for (int i = 0; i < 9; ++i) v[i] = (i % 4 == 0);
+    const double scale = fabs(b[0]) + fabs(b[4]) + fabs(b[8]) + fabs(b[1]) + fabs(b[2]) + fabs(b[5]);
+    for (int sweep = 0; sweep < 16; ++sweep) {
+        const double off = fabs(b[1]) + fabs(b[2]) + fabs(b[5]);
+        if (!(off > 1e-16 * scale)) break;  // the round-off of the entries
+        for (int p = 0; p < 2; ++p)
+            for (int q = p + 1; q < 3; ++q) {
+                const double apq = b[p * 3 + q];
+                if (apq == 0.0) continue;
+                const double theta = (b[q * 4] - b[p * 4]) / (2.0 * apq);
+                const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
+                for (int k = 0; k < 3; ++k) {  // columns p, q
+                    const double bkp = b[k * 3 + p], bkq = b[k * 3 + q];
+                    b[k * 3 + p] = c * bkp - s * bkq;
+                    b[k * 3 + q] = s * bkp + c * bkq;
+                }
+                for (int k = 0; k < 3; ++k) {  // rows p, q
+                    const double bpk = b[p * 3 + k], bqk = b[q * 3 + k];
+                    b[p * 3 + k] = c * bpk - s * bqk;
+                    b[q * 3 + k] = s * bpk + c * bqk;
+                }
+                for (int k = 0; k < 3; ++k) {
+                    const double vkp = v[k * 3 + p], vkq = v[k * 3 + q];
+                    v[k * 3 + p] = c * vkp - s * vkq;
+                    v[k * 3 + q] = s * vkp + c * vkq;
+                }
+            }
+    }
+    for (int i = 0; i < 3; ++i) d[i] = b[i * 4];
+}
+
+// Column k of W dotted with column l of AW (9 x 9, row-major): (W^T a W)_kl.
+static inline double fem3d_mode_product(const double *W, const double *AW, int k, int l)
+{
+    double sum = 0.0;
+    for (int r = 0; r < 9; ++r) sum += W[r * 9 + k] * AW[r * 9 + l];
+    return sum;
+}
+
+// An orthonormal U, V with U^T F V diagonal (to round-off) for the row-major 3 x 3 F: V the
+// eigenvectors of F^T F, U by Gram-Schmidt on the columns of F V from the largest stretch
+// (completed where F is rank-deficient). Columns, row-major; U may be a reflection.
+static void fem3d_singular_frame(const double *F, double *U, double *V)
+{
+    double C[9], c[3], w[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[i * 3 + j] = F[i] * F[j] + F[3 + i] * F[3 + j] + F[6 + i] * F[6 + j];
+    fem3d_sym_eigen3(C, c, w);
+    int order[3] = {0, 1, 2};  // largest stretch first
+    for (int pass = 0; pass < 3; ++pass) {
+        const int i = pass == 1;  // compare-exchange (0, 1), (1, 2), (0, 1)
+        if (c[order[i]] < c[order[i + 1]]) {
+            const int t = order[i];
+            order[i] = order[i + 1];
+            order[i + 1] = t;
+        }
+    }
+    double B[9], scale = 0.0;
+    for (int k = 0; k < 3; ++k)
+        for (int i = 0; i < 3; ++i) V[i * 3 + k] = w[i * 3 + order[k]];
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) {
+            B[i * 3 + k] = F[i * 3] * V[k] + F[i * 3 + 1] * V[3 + k] + F[i * 3 + 2] * V[6 + k];
+            scale = fmax(scale, fabs(B[i * 3 + k]));
+        }
+    double u0[3] = {B[0], B[3], B[6]}, u1[3] = {B[1], B[4], B[7]};
+    double norm = sqrt(u0[0] * u0[0] + u0[1] * u0[1] + u0[2] * u0[2]);
+    if (!(norm > 1e-150)) {  // F = 0: any frame
+        memcpy(U, V, sizeof(double) * 9);
+        return;
+    }
+    for (int i = 0; i < 3; ++i) u0[i] /= norm;
+    const double along = u0[0] * u1[0] + u0[1] * u1[1] + u0[2] * u1[2];
+    for (int i = 0; i < 3; ++i) u1[i] -= along * u0[i];
+    norm = sqrt(u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2]);
+    if (!(norm > 1e-14 * scale)) {  // rank one: any unit vector normal to u0
+        const int axis = fabs(u0[0]) < fabs(u0[1]) ? (fabs(u0[0]) < fabs(u0[2]) ? 0 : 2)
+                                                   : (fabs(u0[1]) < fabs(u0[2]) ? 1 : 2);
+        for (int i = 0; i < 3; ++i) u1[i] = (i == axis) - u0[axis] * u0[i];
+        norm = sqrt(u1[0] * u1[0] + u1[1] * u1[1] + u1[2] * u1[2]);
+    }
+    for (int i = 0; i < 3; ++i) u1[i] /= norm;
+    const double u2[3] = {u0[1] * u1[2] - u0[2] * u1[1], u0[2] * u1[0] - u0[0] * u1[2],
+                          u0[0] * u1[1] - u0[1] * u1[0]};
+    for (int i = 0; i < 3; ++i) {
+        U[i * 3] = u0[i];
+        U[i * 3 + 1] = u1[i];
+        U[i * 3 + 2] = u2[i];
+    }
+}
+
+// fem3d_project_psd for a 9 x 9 dP/dF of an isotropic psi at F = frame (row-major; NULL: a
+// psi that is not isotropic, projected by fem3d_project_psd). In F's singular frame
+// (F = U S V^T, S diagonal) dP/dF is block diagonal: the sign flips G -> D G D (D = diag(+-1),
+// det D = 1) leave psi(U G V^T) unchanged, and only the stretch modes U e_i e_i^T V^T (one 3 x 3
+// block) and each pair U e_i e_j^T V^T, U e_j e_i^T V^T (three 2 x 2 blocks) survive them
+// (Smith et al. 2019, "Analytic eigensystems for isotropic distortion energies", sec. 4, here
+// with the blocks' entries taken from a itself, so no division by sigma_i - sigma_j). The
+// negative eigenpairs of the blocks are a's: a - sum lambda w w^T is the projection. About 4x
+// cheaper than tridiagonal QL; unchanged, bit for bit, where a is PSD.
+static void fem3d_project_psd_svd(int n, double *a, const double *frame)
+{
+    if (frame == NULL || n != 9) {
+        fem3d_project_psd(n, a, frame);
+        return;
+    }
+    if (fem3d_ldl_psd(n, a)) return;
+    double U[9], V[9], W[81], AW[81];
+    fem3d_singular_frame(frame, U, V);
+    // W's column 3i+j: the mode U e_i e_j^T V^T flattened row-major (entry 3r+c: U_ri V_cj)
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+            for (int i = 0; i < 3; ++i)
+                for (int j = 0; j < 3; ++j)
+                    W[(3 * r + c) * 9 + 3 * i + j] = U[r * 3 + i] * V[c * 3 + j];
+    for (int r = 0; r < 9; ++r)
+        for (int k = 0; k < 9; ++k) {
+            double sum = 0.0;
+            for (int s = 0; s < 9; ++s) sum += a[r * 9 + s] * W[s * 9 + k];
+            AW[r * 9 + k] = sum;
+        }
+    double w[9];
+    // the stretch block
+    double S[9], s[3], sv[9];
+    for (int i = 0; i < 3; ++i)
+        for (int k = i; k < 3; ++k)
+            S[i * 3 + k] = S[k * 3 + i] = fem3d_mode_product(W, AW, 4 * i, 4 * k);
+    // leading minors > 0 (Sylvester): positive definite, no mode to remove (the stretch block
+    // of most elements)
+    const double minor2 = S[0] * S[4] - S[1] * S[1];
+    const double det = S[0] * (S[4] * S[8] - S[5] * S[5]) - S[1] * (S[1] * S[8] - S[5] * S[2])
+                       + S[2] * (S[1] * S[5] - S[4] * S[2]);
+    const int definite = S[0] > 0.0 && minor2 > 0.0 && det > 0.0;
+    if (!definite) fem3d_sym_eigen3(S, s, sv);
+    for (int m = 0; m < 3 && !definite; ++m) {
+        if (!(s[m] < 0.0)) continue;
+        for (int r = 0; r < 9; ++r)
+            w[r] = sv[m] * W[r * 9] + sv[3 + m] * W[r * 9 + 4] + sv[6 + m] * W[r * 9 + 8];
+        fem3d_remove_mode(a, s[m], w);
+    }
+    // the pairs (i, j), (j, i)
+    static const int first[3] = {0, 0, 1}, second[3] = {1, 2, 2};
+    for (int t = 0; t < 3; ++t) {
+        const int k = 3 * first[t] + second[t], l = 3 * second[t] + first[t];
+        const double p = fem3d_mode_product(W, AW, k, k), q = fem3d_mode_product(W, AW, l, l);
+        const double o = fem3d_mode_product(W, AW, k, l);
+        // eigenvalues mean -+ radius, eigenvectors (cos, sin) of the Jacobi rotation
+        const double mean = 0.5 * (p + q), radius = hypot(0.5 * (p - q), o);
+        if (mean + radius >= 0.0 && mean - radius >= 0.0) continue;
+        const double theta = 0.5 * atan2(2.0 * o, p - q);
+        const double cs = cos(theta), sn = sin(theta);
+        // (cs, sn) belongs to mean + radius, (-sn, cs) to mean - radius
+        const double lambdas[2] = {mean + radius, mean - radius};
+        const double vectors[4] = {cs, sn, -sn, cs};
+        for (int e = 0; e < 2; ++e) {
+            if (!(lambdas[e] < 0.0)) continue;
+            for (int r = 0; r < 9; ++r)
+                w[r] = vectors[2 * e] * W[r * 9 + k] + vectors[2 * e + 1] * W[r * 9 + l];
+            fem3d_remove_mode(a, lambdas[e], w);
+        }
+    }
 }
 
 // psd_eigen(A, values, vectors, flags): for each of the m symmetric n x n blocks of A (float64,
@@ -2147,6 +2331,9 @@ static PyMethodDef methods[] = {
     {"fibre_reinforced_hessian_psd_jacobi", py_fibre_reinforced_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"fibre_reinforced_hessian_psd_jacobi_assemble", py_fibre_reinforced_hessian_psd_jacobi_assemble, METH_VARARGS,
      "fibre_reinforced_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"fibre_reinforced_hessian_psd_svd", py_fibre_reinforced_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame)."},
+    {"fibre_reinforced_hessian_psd_svd_assemble", py_fibre_reinforced_hessian_psd_svd_assemble, METH_VARARGS,
+     "fibre_reinforced_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"fung_psi", py_fung_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"fung_dpsi_dF", py_fung_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"fung_d2psi_dF2", py_fung_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2167,6 +2354,9 @@ static PyMethodDef methods[] = {
     {"fung_hessian_psd_jacobi", py_fung_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"fung_hessian_psd_jacobi_assemble", py_fung_hessian_psd_jacobi_assemble, METH_VARARGS,
      "fung_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"fung_hessian_psd_svd", py_fung_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"fung_hessian_psd_svd_assemble", py_fung_hessian_psd_svd_assemble, METH_VARARGS,
+     "fung_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_psi", py_linear_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"linear_dpsi_dF", py_linear_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"linear_d2psi_dF2", py_linear_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2187,6 +2377,9 @@ static PyMethodDef methods[] = {
     {"linear_hessian_psd_jacobi", py_linear_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"linear_hessian_psd_jacobi_assemble", py_linear_hessian_psd_jacobi_assemble, METH_VARARGS,
      "linear_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"linear_hessian_psd_svd", py_linear_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame)."},
+    {"linear_hessian_psd_svd_assemble", py_linear_hessian_psd_svd_assemble, METH_VARARGS,
+     "linear_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"mooney_rivlin_psi", py_mooney_rivlin_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"mooney_rivlin_dpsi_dF", py_mooney_rivlin_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"mooney_rivlin_d2psi_dF2", py_mooney_rivlin_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2207,6 +2400,9 @@ static PyMethodDef methods[] = {
     {"mooney_rivlin_hessian_psd_jacobi", py_mooney_rivlin_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"mooney_rivlin_hessian_psd_jacobi_assemble", py_mooney_rivlin_hessian_psd_jacobi_assemble, METH_VARARGS,
      "mooney_rivlin_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"mooney_rivlin_hessian_psd_svd", py_mooney_rivlin_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"mooney_rivlin_hessian_psd_svd_assemble", py_mooney_rivlin_hessian_psd_svd_assemble, METH_VARARGS,
+     "mooney_rivlin_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_psi", py_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2227,6 +2423,9 @@ static PyMethodDef methods[] = {
     {"neo_hookean_hessian_psd_jacobi", py_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"neo_hookean_hessian_psd_jacobi_assemble", py_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
      "neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_hessian_psd_svd", py_neo_hookean_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"neo_hookean_hessian_psd_svd_assemble", py_neo_hookean_hessian_psd_svd_assemble, METH_VARARGS,
+     "neo_hookean_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_psi", py_neo_hookean_lame_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_lame_dpsi_dF", py_neo_hookean_lame_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_lame_d2psi_dF2", py_neo_hookean_lame_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2247,6 +2446,9 @@ static PyMethodDef methods[] = {
     {"neo_hookean_lame_hessian_psd_jacobi", py_neo_hookean_lame_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"neo_hookean_lame_hessian_psd_jacobi_assemble", py_neo_hookean_lame_hessian_psd_jacobi_assemble, METH_VARARGS,
      "neo_hookean_lame_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"neo_hookean_lame_hessian_psd_svd", py_neo_hookean_lame_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"neo_hookean_lame_hessian_psd_svd_assemble", py_neo_hookean_lame_hessian_psd_svd_assemble, METH_VARARGS,
+     "neo_hookean_lame_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stable_neo_hookean_psi", py_stable_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stable_neo_hookean_dpsi_dF", py_stable_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stable_neo_hookean_d2psi_dF2", py_stable_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2267,6 +2469,9 @@ static PyMethodDef methods[] = {
     {"stable_neo_hookean_hessian_psd_jacobi", py_stable_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"stable_neo_hookean_hessian_psd_jacobi_assemble", py_stable_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
      "stable_neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"stable_neo_hookean_hessian_psd_svd", py_stable_neo_hookean_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"stable_neo_hookean_hessian_psd_svd_assemble", py_stable_neo_hookean_hessian_psd_svd_assemble, METH_VARARGS,
+     "stable_neo_hookean_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2287,6 +2492,9 @@ static PyMethodDef methods[] = {
     {"stvk_hessian_psd_jacobi", py_stvk_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
     {"stvk_hessian_psd_jacobi_assemble", py_stvk_hessian_psd_jacobi_assemble, METH_VARARGS,
      "stvk_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
+    {"stvk_hessian_psd_svd", py_stvk_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
+    {"stvk_hessian_psd_svd_assemble", py_stvk_hessian_psd_svd_assemble, METH_VARARGS,
+     "stvk_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"colour_blocks", py_colour_blocks, METH_VARARGS,
      "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
     FEM3D_AMG_METHODS

@@ -1399,7 +1399,7 @@ static PyObject *py_neo_hookean_hessian_assemble(PyObject *self, PyObject *args)
 // the body, with the projection its twins pass: inlined into each (a direct call again,
 // which gcc specializes for n as before: the same bits as a body of its own)
 static inline FEM3D_ELEMENT void neo_hookean_hessian_psd_projected(const double *const *in, const double *params,
-    double *const *out, void (*project)(int, double *))
+    double *const *out, void (*project)(int, double *, const double *))
 {
     const double C = params[0];
     const double D = params[1];
@@ -1526,7 +1526,8 @@ static inline FEM3D_ELEMENT void neo_hookean_hessian_psd_projected(const double 
     const double A_7_8 = -2.0/9.0*dJ_2_1*h17 - 2.0/9.0*dJ_2_2*h24;
     const double A_8_8 = -2*F_2_2*dJ_2_2*h3 - 2.0/9.0*dJ_2_2*(-dJ_2_2*h6 + h17) - 2*h0;
     double projected_91[81] = { A_0_0, A_0_1, A_0_2, A_0_3, A_0_4, A_0_5, A_0_6, A_0_7, A_0_8, A_0_1, A_1_1, A_1_2, A_1_3, A_1_4, A_1_5, A_1_6, A_1_7, A_1_8, A_0_2, A_1_2, A_2_2, A_2_3, A_2_4, A_2_5, A_2_6, A_2_7, A_2_8, A_0_3, A_1_3, A_2_3, A_3_3, A_3_4, A_3_5, A_3_6, A_3_7, A_3_8, A_0_4, A_1_4, A_2_4, A_3_4, A_4_4, A_4_5, A_4_6, A_4_7, A_4_8, A_0_5, A_1_5, A_2_5, A_3_5, A_4_5, A_5_5, A_5_6, A_5_7, A_5_8, A_0_6, A_1_6, A_2_6, A_3_6, A_4_6, A_5_6, A_6_6, A_6_7, A_6_8, A_0_7, A_1_7, A_2_7, A_3_7, A_4_7, A_5_7, A_6_7, A_7_7, A_7_8, A_0_8, A_1_8, A_2_8, A_3_8, A_4_8, A_5_8, A_6_8, A_7_8, A_8_8 };
-    project(9, projected_91);
+    const double frame_91[9] = { F_0_0, F_0_1, F_0_2, F_1_0, F_1_1, F_1_2, F_2_0, F_2_1, F_2_2 };
+    project(9, projected_91, frame_91);
     const double Ap_0_0 = projected_91[0];
     const double Ap_0_1 = projected_91[1];
     const double Ap_0_2 = projected_91[2];
@@ -1929,6 +1930,80 @@ static PyObject *py_neo_hookean_hessian_psd_jacobi_assemble(PyObject *self, PyOb
     static const Py_ssize_t rest_sizes[] = { 12, 1, };
     (void)self;
     return run_assemble(args, "neo_hookean_hessian_psd_jacobi_assemble", neo_hookean_hessian_psd_jacobi_assemble_range,
+                        2, rest_sizes, 2,
+                        144);
+}
+
+// Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic).
+// inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
+// outputs: hessian (m, 12, 12); operation count per element: 1569
+// neo_hookean_hessian_psd's body with fem3d_project_psd_svd
+static inline void neo_hookean_hessian_psd_svd_element(const double *const *in, const double *params,
+    double *const *out)
+{
+    neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
+}
+
+static void neo_hookean_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+    Py_ssize_t param_stride, double *const *outputs)
+{
+    FEM3D_PARALLEL_FOR
+    for (Py_ssize_t e = 0; e < m; ++e) {
+        const double *in[] = { inputs[0] + 12 * e, inputs[1] + 12 * e, inputs[2] + 1 * e, };
+        double *out[] = { outputs[0] + 144 * e, };
+        neo_hookean_hessian_psd_svd_element(in, params + param_stride * e, out);
+    }
+}
+
+static PyObject *py_neo_hookean_hessian_psd_svd(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t input_sizes[] = { 12, 12, 1, };
+    static const Py_ssize_t output_sizes[] = { 144, };
+    (void)self;
+    return run_kernel(args, "neo_hookean_hessian_psd_svd", neo_hookean_hessian_psd_svd,
+                      3, input_sizes, 2,
+                      1, output_sizes);
+}
+
+// Fused: gather x_e = q[T[e]], compute, and add the element's output into out[index[e, :]],
+// for the elements order[begin:end] (order NULL: begin ... end - 1), one after the other.
+// Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
+// FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
+// calls it once for the whole mesh (serial) or once per block of a race-free schedule.
+static Py_ssize_t neo_hookean_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+    const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
+{
+    double x[12], local[144];
+    const double *in[] = { x, NULL, NULL, };
+    double *result[] = { local };
+    const long long *T = job->T;
+    const double *q = job->q;
+    for (Py_ssize_t i = begin; i < end; ++i) {
+        const Py_ssize_t e = order == NULL ? i : (Py_ssize_t)order[i];
+        if (order != NULL && (unsigned long long)e >= (unsigned long long)job->m)
+            return FEM3D_BAD_ORDER;
+        for (int v = 0; v < 4; ++v) {
+            const long long t = T[4 * e + v];
+            if ((unsigned long long)t >= (unsigned long long)job->n_vertices) return -(e + 1);
+            for (int c = 0; c < 3; ++c) x[3 * v + c] = q[3 * t + c];
+        }
+        in[1] = job->rest[0] + 12 * e;
+        in[2] = job->rest[1] + 1 * e;
+        neo_hookean_hessian_psd_svd_element(in, job->params + job->param_stride * e, result);
+        const int *slot = job->index + 144 * e;
+        for (int j = 0; j < 144; ++j) {
+            if ((unsigned int)slot[j] >= (size_t)job->n_out) return e + 1;
+            out[slot[j]] += local[j];
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_neo_hookean_hessian_psd_svd_assemble(PyObject *self, PyObject *args)
+{
+    static const Py_ssize_t rest_sizes[] = { 12, 1, };
+    (void)self;
+    return run_assemble(args, "neo_hookean_hessian_psd_svd_assemble", neo_hookean_hessian_psd_svd_assemble_range,
                         2, rest_sizes, 2,
                         144);
 }

@@ -108,6 +108,12 @@ SIGNATURES = {
         "outputs": (("hessian", (12, 12)), ),
         "op_count": 1345,
     },
+    "hessian_psd_svd": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ("a", (3,)), ),
+        "params": ("mu", "lam", "k1", "k2", ),
+        "outputs": (("hessian", (12, 12)), ),
+        "op_count": 1345,
+    },
 }
 
 
@@ -2030,3 +2036,7 @@ def hessian_psd(x_e, dphi_dX, vol, a, params):
 
 #: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi. NumPy projects with LAPACK whatever the C method: hessian_psd itself.
 hessian_psd_jacobi = hessian_psd
+
+
+#: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame). NumPy projects with LAPACK whatever the C method: hessian_psd itself.
+hessian_psd_svd = hessian_psd

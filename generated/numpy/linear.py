@@ -104,6 +104,12 @@ SIGNATURES = {
         "outputs": (("hessian", (12, 12)), ),
         "op_count": 965,
     },
+    "hessian_psd_svd": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("mu", "lam", ),
+        "outputs": (("hessian", (12, 12)), ),
+        "op_count": 965,
+    },
 }
 
 
@@ -1359,3 +1365,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
 
 #: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi. NumPy projects with LAPACK whatever the C method: hessian_psd itself.
 hessian_psd_jacobi = hessian_psd
+
+
+#: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame). NumPy projects with LAPACK whatever the C method: hessian_psd itself.
+hessian_psd_svd = hessian_psd

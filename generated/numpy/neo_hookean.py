@@ -104,6 +104,12 @@ SIGNATURES = {
         "outputs": (("hessian", (12, 12)), ),
         "op_count": 1569,
     },
+    "hessian_psd_svd": {
+        "inputs": (("x_e", (4, 3)), ("dphi_dX", (4, 3)), ("vol", ()), ),
+        "params": ("C", "D", ),
+        "outputs": (("hessian", (12, 12)), ),
+        "op_count": 1569,
+    },
 }
 
 
@@ -1744,3 +1750,7 @@ def hessian_psd(x_e, dphi_dX, vol, params):
 
 #: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi. NumPy projects with LAPACK whatever the C method: hessian_psd itself.
 hessian_psd_jacobi = hessian_psd
+
+
+#: Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic). NumPy projects with LAPACK whatever the C method: hessian_psd itself.
+hessian_psd_svd = hessian_psd
