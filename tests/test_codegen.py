@@ -138,8 +138,8 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
     return (x, dphi), [*x.reshape(m, 12).T, *dphi.reshape(m, 12).T]
 
 
-# hessian_psd (and its Jacobi and svd twins) has no closed form to compare with; it has its own tests
-# below.
+# hessian_psd (and its Jacobi and svd twins) has no closed form to compare with; it has its
+# own tests below.
 # d3psi_contract: SymPy's third derivatives take minutes per material; it is compared with
 # SymPy's dP/dF differenced in 40-digit arithmetic below.
 EXACT_CASES = [case for case in kernel_cases()
@@ -394,7 +394,8 @@ def test_each_projection_equals_the_ql_one_to_round_off(material: str, backend: 
     p = material_args(material, 64)
     _, x, dphi, vol = random_elements(np.random.default_rng(6), 64)
     H = k.hessian(x, dphi, vol, *p)
-    ql, twin = k.hessian_psd(x, dphi, vol, *p), getattr(k, f"hessian_psd_{method}")(x, dphi, vol, *p)
+    ql = k.hessian_psd(x, dphi, vol, *p)
+    twin = getattr(k, f"hessian_psd_{method}")(x, dphi, vol, *p)
     changed = np.abs(ql - H).max(axis=(1, 2)) > 1e-9 * np.abs(H).max()
     assert changed.any() or material == "linear"  # both meet indefinite elements
     np.testing.assert_allclose(twin, ql, rtol=1e-9, atol=1e-11 * np.abs(H).max())
