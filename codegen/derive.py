@@ -235,6 +235,7 @@ def material_info(name: str) -> dict:
         "allows_inversion": bool(material.ALLOWS_INVERSION),
         "exact_small_strain": bool(getattr(material, "EXACT_SMALL_STRAIN", True)),
         "rotation_invariant": bool(getattr(material, "ROTATION_INVARIANT", True)),
+        "isotropic": is_isotropic(name),
         "inversion": material.INVERSION,
         "description": material.DESCRIPTION,
         "doc": (material.__doc__ or "").strip(),

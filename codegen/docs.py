@@ -50,8 +50,8 @@ def render_docs(modules: list[ModuleSpec]) -> str:
         "`python -m codegen show <name>` prints the formulas below.",
         "",
         "| material | parameters | exact at small strain | allows inversion | "
-        "Hessian ops/element |",
-        "| --- | --- | --- | --- | --- |",
+        "isotropic (`svd` projection) | Hessian ops/element |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for m in materials:
         info = m.info
@@ -60,7 +60,8 @@ def render_docs(modules: list[ModuleSpec]) -> str:
             f"; {n} (per element)" for n, _ in info["element_inputs"])
         lines.append(f"| [`{m.name}`](#{m.name}) | {params} | "
                      f"{'yes' if info['exact_small_strain'] else 'no'} | "
-                     f"{'yes' if info['allows_inversion'] else 'no'} | {hessian} |")
+                     f"{'yes' if info['allows_inversion'] else 'no'} | "
+                     f"{'yes' if info['isotropic'] else 'no: QL'} | {hessian} |")
     lines.append("")
     for m in materials:
         lines += _material_section(m)
