@@ -1924,8 +1924,9 @@ static int fem3d_ldl_psd(int n, const double *a)
 }
 
 // Clamp the negative eigenvalues of the symmetric n x n matrix a (row-major, n <= 12) to
-// zero, in place (frame: unused, see fem3d_project_psd_svd): a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
-// where the LDL^T test or the eigenvalues show it positive semi-definite.
+// zero, in place: a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
+// where the LDL^T test or the eigenvalues show it positive semi-definite (frame: unused, the
+// projections' common signature; see fem3d_project_psd_svd).
 static void fem3d_project_psd(int n, double *a, const double *frame)
 {
     double d[12], v[144];
@@ -2020,14 +2021,15 @@ static inline void fem3d_remove_mode(double *a, double lambda, const double *w)
 }
 
 // a (3 x 3, row-major, symmetric) = V diag(d) V^T by cyclic Jacobi rotations (a not changed;
-// d unordered, v's columns the eigenvectors): accurate for clustered eigenvalues, as F^T F of
-// a nearly rigid element has, and 5x cheaper than fem3d_sym_eigen at this size.
+// d unordered, v's columns the eigenvectors): accurate for the clustered eigenvalues that F^T F
+// of a nearly rigid element has.
 static void fem3d_sym_eigen3(const double *a, double *d, double *v)
 {
     double b[9];
     memcpy(b, a, sizeof(double) * 9);
     for (int i = 0; i < 9; ++i) v[i] = (i % 4 == 0);
-    const double scale = fabs(b[0]) + fabs(b[4]) + fabs(b[8]) + fabs(b[1]) + fabs(b[2]) + fabs(b[5]);
+    const double scale = fabs(b[0]) + fabs(b[4]) + fabs(b[8]) + fabs(b[1]) + fabs(b[2]) +
+                         fabs(b[5]);
     for (int sweep = 0; sweep < 16; ++sweep) {
         const double off = fabs(b[1]) + fabs(b[2]) + fabs(b[5]);
         if (!(off > 1e-16 * scale)) break;  // the round-off of the entries
@@ -2036,7 +2038,8 @@ static void fem3d_sym_eigen3(const double *a, double *d, double *v)
                 const double apq = b[p * 3 + q];
                 if (apq == 0.0) continue;
                 const double theta = (b[q * 4] - b[p * 4]) / (2.0 * apq);
-                const double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                const double t =
+                    (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
                 const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
                 for (int k = 0; k < 3; ++k) {  // columns p, q
                     const double bkp = b[k * 3 + p], bkq = b[k * 3 + q];
@@ -2126,8 +2129,9 @@ static void fem3d_singular_frame(const double *F, double *U, double *V)
 // block) and each pair U e_i e_j^T V^T, U e_j e_i^T V^T (three 2 x 2 blocks) survive them
 // (Smith et al. 2019, "Analytic eigensystems for isotropic distortion energies", sec. 4, here
 // with the blocks' entries taken from a itself, so no division by sigma_i - sigma_j). The
-// negative eigenpairs of the blocks are a's: a - sum lambda w w^T is the projection. About 4x
-// cheaper than tridiagonal QL; unchanged, bit for bit, where a is PSD.
+// negative eigenpairs of the blocks are a's: a - sum lambda w w^T is the projection (the
+// pile's damping matrix: 14.8 against 38.7 ms with QL); unchanged, bit for bit, where the LDL^T
+// test proves a PSD or no block has a negative eigenvalue.
 static void fem3d_project_psd_svd(int n, double *a, const double *frame)
 {
     if (frame == NULL || n != 9) {
