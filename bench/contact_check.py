@@ -17,6 +17,8 @@ positions alone (not the solver's contact set, filter or candidates):
 * the kinetic energy: its peak, its value at the end, and the first step from which it stays
   below ``--rest`` (default 1e-6) of the peak. Scenes listed in :data:`COMES_TO_REST` must
   get there; the others (a block sliding down an incline, a bar twisted by its pins) print it.
+  A run not at rest at the end names its last stretch at rest, if it had one (a pile that
+  settled and then slipped), and the bodies still moving faster than :data:`MOVING`.
 
 Prints one line per scene and exits 1 when a check fails. ``python -m bench.pile_check`` is
 the pile's run through ``fem3d run`` with its frames checked the same way.
@@ -93,6 +95,10 @@ def box_clearance(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> float:
                float((x[:, 1] - lower[1]).min()))
 
 
+#: a body whose fastest vertex is faster than this (m/s) at the end is named as moving
+MOVING = 1e-3
+
+
 def rest_step(kinetic: np.ndarray, rel: float) -> int | None:
     """First step from which ``kinetic`` stays below ``rel`` times its peak (None: never)."""
     below = kinetic < rel * kinetic.max()
@@ -100,6 +106,18 @@ def rest_step(kinetic: np.ndarray, rel: float) -> int | None:
         return None
     above = np.flatnonzero(~below)
     return int(above[-1] + 1) if above.size else 0
+
+
+def last_rest(kinetic: np.ndarray, rel: float, at_least: int = 10) -> tuple[int, int] | None:
+    """The last stretch of ``at_least`` or more states below ``rel`` times the peak that ends
+    before the last state, ``(first, last)`` (None: none, or the run ends at rest): a pile
+    that came to rest and then slipped."""
+    below = np.concatenate([[False], kinetic < rel * kinetic.max(), [False]])
+    starts = np.flatnonzero(~below[:-1] & below[1:])
+    ends = np.flatnonzero(below[:-1] & ~below[1:]) - 1
+    runs = [(int(a), int(b)) for a, b in zip(starts, ends, strict=True)
+            if b - a + 1 >= at_least and b < len(kinetic) - 1]
+    return runs[-1] if runs else None
 
 
 def scene_checks(sim) -> StateChecks:
@@ -140,10 +158,14 @@ def run_and_check(scene, steps: int | None = None) -> tuple[StateChecks, np.ndar
         checks.add(sim.q, [(v, f) for _, v, f in sim.obstacles()])
     # "at rest" by kinetic energy can hide creep under smoothed static friction (vertices
     # sliding at about eps_v): the fastest vertex at the end shows it
-    end_speed = float(np.linalg.norm(sim.v.reshape(-1, 3), axis=1).max())
+    speeds = np.linalg.norm(sim.v.reshape(-1, 3), axis=1)
+    moving = [(b.name or f"body {i}", float(speeds[rows].max()))
+              for i, (b, rows) in enumerate(zip(scene.bodies, sim.assembled.body_vertices,
+                                                strict=True))
+              if speeds[rows].max() > MOVING]
     return checks, np.asarray(kinetic), {"steps": n, "cpu": cpu, "wall": wall,
                                          "newton": newton, "tets": sim.model.n_tets,
-                                         "end_speed": end_speed}
+                                         "end_speed": float(speeds.max()), "moving": moving}
 
 
 def report(name: str, checks: StateChecks, kinetic: np.ndarray, figures: dict, rest: float,
@@ -158,6 +180,13 @@ def report(name: str, checks: StateChecks, kinetic: np.ndarray, figures: dict, r
            f"({len(checks.outside_box)} states outside)" if checks.box is not None else "")
     rest_text = (f"at rest (below {rest:g} of the peak) from step {k}" if rested else
                  f"not at rest ({kinetic[-1] / kinetic.max():.1e} of the peak at the end)")
+    window = None if rested else last_rest(kinetic, rest)
+    if window is not None:
+        rest_text += f", after resting over steps {window[0]}-{window[1]}"
+    moving = figures.get("moving", [])
+    if moving and not rested:
+        rest_text += ", moving at the end: " + ", ".join(
+            f"{name} {speed * 1e3:.1f} mm/s" for name, speed in moving[:6])
     print(f"{name}: {figures['tets']:,} tets, {n} steps, {n / max(figures['wall'], 1e-9):.2f} "
           f"steps/s ({n / max(figures['cpu'], 1e-9):.2f} CPU), "
           f"{figures['newton'] / n:.2f} Newton/step; {checks.states} states checked: "

@@ -81,6 +81,15 @@ def test_the_frame_check_sees_intersections_and_vertices_outside(tmp_path):
     assert rest_step(np.array([0.0, 1.0, 1e-7, 0.5]), 1e-6) is None
 
 
+def test_the_state_check_names_a_rest_that_ended():
+    from bench.contact_check import last_rest
+
+    slipped = np.array([0.0, 1.0, 0.5, *[1e-8] * 12, 1e-3, 1e-2])
+    assert last_rest(slipped, 1e-6) == (3, 14)
+    assert last_rest(slipped, 1e-6, at_least=13) is None  # too short a rest
+    assert last_rest(np.array([0.0, 1.0, *[1e-8] * 12]), 1e-6) is None  # at rest at the end
+
+
 def test_the_state_check_sees_intersections_planes_boxes_and_obstacles():
     """``bench.contact_check``'s per-state test: a body pushed into another, a vertex behind
     a plane, one out of the box, and a body crossing a mesh obstacle's triangle (the
