@@ -2020,47 +2020,6 @@ static inline void fem3d_remove_mode(double *a, double lambda, const double *w)
         }
 }
 
-// a (3 x 3, row-major, symmetric) = V diag(d) V^T by cyclic Jacobi rotations (a not changed;
-// d unordered, v's columns the eigenvectors): accurate for the clustered eigenvalues that F^T F
-// of a nearly rigid element has.
-static void fem3d_sym_eigen3(const double *a, double *d, double *v)
-{
-    double b[9];
-    memcpy(b, a, sizeof(double) * 9);
-    for (int i = 0; i < 9; ++i) v[i] = (i % 4 == 0);
-    const double scale = fabs(b[0]) + fabs(b[4]) + fabs(b[8]) + fabs(b[1]) + fabs(b[2]) +
-                         fabs(b[5]);
-    for (int sweep = 0; sweep < 16; ++sweep) {
-        const double off = fabs(b[1]) + fabs(b[2]) + fabs(b[5]);
-        if (!(off > 1e-16 * scale)) break;  // the round-off of the entries
-        for (int p = 0; p < 2; ++p)
-            for (int q = p + 1; q < 3; ++q) {
-                const double apq = b[p * 3 + q];
-                if (apq == 0.0) continue;
-                const double theta = (b[q * 4] - b[p * 4]) / (2.0 * apq);
-                const double t =
-                    (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
-                const double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
-                for (int k = 0; k < 3; ++k) {  // columns p, q
-                    const double bkp = b[k * 3 + p], bkq = b[k * 3 + q];
-                    b[k * 3 + p] = c * bkp - s * bkq;
-                    b[k * 3 + q] = s * bkp + c * bkq;
-                }
-                for (int k = 0; k < 3; ++k) {  // rows p, q
-                    const double bpk = b[p * 3 + k], bqk = b[q * 3 + k];
-                    b[p * 3 + k] = c * bpk - s * bqk;
-                    b[q * 3 + k] = s * bpk + c * bqk;
-                }
-                for (int k = 0; k < 3; ++k) {
-                    const double vkp = v[k * 3 + p], vkq = v[k * 3 + q];
-                    v[k * 3 + p] = c * vkp - s * vkq;
-                    v[k * 3 + q] = s * vkp + c * vkq;
-                }
-            }
-    }
-    for (int i = 0; i < 3; ++i) d[i] = b[i * 4];
-}
-
 // Column k of W dotted with column l of AW (9 x 9, row-major): (W^T a W)_kl.
 static inline double fem3d_mode_product(const double *W, const double *AW, int k, int l)
 {
@@ -2078,19 +2037,10 @@ static void fem3d_singular_frame(const double *F, double *U, double *V)
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
             C[i * 3 + j] = F[i] * F[j] + F[3 + i] * F[3 + j] + F[6 + i] * F[6 + j];
-    fem3d_sym_eigen3(C, c, w);
-    int order[3] = {0, 1, 2};  // largest stretch first
-    for (int pass = 0; pass < 3; ++pass) {
-        const int i = pass == 1;  // compare-exchange (0, 1), (1, 2), (0, 1)
-        if (c[order[i]] < c[order[i + 1]]) {
-            const int t = order[i];
-            order[i] = order[i + 1];
-            order[i + 1] = t;
-        }
-    }
+    fem3d_sym_eigen(3, C, c, w);  // ascending
     double B[9], scale = 0.0;
-    for (int k = 0; k < 3; ++k)
-        for (int i = 0; i < 3; ++i) V[i * 3 + k] = w[i * 3 + order[k]];
+    for (int k = 0; k < 3; ++k)  // largest stretch first
+        for (int i = 0; i < 3; ++i) V[i * 3 + k] = w[i * 3 + 2 - k];
     for (int i = 0; i < 3; ++i)
         for (int k = 0; k < 3; ++k) {
             B[i * 3 + k] = F[i * 3] * V[k] + F[i * 3 + 1] * V[3 + k] + F[i * 3 + 2] * V[6 + k];
@@ -2165,7 +2115,7 @@ static void fem3d_project_psd_svd(int n, double *a, const double *frame)
     const double det = S[0] * (S[4] * S[8] - S[5] * S[5]) - S[1] * (S[1] * S[8] - S[5] * S[2])
                        + S[2] * (S[1] * S[5] - S[4] * S[2]);
     const int definite = S[0] > 0.0 && minor2 > 0.0 && det > 0.0;
-    if (!definite) fem3d_sym_eigen3(S, s, sv);
+    if (!definite) fem3d_sym_eigen(3, S, s, sv);
     for (int m = 0; m < 3 && !definite; ++m) {
         if (!(s[m] < 0.0)) continue;
         for (int r = 0; r < 9; ++r)
