@@ -2,7 +2,7 @@
 
     python -m bench.pile_check [--steps N] [--out DIR] [--set KEY=VALUE ...] [--rest 1e-6]
     python -m bench.pile_check --check DIR [--set ...]   # a run already made (or still going)
-    python -m bench.pile_check --bodies 0,4,8 ...        # a corner column of the pile only
+    python -m bench.pile_check --bodies 0,1,2,3,4,5,6,7,8 ...  # the pile without its top layer
 
 The scene runs as ``fem3d run`` runs it (:func:`fem3d.app.run.run_scene`, frames written every
 step, one thread). Then every written frame is checked by a test of its own, built from the
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--rest", type=float, default=1e-6)
     ap.add_argument("--bodies", default=None, metavar="I,J,...",
-                    help="only these of the scene's bodies (e.g. 0,4,8: a corner column)")
+                    help="only these of the scene's bodies (e.g. 0,4: a block and its bunny)")
     ap.add_argument("--check", type=Path, default=None, metavar="DIR",
                     help="check the frames of a run in DIR instead of running")
     args = ap.parse_args(argv)

@@ -73,11 +73,12 @@ def main() -> None:
     for name, n, size, origin in (
         ("contact_strip_24x1x3.mesh", (24, 1, 3), (0.3, 0.01, 0.06), (-0.15, 0.0, -0.03)),
         ("contact_pile_block.mesh", (6, 4, 6), (0.12, 0.08, 0.12), (-0.06, 0.0, -0.06)),
+        ("contact_pile_board.mesh", (12, 1, 12), (0.36, 0.025, 0.36), (-0.18, 0.0, -0.18)),
     ):
         X, T = box(n, size, origin)
         write_tet_mesh(ROOT / "data" / "scenes" / "meshes" / name, TetMesh(X=X, T=T))
         print(f"data/scenes/meshes/{name}: {len(X)} vertices, {len(T)} tets")
-    V, F = open_box(0.2, 0.3, 8, 6)
+    V, F = open_box(0.2, 0.45, 8, 9)
     write_surface_mesh(ROOT / "data" / "scenes" / "meshes" / "contact_pile_box.obj", V, F)
     print(f"data/scenes/meshes/contact_pile_box.obj: {len(V)} vertices, {len(F)} triangles")
 
