@@ -9,9 +9,11 @@
 * ``data/scenes/meshes/contact_strip_24x1x3.mesh``: a 30 x 1 x 6 cm strip along x, 24 x 1 x 3
   cells (200 vertices, 432 tets): the folded-strip self-contact scene (contact_fold).
 * ``data/scenes/meshes/contact_pile_block.mesh``: a 12 x 8 x 12 cm block, 6 x 4 x 6 cells (245
-  vertices, 864 tets), and ``data/scenes/meshes/contact_pile_box.obj``: the open box (floor
-  40 x 40 cm at y = 0, four walls 30 cm high, 8 x 8 and 8 x 6 grids of 5 cm squares, two
-  triangles each; 273 vertices, 512 triangles, the corners shared): the pile (contact_pile).
+  vertices, 864 tets), ``data/scenes/meshes/contact_pile_board.mesh``: a 36 x 2.5 x 36 cm
+  board, 12 x 1 x 12 cells (338 vertices, 864 tets), and
+  ``data/scenes/meshes/contact_pile_box.obj``: the open box (floor 40 x 40 cm at y = 0, four
+  walls 45 cm high, 8 x 8 and 8 x 9 grids of 5 cm squares, two triangles each; 369 vertices,
+  704 triangles, the corners shared): the pile (contact_pile).
 """
 
 from __future__ import annotations
