@@ -163,3 +163,66 @@ def test_a_contact_run_writes_the_ground(tmp_path) -> None:  # noqa: ANN001
     assert g.points[:, 0].min() < bunny[:, 0].min() and g.points[:, 0].max() > bunny[:, 0].max()
     assert 'file="obstacles/obstacle_0.vtu"' in (out / "frames.pvd").read_text()
     assert (out / "preview.gif").is_file()
+
+
+def _open_box(half: float = 0.5, height: float = 0.6) -> ObstacleMesh:
+    """An open box around the origin (floor at y = 0, four walls, no lid), 2 triangles a side."""
+    a, h = half, height
+    c = np.array([[-a, 0, -a], [a, 0, -a], [a, 0, a], [-a, 0, a]], float)
+    V = np.vstack([c, c + [0.0, h, 0.0]])
+    F = [[0, 2, 1], [0, 3, 2]]  # the floor
+    for i in range(4):
+        j = (i + 1) % 4
+        F += [[i, j, j + 4], [i, j + 4, i + 4]]
+    return ObstacleMesh("obstacles[0] (box.obj)", V, np.array(F))
+
+
+def _tan_pixels(png: Path) -> int:
+    """Pixels of the bodies' colour (tan: red well above blue) in a preview PNG."""
+    rgb = np.asarray(Image.open(png).convert("RGB"), dtype=float)
+    return int(((rgb[..., 0] - rgb[..., 2]) > 25).sum())
+
+
+def test_the_preview_cuts_an_open_box_away_to_show_what_is_inside(tmp_path) -> None:  # noqa: ANN001
+    """A body inside an open box, seen from the side: the walls on the camera's side are not
+    drawn, so the body shows; the picture is the one of the floor and the far walls alone. A
+    box that does not hold the body, or one seen from straight above, is drawn whole."""
+    from fem3d.io.preview import _camera, _cut_away
+
+    V, F = _box(0.05, 0.25)  # a cube inside the box, below its rim
+    box = _open_box()
+    kw = dict(size=120, elev=20.0, azim=30.0)
+    render_preview([V], F, tmp_path / "in.gif", **kw, first_frame_png=tmp_path / "in.png",
+                   obstacles=[box])
+    # the camera looks from +x, +z: the walls x = +0.5 and z = +0.5 are the near ones
+    far = ObstacleMesh(box.name, box.vertices, box.faces[[0, 1, 2, 3, 8, 9]])
+    render_preview([V], F, tmp_path / "far.gif", **kw, first_frame_png=tmp_path / "far.png",
+                   obstacles=[far])
+    seen = np.asarray(Image.open(tmp_path / "in.png").convert("RGB"))
+    np.testing.assert_array_equal(seen, np.asarray(Image.open(tmp_path / "far.png").convert("RGB")))
+    assert _tan_pixels(tmp_path / "in.png") > 150  # the cube, about 17 px wide
+    grey = seen.astype(float)
+    assert ((np.abs(grey[..., 0] - grey[..., 2]) < 60) & (grey[..., 0] < 235)).mean() > 0.2
+    toward = _camera(20.0, 30.0)[2]
+    kept, holds = _cut_away(box.faces, box.vertices, V, toward)
+    assert holds and len(kept) == 6
+    kept, holds = _cut_away(box.faces, box.vertices + [5.0, 0.0, 0.0], V, toward)
+    assert not holds and len(kept) == 10
+    assert len(_cut_away(box.faces, box.vertices, V, _camera(90.0, 30.0)[2])[0]) == 10
+
+
+def test_a_body_on_the_floor_of_an_open_box_is_drawn_whole(tmp_path) -> None:  # noqa: ANN001
+    """The box's floor is two large triangles, each with its centre nearer the camera than
+    the cube standing on it: sorted by its farthest vertex (the box is a backdrop), the floor
+    hides none of the cube (as many cube pixels as without the floor)."""
+    V, F = _box(0.0, 0.2)  # on the floor y = 0
+    box = _open_box()
+    walls = ObstacleMesh(box.name, box.vertices, box.faces[2:])
+    kw = dict(size=160, elev=25.0, azim=30.0)
+    counts = []
+    for ob in (box, walls):
+        png = tmp_path / f"{len(ob.faces)}.png"
+        render_preview([V], F, tmp_path / "x.gif", **kw, first_frame_png=png, obstacles=[ob])
+        counts.append(_tan_pixels(png))
+    assert counts[1] > 300
+    assert counts[0] == counts[1]

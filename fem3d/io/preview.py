@@ -174,7 +174,9 @@ def render_preview(
         Drawn with the bodies: a plane as a grey checkerboard square (12 x 12 tiles) three
         view widths wide around the view's centre, behind everything (the camera looks at
         its free side); a mesh obstacle in blue-grey, depth-sorted with the bodies, at the
-        frame's time (mesh obstacles count in the view box).
+        frame's time (mesh obstacles count in the view box). A mesh obstacle that holds the
+        bodies (an open box, a bowl: its horizontal bounds contain theirs) is drawn cut away:
+        without its upright faces on the camera's side, which would hide what is inside.
     times : sequence of float, optional
         Time of each frame (moving obstacles); default: every frame at ``t = 0``.
 
@@ -207,13 +209,15 @@ def render_preview(
     else:
         F = faces
     base = np.asarray(color, dtype=np.float64)
+    right, up, toward = _camera(elev, azim)
     planes = [ob for ob in obstacles if ob.plane is not None]
     meshes = [ob for ob in obstacles if ob.plane is None]
+    backdrop = None
     if meshes:  # mesh obstacles join the bodies' triangles, with their own colour
         ts = [0.0] * len(frames) if times is None else [float(x) for x in times]
-        F, seq, base = _with_meshes(F, seq, base, meshes, [ts[int(i)] for i in pick])
+        F, seq, base, backdrop = _with_meshes(F, seq, base, meshes, [ts[int(i)] for i in pick],
+                                              toward)
 
-    right, up, toward = _camera(elev, azim)
     proj = np.stack([right, up, toward], axis=1)  # world -> (u, v, depth toward viewer)
     light = 0.55 * toward + 0.45 * up - 0.35 * right
     light /= np.linalg.norm(light)
@@ -232,7 +236,7 @@ def render_preview(
     cu, cv = 0.5 * (umin + umax), 0.5 * (vmin + vmax)
 
     ground = _plane_tiles(planes, seq[0], proj, light, half) if planes else None
-    images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half), ground)
+    images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half), ground, backdrop)
     if first_frame_png is not None:
         atomic_write(first_frame_png, lambda p: images[0].save(p, format="PNG"))
     return _save_gif(images, path_gif, fps)
@@ -244,21 +248,48 @@ PLANE_RGB = ((0.80, 0.80, 0.78), (0.62, 0.62, 0.60))
 
 
 def _with_meshes(F: np.ndarray, seq: list[np.ndarray], base: np.ndarray,
-                 meshes: Sequence[ObstacleMesh], times: Sequence[float]
-                 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """The bodies' faces and frames with the mesh obstacles' appended, and per-face base
-    colours ``(f, 3)``."""
+                 meshes: Sequence[ObstacleMesh], times: Sequence[float], toward: np.ndarray
+                 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """The bodies' faces and frames with the mesh obstacles' appended (a container's near
+    walls cut away, :func:`_cut_away`), per-face base colours ``(f, 3)``, and which faces
+    are a container's (the backdrop: what is left of it lies behind or under the bodies)."""
     n = seq[0].shape[0]
     faces, cols = [F], [np.broadcast_to(base, (F.shape[0], 3))]
+    backdrop = [np.zeros(F.shape[0], dtype=bool)]
     off = n
     for ob in meshes:
-        Fo = check_faces(ob.faces)
+        Fo, holds = _cut_away(check_faces(ob.faces), ob.positions(times[0]), seq[0], toward)
         faces.append(Fo + off)
         cols.append(np.broadcast_to(np.asarray(OBSTACLE_RGB), (Fo.shape[0], 3)))
+        backdrop.append(np.full(Fo.shape[0], holds))
         off += ob.vertices.shape[0]
     seq = [np.vstack([V] + [ob.positions(t) for ob in meshes])
            for V, t in zip(seq, times, strict=True)]
-    return np.vstack(faces), seq, np.vstack(cols)
+    return np.vstack(faces), seq, np.vstack(cols), np.concatenate(backdrop)
+
+
+def _cut_away(F: np.ndarray, X: np.ndarray, bodies: np.ndarray,
+              toward: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The faces ``F`` of a mesh obstacle at ``X`` worth drawing, and whether it holds the
+    bodies (its horizontal bounds contain theirs: an open box, a bowl). All faces, unless it
+    does and the camera is not straight above; then its upright faces turned toward the
+    camera (outward from its centre) are left out: a painter's algorithm cannot see
+    through them."""
+    flat = np.array([toward[0], 0.0, toward[2]])  # toward the viewer, in the ground plane
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    b_lo, b_hi = bodies.min(axis=0), bodies.max(axis=0)
+    xz = [0, 2]
+    holds = bool((lo[xz] <= b_lo[xz]).all() and (b_hi[xz] <= hi[xz]).all())
+    if not holds or np.linalg.norm(flat) < 1e-9:  # not a container, or looked at from above
+        return F, holds
+    tri = X[F]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nn = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
+    outward = tri.mean(axis=1) - 0.5 * (lo + hi)
+    n *= np.where(np.einsum("ij,ij->i", n, outward) < 0.0, -1.0, 1.0)[:, None]
+    near = (np.abs(n[:, 1]) < 0.5) & (n @ flat > 0.0)
+    return F[~near], True
 
 
 def _plane_tiles(planes: Sequence[ObstacleMesh], V0: np.ndarray, proj: np.ndarray,
@@ -286,7 +317,8 @@ def _plane_tiles(planes: Sequence[ObstacleMesh], V0: np.ndarray, proj: np.ndarra
 def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
                  light: np.ndarray, base: np.ndarray, size: int,
                  box: tuple[float, float, float],
-                 ground: tuple[np.ndarray, np.ndarray] | None = None) -> list[Image.Image]:
+                 ground: tuple[np.ndarray, np.ndarray] | None = None,
+                 backdrop: np.ndarray | None = None) -> list[Image.Image]:
     """Draw every frame of ``seq`` on one Agg canvas (see :func:`render_preview`).
 
     Parameters
@@ -305,6 +337,10 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
         Centre and half width of the (square) view in the image plane.
     ground : ((k, 4, 2), (k, 3)) float64, optional
         Quads drawn behind every face (the planes, :func:`_plane_tiles`) and their colours.
+    backdrop : (n_faces,) bool, optional
+        Faces sorted by their farthest vertex instead of their centre (a container's floor
+        and far walls: a large floor triangle partly under a body would otherwise be drawn
+        over the body's foot).
 
     Returns
     -------
@@ -341,7 +377,10 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
         shade = 0.25 + 0.75 * np.abs(n @ light)
         rgb = np.clip(shade[:, None] * (base if base.ndim == 2 else base[None, :]), 0.0, 1.0)
         P = V @ proj
-        order = np.argsort(P[F, 2].mean(axis=1), kind="stable")  # far first
+        depth = P[F, 2].mean(axis=1)
+        if backdrop is not None:
+            depth[backdrop] = P[F[backdrop], 2].min(axis=1)
+        order = np.argsort(depth, kind="stable")  # far first
         coll.set_verts(P[F[order]][:, :, :2])
         coll.set_facecolor(rgb[order])
         coll.set_edgecolor(rgb[order])  # hides hairline seams between faces
