@@ -212,11 +212,8 @@ def render_preview(
     right, up, toward = _camera(elev, azim)
     planes = [ob for ob in obstacles if ob.plane is not None]
     meshes = [ob for ob in obstacles if ob.plane is None]
-    backdrop = None
-    if meshes:  # mesh obstacles join the bodies' triangles, with their own colour
-        ts = [0.0] * len(frames) if times is None else [float(x) for x in times]
-        F, seq, base, backdrop = _with_meshes(F, seq, base, meshes, [ts[int(i)] for i in pick],
-                                              toward)
+    ts = [0.0] * len(frames) if times is None else [float(x) for x in times]
+    F, seq, base, backdrop = _with_meshes(F, seq, base, meshes, [ts[int(i)] for i in pick], toward)
 
     proj = np.stack([right, up, toward], axis=1)  # world -> (u, v, depth toward viewer)
     light = 0.55 * toward + 0.45 * up - 0.35 * right
@@ -250,9 +247,10 @@ PLANE_RGB = ((0.80, 0.80, 0.78), (0.62, 0.62, 0.60))
 def _with_meshes(F: np.ndarray, seq: list[np.ndarray], base: np.ndarray,
                  meshes: Sequence[ObstacleMesh], times: Sequence[float], toward: np.ndarray
                  ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
-    """The bodies' faces and frames with the mesh obstacles' appended (a container's near
-    walls cut away, :func:`_cut_away`), per-face base colours ``(f, 3)``, and which faces
-    are a container's (the backdrop: what is left of it lies behind or under the bodies)."""
+    """The bodies' faces and frames with the mesh obstacles' appended, each in its own colour
+    (a container's near walls cut away, :func:`_cut_away`), per-face base colours ``(f, 3)``,
+    and which faces are a container's (the backdrop: what is left of it lies behind or under
+    the bodies)."""
     n = seq[0].shape[0]
     faces, cols = [F], [np.broadcast_to(base, (F.shape[0], 3))]
     backdrop = [np.zeros(F.shape[0], dtype=bool)]
