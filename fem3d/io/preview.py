@@ -266,6 +266,13 @@ def _with_meshes(F: np.ndarray, seq: list[np.ndarray], base: np.ndarray,
     return np.vstack(faces), seq, np.vstack(cols), np.concatenate(backdrop)
 
 
+def _unit_normals(tri: np.ndarray) -> np.ndarray:
+    """Unit normals ``(f, 3)`` of triangles ``(f, 3, 3)`` (zero for degenerate ones)."""
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nn = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
+
+
 def _cut_away(F: np.ndarray, X: np.ndarray, bodies: np.ndarray,
               toward: np.ndarray) -> tuple[np.ndarray, bool]:
     """The faces ``F`` of a mesh obstacle at ``X`` worth drawing, and whether it holds the
@@ -281,9 +288,7 @@ def _cut_away(F: np.ndarray, X: np.ndarray, bodies: np.ndarray,
     if not holds or np.linalg.norm(flat) < 1e-9:  # not a container, or looked at from above
         return F, holds
     tri = X[F]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nn = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
+    n = _unit_normals(tri)
     outward = tri.mean(axis=1) - 0.5 * (lo + hi)
     n *= np.where(np.einsum("ij,ij->i", n, outward) < 0.0, -1.0, 1.0)[:, None]
     near = (np.abs(n[:, 1]) < 0.5) & (n @ flat > 0.0)
@@ -368,10 +373,7 @@ def _draw_frames(seq: Sequence[np.ndarray], F: np.ndarray, proj: np.ndarray,
 
     images: list[Image.Image] = []
     for V in seq:
-        tri = V[F]  # (f, 3, 3)
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        nn = np.linalg.norm(n, axis=1, keepdims=True)
-        n = np.divide(n, nn, out=np.zeros_like(n), where=nn > 0)
+        n = _unit_normals(V[F])
         shade = 0.25 + 0.75 * np.abs(n @ light)
         rgb = np.clip(shade[:, None] * (base if base.ndim == 2 else base[None, :]), 0.0, 1.0)
         P = V @ proj

@@ -2128,18 +2128,14 @@ static void fem3d_project_psd_svd(int n, double *a, const double *frame)
         const int k = 3 * first[t] + second[t], l = 3 * second[t] + first[t];
         const double p = fem3d_mode_product(W, AW, k, k), q = fem3d_mode_product(W, AW, l, l);
         const double o = fem3d_mode_product(W, AW, k, l);
-        // eigenvalues mean -+ radius, eigenvectors (cos, sin) of the Jacobi rotation
-        const double mean = 0.5 * (p + q), radius = hypot(0.5 * (p - q), o);
-        if (mean + radius >= 0.0 && mean - radius >= 0.0) continue;
-        const double theta = 0.5 * atan2(2.0 * o, p - q);
-        const double cs = cos(theta), sn = sin(theta);
-        // (cs, sn) belongs to mean + radius, (-sn, cs) to mean - radius
-        const double lambdas[2] = {mean + radius, mean - radius};
-        const double vectors[4] = {cs, sn, -sn, cs};
+        if (p + q >= 0.0 && p * q - o * o >= 0.0) continue;  // trace, determinant: PSD
+        const double pair[4] = {p, o, o, q};
+        double lambdas[2], vectors[4];
+        fem3d_sym_eigen(2, pair, lambdas, vectors);
         for (int e = 0; e < 2; ++e) {
             if (!(lambdas[e] < 0.0)) continue;
             for (int r = 0; r < 9; ++r)
-                w[r] = vectors[2 * e] * W[r * 9 + k] + vectors[2 * e + 1] * W[r * 9 + l];
+                w[r] = vectors[e] * W[r * 9 + k] + vectors[2 + e] * W[r * 9 + l];
             fem3d_remove_mode(a, lambdas[e], w);
         }
     }
