@@ -33,7 +33,7 @@ from fem3d.mesh.formats import read_surface_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh
 from fem3d.scene.arrays import is_surface_file, rest_positions
 from fem3d.scene.keys import format_key, parse_key, set_path
-from fem3d.scene.spec import Scene, describe_error
+from fem3d.scene.spec import Scene, describe_error, primary_error
 
 __all__ = ["load_scene", "apply_overrides", "read_scene_file", "mesh_scene",
            "scene_from_arrays", "scene_names", "scenes_dir", "data_dir", "cache_dir", "SCENES",
@@ -279,8 +279,7 @@ def apply_overrides(
     try:
         return Scene.model_validate(d)
     except ValidationError as exc:
-        errors = exc.errors(include_url=False)
-        err = errors[0]
+        err = primary_error(exc.errors(include_url=False))[0]
         loc = format_key(tuple(err["loc"]))
         given = [format_key(tuple(parse_key(str(k), source))) for k in overrides]
         src = source if any(loc.startswith(k) or k.startswith(loc) for k in given) \

@@ -690,6 +690,49 @@ def describe_error(err: dict) -> str:
     return msg
 
 
+def _misspelling(missing: dict, errors: list[dict]) -> dict | None:
+    """The unknown key beside a missing required one whose "did you mean" names it."""
+    loc = tuple(missing["loc"])
+    parent = _model_at(loc[:-1])
+    if parent is None:
+        return None
+    names = list(parent.model_fields)
+    for err in errors:
+        eloc = tuple(err["loc"])
+        if err["type"] == "extra_forbidden" and eloc[:-1] == loc[:-1]:
+            near = difflib.get_close_matches(str(eloc[-1]), names, n=1, cutoff=0.5)
+            if near and near[0] == loc[-1]:
+                return err
+    return None
+
+
+def primary_error(errors: list[dict]) -> tuple[dict, int]:
+    """The pydantic error to report and how many others it leaves unexplained.
+
+    The first error is the one nearest to the file's own words, except that a required key
+    reported missing because it was misspelled is reported as the misspelled key (its
+    "did you mean" explains both).
+
+    Parameters
+    ----------
+    errors : list of dict
+        ``ValidationError.errors()``, in pydantic's order.
+
+    Returns
+    -------
+    err : dict
+        The error to report.
+    n_more : int
+        How many of the other errors it does not explain.
+    """
+    pairs = [(m, _misspelling(m, errors)) for m in errors if m["type"] == "missing"]
+    pairs = [(m, e) for m, e in pairs if e is not None]
+    if not pairs:
+        return errors[0], len(errors) - 1
+    explained = {id(m) for m, _ in pairs} | {id(e) for _, e in pairs}
+    return pairs[0][1], sum(id(e) not in explained for e in errors)
+
+
 def _validate(d: Any, source: str) -> Scene:
     if not isinstance(d, Mapping):
         raise InputError(f"a scene must be a table of keys, got {type(d).__name__}", path=source)
@@ -697,9 +740,8 @@ def _validate(d: Any, source: str) -> Scene:
         return Scene.model_validate(dict(d))
     except ValidationError as exc:
         errors = exc.errors(include_url=False)
-        # report the error nearest to the file's own words: the first one
-        err = errors[0]
-        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        err, n_more = primary_error(errors)
+        more = f" (and {n_more} more)" if n_more else ""
         raise InputError(f"{format_key(tuple(err['loc']))}: {describe_error(err)}{more}",
                          path=source) from None
     except (TypeError, ValueError, RecursionError) as exc:  # pragma: no cover - defensive
