@@ -144,3 +144,27 @@ def test_gallery_rows_show_their_pictures():
         png = ROOT / "docs" / "gallery" / f"{name}.png"
         if png.is_file():
             assert f"](docs/gallery/{name}.png)" in row.split("|")[1], row
+
+
+# ------------------------------------------------------------------------------ key table
+def test_key_table_is_the_schemas(tmp_path, capsys):
+    """docs/scenes.md's key table is what the schema renders, every integrator included;
+    ``--check`` fails on a stale copy and the command rewrites it."""
+    import typing
+
+    from fem3d.scene.docs import main as docs_main
+    from fem3d.scene.docs import render_key_table, update_markdown
+    from fem3d.scene.spec import SimulationSpec
+
+    doc = ROOT / "docs" / "scenes.md"
+    text = doc.read_text()
+    assert update_markdown(text, render_key_table()) == text, \
+        "docs/scenes.md's key table is stale: run `python -m fem3d.scene.docs`"
+    row = next(line for line in text.splitlines() if line.startswith("| `simulation.integrator`"))
+    for name in typing.get_args(SimulationSpec.model_fields["integrator"].annotation):
+        assert f"`{name}`" in row, row
+    stale = tmp_path / "scenes.md"
+    stale.write_text(text.replace(" \\| `bdf2`", ""))
+    assert docs_main(["--check", "--file", str(stale)]) == 1
+    assert "+| `simulation.integrator`" in capsys.readouterr().out
+    assert docs_main(["--file", str(stale)]) == 0 and stale.read_text() == text
