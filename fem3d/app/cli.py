@@ -78,6 +78,7 @@ SUBCOMMANDS: list[str] = [
     "fem3d.app.viewer.app:add_view_subcommand",
     "fem3d.app.cli:add_resume_subcommand",
     "fem3d.app.cli:add_schema_subcommand",
+    "fem3d.app.surfaces:add_tetrahedralize_subcommand",
     "fem3d.app.sweep.cli:add_sweep_subcommand",
     "fem3d.app.fit.cli:add_fit_subcommand",
 ]

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from fem3d.app.surfaces import record_tet_meshes
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.checkpoint import (
@@ -474,6 +475,7 @@ def run_scene(
     }
     out.mkdir(parents=True, exist_ok=True)
     with rundir.claim(out, inputs=inputs):  # lock; refuse overwriting inputs; clean temps
+        record_tet_meshes(scene, sim.assembled.mesh_paths, out)  # surface bodies' tets, kept
         loop = RunLoop(scene, sim, out, settings, quiet=quiet, debug=debug)
         _stages.debug("output set-up")
         return loop.run()
