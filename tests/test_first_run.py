@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fem3d.app.viewer.logic import HOTKEYS, console_help
@@ -40,3 +41,61 @@ def test_unknown_scene_without_built_in_scenes_says_where_it_looked(tmp_path, mo
 def test_docs_do_not_say_contact_is_refused():
     text = (ROOT / "docs" / "scenes.md").read_text(encoding="utf-8")
     assert "refuses `enabled = true`" not in text
+
+
+# ----------------------------------------------------------------------------- the preview
+
+
+def _two_squares(near_first: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit squares facing the camera (+z), the second in front at z = 1 and shifted."""
+    sq = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    V = np.vstack([sq, sq + [0.5, 0.5, 1.0]])
+    far, near = np.array([[0, 1, 2], [0, 2, 3]]), np.array([[4, 5, 6], [4, 6, 7]])
+    return V, (np.vstack([near, far]) if near_first else np.vstack([far, near]))
+
+
+@pytest.mark.parametrize("near_first", [True, False])
+def test_the_preview_draws_the_nearest_face_whatever_the_order(near_first):
+    from fem3d.io.preview import _camera, _draw_frames
+
+    V, F = _two_squares(near_first)
+    right, up, toward = _camera(0.0, 0.0)  # looking along -z
+    proj = np.stack([right, up, toward], axis=1)
+    base = np.zeros((4, 3))
+    base[F[:, 0] >= 4] = [1.0, 0.0, 0.0]  # the near square red, the far one black
+    img = np.asarray(_draw_frames([V], F, proj, toward, base, 60, (0.75, 0.75, 0.75))[0])
+    # the overlap (u, v in [0.5, 1]) is the near square's: pixels 30-39 right, 20-29 down
+    assert (img[22:28, 32:38, 0] == 255).all() and (img[22:28, 32:38, 1] == 0).all()
+    assert (img[45:50, 10:15] == 0).all()  # the far square alone: black
+    assert (img[0:5, 0:5] == 255).all()  # paper
+
+
+def test_skipping_back_faces_leaves_the_preview_unchanged():
+    """A closed surface's back faces are skipped (half the work); the picture is the one
+    of drawing them all. The decimated bunny skin stays a closed oriented surface."""
+    from fem3d.io.preview import (
+        _camera,
+        _cluster_decimate,
+        _draw_frames,
+        _outward_sign,
+    )
+    from fem3d.mesh.formats import read_surface_mesh
+
+    V, F = read_surface_mesh(ROOT / "data" / "bunny_skin.obj")
+    A, Fd = _cluster_decimate(V, F, 6000)
+    W = A @ V
+    facing = _outward_sign(W, Fd)
+    assert (facing == 1.0).all()  # closed and outward: every face may be skipped
+    assert (_outward_sign(W, Fd[:, [0, 2, 1]]) == -1.0).all()
+    assert (_outward_sign(W, Fd[1:]) == 0.0).all()  # a hole: nothing skipped
+    right, up, toward = _camera(15.0, 30.0)
+    proj = np.stack([right, up, toward], axis=1)
+    P = W @ proj
+    c = 0.5 * (P.min(axis=0) + P.max(axis=0))
+    box = (c[0], c[1], 0.6 * float(np.ptp(P[:, :2], axis=0).max()))
+    light = toward
+    args = ([W], Fd, proj, light, np.array([0.8, 0.7, 0.6]), 120, box)
+    culled = np.asarray(_draw_frames(*args, facing=facing)[0])
+    whole = np.asarray(_draw_frames(*args)[0])
+    assert (culled.sum(axis=2) < 3 * 255).mean() > 0.2  # the bunny is there
+    np.testing.assert_array_equal(culled, whole)
