@@ -47,10 +47,9 @@ def _env() -> dict[str, str]:
 
 
 def _leftovers(out: Path) -> list[str]:
-    """Temporary or hidden files anywhere under ``out`` (atomic writes leave none; the
-    folder's lock file ``.fem3d.lock`` stays on purpose, see fem3d.io.rundir)."""
-    return [str(p) for p in out.rglob("*")
-            if (p.name.startswith(".") or ".tmp" in p.name) and p.name != ".fem3d.lock"]
+    """Temporary or hidden files anywhere under ``out`` (atomic writes leave none; the lock
+    file ``.fem3d.lock`` is removed when a run ends, see fem3d.io.rundir)."""
+    return [str(p) for p in out.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
 
 
 def _assert_no_nan_in_outputs(out: Path) -> None:

@@ -8,7 +8,8 @@
 * **Lock**: ``DIR/.fem3d.lock`` is locked with ``flock`` (released by the kernel when the
   process dies, even after ``kill -9``: a stale lock file is simply taken over) and holds
   the owner's pid and command line, so a second run into the same folder refuses with one
-  line naming the other process.
+  line naming the other process. It is removed when the run ends (normally, failed, or
+  interrupted), so a finished run folder holds only the run's outputs.
 * **Overwrite check**: the run refuses when a file it writes (``frames/*``, ``frames.pvd``,
   ``energy.csv``, ``energy.png``, ``preview.gif``, ``checkpoint.npz``) is one of its inputs
   (mesh, skin, scene file, ...). ``fem3d resume`` passes the checkpoint it resumes as
@@ -127,17 +128,8 @@ def claim(
     check_overwrite(out, inputs or {}, allow=allow)
     out.mkdir(parents=True, exist_ok=True)
     lock = out / LOCK_NAME
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _lock(lock, out)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
-            raise InputError(
-                f"output folder is in use by {_owner_text(lock)}; wait for it to finish "
-                "or choose another --out", path=out,
-            ) from None
         cmd = command or " ".join(Path(a).name if i == 0 else a for i, a in enumerate(sys.argv))
         info = (f"pid={os.getpid()}\nhost={socket.gethostname()}\ncommand={cmd}\n"
                 f"since={time.strftime('%Y-%m-%d %H:%M:%S')}\n")
@@ -147,10 +139,41 @@ def claim(
         try:
             yield out
         finally:
-            # The file stays (unlinking it would let a waiting run lock a dead inode).
+            # Unlinked while still locked: a run that opened it meanwhile finds, once it
+            # holds the lock, that the name no longer leads to its file, and starts over.
             with contextlib.suppress(OSError):
-                os.ftruncate(fd, 0)
+                os.unlink(lock)
     finally:
+        os.close(fd)
+
+
+def _lock(lock: Path, out: Path) -> int:
+    """Open and ``flock`` ``lock``; the descriptor. Retries when the file was unlinked (or
+    replaced) by its previous holder between the open and the lock.
+
+    Raises
+    ------
+    InputError
+        Another live process holds it.
+    """
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise InputError(
+                f"output folder is in use by {_owner_text(lock)}; wait for it to finish "
+                "or choose another --out", path=out,
+            ) from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
         os.close(fd)
 
 
