@@ -24,6 +24,7 @@ from fem3d.app.viewer.app import add_view_subcommand
 from fem3d.app.viewer.logic import (
     EnergyHistory,
     RealtimePacer,
+    StepGate,
     camera_for_points,
     energy_text,
     format_energy,
@@ -78,6 +79,64 @@ def test_pacer_keeps_sim_time_with_wall_time() -> None:
     assert slow.delay(0.1, 0.0) == pytest.approx(0.4)
     with pytest.raises(ParameterError):
         RealtimePacer(rate=0.0)
+
+
+class _FakeClock:
+    """A wall clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _drive(gate: StepGate, clock: _FakeClock, t: float, dt: float, cost: float,
+           wall: float) -> tuple[float, int, list[float]]:
+    """Run the simulation loop's decisions for ``wall`` seconds of the fake clock: a step
+    costs ``cost`` seconds and advances ``dt``; a wait sleeps the time asked for. Returns
+    (t, steps, the lead of simulated over wall time after each step)."""
+    start, steps, lead = clock.now, 0, []
+    t0 = t
+    while clock.now - start < wall:
+        w = gate.next_wait(t, True)
+        assert w is not None, "idle while watched"
+        if w > 0.0:
+            clock.now += w
+            continue
+        clock.now += cost
+        t += dt
+        steps += 1
+        lead.append((t - t0) - (clock.now - start))
+    return t, steps, lead
+
+
+def test_step_gate_idles_unwatched_and_paces_to_wall_time() -> None:
+    """Unwatched: no step and an idle wait (None); watched: simulated time no faster than
+    the clock (a step is due once its dt has passed), as fast as it can when a step costs
+    more than dt; a page that comes later continues where it was left, without a burst of
+    catch-up steps."""
+    clock, wake = _FakeClock(), threading.Event()
+    # A large max_lag: the pacer alone would race to catch up after an idle spell.
+    gate = StepGate(RealtimePacer(max_lag=1e3), wake, clock=clock)
+    assert gate.next_wait(0.0, True) is None and gate.watchers == 0
+    clock.now += 30.0  # nobody watches for 30 s: time does not move
+    gate.connect(7)
+    assert wake.is_set() and gate.watchers == 1
+    t, steps, lead = _drive(gate, clock, 0.0, dt=0.01, cost=0.002, wall=5.0)
+    assert 495 <= steps <= 501 and t == pytest.approx(steps * 0.01)
+    assert max(lead) <= 0.01 + 1e-9  # never ahead of the clock by more than one step
+    assert gate.next_wait(t, False) == math.inf  # paused: nothing to step
+    gate.disconnect(7)
+    assert gate.next_wait(t, True) is None  # the last page left: idle
+    clock.now += 100.0
+    gate.connect(8)  # where it was left, re-anchored: no 100 s of catch-up steps
+    t2, steps2, lead2 = _drive(gate, clock, t, dt=0.01, cost=0.002, wall=1.0)
+    assert 95 <= steps2 <= 101 and min(lead2) > -0.2
+    # A step that costs more than dt: back to back (never a wait), slower than real time.
+    t3, steps3, _ = _drive(gate, clock, t2, dt=0.01, cost=0.03, wall=3.0)
+    assert 100 <= steps3 <= 101  # 3 s / 0.03 s: not one wait
+    assert StepGate(RealtimePacer(), wake, unwatched=True, clock=clock).next_wait(0.0, True) == 0.0
 
 
 def test_energy_history_window_and_empty() -> None:
@@ -264,7 +323,7 @@ def test_bad_viewer_arguments() -> None:
 def viewer():
     from fem3d.app.viewer.app import Viewer
 
-    v = Viewer("bunny", port=0, realtime=False, push_hz=30.0)
+    v = Viewer("bunny", port=0, realtime=False, push_hz=30.0, run_unwatched=True)
     v.start()
     try:
         yield v
@@ -444,10 +503,45 @@ def test_concurrent_drags_and_mesh_swaps(viewer: Any) -> None:
 
 
 @needs_viser
+def test_viewer_steps_only_while_a_page_is_connected() -> None:
+    """No page: no step and an idle simulation thread (it waits on an event: a loop that
+    polls would count passes). A page connects: the scene runs from t = 0 at about wall
+    time. It leaves: the simulation stops where it was; the next page continues there."""
+    from types import SimpleNamespace
+
+    from fem3d.app.viewer.app import Viewer
+
+    def page(cid: int) -> Any:
+        return SimpleNamespace(client_id=cid, camera=SimpleNamespace())
+
+    with Viewer("bunny", port=0, mesh_mode="sim") as v:
+        time.sleep(1.0)
+        snap = v.snapshot()
+        assert (snap["steps"], snap["t"], snap["watchers"]) == (0, 0.0, 0)
+        assert snap["loops"] <= 2, f"{snap['loops']} loop passes with nobody watching"
+        v._on_client_connect(page(1))
+        wall0 = time.monotonic()
+        wait_for(lambda: v.snapshot()["steps"] > 0, 10, "a step once a page connects")
+        time.sleep(1.0)
+        t1, wall1 = v.snapshot()["t"], time.monotonic() - wall0
+        assert 0.2 < t1 <= wall1 + 0.05, f"t = {t1:.3f} s after {wall1:.3f} s of wall time"
+        v._on_client_disconnect(page(1))
+        time.sleep(0.2)  # a step under way finishes
+        snap = v.snapshot()
+        time.sleep(0.5)
+        assert v.snapshot()["steps"] == snap["steps"] and snap["watchers"] == 0
+        v._on_client_connect(page(2))
+        wait_for(lambda: v.snapshot()["steps"] > snap["steps"], 10, "steps for the next page")
+        assert v.snapshot()["t"] > snap["t"]  # it continues: no reset to t = 0
+        assert v.exceptions == [], v.exceptions
+
+
+@needs_viser
 def test_switch_scene() -> None:
     from fem3d.app.viewer.app import Viewer
 
-    with Viewer("bunny", port=0, realtime=False, mesh_mode="sim") as v:
+    with Viewer("bunny", port=0, realtime=False, mesh_mode="sim",
+                run_unwatched=True) as v:
         wait_for(lambda: v.snapshot()["steps"] > 3, 30, "steps")
         v.switch_scene("arma")
         snap = wait_for(
@@ -492,7 +586,8 @@ def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noq
     from fem3d.app.viewer.app import Viewer
 
     toml = Path(__file__).resolve().parent.parent / "data" / "scenes" / "arma.toml"
-    with Viewer(str(toml), port=0, realtime=False, mesh_mode="skin") as v:
+    with Viewer(str(toml), port=0, realtime=False, mesh_mode="skin",
+                run_unwatched=True) as v:
         snap = wait_for(lambda: (lambda s: s if s["steps"] > 2 else None)(v.snapshot()), 60,
                         "steps")
         assert snap["scene"] == "arma"
@@ -528,7 +623,8 @@ def test_material_menu_switches_the_model_and_keeps_the_motion() -> None:
     other = next((n for n in names if n != "neo_hookean"), None)
     if other is None:
         pytest.skip("only one material is generated")
-    with Viewer("bunny", port=0, realtime=False, integrator="implicit", mesh_mode="sim") as v:
+    with Viewer("bunny", port=0, realtime=False, integrator="implicit", mesh_mode="sim",
+                run_unwatched=True) as v:
         assert v.snapshot()["material_model"] == "neo_hookean"
         assert tuple(v._gui["material"].options) == tuple(names)
         q = v.positions()
@@ -604,7 +700,8 @@ plane = {{ point = [0.0, 0.0, 0.0], normal = [0.0, 1.0, 0.0] }}
 [[obstacles]]
 mesh = {{ path = "{data / 'coarser_bunny.obj'}", transform = {{ scale = 0.001, translate = [1.0, 0.0, 0.0] }}, motion = {{ keyframes = [{{ t = 0.0, translate = [0.0, 0.0, 0.0] }}, {{ t = 1.0, translate = [0.0, 0.5, 0.0] }}] }} }}
 """)  # noqa: E501
-    with Viewer(str(scene), port=0, realtime=False, mesh_mode="sim") as v:
+    with Viewer(str(scene), port=0, realtime=False, mesh_mode="sim",
+                run_unwatched=True) as v:
         wait_for(lambda: len(v._obstacle_handles) == 2 or None, 60, "the obstacles")
         plane, mesh = v._obstacle_handles
         assert np.allclose(np.asarray(plane.vertices)[:, 1], 0.0)  # the floor

@@ -58,6 +58,7 @@ from fem3d.app.viewer.logic import (
     VIEW_DIRECTIONS,
     PullState,
     RealtimePacer,
+    StepGate,
     ViewerState,
     _builtin_scene_names,
     _material_names,
@@ -152,6 +153,10 @@ class Viewer:
         Mesh shown first: the skinned display mesh or the simulation mesh's surface.
     time_scale : float
         Simulated seconds per wall-clock second when ``realtime`` (``< 1``: slow motion).
+    run_unwatched : bool
+        Step with no browser page connected too (scripts and tests driving the viewer from
+        Python). By default the simulation steps only while a page is connected and idles
+        (no CPU) otherwise; it goes on from where it was left when a page connects again.
     """
 
     def __init__(
@@ -168,6 +173,7 @@ class Viewer:
         plot_window: float = 10.0,
         mesh_mode: str = "skin",
         time_scale: float = 1.0,
+        run_unwatched: bool = False,
     ) -> None:
         if mesh_mode not in MESH_MODE_LABELS:
             raise ParameterError(
@@ -193,6 +199,7 @@ class Viewer:
         self._state = ViewerState(scene, integrator=integrator, backend=backend,
                                   mesh_mode=mesh_mode,
                                   pacer=RealtimePacer(enabled=realtime, rate=time_scale))
+        self._gate = StepGate(self._state.pacer, self._state.wake, unwatched=run_unwatched)
         self._acks = FrameAcks(self._state.lock, self._state.wake)
         self._notes = Notifications(self._state.lock)
         self._panel = Panel(self)
@@ -210,6 +217,7 @@ class Viewer:
         self._spring_key: tuple[int, ...] | None = None
         self._last_push = 0.0
         self._last_plot = 0.0
+        self._loops = 0  # passes of the simulation loop (an idle viewer makes none)
         self._mesh_serial = 0  # incremented whenever the mesh node is replaced
         self._shown: tuple[Any, Any] | None = None  # (mesh serial, pull) last sent
         self._shown_q = np.zeros((0, 3))
@@ -398,7 +406,9 @@ class Viewer:
         pull, one per dragging page, each as ``pull`` plus ``owner``), ``energy`` (list of
         ``[t, T, V, T+V]``), ``drag_events``, ``generation``, ``pick_radius``, ``acked``
         (mesh updates the pages acknowledged), ``held_back`` (mesh updates not sent because
-        a page had not processed the previous one), ``clients``, ``exceptions``.
+        a page had not processed the previous one), ``clients``, ``watchers`` (pages
+        connected: the simulation steps only while there is one), ``loops`` (passes of the
+        simulation loop), ``exceptions``.
         """
         with self._state.lock:
             return {
@@ -406,6 +416,8 @@ class Viewer:
                 "acked": self._acks.acked,
                 "held_back": self._acks.held_back,
                 "clients": len(self._acks),
+                "watchers": self._gate.watchers,
+                "loops": self._loops,
                 "exceptions": list(self._state.exceptions),
             }
 
@@ -424,6 +436,7 @@ class Viewer:
 
     def _on_client_connect(self, client: Any) -> None:
         self._acks.register(client)
+        self._gate.connect(int(client.client_id))
         with self._state.lock:
             cam = dict(self._camera)
             error = self._state.error
@@ -434,6 +447,7 @@ class Viewer:
     def _on_client_disconnect(self, client: Any) -> None:
         s = self._state
         cid = int(client.client_id)
+        self._gate.disconnect(cid)
         with s.lock:
             self._acks.drop(cid)
             s.drop_pulls(cid)
@@ -685,10 +699,12 @@ class Viewer:
                 self._fail(f"{type(exc).__name__}: {exc}")
 
     def _run(self) -> None:
-        """The simulation thread: commands, pull, a paced step, display updates."""
+        """The simulation thread: commands, pull, a paced step, display updates; while no
+        page is connected it sleeps on the wake event (a page, a command or stop wakes it)."""
         s = self._state
         while not self._stop.is_set():
             s.wake.clear()
+            self._loops += 1
             self._run_commands()
             try:
                 pull = s.sync_pull()
@@ -699,19 +715,15 @@ class Viewer:
                     s.drop_pulls()
                     pull = None
             with s.lock:
-                running = not s.paused
-            wait = 1.0 / self.push_hz
-            if running:
-                with s.lock:
-                    t_sim = s.t
-                delay = s.pacer.delay(t_sim, time.perf_counter())
-                if delay <= 0.0:
-                    error = s.step()
-                    if error is not None:
-                        self._fail(error)
-                    wait = 0.0
-                else:
-                    wait = delay
+                running, t_sim = not s.paused, s.t
+            wait = self._gate.next_wait(t_sim, running)
+            if wait is None:  # nobody watches: no step, no CPU
+                s.wake.wait()
+                continue
+            if wait == 0.0:
+                error = s.step()
+                if error is not None:
+                    self._fail(error)
             try:
                 self._push(pull)
             except Exception:  # noqa: BLE001 - e.g. the server is stopping
@@ -766,7 +778,8 @@ def serve(
         time_scale=time_scale,
     )
     url = viewer.start()
-    print(f"fem3d view: {url}  ({console_help()})", flush=True)
+    print(f"fem3d view: {url}  ({console_help()}; it simulates while a page is open)",
+          flush=True)
     try:
         viewer.wait()
     except KeyboardInterrupt:

@@ -23,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from fem3d.app.viewer.pacing import RealtimePacer, StepGate
 from fem3d.app.viewer.plots import ENERGY_PLOTS, HISTORY_COLUMNS, EnergyHistory
-from fem3d.errors import ParameterError, SimulationError
+from fem3d.errors import SimulationError
 from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.scene import apply_overrides, material_names
 from fem3d.scene.load import SCENES, load_scene
@@ -37,6 +38,7 @@ __all__ = [
     "EnergyHistory",
     "PullState",
     "RealtimePacer",
+    "StepGate",
     "ViewerState",
     "HOTKEYS",
     "camera_for_points",
@@ -65,7 +67,8 @@ def console_help() -> str:
             f"{k['reset']} reset; Ctrl-C stops")
 
 # The energy plots and their history (ENERGY_PLOTS, HISTORY_COLUMNS, EnergyHistory) are
-# in fem3d.app.viewer.plots, imported above and re-exported.
+# in fem3d.app.viewer.plots, the pacing (RealtimePacer, StepGate) in
+# fem3d.app.viewer.pacing, imported above and re-exported.
 
 #: Samples per energy plot (5 plots x 2 float32 arrays: 8 kB per update at 200).
 PLOT_POINTS = 200
@@ -108,55 +111,6 @@ def _pick(positions: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray
 # --------------------------------------------------------------------------------------
 # Small pieces of logic, free of viser (unit-tested)
 # --------------------------------------------------------------------------------------
-
-
-class RealtimePacer:
-    """Keep simulated time advancing about as fast as wall time.
-
-    Parameters
-    ----------
-    max_lag : float
-        When the simulation falls behind wall time by more than this (seconds), the
-        pacer re-anchors instead of letting it race to catch up.
-    enabled : bool
-        When False, :meth:`delay` is always 0 (run as fast as possible).
-    rate : float
-        Simulated seconds per wall-clock second (``< 1``: slow motion).
-    """
-
-    def __init__(self, max_lag: float = 0.1, *, enabled: bool = True, rate: float = 1.0) -> None:
-        if not rate > 0:
-            raise ParameterError(f"time scale must be positive, got {rate}")
-        self.max_lag = float(max_lag)
-        self.enabled = enabled
-        self.rate = float(rate)
-        self._anchor: tuple[float, float] | None = None
-
-    def reset(self) -> None:
-        """Forget the anchor (after a pause, a reset or a scene switch)."""
-        self._anchor = None
-
-    def delay(self, t_sim: float, now: float) -> float:
-        """Seconds to wait before the next step.
-
-        Parameters
-        ----------
-        t_sim : float
-            Current simulated time (s).
-        now : float
-            Current wall-clock time (s, monotonic).
-        """
-        if not self.enabled:
-            return 0.0
-        if self._anchor is None:
-            self._anchor = (t_sim, now)
-            return 0.0
-        t0, w0 = self._anchor
-        d = (w0 + (t_sim - t0) / self.rate) - now
-        if d < -self.max_lag:
-            self._anchor = (t_sim, now)
-            return 0.0
-        return max(d, 0.0)
 
 
 @dataclasses.dataclass
