@@ -196,7 +196,7 @@ class Simulation:
             try:
                 self.contact.contact.check_admissible(self._initial_positions())
             except SimulationError as exc:
-                raise scene.error("bodies", f"the initial state {exc.reason.split(': ', 1)[1]}"
+                raise scene.error("bodies", f"in the initial state, {exc.reason.split(': ', 1)[1]}"
                                   ) from None
         self.surface_faces = boundary_faces(a.T)
         self._dt = validate_dt(sim.dt)

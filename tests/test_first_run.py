@@ -99,3 +99,45 @@ def test_skipping_back_faces_leaves_the_preview_unchanged():
     whole = np.asarray(_draw_frames(*args)[0])
     assert (culled.sum(axis=2) < 3 * 255).mean() > 0.2  # the bunny is there
     np.testing.assert_array_equal(culled, whole)
+
+
+def test_run_says_when_it_wrote_the_preview(tmp_path, capsys):
+    from fem3d.app.cli import main
+
+    out = tmp_path / "bunny"
+    assert main(["run", "bunny", "--steps", "4", "--quiet", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"fem3d run: wrote {out / 'preview.gif'} (5 frames) and energy.png")
+    assert (out / "preview.gif").is_file() and (out / "energy.png").is_file()
+
+
+# ----------------------------------------------------------------------------- messages
+
+
+def test_an_intersecting_start_is_said_in_plain_words(tmp_path, capsys):
+    from fem3d.app.cli import main
+
+    out = tmp_path / "x"
+    status = main(["run", "contact_stack", "--set", "bodies[1].transform.translate=[-0.02,0.01,0]",
+                   "--steps", "1", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and len(err.splitlines()) == 1, err
+    assert err.endswith("contact_stack.toml: bodies: in the initial state, bodies[0] (bottom "
+                        "block) and bodies[1] (bunny) intersect (not intersection-free)")
+    assert not out.exists()
+
+
+def test_a_fit_file_with_a_missing_target_names_file_key_and_path(tmp_path, capsys):
+    from fem3d.app.cli import main
+
+    text = (ROOT / "examples" / "fit" / "fit.toml").read_text(encoding="utf-8")
+    fit = tmp_path / "fit.toml"
+    scene = repr(str(ROOT / "examples" / "fit" / "cantilever.toml"))
+    fit.write_text(text.replace('"cantilever.toml"', scene)
+                   .replace('"../../out/fit_target"', '"nowhere/run"'), encoding="utf-8")
+    assert main(["fit", str(fit), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith(f"fem3d fit: error: {fit}: target = 'nowhere/run': "
+                          f"{tmp_path / 'nowhere' / 'run'} does not exist (")
+    assert not (tmp_path / "out").exists()

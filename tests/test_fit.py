@@ -151,7 +151,7 @@ def test_iteration_limit_exits_1_and_still_writes(work: Path, capsys) -> None:
     (("[1e3, 1e8]", "[-1.0, 1e8]\n    log = true"), "params[0].bounds: log = true needs"),
     (("start = 1e5", "start = 1e9"), "params[0].bounds: start"),
     (('target = "target"\n', ""), "target: missing"),
-    (('target = "target"', 'target = "nowhere"'), "target: no such folder"),
+    (('target = "target"', 'target = "nowhere"'), "target = 'nowhere': "),
     (("max_iterations = 30", "max_iterations = 0"), "optimizer.max_iterations:"),
 ])
 def test_bad_fit_file_exits_2_naming_the_key(work: Path, capsys, change, key) -> None:

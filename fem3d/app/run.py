@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from fem3d.app.surfaces import record_tet_meshes
 from fem3d.errors import InputError, ParameterError, SimulationError
-from fem3d.io import rundir
+from fem3d.io import extras, rundir
 from fem3d.io.checkpoint import (
     CHECKPOINT_NAME,
     RunCheckpoint,
@@ -361,14 +361,6 @@ class RunLoop:
         sim, out, scene = self.sim, self.out, self.scene
         if status == "ok" and self.every:
             self.save_checkpoint()
-        if len(self.log):
-            plot_energy(self.log, out / "energy.png",
-                               title=f"{scene.name} ({sim.integrator})")
-        if self.preview_on and self.preview:
-            cam = scene.output.preview
-            render_preview(self.preview, self.faces, out / "preview.gif",
-                           elev=cam.elev, azim=cam.azim, view_bounds=cam.bounds,
-                           obstacles=self.obstacles, times=self.preview_times)
         if self.step_seconds:
             print(
                 f"fem3d {self.command}: {len(self.step_seconds)} steps in {wall:.2f} s; "
@@ -377,6 +369,18 @@ class RunLoop:
                 f"{self.frame_count} frames in {out}",
                 file=sys.stderr,
             )
+        t0 = time.perf_counter()
+        if len(self.log):
+            plot_energy(self.log, out / "energy.png",
+                               title=f"{scene.name} ({sim.integrator})")
+        if self.preview_on and self.preview:
+            cam = scene.output.preview
+            render_preview(self.preview, self.faces, out / "preview.gif",
+                           elev=cam.elev, azim=cam.azim, view_bounds=cam.bounds,
+                           obstacles=self.obstacles, times=self.preview_times)
+            print(f"fem3d {self.command}: wrote {out / 'preview.gif'} ({len(self.preview)} "
+                  f"frames) and energy.png in {time.perf_counter() - t0:.1f} s",
+                  file=sys.stderr)
 
     def _summary(self, status: str, message: str, wall: float) -> RunSummary:
         return _summary(self.sim, status, message, wall, self.iterations, self.max_disp,
@@ -464,6 +468,7 @@ def run_scene(
         raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     out = Path(out)
     _check_writable(out)
+    _require_extras(scene)  # before anything is written
     inputs = _scene_inputs(scene)
     rundir.check_overwrite(out, inputs)  # before any expensive setup
     backend = _resolve_kernels(backend)
@@ -479,6 +484,14 @@ def run_scene(
         loop = RunLoop(scene, sim, out, settings, quiet=quiet, debug=debug)
         _stages.debug("output set-up")
         return loop.run()
+
+
+def _require_extras(scene) -> None:
+    """Refuse, in one line naming the extra to install, a scene that needs a missing
+    optional dependency (:mod:`fem3d.io.extras`). Surfaces (wildmeshing) are checked where
+    they are tetrahedralized, the sparse solver where it is chosen: both before any output."""
+    if scene.output.format == "usd":
+        extras.require("pxr", "--format usd (output.format)")
 
 
 def _scene_inputs(scene) -> dict[str, Any]:
@@ -520,6 +533,7 @@ def resume_run(args: argparse.Namespace) -> int:
         settings["checkpoint_every"] = int(args.checkpoint_every)
     if args.no_preview:
         settings["preview"] = False
+    _require_extras(scene)
     settings["kernels"] = _resolve_kernels(settings["kernels"])
     sim = Simulation(scene, backend=settings["kernels"], scripted=True)
     if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:

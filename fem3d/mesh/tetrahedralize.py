@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
+from fem3d.io.extras import MissingExtra, has_module, install_hint
 from fem3d.io.files import atomic_write, cache_dir
 from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh
@@ -158,9 +159,9 @@ def tetrahedralize_file(
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / f"{key[:40]}.mesh"
     if not out.is_file():
-        if TETWILD_VERSION == "missing":
-            raise InputError("is a surface; tetrahedralizing it needs the fTetWild binding: "
-                             "pip install wildmeshing", path=path)
+        if TETWILD_VERSION == "missing" or not has_module("wildmeshing"):
+            raise MissingExtra("is a surface; tetrahedralizing it needs fTetWild (module "
+                               f"wildmeshing): {install_hint('wildmeshing')}", path=path)
         log = folder / f"{key[:40]}.log"
         tmp = folder / f".{key[:40]}.{os.getpid()}.npz"
         cmd = [sys.executable, "-m", "fem3d.mesh.tetrahedralize", str(path.resolve()), str(tmp),

@@ -198,9 +198,11 @@ def _resolve_backend(backend: str | None) -> str:
         src = "FEM3D_SOLVER" if env else "backend"
         raise ValueError(f"unknown sparse solver {name!r} ({src}); choose from auto, {BACKENDS}")
     if not _backend_importable(name):
-        hint = {"cholmod": "pip install scikit-sparse (needs SuiteSparse headers)",
+        hint = {"cholmod": "pip install 'fem3d[cholmod]' (after the SuiteSparse headers: "
+                           "sudo bash scripts/install_cholmod.sh)",
                 "pardiso": "pip install pypardiso"}.get(name, "")
-        raise ImportError(f"sparse solver back end {name!r} is not installed: {hint}")
+        src = " (FEM3D_SOLVER)" if env else ""
+        raise ImportError(f"sparse solver back end {name!r}{src} is not installed: {hint}")
     return name
 
 

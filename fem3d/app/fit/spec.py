@@ -293,5 +293,9 @@ def load_fit_file(path: str | os.PathLike[str]) -> FitFile:
         spec = spec.model_copy(update={"scene": str(scene.resolve())})
     target = base / spec.target
     if not target.exists():
-        raise InputError(f"target: no such folder or file {target}", path=p)
+        missing = os.path.normpath(target.absolute())
+        raise InputError(
+            f"target = {spec.target!r}: {missing} does not exist (the target run's folder or "
+            "frames file, relative to this file; make it with fem3d run SCENE --out DIR)",
+            path=p)
     return spec.model_copy(update={"target": str(target.resolve())})

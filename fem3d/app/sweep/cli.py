@@ -16,6 +16,7 @@ from fem3d.app.sweep.plan import _json_safe, plan_sweep
 from fem3d.app.sweep.run import run_sweep
 from fem3d.app.sweep.spec import METRICS, ResultsSpec, load_sweep_file
 from fem3d.errors import InputError
+from fem3d.io import extras
 
 __all__ = ["add_sweep_subcommand"]
 
@@ -87,6 +88,8 @@ def _sweep_command(args: argparse.Namespace) -> int:
             state = "invalid" if c.error else ("to run" if c.id in todo else "complete")
             print(f"{c.index}\t{c.id}\t{state}\t{json.dumps(_json_safe(c.params))}")
         return 0
+    # before "N cases" and before run_sweep writes sweep.json: one line, nothing written
+    extras.require("distributed", "fem3d sweep (Dask)")
     invalid = sum(1 for c in plan.cases if c.error is not None)
     print(
         f"fem3d sweep {spec.name}: {len(plan.cases)} cases ({len(plan.todo)} to run, "
