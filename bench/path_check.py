@@ -1,4 +1,4 @@
-"""The straight-motion check of contact substeps (``fem3d/physics/contact_path.py``) timed
+"""The straight-motion check of contact substeps (``fem3d/physics/contact/path.py``) timed
 inside a run, this tree's against an older checkout's, on the same steps.
 
     python -m bench.path_check --old /path/to/old/checkout contact_stack contact_fold
@@ -34,7 +34,7 @@ def old_check(old: Path):
 
 def measure(name: str, steps: int | None, old, overrides: dict | None = None) -> str:
     """One scene's line (``overrides``: scene overrides, as ``--set``)."""
-    from fem3d.physics.contact_path import straight_path_is_free as new
+    from fem3d.physics.contact.path import straight_path_is_free as new
     from fem3d.scene import apply_overrides, load_scene
     from fem3d.simulation import Simulation
 

@@ -1,4 +1,4 @@
-"""CCD of queries that carry the bodies far (:mod:`fem3d.physics.contact_frame`): bodies that
+"""CCD of queries that carry the bodies far (:mod:`fem3d.physics.contact.far_travel`): bodies that
 travel far along one CCD query (``static``'s first load step drops them to the ground in one
 Newton direction) are checked on their motion relative to each other, with the same steps as
 in the world frame; with a mesh obstacle (it stays behind) in the world frame; and a query
@@ -14,8 +14,8 @@ import pytest
 
 from fem3d.errors import SimulationError
 from fem3d.physics.contact import ContactModel, MeshObstacle
-from fem3d.physics.contact_candidates import StepCandidates
-from fem3d.physics.contact_frame import FAR_TRAVEL
+from fem3d.physics.contact.candidates import StepCandidates
+from fem3d.physics.contact.far_travel import FAR_TRAVEL
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from tests.test_contact import independent_intersection, two_boxes

@@ -9,7 +9,7 @@ import pytest
 from fem3d.errors import InputError, ParameterError
 from fem3d.mesh.tetmesh import tet_signed_volumes
 from fem3d.physics.contact import ContactModel
-from fem3d.physics.friction import point_plane_friction
+from fem3d.physics.contact.friction_profile import point_plane_friction
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.scene.spec import ContactSpec

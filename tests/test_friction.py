@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fem3d.physics.contact import ContactModel, PlaneObstacle
-from fem3d.physics.friction import friction_profile, point_plane_friction
+from fem3d.physics.contact.friction_profile import friction_profile, point_plane_friction
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.integrators import State, implicit_euler
 from tests.test_contact import box_mesh

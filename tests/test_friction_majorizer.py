@@ -9,7 +9,7 @@ import pytest
 
 from fem3d.errors import ParameterError
 from fem3d.physics.contact import ContactModel, PlaneObstacle
-from fem3d.physics.friction_majorizer import FrictionMajorizer
+from fem3d.physics.contact.friction_majorizer import FrictionMajorizer
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.integrators import State, implicit_euler
 from tests.test_contact import two_boxes

@@ -19,7 +19,7 @@ import pytest
 from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.physics import contact_path
+from fem3d.physics.contact import path as contact_path
 from fem3d.physics.contact import ContactModel
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.scene import apply_overrides, load_scene

@@ -62,7 +62,7 @@ import scipy.sparse as sp
 from fem3d.diff.adjoint import register_term
 from fem3d.diff.terms import AdjointTerm, Gradients, StepPair
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.physics.friction import point_plane_friction
+from fem3d.physics.contact.friction_profile import point_plane_friction
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.state import State
 

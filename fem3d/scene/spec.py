@@ -424,7 +424,7 @@ class ContactSpec(_Spec):
     #: quadratic that lies above the friction and touches it at the iterate ("majorizer":
     #: no overshoot when a step carries a slip back into the static zone, fewer line-search
     #: halvings at impacts; the same minimiser, but IPC's stopping rule then measures a
-    #: shorter step). fem3d.physics.friction_majorizer, docs/contact.md "Stop 32"
+    #: shorter step). fem3d.physics.contact.friction_majorizer, docs/contact.md "Stop 32"
     friction_hessian: Literal["exact", "majorizer"] = "exact"
 
     @field_validator("max_substeps")

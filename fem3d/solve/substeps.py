@@ -33,7 +33,7 @@ it is not free, when Newton stopped on its iteration cap, or when the step raise
   attempt (re-raised). A step that is only unconverged is kept, as without substeps (the
   finest complete attempt whose straight motions are free, ``StepStats.converged = False``).
 * **Cost.** One straight-motion check per step (no mesh-mesh contact, e.g. a body on planes:
-  none; :mod:`fem3d.physics.contact_path`: the model's CCD, then Tight-Inclusion only on a
+  none; :mod:`fem3d.physics.contact.path`: the model's CCD, then Tight-Inclusion only on a
   motion that one flags; 1-4 % of a gallery contact step); nothing else when it passes: the
   step's result is the one without substeps, bit for bit.
 """

@@ -15,7 +15,7 @@ import numpy as np
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.contact import ContactModel
-from fem3d.physics.contact_path import straight_path_is_free
+from fem3d.physics.contact.path import straight_path_is_free
 from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
 
 __all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS", "FIRST_STEPS"]
@@ -367,7 +367,7 @@ class ContactTerm(TermGroup):
     def straight_path_is_free(self, q0: np.ndarray, q1: np.ndarray, t0: float,
                               t1: float) -> bool:
         """Whether a step's own straight motion from ``q0`` (at ``t0``) to ``q1`` (at ``t1``)
-        meets no surface (:func:`fem3d.physics.contact_path.straight_path_is_free`): the
+        meets no surface (:func:`fem3d.physics.contact.path.straight_path_is_free`): the
         check :mod:`fem3d.solve.substeps` makes after each contact step."""
         return straight_path_is_free(self.contact, q0, q1, t0, t1)
 

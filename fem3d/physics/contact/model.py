@@ -34,7 +34,7 @@ Determinism
 
 Candidates
     Mesh-mesh pairs come from one ``ipctk.Candidates`` set per time step
-    (:meth:`ContactModel.start_step`, :class:`fem3d.physics.contact_candidates.StepCandidates`):
+    (:meth:`ContactModel.start_step`, :class:`fem3d.physics.contact.candidates.StepCandidates`):
     built from the step's swept volume, grown only when a query leaves it, shared by the
     collision sets of every iterate and line-search trial, CCD and friction's lagging.
 
@@ -67,11 +67,11 @@ import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.mesh.tetmesh import boundary_faces
-from fem3d.physics.contact_candidates import StepCandidates
-from fem3d.physics.contact_diagnostics import group_chain, intersecting_pairs
-from fem3d.physics.contact_frame import FarTravelCCD
-from fem3d.physics.contact_planes import Entries, PlanePairs
-from fem3d.physics.friction_majorizer import FrictionMajorizer
+from fem3d.physics.contact.candidates import StepCandidates
+from fem3d.physics.contact.diagnostics import group_chain, intersecting_pairs
+from fem3d.physics.contact.far_travel import FarTravelCCD
+from fem3d.physics.contact.friction_majorizer import FrictionMajorizer
+from fem3d.physics.contact.planes import Entries, PlanePairs
 
 #: Padding of the step's candidate boxes, in ``dhat``, when a step starts (the collision
 #: sets need ``dhat / 2``). Every query pays for every candidate: on the pile 2 ``dhat``
@@ -126,7 +126,7 @@ HESSIAN_PROJECTIONS: dict[str, ipctk.PSDProjectionMethod] = {
     "exact": ipctk.PSDProjectionMethod.CLAMP,
 }
 #: The friction's part of Newton's matrix: ipctk's Hessian (projected as the barrier's), or the
-#: Hessian of a quadratic majorizer (:mod:`fem3d.physics.friction_majorizer`).
+#: Hessian of a quadratic majorizer (:mod:`fem3d.physics.contact.friction_majorizer`).
 FRICTION_HESSIANS = {"exact": "exact", "majorizer": "majorizer"}
 
 
@@ -230,10 +230,10 @@ class ContactStats:
     builds : int
         Collision-set builds (narrow phase on the step's candidates).
     broad_phases : int
-        Candidate-set builds (:class:`~fem3d.physics.contact_candidates.StepCandidates`).
+        Candidate-set builds (:class:`~fem3d.physics.contact.candidates.StepCandidates`).
     ccd_calls : int
     far_ccd_calls : int
-        CCD calls that carried the bodies far (:mod:`fem3d.physics.contact_frame`).
+        CCD calls that carried the bodies far (:mod:`fem3d.physics.contact.far_travel`).
     seconds_build, seconds_ccd, seconds_derivatives : float
         Wall time in collision-set builds (broad phases included), CCD, and barrier/friction
         evaluation.
@@ -309,7 +309,7 @@ class ContactModel(PlanePairs):
         the Newton matrix unless Newton asks for a PSD one (:meth:`projects`).
     friction_hessian : str, optional
         A key of :data:`FRICTION_HESSIANS`: ``"exact"`` (default; ipctk's, projected as the
-        barrier's) or ``"majorizer"`` (:mod:`fem3d.physics.friction_majorizer`).
+        barrier's) or ``"majorizer"`` (:mod:`fem3d.physics.contact.friction_majorizer`).
 
     Attributes
     ----------
@@ -661,7 +661,7 @@ class ContactModel(PlanePairs):
                 tc = ipctk.TangentialCollisions()
                 if self.mu_k == self.mu:
                     tc.build(part.mesh, Vp, col, self._barrier, self.mu)
-                else:  # ipctk's own static-to-kinetic blend (fem3d.physics.friction)
+                else:  # ipctk's own static-to-kinetic blend (friction_profile)
                     tc.build(part.mesh, Vp, col, self._barrier, self.mu, self.mu_k)
                 part.tangential = tc if len(tc) else None
 
@@ -825,8 +825,8 @@ class ContactModel(PlanePairs):
             pairs = intersecting_pairs(self, q)
             what = "; ".join(f"{a} and {b}" if a != b else f"{a} with itself"
                              for a, b in pairs) or "the collision surfaces"
-            raise SimulationError(f"contact: the state is not intersection-free: {what} "
-                                  "intersect", step=step)
+            raise SimulationError(f"contact: {what} intersect (not intersection-free)",
+                                  step=step)
         if not math.isfinite(self.barrier_energy(q)):
             raise SimulationError("contact: two surfaces touch (distance 0); separate them "
                                   "by more than 0", step=step)

@@ -8,7 +8,7 @@ import ipctk
 import numpy as np
 
 if TYPE_CHECKING:
-    from fem3d.physics.contact import ContactModel
+    from fem3d.physics.contact.model import ContactModel
 
 __all__ = ["group_chain", "intersecting_pairs"]
 

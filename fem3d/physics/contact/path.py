@@ -20,7 +20,7 @@ closest); a motion it flags is checked again at 1e-9 and 1e-12 m
 (:data:`PATH_CCD_TOLERANCES`), and it meets a surface only when every one flags it. Planes
 need no test: each vertex moves on a line, so it crosses a plane within the step only if it
 ends below it, which the line search never accepts. The candidates are the step's own
-(:class:`~fem3d.physics.contact_candidates.StepCandidates`), grown when the motion leaves
+(:class:`~fem3d.physics.contact.candidates.StepCandidates`), grown when the motion leaves
 their boxes. The model's own CCD (additive by default) runs first: it flags every pair whose
 distance falls below a tenth of its start, so a motion it passes meets no surface, and only
 a flagged motion (a landing, a hit) needs the exact test; on the twisted bar this halves the
@@ -61,7 +61,7 @@ def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
 
     Parameters
     ----------
-    contact : fem3d.physics.contact.ContactModel
+    contact : fem3d.physics.contact.model.ContactModel
     q0, q1 : (3n,) or (n, 3) float64
         The bodies' positions at the start and the end of the motion.
     t0, t1 : float

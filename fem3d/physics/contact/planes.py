@@ -1,8 +1,8 @@
-"""Point-plane contact pairs of :class:`fem3d.physics.contact.ContactModel`, vectorized.
+"""Point-plane contact pairs of :class:`fem3d.physics.contact.model.ContactModel`, vectorized.
 
 Planes are point-plane pairs evaluated in NumPy with ipctk's own formulas (the same barrier
 ``b(s^2, dhat^2)`` of the signed distance ``s``, the same normal force, tangent projection and
-friction mollifier); :mod:`fem3d.physics.contact` says why. :class:`PlanePairs` holds the
+friction mollifier); :mod:`fem3d.physics.contact.model` says why. :class:`PlanePairs` holds the
 methods; the model holds the state they read (``planes``, ``surface``, ``dhat``, ``kappa``,
 the lagged normal forces).
 """
@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from fem3d.physics.friction import point_plane_friction
+from fem3d.physics.contact.friction_profile import point_plane_friction
 
 __all__ = ["Entries", "PlanePairs"]
 
@@ -35,7 +35,7 @@ class Entries(NamedTuple):
 
 class PlanePairs:
     """The point-plane barrier, lagged friction and CCD of a contact model's planes (a
-    mixin of :class:`fem3d.physics.contact.ContactModel`)."""
+    mixin of :class:`fem3d.physics.contact.model.ContactModel`)."""
 
     def _plane_distances(self, q: np.ndarray) -> np.ndarray:
         """Signed distances ``(n_planes, n_surface)`` of the surface vertices."""
@@ -102,7 +102,7 @@ class PlanePairs:
 
     def _plane_friction(self, q: np.ndarray, order: int, *, project: bool = True):
         """Lagged point-plane friction ``sum lambda F(|P (x - x_lag)|)`` (ipctk's mollifier
-        with ``eps = eps_v dt``, ``mu_s``/``mu_k``: :mod:`fem3d.physics.friction`): energy,
+        with ``eps = eps_v dt``, ``mu_s``/``mu_k``: :mod:`.friction_profile`): energy,
         gradient or Hessian on collision DOFs."""
         ns = self.n_surface
         if self._plane_lag is None:
