@@ -1,21 +1,33 @@
 """Build the generated C kernels as the optional extension ``fem3d._ckernels``.
 
 The extension is optional: without a C compiler fem3d falls back to the NumPy kernels.
-OpenMP and -march=native are used when the compiler accepts them
-(set FEM3D_PORTABLE=1 to build without -march=native).
+Every build (``pip install .``, ``pip wheel .``, ``pip install -e .``) targets the
+architecture's portable baseline (x86-64 without AVX, armv8-a on aarch64), so a wheel runs
+on any CPU of its architecture. ``FEM3D_NATIVE=1`` opts in to ``-march=native`` for a
+developer's in-place build; ``FEM3D_PORTABLE=1`` is still accepted and is the default.
+OpenMP is used when the compiler accepts it (``FEM3D_NO_OPENMP=1`` turns it off).
 """
 
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
+import sys
 import tempfile
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 SOURCE = "generated/c/_ckernels.c"
+# -ffp-contract=fast: fused multiply-adds where the target has them (native x86-64, and the
+# armv8-a baseline itself); the x86-64 baseline has no FMA, so it changes nothing there
+BASE_FLAGS = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast"]
+# Baseline per machine (platform.machine()); a compiler refusing it builds with its default.
+BASELINE = {"x86_64": "-march=x86-64", "amd64": "-march=x86-64", "aarch64": "-march=armv8-a",
+            "arm64": "-march=armv8-a"}
 
 
 def _compiler_accepts(compiler: list[str], flags: list[str]) -> bool:
@@ -31,33 +43,76 @@ def _compiler_accepts(compiler: list[str], flags: list[str]) -> bool:
         return result.returncode == 0
 
 
+def choose_flags(env: Mapping[str, str], machine: str,
+                 accepts: Callable[[list[str]], bool]) -> tuple[list[str], list[str]]:
+    """Choose the extension's compile and link flags.
+
+    Parameters
+    ----------
+    env
+        The environment: ``FEM3D_NATIVE=1`` selects ``-march=native``; ``FEM3D_NO_OPENMP=1``
+        leaves OpenMP out. ``FEM3D_NATIVE=1`` together with ``FEM3D_PORTABLE=1`` is an error.
+    machine
+        ``platform.machine()`` of the build, which picks the baseline ``-march``.
+    accepts
+        Whether the compiler accepts a list of flags (a trial compile).
+
+    Returns
+    -------
+    tuple of list of str
+        The compile flags and the link flags.
+
+    Raises
+    ------
+    ValueError
+        When FEM3D_NATIVE or FEM3D_PORTABLE is set to something other than 0 or 1, or both are 1.
+    """
+    for key in ("FEM3D_NATIVE", "FEM3D_PORTABLE"):
+        if env.get(key, "0") not in ("0", "1", ""):
+            raise ValueError(f"{key}={env[key]!r}: expected 1 (on) or 0 (off)")
+    native = env.get("FEM3D_NATIVE") == "1"
+    if native and env.get("FEM3D_PORTABLE") == "1":
+        raise ValueError("FEM3D_NATIVE=1 and FEM3D_PORTABLE=1 ask for opposite builds: set one")
+    compile_args = list(BASE_FLAGS)
+    link_args: list[str] = []
+    arch = ["-march=native"] if native else []
+    if not native and machine.lower() in BASELINE:
+        arch = [BASELINE[machine.lower()]]
+    if arch and accepts(arch):
+        compile_args += arch
+    if env.get("FEM3D_NO_OPENMP") != "1" and accepts(["-fopenmp"]):
+        compile_args.append("-fopenmp")
+        link_args.append("-fopenmp")
+    return compile_args, link_args
+
+
 class BuildExt(build_ext):
-    """Add -O3, OpenMP and -march=native where the compiler supports them."""
+    """Add -O3, OpenMP and the baseline (or, opted in, native) -march."""
 
     def build_extensions(self) -> None:
         compiler = list(getattr(self.compiler, "compiler_so", None) or ["cc"])[:1]
-        compile_args = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast"]
-        link_args: list[str] = []
-        portable = os.environ.get("FEM3D_PORTABLE") == "1"
-        if not portable and _compiler_accepts(compiler, ["-march=native"]):
-            compile_args.append("-march=native")
-        if os.environ.get("FEM3D_NO_OPENMP") != "1" and _compiler_accepts(compiler, ["-fopenmp"]):
-            compile_args.append("-fopenmp")
-            link_args.append("-fopenmp")
+        try:
+            compile_args, link_args = choose_flags(
+                os.environ, platform.machine(), lambda flags: _compiler_accepts(compiler, flags))
+        except ValueError as err:
+            print(f"setup.py: {err}", file=sys.stderr)
+            sys.exit(2)
+        print("fem3d._ckernels flags: " + " ".join(compile_args), file=sys.stderr)
         for ext in self.extensions:
             ext.extra_compile_args = compile_args
             ext.extra_link_args = link_args
         super().build_extensions()
 
 
-setup(
-    ext_modules=[
-        Extension(
-            "fem3d._ckernels",
-            [SOURCE],
-            depends=sorted(str(p) for p in Path("generated/c").glob("*.c")),
-            optional=True,
-        )
-    ],
-    cmdclass={"build_ext": BuildExt},
-)
+if __name__ == "__main__":
+    setup(
+        ext_modules=[
+            Extension(
+                "fem3d._ckernels",
+                [SOURCE],
+                depends=sorted(str(p) for p in Path("generated/c").glob("*.c")),
+                optional=True,
+            )
+        ],
+        cmdclass={"build_ext": BuildExt},
+    )
