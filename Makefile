@@ -7,12 +7,25 @@ RUN_STAMP := .venv-run-stamp
 
 install: $(PIP_STAMP)  ## the package, its dev tools and CHOLMOD where the machine allows it
 $(PIP_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh
+	@echo "make install: installing fem3d[dev] into $(PYTHON) and building its C kernels (pip, quiet: a few minutes on a fresh machine)"
 	$(PYTHON) -m pip install -q -e '.[dev]'
 	@bash scripts/install_cholmod.sh --if-possible $(PYTHON)
 	@touch $(PIP_STAMP)
 
+# The build requirements and runtime dependencies of pyproject.toml, one word each.
+DEPS = $(PYTHON) -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb')); \
+	print(' '.join(p['build-system']['requires'] + p['project']['dependencies']))"
+
+# Runtime only, in stages that each say what they do. The dependencies first, then fem3d
+# itself without build isolation (no second download of setuptools into a throw-away
+# environment), so that the C compile is a stage of its own.
 $(RUN_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh  ## runtime only
-	@if [ -f $(PIP_STAMP) ]; then :; else $(PYTHON) -m pip install -q -e .; \
+	@if [ -f $(PIP_STAMP) ]; then :; else \
+	  echo "make run: [1/4] installing fem3d's dependencies into $(PYTHON) (pip, quiet: up to a minute on a fresh machine)"; \
+	  $(PYTHON) -m pip install -q $$($(DEPS)) || exit 1; \
+	  echo "make run: [2/4] building fem3d's C kernels (pip install -e .: about 25 s of compiling)"; \
+	  $(PYTHON) -m pip install -q --no-deps --no-build-isolation -e . || exit 1; \
+	  echo "make run: [3/4] CHOLMOD, the fast sparse solver, where this machine allows it"; \
 	  bash scripts/install_cholmod.sh --if-possible $(PYTHON); fi
 	@touch $(RUN_STAMP)
 
@@ -32,10 +45,14 @@ lint:
 browser:  ## Debian chromium for the browser test (skipped with a reason if this fails)
 	-@bash scripts/install_chromium.sh
 
-test: install browser  ## the test suite (what CI runs)
+# The announcement comes first, before anything is installed (hence the sub-make).
+test:  ## the test suite (what CI runs)
+	@echo "make test: sets up fem3d[dev] and CHOLMOD, and installs Debian's chromium (apt-get, only when /usr/bin/chromium is missing) for the browser test of the viewer (tests/test_viewer_browser.py), then runs pytest"
+	@$(MAKE) --no-print-directory install browser PYTHON=$(PYTHON)
 	$(PYTHON) -m pytest -q
 
 run: $(RUN_STAMP)  ## the main job (runtime dependencies only, not the [dev] tools) on the built-in bunny scene
+	@echo "make run: [4/4] simulating the bunny into runs/bunny (then energy.png and preview.gif)"
 	$(PYTHON) -m fem3d run bunny --out runs/bunny
 
 view: $(RUN_STAMP)  ## the interactive viewer on the bunny: open http://127.0.0.1:8080

@@ -25,6 +25,8 @@ else
         echo "install_chromium.sh: no apt-get; install chromium yourself (expected at $CHROMIUM)" >&2
         exit 1
     fi
+    echo "install_chromium.sh: installing Debian's chromium with apt-get for the browser test" \
+         "of the viewer (tests/test_viewer_browser.py); this may take a minute"
     export DEBIAN_FRONTEND=noninteractive
     $SUDO apt-get update -q
     $SUDO apt-get install -y -q --no-install-recommends chromium fonts-liberation

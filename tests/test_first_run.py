@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -141,3 +144,52 @@ def test_a_fit_file_with_a_missing_target_names_file_key_and_path(tmp_path, caps
     assert err.startswith(f"fem3d fit: error: {fit}: target = 'nowhere/run': "
                           f"{tmp_path / 'nowhere' / 'run'} does not exist (")
     assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------- make run / test
+
+
+def _make(tmp_path: Path, target: str) -> list[str]:
+    """``make TARGET`` in a copy of the build files, with a stand-in python that prints how it
+    is called (``-c`` snippets run for real) instead of installing or running anything."""
+    for rel in ("Makefile", "pyproject.toml", "setup.py", "scripts/install_cholmod.sh",
+                "scripts/install_chromium.sh", *(str(p.relative_to(ROOT)) for p in
+                                                   (ROOT / "generated" / "c").glob("*.c"))):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / rel, tmp_path / rel)
+    fake = tmp_path / "python"
+    fake.write_text('#!/bin/bash\nif [ "$1" = "-c" ]; then exec python3 "$@"; fi\n'
+                    'echo "PY $*"\n')
+    fake.chmod(0o755)
+    r = subprocess.run(["make", "--no-print-directory", target, f"PYTHON={fake}"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "CHROMIUM": "/bin/true"})
+    assert r.returncode == 0, r.stdout + r.stderr
+    return r.stdout.splitlines()
+
+
+def _index(lines: list[str], needle: str) -> int:
+    hits = [i for i, line in enumerate(lines) if needle in line]
+    assert hits, f"{needle!r} not in:\n" + "\n".join(lines)
+    return hits[0]
+
+
+def test_make_run_says_what_it_does_at_each_stage(tmp_path):
+    lines = _make(tmp_path, "run")
+    order = [_index(lines, "[1/4] installing fem3d's dependencies"),
+             _index(lines, "PY -m pip install -q setuptools>=68 wheel numpy>=1.26"),
+             _index(lines, "[2/4] building fem3d's C kernels"),
+             _index(lines, "PY -m pip install -q --no-deps --no-build-isolation -e ."),
+             _index(lines, "[3/4] CHOLMOD"),
+             _index(lines, "[4/4] simulating the bunny"),
+             _index(lines, "PY -m fem3d run bunny --out runs/bunny")]
+    assert order == sorted(order)
+    assert "minute" in lines[order[0]]
+
+
+def test_make_test_says_up_front_that_it_installs_chromium_and_why(tmp_path):
+    lines = _make(tmp_path, "test")
+    first = lines[0]
+    assert "Debian's chromium" in first and "browser test of the viewer" in first
+    assert _index(lines, "PY -m pip install") > 0  # announced before anything is installed
+    assert _index(lines, "chromium present") < _index(lines, "PY -m pytest")
