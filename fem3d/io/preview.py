@@ -323,8 +323,7 @@ def _cut_away(F: np.ndarray, X: np.ndarray, bodies: np.ndarray,
     """The faces ``F`` of a mesh obstacle at ``X`` worth drawing, and whether it holds the
     bodies (its horizontal bounds contain theirs: an open box, a bowl). All faces, unless it
     does and the camera is not straight above; then its upright faces turned toward the
-    camera (outward from its centre) are left out: a painter's algorithm cannot see
-    through them."""
+    camera (outward from its centre) are left out: they would hide what is inside."""
     flat = np.array([toward[0], 0.0, toward[2]])  # toward the viewer, in the ground plane
     lo, hi = X.min(axis=0), X.max(axis=0)
     b_lo, b_hi = bodies.min(axis=0), bodies.max(axis=0)
