@@ -295,13 +295,16 @@ def test_surface_body_tetrahedralized_cached_and_skinned(tmp_path, capsys, monke
     cache = tmp_path / "cache"
     monkeypatch.setenv("FEM3D_CACHE", str(cache))
     cube = _cube(tmp_path / "cube.obj")
-    argv = ["run", str(cube), "--steps", "3", "--quiet", "--no-preview", "--set",
-            "bodies[0].tetrahedralize.edge_length=0.3", "--set",
-            "bodies[0].tetrahedralize.stop_quality=100.0"]
+    # a wide envelope (epsilon) and a low quality target: fTetWild in ~0.1 s instead of
+    # 3-13 s (measured); the cube's tets are then its own corners, the volume still exact
+    argv = ["run", str(cube), "--steps", "3", "--quiet", "--no-preview",
+            "--set", "bodies[0].tetrahedralize.epsilon=0.05",
+            "--set", "bodies[0].tetrahedralize.edge_length=0.3",
+            "--set", "bodies[0].tetrahedralize.stop_quality=100.0"]
     assert main([*argv, "--out", str(tmp_path / "a")]) == 0
     (meta,) = list((cache / "tetwild").glob("*.json"))
     info = json.loads(meta.read_text())
-    assert info["tets"] > 0 and info["edge_length"] == 0.3
+    assert info["tets"] > 0 and info["edge_length"] == 0.3 and info["epsilon"] == 0.05
     import fem3d.mesh.tetrahedralize as tetrahedralize
 
     def no_tetwild(*args, **kwargs):  # a cache hit must not run fTetWild (not a time budget)
@@ -309,6 +312,7 @@ def test_surface_body_tetrahedralized_cached_and_skinned(tmp_path, capsys, monke
 
     monkeypatch.setattr(tetrahedralize, "tetrahedralize_arrays", no_tetwild)
     s = load_scene(cube, {"bodies[0].tetrahedralize.edge_length": 0.3,
+                          "bodies[0].tetrahedralize.epsilon": 0.05,
                           "bodies[0].tetrahedralize.stop_quality": 100.0})
     sim = Simulation(s)
     assert list((cache / "tetwild").glob("*.json")) == [meta]
@@ -317,7 +321,7 @@ def test_surface_body_tetrahedralized_cached_and_skinned(tmp_path, capsys, monke
     vol = float(sim.model.vol.sum())
     assert vol == pytest.approx(1e-3, rel=0.05)
     # a different size knob is another cache entry
-    assert main([*argv[:-4], "--set", "bodies[0].tetrahedralize.edge_length=0.5", "--set",
+    assert main([*argv[:-4], "--set", "bodies[0].tetrahedralize.edge_length=0.25", "--set",
                  "bodies[0].tetrahedralize.stop_quality=100.0",
                  "--out", str(tmp_path / "b")]) == 0
     assert len(list((cache / "tetwild").glob("*.json"))) == 2
