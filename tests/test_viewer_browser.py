@@ -16,6 +16,7 @@ import importlib.util
 import io
 import math
 import os
+import re
 import shutil
 import time
 from collections.abc import Callable
@@ -176,6 +177,39 @@ def _central_pixel(mask: np.ndarray) -> tuple[float, float]:
     return x0 - 6 + float(xs.mean()), y0 - 6 + float(ys.mean())
 
 
+_T_RE = re.compile(r"t[ \u00a0]=[ \u00a0](-?[0-9.]+)[ \u00a0]s")
+
+#: The y axes the page's uPlot charts draw (viser registers each chart in a testpoint).
+_PLOT_AXES_JS = """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
+    title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
+    min: u.chart.scales.y.min, max: u.chart.scales.y.max,
+    labels: u.chart.axes[1]._values ?? []}))"""
+
+
+def _page_time(page: Any) -> tuple[float, float] | None:
+    """(wall time, simulated time the page's status line shows), or None before it shows."""
+    m = _T_RE.search(page.evaluate("() => document.body.innerText"))
+    return None if m is None else (time.monotonic(), float(m.group(1)))
+
+
+def _check_page_plots(page: Any, viewer: Any) -> None:
+    """The charts the page drew (the scene at rest): each y axis as the viewer sent it, with
+    ticks that read apart (T at rest read "0" and "0")."""
+    from fem3d.app.viewer.logic import ENERGY_PLOTS
+
+    def drawn() -> Any:
+        plots = page.evaluate(_PLOT_AXES_JS)
+        ready = len(plots) == len(ENERGY_PLOTS) and all(p["labels"] for p in plots)
+        return plots if ready else f"{len(plots)} charts: {plots}"
+
+    plots = {p["title"]: p for p in wait_for(drawn, 20, "the energy plots to be drawn")}
+    for key, title, _c in ENERGY_PLOTS:
+        p, ax = plots[title], viewer._panel.y_axes[key]
+        assert len(p["labels"]) >= 2 and len(set(p["labels"])) == len(p["labels"]), p
+        assert (p["min"], p["max"], tuple(p["labels"])) == (ax.lo, ax.hi, ax.labels), (p, ax)
+    assert plots[ENERGY_PLOTS[0][1]]["labels"][0] == "0"  # T at rest: flat at 0
+
+
 def _drag(page: Any, x0: float, y0: float, dx: float) -> None:
     """Press on (x0, y0) and move by (dx, -dx/4) in steps; the button stays down."""
     page.mouse.move(x0, y0)
@@ -221,6 +255,9 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
         )
         try:
             page = ctx.pages[0] if ctx.pages else ctx.new_page()
+            # Nobody watched yet: the simulation has not stepped (issue 39).
+            assert viewer.snapshot()["steps"] == 0 and viewer.snapshot()["t"] == 0.0
+            t_goto = time.monotonic()
             page.goto(viewer.url)
             page.wait_for_selector("canvas", timeout=30_000)
 
@@ -249,6 +286,13 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 interval=0.3,
             )
             log("mesh visible")
+            # The page's clock started when it connected and keeps to wall time (a shown
+            # time may be late, never early: the bound below is loose, the one above is not).
+            # The plots of the resting bunny read apart.
+            w_a, t_a = wait_for(lambda: _page_time(page), 20, "the page's status time")
+            log(f"the page shows t = {t_a:.2f} s {w_a - t_goto:.2f} s after it loaded")
+            assert 0.25 * (w_a - t_goto) - 1.0 <= t_a <= w_a - t_goto + 0.05
+            _check_page_plots(page, viewer)
             x0, y0 = _grab_pixel(_mesh_mask(shot0), viewer.positions(), cam)
             before = viewer.snapshot()
             e_before = max((row[3] for row in before["energy"][-20:]), default=0.0)
@@ -354,12 +398,23 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             snap = viewer.snapshot()
             assert snap["error"] is None, snap["error"]
             assert np.isfinite(np.asarray(snap["energy"])).all()
+            # Never ahead of wall time; behind while a step costs more than dt (the pulled
+            # bunny: 142 ms per 10 ms step at load 8 on 2 cores, chromium drawing in software).
+            w_b, t_b = _page_time(page)
+            log(f"the page shows t = {t_b:.2f} s {w_b - t_goto:.2f} s after it loaded "
+                f"({snap['ms_per_step']:.1f} ms/step)")
+            assert t_a + 0.5 < t_b <= w_b - t_goto + 0.05
             artifacts = os.environ.get("FEM3D_VIEWER_ARTIFACTS")
             if artifacts:  # optional: keep the screenshots (CI artefacts, docs)
                 Path(artifacts).mkdir(parents=True, exist_ok=True)
                 page.screenshot(path=str(Path(artifacts) / "viewer.png"))
         finally:
             ctx.close()
+    # The page left: the simulation stops where it was.
+    wait_for(lambda: viewer.snapshot()["watchers"] == 0, 10, "the server to see the page leave")
+    steps = viewer.snapshot()["steps"]
+    time.sleep(0.5)
+    assert viewer.snapshot()["steps"] <= steps + 1, "stepping with no page connected"
     shutil.rmtree(profile, ignore_errors=True)
     # No wall-time bound: a stall fails the waits above (each has its timeout); how long
     # the test took depends on the machine's load (140 s seen at load 15), so it is printed.

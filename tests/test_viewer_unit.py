@@ -164,6 +164,55 @@ def test_energy_history_window_and_empty() -> None:
     assert all(a.size == 0 for a in h.recent(1.0))  # nothing invented after a reset
 
 
+def _check_axis(ax: Any, y: np.ndarray, min_span: float, what: str) -> None:
+    """The axis holds ``y``, spans at least ``min_span``, and its >= 2 ticks read apart."""
+    assert len(ax.ticks) >= 2 and len(set(ax.labels)) == len(ax.labels), (what, ax)
+    assert ax.lo <= y.min() and y.max() <= ax.hi and ax.hi - ax.lo >= min_span, (what, ax)
+    assert ax.ticks[0] == ax.lo and ax.ticks[-1] == ax.hi
+    step = ax.ticks[1] - ax.ticks[0]
+    for label, tick in zip(ax.labels, ax.ticks, strict=True):
+        assert abs(float(label) - tick) <= 0.01 * step, (what, label, tick)
+
+
+def test_tick_labels_never_repeat_at_any_scale() -> None:
+    from fem3d.app.viewer.plots import y_axis
+
+    rng = np.random.default_rng(3)
+    for _ in range(400):
+        mag = 10.0 ** rng.uniform(-25, 12)
+        y = mag * (rng.uniform(-1, 1) + 10.0 ** rng.uniform(-9, 0) * rng.normal(size=20))
+        ax = y_axis(y, float(np.abs(y).max()), 0.0)
+        _check_axis(ax, y, 1e-3 * np.abs(y).max(), f"magnitude {mag:.3g}")
+        assert max(len(label) for label in ax.labels) <= 11, ax.labels  # "-1.0335e-11"
+    ax = y_axis(np.zeros(5), 0.0, 0.0)  # nothing at all (the pull plot without a drag)
+    _check_axis(ax, np.zeros(5), 1.0, "zeros")
+    assert ax.labels[0] == "0" and y_axis(np.zeros(0), 0.0, 0.0).hi > 0.0
+
+
+def test_plots_of_a_resting_scene_read_apart() -> None:
+    """The bunny at rest: T is round-off (~1e-21) and used to fill its plot, read "0", "0".
+    Each plot now spans at least a fraction of its history's and the scene's energy scale,
+    and its tick labels differ."""
+    from fem3d.app.viewer.logic import ENERGY_PLOTS, ViewerState
+    from fem3d.app.viewer.plots import SPAN_OWN, SPAN_SCENE, y_axis
+
+    state = ViewerState("bunny", integrator=None, backend=None, mesh_mode="sim",
+                        pacer=RealtimePacer(enabled=False))
+    for _ in range(15):
+        assert state.step() is None
+    x, *series = state.history.plot_series(10.0)
+    peaks, scene = state.history.peaks()
+    kinetic = series[0]
+    assert kinetic.max() < 1e-9 * scene  # at rest: round-off
+    for (key, _label, _color), y, peak in zip(ENERGY_PLOTS, series, peaks, strict=True):
+        assert peak == pytest.approx(np.abs(y).max())
+        ax = y_axis(y, peak, scene)
+        _check_axis(ax, y, max(SPAN_OWN * peak, SPAN_SCENE * scene), key)
+        if key == "kinetic":  # a flat line at 0 on the scene's scale
+            assert ax.lo == 0.0 and ax.hi >= SPAN_SCENE * scene and ax.labels[0] == "0"
+        assert y_axis(y * (1 + 1e-6), peak, scene, ax) is ax  # kept: no chart rebuild
+
+
 def test_spring_segments() -> None:
     q = np.arange(15, dtype=np.float64).reshape(5, 3)
     seg = spring_segments(q, np.array([1, 4]), np.array([9.0, 8.0, 7.0]))
@@ -396,6 +445,28 @@ def test_toggles_pause_reset_material(viewer: Any) -> None:
     snap = viewer.snapshot()
     assert snap["material"]["nu"] == 0.3
     assert snap["error"] is None and not snap["paused"]
+
+
+@needs_viser
+def test_the_plots_get_their_axes_at_rest(viewer: Any) -> None:
+    """What the viewer sends each uPlot chart for the resting bunny: a fixed y range that
+    holds the data, explicit ticks, and labels that differ (T read "0" and "0")."""
+    wait_for(lambda: viewer.snapshot()["steps"] > 10, 30, "steps")
+    viewer.set_paused(True)
+    wait_for(lambda: viewer.snapshot()["paused"], 10, "pause")
+    time.sleep(0.5)  # a panel update after the last step
+    for key in ("kinetic", "strain", "gravity", "total", "pull"):
+        plot = viewer._gui[f"plot_{key}"]
+        lo, hi = plot.scales["y"]["range"]
+        assert plot.scales["y"]["auto"] is False and lo < hi, key
+        axis = plot.axes[1]
+        labels, ticks = axis["values"], axis["splits"]
+        assert len(labels) == len(ticks) >= 2 and len(set(labels)) == len(labels), (key, labels)
+        assert ticks[0] == lo and ticks[-1] == hi
+        y = np.asarray(plot.data[1], dtype=np.float64)
+        assert y.size and lo <= y.min() and y.max() <= hi + 1e-6 * abs(hi), (key, lo, hi, y)
+        assert viewer._panel.y_axes[key].labels == tuple(labels)
+    assert viewer._gui["plot_kinetic"].axes[1]["values"][0] == "0"
 
 
 @needs_viser

@@ -10,7 +10,8 @@ Threads and ownership
 * **Simulation thread** (:meth:`Viewer._run`): the only thread that touches the
   :class:`~fem3d.simulation.Simulation` object and the only one that writes scene nodes
   and panel elements. It applies queued commands between steps, steps the simulation
-  paced to wall time, and pushes display updates at up to ``push_hz``.
+  paced to wall time while a page is connected (it sleeps otherwise), and pushes display
+  updates at up to ``push_hz``.
 * **viser's event loop / thread pool**: GUI and drag callbacks. They never block on a
   simulation step: they take the lock of the viewer's shared state
   (:class:`~fem3d.app.viewer.logic.ViewerState`) for a few microseconds to record a
@@ -24,18 +25,20 @@ drive it with the same methods the GUI calls (:meth:`Viewer.toggle_mesh_mode`,
 :meth:`Viewer.begin_pull`, ...).
 
 The package: this module wires the viewer (server, scene graph, simulation thread) and holds
-the entry points (``fem3d view``, :func:`serve`); :mod:`fem3d.app.viewer.panel` the panel,
-:mod:`fem3d.app.viewer.clients` the browser clients (frame acknowledgements, notifications,
-drags), :mod:`fem3d.app.viewer.logic` the shared state and the logic that needs no viser.
-viser is an optional dependency (``fem3d[view]``): it is imported when a viewer starts
-(:func:`_import_viser`), so that ``fem3d`` registers ``fem3d view`` without it.
+the entry points (``fem3d view``, :func:`serve`); :mod:`~fem3d.app.viewer.panel` the panel,
+:mod:`~fem3d.app.viewer.clients` the browser clients (frame acknowledgements, notifications,
+drags), :mod:`~fem3d.app.viewer.logic` the shared state and the logic that needs no viser,
+:mod:`~fem3d.app.viewer.pacing` when to step (only while a page watches, at wall time),
+:mod:`~fem3d.app.viewer.plots` the energy history and the plots' axes,
+:mod:`~fem3d.app.viewer.ports` the port checks. viser is an optional dependency
+(``fem3d[view]``): it is imported when a viewer starts (:func:`.ports.import_viser`), so that
+``fem3d`` registers ``fem3d view`` without it.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import socket
 import threading
 import time
 from collections.abc import Sequence
@@ -71,6 +74,7 @@ from fem3d.app.viewer.logic import (
     spring_segments,
 )
 from fem3d.app.viewer.panel import Panel
+from fem3d.app.viewer.ports import check_port_free, free_port, import_viser
 from fem3d.errors import Fem3dError, InputError, ParameterError
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
@@ -84,43 +88,6 @@ PLANE_GRID_COLOR = (90, 90, 90)
 SKIN_COLOR = (236, 196, 150)
 SIM_COLOR = (90, 160, 230)
 SPRING_COLOR = (220, 40, 40)
-
-
-def _import_viser() -> Any:
-    """viser, imported when a viewer starts: it is an optional dependency (fem3d[view])."""
-    try:
-        import viser
-    except ImportError as exc:
-        raise InputError(
-            "the viewer needs viser: pip install 'fem3d[view]' (viser==1.1.1)"
-        ) from exc
-    return viser
-
-
-def _free_port(host: str) -> int:
-    """A port nobody listens on now (``--port 0``)."""
-    with socket.socket(_family(host), socket.SOCK_STREAM) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
-
-
-def _family(host: str) -> socket.AddressFamily:
-    return socket.AF_INET6 if ":" in host else socket.AF_INET
-
-
-def _check_port_free(host: str, port: int) -> None:
-    """Raise InputError (one line) when ``host:port`` cannot be listened on."""
-    with socket.socket(_family(host), socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError as exc:
-            why = "is in use" if exc.errno in (98, 48) else f"cannot be used ({exc.strerror})"
-            raise InputError(
-                f"port {port} on {host} {why}; pick another with --port N, "
-                "or --port 0 for a free one"
-            ) from None
-
 
 
 # --------------------------------------------------------------------------------------
@@ -266,9 +233,9 @@ class Viewer:
             The port is taken (viser would silently move to the next free one; an SSH
             forward to the requested port would then reach something else).
         """
-        viser = _import_viser()
-        port = _free_port(self.host) if self.port == 0 else self.port
-        _check_port_free(self.host, port)
+        viser = import_viser()
+        port = free_port(self.host) if self.port == 0 else self.port
+        check_port_free(self.host, port)
         self._server = viser.ViserServer(host=self.host, port=port, verbose=False)
         if self._server.get_port() != port:
             got = self._server.get_port()
@@ -687,7 +654,8 @@ class Viewer:
             text = s.status_locked(self._mesh_handle_mode or s.mesh_mode)
             x, *series = s.history.plot_series(self.plot_window, n=PLOT_POINTS)
             latest = s.history.latest_split()
-        self._panel.update(text, latest, x, series)
+            peaks = s.history.peaks()
+        self._panel.update(text, latest, x, series, peaks)
 
     def _run_commands(self) -> None:
         """Apply the queued commands (a bad one fails the simulation, not the loop)."""
@@ -767,7 +735,7 @@ def serve(
     time_scale : float
         Simulated seconds per wall second (``< 1``: slow motion).
     """
-    _import_viser()
+    import_viser()
     viewer = Viewer(
         scene_name_or_path,
         host=host,

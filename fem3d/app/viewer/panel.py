@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from fem3d.app.viewer.logic import ENERGY_PLOTS, HOTKEYS, EnergyHistory, energy_text
+from fem3d.app.viewer.plots import YAxis, y_axis
 
 __all__ = ["Panel"]
 
@@ -36,6 +37,9 @@ class Panel:
     def __init__(self, viewer: Any) -> None:
         self._viewer = viewer
         self.widgets: dict[str, Any] = {}
+        #: The y axis each energy plot shows (:func:`~fem3d.app.viewer.plots.y_axis`).
+        self.y_axes: dict[str, YAxis] = {}
+        self._x_scale: dict[str, Any] = {}
 
     def build(
         self,
@@ -81,12 +85,15 @@ class Panel:
         )
         g["energy"] = gui.add_markdown("")
         x, *series = history.plot_series(plot_window)
-        for (key, label, color), y in zip(ENERGY_PLOTS, series, strict=True):
+        peaks, scene = history.peaks()
+        self._x_scale = {"time": False, "auto": False, "range": [-plot_window, 0.0]}
+        for (key, label, color), y, peak in zip(ENERGY_PLOTS, series, peaks, strict=True):
+            ax = self.y_axes[key] = y_axis(y, peak, scene)
             g[f"plot_{key}"] = gui.add_uplot(
                 data=(x, y),
                 series=({"label": "t - now (s)"}, {"label": label, "stroke": color, "width": 2}),
-                scales={"x": {"time": False, "auto": False, "range": [-plot_window, 0.0]},
-                        "y": {"auto": True}},
+                scales={"x": self._x_scale, "y": ax.scale()},
+                axes=({}, ax.axis()),
                 legend={"show": False},
                 title=label,
                 aspect=3.0,
@@ -181,10 +188,21 @@ class Panel:
         g["rho"].value = rho
 
     def update(self, status: str, latest: Sequence[float] | None, x: np.ndarray,
-               series: Sequence[np.ndarray]) -> None:
-        """The status line, the current energies and the energy plots."""
+               series: Sequence[np.ndarray], peaks: tuple[tuple[float, ...], float]) -> None:
+        """The status line, the current energies and the energy plots.
+
+        ``peaks`` is :meth:`~fem3d.app.viewer.plots.EnergyHistory.peaks`: each plot's y axis
+        spans at least a small fraction of its history's and the scene's energy scale.
+        """
         self.widgets["status"].content = status
         self.widgets["energy"].content = energy_text(latest)
         x32 = x.astype(np.float32)  # half the bytes; plenty for a plot
-        for (key, _label, _color), y in zip(ENERGY_PLOTS, series, strict=True):
-            self.widgets[f"plot_{key}"].data = (x32, y.astype(np.float32))
+        own, scene = peaks
+        for (key, _label, _color), y, peak in zip(ENERGY_PLOTS, series, own, strict=True):
+            plot = self.widgets[f"plot_{key}"]
+            ax = y_axis(y, peak, scene, self.y_axes.get(key))
+            if ax is not self.y_axes.get(key):  # a new axis rebuilds the page's chart: rare
+                self.y_axes[key] = ax
+                plot.scales = {"x": self._x_scale, "y": ax.scale()}
+                plot.axes = ({}, ax.axis())
+            plot.data = (x32, y.astype(np.float32))
