@@ -168,7 +168,6 @@ class Trajectory:
     gravity: np.ndarray
     dt: float
     scene: Any
-    scene: object
 
 
 def _bodies(T: np.ndarray, n: int) -> np.ndarray:
