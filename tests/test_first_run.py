@@ -177,7 +177,7 @@ def _index(lines: list[str], needle: str) -> int:
 def test_make_run_says_what_it_does_at_each_stage(tmp_path):
     lines = _make(tmp_path, "run")
     order = [_index(lines, "[1/4] installing fem3d's dependencies"),
-             _index(lines, "PY -m pip install -q setuptools>=68 wheel numpy>=1.26"),
+             _index(lines, "setuptools>=68 wheel numpy>=1.26"),
              _index(lines, "[2/4] building fem3d's C kernels"),
              _index(lines, "PY -m pip install -q --no-deps --no-build-isolation -e ."),
              _index(lines, "[3/4] CHOLMOD"),
