@@ -166,9 +166,9 @@ def main(argv: list[str] | None = None) -> int:
                 write_jsonl(jsonl, merge(records, new))  # keep what is done if interrupted
         records = merge(records, new)
     try:
-        from fem3d.solve.linear import default_backend
+        from fem3d.solve.linear import resolve_linear_solver
 
-        solver = default_backend()
+        solver = resolve_linear_solver(direct=True)
     except Exception:  # noqa: BLE001 - the report still renders
         solver = None
     meta = {"machine": machine_info(), "versions": versions(), "default_solver": solver}

@@ -103,16 +103,21 @@ def _register_solver_rows(backend: str) -> None:
 
     def solver(mesh: BenchMesh):
         ls = _import_fem3d("solve.linear")
-        if backend not in ls.available_backends():
+        if backend not in ls.available_linear_solvers(direct=True):
             raise Skip(f"fem3d.solve.linear back end {backend!r} not installed")
         A = mesh.system.A
-        return ls.SparseSPDSolver(A, backend=backend), A
+        return analysed(ls, A), A
+
+    def analysed(ls, A):
+        s = ls.LINEAR_SOLVERS[backend]()
+        s.analyse(A)
+        return s
 
     @register(f"analyze/{lib}", group="analyze", note=notes[backend], **kw)
     def _analyze(mesh: BenchMesh):
         ls = _import_fem3d("solve.linear")
         _, A = solver(mesh)
-        return lambda: ls.SparseSPDSolver(A, backend=backend)
+        return lambda: analysed(ls, A)
 
     @register(f"factor/{lib}", group="factor", warmup_required=backend == "superlu", **kw)
     def _factor(mesh: BenchMesh):
@@ -128,17 +133,17 @@ def _register_solver_rows(backend: str) -> None:
 
 
 def _register_amg_rows() -> None:
-    """fem3d.solve.amg.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
+    """fem3d.solve.linear.amg.AMGPreconditioner: aggregation ("analyze", once per pattern), numeric
     hierarchy setup ("factor") and preconditioned CG to a relative residual of 1e-8 from
     x = 0 ("solve"), on the same SPD system."""
     lib = "fem3d-amg"
     kw = dict(library=lib, requires=("pyamg",))
     note = ("fem3d-amg: pyamg smoothed aggregation (rigid-body modes as B, 3x3 BSR, "
-            "fem3d.solve.amg); analyze = aggregation (structure only), factor = numeric "
+            "fem3d.solve.linear.amg); analyze = aggregation (structure only), factor = numeric "
             "hierarchy setup, solve = V-cycle preconditioned CG to |r| <= 1e-8 |b|.")
 
     def amg(mesh: BenchMesh):
-        ls = _import_fem3d("solve.amg")
+        ls = _import_fem3d("solve.linear.amg")
         free_vertices = mesh.system.free[::3] // 3
         return ls.AMGPreconditioner(ls.rigid_body_modes(mesh.X[free_vertices])), mesh.system.A
 

@@ -135,7 +135,7 @@ def _install_timers() -> Timers:
     import fem3d.physics.terms.elasticity as elasticity
     import fem3d.solve.integrators as integ
     from fem3d.physics.contact import ContactModel
-    from fem3d.solve.krylov import PreconditionedCG
+    from fem3d.solve.linear.krylov import PreconditionedCG
     from fem3d.solve.system import NewtonMatrixBuilder
 
     timers = Timers()

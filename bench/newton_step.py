@@ -55,7 +55,7 @@ from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
 from fem3d.solve.backward_euler import WARM_STARTS
-from fem3d.solve.linear import default_backend
+from fem3d.solve.linear import resolve_linear_solver
 
 
 @dataclass
@@ -127,7 +127,7 @@ def _best_seconds(call, repeats: int) -> float:
 
 
 def _backend(mode: str) -> str:
-    return "amg" if mode == "amg" else default_backend()
+    return "amg" if mode == "amg" else resolve_linear_solver(direct=True)
 
 
 def iteration_pieces(work: Workload, modes: list[str]) -> dict:
@@ -149,13 +149,13 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
             system.solve(b)
         out["factorize"] = _best_seconds(lambda: system.factorize(A), repeats)
         out["solve"] = _best_seconds(lambda: system.solve(b), repeats)
-        out["cholmod_mode"] = system.solver.cholmod_mode
+        out["cholmod_mode"] = getattr(system.solver, "cholmod_mode", None)
     if "amg" in modes:
         amg = system if system.linear_backend == "amg" else \
             integ.System(work.model, work.constraints, "amg")
         out["amg_setup"] = _best_seconds(lambda: amg.amg_setup(A), repeats)
-        out["vcycle"] = _best_seconds(lambda: amg.amg.apply(b), repeats)
-        out["amg_levels"] = amg.amg.level_sizes
+        out["vcycle"] = _best_seconds(lambda: amg.amg.hierarchy.apply(b), repeats)
+        out["amg_levels"] = amg.amg.hierarchy.level_sizes
     return out
 
 

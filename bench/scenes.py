@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
         runs = [run(sim, args.steps) for _ in range(args.repeats)]
         seconds, cpu, newton, outcome = min(runs)
         solves = "factorize" if integrator == "linear" else solver
-        mode = sim.system.solver.cholmod_mode
+        mode = getattr(sim.system.solver, "cholmod_mode", None)
         backend = sim.system.solver.backend + (f" {mode}" if mode else "")
         lines.append(f"| {name} ({sim.model.n_tets} tets) | {integrator} | {solves} "
                      f"({backend}) | {seconds * 1e3:.2f} | {1 / seconds:.0f} | {cpu * 1e3:.2f} "

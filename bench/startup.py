@@ -139,7 +139,7 @@ def child(scene: str, out: str, result: str) -> int:
     import fem3d.physics.model as model
     import fem3d.scene.build as build
     import fem3d.simulation as simulation
-    import fem3d.solve.amg as amg
+    import fem3d.solve.linear.amg as amg
     from fem3d.app.cli import main
 
     marks.mark("start-up (Python, imports)")

@@ -6,4 +6,4 @@ Moved in the restructuring of fem3d 0.2; the alias goes in 0.3 (see docs/archite
 from fem3d._deprecated import forward
 
 __getattr__ = forward(__name__, (
-    "fem3d.solve.linear, fem3d.solve.krylov, fem3d.solve.amg"))
+    "fem3d.solve.linear, fem3d.solve.linear.krylov, fem3d.solve.linear.amg"))

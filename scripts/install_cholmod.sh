@@ -19,7 +19,7 @@ fallback() {  # $1: why CHOLMOD is missing
         exit 1
     fi
     local used
-    used="$("$PYTHON" -c 'from fem3d.solve.linear import default_backend; print(default_backend())' \
+    used="$("$PYTHON" -c 'from fem3d.solve.linear import resolve_linear_solver; print(resolve_linear_solver(direct=True))' \
         2>/dev/null || echo superlu)"
     echo "CHOLMOD not installed ($1): fem3d falls back to '$used'" \
          "(run 'sudo bash scripts/install_cholmod.sh' to get the fast default)"

@@ -1,4 +1,4 @@
-"""AMG-preconditioned CG for backward Euler's Newton systems (``"amg"`` back end)."""
+"""AMG-preconditioned CG for backward Euler's Newton systems (the ``"amg"`` linear solver)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ from test_assembly import box_mesh  # noqa: E402
 
 from fem3d.physics.constraints import Constraints  # noqa: E402
 from fem3d.physics.model import build_model  # noqa: E402
-from fem3d.solve import amg as solve_amg  # noqa: E402
-from fem3d.solve import linear as linsolve  # noqa: E402
 from fem3d.solve.integrators import State, System, implicit_euler, linearly_implicit_euler  # noqa: E402
+from fem3d.solve.linear import amg as solve_amg  # noqa: E402
+from fem3d.solve.linear import resolve_linear_solver  # noqa: E402
+from fem3d.solve.linear.amg_cg import AMGCGSolver  # noqa: E402
 
 
 def clamped_box(n=(6, 6, 6), E=6e5, rho=100.0):
@@ -52,7 +53,7 @@ def test_amg_trajectory_agrees_with_the_direct_solve():
     but no factorization."""
     model, c = clamped_box()
     start = swinging(model, c)
-    direct, dstats = run(System(model, c, linsolve.default_backend()), start, 6)
+    direct, dstats = run(System(model, c, resolve_linear_solver(direct=True)), start, 6)
     amg_system = System(model, c, "amg")
     assert amg_system.linear_backend == "amg"
     amg, astats = run(amg_system, start, 6)
@@ -84,7 +85,7 @@ def test_amg_falls_back_to_the_psd_hessian_on_an_indefinite_system():
     q[:, 0] += 0.3 * np.sin(3.0 * X[:, 2])
     q[c.fixed_vertices] = X[c.fixed_vertices]
     state = State(q=q, v=np.zeros_like(X))
-    ref, rstats = implicit_euler(System(model, c, linsolve.default_backend()), state, 0.1,
+    ref, rstats = implicit_euler(System(model, c, resolve_linear_solver(direct=True)), state, 0.1,
                                  max_iterations=None)
     assert rstats.shifted_factorizations >= 1  # the exact Hessian is indefinite here
     new, stats = implicit_euler(System(model, c, "amg"), state, 0.1, max_iterations=None)
@@ -107,15 +108,15 @@ def test_rigid_body_modes_are_the_null_space_of_the_rest_stiffness():
 def test_auto_picks_amg_by_size_and_env_and_missing_pyamg(monkeypatch):
     model, c = clamped_box((3, 3, 3))
     monkeypatch.delenv("FEM3D_SOLVER", raising=False)
-    assert System(model, c).linear_backend == linsolve.default_backend()
-    monkeypatch.setattr(linsolve, "AMG_AUTO_MIN_FREE_DOFS", c.n_free)
+    assert System(model, c).linear_backend == resolve_linear_solver(direct=True)
+    monkeypatch.setattr(AMGCGSolver, "auto_min_free_dofs", c.n_free)
     assert System(model, c).linear_backend == "amg"
     monkeypatch.setenv("FEM3D_SOLVER", "superlu")  # a forced direct back end wins over auto
     assert System(model, c).linear_backend == "superlu"
     monkeypatch.delenv("FEM3D_SOLVER")
-    monkeypatch.setattr(linsolve, "amg_available", lambda: False)
-    assert System(model, c).linear_backend == linsolve.default_backend()
-    with pytest.raises(ImportError, match="pyamg"):
+    monkeypatch.setattr(AMGCGSolver, "available", classmethod(lambda cls: False))
+    assert System(model, c).linear_backend == resolve_linear_solver(direct=True)
+    with pytest.raises(ImportError, match="'amg' is not installed: pip install pyamg"):
         System(model, c, "amg")
 
 
@@ -141,7 +142,8 @@ def test_linear_scheme_and_objective_terms_with_the_amg_back_end():
     system = System(model, c, "amg")
     start = swinging(model, c)
     lin, _ = linearly_implicit_euler(system, start, 0.01)  # factorizes (direct solver made lazily)
-    ref, _ = linearly_implicit_euler(System(model, c, linsolve.default_backend()), start, 0.01)
+    direct = System(model, c, resolve_linear_solver(direct=True))
+    ref, _ = linearly_implicit_euler(direct, start, 0.01)
     np.testing.assert_allclose(lin.q, ref.q, rtol=0, atol=1e-12)
     far = [int(np.argmax(model.X.sum(axis=1))), int(np.argmax(model.X[:, 2] - model.X[:, 0]))]
     term = PairSprings([far], 1e4)
@@ -184,7 +186,7 @@ def test_v_cycle_is_the_textbook_symmetric_v_cycle():
     """The V-cycle's half-triangle sweeps (and the reversed upper triangle) compute the plain
     V-cycle of forward and backward block Gauss-Seidel, and the result is symmetric."""
     system, A = _newton_matrix((8, 8, 8))
-    amg = solve_amg.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg = solve_amg.AMGPreconditioner(system.amg.hierarchy.B, {"max_coarse": 10})
     amg.setup(A)
     assert len(amg.level_sizes) >= 3  # two coarse levels: 3x3 and 6x6 blocks both covered
     rng = np.random.default_rng(3)
@@ -203,10 +205,10 @@ def test_hierarchy_has_pyamg_smoothed_aggregation_structure():
     import pyamg
 
     system, A = _newton_matrix((6, 6, 6))
-    amg = solve_amg.AMGPreconditioner(system.amg.B, {"max_coarse": 10})
+    amg = solve_amg.AMGPreconditioner(system.amg.hierarchy.B, {"max_coarse": 10})
     amg.setup(A)
     ml = pyamg.smoothed_aggregation_solver(
-        A.tobsr(blocksize=(3, 3)), B=system.amg.B, strength=("symmetric", {"theta": 0.0}),
+        A.tobsr(blocksize=(3, 3)), B=system.amg.hierarchy.B, strength=("symmetric", {"theta": 0.0}),
         improve_candidates=None, max_coarse=10, smooth=("jacobi", {"weighting": "block"}))
     assert amg.level_sizes == [lvl.A.shape[0] for lvl in ml.levels]
     for ours, theirs in zip(amg._levels, ml.levels[:-1], strict=True):
@@ -219,7 +221,7 @@ def test_setup_analyzes_once_per_pattern_and_maps_partial_blocks():
     """``analyze`` runs when a pattern is new (System does it at construction); a pattern
     of partial 3x3 blocks (an objective term's per-axis springs) maps into BSR exactly."""
     system, A = _newton_matrix((3, 3, 3))
-    amg = system.amg
+    amg = system.amg.hierarchy
     plan = amg._plan
     amg.setup(A)
     assert amg._plan is plan  # the pattern analysed by System(...)
@@ -322,7 +324,7 @@ def _threaded_setup(n=(14, 14, 14), **options):
     system = System(model, c, "amg")
     state = swinging(model, c)
     A = system.newton_matrix(state.q + 0.01 * state.v, 0.01)
-    amg = solve_amg.AMGPreconditioner(system.amg.B, {"threads_min_rows": 0} | options)
+    amg = solve_amg.AMGPreconditioner(system.amg.hierarchy.B, {"threads_min_rows": 0} | options)
     amg.setup(A)
     assert amg._threads is not None
     return A, amg, system
@@ -425,7 +427,7 @@ def test_threaded_amg_converges_like_the_classic_smoother(monkeypatch):
     (CG iterations to 1e-8 within one), and the threaded back end keeps the trajectory of
     the direct solve."""
     A, amg, system = _threaded_setup()
-    classic = solve_amg.AMGPreconditioner(system.amg.B)
+    classic = solve_amg.AMGPreconditioner(system.amg.hierarchy.B)
     classic.setup(A)
     assert classic._threads is None  # below threads_min_rows
     b = np.random.default_rng(3).standard_normal(A.shape[0])
@@ -438,10 +440,10 @@ def test_threaded_amg_converges_like_the_classic_smoother(monkeypatch):
     monkeypatch.setitem(solve_amg.AMG_OPTIONS, "threads_min_rows", 0)
     model, c = clamped_box()
     start = swinging(model, c)
-    direct, _ = run(System(model, c, linsolve.default_backend()), start, 2)
+    direct, _ = run(System(model, c, resolve_linear_solver(direct=True)), start, 2)
     amg_system = System(model, c, "amg")
     threaded, _ = run(amg_system, start, 2)
-    assert amg_system.amg._threads is not None
+    assert amg_system.amg.hierarchy._threads is not None
     size = np.ptp(model.X, axis=0).max()
     assert max(np.abs(a - d).max() for a, d in zip(threaded, direct, strict=True)) < 1e-8 * size
 
@@ -456,11 +458,11 @@ def test_without_the_c_extension_large_systems_keep_the_classic_path(monkeypatch
     state = swinging(model, c)
     A = system.newton_matrix(state.q + 0.01 * state.v, 0.01)
     b = np.random.default_rng(4).standard_normal(A.shape[0])
-    classic = solve_amg.AMGPreconditioner(system.amg.B)
+    classic = solve_amg.AMGPreconditioner(system.amg.hierarchy.B)
     classic.setup(A)
     monkeypatch.setattr(sparse_threads, "c_extension", lambda: None)
     assert sparse_threads.c_kernels() is None
-    fallback = solve_amg.AMGPreconditioner(system.amg.B, {"threads_min_rows": 0})
+    fallback = solve_amg.AMGPreconditioner(system.amg.hierarchy.B, {"threads_min_rows": 0})
     fallback.setup(A)
     assert fallback._threads is None
     assert np.array_equal(fallback.solve(A, b, rtol=1e-8, maxiter=50).x,

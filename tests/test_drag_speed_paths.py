@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 from fem3d.solve.backward_euler import implicit_euler, newton_options
 from fem3d.solve.integrators import System
-from fem3d.solve.linear import _as_csr
+from fem3d.solve.linear.base import as_csr
 
 
 @pytest.fixture(scope="module")
@@ -81,18 +81,18 @@ def test_as_csr_keeps_a_float64_csr_matrix_and_copies_anything_else():
     """A float64 CSR matrix is used as it is (its canonical-format check is cached on it);
     other input is converted, duplicates summed, the input left alone."""
     A = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2.0]]))
-    assert _as_csr(A) is A
+    assert as_csr(A) is A
     coo = sp.coo_matrix((np.array([1.0, 1.0, 3.0]), (np.array([0, 0, 1]), np.array([0, 0, 1]))),
                         shape=(2, 2))
-    B = _as_csr(coo)
+    B = as_csr(coo)
     assert isinstance(B, sp.csr_matrix) and B.has_canonical_format
     assert np.array_equal(B.toarray(), [[2.0, 0.0], [0.0, 3.0]])
     assert coo.nnz == 3
     C = sp.csr_matrix((np.array([1.0, 1.0]), np.array([0, 0]), np.array([0, 2, 2])),
                       shape=(2, 2))  # a duplicate entry: not canonical
-    D = _as_csr(C)
+    D = as_csr(C)
     assert D is not C and D.nnz == 1 and C.nnz == 2
-    assert _as_csr(A.astype(np.float32)).dtype == np.float64
+    assert as_csr(A.astype(np.float32)).dtype == np.float64
 
 
 def test_contact_keeps_the_classic_start():

@@ -1,5 +1,5 @@
-"""Tests of fem3d.solve.linear and fem3d.solve.krylov: every back end that is installed, SuperLU
-always."""
+"""Tests of fem3d.solve.linear (the solver seam, its registry, the direct solvers) and
+fem3d.solve.linear.krylov: every back end that is installed, SuperLU always."""
 
 from __future__ import annotations
 
@@ -13,19 +13,28 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fem3d.errors import Fem3dError
-from fem3d.solve.krylov import PreconditionedCG
 from fem3d.solve.linear import (
-    BACKENDS,
+    LINEAR_SOLVERS,
+    DirectSolver,
+    LinearSolver,
     NotPositiveDefinite,
-    SparseSPDSolver,
-    available_backends,
+    SolverOptions,
+    available_linear_solvers,
+    direct_solver_names,
+    linear_solver_names,
+    make_linear_solver,
+    register_linear_solver,
+    resolve_linear_solver,
 )
+from fem3d.solve.linear.krylov import PreconditionedCG
+from fem3d.solve.linear.superlu import SuperLUSolver
 
-AVAILABLE = available_backends()
+AVAILABLE = available_linear_solvers(direct=True)
+DIRECT = direct_solver_names()
 
 
 # CHOLMOD runs in both of its modes: "auto" picks simplicial for small cheap factors
-VARIANTS = ["cholmod:supernodal", "cholmod:simplicial", *BACKENDS[1:]]
+VARIANTS = ["cholmod:supernodal", "cholmod:simplicial", *DIRECT[1:]]
 
 
 @pytest.fixture(params=VARIANTS)
@@ -36,11 +45,20 @@ def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> 
     return request.param
 
 
-def make_solver(A: sp.spmatrix, variant: str) -> SparseSPDSolver:
-    """``SparseSPDSolver`` for ``"backend"`` or ``"cholmod:<mode>"``."""
+def analysed(A, name: str = "auto", mode: str = "auto") -> DirectSolver:
+    """The registry's direct solver ``name`` with ``A``'s pattern analysed."""
+    solver = make_linear_solver(name, SolverOptions(cholmod_mode=mode), direct=True)
+    assert isinstance(solver, DirectSolver)
+    solver.analyse(A)
+    return solver
+
+
+def make_solver(A: sp.spmatrix, variant: str) -> DirectSolver:
+    """A direct solver for ``"backend"`` or ``"cholmod:<mode>"``, analysed on ``A``."""
     backend, _, mode = variant.partition(":")
-    solver = SparseSPDSolver(A, backend, cholmod_mode=mode or "auto")
+    solver = analysed(A, backend, mode or "auto")
     assert solver.backend == backend and (not mode or solver.cholmod_mode == mode)
+    assert isinstance(solver, LinearSolver)  # the protocol's methods and attributes
     return solver
 
 
@@ -219,44 +237,92 @@ def test_cg_detects_indefinite(backend: str) -> None:
 def test_env_override(monkeypatch: pytest.MonkeyPatch) -> None:
     A = grid_laplacian(3)
     monkeypatch.setenv("FEM3D_SOLVER", "superlu")
-    assert SparseSPDSolver(A, "auto").backend == "superlu"
+    assert analysed(A, "auto").backend == "superlu"
+    assert analysed(A, "cholmod").backend == "superlu"  # the variable wins over a direct name
     monkeypatch.setenv("FEM3D_SOLVER", "nonsense")
     with pytest.raises(ValueError, match="FEM3D_SOLVER"):
-        SparseSPDSolver(A)
+        analysed(A)
+    monkeypatch.setenv("FEM3D_SOLVER", "amg")  # not a direct solver
+    with pytest.raises(ValueError, match=r"'amg' \(FEM3D_SOLVER\); available: cholmod, "):
+        analysed(A)
     monkeypatch.delenv("FEM3D_SOLVER")
-    assert SparseSPDSolver(A).backend == AVAILABLE[0]
+    assert analysed(A).backend == AVAILABLE[0]
     assert "superlu" in AVAILABLE
 
 
-def test_bad_pattern_input() -> None:
+def test_registry_names_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("FEM3D_SOLVER", raising=False)
+    assert linear_solver_names() == ("auto", *LINEAR_SOLVERS)
+    assert DIRECT == ("cholmod", "pardiso", "superlu")
+    assert "amg" in LINEAR_SOLVERS and LINEAR_SOLVERS["amg"].iterative
+    with pytest.raises(ValueError, match="unknown linear solver 'petsc'; available: auto, "
+                                         "cholmod, pardiso, superlu, amg"):
+        resolve_linear_solver("petsc")
+    # a missing library: one line naming how to install it
+    monkeypatch.setattr(LINEAR_SOLVERS["pardiso"], "available", classmethod(lambda cls: False))
+    with pytest.raises(ImportError, match="'pardiso' is not installed: pip install pypardiso"):
+        resolve_linear_solver("pardiso")
+    # an iterative choice stands for the direct default where a direct solver is needed
+    assert resolve_linear_solver("amg", direct=True) == AVAILABLE[0]
+
+
+def test_a_registered_solver_is_chosen_by_name_and_by_auto(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plug-in solver: one class and one registration; ``"auto"`` takes it from its size."""
+    monkeypatch.delenv("FEM3D_SOLVER", raising=False)
+    monkeypatch.setattr("fem3d.solve.linear.registry.LINEAR_SOLVERS", dict(LINEAR_SOLVERS))
+    from fem3d.solve.linear import registry
+
+    class DenseSolver(SuperLUSolver):
+        name = "dense"
+        auto_min_free_dofs = 50
+
+    register_linear_solver(DenseSolver)
+    assert registry.linear_solver_names()[-1] == "dense"
+    assert resolve_linear_solver("auto", 49) == AVAILABLE[0]
+    assert resolve_linear_solver("auto", 50) == "dense"  # AMG-CG only from 1e4
+    A = grid_laplacian(3)
+    solver = analysed(A, "dense")
+    solver.factorize(A)
+    assert solver.report.backend == "dense" and solver.report.iterations == 0
+    with pytest.raises(ValueError, match="name other than"):
+        register_linear_solver(type("Nameless", (DenseSolver,), {"name": "auto"}))
+    with pytest.raises(TypeError, match="lacks"):
+        register_linear_solver(type("Half", (), {"name": "half"}))
+
+
+def test_bad_pattern_input(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("FEM3D_SOLVER", raising=False)
     with pytest.raises(ValueError, match="square"):
-        SparseSPDSolver(sp.csr_matrix(np.ones((2, 3))), "superlu")
+        analysed(sp.csr_matrix(np.ones((2, 3))), "superlu")
     with pytest.raises(ValueError, match="diagonal"):
-        SparseSPDSolver(sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]])), "superlu")
+        analysed(sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]])), "superlu")
     with pytest.raises(ValueError, match="symmetric"):
-        SparseSPDSolver(sp.csr_matrix(np.array([[1.0, 1.0], [0.0, 1.0]])), "superlu")
+        analysed(sp.csr_matrix(np.array([[1.0, 1.0], [0.0, 1.0]])), "superlu")
     with pytest.raises(TypeError):
-        SparseSPDSolver(np.eye(3), "superlu")  # type: ignore[arg-type]
+        analysed(np.eye(3), "superlu")  # type: ignore[arg-type]
+    with pytest.raises(RuntimeError, match="factorize"):
+        analysed(grid_laplacian(2), "superlu").solve(np.ones(24))
 
 
 @pytest.mark.skipif("cholmod" not in AVAILABLE, reason="CHOLMOD not installed")
 def test_cholmod_auto_mode_follows_the_factor_cost() -> None:
-    from fem3d.solve import linear as linsolve
+    from fem3d.solve.linear import cholmod
 
     small = grid_laplacian(4)  # 192 rows, short columns of L
-    assert SparseSPDSolver(small, "cholmod").cholmod_mode == "simplicial"
+    assert analysed(small, "cholmod").cholmod_mode == "simplicial"
     dense_block = sp.csr_matrix(np.eye(60) + np.ones((60, 60)))  # L is a full triangle
-    assert SparseSPDSolver(dense_block, "cholmod").cholmod_mode == "simplicial"
-    cost = SparseSPDSolver(dense_block, "cholmod")._factor_cost_per_entry()
+    assert analysed(dense_block, "cholmod").cholmod_mode == "simplicial"
+    cost = analysed(dense_block, "cholmod")._factor_cost_per_entry()
     assert cost == pytest.approx((2 * 60 + 1) / 3)  # sum c^2 / sum c for c = 1..60
     # from about 80 flops per entry the supernodal code is the faster one (2.4x at 83)
     block_120 = sp.csr_matrix(np.eye(120) + np.ones((120, 120)))  # 80.3 flops per entry
-    assert SparseSPDSolver(block_120, "cholmod").cholmod_mode == "supernodal"
+    assert analysed(block_120, "cholmod").cholmod_mode == "supernodal"
     bigger = sp.csr_matrix(np.eye(400) + np.ones((400, 400)))  # ~267 flops per entry
-    assert SparseSPDSolver(bigger, "cholmod").cholmod_mode == "supernodal"
-    assert linsolve.SIMPLICIAL_MAX_N >= 400
+    assert analysed(bigger, "cholmod").cholmod_mode == "supernodal"
+    assert cholmod.SIMPLICIAL_MAX_N >= 400
     with pytest.raises(ValueError, match="cholmod_mode"):
-        SparseSPDSolver(small, "cholmod", cholmod_mode="fast")
+        analysed(small, "cholmod", "fast")
 
 
 @pytest.mark.skipif("cholmod" not in AVAILABLE, reason="CHOLMOD not installed")
@@ -267,13 +333,14 @@ def test_cholmod_runs_on_the_calling_thread_alone() -> None:
     # team, once started, stays alive, and other tests start OpenMP teams of their own.
     script = """
 import os, numpy as np, scipy.sparse as sp
-from fem3d.solve.linear import SparseSPDSolver
+from fem3d.solve.linear import SolverOptions, make_linear_solver
 n = 24
 lap = sp.diags([-1.0, 2.01, -1.0], [-1, 0, 1], shape=(n, n))
 eye = sp.identity(n)
 A = (sp.kron(sp.kron(lap, eye), eye) + sp.kron(sp.kron(eye, lap), eye)
      + sp.kron(sp.kron(eye, eye), lap)).tocsr()
-solver = SparseSPDSolver(A, "cholmod", cholmod_mode="supernodal")
+solver = make_linear_solver("cholmod", SolverOptions(cholmod_mode="supernodal"))
+solver.analyse(A)
 solver.factorize(A)
 x = solver.solve(np.ones(A.shape[0]))
 assert np.allclose(A @ x, 1.0)

@@ -26,8 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import SimulationError
-from fem3d.solve.krylov import PreconditionedCG, iterations_per_decade
 from fem3d.solve.linear import NotPositiveDefinite
+from fem3d.solve.linear.krylov import PreconditionedCG, iterations_per_decade
 from fem3d.solve.objective import Objective
 from fem3d.solve.state import StepStats
 from fem3d.solve.system import SHIFT_LADDER_GROWTH, SHIFT_LADDER_START, System
@@ -438,7 +438,8 @@ class AMGDirection(NewtonDirection):
                 stats.amg_setups += 1
                 fresh = True
             t0 = time.perf_counter()
-            result = amg.solve(A_free, -g, rtol=eta, maxiter=opts.amg_maxiter)
+            x = amg.solve(-g, A=A_free, rtol=eta, maxiter=opts.amg_maxiter)
+            result = amg.report
             stats.add_seconds("cg", time.perf_counter() - t0)
             stats.cg_iterations += result.iterations
             self.last_per_decade = iterations_per_decade(result)
@@ -453,7 +454,7 @@ class AMGDirection(NewtonDirection):
                                     result.negative_curvature):
                 # a fresh hierarchy's best effort is still a descent direction (CG from 0)
                 self.kept, self.kept_psd = A_free, self.psd_now
-                return result.x
+                return x
             if fresh:  # negative curvature on the PSD matrix: only round-off can do that
                 break
             self.last_per_decade = math.inf  # rebuild on this matrix and try again

@@ -10,7 +10,7 @@ How many threads: every kernel takes ``n_threads`` (0: OpenMP's count, ``OMP_NUM
 else that many, capped at OpenMP's). An AMG setup asks :mod:`fem3d.kernels.threads` for one
 count per family, measured on its own data the first time in a process
 (:func:`product_threads`: a sample of a product; the solve's kernels together, on a few PCG
-rounds: :meth:`fem3d.solve.amg.AMGPreconditioner.setup`), or forced by ``FEM3D_THREADS``.
+rounds: :meth:`fem3d.solve.linear.amg.AMGPreconditioner.setup`), or forced by ``FEM3D_THREADS``.
 
 A Gauss-Seidel sweep cannot run its rows in parallel as they are: row ``i`` reads the rows
 updated before it. :func:`sweep_schedule` cuts the rows into blocks of consecutive rows and

@@ -28,8 +28,15 @@ from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
 from fem3d.physics.terms.elasticity import Elasticity
 from fem3d.physics.terms.gravity import Gravity, check_gravity
 from fem3d.physics.terms.inertia import Inertia
-from fem3d.solve.amg import AMGPreconditioner, rigid_body_modes
-from fem3d.solve.linear import NotPositiveDefinite, SparseSPDSolver, choose_backend
+from fem3d.solve.linear import (
+    LINEAR_SOLVERS,
+    DirectSolver,
+    IterativeSolver,
+    NotPositiveDefinite,
+    SolverOptions,
+    make_linear_solver,
+    resolve_linear_solver,
+)
 
 __all__ = ["System", "NewtonMatrixBuilder", "LEAN_ASSEMBLY_MIN_TETS", "SHIFT_LADDER_START",
            "SHIFT_LADDER_GROWTH"]
@@ -57,11 +64,12 @@ class System:
     constraints : Constraints
         Fixed vertices.
     solver_backend : str, optional
-        Passed to :class:`fem3d.solve.linear.SparseSPDSolver` (default ``"auto"``).
+        The linear solver's registry name or ``"auto"`` (default;
+        :func:`fem3d.solve.linear.resolve_linear_solver`).
     gravity, rayleigh_alpha, rayleigh_beta : optional
         Gravity and the Rayleigh damping coefficients (per vertex / per tet, or one value).
     cholmod_mode : {"auto", "simplicial", "supernodal"}, optional
-        CHOLMOD's factorization (``SparseSPDSolver``'s ``cholmod_mode``).
+        CHOLMOD's factorization (:attr:`fem3d.solve.linear.SolverOptions.cholmod_mode`).
 
     Attributes
     ----------
@@ -102,8 +110,8 @@ class System:
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
-        #: CHOLMOD's factorization (:class:`~fem3d.solve.linear.SparseSPDSolver`'s
-        #: ``cholmod_mode``; the other back ends ignore it)
+        #: CHOLMOD's factorization (:attr:`~fem3d.solve.linear.SolverOptions.cholmod_mode`;
+        #: the other solvers ignore it)
         self.cholmod_mode = cholmod_mode
         kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
         self.mass_free = self._reduced_mass(model, kept)
@@ -118,18 +126,19 @@ class System:
         _stages.debug("system: reduced pattern")
         self._scaled_volumes: tuple[float, np.ndarray] | None = None
         self._pull_slots: tuple[np.ndarray, np.ndarray] | None = None
-        #: ``"amg"`` (AMG-preconditioned CG for backward Euler's Newton systems) or the direct
-        #: back end (:func:`fem3d.solve.linear.choose_backend`: ``"auto"`` picks by size).
-        self.linear_backend = choose_backend(solver_backend, constraints.n_free)
-        self._direct_backend = "auto" if self.linear_backend == "amg" else solver_backend
-        self._solver: SparseSPDSolver | None = None
+        #: The registry name of the linear solver (:mod:`fem3d.solve.linear.registry`:
+        #: ``"auto"`` picks by size): ``"amg"`` (AMG-preconditioned CG for backward Euler's
+        #: Newton systems) or a direct solver.
+        self.linear_backend = resolve_linear_solver(solver_backend, constraints.n_free)
+        iterative = LINEAR_SOLVERS[self.linear_backend].iterative
+        self._solver: DirectSolver | None = None
         #: Symbolic analyses of the direct solver so far (one per pattern it factorized on).
         self.analyses = 0
-        self._amg: AMGPreconditioner | None = None
-        if self.linear_backend != "amg":  # with AMG a factorization is made only if needed
+        self._amg: IterativeSolver | None = None
+        if not iterative:  # with an iterative solver a factorization is made only if needed
             self._solver = self._new_direct_solver(self.pattern_free)
         elif constraints.n_free:  # the AMG's aggregation: once per pattern, like an analysis
-            self.amg.analyze(self.pattern_free)
+            self.amg.analyse(self.pattern_free, symmetric=True)
         _stages.debug(f"system: {self.linear_backend} analysis")
         self.spring = spring_kernels(backend=model.backend)
         self._keys: np.ndarray | None = None
@@ -303,7 +312,7 @@ class System:
 
         Strategy for an indefinite Newton Hessian: try ``A``; on
         :class:`NotPositiveDefinite` factorize ``A + mu M`` (``M`` the reduced consistent mass
-        matrix, ``mu = 1e-4, 1e-3, ...``; :meth:`SparseSPDSolver.factorize_shifted`), a
+        matrix, ``mu = 1e-4, 1e-3, ...``; :meth:`DirectSolver.factorize_shifted`), a
         Levenberg-Marquardt shift toward the mass-scaled gradient-descent direction, which is
         always a descent direction.
 
@@ -574,12 +583,14 @@ class System:
         else:
             self.factorize(A)
 
-    def _new_direct_solver(self, pattern: sp.csr_matrix) -> SparseSPDSolver:
+    def _new_direct_solver(self, pattern: sp.csr_matrix) -> DirectSolver:
+        solver = make_linear_solver(self.solver_backend,
+                                    SolverOptions(cholmod_mode=self.cholmod_mode), direct=True)
+        assert isinstance(solver, DirectSolver)  # direct=True resolves to a direct solver
         # the reduced elastic pattern and its widenings (which add each key's transpose)
-        solver = SparseSPDSolver(pattern, backend=self._direct_backend,
-                                 cholmod_mode=self.cholmod_mode, symmetric=True)
+        solver.analyse(pattern, symmetric=True)
         self.analyses += 1
-        if solver.backend == "superlu" and pattern is self.pattern_free and \
+        if solver.name == "superlu" and pattern is self.pattern_free and \
                 self.mass_free.shape[0]:
             # SuperLU orders on its first factorization and takes another code path (explicit
             # permutation, natural order) afterwards. Factorizing once here makes every step
@@ -589,9 +600,9 @@ class System:
         return solver
 
     @property
-    def solver(self) -> SparseSPDSolver:
+    def solver(self) -> DirectSolver:
         """The sparse direct solver holding the last factorization (made on first use with
-        the ``"amg"`` back end: the linearly-implicit scheme factorizes)."""
+        an iterative solver: the linearly-implicit scheme factorizes)."""
         if self._solver is None:
             pat = self.pattern_free if self._ext is None else self._ext.pattern
             self._solver = self._new_direct_solver(pat)
@@ -602,19 +613,22 @@ class System:
         return np.asarray(self.solver.solve(b)).reshape(-1)
 
     @property
-    def amg(self) -> AMGPreconditioner:
-        """The AMG hierarchy holder (near-nullspace: rigid-body modes of the free vertices at
-        rest, so a hierarchy depends on its matrix alone)."""
+    def amg(self) -> IterativeSolver:
+        """The iterative solver (``"amg"``: AMG-preconditioned CG; near-nullspace: rigid-body
+        modes of the free vertices at rest, so a hierarchy depends on its matrix alone)."""
         if self._amg is None:
             free_vertices = self.free[0::3] // 3
-            self._amg = AMGPreconditioner(rigid_body_modes(self.model.X[free_vertices]))
+            options = SolverOptions(points=self.model.X[free_vertices])
+            solver = make_linear_solver("amg", options)
+            assert isinstance(solver, IterativeSolver)
+            self._amg = solver
         return self._amg
 
     def amg_setup(self, A_free: sp.csr_matrix) -> None:
         """Build the AMG hierarchy from ``A_free`` (on the solver's pattern);
         :attr:`factorized_data` records the matrix (a checkpoint rebuilds the same one)."""
         A_free = self.on_solver_pattern(A_free)
-        self.amg.setup(A_free, pattern_key=self.pattern_generation)
+        self.amg.factorize(A_free, pattern_key=self.pattern_generation)
         data = A_free.data.view()  # Newton matrices are new arrays: kept, not copied
         data.setflags(write=False)
         self.factorized_data = data

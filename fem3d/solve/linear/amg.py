@@ -1,8 +1,9 @@
 """Algebraic multigrid: smoothed-aggregation V-cycles preconditioning conjugate gradients.
 
-The ``"amg"`` back end of the Newton systems (:func:`fem3d.solve.linear.choose_backend` picks
-it by size): :func:`rigid_body_modes` gives the near-nullspace, :class:`AMGPreconditioner`
-aggregates a sparsity pattern once, builds a numeric hierarchy per matrix and runs V-cycle
+The hierarchy behind the ``"amg"`` linear solver
+(:class:`fem3d.solve.linear.amg_cg.AMGCGSolver`; ``"auto"`` picks it by size):
+:func:`rigid_body_modes` gives the near-nullspace, :class:`AMGPreconditioner` aggregates
+a sparsity pattern once, builds a numeric hierarchy per matrix and runs V-cycle
 preconditioned CG. pyamg provides the aggregation, the candidate fitting and the block
 Gauss-Seidel kernel; the rest is fem3d's own. Large systems (``threads_min_rows``) run the
 setup's products, the V-cycles and CG on the threaded C kernels of
@@ -22,8 +23,8 @@ import scipy.sparse as sp
 
 from fem3d.kernels import threads
 from fem3d.solve import sparse_threads
-from fem3d.solve.krylov import CGResult
-from fem3d.solve.linear import _as_csr
+from fem3d.solve.linear.base import as_csr
+from fem3d.solve.linear.krylov import CGResult
 
 __all__ = ["AMG_OPTIONS", "AMGPreconditioner", "rigid_body_modes"]
 
@@ -390,7 +391,7 @@ class AMGPreconditioner:
     matrix (smoothed prolongators, Galerkin coarse matrices, smoother data, coarsest
     factorization), reused for later matrices of the same pattern (Newton iterations, time
     steps) until the caller decides it has aged
-    (:func:`~fem3d.solve.krylov.iterations_per_decade` of the last solve above its budget).
+    (:func:`~fem3d.solve.linear.krylov.iterations_per_decade` of the last solve above its budget).
     pyamg provides the aggregation, the candidate fitting and the block Gauss-Seidel kernel.
 
     Parameters
@@ -460,7 +461,7 @@ class AMGPreconditioner:
         from pyamg.aggregation.tentative import fit_candidates
 
         t0 = time.perf_counter()
-        P = _as_csr(pattern)
+        P = as_csr(pattern)
         n = P.shape[0]
         if n % 3 or P.shape != (n, n):
             raise ValueError("AMG needs a square matrix of whole 3-DOF vertices")
@@ -497,7 +498,7 @@ class AMGPreconditioner:
         """Build the hierarchy from ``A`` (symmetric, 3x3-blocked DOFs; analysed first when
         its pattern is new)."""
         t0 = time.perf_counter()
-        A = _as_csr(A)
+        A = as_csr(A)
         if not self._planned(A):
             self.analyze(A)
         plan = self._plan
@@ -679,7 +680,7 @@ class AMGPreconditioner:
         if self._coarse is None:
             raise RuntimeError("setup() must run before solve()")
         t0 = time.perf_counter()
-        A = _as_csr(A)
+        A = as_csr(A)
         b = np.asarray(b, dtype=np.float64)
         dot, matvec = self._cg_operations(A)
         bnorm = math.sqrt(dot(b, b))

@@ -6,7 +6,7 @@ iterations or time steps); it reports iterations and says when CG stalls so the 
 refactorizes.
 
 :func:`iterations_per_decade` measures how fast a CG solve converged (the AMG direction of
-:mod:`fem3d.solve.amg` uses it to decide when a hierarchy has aged).
+:mod:`fem3d.solve.linear.amg_cg` solver uses it to decide when a hierarchy has aged).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.solve.linear import SparseSPDSolver, _as_csr
+from fem3d.solve.linear.base import DirectSolver, SolveReport, as_csr
 
 __all__ = ["CGResult", "PreconditionedCG", "iterations_per_decade"]
 
@@ -67,7 +67,7 @@ class PreconditionedCG:
 
     Parameters
     ----------
-    solver : SparseSPDSolver
+    solver : DirectSolver
         Holds (or will hold) the factorization used as preconditioner.
     rtol : float
         Relative residual target ``|b - A x| <= rtol |b|``.
@@ -83,7 +83,7 @@ class PreconditionedCG:
 
     def __init__(
         self,
-        solver: SparseSPDSolver,
+        solver: DirectSolver,
         *,
         rtol: float = 1e-8,
         maxiter: int = 50,
@@ -123,7 +123,7 @@ class PreconditionedCG:
         if not self.solver._factored:
             self.refactorize(A)
         b = np.asarray(b, dtype=np.float64)
-        A = _as_csr(A)
+        A = as_csr(A)
         bnorm = float(np.linalg.norm(b))
         if bnorm == 0.0:
             return CGResult(np.zeros_like(b), 0, 0.0, True, False, False)
@@ -165,7 +165,7 @@ class PreconditionedCG:
         return CGResult(x, it, history[-1], not stalled, stalled, False, negative)
 
 
-def iterations_per_decade(result: CGResult) -> float:
+def iterations_per_decade(result: CGResult | SolveReport) -> float:
     """CG iterations per factor 10 of residual reduction (``inf`` when it did not reduce)."""
     if result.iterations == 0:
         return 0.0
