@@ -66,6 +66,7 @@ from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
+from fem3d.solve.linear.registry import linear_solver_names
 
 __all__ = ["main", "build_parser", "scene_from_args", "parse_assignments", "SUBCOMMANDS",
            "RUN_FLAGS"]
@@ -153,7 +154,7 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
                    help="Newton linear solves: refactorize each iteration, or keep a "
                    "factorization as the CG preconditioner (simulation.newton.solver)")
     p.add_argument("--linear-solver", "--solver", dest="solver", default=None,
-                   help="sparse solver back end: auto, cholmod, pardiso, superlu, amg "
+                   help=f"linear solver: {', '.join(linear_solver_names())} "
                    "(simulation.linear_solver)")
     p.add_argument("--material", default=None, metavar="NAME",
                    help=f"material model of every body ({_material_help()})")

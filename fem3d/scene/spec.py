@@ -69,6 +69,7 @@ from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
+from fem3d.solve.linear.registry import linear_solver_names
 
 __all__ = [
     "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
@@ -89,6 +90,8 @@ ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
 Positive = Annotated[StrictFloat, Field(gt=0)]
 NonNegative = Annotated[StrictFloat, Field(ge=0)]
 Index = Annotated[StrictInt, Field(ge=0)]
+#: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
+LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
 
 
 class _Spec(BaseModel):
@@ -324,7 +327,7 @@ class SimulationSpec(_Spec):
     duration: NonNegative | None = None
     gravity: Vec3 = ZERO3
     newton: NewtonSpec = NewtonSpec()
-    linear_solver: Literal["auto", "cholmod", "pardiso", "superlu", "amg"] = "auto"
+    linear_solver: LinearSolverName = "auto"
     #: CHOLMOD's factorization: chosen from the pattern ("auto": simplicial for small factors
     #: with short columns), or forced (multi-body contact patterns mislead the rule: the
     #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
