@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fem3d.physics.contact import ContactModel
-from fem3d.physics.contact import model as contact
+from fem3d.physics.contact import collisions as contact
 
 MISS = Path(__file__).resolve().parent.parent / "bench" / "results" / \
     "accd_miss_pile_step184.npz"

@@ -34,7 +34,7 @@ def world_frame_step(cm: ContactModel, q0: np.ndarray, q1: np.ndarray) -> float:
     """The world-frame CCD step with a fresh brute-force broad phase (the reference)."""
     V0, V1 = cm.collision_vertices(q0), cm.collision_vertices(q1)
     return float(ipctk.compute_collision_free_stepsize(
-        cm.mesh, V0, V1, broad_phase=ipctk.BruteForce(), narrow_phase_ccd=cm._ccd))
+        cm.mesh, V0, V1, broad_phase=ipctk.BruteForce(), narrow_phase_ccd=cm.collisions.ccd))
 
 
 def test_a_far_travelling_body_gets_the_world_frames_step(one_body):

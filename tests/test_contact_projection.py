@@ -39,7 +39,7 @@ def apex_pair(projection: str) -> tuple[ContactModel, np.ndarray]:
 @pytest.mark.parametrize("projection", ["clamp", "abs", "exact"])
 def test_the_projection_clamps_or_mirrors_the_pairs_negative_eigenvalues(projection):
     cm, q = apex_pair(projection)
-    assert cm.n_active(q) == 1 and len(cm._parts[0].collisions) == 1
+    assert cm.n_active(q) == 1 and len(cm.collisions.parts[0].collisions) == 1
     dofs = np.r_[0:3, 12:15]  # the two apexes
     exact = cm.barrier_hessian(q, project=False).toarray()
     block = exact[np.ix_(dofs, dofs)]

@@ -26,8 +26,8 @@ def lagged_pairs(mu_s: float, mu_k: float, eps_v: float = 1e-3):
                       friction_hessian="majorizer")
     cm.initialize_stiffness(X.reshape(-1), np.zeros(X.size), 1.0)
     cm.lag_friction(X, DT)
-    (part,) = [p for p in cm._parts if p.tangential is not None]
-    return cm, part, FrictionMajorizer(part.tangential, part.mesh, cm._friction.eps_v)
+    (part,) = [p for p in cm.collisions.parts if p.tangential is not None]
+    return cm, part, FrictionMajorizer(part.tangential, part.mesh, cm.friction.potential.eps_v)
 
 
 def slip(part, rng, scale: float) -> np.ndarray:
@@ -43,10 +43,10 @@ def test_its_gradient_is_ipctks(mu_s: float, mu_k: float) -> None:
     cm, part, maj = lagged_pairs(mu_s, mu_k)
     assert len(maj) > 10
     rng = np.random.default_rng(1)
-    eps = cm._friction.eps_v
+    eps = cm.friction.potential.eps_v
     for scale in (0.1 * eps, eps, 30 * eps):  # static, transition, sliding
         U = slip(part, rng, scale)
-        want = np.asarray(cm._friction.gradient(part.tangential, part.mesh, U))
+        want = np.asarray(cm.friction.potential.gradient(part.tangential, part.mesh, U))
         got = maj.gradient(U)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
 
@@ -69,7 +69,7 @@ def test_at_zero_slip_it_is_ipctks_hessian() -> None:
 
     cm, part, maj = lagged_pairs(0.5, 0.5)
     U = np.asfortranarray(np.zeros((part.mesh.num_vertices, 3)))
-    exact = cm._friction.hessian(part.tangential, part.mesh, U,
+    exact = cm.friction.potential.hessian(part.tangential, part.mesh, U,
                                  ipctk.PSDProjectionMethod.NONE).toarray()
     got = maj.hessian(U).toarray()
     np.testing.assert_allclose(got, exact, rtol=0, atol=1e-9 * np.abs(exact).max())
@@ -82,10 +82,10 @@ def test_its_quadratic_lies_above_the_friction_where_ipctks_does_not(mu_s: float
 
     cm, part, maj = lagged_pairs(mu_s, mu_k)
     rng = np.random.default_rng(2)
-    eps = cm._friction.eps_v
+    eps = cm.friction.potential.eps_v
 
     def energy(U):
-        return float(cm._friction(part.tangential, part.mesh, np.asfortranarray(U)))
+        return float(cm.friction.potential(part.tangential, part.mesh, np.asfortranarray(U)))
 
     exact_violations = 0
     for _ in range(30):
@@ -97,7 +97,7 @@ def test_its_quadratic_lies_above_the_friction_where_ipctks_does_not(mu_s: float
         model = e0 + g @ d + 0.5 * d @ (H @ d)
         assert e1 <= model + 1e-12 * max(abs(e1), abs(model))
         assert d @ (H @ d) >= 0.0
-        Hx = cm._friction.hessian(part.tangential, part.mesh, U,
+        Hx = cm.friction.potential.hessian(part.tangential, part.mesh, U,
                                   ipctk.PSDProjectionMethod.CLAMP).tocsr()
         exact_violations += e1 > e0 + g @ d + 0.5 * d @ (Hx @ d) + 1e-12 * abs(e1)
     assert exact_violations > 0  # the property is not a given: the exact model undershoots
@@ -121,7 +121,7 @@ def test_newton_with_it_reaches_the_exact_hessians_solution() -> None:
         for _ in range(5):
             state, stats = implicit_euler(system, state, DT, terms=[term])
             newton += stats.newton_iterations
-            pairs.append(sum(len(p.tangential or ()) for p in cm._parts))
+            pairs.append(sum(len(p.tangential or ()) for p in cm.collisions.parts))
         finals.append(state.q.copy())
         iterations.append(newton)
     gap = np.abs(finals[0] - finals[1]).max()

@@ -120,14 +120,15 @@ def test_the_pattern_hint_holds_whole_blocks_of_every_pair_within_the_margin():
     n = 3 * X.shape[0]
     hint = np.unique(rows.astype(np.int64) * n + cols)
     V = cm.collision_vertices(q)
-    part = cm._parts[0]
+    part = cm.collisions.parts[0]
     Vp = part.view(V)
     margin = term.pattern_margin * cm.dhat
     cands = ipctk.Candidates()
     cands.build(part.mesh, Vp, 0.5 * margin)
     col = ipctk.NormalCollisions()
     col.build(cands, part.mesh, Vp, margin)
-    H = cm._to_full_matrix([ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)])
+    H = cm.geometry.to_full_matrix(
+        [ipctk.BarrierPotential(margin, 1.0).hessian(col, part.mesh, Vp)])
     exact = np.unique(H.row.astype(np.int64) * n + H.col)
     assert np.isin(exact, hint).all()
     assert hint.size > exact.size  # the Hessian's exact zeros

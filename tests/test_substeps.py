@@ -19,8 +19,8 @@ import pytest
 from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
-from fem3d.physics.contact import path as contact_path
 from fem3d.physics.contact import ContactModel
+from fem3d.physics.contact import path as contact_path
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
@@ -245,15 +245,15 @@ def test_a_resting_pair_closer_than_the_ccd_tolerance_is_not_a_crossing():
     q0, q1 = move([0.0, 0.0, 0.0]), move([0.005, 1e-7 - 2e-5, 0.0])
     assert not contact.has_intersections(q1.reshape(-1))
     # the old check (Tight-Inclusion at its default tolerance alone) reports a hit
-    part = contact._parts[0]
+    part = contact.collisions.parts[0]
     V0, V1 = (np.asfortranarray(contact.collision_vertices(q)) for q in (q0, q1))
-    cands = contact._candidates_along(part, V0, V1)
+    cands = contact.collisions.candidates_along(part, V0, V1)
     assert not cands.is_step_collision_free(
         part.mesh, V0, V1, min_distance=0.0,
         narrow_phase_ccd=ipctk.TightInclusionCCD(1e-6, 10_000_000, 1.0))
-    assert contact_path.straight_path_is_free(contact, q0, q1, 0.0, DT)
+    assert contact_path.straight_path_is_free(contact.collisions, q0, q1, 0.0, DT)
     pressed = move([0.005, -1e-3 - 2e-5, 0.0])
-    assert not contact_path.straight_path_is_free(contact, q0, pressed, 0.0, DT)
+    assert not contact_path.straight_path_is_free(contact.collisions, q0, pressed, 0.0, DT)
     through = move([0.005, -0.2 - 2e-5 - 1e-3, 0.0])
     assert not contact.has_intersections(through.reshape(-1))
-    assert not contact_path.straight_path_is_free(contact, q0, through, 0.0, DT)
+    assert not contact_path.straight_path_is_free(contact.collisions, q0, through, 0.0, DT)

@@ -34,6 +34,8 @@ import time
 import ipctk
 import numpy as np
 
+from fem3d.physics.contact.collisions import CollisionSets
+
 __all__ = ["straight_path_is_free", "PATH_CCD_TOLERANCE", "PATH_CCD_TOLERANCES"]
 
 #: Tight-Inclusion's tolerances (co-domain widths, m), tried in turn: the first is ipctk's
@@ -55,13 +57,15 @@ _CCDS = tuple(ipctk.TightInclusionCCD(tol, PATH_CCD_MAX_ITERATIONS, 1.0)
               for tol in PATH_CCD_TOLERANCES)
 
 
-def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
-                          t1: float) -> bool:
+def straight_path_is_free(collisions: CollisionSets, q0: np.ndarray, q1: np.ndarray,
+                          t0: float, t1: float) -> bool:
     """Whether the straight motion from ``q0`` at ``t0`` to ``q1`` at ``t1`` meets no surface.
 
     Parameters
     ----------
-    contact : fem3d.physics.contact.model.ContactModel
+    collisions : CollisionSets
+        The contact model's (``ContactModel.collisions``): its geometry, the step's
+        candidates, the model's CCD.
     q0, q1 : (3n,) or (n, 3) float64
         The bodies' positions at the start and the end of the motion.
     t0, t1 : float
@@ -73,26 +77,26 @@ def straight_path_is_free(contact, q0: np.ndarray, q1: np.ndarray, t0: float,
         True when no pair of primitives that can touch meets along the motion (always True
         without mesh-mesh contact: a body against planes only).
     """
-    parts = [p for p in contact._parts if p.mesh is contact.mesh]
-    if not parts:
+    if not collisions.parts:
         return True
     start = time.perf_counter()
-    V0 = contact.collision_vertices(q0, contact.obstacle_positions(t0))
-    V1 = contact.collision_vertices(q1, contact.obstacle_positions(t1))
+    g = collisions.geometry
+    V0 = g.collision_vertices(q0, g.obstacle_positions(t0))
+    V1 = g.collision_vertices(q1, g.obstacle_positions(t1))
     free = True
-    for part in parts:
+    for part in collisions.parts:
         P0, P1 = np.asfortranarray(part.view(V0)), np.asfortranarray(part.view(V1))
-        cands = contact._candidates_along(part, P0, P1)
+        cands = collisions.candidates_along(part, P0, P1)
         # the model's CCD first (additive by default, cheaper): it flags every pair that
         # comes closer than a fraction of its start distance, so a motion it passes meets no
         # surface; only a flagged motion needs the exact test
         if cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
-                                        narrow_phase_ccd=contact._ccd):
+                                        narrow_phase_ccd=collisions.ccd):
             continue
         if not any(cands.is_step_collision_free(part.mesh, P0, P1, min_distance=0.0,
                                                 narrow_phase_ccd=ccd) for ccd in _CCDS):
             free = False
             break
-    contact.stats.ccd_calls += 1
-    contact.stats.seconds_ccd += time.perf_counter() - start
+    collisions.stats.ccd_calls += 1
+    collisions.stats.seconds_ccd += time.perf_counter() - start
     return free

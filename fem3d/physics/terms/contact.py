@@ -1,5 +1,5 @@
 """IPC contact as objective terms: the barrier and the lagged friction of a
-:class:`~fem3d.physics.contact.ContactModel`, and the group they form.
+:class:`~fem3d.physics.contact.model.ContactModel`, and the group they form.
 
 Barrier and friction share one contact set, one adaptive stiffness and one lagging per step,
 so :class:`ContactTerm` groups them (:class:`~fem3d.physics.terms.base.TermGroup`): they
@@ -14,7 +14,7 @@ import ipctk
 import numpy as np
 
 from fem3d.errors import ParameterError, SimulationError
-from fem3d.physics.contact import ContactModel
+from fem3d.physics.contact.model import ContactModel
 from fem3d.physics.contact.path import straight_path_is_free
 from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
 
@@ -103,7 +103,7 @@ class BarrierTerm(Term):
         :meth:`_pattern_hint`), so that the pattern, re-analysed now anyway, grows ahead of
         the contact set."""
         H = self.contact.barrier_hessian(q, project=self.contact.projects(psd), triplets=True)
-        if covered is None or not self.contact._parts or self.pattern_margin <= 0 or \
+        if covered is None or not self.contact.collisions.parts or self.pattern_margin <= 0 or \
                 covered(H.row, H.col):  # planes' blocks are in the elastic pattern
             return H.row, H.col, H.data
         hint = self._pattern_hint(q)
@@ -165,7 +165,7 @@ class BarrierTerm(Term):
         pairs' vertices: a barrier Hessian at the margin was 16 of the hint's 49 ms on the
         pile (32 ms now) and leaves out its exact zeros, which a pattern need not."""
         cm = self.contact
-        parts = cm._parts
+        parts = cm.collisions.parts
         if not parts or self.pattern_margin <= 0:
             return None
         V = cm.collision_vertices(q)
@@ -173,7 +173,7 @@ class BarrierTerm(Term):
         pairs = []
         for part in parts:
             Vp = part.view(V)
-            cands = cm.candidates_within(part, Vp, 0.5 * margin)
+            cands = cm.collisions.candidates_within(part, Vp, 0.5 * margin)
             col = ipctk.NormalCollisions()
             col.build(cands, part.mesh, Vp, margin)
             pairs += _vertex_pairs(col, part.mesh.edges, part.mesh.faces)
@@ -192,7 +192,7 @@ class BarrierTerm(Term):
             return
         active = cm.n_active(q) > 0
         # once at the start, and again when contact (re)appears, as IPC does
-        if not cm._stiffness_initialized or (active and not self._had_contact):
+        if not cm.barrier.initialized or (active and not self._had_contact):
             cm.initialize_stiffness(q, grad_rest, average_mass / (self._dt * self._dt))
         self._had_contact = active
 
@@ -328,7 +328,7 @@ def _block_entries(pairs: np.ndarray, cm: ContactModel) -> tuple[np.ndarray, np.
     d = np.arange(3)
     r = np.broadcast_to((3 * i)[:, None, None] + d[None, :, None], (i.size, 3, 3)).ravel()
     c = np.broadcast_to((3 * j)[:, None, None] + d[None, None, :], (i.size, 3, 3)).ravel()
-    return cm._dof[r], cm._dof[c]
+    return cm.geometry.dof[r], cm.geometry.dof[c]
 
 
 class ContactTerm(TermGroup):
@@ -369,7 +369,7 @@ class ContactTerm(TermGroup):
         """Whether a step's own straight motion from ``q0`` (at ``t0``) to ``q1`` (at ``t1``)
         meets no surface (:func:`fem3d.physics.contact.path.straight_path_is_free`): the
         check :mod:`fem3d.solve.substeps` makes after each contact step."""
-        return straight_path_is_free(self.contact, q0, q1, t0, t1)
+        return straight_path_is_free(self.contact.collisions, q0, q1, t0, t1)
 
     # -- checkpoints ----------------------------------------------------------------------------
     def reset(self) -> None:
@@ -379,19 +379,12 @@ class ContactTerm(TermGroup):
     def state_array(self) -> np.ndarray:
         """The adaptive stiffness as a ``(5,) float64`` array (for ``.npz`` checkpoints):
         ``kappa, max_kappa, initialized, prev_min_distance (nan: none), had_contact``."""
-        cm = self.contact
-        prev = np.nan if cm._prev_min_distance is None else cm._prev_min_distance
-        return np.array([cm.kappa, cm.max_kappa, float(cm._stiffness_initialized), prev,
-                         float(self.barrier._had_contact)], dtype=np.float64)
+        return np.append(self.contact.barrier.state_array(), float(self.barrier._had_contact))
 
     def load_state_array(self, a: np.ndarray) -> None:
         """Undo to a :meth:`state_array`."""
         a = np.asarray(a, dtype=np.float64).reshape(-1)
         if a.shape != (5,):
             raise ValueError(f"contact state must have 5 values, got {a.shape}")
-        cm = self.contact
-        cm.set_kappa(float(a[0]))
-        cm.max_kappa = float(a[1])
-        cm._stiffness_initialized = bool(a[2])
-        cm._prev_min_distance = None if np.isnan(a[3]) else float(a[3])
+        self.contact.barrier.load_state_array(a[:4])
         self.barrier._had_contact = bool(a[4])
