@@ -100,7 +100,7 @@ def test_stack_with_the_opt_in_newton_settings_stays_valid(overrides):
     sim = Simulation(apply_overrides(load_scene("contact_stack"), overrides))
     assert sim.newton_line_search == overrides.get("simulation.newton.line_search",
                                                    "backtrack")
-    assert sim.contact.barrier.restart_when_clamped == (
+    assert sim.contact.newton_policy.restart_when_clamped == (
         overrides.get("contact.newton_start") == "q_t")
     halvings = 0
     for _ in range(22):

@@ -258,8 +258,7 @@ def minimise_step(
         if DIRECTIONS[linear_solver] is ReuseDirection else {}
     direction = DIRECTIONS[linear_solver](system, objective, stats, progress, options, **extra)
     x0, e0 = _start(objective, state)
-    if guess is not None and not (objective.clamps or
-                                  any(t.stiff_barrier for t in objective.terms)):
+    if guess is not None and not (objective.clamps or objective.policy.stiff):
         x0, e0 = _better_start(objective, x0, e0, guess)
     if objective.initializes_stiffness:
         objective.initialize_stiffness(x0, float(model.mass.sum()) / model.n_dofs)
@@ -281,7 +280,7 @@ def minimise_step(
                 on_no_step=no_step, max_step=objective.max_step if objective.clamps else None,
                 converged_step=direction.step_converged if objective.has_stopping_rule
                 else None,
-                accept_first_step=objective.accepts_first_step,
+                accept_first_step=objective.policy.accept_first_step,
                 after_step=objective.after_iteration if objective.changes_between_iterates
                 else None,
                 roundoff_rtol=AMG_ROUNDOFF_RTOL if linear_solver == "amg" else 0.0,
@@ -312,10 +311,11 @@ def _start(objective: Objective, state: State) -> tuple[np.ndarray, float]:
     ``x_start``, where the free DOFs are at ``q_t``: a start that tunnelled through an
     obstacle would be finite but wrong), or ``x_start`` itself when that is inadmissible
     (backward Euler: ``v_t`` clamped from ``v = 0``) or when the clamp cut the step and a
-    term asks for it (:attr:`Objective.restart_when_clamped`)."""
+    term asks for it (:attr:`NewtonPolicy.restart_when_clamped
+    <fem3d.physics.terms.base.NewtonPolicy.restart_when_clamped>`)."""
     step = objective.step
     vt_free = step.v_hat_free
-    restart = objective.restart_when_clamped
+    restart = objective.policy.restart_when_clamped
     if step.x_start is None:
         x0 = vt_free.copy()
         if objective.clamps:

@@ -18,7 +18,7 @@ The state carries ``a``. A state without it (the first step, a changed integrato
 one solve with the mass matrix on the free DOFs; the fixed DOFs' acceleration is zero. Pins
 move with the secant velocity ``(p - q_n) / dt`` and the backward-difference acceleration.
 
-With contact (a term with ``stiff_barrier``, IPC's barrier, among the terms) the
+With contact (a term whose ``newton_policy`` is ``stiff``, IPC's barrier) the
 trapezoidal rule gains energy at every impact: the barrier is far stiffer than ``dt``
 resolves and average acceleration does not damp the unresolved modes, so the stiff
 accelerations chatter and grow (measured on the bunny drop: ~8,000 J from 0 J by t = 1.5 s,
@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from fem3d.physics.model import validate_dt
-from fem3d.physics.terms.base import StepMap, as_term
+from fem3d.physics.terms.base import NewtonPolicy, StepMap, as_term
 from fem3d.solve.backward_euler import check_linear_solver, minimise_step
 from fem3d.solve.directions import NewtonOptions
 from fem3d.solve.state import State, StepStats, check_finite
@@ -56,8 +56,10 @@ CONTACT_ALPHA = 0.05
 
 def newmark_gamma(terms: Sequence) -> float:
     """``gamma`` of the step: 1/2 (average acceleration), or ``1/2 + CONTACT_ALPHA`` when a
-    term is a stiff barrier (``Term.stiff_barrier``: IPC contact's barrier)."""
-    contact = any(t.stiff_barrier and t.active for t in map(as_term, terms))
+    term is stiff (:attr:`NewtonPolicy.stiff <fem3d.physics.terms.base.NewtonPolicy.stiff>`:
+    IPC contact's barrier)."""
+    contact = NewtonPolicy.combine(t.newton_policy for t in map(as_term, terms)
+                                   if t.active).stiff
     return 0.5 + CONTACT_ALPHA if contact else 0.5
 
 

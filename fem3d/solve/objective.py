@@ -16,7 +16,7 @@ from collections.abc import Iterable
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.physics.terms.base import StepMap, Term, as_term, overrides
+from fem3d.physics.terms.base import NewtonPolicy, StepMap, Term, as_term, overrides
 from fem3d.solve.system import NewtonMatrixBuilder, System
 
 __all__ = ["Objective"]
@@ -44,8 +44,8 @@ class Objective:
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
-        self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
-        self.accepts_first_step = any(t.accepts_first_step for t in self.terms)
+        #: what the active terms ask of Newton, combined
+        self.policy = NewtonPolicy.combine(t.newton_policy for t in self.terms)
         self._positional = [t for t in self.terms if t.variable == "position"]
         self._velocity = [t for t in self.terms if t.variable != "position"]
         self._clamping = [t for t in self.terms if overrides(t, "max_step")]

@@ -11,7 +11,8 @@ gravity's work, Rayleigh dissipation). An integrator sums terms; it knows none b
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -19,7 +20,8 @@ import scipy.sparse as sp
 
 from fem3d.physics.constraints import Constraints
 
-__all__ = ["StepMap", "Term", "HessianSink", "PositionTerm", "TermGroup", "as_term", "overrides"]
+__all__ = ["StepMap", "NewtonPolicy", "Term", "HessianSink", "PositionTerm", "TermGroup",
+           "as_term", "overrides"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +114,41 @@ class HessianSink(Protocol):
     def add_entries(self, H: Any, scale: float) -> None: ...
 
 
+@dataclass(frozen=True)
+class NewtonPolicy:
+    """What a term asks of the Newton solve that minimises a step (beyond its value and
+    derivatives). The minimiser reads the policy of the step's active terms, combined
+    (:meth:`combine`: a field is on when any term's is); a new potential sets its own policy
+    object, and a new kind of request is one more field here, not a flag on :class:`Term`.
+
+    Attributes
+    ----------
+    stiff : bool
+        A term stiffens by orders of magnitude within a step (a log barrier at contact): a
+        scheme without numerical dissipation (Newmark) damps its highest modes while it is
+        active, and Newton tries no extrapolated warm start.
+    restart_when_clamped : bool
+        When a term's ``max_step`` cuts the way from the scheme's start ``x_start`` to its
+        target ``v_hat`` (free flight into a contact), Newton starts at ``x_start`` itself
+        (backward Euler: ``q_t``) instead of the clamped target, whose contacts are squeezed
+        to a tenth of their gap and more (IPC's own start).
+    accept_first_step : bool
+        A term's stopping rule (:meth:`Term.newton_converged`) also judges Newton's first
+        direction: one that passes is taken and ends the solve, where a second direction
+        would otherwise confirm it (one factorization instead of two in a resting step).
+    """
+
+    stiff: bool = False
+    restart_when_clamped: bool = False
+    accept_first_step: bool = False
+
+    @classmethod
+    def combine(cls, policies: Iterable[NewtonPolicy]) -> NewtonPolicy:
+        """The policy of several terms: each field on when it is on in any of ``policies``."""
+        policies = list(policies)
+        return cls(**{f.name: any(getattr(p, f.name) for p in policies) for f in fields(cls)})
+
+
 class Term:
     """One summand of a time step's objective; subclasses override what they have.
 
@@ -129,19 +166,8 @@ class Term:
     allows_lagged_matrix : bool
         A Newton matrix of one iterate may serve the next (False where the term changes
         between iterates, e.g. an adaptive barrier stiffness).
-    stiff_barrier : bool
-        The term stiffens by orders of magnitude within a step (a log barrier at contact): a
-        scheme without numerical dissipation (Newmark) damps its highest modes while it is
-        active.
-    restart_when_clamped : bool
-        When the term's ``max_step`` cuts the way from the scheme's start ``x_start`` to its
-        target ``v_hat`` (free flight into a contact), Newton starts at ``x_start`` itself
-        (backward Euler: ``q_t``) instead of the clamped target, whose contacts are squeezed
-        to a tenth of their gap and more (IPC's own start).
-    accepts_first_step : bool
-        The term's stopping rule (:meth:`newton_converged`) also judges Newton's first
-        direction: one that passes is taken and ends the solve, where a second direction
-        would otherwise confirm it (one factorization instead of two in a resting step).
+    newton_policy : NewtonPolicy
+        What the term asks of the Newton solve (default: nothing).
     inertial, dissipative : bool
         The term is the kinetic (mass) term, or a dissipation in the velocities: a static
         equilibrium leaves both out, an initial acceleration ``M a = f`` every inertial one.
@@ -157,9 +183,7 @@ class Term:
     variable: ClassVar[str] = "position"
     requires_convergence: ClassVar[bool] = False
     allows_lagged_matrix: ClassVar[bool] = True
-    stiff_barrier: ClassVar[bool] = False
-    restart_when_clamped: bool = False
-    accepts_first_step: bool = False
+    newton_policy: NewtonPolicy = NewtonPolicy()
     inertial: ClassVar[bool] = False
     dissipative: ClassVar[bool] = False
     energy_scale: float = 0.0
@@ -259,9 +283,7 @@ class TermGroup(Term):
         self.variable = variables.pop()
         self.requires_convergence = any(t.requires_convergence for t in self.terms)
         self.allows_lagged_matrix = all(t.allows_lagged_matrix for t in self.terms)
-        self.stiff_barrier = any(t.stiff_barrier for t in self.terms)
-        self.restart_when_clamped = any(t.restart_when_clamped for t in self.terms)
-        self.accepts_first_step = any(t.accepts_first_step for t in self.terms)
+        self.newton_policy = NewtonPolicy.combine(t.newton_policy for t in self.terms)
         self.energy_scale = sum(t.energy_scale for t in self.terms)
 
     @property

@@ -16,7 +16,7 @@ import numpy as np
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.contact.model import ContactModel
 from fem3d.physics.contact.path import straight_path_is_free
-from fem3d.physics.terms.base import HessianSink, StepMap, Term, TermGroup
+from fem3d.physics.terms.base import HessianSink, NewtonPolicy, StepMap, Term, TermGroup
 
 __all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS", "FIRST_STEPS"]
 
@@ -24,7 +24,7 @@ __all__ = ["BarrierTerm", "FrictionTerm", "ContactTerm", "NEWTON_STARTS", "FIRST
 NEWTON_STARTS = ("clamped", "q_t")
 #: What IPC's stopping rule does with Newton's first direction: nothing ("confirm": the
 #: first step is always taken and judged by a second direction) or judge it ("accept": one
-#: that passes is taken and ends the solve; :attr:`Term.accepts_first_step`).
+#: that passes is taken and ends the solve; :attr:`NewtonPolicy.accept_first_step`).
 FIRST_STEPS = ("confirm", "accept")
 
 
@@ -54,7 +54,7 @@ class BarrierTerm(Term):
     newton_start : {"clamped", "q_t"}, optional
         Where Newton starts when CCD cuts the step's free flight (``v_t``): at ``v_t`` scaled
         back by CCD (``"clamped"``, the default) or at ``q_t`` (``"q_t"``: ``v = 0``, IPC's
-        start; :attr:`Term.restart_when_clamped`).
+        start; :attr:`NewtonPolicy.restart_when_clamped`).
     first_step : {"confirm", "accept"}, optional
         :data:`FIRST_STEPS`: whether a first Newton direction that already passes the
         stopping rule ends the solve once taken (``"accept"``) or is confirmed by a second
@@ -66,7 +66,6 @@ class BarrierTerm(Term):
     requires_convergence = True
     #: the adaptive stiffness changes the objective between iterates
     allows_lagged_matrix = False
-    stiff_barrier = True
 
     def __init__(self, contact: ContactModel, *, tolerance: float = 1e-3,
                  pattern_margin: float = 4.0, newton_start: str = "clamped",
@@ -76,8 +75,9 @@ class BarrierTerm(Term):
             if value not in allowed:
                 raise ParameterError(f"contact.{key} must be one of {', '.join(allowed)}, "
                                      f"got {value!r}")
-        self.restart_when_clamped = newton_start == "q_t"
-        self.accepts_first_step = first_step == "accept"
+        #: a stiff barrier, and where Newton starts and stops by the scene's contact keys
+        self.newton_policy = NewtonPolicy(stiff=True, restart_when_clamped=newton_start == "q_t",
+                                          accept_first_step=first_step == "accept")
         tolerance = float(tolerance)
         if not (math.isfinite(tolerance) and tolerance > 0):
             raise ParameterError(f"contact.tolerance must be a finite number > 0, got "
