@@ -103,6 +103,7 @@ def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "c
     from fem3d.physics.contact import ContactModel, PlaneObstacle
     from fem3d.physics.model import build_model
     from fem3d.physics.terms.contact import ContactTerm
+    from fem3d.scene.build import build_loads
     from fem3d.solve.integrators import State, System
 
     m = read_tet_mesh(ROOT / "data" / "coarser_bunny.mesh")
@@ -123,7 +124,7 @@ def build_case(name: str, refine: int, narrow_phase: str, newton_start: str = "c
         raise ValueError(name)
     model = build_model(X, T, E=2e5, nu=0.4, rho=1000.0)
     system = System(model, Constraints.from_fixed_vertices(X, np.zeros(0, np.int64)),
-                    gravity=[0.0, -9.81, 0.0], cholmod_mode=cholmod or "auto")
+                    loads=build_loads(model, [0.0, -9.81, 0.0]), cholmod_mode=cholmod or "auto")
     L = float(np.linalg.norm(np.ptp(X, axis=0)))
     cm = ContactModel(X, T, body_ids=ids, planes=[PlaneObstacle([0, 0, 0], [0, 1, 0])],
                       dhat=1e-3 * L, mu=0.3, eps_v=1e-3 * L, narrow_phase=narrow_phase)

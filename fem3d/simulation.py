@@ -179,13 +179,9 @@ class Simulation:
         self.model: Model = built.model
         self.constraints = built.constraints
         sim = scene.simulation
-        gravity, alpha, beta = built.gravity, built.rayleigh_alpha, built.rayleigh_beta
         try:
             self.system = System(self.model, self.constraints, sim.linear_solver,
-                                 gravity=gravity, rayleigh_alpha=alpha, rayleigh_beta=beta,
-                                 cholmod_mode=sim.cholmod)
-        except ParameterError as exc:
-            raise scene.error("simulation", str(exc)) from None
+                                 loads=built.loads, cholmod_mode=sim.cholmod)
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = built.motions
@@ -551,7 +547,7 @@ class Simulation:
     def gravity_energy(self) -> float:
         """Gravity's potential ``-M g . (q - X)`` of the current state (the part of
         ``energies()["potential"]`` that is not strain)."""
-        return float(self.system.gravity_energy(self.q))
+        return float(self.system.loads.gravity_energy(self.q))
 
     def _energy_with_pull(self) -> float:
         e = self.energies()
@@ -622,7 +618,7 @@ class Simulation:
             )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)
-        pot = potential_energy(self.model, new.q) + self.system.gravity_energy(new.q)
+        pot = potential_energy(self.model, new.q) + self.system.loads.gravity_energy(new.q)
         if not (math.isfinite(kin) and math.isfinite(pot)):
             raise SimulationError(
                 f"{self._integrator} integrator exploded: non-finite energy", step=new.step - 1

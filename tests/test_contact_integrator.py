@@ -20,6 +20,7 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.physics.model import build_model
 from fem3d.physics.terms.contact import ContactTerm
+from fem3d.scene.build import build_loads
 from fem3d.solve.integrators import State, System, implicit_euler
 from tests.test_contact import box_mesh
 
@@ -30,7 +31,7 @@ DT = 0.01
 def free_system(X, T, *, E=1e5, rho=1000.0, gravity=G):
     model = build_model(X, T, E=E, nu=0.3, rho=rho)
     return model, System(model, Constraints.from_fixed_vertices(X, np.zeros(0, int)),
-                         gravity=gravity)
+                         loads=build_loads(model, gravity))
 
 
 def total_energy(model, state, contact):

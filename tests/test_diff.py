@@ -330,7 +330,7 @@ def test_damping_linearization_matches_the_kernels_damping_matrix(monkeypatch) -
 
     scene, _ = box_scene(0.002)
     run = _prepare(scene, 1e-11, 1e-16)
-    model, term = run.system.model, run.system.damping_term
+    model, term = run.system.model, run.system.loads.damping
     rng = np.random.default_rng(3)
     q = (model.X * [1.0, 0.6, 1.0] + 0.05 * rng.normal(size=model.X.shape)).reshape(-1)
     lin = linearize_damping(term, run.groups, q)

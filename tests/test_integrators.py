@@ -568,12 +568,15 @@ def small_model(nx=2, ny=2, nz=2, size=(1.0, 1.0, 1.0), E=1e5, nu=0.35, rho=1000
     return build_model(X, T, E=E, nu=nu, rho=rho)
 
 
-def make_system(model, fixed=(), **physics):
+def make_system(model, fixed=(), gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0,
+                **options):
     from fem3d.physics.constraints import Constraints
+    from fem3d.scene.build import build_loads
     from fem3d.solve.integrators import System
 
     c = Constraints.from_fixed_vertices(model.X, np.asarray(fixed, dtype=np.int64))
-    return System(model, c, **physics)
+    loads = build_loads(model, gravity, rayleigh_alpha, rayleigh_beta)
+    return System(model, c, loads=loads, **options)
 
 
 STEPPERS = {
@@ -612,7 +615,7 @@ def test_pinned_cantilever_settles_at_the_static_solution():
     fixed = np.flatnonzero(model.X[:, 0] <= 1e-12)
     system = make_system(model, fixed, gravity=G, rayleigh_alpha=50.0)
     c, free = system.constraints, system.constraints.free_dofs
-    f = system.gravity_force
+    f = system.loads.gravity_force
     np.testing.assert_allclose(f.reshape(-1, 3).sum(axis=0), G * model.rho * 0.5, rtol=1e-12)
     u = model.X.reshape(-1)[free]
     for _ in range(8):
@@ -679,11 +682,11 @@ def test_rayleigh_damping_decays_energy_monotonically(integrator):
 def test_damping_per_tet_and_per_vertex_arrays_equal_the_scalars():
     model = small_model()
     q = model.X + 0.05 * np.random.default_rng(1).normal(size=model.X.shape)
-    a = make_system(model, rayleigh_alpha=0.3, rayleigh_beta=0.02).damping_data(q)
+    a = make_system(model, rayleigh_alpha=0.3, rayleigh_beta=0.02).loads.damping_data(q)
     b = make_system(model, rayleigh_alpha=np.full(model.n_vertices, 0.3),
-                    rayleigh_beta=np.full(model.n_tets, 0.02)).damping_data(q)
+                    rayleigh_beta=np.full(model.n_tets, 0.02)).loads.damping_data(q)
     np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * np.abs(a).max())
-    assert make_system(model).damping_data(q) is None
+    assert make_system(model).loads.damping_data(q) is None
 
 
 def test_bad_gravity_and_damping_are_parameter_errors():

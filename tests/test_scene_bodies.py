@@ -177,8 +177,8 @@ def test_gravity_and_damping():
                         body(transform={"translate": [2.0, 0.0, 0.0]},
                              damping={"rayleigh_stiffness": 0.01})])
     sys_ = Simulation(two).system
-    assert np.array_equal(sys_.rayleigh_alpha, np.r_[np.full(259, 2.0), np.zeros(259)])
-    assert np.array_equal(sys_.rayleigh_beta, np.r_[np.zeros(627), np.full(627, 0.01)])
+    assert np.array_equal(sys_.loads.rayleigh_alpha, np.r_[np.full(259, 2.0), np.zeros(259)])
+    assert np.array_equal(sys_.loads.rayleigh_beta, np.r_[np.zeros(627), np.full(627, 0.01)])
     # and takes energy out: a body set moving with mass damping slows down faster
     kin = {}
     for alpha in (0.0, 20.0):
@@ -186,7 +186,7 @@ def test_gravity_and_damping():
         s = scene(bodies=[body(velocity=[0.5, 0.0, 0.0], material=soft,
                                damping={"rayleigh_mass": alpha})])
         sim = Simulation(s)
-        assert sim.system.rayleigh_alpha == alpha
+        assert sim.system.loads.rayleigh_alpha == alpha
         for _ in range(10):
             info = sim.step()
         kin[alpha] = info.kinetic + info.potential

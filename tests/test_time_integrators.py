@@ -13,6 +13,7 @@ from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import build_model
 from fem3d.scene import scene_from_arrays
+from fem3d.scene.build import build_loads
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import INTEGRATORS, State, System
 
@@ -24,7 +25,8 @@ def bar(nx=4, material="neo_hookean", E=1e4, nu=0.3, **physics):
     X, T = box_mesh(nx, 1, 1, size=(1.0, 0.25, 0.25))
     model = build_model(X, T, E=E, nu=nu, rho=1000.0, material=material)
     fixed = np.flatnonzero(X[:, 0] <= 1e-12)
-    return model, System(model, Constraints.from_fixed_vertices(X, fixed), **physics), fixed
+    c = Constraints.from_fixed_vertices(X, fixed)
+    return model, System(model, c, loads=build_loads(model, **physics)), fixed
 
 
 def set_vibrating(model, fixed, amplitude):

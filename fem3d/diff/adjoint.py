@@ -182,7 +182,7 @@ class _Run:
         extra = [t for term in self.terms for t in term.forward_terms()]
         for term in self.terms:
             term.before_step(state)
-        own = self.system.damping_term
+        own = self.system.loads.damping
         terms = [self.damping if t is own and self.damping is not None else t
                  for t in model_terms(self.system)]
         if self.damping is not None:
@@ -218,8 +218,7 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float,
                              f"(differentiated with contact: {with_contact})")
     built = build(scene)
     system = System(built.model, built.constraints, scene.simulation.linear_solver,
-                    gravity=built.gravity, rayleigh_alpha=built.rayleigh_alpha,
-                    rayleigh_beta=built.rayleigh_beta)
+                    loads=built.loads)
     a = built.arrays
     v0 = np.array(a.v0, dtype=np.float64)
     v0[built.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
@@ -227,7 +226,7 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float,
     run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor,
                scheme)
     run.groups = element_groups(built.model)
-    term = system.damping_term
+    term = system.loads.damping
     if scheme.dynamic and term is not None and term._beta_vol is not None and all(
             hasattr(g.kernels, "d3psi_contract") and hasattr(g.kernels, "d2psi_dF2")
             for g, _, _, _ in run.groups):

@@ -274,10 +274,10 @@ class DampingAdjoint(AdjointTerm):
         self.lin = None
         self.bodies, self.rho = _Bodies(arrays), density
         n_tets = self.model.n_tets
-        self.alpha_b = np.array([float(np.broadcast_to(system.rayleigh_alpha,
+        self.alpha_b = np.array([float(np.broadcast_to(system.loads.rayleigh_alpha,
                                                        (self.model.n_vertices,))[s.start])
                                  if s.stop > s.start else 0.0 for s in arrays.body_vertices])
-        self.beta = np.broadcast_to(np.asarray(system.rayleigh_beta, dtype=np.float64),
+        self.beta = np.broadcast_to(np.asarray(system.loads.rayleigh_beta, dtype=np.float64),
                                     (n_tets,))
         self.beta_any = bool(np.any(self.beta > 0))
 
@@ -291,7 +291,7 @@ class DampingAdjoint(AdjointTerm):
                                                                      rec.B)
             self.D = pair.h * self.lin.data
             return
-        data = self.system.damping_data(pair.q0)
+        data = self.system.loads.damping_data(pair.q0)
         self.D = None if data is None else pair.h * data
 
     def matrix(self):

@@ -37,6 +37,9 @@ from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.physics.model import MaterialGroup, Model, build_model
 from fem3d.physics.motion import Keyframes
 from fem3d.physics.terms.contact import ContactTerm
+from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
+from fem3d.physics.terms.gravity import Gravity, check_gravity
+from fem3d.physics.terms.loads import Loads
 from fem3d.scene.arrays import (
     SceneArrays,
     build_arrays,
@@ -46,7 +49,7 @@ from fem3d.scene.arrays import (
 )
 from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
-__all__ = ["Built", "PinMotion", "build", "model_from_scene", "damping_from_scene",
+__all__ = ["Built", "PinMotion", "build", "build_loads", "model_from_scene", "damping_from_scene",
            "pin_motions", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
@@ -86,6 +89,8 @@ class Built:
         ``simulation.gravity``; None when it is zero.
     rayleigh_alpha, rayleigh_beta : float or ndarray
         Rayleigh damping ``alpha M + beta K`` (:func:`damping_from_scene`).
+    loads : Loads
+        Gravity and damping as terms (:func:`build_loads`).
     motions : list of PinMotion
         The moving pins (empty: every pin is fixed).
     contact : ContactTerm or None
@@ -101,6 +106,7 @@ class Built:
     gravity: tuple[float, float, float] | None
     rayleigh_alpha: float | np.ndarray
     rayleigh_beta: float | np.ndarray
+    loads: Loads
     motions: list[PinMotion]
     contact: ContactTerm | None
     pick_radius: float
@@ -138,14 +144,44 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)
+    try:
+        loads = build_loads(model, gravity, alpha, beta)
+    except ParameterError as exc:
+        raise scene.error("simulation", str(exc)) from None
     motions = pin_motions(scene, a, constraints.fixed_vertices)
     contact = contact_from_scene(scene, a) if scene.contact.enabled else None
     spring_k = (a.spring_k if a.spring_k is not None
                 else default_spring_k(float(model.E), a.height))
     _stages.debug("pins, motions, damping, contact")
     return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
-                 rayleigh_alpha=alpha, rayleigh_beta=beta, motions=motions, contact=contact,
+                 rayleigh_alpha=alpha, rayleigh_beta=beta, loads=loads, motions=motions,
+                 contact=contact,
                  pick_radius=a.pick_radius, spring_k=spring_k)
+
+
+def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0) -> Loads:
+    """Gravity and Rayleigh damping of ``model`` as terms.
+
+    Parameters
+    ----------
+    model : Model
+    gravity : (3,) float or None
+        None or zero: no gravity term.
+    rayleigh_alpha, rayleigh_beta : float or (n_vertices,) / (n_tets,) float64
+        Damping ``alpha M + beta K`` (zero: no damping term).
+
+    Raises
+    ------
+    ParameterError
+        Gravity not 3 finite numbers, a coefficient negative, non-finite or of the wrong
+        shape.
+    """
+    g = check_gravity(gravity)
+    alpha = check_coefficient(rayleigh_alpha, "rayleigh_alpha", model.n_vertices, "vertex")
+    beta = check_coefficient(rayleigh_beta, "rayleigh_beta", model.n_tets, "tet")
+    damping = RayleighDamping(model, alpha, beta)
+    return Loads(None if g is None else Gravity(model, g),
+                 damping if damping.active else None, alpha, beta)
 
 
 # ------------------------------------------------------------------------------ materials

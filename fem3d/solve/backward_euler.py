@@ -88,7 +88,7 @@ def model_terms(system: System, pull: Pull | None = None) -> list:
     """The terms of the system's model, in objective order: inertia, elasticity, the pull
     springs, gravity and Rayleigh damping (those present)."""
     return [*system.model_terms(), PullSprings(system.model, pull, spring=system.spring),
-            *system.load_terms()]
+            *system.loads.terms()]
 
 
 def newton_options(hessian: str = "exact", **settings) -> NewtonOptions:

@@ -50,7 +50,7 @@ def linearly_implicit_euler(
     """One linearly-implicit Euler step.
 
     Solves ``(M - dt^2 K(q_t) + dt D) v+ = M v_t + dt (f(q_t) + M g)`` on the free DOFs
-    (``K = -H``, ``D`` the Rayleigh damping :meth:`System.damping_data` at ``q_t``, ``g``
+    (``K = -H``, ``D`` the Rayleigh damping :meth:`Loads.damping_data` at ``q_t``, ``g``
     gravity) and sets ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their
     stiffness part of ``K``. Moving pins: the fixed DOFs' velocity ``v_c = (p - q_t) / dt``
     is known, so the free rows solve ``A_ff v_f = rhs_f - A_fc v_c``.
@@ -91,9 +91,9 @@ def linearly_implicit_euler(
     f = -assemble_gradient(model, qf)
     if pull is not None:
         f -= pull.gradient(system.spring, state.q)
-    if system.gravity_force is not None:
-        f += system.gravity_force
-    damping = system.damping_data(qf)
+    if system.loads.gravity_force is not None:
+        f += system.loads.gravity_force
+    damping = system.loads.damping_data(qf)
     A = system.newton_matrix(qf, dt, pull if linearize_pull else None, damping=damping)
     rhs = model.mass @ vf + dt * f
     if pins.v_fixed is not None:  # move A_fc v_c to the right-hand side
@@ -123,8 +123,8 @@ def linearly_implicit_euler(
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
         total += pull.energy(system.spring, new.q)
-    if system.gravity_force is not None:
-        total += system.gravity_energy(new.q)
+    if system.loads.gravity_force is not None:
+        total += system.loads.gravity_energy(new.q)
     if not math.isfinite(total):
         n_inv = count_inverted(model, new.q)
         raise SimulationError(

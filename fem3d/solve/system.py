@@ -1,8 +1,9 @@
 """What the integrators reuse between steps for one model and constraint set.
 
-:class:`System` holds the reduced sparsity (one symbolic analysis per run), the sparse direct
-solver or the AMG hierarchy, the model's loads (gravity and Rayleigh damping as terms), and
-the extension of the solver's pattern by terms whose Hessian entries fall outside the mesh's.
+:class:`System` holds the reduced sparsity (one symbolic analysis per run), the linear solvers
+the registry gives it (:mod:`fem3d.solve.linear`), the model's loads as built by the scene
+(:class:`~fem3d.physics.terms.loads.Loads`), and the extension of the solver's pattern by
+terms whose Hessian entries fall outside the mesh's.
 :class:`NewtonMatrixBuilder` is where the terms add their Hessians into a reduced Newton
 matrix.
 """
@@ -24,10 +25,9 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.base import Term
-from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
 from fem3d.physics.terms.elasticity import Elasticity
-from fem3d.physics.terms.gravity import Gravity, check_gravity
 from fem3d.physics.terms.inertia import Inertia
+from fem3d.physics.terms.loads import Loads
 from fem3d.solve.linear import (
     LINEAR_SOLVERS,
     DirectSolver,
@@ -66,8 +66,8 @@ class System:
     solver_backend : str, optional
         The linear solver's registry name or ``"auto"`` (default;
         :func:`fem3d.solve.linear.resolve_linear_solver`).
-    gravity, rayleigh_alpha, rayleigh_beta : optional
-        Gravity and the Rayleigh damping coefficients (per vertex / per tet, or one value).
+    loads : Loads, optional
+        Gravity and Rayleigh damping (:func:`fem3d.scene.build.build_loads`); default none.
     cholmod_mode : {"auto", "simplicial", "supernodal"}, optional
         CHOLMOD's factorization (:attr:`fem3d.solve.linear.SolverOptions.cholmod_mode`).
 
@@ -94,19 +94,14 @@ class System:
         constraints: Constraints,
         solver_backend: str = "auto",
         *,
-        gravity=None,
-        rayleigh_alpha=0.0,
-        rayleigh_beta=0.0,
+        loads: Loads | None = None,
         cholmod_mode: str = "auto",
     ):
         if constraints.n_dofs != model.n_dofs:
             raise ValueError("constraints and model have different DOF counts")
         self.model = model
-        self.gravity = check_gravity(gravity)
-        self.rayleigh_alpha = check_coefficient(rayleigh_alpha, "rayleigh_alpha",
-                                                model.n_vertices, "vertex")
-        self.rayleigh_beta = check_coefficient(rayleigh_beta, "rayleigh_beta", model.n_tets,
-                                               "tet")
+        #: The model's gravity and damping terms (:class:`Loads`).
+        self.loads = loads if loads is not None else Loads()
         self.constraints = constraints
         self.free = constraints.free_dofs
         self.solver_backend = solver_backend
@@ -163,6 +158,7 @@ class System:
         new.__dict__.update(self.__dict__)
         new.model = model
         new.mass_free = self._reduced_mass(model, self._kept)
+        new.loads = self.loads.with_model(model)
         new._physics_cache()
         return new
 
@@ -186,42 +182,14 @@ class System:
         M.has_sorted_indices = pf.has_sorted_indices
         return M
 
-    # -- the model's loads as terms -----------------------------------------------------------
+    # -- the model's own terms -------------------------------------------------------------
     def _physics_cache(self) -> None:
-        """The terms of the current model: inertia and elasticity, gravity and Rayleigh
-        damping (None: absent)."""
-        model = self.model
-        self._model_terms = (Inertia(model, self.mass_free), Elasticity(model))
-        self.gravity_term = None if self.gravity is None else Gravity(model, self.gravity)
-        damping = RayleighDamping(model, self.rayleigh_alpha, self.rayleigh_beta)
-        self.damping_term = damping if damping.active else None
+        """The current model's inertia and elasticity terms."""
+        self._model_terms = (Inertia(self.model, self.mass_free), Elasticity(self.model))
 
     def model_terms(self) -> tuple[Term, Term]:
         """The model's inertia and elasticity terms."""
         return self._model_terms
-
-    def load_terms(self) -> list[Term]:
-        """The model's gravity and damping terms (those present), in objective order."""
-        return [t for t in (self.gravity_term, self.damping_term) if t is not None]
-
-    @property
-    def gravity_force(self) -> np.ndarray | None:
-        """``M g`` (read-only), or None without gravity."""
-        return None if self.gravity_term is None else self.gravity_term.force
-
-    @property
-    def has_damping(self) -> bool:
-        """Whether ``D = alpha M + beta K`` is non-zero."""
-        return self.damping_term is not None
-
-    def damping_data(self, q: np.ndarray) -> np.ndarray | None:
-        """CSR ``data`` on ``model.pattern`` of the Rayleigh damping matrix at ``q``
-        (:meth:`fem3d.physics.terms.damping.RayleighDamping.matrix_data`; None without)."""
-        return None if self.damping_term is None else self.damping_term.matrix_data(q)
-
-    def gravity_energy(self, q: np.ndarray) -> float:
-        """Gravity's potential ``-f_g . (q - X)`` (zero at rest; ``f_g = M g``)."""
-        return 0.0 if self.gravity_term is None else self.gravity_term.potential(q)
 
     # -- helpers ------------------------------------------------------------------------------
     def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
