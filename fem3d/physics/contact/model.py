@@ -164,17 +164,22 @@ class ContactModel:
 
     @property
     def mu(self) -> float:
-        """Static friction coefficient."""
+        """Static friction coefficient (settable, unchecked, as ``mu_k``: the adjoint lags
+        with one coefficient 1 and the other 0; takes effect at the next lagging)."""
         return self.friction.mu
+
+    @mu.setter
+    def mu(self, value: float) -> None:
+        self.friction.mu = float(value)
 
     @property
     def mu_k(self) -> float:
-        """Kinetic friction coefficient (settable: takes effect at the next lagging)."""
+        """Kinetic friction coefficient (settable, as ``mu``)."""
         return self.friction.mu_k
 
     @mu_k.setter
     def mu_k(self, value: float) -> None:
-        self.friction.mu_k = _coefficients(self.mu, value)[1]
+        self.friction.mu_k = float(value)
 
     def set_kappa(self, kappa: float) -> None:
         """Set the barrier stiffness (the cached collision set stays valid)."""
