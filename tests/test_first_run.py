@@ -149,9 +149,10 @@ def test_a_fit_file_with_a_missing_target_names_file_key_and_path(tmp_path, caps
 # ----------------------------------------------------------------------------- make run / test
 
 
-def _make(tmp_path: Path, target: str) -> list[str]:
+def _make(tmp_path: Path, target: str, fail_on: str = "", status: int = 0) -> list[str]:
     """``make TARGET`` in a copy of the build files, with a stand-in python that prints how it
-    is called (``-c`` snippets run for real) instead of installing or running anything."""
+    is called (``-c`` snippets run for real) instead of installing or running anything, and
+    fails when its arguments contain ``fail_on``."""
     for rel in ("Makefile", "pyproject.toml", "setup.py", "scripts/install_cholmod.sh",
                 "scripts/install_chromium.sh", *(str(p.relative_to(ROOT)) for p in
                                                    (ROOT / "generated" / "c").glob("*.c"))):
@@ -159,13 +160,15 @@ def _make(tmp_path: Path, target: str) -> list[str]:
         shutil.copy(ROOT / rel, tmp_path / rel)
     fake = tmp_path / "python"
     fake.write_text('#!/bin/bash\nif [ "$1" = "-c" ]; then exec python3 "$@"; fi\n'
-                    'echo "PY $*"\n')
+                    'echo "PY $*"\n'
+                    + (f'case "$*" in *{fail_on}*) echo "boom" >&2; exit 1;; esac\n'
+                       if fail_on else ""))
     fake.chmod(0o755)
     r = subprocess.run(["make", "--no-print-directory", target, f"PYTHON={fake}"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=120,
                        env={**os.environ, "CHROMIUM": "/bin/true"})
-    assert r.returncode == 0, r.stdout + r.stderr
-    return r.stdout.splitlines()
+    assert (r.returncode != 0) == bool(status), r.stdout + r.stderr
+    return (r.stdout + r.stderr).splitlines()
 
 
 def _index(lines: list[str], needle: str) -> int:
@@ -176,15 +179,24 @@ def _index(lines: list[str], needle: str) -> int:
 
 def test_make_run_says_what_it_does_at_each_stage(tmp_path):
     lines = _make(tmp_path, "run")
-    order = [_index(lines, "[1/4] installing fem3d's dependencies"),
-             _index(lines, "setuptools>=68 wheel numpy>=1.26"),
-             _index(lines, "[2/4] building fem3d's C kernels"),
-             _index(lines, "PY -m pip install -q --no-deps --no-build-isolation -e ."),
-             _index(lines, "[3/4] CHOLMOD"),
-             _index(lines, "[4/4] simulating the bunny"),
+    first = _index(lines, "[1/3] installing fem3d's dependencies")
+    assert "building its C kernels" in lines[first] and "minute" in lines[first]
+    order = [first,
+             _index(lines, "PY -m pip install -q setuptools>=68 wheel"),
+             _index(lines, "[2/3] CHOLMOD"),
+             _index(lines, "[3/3] simulating the bunny"),
              _index(lines, "PY -m fem3d run bunny --out runs/bunny")]
     assert order == sorted(order)
-    assert "minute" in lines[order[0]]
+    # the dependencies and the C build, both before CHOLMOD
+    assert order[1] < _index(lines, "numpy>=1.26 scipy>=1.11") < order[2]
+    assert order[1] < _index(lines, "--no-deps --no-build-isolation -e .") < order[2]
+
+
+def test_make_run_stops_when_the_c_build_fails(tmp_path):
+    lines = _make(tmp_path, "run", fail_on="--no-build-isolation", status=2)
+    assert _index(lines, "building fem3d's C kernels failed")
+    assert not any("[2/3]" in line or "fem3d run bunny" in line for line in lines)
+    assert not (tmp_path / ".venv-run-stamp").exists()
 
 
 def test_make_test_says_up_front_that_it_installs_chromium_and_why(tmp_path):
