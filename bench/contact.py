@@ -137,7 +137,7 @@ def _install_timers() -> Timers:
     import fem3d.solve.integrators as integ
     from fem3d.physics.contact import ContactModel
     from fem3d.solve.linear.krylov import PreconditionedCG
-    from fem3d.solve.system import NewtonMatrixBuilder
+    from fem3d.solve.newton_matrix import NewtonMatrixBuilder
 
     timers = Timers()
     timers.wrap(elasticity, "assemble_gradient", "elastic")

@@ -5,7 +5,7 @@ itself for velocity terms (:class:`fem3d.physics.terms.base.StepMap`). Energies 
 in the order of the terms; the gradients of the position terms are summed in positions and
 mapped once by the chain rule (``h P``), then the velocity terms' gradients are added in
 order; each term adds its Hessian to the Newton matrix in order
-(:class:`fem3d.solve.system.NewtonMatrixBuilder`).
+(:class:`fem3d.solve.newton_matrix.NewtonMatrixBuilder`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.physics.terms.base import NewtonPolicy, StepMap, Term, as_term, overrides
-from fem3d.solve.system import NewtonMatrixBuilder, System
+from fem3d.solve.newton_matrix import NewtonMatrixBuilder
+from fem3d.solve.system import System
 
 __all__ = ["Objective"]
 

@@ -91,7 +91,7 @@ class StepMap:
 
 
 class HessianSink(Protocol):
-    """Where a term adds its Hessian (:class:`fem3d.solve.system.NewtonMatrixBuilder`).
+    """Where a term adds its Hessian (:class:`fem3d.solve.newton_matrix.NewtonMatrixBuilder`).
 
     ``position_scale`` is ``h^2`` (the chain rule of a position term); ``psd`` asks for the
     PSD-projected element Hessians. Position terms add ``position_scale`` times their
