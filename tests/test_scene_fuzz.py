@@ -45,6 +45,8 @@ def toml_dumps(d: dict) -> str:
 
 def load_text(tmp: Path, text: str) -> None:
     p = tmp / "fuzz.toml"
+    # a new inode per example: truncating the old file makes ext4 flush it on close (ms each)
+    p.unlink(missing_ok=True)
     p.write_text(text, encoding="utf-8", errors="surrogatepass")
     try:
         read_scene_file(p)
