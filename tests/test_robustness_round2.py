@@ -53,6 +53,15 @@ def _cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
                           text=True, env=_env(), timeout=timeout, cwd=ROOT)
 
 
+def _here(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:
+    """``fem3d ARGS`` in this process (what ``python -m fem3d`` runs: ``sys.exit(main())``),
+    its exit status and stderr: the same message as :func:`_cli` without a ~1 s interpreter
+    start. Not for what depends on the process (warnings' display, a blocking read)."""
+    capsys.readouterr()
+    rc = main(list(args))
+    return subprocess.CompletedProcess(["fem3d", *args], rc, "", capsys.readouterr().err)
+
+
 def _one_line_error(stderr: str) -> str:
     """The stderr of a refused command: its last line is the error; return it."""
     lines = [ln for ln in stderr.splitlines() if ln.strip()]
@@ -146,7 +155,7 @@ def test_parser_failures_describe_the_file(tmp_path: Path) -> None:
     assert not PY_INTERNALS.search(str(info.value))
 
 
-def test_bad_checkpoints_are_described_not_quoted(tmp_path: Path) -> None:
+def test_bad_checkpoints_are_described_not_quoted(tmp_path: Path, capsys) -> None:
     out = tmp_path / "run"
     assert main(["run", ARMA, "--steps", "3", "--checkpoint-every", "3", "--out", str(out),
                  "--no-preview", "--quiet"]) == 0
@@ -155,7 +164,7 @@ def test_bad_checkpoints_are_described_not_quoted(tmp_path: Path) -> None:
     for bad, what in ((data[: len(data) // 2], "truncated"), (b"hello\n", "text"),
                       (b"", "empty")):
         ck.write_bytes(bad)
-        r = _cli("resume", str(out), "--steps", "5")
+        r = _here(capsys, "resume", str(out), "--steps", "5")
         assert r.returncode == 2, (what, r.stderr)
         line = _one_line_error(r.stderr)
         assert str(ck) in line and "checkpoint" in line, line
@@ -165,7 +174,7 @@ def test_bad_checkpoints_are_described_not_quoted(tmp_path: Path) -> None:
 # ---------------------------------------------------------------- outputs over inputs
 
 
-def test_run_refuses_to_overwrite_its_input_mesh(tmp_path: Path) -> None:
+def test_run_refuses_to_overwrite_its_input_mesh(tmp_path: Path, capsys) -> None:
     out = tmp_path / "DIR"
     assert main(["run", ARMA, "--steps", "2", "--out", str(out), "--no-preview", "--quiet"]) == 0
     frame = out / "frames" / "frame_00000.vtu"  # a triangle frame: refused before reading
@@ -173,8 +182,8 @@ def test_run_refuses_to_overwrite_its_input_mesh(tmp_path: Path) -> None:
     write_tet_mesh(tets, read_tet_mesh(ARMA))
     for victim in (frame, tets):
         before = victim.read_bytes()
-        r = _cli("run", str(victim), "--steps", "1", "--out", str(out), "--no-preview",
-                 "--quiet")
+        r = _here(capsys, "run", str(victim), "--steps", "1", "--out", str(out),
+                  "--no-preview", "--quiet")
         assert r.returncode == 2, r.stderr
         line = _one_line_error(r.stderr)
         assert "overwrite its own mesh" in line and str(victim) in line, line
@@ -216,16 +225,19 @@ def _wait(pred, timeout: float, what: str):  # noqa: ANN001, ANN202
     pytest.fail(f"timed out waiting for {what}")
 
 
-def test_output_folder_is_locked_and_stale_locks_are_taken_over(tmp_path: Path) -> None:
+def test_output_folder_is_locked_and_stale_locks_are_taken_over(tmp_path: Path,
+                                                                capsys) -> None:
+    # the first run is a process of its own (killed -9 below); the others run here
     out = tmp_path / "run"
     first = _start_run(out)
     try:
         _wait(lambda: (out / CHECKPOINT_NAME).exists(), 90, "the first run to checkpoint")
-        r = _cli("run", ARMA, "--steps", "3", "--out", str(out), "--no-preview", "--quiet")
+        r = _here(capsys, "run", ARMA, "--steps", "3", "--out", str(out), "--no-preview",
+                  "--quiet")
         assert r.returncode == 2, r.stderr
         line = _one_line_error(r.stderr)
         assert f"in use by process {first.pid}" in line and "fem3d" in line, line
-        r = _cli("resume", str(out), "--steps", "1000000")  # resume refuses too
+        r = _here(capsys, "resume", str(out), "--steps", "1000000")  # resume refuses too
         assert r.returncode == 2 and f"process {first.pid}" in _one_line_error(r.stderr)
     finally:
         first.send_signal(signal.SIGKILL)
@@ -236,12 +248,13 @@ def test_output_folder_is_locked_and_stale_locks_are_taken_over(tmp_path: Path) 
     for j in junk:
         j.write_text("partial")
     target = load_run_checkpoint(out / CHECKPOINT_NAME).step + 3
-    r = _cli("resume", str(out), "--steps", str(target))
+    r = _here(capsys, "resume", str(out), "--steps", str(target))
     assert r.returncode == 0, r.stderr
     assert not any(j.exists() for j in junk), "resume left the killed run's temp files"
     assert load_run_checkpoint(out / CHECKPOINT_NAME).step == target
     junk[0].write_text("partial")
-    r = _cli("run", ARMA, "--steps", "2", "--out", str(out), "--no-preview", "--quiet")
+    r = _here(capsys, "run", ARMA, "--steps", "2", "--out", str(out), "--no-preview",
+              "--quiet")
     assert r.returncode == 0, r.stderr
     assert not junk[0].exists(), "run left a temp file behind"
 
