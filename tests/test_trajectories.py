@@ -5,7 +5,7 @@ compiler's FMA contraction): ``tests/test_determinism.py`` checks them within on
 each case of ``record_trajectories.CASES`` is compared with ``tests/data/trajectory_reference.npz``
 within a tolerance measured, per case, as the spread of runs whose input moved by one ulp (E,
 gravity, mu) and checked to sit well below a real change (E moved by 1e-6 relative must fail:
-``python tests/record_trajectories.py`` and the mutation in docs/testing.md).
+``python tests/record_trajectories.py --deviations 1e-6``; docs/testing.md).
 
 * Smooth scenes (no contact): q and v at a few steps and at the end (the end: the final state
   recorded at 6cbcdd9, before the restructuring of issue 19).
@@ -56,8 +56,10 @@ SMOOTH_TOL: dict[str, Tol] = {name: DEFAULT for name in SMOOTH_CASES} | {
     "bunny": Tol(1e-9, 1e-7),
     "bunny_implicit": Tol(1e-9, 1e-7),
     "bunny_surface": Tol(1e-9, 1e-7),
-    # one-ulp spread 6e-14 m, 6e-12 m/s; E 1e-6 relative: 5.7e-7 m, 1.2e-4 m/s. 1000x each way.
-    "armadillo_surface": Tol(1e-10, 1e-8),
+    # one-ulp spread 6e-14 m, 6e-12 m/s, but the C kernels without FMA (the NumPy kernels, the
+    # portable build) part by 1e-11 m, 2e-9 m/s: Jacobi's PSD projection stops on a threshold;
+    # E 1e-6 relative: 5.7e-7 m, 1.2e-4 m/s. 1e-9, 1e-7: 50x above, 500x below.
+    "armadillo_surface": Tol(1e-9, 1e-7),
     # reuse: CG preconditioned by an older factorization and Newton's 5-iteration cap leave
     # the steps where the pull starts and ends (2-5, 31-33) unconverged: one-ulp runs part there
     # by up to 2e-8 m, 2e-6 m/s, and the pinned, damped pull contracts that away within a few
@@ -99,7 +101,7 @@ class Band(NamedTuple):
 
 #: Each band sits above the spread of six one-ulp runs (E up and down, gravity up and down,
 #: mu, a translation) and, where the scene is not chaotic, below the change that E moved by
-#: 1e-6 relative makes. Measured: python tests/record_trajectories.py, docs/testing.md.
+#: 1e-6 relative makes (docs/testing.md).
 POSE_BAND: dict[str, Band] = {
     # not chaotic over 80 steps: one-ulp runs agree to 7e-14 m (centre of mass and box);
     # E 1e-6 relative moves both 1.2e-5 m. 1e-8: 1e5x round-off, 1000x below that change.
@@ -107,11 +109,10 @@ POSE_BAND: dict[str, Band] = {
     # chaotic: CG's stops part one-ulp runs after the landing, by up to 2.1e-3 m (centre of
     # mass) and 2.8e-3 m (box); the band is 4-5x that.
     "contact_bunny_drop_reuse": Band(1e-2, 1e-2),
-    # chaotic, per body (bottom block, bunny, top block): seven one-ulp runs (E up and down,
-    # gravity up and down, mu, a translation) spread the centres by up to 4.1e-4, 1.3e-3,
-    # 8.2e-2 m and the boxes by 4.3e-4, 2.1e-3, 9.7e-2 m (the top block slides off the bunny's
-    # back one way or another; the AVX-512 EPYC's final state of the older code: 6.7e-2 m);
-    # bands 3-5x that. The physics tests below carry the claim here.
+    # chaotic, per body (bottom block, bunny, top block): six one-ulp runs (E up and down,
+    # gravity up and down, mu, a translation) spread the centres by up to 4e-4, 1.7e-3, 0.11 m
+    # and the boxes by 5e-4, 2.6e-3, 0.115 m (the top block slides off the bunny's back one way
+    # or another); bands 2.6-5x that. The physics tests below carry the claim here.
     "contact_stack": Band((2e-3, 1e-2, 0.3), (2e-3, 1e-2, 0.3)),
     # a steady slide: one-ulp runs agree to 6e-15 m; mu moved by 1e-6 relative moves it by
     # ~1e-6 m (the acceleration test below), E by 1e-6 only 2.6e-10 m.
@@ -186,11 +187,15 @@ def test_contact_case_never_intersects(name):
     assert plane_clearance(traj) > 0.0
 
 
-#: the scenes no external force works on (no moving pins, no pulls): with the barrier left out,
-#: kinetic + strain + gravity energy falls in every step (backward Euler's dissipation, friction).
-#: Measured: it falls by at least 1.4e-4 J a step (the incline's) on a scale of 0.9-20 J; the
-#: margin is 1e-9 of the largest kinetic energy, round-off.
-NO_WORK = ("contact_bunny_drop", "contact_bunny_drop_reuse", "contact_stack", "contact_incline")
+#: The scenes no external force works on (no moving pins, no pulls), with the largest rise of
+#: kinetic + strain + gravity energy (the barrier left out) allowed in one step, relative to the
+#: largest kinetic energy. Backward Euler and friction dissipate: in the unmoved runs the energy
+#: falls in every step (by 1.4e-4 J or more, the incline's, on a scale of 0.9-20 J), so the two
+#: scenes that are not chaotic allow round-off only. In a chaotic pile-up a contact's barrier
+#: can hand back energy it stored: one of six one-ulp runs of the stack rose by 0.024 J in a
+#: step (1 % of its 2.4 J); those allow 5 %. Neither ever exceeds the initial energy.
+NO_WORK = {"contact_bunny_drop": 1e-9, "contact_incline": 1e-9,
+           "contact_bunny_drop_reuse": 0.05, "contact_stack": 0.05}
 
 
 @pytest.mark.parametrize("name", NO_WORK)
@@ -198,7 +203,9 @@ def test_energy_never_grows_without_external_work(name):
     traj = trajectory(name)
     kinetic = 0.5 * np.einsum("i,kij->k", traj.mass, traj.v ** 2)
     rise = float(np.diff(traj.energy).max())
-    assert rise <= 1e-9 * kinetic.max(), f"{name}: energy rose by {rise:.3g} J in one step"
+    assert rise <= NO_WORK[name] * kinetic.max(), f"{name}: energy rose by {rise:.3g} J in a step"
+    above = float(traj.energy.max() - traj.energy[0])
+    assert above <= 1e-9 * kinetic.max(), f"{name}: energy {above:.3g} J above the start"
 
 
 def test_twisted_bar_energy_falls_once_the_pins_stop():
