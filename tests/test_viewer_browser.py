@@ -197,16 +197,18 @@ def _check_page_plots(page: Any, viewer: Any) -> None:
     ticks that read apart (T at rest read "0" and "0")."""
     from fem3d.app.viewer.logic import ENERGY_PLOTS
 
-    def drawn() -> Any:
-        plots = page.evaluate(_PLOT_AXES_JS)
-        ready = len(plots) == len(ENERGY_PLOTS) and all(p["labels"] for p in plots)
-        return plots if ready else f"{len(plots)} charts: {plots}"
+    def drawn() -> Any:  # the page may be a panel update behind the viewer: wait for it
+        plots = {p["title"]: p for p in page.evaluate(_PLOT_AXES_JS)}
+        for key, title, _c in ENERGY_PLOTS:
+            p, ax = plots.get(title), viewer._panel.y_axes[key]
+            if p is None or (p["min"], p["max"], tuple(p["labels"])) != (ax.lo, ax.hi, ax.labels):
+                return f"{title}: the page draws {p}, the viewer sent {ax}"
+        return plots
 
-    plots = {p["title"]: p for p in wait_for(drawn, 20, "the energy plots to be drawn")}
-    for key, title, _c in ENERGY_PLOTS:
-        p, ax = plots[title], viewer._panel.y_axes[key]
-        assert len(p["labels"]) >= 2 and len(set(p["labels"])) == len(p["labels"]), p
-        assert (p["min"], p["max"], tuple(p["labels"])) == (ax.lo, ax.hi, ax.labels), (p, ax)
+    plots = wait_for(drawn, 20, "the page's charts to draw the axes the viewer sent")
+    for _key, title, _c in ENERGY_PLOTS:
+        labels = plots[title]["labels"]
+        assert len(labels) >= 2 and len(set(labels)) == len(labels), (title, labels)
     assert plots[ENERGY_PLOTS[0][1]]["labels"][0] == "0"  # T at rest: flat at 0
 
 
@@ -403,7 +405,7 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             w_b, t_b = _page_time(page)
             log(f"the page shows t = {t_b:.2f} s {w_b - t_goto:.2f} s after it loaded "
                 f"({snap['ms_per_step']:.1f} ms/step)")
-            assert t_a + 0.5 < t_b <= w_b - t_goto + 0.05
+            assert t_a < t_b <= w_b - t_goto + 0.05
             artifacts = os.environ.get("FEM3D_VIEWER_ARTIFACTS")
             if artifacts:  # optional: keep the screenshots (CI artefacts, docs)
                 Path(artifacts).mkdir(parents=True, exist_ok=True)
