@@ -237,19 +237,7 @@ def render_preview(
     light = 0.55 * toward + 0.45 * up - 0.35 * right
     light /= np.linalg.norm(light)
 
-    if view_bounds not in ("first", "all"):
-        raise ValueError(f"view_bounds must be 'first' or 'all', got {view_bounds!r}")
-    P0 = seq[0] @ proj if view_bounds == "first" else np.vstack(seq) @ proj
-    for ob in planes:  # the ground under the bodies is in view (where they will land)
-        point, normal = ob.plane
-        n = np.asarray(normal, dtype=np.float64)
-        foot = seq[0] - ((seq[0] - np.asarray(point)) @ n)[:, None] * n
-        P0 = np.vstack([P0, foot @ proj])
-    umin, vmin = P0[:, 0].min(), P0[:, 1].min()
-    umax, vmax = P0[:, 0].max(), P0[:, 1].max()
-    half = 0.5 * max(umax - umin, vmax - vmin, 1e-300) * (1.0 + 2.0 * margin)
-    cu, cv = 0.5 * (umin + umax), 0.5 * (vmin + vmax)
-
+    cu, cv, half = _view_box(seq, proj, planes, view_bounds, margin)
     ground = _plane_tiles(planes, seq[0], proj, light, half) if planes else None
     images = _draw_frames(seq, F, proj, light, base, size, (cu, cv, half), ground, backdrop,
                           facing)
@@ -261,6 +249,23 @@ def render_preview(
 #: Preview colours: mesh obstacles, and the two tiles of a plane's checkerboard.
 OBSTACLE_RGB = (0.55, 0.62, 0.72)
 PLANE_RGB = ((0.80, 0.80, 0.78), (0.62, 0.62, 0.60))
+
+
+def _view_box(seq: Sequence[np.ndarray], proj: np.ndarray, planes: Sequence[ObstacleMesh],
+              view_bounds: str, margin: float) -> tuple[float, float, float]:
+    """The fixed view's centre (u, v) and half width, padded by ``margin``."""
+    if view_bounds not in ("first", "all"):
+        raise ValueError(f"view_bounds must be 'first' or 'all', got {view_bounds!r}")
+    P0 = seq[0] @ proj if view_bounds == "first" else np.vstack(seq) @ proj
+    for ob in planes:  # the ground under the bodies is in view (where they will land)
+        point, normal = ob.plane
+        n = np.asarray(normal, dtype=np.float64)
+        foot = seq[0] - ((seq[0] - np.asarray(point)) @ n)[:, None] * n
+        P0 = np.vstack([P0, foot @ proj])
+    umin, vmin = P0[:, 0].min(), P0[:, 1].min()
+    umax, vmax = P0[:, 0].max(), P0[:, 1].max()
+    half = 0.5 * max(umax - umin, vmax - vmin, 1e-300) * (1.0 + 2.0 * margin)
+    return 0.5 * (umin + umax), 0.5 * (vmin + vmax), half
 
 
 def _with_meshes(F: np.ndarray, seq: list[np.ndarray], base: np.ndarray,

@@ -21,6 +21,18 @@
 #define FEM3D_OPENMP 0
 #endif
 
+// Run-time dispatch (issue 39): the portable build (x86-64 baseline, setup.py's default) also
+// carries x86-64-v3 clones (AVX2, FMA) of the element loops and of the element functions and
+// eigen-solvers they call out of line (a clone's out-of-line callee keeps the default target),
+// chosen at load time by glibc's ifunc on CPUs that have AVX2 and FMA. A build that has AVX2
+// already (-march=native) compiles as before, with no clones; FEM3D_NO_DISPATCH turns them off.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 \
+    && defined(__GLIBC__) && !defined(__AVX2__) && !defined(FEM3D_NO_DISPATCH)
+#define FEM3D_DISPATCH __attribute__((target_clones("default", "arch=x86-64-v3")))
+#else
+#define FEM3D_DISPATCH
+#endif
+
 #define FEM3D_MAX_ARGS 16
 
 #ifdef _OPENMP
@@ -1752,7 +1764,7 @@ done:
 
 // a (n x n, row-major, symmetric) = V diag(d) V^T: d ascending, V's columns the eigenvectors
 // (v, row-major; a is not changed). n <= 12.
-static void fem3d_sym_eigen(int n, const double *a, double *d, double *v)
+FEM3D_DISPATCH static void fem3d_sym_eigen(int n, const double *a, double *d, double *v)
 {
     double e[12];
 #define V_(i, j) v[(i) * n + (j)]
@@ -1901,7 +1913,7 @@ static void fem3d_sym_eigen(int n, const double *a, double *d, double *v)
 
 // Whether an LDL^T without pivoting proves the symmetric n x n a positive semi-definite:
 // fem3d_project_psd's fast path (pivots >= -tol, no zero pivot with coupling).
-static int fem3d_ldl_psd(int n, const double *a)
+FEM3D_DISPATCH static int fem3d_ldl_psd(int n, const double *a)
 {
     double ldl[144], pivot[12];
     double scale = 0.0;
@@ -1927,7 +1939,7 @@ static int fem3d_ldl_psd(int n, const double *a)
 // zero, in place: a = V max(L, 0) V^T where an eigenvalue is negative, a unchanged (bit for bit)
 // where the LDL^T test or the eigenvalues show it positive semi-definite (frame: unused, the
 // projections' common signature; see fem3d_project_psd_svd).
-static void fem3d_project_psd(int n, double *a, const double *frame)
+FEM3D_DISPATCH static void fem3d_project_psd(int n, double *a, const double *frame)
 {
     double d[12], v[144];
     (void)frame;
@@ -1952,7 +1964,7 @@ static void fem3d_project_psd(int n, double *a, const double *frame)
 // The projection of the "hessian_psd_jacobi" kernels: 2-3x slower than fem3d_project_psd's
 // QL (above), kept for its round-off, that of every run before stop 31; the same LDL^T
 // fast path.
-static void fem3d_project_psd_jacobi(int n, double *a, const double *frame)
+FEM3D_DISPATCH static void fem3d_project_psd_jacobi(int n, double *a, const double *frame)
 {
     double v[144], original[144];
     (void)frame;
@@ -2031,7 +2043,7 @@ static inline double fem3d_mode_product(const double *W, const double *AW, int k
 // An orthonormal U, V with U^T F V diagonal (to round-off) for the row-major 3 x 3 F: V the
 // eigenvectors of F^T F, U by Gram-Schmidt on the columns of F V from the largest stretch
 // (completed where F is rank-deficient). Columns, row-major; U may be a reflection.
-static void fem3d_singular_frame(const double *F, double *U, double *V)
+FEM3D_DISPATCH static void fem3d_singular_frame(const double *F, double *U, double *V)
 {
     double C[9], c[3], w[9];
     for (int i = 0; i < 3; ++i)
@@ -2082,7 +2094,7 @@ static void fem3d_singular_frame(const double *F, double *U, double *V)
 // negative eigenpairs of the blocks are a's: a - sum lambda w w^T is the projection (the
 // pile's damping matrix: 14.8 against 38.7 ms with QL); unchanged, bit for bit, where the LDL^T
 // test proves a PSD or no block has a negative eigenvalue.
-static void fem3d_project_psd_svd(int n, double *a, const double *frame)
+FEM3D_DISPATCH static void fem3d_project_psd_svd(int n, double *a, const double *frame)
 {
     if (frame == NULL || n != 9) {
         fem3d_project_psd(n, a, frame);

@@ -77,7 +77,7 @@ static inline FEM3D_ELEMENT void fibre_reinforced_psi_element(const double *cons
     out_psi[0] = psi;
 }
 
-static void fibre_reinforced_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -178,7 +178,7 @@ static inline FEM3D_ELEMENT void fibre_reinforced_dpsi_dF_element(const double *
     out_P[8] = P_2_2;
 }
 
-static void fibre_reinforced_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -202,7 +202,7 @@ static PyObject *py_fibre_reinforced_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 319
-static inline void fibre_reinforced_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -390,7 +390,7 @@ static inline void fibre_reinforced_d2psi_dF2_element(const double *const *in, c
     out_dP_dF[80] = A_8_8;
 }
 
-static void fibre_reinforced_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -479,7 +479,7 @@ static inline FEM3D_ELEMENT void fibre_reinforced_energy_element(const double *c
     out_energy[0] = psi*vol;
 }
 
-static void fibre_reinforced_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -505,7 +505,7 @@ static PyObject *py_fibre_reinforced_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -654,7 +654,7 @@ static inline FEM3D_ELEMENT void fibre_reinforced_gradient_element(const double 
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void fibre_reinforced_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -680,7 +680,7 @@ static PyObject *py_fibre_reinforced_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -722,7 +722,7 @@ static PyObject *py_fibre_reinforced_gradient_assemble(PyObject *self, PyObject 
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: dgradient_dparams (m, 12, 4); operation count per element: 550
-static inline void fibre_reinforced_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -900,7 +900,7 @@ static inline void fibre_reinforced_dgradient_dparams_element(const double *cons
     out_dgradient_dparams[47] = vol*(dP_2_0_3*dphi_3_0 + dP_2_1_3*dphi_3_1 + dP_2_2_3*dphi_3_2);
 }
 
-static void fibre_reinforced_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -924,7 +924,7 @@ static PyObject *py_fibre_reinforced_dgradient_dparams(PyObject *self, PyObject 
 // d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C.
 // inputs: F (m, 3, 3), C (m, 9, 9), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: dF (m, 3, 3), dparams (m, 4); operation count per element: 847
-static inline void fibre_reinforced_d3psi_contract_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_d3psi_contract_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1212,7 +1212,7 @@ static inline void fibre_reinforced_d3psi_contract_element(const double *const *
     out_dparams[3] = (h7*h7)*r80;
 }
 
-static void fibre_reinforced_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1236,7 +1236,7 @@ static PyObject *py_fibre_reinforced_d3psi_contract(PyObject *self, PyObject *ar
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1345
-static inline void fibre_reinforced_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1583,7 +1583,7 @@ static inline void fibre_reinforced_hessian_element(const double *const *in, con
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void fibre_reinforced_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1609,7 +1609,7 @@ static PyObject *py_fibre_reinforced_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2083,13 +2083,13 @@ static inline FEM3D_ELEMENT void fibre_reinforced_hessian_psd_projected(const do
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void fibre_reinforced_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     fibre_reinforced_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void fibre_reinforced_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2115,7 +2115,7 @@ static PyObject *py_fibre_reinforced_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2158,13 +2158,13 @@ static PyObject *py_fibre_reinforced_hessian_psd_assemble(PyObject *self, PyObje
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1345
 // fibre_reinforced_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void fibre_reinforced_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     fibre_reinforced_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void fibre_reinforced_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2190,7 +2190,7 @@ static PyObject *py_fibre_reinforced_hessian_psd_jacobi(PyObject *self, PyObject
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2233,13 +2233,13 @@ static PyObject *py_fibre_reinforced_hessian_psd_jacobi_assemble(PyObject *self,
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m), a (m, 3); params: (mu, lam, k1, k2), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1345
 // fibre_reinforced_hessian_psd's body with fem3d_project_psd_svd
-static inline void fibre_reinforced_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fibre_reinforced_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     fibre_reinforced_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void fibre_reinforced_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fibre_reinforced_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2265,7 +2265,7 @@ static PyObject *py_fibre_reinforced_hessian_psd_svd(PyObject *self, PyObject *a
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fibre_reinforced_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fibre_reinforced_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

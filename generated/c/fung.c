@@ -70,7 +70,7 @@ static inline FEM3D_ELEMENT void fung_psi_element(const double *const *in, const
     out_psi[0] = psi;
 }
 
-static void fung_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -151,7 +151,7 @@ static inline FEM3D_ELEMENT void fung_dpsi_dF_element(const double *const *in, c
     out_P[8] = P_2_2;
 }
 
-static void fung_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -175,7 +175,7 @@ static PyObject *py_fung_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, kappa, b), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 523
-static inline void fung_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -364,7 +364,7 @@ static inline void fung_d2psi_dF2_element(const double *const *in, const double 
     out_dP_dF[80] = A_8_8;
 }
 
-static void fung_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -446,7 +446,7 @@ static inline FEM3D_ELEMENT void fung_energy_element(const double *const *in, co
     out_energy[0] = psi*vol;
 }
 
-static void fung_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -472,7 +472,7 @@ static PyObject *py_fung_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -600,7 +600,7 @@ static inline FEM3D_ELEMENT void fung_gradient_element(const double *const *in, 
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void fung_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -626,7 +626,7 @@ static PyObject *py_fung_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -667,7 +667,7 @@ static PyObject *py_fung_gradient_assemble(PyObject *self, PyObject *args)
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, kappa, b), shared or per element
 // outputs: dgradient_dparams (m, 12, 3); operation count per element: 411
-static inline void fung_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -819,7 +819,7 @@ static inline void fung_dgradient_dparams_element(const double *const *in, const
     out_dgradient_dparams[35] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2);
 }
 
-static void fung_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1173,7 +1173,7 @@ static inline FEM3D_ELEMENT void fung_d3psi_contract_element(const double *const
     out_dparams[2] = 2*(I1*I1)*h3*r93*rcbrt_J/(J*J*J) + h1*r100*rcbrt_J + 3*r101 + r106*t25*exp(b*t25) + 6*h13*r94*rcbrt_J/(J*J);
 }
 
-static void fung_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1197,7 +1197,7 @@ static PyObject *py_fung_d3psi_contract(PyObject *self, PyObject *args)
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, kappa, b), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1549
-static inline void fung_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1545,7 +1545,7 @@ static inline void fung_hessian_element(const double *const *in, const double *p
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void fung_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1571,7 +1571,7 @@ static PyObject *py_fung_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2046,13 +2046,13 @@ static inline FEM3D_ELEMENT void fung_hessian_psd_projected(const double *const 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void fung_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     fung_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void fung_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2078,7 +2078,7 @@ static PyObject *py_fung_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2120,13 +2120,13 @@ static PyObject *py_fung_hessian_psd_assemble(PyObject *self, PyObject *args)
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, kappa, b), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1549
 // fung_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void fung_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     fung_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void fung_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2152,7 +2152,7 @@ static PyObject *py_fung_hessian_psd_jacobi(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2194,13 +2194,13 @@ static PyObject *py_fung_hessian_psd_jacobi_assemble(PyObject *self, PyObject *a
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, kappa, b), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1549
 // fung_hessian_psd's body with fem3d_project_psd_svd
-static inline void fung_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void fung_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     fung_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void fung_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void fung_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2226,7 +2226,7 @@ static PyObject *py_fung_hessian_psd_svd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t fung_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t fung_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

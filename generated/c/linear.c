@@ -63,7 +63,7 @@ static inline FEM3D_ELEMENT void linear_psi_element(const double *const *in, con
     out_psi[0] = psi;
 }
 
-static void linear_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -132,7 +132,7 @@ static inline FEM3D_ELEMENT void linear_dpsi_dF_element(const double *const *in,
     out_P[8] = P_2_2;
 }
 
-static void linear_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -156,7 +156,7 @@ static PyObject *py_linear_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 2
-static inline void linear_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -259,7 +259,7 @@ static inline void linear_d2psi_dF2_element(const double *const *in, const doubl
     out_dP_dF[80] = A_8_8;
 }
 
-static void linear_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -334,7 +334,7 @@ static inline FEM3D_ELEMENT void linear_energy_element(const double *const *in, 
     out_energy[0] = psi*vol;
 }
 
-static void linear_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -360,7 +360,7 @@ static PyObject *py_linear_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -476,7 +476,7 @@ static inline FEM3D_ELEMENT void linear_gradient_element(const double *const *in
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void linear_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -502,7 +502,7 @@ static PyObject *py_linear_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -543,7 +543,7 @@ static PyObject *py_linear_gradient_assemble(PyObject *self, PyObject *args)
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: dgradient_dparams (m, 12, 2); operation count per element: 219
-static inline void linear_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -638,7 +638,7 @@ static inline void linear_dgradient_dparams_element(const double *const *in, con
     out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
 }
 
-static void linear_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -724,7 +724,7 @@ static inline FEM3D_ELEMENT void linear_d3psi_contract_element(const double *con
     out_dparams[1] = r10 + r36 + r40 + r45;
 }
 
-static void linear_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -748,7 +748,7 @@ static PyObject *py_linear_d3psi_contract(PyObject *self, PyObject *args)
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 965
-static inline void linear_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -998,7 +998,7 @@ static inline void linear_hessian_element(const double *const *in, const double 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void linear_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1024,7 +1024,7 @@ static PyObject *py_linear_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1400,13 +1400,13 @@ static inline FEM3D_ELEMENT void linear_hessian_psd_projected(const double *cons
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void linear_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     linear_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void linear_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1432,7 +1432,7 @@ static PyObject *py_linear_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1474,13 +1474,13 @@ static PyObject *py_linear_hessian_psd_assemble(PyObject *self, PyObject *args)
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 965
 // linear_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void linear_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     linear_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void linear_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1506,7 +1506,7 @@ static PyObject *py_linear_hessian_psd_jacobi(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1548,13 +1548,13 @@ static PyObject *py_linear_hessian_psd_jacobi_assemble(PyObject *self, PyObject 
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 965
 // linear_hessian_psd's body with fem3d_project_psd_svd
-static inline void linear_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void linear_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     linear_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void linear_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void linear_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1580,7 +1580,7 @@ static PyObject *py_linear_hessian_psd_svd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t linear_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t linear_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

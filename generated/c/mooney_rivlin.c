@@ -74,7 +74,7 @@ static inline FEM3D_ELEMENT void mooney_rivlin_psi_element(const double *const *
     out_psi[0] = psi;
 }
 
-static void mooney_rivlin_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -180,7 +180,7 @@ static inline FEM3D_ELEMENT void mooney_rivlin_dpsi_dF_element(const double *con
     out_P[8] = P_2_2;
 }
 
-static void mooney_rivlin_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -204,7 +204,7 @@ static PyObject *py_mooney_rivlin_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (C10, C01, kappa), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 778
-static inline void mooney_rivlin_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C10 = params[0];
@@ -446,7 +446,7 @@ static inline void mooney_rivlin_d2psi_dF2_element(const double *const *in, cons
     out_dP_dF[80] = A_8_8;
 }
 
-static void mooney_rivlin_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -532,7 +532,7 @@ static inline FEM3D_ELEMENT void mooney_rivlin_energy_element(const double *cons
     out_energy[0] = psi*vol;
 }
 
-static void mooney_rivlin_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -558,7 +558,7 @@ static PyObject *py_mooney_rivlin_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -711,7 +711,7 @@ static inline FEM3D_ELEMENT void mooney_rivlin_gradient_element(const double *co
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void mooney_rivlin_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -737,7 +737,7 @@ static PyObject *py_mooney_rivlin_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -778,7 +778,7 @@ static PyObject *py_mooney_rivlin_gradient_assemble(PyObject *self, PyObject *ar
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C10, C01, kappa), shared or per element
 // outputs: dgradient_dparams (m, 12, 3); operation count per element: 527
-static inline void mooney_rivlin_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C10 = params[0];
@@ -929,7 +929,7 @@ static inline void mooney_rivlin_dgradient_dparams_element(const double *const *
     out_dgradient_dparams[35] = vol*(dP_2_0_2*dphi_3_0 + dP_2_1_2*dphi_3_1 + dP_2_2_2*dphi_3_2);
 }
 
-static void mooney_rivlin_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1376,7 +1376,7 @@ static inline FEM3D_ELEMENT void mooney_rivlin_d3psi_contract_element(const doub
     out_dparams[2] = 9*r126 - r97*(J - 1);
 }
 
-static void mooney_rivlin_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1400,7 +1400,7 @@ static PyObject *py_mooney_rivlin_d3psi_contract(PyObject *self, PyObject *args)
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C10, C01, kappa), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1804
-static inline void mooney_rivlin_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C10 = params[0];
@@ -1801,7 +1801,7 @@ static inline void mooney_rivlin_hessian_element(const double *const *in, const 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void mooney_rivlin_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1827,7 +1827,7 @@ static PyObject *py_mooney_rivlin_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2355,13 +2355,13 @@ static inline FEM3D_ELEMENT void mooney_rivlin_hessian_psd_projected(const doubl
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void mooney_rivlin_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     mooney_rivlin_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void mooney_rivlin_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2387,7 +2387,7 @@ static PyObject *py_mooney_rivlin_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2429,13 +2429,13 @@ static PyObject *py_mooney_rivlin_hessian_psd_assemble(PyObject *self, PyObject 
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C10, C01, kappa), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1804
 // mooney_rivlin_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void mooney_rivlin_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     mooney_rivlin_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void mooney_rivlin_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2461,7 +2461,7 @@ static PyObject *py_mooney_rivlin_hessian_psd_jacobi(PyObject *self, PyObject *a
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -2503,13 +2503,13 @@ static PyObject *py_mooney_rivlin_hessian_psd_jacobi_assemble(PyObject *self, Py
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C10, C01, kappa), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1804
 // mooney_rivlin_hessian_psd's body with fem3d_project_psd_svd
-static inline void mooney_rivlin_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void mooney_rivlin_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     mooney_rivlin_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void mooney_rivlin_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void mooney_rivlin_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -2535,7 +2535,7 @@ static PyObject *py_mooney_rivlin_hessian_psd_svd(PyObject *self, PyObject *args
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t mooney_rivlin_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t mooney_rivlin_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

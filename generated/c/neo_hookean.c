@@ -69,7 +69,7 @@ static inline FEM3D_ELEMENT void neo_hookean_psi_element(const double *const *in
     out_psi[0] = psi;
 }
 
-static void neo_hookean_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -147,7 +147,7 @@ static inline FEM3D_ELEMENT void neo_hookean_dpsi_dF_element(const double *const
     out_P[8] = P_2_2;
 }
 
-static void neo_hookean_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -171,7 +171,7 @@ static PyObject *py_neo_hookean_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (C, D), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 543
-static inline void neo_hookean_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C = params[0];
@@ -320,7 +320,7 @@ static inline void neo_hookean_d2psi_dF2_element(const double *const *in, const 
     out_dP_dF[80] = A_8_8;
 }
 
-static void neo_hookean_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -401,7 +401,7 @@ static inline FEM3D_ELEMENT void neo_hookean_energy_element(const double *const 
     out_energy[0] = psi*vol;
 }
 
-static void neo_hookean_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -427,7 +427,7 @@ static PyObject *py_neo_hookean_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -552,7 +552,7 @@ static inline FEM3D_ELEMENT void neo_hookean_gradient_element(const double *cons
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void neo_hookean_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -578,7 +578,7 @@ static PyObject *py_neo_hookean_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -619,7 +619,7 @@ static PyObject *py_neo_hookean_gradient_assemble(PyObject *self, PyObject *args
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: dgradient_dparams (m, 12, 2); operation count per element: 322
-static inline void neo_hookean_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C = params[0];
@@ -736,7 +736,7 @@ static inline void neo_hookean_dgradient_dparams_element(const double *const *in
     out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
 }
 
-static void neo_hookean_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -997,7 +997,7 @@ static inline FEM3D_ELEMENT void neo_hookean_d3psi_contract_element(const double
     out_dparams[1] = -3*r57*(J - 1) + 9*r63;
 }
 
-static void neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1021,7 +1021,7 @@ static PyObject *py_neo_hookean_d3psi_contract(PyObject *self, PyObject *args)
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1569
-static inline void neo_hookean_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double C = params[0];
@@ -1329,7 +1329,7 @@ static inline void neo_hookean_hessian_element(const double *const *in, const do
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void neo_hookean_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1355,7 +1355,7 @@ static PyObject *py_neo_hookean_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1790,13 +1790,13 @@ static inline FEM3D_ELEMENT void neo_hookean_hessian_psd_projected(const double 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void neo_hookean_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void neo_hookean_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1822,7 +1822,7 @@ static PyObject *py_neo_hookean_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1864,13 +1864,13 @@ static PyObject *py_neo_hookean_hessian_psd_assemble(PyObject *self, PyObject *a
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1569
 // neo_hookean_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void neo_hookean_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void neo_hookean_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1896,7 +1896,7 @@ static PyObject *py_neo_hookean_hessian_psd_jacobi(PyObject *self, PyObject *arg
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1938,13 +1938,13 @@ static PyObject *py_neo_hookean_hessian_psd_jacobi_assemble(PyObject *self, PyOb
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (C, D), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1569
 // neo_hookean_hessian_psd's body with fem3d_project_psd_svd
-static inline void neo_hookean_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void neo_hookean_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1970,7 +1970,7 @@ static PyObject *py_neo_hookean_hessian_psd_svd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

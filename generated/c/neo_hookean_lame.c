@@ -69,7 +69,7 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_psi_element(const double *cons
     out_psi[0] = psi;
 }
 
-static void neo_hookean_lame_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -145,7 +145,7 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_dpsi_dF_element(const double *
     out_P[8] = P_2_2;
 }
 
-static void neo_hookean_lame_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -169,7 +169,7 @@ static PyObject *py_neo_hookean_lame_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 180
-static inline void neo_hookean_lame_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -315,7 +315,7 @@ static inline void neo_hookean_lame_d2psi_dF2_element(const double *const *in, c
     out_dP_dF[80] = A_8_8;
 }
 
-static void neo_hookean_lame_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -396,7 +396,7 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_energy_element(const double *c
     out_energy[0] = psi*vol;
 }
 
-static void neo_hookean_lame_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -422,7 +422,7 @@ static PyObject *py_neo_hookean_lame_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -545,7 +545,7 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_gradient_element(const double 
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void neo_hookean_lame_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -571,7 +571,7 @@ static PyObject *py_neo_hookean_lame_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -612,7 +612,7 @@ static PyObject *py_neo_hookean_lame_gradient_assemble(PyObject *self, PyObject 
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: dgradient_dparams (m, 12, 2); operation count per element: 278
-static inline void neo_hookean_lame_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -721,7 +721,7 @@ static inline void neo_hookean_lame_dgradient_dparams_element(const double *cons
     out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
 }
 
-static void neo_hookean_lame_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -974,7 +974,7 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_d3psi_contract_element(const d
     out_dparams[1] = r67 + r68*log(J);
 }
 
-static void neo_hookean_lame_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -998,7 +998,7 @@ static PyObject *py_neo_hookean_lame_d3psi_contract(PyObject *self, PyObject *ar
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1206
-static inline void neo_hookean_lame_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1303,7 +1303,7 @@ static inline void neo_hookean_lame_hessian_element(const double *const *in, con
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void neo_hookean_lame_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1329,7 +1329,7 @@ static PyObject *py_neo_hookean_lame_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1761,13 +1761,13 @@ static inline FEM3D_ELEMENT void neo_hookean_lame_hessian_psd_projected(const do
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void neo_hookean_lame_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_lame_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void neo_hookean_lame_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1793,7 +1793,7 @@ static PyObject *py_neo_hookean_lame_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1835,13 +1835,13 @@ static PyObject *py_neo_hookean_lame_hessian_psd_assemble(PyObject *self, PyObje
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1206
 // neo_hookean_lame_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void neo_hookean_lame_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_lame_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void neo_hookean_lame_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1867,7 +1867,7 @@ static PyObject *py_neo_hookean_lame_hessian_psd_jacobi(PyObject *self, PyObject
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1909,13 +1909,13 @@ static PyObject *py_neo_hookean_lame_hessian_psd_jacobi_assemble(PyObject *self,
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1206
 // neo_hookean_lame_hessian_psd's body with fem3d_project_psd_svd
-static inline void neo_hookean_lame_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void neo_hookean_lame_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     neo_hookean_lame_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void neo_hookean_lame_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void neo_hookean_lame_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1941,7 +1941,7 @@ static PyObject *py_neo_hookean_lame_hessian_psd_svd(PyObject *self, PyObject *a
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t neo_hookean_lame_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t neo_hookean_lame_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

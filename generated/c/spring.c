@@ -59,7 +59,7 @@ static inline FEM3D_ELEMENT void spring_energy_element(const double *const *in, 
     out_energy[0] = (1.0/2.0)*k*((fem3d_powi((xa_0 - xb_0), 2)) + (fem3d_powi((xa_1 - xb_1), 2)) + (fem3d_powi((xa_2 - xb_2), 2)));
 }
 
-static void spring_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void spring_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -111,7 +111,7 @@ static inline FEM3D_ELEMENT void spring_gradient_element(const double *const *in
     out_gradient[5] = -t2;
 }
 
-static void spring_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void spring_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -135,7 +135,7 @@ static PyObject *py_spring_gradient(PyObject *self, PyObject *args)
 // Spring Hessian (6x6).
 // inputs: x_a (m, 3), x_b (m, 3); params: (k), shared or per element
 // outputs: hessian (m, 6, 6); operation count per element: 1
-static inline void spring_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void spring_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double k = params[0];
@@ -168,7 +168,7 @@ static inline void spring_hessian_element(const double *const *in, const double 
     out_hessian[35] = k;
 }
 
-static void spring_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void spring_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR

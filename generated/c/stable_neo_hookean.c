@@ -70,7 +70,7 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_psi_element(const double *co
     out_psi[0] = psi;
 }
 
-static void stable_neo_hookean_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -147,7 +147,7 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_dpsi_dF_element(const double
     out_P[8] = P_2_2;
 }
 
-static void stable_neo_hookean_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -171,7 +171,7 @@ static PyObject *py_stable_neo_hookean_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 265
-static inline void stable_neo_hookean_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -321,7 +321,7 @@ static inline void stable_neo_hookean_d2psi_dF2_element(const double *const *in,
     out_dP_dF[80] = A_8_8;
 }
 
-static void stable_neo_hookean_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -403,7 +403,7 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_energy_element(const double 
     out_energy[0] = psi*vol;
 }
 
-static void stable_neo_hookean_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -429,7 +429,7 @@ static PyObject *py_stable_neo_hookean_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -553,7 +553,7 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_gradient_element(const doubl
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void stable_neo_hookean_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -579,7 +579,7 @@ static PyObject *py_stable_neo_hookean_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -620,7 +620,7 @@ static PyObject *py_stable_neo_hookean_gradient_assemble(PyObject *self, PyObjec
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: dgradient_dparams (m, 12, 2); operation count per element: 354
-static inline void stable_neo_hookean_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -728,7 +728,7 @@ static inline void stable_neo_hookean_dgradient_dparams_element(const double *co
     out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
 }
 
-static void stable_neo_hookean_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -982,7 +982,7 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_d3psi_contract_element(const
     out_dparams[1] = (dJ_0_0*dJ_0_0)*r44 + dJ_0_0*r68 + (dJ_0_1*dJ_0_1)*r35 + dJ_0_1*r61 + (dJ_0_2*dJ_0_2)*r27 + dJ_0_2*r57 + (dJ_1_0*dJ_1_0)*r20 + dJ_1_0*r55 + (dJ_1_1*dJ_1_1)*r14 + dJ_1_1*r51 + (dJ_1_2*dJ_1_2)*r9 + dJ_1_2*r48 + (dJ_2_0*dJ_2_0)*r5 + dJ_2_0*r46 + (dJ_2_1*dJ_2_1)*r2 + dJ_2_1*dJ_2_2*r1 + (dJ_2_2*dJ_2_2)*r0 + r66*(J - 1);
 }
 
-static void stable_neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1006,7 +1006,7 @@ static PyObject *py_stable_neo_hookean_d3psi_contract(PyObject *self, PyObject *
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1291
-static inline void stable_neo_hookean_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1315,7 +1315,7 @@ static inline void stable_neo_hookean_hessian_element(const double *const *in, c
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void stable_neo_hookean_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1341,7 +1341,7 @@ static PyObject *py_stable_neo_hookean_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1777,13 +1777,13 @@ static inline FEM3D_ELEMENT void stable_neo_hookean_hessian_psd_projected(const 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void stable_neo_hookean_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     stable_neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void stable_neo_hookean_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1809,7 +1809,7 @@ static PyObject *py_stable_neo_hookean_hessian_psd(PyObject *self, PyObject *arg
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1851,13 +1851,13 @@ static PyObject *py_stable_neo_hookean_hessian_psd_assemble(PyObject *self, PyOb
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1291
 // stable_neo_hookean_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void stable_neo_hookean_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     stable_neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void stable_neo_hookean_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1883,7 +1883,7 @@ static PyObject *py_stable_neo_hookean_hessian_psd_jacobi(PyObject *self, PyObje
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1925,13 +1925,13 @@ static PyObject *py_stable_neo_hookean_hessian_psd_jacobi_assemble(PyObject *sel
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1291
 // stable_neo_hookean_hessian_psd's body with fem3d_project_psd_svd
-static inline void stable_neo_hookean_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stable_neo_hookean_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     stable_neo_hookean_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void stable_neo_hookean_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stable_neo_hookean_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1957,7 +1957,7 @@ static PyObject *py_stable_neo_hookean_hessian_psd_svd(PyObject *self, PyObject 
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stable_neo_hookean_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stable_neo_hookean_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

@@ -66,7 +66,7 @@ static inline FEM3D_ELEMENT void stvk_psi_element(const double *const *in, const
     out_psi[0] = psi;
 }
 
-static void stvk_psi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_psi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -140,7 +140,7 @@ static inline FEM3D_ELEMENT void stvk_dpsi_dF_element(const double *const *in, c
     out_P[8] = P_2_2;
 }
 
-static void stvk_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_dpsi_dF(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -164,7 +164,7 @@ static PyObject *py_stvk_dpsi_dF(PyObject *self, PyObject *args)
 // dP/dF, 9x9 in the row-major flattening of F.
 // inputs: F (m, 3, 3); params: (mu, lam), shared or per element
 // outputs: dP_dF (m, 9, 9); operation count per element: 289
-static inline void stvk_d2psi_dF2_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_d2psi_dF2_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -324,7 +324,7 @@ static inline void stvk_d2psi_dF2_element(const double *const *in, const double 
     out_dP_dF[80] = A_8_8;
 }
 
-static void stvk_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_d2psi_dF2(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -402,7 +402,7 @@ static inline FEM3D_ELEMENT void stvk_energy_element(const double *const *in, co
     out_energy[0] = psi*vol;
 }
 
-static void stvk_energy(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_energy(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -428,7 +428,7 @@ static PyObject *py_stvk_energy(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_energy_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_energy_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
@@ -549,7 +549,7 @@ static inline FEM3D_ELEMENT void stvk_gradient_element(const double *const *in, 
     out_gradient[11] = vol*(P_2_0*dphi_3_0 + P_2_1*dphi_3_1 + P_2_2*dphi_3_2);
 }
 
-static void stvk_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -575,7 +575,7 @@ static PyObject *py_stvk_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[12];
@@ -616,7 +616,7 @@ static PyObject *py_stvk_gradient_assemble(PyObject *self, PyObject *args)
 // Element gradient's derivative by each parameter, (12, n_params), vertex-major.
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: dgradient_dparams (m, 12, 2); operation count per element: 301
-static inline void stvk_dgradient_dparams_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_dgradient_dparams_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -717,7 +717,7 @@ static inline void stvk_dgradient_dparams_element(const double *const *in, const
     out_dgradient_dparams[23] = vol*(dP_2_0_1*dphi_3_0 + dP_2_1_1*dphi_3_1 + dP_2_2_1*dphi_3_2);
 }
 
-static void stvk_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_dgradient_dparams(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -997,7 +997,7 @@ static inline FEM3D_ELEMENT void stvk_d3psi_contract_element(const double *const
     out_dparams[1] = F_0_0*r68 + F_0_1*r58 + F_0_2*r53 + F_1_0*r48 + F_1_1*r47 + F_1_2*r45 + h0*r44 + h1*r35 + h10*r2 + h11*r14 + h15*r43 + h16*r19 + h17*r4 + h18*r42 + h19*r18 + h2*r20 + h20*r3 + h21*r41 + h22*r32 + h23*r24 + h26*r38 + h27*r29 + h28*r21 + h30*r34 + h31*r13 + h32*r1 + h4*r5 + h41*r17 + h42*r11 + h43*r6 + h5*r27 + h8*r9 + h9*r0 + (1.0/2.0)*r78*(h13 + h3 + h4 + h5 + h8 + h9 - 3);
 }
 
-static void stvk_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_d3psi_contract(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1021,7 +1021,7 @@ static PyObject *py_stvk_d3psi_contract(PyObject *self, PyObject *args)
 // Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major).
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315
-static inline void stvk_hessian_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_hessian_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double mu = params[0];
@@ -1340,7 +1340,7 @@ static inline void stvk_hessian_element(const double *const *in, const double *p
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static void stvk_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_hessian(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1366,7 +1366,7 @@ static PyObject *py_stvk_hessian(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_hessian_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_hessian_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1812,13 +1812,13 @@ static inline FEM3D_ELEMENT void stvk_hessian_psd_projected(const double *const 
     out_hessian[143] = vol*(T_6_11*dphi_3_0 + T_7_11*dphi_3_1 + T_8_11*dphi_3_2);
 }
 
-static inline void stvk_hessian_psd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_hessian_psd_element(const double *const *in, const double *params,
     double *const *out)
 {
     stvk_hessian_psd_projected(in, params, out, fem3d_project_psd);
 }
 
-static void stvk_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_hessian_psd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1844,7 +1844,7 @@ static PyObject *py_stvk_hessian_psd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_hessian_psd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_hessian_psd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1886,13 +1886,13 @@ static PyObject *py_stvk_hessian_psd_assemble(PyObject *self, PyObject *args)
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315
 // stvk_hessian_psd's body with fem3d_project_psd_jacobi
-static inline void stvk_hessian_psd_jacobi_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_hessian_psd_jacobi_element(const double *const *in, const double *params,
     double *const *out)
 {
     stvk_hessian_psd_projected(in, params, out, fem3d_project_psd_jacobi);
 }
 
-static void stvk_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_hessian_psd_jacobi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1918,7 +1918,7 @@ static PyObject *py_stvk_hessian_psd_jacobi(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_hessian_psd_jacobi_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];
@@ -1960,13 +1960,13 @@ static PyObject *py_stvk_hessian_psd_jacobi_assemble(PyObject *self, PyObject *a
 // inputs: x_e (m, 4, 3), dphi_dX (m, 4, 3), vol (m); params: (mu, lam), shared or per element
 // outputs: hessian (m, 12, 12); operation count per element: 1315
 // stvk_hessian_psd's body with fem3d_project_psd_svd
-static inline void stvk_hessian_psd_svd_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void stvk_hessian_psd_svd_element(const double *const *in, const double *params,
     double *const *out)
 {
     stvk_hessian_psd_projected(in, params, out, fem3d_project_psd_svd);
 }
 
-static void stvk_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void stvk_hessian_psd_svd(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -1992,7 +1992,7 @@ static PyObject *py_stvk_hessian_psd_svd(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t stvk_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t stvk_hessian_psd_svd_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[144];

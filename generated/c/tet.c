@@ -39,7 +39,7 @@ static inline double fem3d_rcbrt(double x)
 // Shape-function gradients dphi/dX and signed volume of rest tets.
 // inputs: X_e (m, 4, 3); params: (), shared or per element
 // outputs: dphi_dX (m, 4, 3), volume (m); operation count per element: 152
-static inline void tet_rest_shape_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void tet_rest_shape_element(const double *const *in, const double *params,
     double *const *out)
 {
     (void)params;
@@ -114,7 +114,7 @@ static inline void tet_rest_shape_element(const double *const *in, const double 
     out_volume[0] = -1.0/6.0*t20;
 }
 
-static void tet_rest_shape(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void tet_rest_shape(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -206,7 +206,7 @@ static inline FEM3D_ELEMENT void tet_phi_element(const double *const *in, const 
     out_phi[3] = t27*t35;
 }
 
-static void tet_phi(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void tet_phi(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -230,7 +230,7 @@ static PyObject *py_tet_phi(PyObject *self, PyObject *args)
 // Exact consistent mass matrix rho * integral N^T N dV (12x12).
 // inputs: vol (m); params: (rho), shared or per element
 // outputs: mass (m, 12, 12); operation count per element: 3
-static inline void tet_mass_matrix_element(const double *const *in, const double *params,
+FEM3D_DISPATCH static inline void tet_mass_matrix_element(const double *const *in, const double *params,
     double *const *out)
 {
     const double rho = params[0];
@@ -324,7 +324,7 @@ static inline void tet_mass_matrix_element(const double *const *in, const double
     out_mass[143] = t1;
 }
 
-static void tet_mass_matrix(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void tet_mass_matrix(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -393,7 +393,7 @@ static inline FEM3D_ELEMENT void tet_deformation_gradient_element(const double *
     out_F[8] = dphi_0_2*x_0_2 + dphi_1_2*x_1_2 + dphi_2_2*x_2_2 + dphi_3_2*x_3_2;
 }
 
-static void tet_deformation_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void tet_deformation_gradient(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -419,7 +419,7 @@ static PyObject *py_tet_deformation_gradient(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t tet_deformation_gradient_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t tet_deformation_gradient_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[9];
@@ -483,7 +483,7 @@ static inline FEM3D_ELEMENT void tet_deformed_volume_element(const double *const
     out_volume[0] = -1.0/6.0*x_0_0*x_1_1*x_2_2 + (1.0/6.0)*x_0_0*x_1_1*x_3_2 + (1.0/6.0)*x_0_0*x_1_2*x_2_1 - 1.0/6.0*x_0_0*x_1_2*x_3_1 - 1.0/6.0*x_0_0*x_2_1*x_3_2 + (1.0/6.0)*x_0_0*x_2_2*x_3_1 + (1.0/6.0)*x_0_1*x_1_0*x_2_2 - 1.0/6.0*x_0_1*x_1_0*x_3_2 - 1.0/6.0*x_0_1*x_1_2*x_2_0 + (1.0/6.0)*x_0_1*x_1_2*x_3_0 + (1.0/6.0)*x_0_1*x_2_0*x_3_2 - 1.0/6.0*x_0_1*x_2_2*x_3_0 - 1.0/6.0*x_0_2*x_1_0*x_2_1 + (1.0/6.0)*x_0_2*x_1_0*x_3_1 + (1.0/6.0)*x_0_2*x_1_1*x_2_0 - 1.0/6.0*x_0_2*x_1_1*x_3_0 - 1.0/6.0*x_0_2*x_2_0*x_3_1 + (1.0/6.0)*x_0_2*x_2_1*x_3_0 + (1.0/6.0)*x_1_0*x_2_1*x_3_2 - 1.0/6.0*x_1_0*x_2_2*x_3_1 - 1.0/6.0*x_1_1*x_2_0*x_3_2 + (1.0/6.0)*x_1_1*x_2_2*x_3_0 + (1.0/6.0)*x_1_2*x_2_0*x_3_1 - 1.0/6.0*x_1_2*x_2_1*x_3_0;
 }
 
-static void tet_deformed_volume(Py_ssize_t m, const double *const *inputs, const double *params,
+FEM3D_DISPATCH static void tet_deformed_volume(Py_ssize_t m, const double *const *inputs, const double *params,
     Py_ssize_t param_stride, double *const *outputs)
 {
     FEM3D_PARALLEL_FOR
@@ -509,7 +509,7 @@ static PyObject *py_tet_deformed_volume(PyObject *self, PyObject *args)
 // Returns 0, or the first element with a bad vertex (-(e + 1)) or destination (e + 1), or
 // FEM3D_BAD_ORDER for an entry of order outside [0, m). fem3d_run_assemble (extension.c)
 // calls it once for the whole mesh (serial) or once per block of a race-free schedule.
-static Py_ssize_t tet_deformed_volume_assemble_range(const fem3d_assembly *job,
+FEM3D_DISPATCH static Py_ssize_t tet_deformed_volume_assemble_range(const fem3d_assembly *job,
     const long long *order, Py_ssize_t begin, Py_ssize_t end, double *out)
 {
     double x[12], local[1];
