@@ -96,6 +96,10 @@ BAD = [
     ("scene = \n", "not valid TOML"),
     ("[grid]\n'simulation.dt' = [0.1]\n", "scene: Field required"),
     ("scene = 'arma'\ncolour = 'red'\n", "colour: unknown key"),
+    # a misspelled required key: the unknown key and its right name, not "scene: missing"
+    ("scnee = 'arma'\n", "scnee: unknown key; did you mean 'scene'?"),
+    ("scene = 'arma'\n[dataset]\ndtipe = 'float32'\n",
+     "dataset.dtipe: unknown key; did you mean 'dtype'?"),
     ("scene = 'arma'\n[grid]\n'simulation.dt' = 0.01\n",
      'grid."simulation.dt": Input should be a valid list'),
     ("scene = 'arma'\n[grid]\n'simulation.dt' = []\n", "grid: simulation.dt: an empty list"),

@@ -654,8 +654,8 @@ def _unwrap_models(ann: Any) -> list[type[BaseModel]]:
     return out
 
 
-def _model_at(loc: tuple) -> type[BaseModel] | None:
-    cls: type[BaseModel] | None = Scene
+def _model_at(loc: tuple, root: type[BaseModel] | None = None) -> type[BaseModel] | None:
+    cls: type[BaseModel] | None = Scene if root is None else root
     for part in loc:
         if isinstance(part, int) or cls is None:
             continue
@@ -667,12 +667,13 @@ def _model_at(loc: tuple) -> type[BaseModel] | None:
     return cls
 
 
-def describe_error(err: dict) -> str:
-    """The text after ``key.path:`` for one pydantic error (``ValidationError.errors()``)."""
+def describe_error(err: dict, root: type[BaseModel] | None = None) -> str:
+    """The text after ``key.path:`` for one pydantic error (``ValidationError.errors()``) of
+    a ``root`` model (default: :class:`Scene`)."""
     kind = err["type"]
     loc = tuple(err["loc"])
     if kind == "extra_forbidden":
-        parent = _model_at(loc[:-1])
+        parent = _model_at(loc[:-1], root)
         names = list(parent.model_fields) if parent is not None else []
         near = difflib.get_close_matches(str(loc[-1]), names, n=1, cutoff=0.5)
         hint = f"; did you mean {near[0]!r}?" if near else ""
@@ -693,10 +694,11 @@ def describe_error(err: dict) -> str:
     return msg
 
 
-def _misspelling(missing: dict, errors: list[dict]) -> dict | None:
+def _misspelling(missing: dict, errors: list[dict],
+                 root: type[BaseModel] | None) -> dict | None:
     """The unknown key beside a missing required one whose "did you mean" names it."""
     loc = tuple(missing["loc"])
-    parent = _model_at(loc[:-1])
+    parent = _model_at(loc[:-1], root)
     if parent is None:
         return None
     names = list(parent.model_fields)
@@ -709,7 +711,7 @@ def _misspelling(missing: dict, errors: list[dict]) -> dict | None:
     return None
 
 
-def primary_error(errors: list[dict]) -> tuple[dict, int]:
+def primary_error(errors: list[dict], root: type[BaseModel] | None = None) -> tuple[dict, int]:
     """The pydantic error to report and how many others it leaves unexplained.
 
     The first error is the one nearest to the file's own words, except that a required key
@@ -720,6 +722,8 @@ def primary_error(errors: list[dict]) -> tuple[dict, int]:
     ----------
     errors : list of dict
         ``ValidationError.errors()``, in pydantic's order.
+    root : pydantic model class, optional
+        The model validated (default :class:`Scene`; a sweep file passes its own).
 
     Returns
     -------
@@ -728,7 +732,7 @@ def primary_error(errors: list[dict]) -> tuple[dict, int]:
     n_more : int
         How many of the other errors it does not explain.
     """
-    pairs = [(m, _misspelling(m, errors)) for m in errors if m["type"] == "missing"]
+    pairs = [(m, _misspelling(m, errors, root)) for m in errors if m["type"] == "missing"]
     pairs = [(m, e) for m, e in pairs if e is not None]
     if not pairs:
         return errors[0], len(errors) - 1

@@ -19,6 +19,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fem3d.errors import InputError
+from fem3d.scene.spec import describe_error, primary_error
 
 __all__ = ["SweepFile", "SampleSpec", "RangeSpec", "ResultsSpec", "DatasetSpec", "METRICS",
            "MAX_CASES", "load_sweep_file", "validation_message"]
@@ -226,12 +227,13 @@ def _loc(loc: Sequence[Any]) -> str:
 
 
 def validation_message(exc: ValidationError) -> str:
-    """The first error of ``exc`` on one line: ``key.path: what is wrong``."""
-    err = exc.errors(include_url=False)[0]
+    """The first error of ``exc`` on one line: ``key.path: what is wrong`` (a misspelled
+    required key as the unknown key with its "did you mean", as in scene files)."""
+    err = primary_error(exc.errors(include_url=False), root=SweepFile)[0]
     loc = [p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-"))]
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden":
-        msg = "unknown key"
+        msg = describe_error(err, root=SweepFile)
     where = _loc(loc)
     return f"{where}: {msg}" if where else msg
 
