@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fem3d.errors import SimulationError
+from fem3d.solve.settings import LINE_SEARCHES
 
 __all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT_FACTOR",
            "LINE_SEARCHES", "PARABOLIC_TRIALS"]
@@ -17,12 +18,6 @@ __all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT
 #: round-off (measured floors on the swinging box: 10-20 tolerances).
 ROUNDOFF_GRADIENT_FACTOR = 1e3
 
-#: The line searches of :func:`newtons_method`: ``"backtrack"`` accepts the first trial of
-#: ``a0, a0 p, a0 p^2, ...`` that passes Armijo's test; ``"parabolic"`` does the same and then,
-#: when that took a halving, moves the accepted step to the minimum of the parabola through
-#: the energies at the bracket ``0 < a < a / p`` (at most :data:`PARABOLIC_TRIALS` more
-#: energy evaluations, each kept only where it lowers the energy).
-LINE_SEARCHES = ("backtrack", "parabolic")
 #: ``"parabolic"``: the most extra energy evaluations per line search.
 PARABOLIC_TRIALS = 2
 
