@@ -13,11 +13,11 @@ products).
 
 The state carries ``a`` (its history); the first state's ``a_0`` solves ``M a_0 + g(q_0,
 v_0) = 0`` on the free DOFs (:func:`fem3d.solve.schemes.newmark.initial_acceleration`:
-elasticity at ``q_0``, gravity, damping ``D(q_0) v_0``), whose adjoint :meth:`NewmarkAdjoint.finish` adds: one
-solve with the mass matrix, the same terms at ``h = 1``, and, with contact, the barrier's
-force at ``q_0`` where a pair is within ``dhat`` there (as ``fem3d run``'s ``a_0``: the
-stiffness before the first step, the friction not yet lagged:
-:meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
+elasticity at ``q_0``, gravity, damping ``D(q_0) v_0``), whose adjoint
+:meth:`NewmarkAdjoint.finish` adds: one solve with the mass matrix, the same terms at ``h =
+1``, and, with contact, the barrier's force at ``q_0`` where a pair is within ``dhat`` there
+(as ``fem3d run``'s ``a_0``: the stiffness before the first step, the friction not yet
+lagged: :meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
 """
 
 from __future__ import annotations
