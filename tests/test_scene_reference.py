@@ -27,7 +27,7 @@ import pytest
 
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
-from fem3d.solve.backward_euler import implicit_euler
+from fem3d.solve.integrators import implicit_euler
 
 REF = Path(__file__).resolve().parent / "data" / "classic_reference.npz"
 
