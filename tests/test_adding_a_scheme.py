@@ -33,7 +33,6 @@ class Midpoint(Scheme):
 
     name = "midpoint"
     label = "implicit midpoint"
-    summary = "implicit midpoint rule (a test's toy scheme)"
 
     def prepare(self, system, terms, state, dt, fixed_positions, settings):
         p = end_positions(system, state, fixed_positions)

@@ -73,8 +73,6 @@ class Scheme:
     name: ClassVar[str] = ""
     #: the name shown in the viewer and in error messages
     label: ClassVar[str] = ""
-    #: one line for ``--integrator``'s help and docs
-    summary: ClassVar[str] = ""
     #: a time-dependent scheme with velocities (the viewer's N key cycles through these;
     #: False: bodies may not start moving)
     dynamic: ClassVar[bool] = True

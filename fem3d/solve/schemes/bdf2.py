@@ -29,7 +29,6 @@ class BDF2(Scheme):
 
     name = "bdf2"
     label = "BDF2"
-    summary = "second-order backward differentiation (docs/integrators.md)"
     history = ("q_prev", "v_prev")
     previous_state = {"q_prev": "q", "v_prev": "v"}
 

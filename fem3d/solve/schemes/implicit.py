@@ -42,7 +42,6 @@ class BackwardEuler(Scheme):
 
     name = "implicit"
     label = "backward Euler"
-    summary = "backward Euler minimised by Newton (the default)"
     warm_starts = True
     history = ("q_prev", "v_prev")
     previous_state = {"q_prev": "q", "v_prev": "v"}

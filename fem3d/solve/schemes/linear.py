@@ -154,7 +154,6 @@ class LinearlyImplicit(Scheme):
 
     name = "linear"
     label = "linearly-implicit Euler"
-    summary = "linearly-implicit Euler: one linear solve per step (no contact)"
     minimises = False
     contact = False
     substeps = False

@@ -101,7 +101,6 @@ class Newmark(Scheme):
 
     name = "newmark"
     label = "Newmark"
-    summary = "Newmark, average acceleration (gamma = 0.55 with contact)"
     history = ("a",)
 
     def prepare(self, system, terms, state, dt, fixed_positions, settings) -> Step:

@@ -15,7 +15,6 @@ class Static(Scheme):
 
     name = "static"
     label = "static"
-    summary = "static equilibrium per step, with load stepping"
     dynamic = False
     substeps = False
     converged_max_iterations = 50
