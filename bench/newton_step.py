@@ -54,8 +54,8 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
-from fem3d.solve.settings import WARM_STARTS
 from fem3d.solve.linear import resolve_linear_solver
+from fem3d.solve.settings import WARM_STARTS
 
 
 @dataclass
