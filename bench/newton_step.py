@@ -30,7 +30,7 @@ Newton iteration (assembly into the reduced pattern, factorization, solve; with 
 hierarchy setup and one V-cycle). Modes: ``direct`` and ``reuse`` on the default direct back
 end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), each forced whatever ``"auto"``
 would pick. ``--warm-start extrapolate`` starts each step's Newton iteration at the
-lower-energy of ``v_t`` and ``2 v_t - v_t-1`` (:data:`fem3d.solve.backward_euler.
+lower-energy of ``v_t`` and ``2 v_t - v_t-1`` (:data:`fem3d.solve.settings.
 WARM_STARTS`; the interactive drag of docs/benchmarks.md, on one core:
 ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``)::
 
@@ -54,8 +54,8 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, build_model
 from fem3d.physics.springs import Pull
 from fem3d.solve import integrators as integ
-from fem3d.solve.backward_euler import WARM_STARTS
 from fem3d.solve.linear import resolve_linear_solver
+from fem3d.solve.settings import WARM_STARTS
 
 
 @dataclass
@@ -162,7 +162,7 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
 def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1e-6,
              warm_start: str = "previous") -> dict:
     """All steps of ``work`` with one linear-solver mode (and Newton start, ``warm_start``:
-    :data:`fem3d.solve.backward_euler.WARM_STARTS`); totals and the trajectory."""
+    :data:`fem3d.solve.settings.WARM_STARTS`); totals and the trajectory."""
     t_system = time.perf_counter()
     system = integ.System(work.model, work.constraints, _backend(mode))
     t_system = time.perf_counter() - t_system  # the solver's analysis (ordering; aggregation)

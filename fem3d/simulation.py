@@ -36,9 +36,11 @@ from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.scene.build import build
 from fem3d.scene.spec import Scene
-from fem3d.solve.backward_euler import model_terms, newton_options
-from fem3d.solve.integrators import INTEGRATORS, TERM_INTEGRATORS, State, StepStats, System
-from fem3d.solve.substeps import step_with_substeps
+from fem3d.solve.schemes.base import Scheme, model_terms
+from fem3d.solve.schemes.registry import get_scheme
+from fem3d.solve.settings import NewtonSettings
+from fem3d.solve.state import State, StepStats
+from fem3d.solve.system import System
 
 __all__ = ["Simulation", "StepInfo", "RUNAWAY_FACTOR"]
 
@@ -82,27 +84,33 @@ def _check_supported(scene: Scene) -> None:
     if scene.obstacles and not scene.contact.enabled:
         raise scene.error("obstacles", "obstacles act through contact: set [contact] enabled "
                           "= true")
-    if scene.contact.enabled and scene.simulation.integrator == "linear":
+    name = scene.simulation.integrator
+    try:
+        scheme = get_scheme(name)
+    except ParameterError as exc:
+        raise scene.error("simulation.integrator", str(exc)) from None
+    if scene.contact.enabled and not scheme.contact:
         raise scene.error("simulation.integrator", CONTACT_NEEDS_IMPLICIT)
-    if scene.simulation.integrator == "static":
+    if not scheme.dynamic:
         for i, body in enumerate(scene.bodies):
             if any(body.velocity) or any(body.angular_velocity):
-                raise scene.error(f"bodies[{i}].velocity", "the static integrator has no "
+                raise scene.error(f"bodies[{i}].velocity", f"the {name} integrator has no "
                                   "velocities (an equilibrium per step): remove the initial "
                                   "velocity or choose a dynamic integrator")
 
 
 def _check_static_support(sim) -> None:
-    """Refuse ``static`` where a body has neither pins nor contact to hold it (its
-    equilibrium is not unique: a rigid motion costs nothing)."""
-    if sim.integrator != "static" or sim.contact is not None:
+    """Refuse a scheme without inertia (``static``) where a body has neither pins nor contact
+    to hold it (its equilibrium is not unique: a rigid motion costs nothing)."""
+    if sim.scheme.dynamic or sim.contact is not None:
         return
     fixed = np.zeros(sim.model.n_vertices, dtype=bool)
     fixed[sim.constraints.fixed_vertices] = True
     for i, vs in enumerate(sim.assembled.body_vertices):
         if not fixed[vs].any():
             raise sim.scene.error(
-                "simulation.integrator", f"static needs every body held by pins or contact: "
+                "simulation.integrator", f"{sim.integrator} needs every body held by pins or "
+                "contact: "
                 f"body {i} ({sim.scene.bodies[i].label}) has neither, so it has no unique "
                 "equilibrium")
 
@@ -111,14 +119,6 @@ def _check_static_support(sim) -> None:
 CONTACT_NEEDS_IMPLICIT = ("contact needs backward Euler (integrator = \"implicit\"): the "
                           "linearly-implicit scheme cannot keep IPC's no-intersection "
                           "guarantee")
-
-
-#: The state's history fields a checkpoint keeps (``State.q_prev``, ...).
-HISTORY = ("q_prev", "v_prev", "a")
-
-
-def _or_empty(a: np.ndarray | None) -> np.ndarray:
-    return np.zeros(0) if a is None else a
 
 
 def _stiffness(k) -> float | np.ndarray:
@@ -159,8 +159,8 @@ class Simulation:
     pick_radius, spring_k : float
         Interactive picking radius and pull-spring stiffness (``scene.interaction``,
         resolved); settable.
-    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start, newton_line_search
-        Backward Euler's Newton settings (``scene.simulation.newton``).
+    newton : NewtonSettings
+        Newton's settings for every scheme (from ``scene.simulation.newton``; settable).
     max_substeps : int
         Contact steps whose straight motion passes through a surface are redone in up to
         this many substeps (``scene.contact.max_substeps``; :mod:`fem3d.solve.substeps`;
@@ -196,16 +196,12 @@ class Simulation:
                                   ) from None
         self.surface_faces = boundary_faces(a.T)
         self._dt = validate_dt(sim.dt)
-        self._integrator = ""
+        self._scheme: Scheme | None = None
         self.integrator = sim.integrator
         _check_static_support(self)
         self.scripted = scripted
-        self.max_newton_iterations = sim.newton.max_iterations
-        self.newton_hessian = sim.newton.hessian
-        self.newton_solver = sim.newton.solver
-        self.newton_warm_start = sim.newton.warm_start
+        self.newton = NewtonSettings.from_spec(sim.newton)
         self.max_substeps = scene.contact.max_substeps
-        self.newton_line_search = sim.newton.line_search
         self.pick_radius = built.pick_radius
         self.spring_k = built.spring_k
         self._W = None
@@ -273,19 +269,21 @@ class Simulation:
     # ------------------------------------------------------------------ properties
     @property
     def integrator(self) -> str:
-        """``"linear"`` (linearly-implicit Euler), ``"implicit"`` (backward Euler),
-        ``"bdf2"``, ``"newmark"`` or ``"static"`` (``docs/integrators.md``)."""
-        return self._integrator
+        """The scheme's name (:mod:`fem3d.solve.schemes.registry`; ``docs/integrators.md``);
+        settable, by name."""
+        return self._scheme.name
 
     @integrator.setter
     def integrator(self, name: str) -> None:
-        if name not in INTEGRATORS:
-            raise ParameterError(
-                f"unknown integrator {name!r}; choose one of {', '.join(INTEGRATORS)}"
-            )
-        if name == "linear" and getattr(self, "contact", None) is not None:
+        scheme = get_scheme(name)
+        if not scheme.contact and getattr(self, "contact", None) is not None:
             raise ParameterError(CONTACT_NEEDS_IMPLICIT)
-        self._integrator = name
+        self._scheme = scheme
+
+    @property
+    def scheme(self) -> Scheme:
+        """The time integrator (:class:`fem3d.solve.schemes.base.Scheme`)."""
+        return self._scheme
 
     @property
     def dt(self) -> float:
@@ -371,9 +369,8 @@ class Simulation:
 
     # ------------------------------------------------------------------ state changes
     def _set_state(self, state: State) -> None:
-        for a in (state.q, state.v, state.q_prev, state.v_prev, state.a):
-            if a is not None:
-                a.setflags(write=False)
+        for a in (state.q, state.v, *state.history.values()):
+            a.setflags(write=False)
         self._state = state
 
     def reset(self) -> None:
@@ -408,7 +405,7 @@ class Simulation:
     def _keeps_solver_state(self) -> bool:
         """Whether later steps reuse a factorization or AMG hierarchy (a checkpoint must
         rebuild it for a bit-exact resume)."""
-        return self.newton_solver == "reuse" or self.system.linear_backend == "amg"
+        return self.newton.solver == "reuse" or self.system.linear_backend == "amg"
 
     def snapshot(self) -> dict:
         """Everything that determines the next steps, for a bit-exact :meth:`restore`.
@@ -422,9 +419,10 @@ class Simulation:
             ``pull_vertices`` (k,) int64, ``pull_targets`` (k, 3) float64
             and ``pull_k`` () or (k,) float64 (one stiffness or one per spring; ``k = 0`` and
             empty arrays: no pull),
-            ``history_q_prev``, ``history_v_prev``, ``history_a`` (n, 3) float64 or empty:
-            the multi-step schemes' history (BDF2's previous state, Newmark's acceleration),
-            ``preconditioner`` (nnz,) float64: with ``newton_solver="reuse"`` or AMG the reduced
+            ``history_<name>`` (n, 3) float64: the scheme's history
+            (:meth:`Scheme.save_history <fem3d.solve.schemes.base.Scheme.save_history>`:
+            BDF2's previous state, Newmark's acceleration; none for one-step schemes),
+            ``preconditioner`` (nnz,) float64: with ``newton.solver="reuse"`` or AMG the reduced
             matrix whose factorization later steps reuse (empty otherwise).
             Arrays are the simulation's own read-only arrays, not copies.
         """
@@ -440,7 +438,7 @@ class Simulation:
             "pull_k": np.asarray(0.0 if pull is None else pull.k, dtype=np.float64),
             "contact": (np.zeros(0) if self.contact is None else self.contact.state_array()),
             "pattern_keys": self.system.pattern_keys(),
-            **{f"history_{k}": _or_empty(getattr(self._state, k)) for k in HISTORY},
+            **{f"history_{k}": a for k, a in self._scheme.save_history(self._state).items()},
         }
 
     def restore(self, snap: dict) -> None:
@@ -464,15 +462,10 @@ class Simulation:
         if verts.size:
             pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
                              _stiffness(snap["pull_k"]), self.model.n_vertices)
-        history = {}
-        for k in HISTORY:
-            a = np.array(snap.get(f"history_{k}", np.zeros(0)), dtype=np.float64)
-            if a.size:
-                if a.shape != self.model.X.shape or not np.isfinite(a).all():
-                    raise ParameterError(f"saved {k} has shape {a.shape} or is not finite")
-                history[k] = a
+        saved = {k[len("history_"):]: a for k, a in snap.items() if k.startswith("history_")}
+        history = self._scheme.restore_history(saved, self.model.X.shape)
         self._set_state(State(q=q, v=v, t=float(snap["t"]), step=int(snap["step"]),
-                              **history))
+                              history=history))
         self._pull = pull
         self._script_active = tuple(
             int(i) for i in np.asarray(snap["script_active"], dtype=np.int64).reshape(-1))
@@ -575,7 +568,7 @@ class Simulation:
         self._script_active = active
 
     def objective_terms(self) -> list:
-        """The terms backward Euler minimises this step, in order: the model's (inertia,
+        """The terms the scheme minimises this step, in order: the model's (inertia,
         elasticity, the current pull, gravity, damping) and contact."""
         extra = [] if self.contact is None else [self.contact]
         return [*model_terms(self.system, self._pull), *extra]
@@ -598,30 +591,21 @@ class Simulation:
         before = self._energy_with_pull() if driven else 0.0
         fixed = self.fixed_positions(self.t + self._dt)
         t0 = time.perf_counter()
-        if self._integrator == "linear":
-            new, stats = INTEGRATORS["linear"](
-                self.system, self._state, self._dt, self._pull,
-                # while pins move they do work the bound cannot know in advance: it applies
-                # again (with that work added to the budget) once they stop
-                energy_bound=None if driven else self._energy_bound(),
-                fixed_positions=fixed,
-            )
-        else:
-            new, stats = step_with_substeps(
-                TERM_INTEGRATORS[self._integrator],
-                self.system, self.objective_terms(), self._state, self._dt,
-                max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
-                options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start,
-                                       line_search=self.newton_line_search),
-                fixed_positions=fixed, fixed_at=self.fixed_positions,
-                max_substeps=1 if self._integrator == "static" else self.max_substeps,
-            )
+        new, stats = self._scheme.advance(
+            self.system, self.objective_terms(), self._state, self._dt, self.newton,
+            fixed_positions=fixed, fixed_at=self.fixed_positions,
+            max_substeps=self.max_substeps,
+            # the runaway guard of a scheme without line search: while pins move they do
+            # work the bound cannot know in advance: it applies again (with that work added
+            # to the budget) once they stop
+            energy_bound=None if driven or self._scheme.minimises else self._energy_bound(),
+        )
         seconds = time.perf_counter() - t0
         kin = kinetic_energy(self.model, new.v)
         pot = potential_energy(self.model, new.q) + self.system.loads.gravity_energy(new.q)
         if not (math.isfinite(kin) and math.isfinite(pot)):
             raise SimulationError(
-                f"{self._integrator} integrator exploded: non-finite energy", step=new.step - 1
+                f"{self.integrator} integrator exploded: non-finite energy", step=new.step - 1
             )
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, new.q)
         self._set_state(new)

@@ -98,7 +98,7 @@ def test_stack_with_the_opt_in_newton_settings_stays_valid(overrides):
     Hessian, ``contact.hessian_projection = "exact"``, too: its full steps were all accepted
     only while shifted steps could pass IPC's rule, tests/test_contact_projection.py)."""
     sim = Simulation(apply_overrides(load_scene("contact_stack"), overrides))
-    assert sim.newton_line_search == overrides.get("simulation.newton.line_search",
+    assert sim.newton.line_search == overrides.get("simulation.newton.line_search",
                                                    "backtrack")
     assert sim.contact.newton_policy.restart_when_clamped == (
         overrides.get("contact.newton_start") == "q_t")
@@ -116,7 +116,7 @@ def test_newton_start_q_t_starts_an_impact_step_at_the_start_positions(monkeypat
     """With ``contact.newton_start = "q_t"`` a step whose free flight CCD cuts starts Newton
     at ``v = 0`` (``q_t``); one whose free flight is clear still starts at ``v_t``; the
     default starts at ``v_t`` scaled back by CCD."""
-    import fem3d.solve.backward_euler as be
+    import fem3d.solve.minimise as be
 
     starts = []
     real = be.newtons_method

@@ -12,7 +12,7 @@ from test_diff_contact import E_KEY, drop_scene, variant
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
 from fem3d.diff.adjoint import _prepare, scene_with
 from fem3d.scene import apply_overrides
-from fem3d.solve.newmark import CONTACT_ALPHA
+from fem3d.solve.schemes.newmark import CONTACT_ALPHA
 
 STEPS = 6
 V_KEY = "bodies[0].velocity"
@@ -122,7 +122,7 @@ def test_newmark_contact_start_within_dhat_gradients() -> None:
     scene = apply_overrides(pressed_box(), {"simulation.integrator": "newmark",
                                             V_KEY: [0.3, 0.0, 0.0]})
     run = _prepare(scene, 1e-11, 1e-16)
-    assert run.state0.a[:, 1].max() > 100.0  # the barrier pushes at the start
+    assert run.state0.history["a"][:, 1].max() > 100.0  # the barrier pushes at the start
     qs = simulate(scene, STEPS)
     steps = {E_KEY: (1e4, 1e-5), "contact.mu": (0.3, 1e-5), "contact.kappa": (5e10, 1e-4),
              V_KEY: ([0.3, 0.0, 0.0], 1e-5),

@@ -4,15 +4,13 @@ figures are ``python -m bench.newton_step``'s)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fem3d.solve.backward_euler import implicit_euler, newton_options
-from fem3d.solve.integrators import System
+from fem3d.solve.integrators import System, implicit_euler
 from fem3d.solve.linear.base import as_csr
+from fem3d.solve.settings import NewtonSettings
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +42,9 @@ def test_extrapolated_start_keeps_the_tolerance_with_fewer_newton_iterations(dra
     warm, n_warm = _run(drag, "extrapolate", 36)
     assert n_warm < 0.9 * n_plain
     assert np.array_equal(warm[0].q, plain[0].q) and np.array_equal(warm[0].v, plain[0].v)
-    assert plain[-1].v_prev is None  # the classic start keeps no history
+    assert "v_prev" not in plain[-1].history  # the classic start keeps no history
     for before, after in zip(warm, warm[1:], strict=False):
-        assert after.v_prev is before.v and after.q_prev is before.q
+        assert after.history["v_prev"] is before.v and after.history["q_prev"] is before.q
     deviation = max(float(np.abs(a.q - b.q).max()) for a, b in zip(warm, plain, strict=True))
     assert deviation < 1e-6 * drag.size
 
@@ -60,7 +58,7 @@ def test_a_worse_extrapolation_is_not_taken(drag):
         state, _ = implicit_euler(system, state, drag.dt, pull, max_iterations=None,
                                   linear_solver="reuse")
     # v_prev far off: 2 v - v_prev flings every free vertex
-    wild = dataclasses.replace(state, v_prev=state.v - 50.0)
+    wild = state.with_history(v_prev=state.v - 50.0)
     steps = {}
     for name, start, warm in (("plain", state, "previous"), ("wild", wild, "extrapolate")):
         system = System(drag.model, drag.constraints)
@@ -69,12 +67,12 @@ def test_a_worse_extrapolation_is_not_taken(drag):
                                         warm_start=warm)
     assert np.array_equal(steps["wild"].q, steps["plain"].q)
     assert np.array_equal(steps["wild"].v, steps["plain"].v)
-    assert steps["wild"].v_prev is state.v
+    assert steps["wild"].history["v_prev"] is state.v
 
 
 def test_unknown_warm_start_is_refused():
     with pytest.raises(ValueError, match="warm_start must be one of previous, extrapolate"):
-        newton_options(warm_start="quadratic")
+        NewtonSettings(warm_start="quadratic")
 
 
 def test_as_csr_keeps_a_float64_csr_matrix_and_copies_anything_else():
@@ -100,18 +98,18 @@ def test_contact_keeps_the_classic_start():
     start: the falling bunny's steps are bit for bit the classic ones, the history carried."""
     from fem3d.scene import load_scene
     from fem3d.simulation import Simulation
-    from fem3d.solve.backward_euler import backward_euler
+    from fem3d.solve.schemes.implicit import IMPLICIT
 
     finals = {}
     for warm in ("previous", "extrapolate"):
         sim = Simulation(load_scene("contact_bunny_drop"), scripted=True)
         state = sim.state
         for _ in range(8):
-            state, _ = backward_euler(sim.system, sim.objective_terms(), state, sim.dt,
-                                      max_iterations=None, linear_solver="reuse",
-                                      options=newton_options(warm_start=warm))
+            state, _ = IMPLICIT.step(sim.system, sim.objective_terms(), state, sim.dt,
+                                     NewtonSettings(max_iterations=None, solver="reuse",
+                                                    warm_start=warm))
         finals[warm] = state
-    assert finals["extrapolate"].v_prev is not None
+    assert finals["extrapolate"].history["v_prev"] is not None
     assert np.array_equal(finals["extrapolate"].q, finals["previous"].q)
     assert np.array_equal(finals["extrapolate"].v, finals["previous"].v)
 
@@ -124,7 +122,7 @@ def test_the_scene_key_reaches_the_step_and_is_refused_where_it_does_not_apply()
                                                  "simulation.integrator": "implicit"})
     plain = Simulation(load_scene("arma"), scripted=True)
     warm = Simulation(scene, scripted=True)
-    assert warm.newton_warm_start == "extrapolate" and plain.newton_warm_start == "previous"
+    assert warm.newton.warm_start == "extrapolate" and plain.newton.warm_start == "previous"
     iterations = {"plain": 0, "warm": 0}
     for name, sim in (("plain", plain), ("warm", warm)):
         for _ in range(30):  # the pull's smooth drag: the extrapolated start saves iterations

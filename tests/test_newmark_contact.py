@@ -1,5 +1,5 @@
 """Newmark with IPC contact: the dissipative member of the family (``gamma = 1/2 + alpha``,
-``beta = gamma^2``, ``fem3d.solve.newmark.CONTACT_ALPHA``) keeps the bunny drop's energy
+``beta = gamma^2``, ``fem3d.solve.schemes.newmark.CONTACT_ALPHA``) keeps the bunny drop's energy
 bounded, where average acceleration (``alpha = 0``) gains energy at every impact."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import fem3d.solve.newmark as newmark_module
+import fem3d.solve.schemes.newmark as newmark_module
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 

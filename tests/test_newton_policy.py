@@ -10,7 +10,7 @@ import pytest
 from fem3d.physics.contact import ContactModel, PlaneObstacle
 from fem3d.physics.terms.base import NewtonPolicy, Term, TermGroup
 from fem3d.physics.terms.contact import ContactTerm
-from fem3d.solve.newmark import CONTACT_ALPHA, newmark_gamma
+from fem3d.solve.schemes.newmark import CONTACT_ALPHA, newmark_gamma
 
 TET_X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 TET_T = np.array([[0, 1, 2, 3]])

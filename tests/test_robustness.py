@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import fem3d.solve.backward_euler as backward_euler
-import fem3d.solve.linearly_implicit as linearly_implicit
+import fem3d.solve.schemes.implicit as backward_euler
+import fem3d.solve.schemes.linear as linearly_implicit
 from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint

@@ -15,7 +15,8 @@ from fem3d.physics.model import build_model
 from fem3d.scene import scene_from_arrays
 from fem3d.scene.build import build_loads
 from fem3d.simulation import Simulation
-from fem3d.solve.integrators import INTEGRATORS, State, System
+from fem3d.solve.integrators import State, System
+from fem3d.solve.schemes.registry import SCHEMES
 
 G = np.array([0.0, -9.81, 0.0])
 
@@ -39,7 +40,7 @@ def set_vibrating(model, fixed, amplitude):
 
 def run(name, system, state, dt, n):
     for _ in range(n):
-        state, _ = INTEGRATORS[name](system, state, dt, max_iterations=None, rtol=1e-12)
+        state, _ = SCHEMES[name].model_step(system, state, dt, max_iterations=None, rtol=1e-12)
     return state
 
 
@@ -70,7 +71,7 @@ def test_newmark_conserves_the_energy_of_a_linear_vibration():
     e0 = _energy(model, s)
     dev = 0.0
     for _ in range(1000):
-        s, _ = INTEGRATORS["newmark"](system, s, 0.01, max_iterations=None, rtol=1e-12)
+        s, _ = SCHEMES["newmark"].model_step(system, s, 0.01, max_iterations=None, rtol=1e-12)
         dev = max(dev, abs(_energy(model, s) - e0))
     print("relative deviation", dev / e0)
     assert dev < 1e-8 * e0
@@ -84,7 +85,7 @@ def test_newmark_energy_stays_bounded_at_large_amplitude():
     e0 = _energy(model, s)
     es = []
     for _ in range(1000):
-        s, _ = INTEGRATORS["newmark"](system, s, 0.01, max_iterations=None, rtol=1e-12)
+        s, _ = SCHEMES["newmark"].model_step(system, s, 0.01, max_iterations=None, rtol=1e-12)
         es.append(_energy(model, s))
     assert np.abs(s.q - model.X).max() > 0.3  # large amplitude
     drift = np.abs(np.array(es) - e0).max() / e0
@@ -118,7 +119,7 @@ def test_static_equals_the_linear_elastic_solution():
     """``static`` on the linear material = an independent scikit-fem assembly and solve."""
     model, system, fixed = bar(4, material="linear", E=1e6, gravity=G)
     u_ref = _skfem_static(model, fixed, G)
-    s, stats = INTEGRATORS["static"](system, State.at_rest(model), 1.0)
+    s, stats = SCHEMES["static"].model_step(system, State.at_rest(model), 1.0)
     err = np.abs(s.q - model.X - u_ref).max() / np.abs(u_ref).max()
     print("static vs scikit-fem, relative", err, "load increments", stats.load_increments)
     assert err < 1e-9
@@ -129,11 +130,11 @@ def test_static_falls_back_to_load_increments():
     """A load Newton cannot take in one go from rest (a soft Neo-Hookean bar under heavy
     gravity: it folds down) is applied in increments, reported in the step's statistics."""
     model, system, fixed = bar(4, E=1e4, gravity=G)
-    s, stats = INTEGRATORS["static"](system, State.at_rest(model), 1.0,
-                                     converged_max_iterations=10)
+    s, stats = SCHEMES["static"].model_step(system, State.at_rest(model), 1.0,
+                                            converged_max_iterations=10)
     print("load increments", stats.load_increments)
     assert stats.load_increments > 1
-    again, st2 = INTEGRATORS["static"](system, s, 1.0)  # the equilibrium: stays put
+    again, st2 = SCHEMES["static"].model_step(system, s, 1.0)  # the equilibrium: stays put
     assert np.abs(again.q - s.q).max() < 1e-8
 
 
@@ -165,7 +166,31 @@ def test_snapshot_restore_is_bit_exact(name):
         c.step()
     assert np.array_equal(a.q, c.q) and np.array_equal(a.v, c.v)
     if name in ("bdf2", "newmark"):
-        assert c.state.q_prev is not None or c.state.a is not None
+        assert c.state.history
+
+
+def test_a_checkpoint_in_the_older_layout_restores_through_the_scheme(tmp_path):
+    """Checkpoints written before the schemes owned their history hold all three history
+    arrays, the unused ones empty: read and restored through the scheme, a BDF2 run goes on
+    bit for bit; a checkpoint now holds only the scheme's own history."""
+    from fem3d.io.checkpoint import RunCheckpoint, load_run_checkpoint, save_run_checkpoint
+
+    a = Simulation(_box_scene("bdf2"))
+    for _ in range(10):
+        a.step()
+    b = Simulation(_box_scene("bdf2"))
+    for _ in range(5):
+        b.step()
+    snap = dict(b.snapshot())
+    assert {k for k in snap if k.startswith("history_")} == {"history_q_prev", "history_v_prev"}
+    snap["history_a"] = np.zeros(0)  # the older writer's empty slot
+    save_run_checkpoint(tmp_path / "c.npz", RunCheckpoint({}, snap, np.zeros((6, 4))))
+    c = Simulation(_box_scene("bdf2"))
+    c.restore(load_run_checkpoint(tmp_path / "c.npz").snapshot)
+    assert set(c.state.history) == {"q_prev", "v_prev"}
+    for _ in range(5):
+        c.step()
+    assert np.array_equal(a.q, c.q) and np.array_equal(a.v, c.v)
 
 
 def test_old_snapshots_without_history_still_restore():
@@ -173,7 +198,7 @@ def test_old_snapshots_without_history_still_restore():
     sim.step()
     snap = {k: v for k, v in sim.snapshot().items() if not k.startswith("history_")}
     sim.restore(snap)
-    assert sim.state.q_prev is None
+    assert "q_prev" not in sim.state.history
     sim.step()  # a backward-Euler start-up step
 
 
@@ -184,7 +209,7 @@ def test_unknown_integrator_is_one_line_listing_the_valid_ones(capsys, tmp_path)
                    "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert status == 2 and "\n" not in err
-    for n in INTEGRATORS:
+    for n in SCHEMES:
         assert n in err
 
 
@@ -249,8 +274,8 @@ def test_frictionless_collision_conserves_momentum(name):
 
     p0 = momentum(state)
     for _ in range(40):
-        state, stats = INTEGRATORS[name](system, state, 0.002, terms=[term],
-                                         max_iterations=None)
+        state, stats = SCHEMES[name].model_step(system, state, 0.002, terms=[term],
+                                                max_iterations=None)
         assert stats.converged
     assert not cm.has_intersections(state.q.reshape(-1))
     mean_vx = [float(state.v[ids == b, 0].mean()) for b in (0, 1)]

@@ -438,17 +438,17 @@ def test_user_sequence(viewer: Any, tmp_path: Path, capfd: Any) -> None:
                 faults.check(viewer, "the drag on the skinned mesh")
 
                 # N cycles through the dynamic integrators and comes back to the first
-                from fem3d.solve.integrators import DYNAMIC_INTEGRATORS
+                from fem3d.solve.schemes.registry import dynamic_scheme_names
 
                 integ0 = viewer.snapshot()["integrator"]
                 seen = [integ0]
-                for _ in range(len(DYNAMIC_INTEGRATORS) - 1):
+                for _ in range(len(dynamic_scheme_names()) - 1):
                     page.keyboard.press(_hotkey("integrator"))
                     wait_for(lambda seen=seen: viewer.snapshot()["integrator"] != seen[-1], 20,
                              "N")
                     seen.append(viewer.snapshot()["integrator"])
                     _keeps_updating(log, f"N to {seen[-1]}")
-                assert sorted(seen) == sorted(DYNAMIC_INTEGRATORS), seen
+                assert sorted(seen) == sorted(dynamic_scheme_names()), seen
                 page.keyboard.press(_hotkey("integrator"))
                 wait_for(lambda: viewer.snapshot()["integrator"] == integ0, 20, "N again")
                 _keeps_updating(log, "N again")

@@ -67,6 +67,7 @@ from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 from fem3d.solve.linear.registry import linear_solver_names
+from fem3d.solve.schemes.registry import scheme_names
 
 __all__ = ["main", "build_parser", "scene_from_args", "parse_assignments", "SUBCOMMANDS",
            "RUN_FLAGS"]
@@ -126,7 +127,7 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     p.add_argument("scene", help="bunny | arma | other name in data/scenes | FILE.toml | a tet "
                    "mesh (.mesh, .node/.ele, .msh, ...) or closed surface (.obj, .stl, ...)")
     p.add_argument("--integrator", default=None, metavar="NAME",
-                   help="linear | implicit | bdf2 | newmark | static (simulation.integrator; "
+                   help=f"{' | '.join(scheme_names())} (simulation.integrator; "
                    "docs/integrators.md)")
     p.add_argument("--steps", type=int, default=None,
                    help="number of time steps (simulation.steps; default the scene's, else 100)")

@@ -4,7 +4,7 @@
 Each step solves ``g(u; q_n, v_n, p) = 0`` over the free velocities (``u``: the full
 velocity, the pinned DOFs' part ``w = (p_{n+1} - q_n[F]) / dt`` prescribed by the pins'
 positions ``p_{n+1}``; ``g``: the gradient of backward Euler's objective,
-:mod:`fem3d.solve.backward_euler`)::
+:mod:`fem3d.solve.schemes.implicit`)::
 
     g = P [M (u - v_n) + dt dV/dq(q_n + dt u) - dt M g_grav + dt D(q_n) u]
 
@@ -79,7 +79,7 @@ from fem3d.scene.arrays import select_vertices
 from fem3d.scene.build import Built, build
 from fem3d.scene.load import apply_overrides
 from fem3d.scene.spec import Scene
-from fem3d.solve.backward_euler import model_terms
+from fem3d.solve.schemes.base import model_terms
 from fem3d.solve.state import State
 from fem3d.solve.system import System
 

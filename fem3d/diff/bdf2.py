@@ -1,6 +1,6 @@
-"""The adjoint of ``simulation.integrator = "bdf2"`` (:mod:`fem3d.solve.bdf2`).
+"""The adjoint of BDF2 (:mod:`fem3d.solve.schemes.bdf2`).
 
-A BDF2 step from a state with history (``q_{n-1}``, ``v_{n-1}``: :attr:`State.q_prev`,
+A BDF2 step from a state with history (``q_{n-1}``, ``v_{n-1}``: its history's ``q_prev``,
 ``v_prev``) is backward Euler's step equation with ``h = 2 dt / 3``,
 ``q_B = (4 q_n - q_{n-1}) / 3``, ``v_hat = (4 v_n - v_{n-1}) / 3`` (the pins at ``p_{n+1}``
 with the secant velocity ``(p_{n+1} - q_n[F]) / dt``); the first step (no history) is a
@@ -15,8 +15,8 @@ is ``q_{n+1} - q_n``: the contact term's ``q_B`` and ``q_t`` products
 
 from __future__ import annotations
 
-from fem3d.diff.schemes import SchemeAdjoint, StepLin, converged_settings, register_scheme
-from fem3d.solve.bdf2 import bdf2
+from fem3d.diff.schemes import SchemeAdjoint, StepLin, register_scheme
+from fem3d.solve.schemes.bdf2 import BDF2
 
 __all__ = ["BDF2Adjoint"]
 
@@ -24,20 +24,16 @@ __all__ = ["BDF2Adjoint"]
 class BDF2Adjoint(SchemeAdjoint):
     """BDF2 (see the module docstring)."""
 
-    name = "bdf2"
+    scheme = BDF2()
     contact = True
 
-    def forward(self, run, state, terms):
-        return bdf2(run.system, terms, state, run.dt,
-                    fixed_positions=run.fixed_positions(state.t + run.dt),
-                    max_iterations=None, **converged_settings(run))
-
     def linear(self, s0, dt):
-        if s0.q_prev is None:  # the start-up step: backward Euler
+        if "q_prev" not in s0.history:  # the start-up step: backward Euler
             return super().linear(s0, dt)
         q, v = s0.q.reshape(-1), s0.v.reshape(-1)
-        return StepLin(h=2.0 * dt / 3.0, tau=dt, qb=(4.0 * q - s0.q_prev.reshape(-1)) / 3.0,
-                       vh=(4.0 * v - s0.v_prev.reshape(-1)) / 3.0)
+        q_prev, v_prev = s0.history["q_prev"].reshape(-1), s0.history["v_prev"].reshape(-1)
+        return StepLin(h=2.0 * dt / 3.0, tau=dt, qb=(4.0 * q - q_prev) / 3.0,
+                       vh=(4.0 * v - v_prev) / 3.0)
 
     def split(self, s0, s1, bar1, fixed):
         bar0 = self.zero(s0)
@@ -46,7 +42,7 @@ class BDF2Adjoint(SchemeAdjoint):
         return bar1["q"], bar1["v"], bar0
 
     def pull_back(self, s0, lin, bar0, qb_bar, vh_bar):
-        if s0.q_prev is None:
+        if "q_prev" not in s0.history:
             super().pull_back(s0, lin, bar0, qb_bar, vh_bar)
             return
         bar0["q"] += 4.0 / 3.0 * qb_bar

@@ -228,7 +228,7 @@ class ContactAdjoint(AdjointTerm):
     def start_force_vjp(self, q0: np.ndarray, t0: float, lf: np.ndarray,
                         grads: Gradients) -> np.ndarray:
         """The contact's part of an initial acceleration ``M a_0 = f(q_0)`` (Newmark's, as
-        :func:`fem3d.solve.newmark.initial_acceleration` takes it before the first step: the
+        :func:`fem3d.solve.schemes.newmark.initial_acceleration` takes it before the first step: the
         barrier ``kappa grad B(q_0)`` at the stiffness then, the friction not lagged yet, so
         zero): ``-lf^T d/dq_0`` of it, ``(3n,)``, and ``-lf^T d/d kappa`` into ``grads``."""
         cm = self.cm

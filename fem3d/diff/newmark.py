@@ -1,4 +1,4 @@
-"""The adjoint of ``simulation.integrator = "newmark"`` (:mod:`fem3d.solve.newmark`).
+"""The adjoint of Newmark (:mod:`fem3d.solve.schemes.newmark`).
 
 A step is backward Euler's step equation with ``h = gamma dt``, ``q_B = q_n + (1 - gamma) dt
 v_n + (1/2 - gamma) dt^2 a_n``, ``v_hat = v_n + (1 - gamma) dt a_n`` (``beta = gamma^2``);
@@ -6,31 +6,29 @@ after it ``a_{n+1} = (v_{n+1} - v_hat) / (gamma dt)`` on the free DOFs and
 ``(v_{n+1} - v_n) / dt`` on the pinned ones. Without contact ``gamma = 1/2`` (average
 acceleration: ``h = dt / 2``, ``q_B = q_n + dt/2 v_n``, ``v_hat = v_n + dt/2 a_n``,
 ``a_{n+1} = 2 (v_{n+1} - v_n) / dt - a_n``); with contact (IPC's barrier among the terms)
-``gamma = 1/2 +`` :data:`fem3d.solve.newmark.CONTACT_ALPHA`, as the forward step picks it
-(:func:`fem3d.solve.newmark.newmark_gamma`); the friction is lagged at ``q_n`` with the slip
+``gamma = 1/2 +`` :data:`fem3d.solve.schemes.newmark.CONTACT_ALPHA`, as the forward step picks it
+(:func:`fem3d.solve.schemes.newmark.newmark_gamma`); the friction is lagged at ``q_n`` with the slip
 ``q_{n+1} - q_n`` (:class:`fem3d.diff.contact.ContactAdjoint`'s ``q_B`` and ``q_t``
 products).
 
-The state carries ``a``; the first state's ``a_0`` solves ``M a_0 + g(q_0, v_0) = 0`` on the
-free DOFs (:func:`fem3d.solve.newmark.initial_acceleration`: elasticity at ``q_0``,
-gravity, damping ``D(q_0) v_0``), whose adjoint :meth:`NewmarkAdjoint.finish` adds: one
-solve with the mass matrix, the same terms at ``h = 1``, and, with contact, the barrier's
-force at ``q_0`` where a pair is within ``dhat`` there (as ``fem3d run``'s ``a_0``: the
-stiffness before the first step, the friction not yet lagged:
-:meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
+The state carries ``a`` (its history); the first state's ``a_0`` solves ``M a_0 + g(q_0,
+v_0) = 0`` on the free DOFs (:func:`fem3d.solve.schemes.newmark.initial_acceleration`:
+elasticity at ``q_0``, gravity, damping ``D(q_0) v_0``), whose adjoint
+:meth:`NewmarkAdjoint.finish` adds: one solve with the mass matrix, the same terms at ``h =
+1``, and, with contact, the barrier's force at ``q_0`` where a pair is within ``dhat`` there
+(as ``fem3d run``'s ``a_0``: the stiffness before the first step, the friction not yet
+lagged: :meth:`fem3d.diff.contact.ContactAdjoint.start_force_vjp`).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from fem3d.diff.schemes import SchemeAdjoint, StepLin, converged_settings, register_scheme
+from fem3d.diff.schemes import SchemeAdjoint, StepLin, register_scheme
 from fem3d.diff.terms import StepPair, sparse_of
-from fem3d.solve.backward_euler import model_terms
-from fem3d.solve.newmark import initial_acceleration, newmark, newmark_gamma
+from fem3d.solve.schemes.base import model_terms
+from fem3d.solve.schemes.newmark import Newmark, initial_acceleration, newmark_gamma
 
 __all__ = ["NewmarkAdjoint"]
 
@@ -45,7 +43,7 @@ class NewmarkAdjoint(SchemeAdjoint):
         contact's ``gamma`` into a contact run.
     """
 
-    name = "newmark"
+    scheme = Newmark()
     contact = True
 
     def __init__(self, gamma: float = 0.5) -> None:
@@ -60,17 +58,12 @@ class NewmarkAdjoint(SchemeAdjoint):
         gamma = newmark_gamma(terms)
         if gamma != self.gamma:
             run.scheme = NewmarkAdjoint(gamma)
-        return replace(state, a=initial_acceleration(run.system, terms, state, run.dt))
-
-    def forward(self, run, state, terms):
-        return newmark(run.system, terms, state, run.dt,
-                       fixed_positions=run.fixed_positions(state.t + run.dt),
-                       max_iterations=None, **converged_settings(run))
+        return state.with_history(a=initial_acceleration(run.system, terms, state, run.dt))
 
     def linear(self, s0, dt):
-        q, v, a = s0.q.reshape(-1), s0.v.reshape(-1), s0.a.reshape(-1)
+        q, v, a = s0.q.reshape(-1), s0.v.reshape(-1), s0.history["a"].reshape(-1)
         g = self.gamma
-        if g == 0.5:  # as fem3d.solve.newmark computes it (bit for bit)
+        if g == 0.5:  # as fem3d.solve.schemes.newmark computes it (bit for bit)
             return StepLin(h=0.5 * dt, tau=dt, qb=q + 0.5 * dt * v, vh=v + 0.5 * dt * a)
         return StepLin(h=g * dt, tau=dt,
                        qb=q + ((1.0 - g) * dt * v + (0.5 - g) * dt * dt * a),
@@ -101,7 +94,7 @@ class NewmarkAdjoint(SchemeAdjoint):
         a_bar = bar0["a"]
         if not np.any(a_bar[adj.free]):
             return
-        q, v, a = s0.q.reshape(-1), s0.v.reshape(-1), s0.a.reshape(-1)
+        q, v, a = s0.q.reshape(-1), s0.v.reshape(-1), s0.history["a"].reshape(-1)
         lf = np.zeros(q.size)
         lf[adj.free] = spla.spsolve(adj.run.system.mass_free.tocsc(), a_bar[adj.free])
         pair = StepPair(q0=q, v0=v, q1=q, u=v, dt=adj.dt, t1=s0.t, t0=s0.t, step=s0.step,

@@ -13,12 +13,16 @@ The adjoint's core (terms, one transposed solve, the pins) is the same for every
 linear`), and their adjoint: the cotangents of ``(q_{n+1}, v_{n+1})`` from the state's
 after the step (:meth:`~SchemeAdjoint.split`), the state's before the step from those of
 ``q_B`` and ``v_hat`` (:meth:`~SchemeAdjoint.pull_back`). A state's cotangent is a dict of
-flat arrays by :class:`~fem3d.solve.state.State` field (``q``, ``v``, and ``q_prev``,
-``v_prev``, ``a`` where the scheme's state carries them).
+flat arrays by name: ``q``, ``v`` and the state's history (:attr:`State.history
+<fem3d.solve.state.State.history>`: ``q_prev``, ``v_prev``, ``a`` where the scheme's state
+carries them).
 
-:func:`register_scheme` adds a scheme by its ``simulation.integrator`` name: backward Euler
-here, ``static`` (:mod:`fem3d.diff.static`), ``bdf2`` (:mod:`fem3d.diff.bdf2`) and
-``newmark`` (:mod:`fem3d.diff.newmark`).
+A :class:`SchemeAdjoint` is the adjoint hook of one scheme object of
+:mod:`fem3d.solve.schemes` (its :attr:`~SchemeAdjoint.scheme`; the forward step is that
+scheme's own :meth:`~fem3d.solve.schemes.base.Scheme.step`): :func:`register_scheme` adds it
+under the scheme's name: backward Euler here, static (:mod:`fem3d.diff.static`), BDF2
+(:mod:`fem3d.diff.bdf2`) and Newmark (:mod:`fem3d.diff.newmark`). The schemes of the
+registry without one are refused by name.
 """
 
 from __future__ import annotations
@@ -27,7 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fem3d.solve.backward_euler import backward_euler, newton_options
+from fem3d.solve.schemes.base import Scheme
+from fem3d.solve.schemes.implicit import IMPLICIT
+from fem3d.solve.settings import NewtonSettings
 from fem3d.solve.state import State, StepStats
 
 __all__ = ["StepLin", "SchemeAdjoint", "BackwardEulerAdjoint", "register_scheme", "SCHEMES",
@@ -48,13 +54,21 @@ class StepLin:
 class SchemeAdjoint:
     """An integrator as the adjoint sees it (see the module docstring)."""
 
-    #: ``simulation.integrator``
-    name = ""
-    #: inertia and Rayleigh damping in the step, ``v_{n+1} = u`` (False: static)
-    dynamic = True
+    #: the forward scheme (:mod:`fem3d.solve.schemes`)
+    scheme: Scheme = IMPLICIT
     #: whether registered terms (contact) may join its steps (every scheme here: the contact
     #: term reads the step map's ``h``, ``q_B`` and the step's start ``q_t`` apart)
     contact = False
+
+    @property
+    def name(self) -> str:
+        """``simulation.integrator``: the scheme's name."""
+        return self.scheme.name
+
+    @property
+    def dynamic(self) -> bool:
+        """Inertia and Rayleigh damping in the step, ``v_{n+1} = u`` (False: static)."""
+        return self.scheme.dynamic
 
     def start(self, run, state: State) -> State:
         """The first state as the scheme's steps read it (default: ``state``). Called once
@@ -66,8 +80,10 @@ class SchemeAdjoint:
         """Pull the first state's cotangent back through :meth:`start` (default: nothing)."""
 
     def forward(self, run, state: State, terms: list) -> tuple[State, StepStats]:
-        """One step from ``state`` with the objective ``terms``, Newton run to convergence."""
-        raise NotImplementedError
+        """One step from ``state`` with the objective ``terms``, Newton run to convergence
+        (:func:`converged_settings`)."""
+        return self.scheme.step(run.system, terms, state, run.dt, converged_settings(run),
+                                fixed_positions=run.fixed_positions(state.t + run.dt))
 
     def linear(self, s0: State, dt: float) -> StepLin:
         """The step's ``h``, ``tau``, ``q_B``, ``v_hat`` from the state before it."""
@@ -75,8 +91,7 @@ class SchemeAdjoint:
 
     def zero(self, s: State) -> dict:
         """A zero cotangent of ``s``."""
-        return {f: np.zeros(s.q.size) for f in ("q", "v", "q_prev", "v_prev", "a")
-                if getattr(s, f) is not None}
+        return {f: np.zeros(s.q.size) for f in ("q", "v", *s.history)}
 
     def split(self, s0: State, s1: State, bar1: dict, fixed: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -92,32 +107,28 @@ class SchemeAdjoint:
         bar0["v"] += vh_bar
 
 
-def converged_settings(run) -> dict:
-    """The forward step's Newton settings: to ``run.rtol``, exact Hessian, direct solver."""
-    return dict(rtol=run.rtol, atol_factor=run.atol_factor, linear_solver="direct",
-                options=newton_options("exact"))
+def converged_settings(run) -> NewtonSettings:
+    """The forward step's Newton settings: to ``run.rtol``, no iteration cap, exact Hessian,
+    direct solver."""
+    return NewtonSettings(max_iterations=None, rtol=run.rtol, atol_factor=run.atol_factor)
 
 
 class BackwardEulerAdjoint(SchemeAdjoint):
-    """``simulation.integrator = "implicit"``: ``h = tau = dt``, ``q_B = q_n``,
-    ``v_hat = v_n``."""
+    """Backward Euler (:data:`fem3d.solve.schemes.implicit.IMPLICIT`): ``h = tau = dt``,
+    ``q_B = q_n``, ``v_hat = v_n``."""
 
-    name = "implicit"
+    scheme = IMPLICIT
     contact = True
 
-    def forward(self, run, state, terms):
-        return backward_euler(run.system, terms, state, run.dt,
-                              fixed_positions=run.fixed_positions(state.t + run.dt),
-                              max_iterations=None, **converged_settings(run))
 
-
-#: The schemes by ``simulation.integrator`` name.
+#: The adjoints by ``simulation.integrator`` name (the schemes' registry's names).
 SCHEMES: dict[str, SchemeAdjoint] = {}
 
 
-def register_scheme(scheme: SchemeAdjoint) -> None:
-    """Make ``scheme`` the adjoint of ``simulation.integrator = scheme.name``."""
-    SCHEMES[scheme.name] = scheme
+def register_scheme(adjoint: SchemeAdjoint) -> None:
+    """Make ``adjoint`` the adjoint of its scheme (``simulation.integrator =
+    adjoint.scheme.name``)."""
+    SCHEMES[adjoint.name] = adjoint
 
 
 register_scheme(BackwardEulerAdjoint())

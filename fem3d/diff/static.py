@@ -1,4 +1,4 @@
-"""The adjoint of ``simulation.integrator = "static"`` (:mod:`fem3d.solve.static`).
+"""The adjoint of the static scheme (:mod:`fem3d.solve.schemes.static`, :mod:`fem3d.solve.static`).
 
 A static step is the equilibrium ``P [dV/dq(q_{n+1}) - M g_grav] = 0`` at the pins'
 end-of-step positions ``p_{n+1}``, ``q_{n+1} = q_n + x`` (``h = 1``, ``q_B = q_n``); no
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from fem3d.diff.schemes import SchemeAdjoint, StepLin, converged_settings, register_scheme
-from fem3d.solve.static import static
+from fem3d.solve.schemes.static import Static
 
 __all__ = ["StaticAdjoint"]
 
@@ -26,14 +26,14 @@ __all__ = ["StaticAdjoint"]
 class StaticAdjoint(SchemeAdjoint):
     """``h = tau = 1``, ``q_B = q_n`` (the pins' ``w = p - q_n[F]``: a displacement)."""
 
-    name = "static"
-    dynamic = False
+    scheme = Static()
     contact = True
 
     def forward(self, run, state, terms):
-        return static(run.system, terms, state, run.dt,
-                      fixed_positions=run.fixed_positions(state.t + run.dt),
-                      converged_max_iterations=200, **converged_settings(run))
+        return self.scheme.step(
+            run.system, terms, state, run.dt,
+            converged_settings(run).with_(converged_max_iterations=200),
+            fixed_positions=run.fixed_positions(state.t + run.dt))
 
     def linear(self, s0, dt):
         return StepLin(h=1.0, tau=1.0, qb=s0.q.reshape(-1), vh=None)

@@ -11,8 +11,10 @@ holds
 * the simulation state of :meth:`fem3d.simulation.Simulation.snapshot`: positions ``q`` and
   velocities ``v`` ``(n, 3) float64``, time, step index, the scripted pulls' state (which
   are attached, the springs) and the energy put in so far (the linearly-implicit runaway
-  bound), and the multi-step schemes' history (BDF2's previous state, Newmark's
-  acceleration; empty for one-step schemes and in checkpoints written before 0.3);
+  bound), and the scheme's history (``history_<name>``, whatever the scheme saves through
+  :meth:`fem3d.solve.schemes.base.Scheme.save_history`: BDF2's previous state, Newmark's
+  acceleration; none for one-step schemes and in checkpoints written before 0.3; empty
+  arrays in those written before the schemes were objects);
 * ``settings``: ``scene`` - the whole scene (:meth:`fem3d.scene.spec.Scene.to_dict`: every path
   absolute, the target step count in ``simulation.steps``), so ``fem3d resume DIR`` needs
   nothing else - and the run's own options: ``kernels`` and ``solver`` (the resolved back
@@ -148,11 +150,12 @@ CHECKPOINT_NAME = "checkpoint.npz"
 _KIND = "fem3d-run"
 _SNAPSHOT_SCALARS = ("t", "step", "injected")
 _SNAPSHOT_ARRAYS = ("q", "v", "pull_vertices", "pull_targets", "pull_k", "preconditioner",
-                    "script_active", "contact", "pattern_keys", "history_q_prev",
-                    "history_v_prev", "history_a")
+                    "script_active", "contact", "pattern_keys")
 #: Snapshot arrays that older checkpoints do not have (restored as empty).
-_SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys", "history_q_prev",
-                      "history_v_prev", "history_a")
+_SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys")
+#: The prefix of the scheme's history arrays in a snapshot (``history_<name>``), saved as
+#: they come, whatever their names.
+_HISTORY = "history_"
 
 
 def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:
@@ -203,6 +206,8 @@ def save_run_checkpoint(path: PathLike, ckpt: RunCheckpoint) -> Path:
     snap = ckpt.snapshot
     steps = sorted(ckpt.frames)
     arrays = {f"state_{k}": np.asarray(snap[k]) for k in _SNAPSHOT_ARRAYS}
+    arrays.update({f"state_{k}": np.asarray(a) for k, a in snap.items()
+                   if k.startswith(_HISTORY)})
     scalars = {k: snap[k] for k in _SNAPSHOT_SCALARS}
     return save_checkpoint(
         path,
@@ -240,6 +245,8 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
             if k in _SNAPSHOT_OPTIONAL and f"state_{k}" not in d:
                 continue  # checkpoints written before that state existed
             snap[k] = np.array(d[f"state_{k}"])
+        snap.update({k[len("state_"):]: np.array(a) for k, a in d.items()
+                     if k.startswith(f"state_{_HISTORY}")})
         energy = np.asarray(d["energy"], dtype=np.float64)
         steps = [int(s) for s in np.asarray(d["frame_steps"]).reshape(-1)]
         times = [float(t) for t in np.asarray(d["frame_times"]).reshape(-1)]

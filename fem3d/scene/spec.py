@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -70,6 +71,7 @@ from fem3d.io.files import check_input_file
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
 from fem3d.solve.linear.registry import linear_solver_names
+from fem3d.solve.schemes.registry import DEFAULT_SCHEME, SCHEMES, get_scheme
 
 __all__ = [
     "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
@@ -92,6 +94,20 @@ NonNegative = Annotated[StrictFloat, Field(ge=0)]
 Index = Annotated[StrictInt, Field(ge=0)]
 #: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
+
+
+def _registered_scheme(name: str) -> str:
+    """``name`` when a scheme of that name is registered (read when a scene is checked, so a
+    scheme registered after import, by a plug-in or a test, is accepted)."""
+    if name not in SCHEMES:
+        raise ValueError(f"unknown integrator {name!r}; choose one of {', '.join(SCHEMES)}")
+    return name
+
+
+#: ``simulation.integrator``'s choices: the registered schemes
+#: (:mod:`fem3d.solve.schemes.registry`; the JSON Schema lists those registered when printed).
+IntegratorName = Annotated[StrictStr, AfterValidator(_registered_scheme), Field(
+    json_schema_extra=lambda schema: schema.update(enum=list(SCHEMES)))]
 
 
 class _Spec(BaseModel):
@@ -321,7 +337,7 @@ class NewtonSpec(_Spec):
 class SimulationSpec(_Spec):
     """Time stepping."""
 
-    integrator: Literal["linear", "implicit", "bdf2", "newmark", "static"] = "implicit"
+    integrator: IntegratorName = DEFAULT_SCHEME
     dt: Positive = 0.01
     steps: Annotated[StrictInt, Field(ge=0)] | None = None
     duration: NonNegative | None = None
@@ -345,13 +361,16 @@ class SimulationSpec(_Spec):
         if self.cholmod != "auto" and self.linear_solver not in ("auto", "cholmod"):
             raise ValueError(f"cholmod = {self.cholmod!r} applies to linear_solver = 'cholmod' "
                              f"(or 'auto'), not {self.linear_solver!r}")
-        if self.newton.warm_start != "previous" and self.integrator != "implicit":
+        scheme = get_scheme(self.integrator)
+        if self.newton.warm_start != "previous" and not scheme.warm_starts:
+            warm = " or ".join(repr(n) for n, s in SCHEMES.items() if s.warm_starts)
             raise ValueError(f"newton.warm_start = {self.newton.warm_start!r} applies to "
-                             f"integrator = 'implicit' only, not {self.integrator!r}")
-        if self.newton.line_search != "backtrack" and self.integrator == "linear":
+                             f"integrator = {warm} only, not {self.integrator!r}")
+        if self.newton.line_search != "backtrack" and not scheme.minimises:
+            newton = ", ".join(repr(n) for n, s in SCHEMES.items() if s.minimises)
             raise ValueError(f"newton.line_search = {self.newton.line_search!r} needs a Newton "
-                             "solve (integrator = 'implicit', 'bdf2', 'newmark' or 'static'); "
-                             "the linearly-implicit scheme has no line search")
+                             f"solve (integrator = {newton}); the {scheme.label} scheme has no "
+                             "line search")
         return self
 
     @property

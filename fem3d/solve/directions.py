@@ -29,20 +29,15 @@ from fem3d.errors import SimulationError
 from fem3d.solve.linear import NotPositiveDefinite
 from fem3d.solve.linear.krylov import PreconditionedCG, iterations_per_decade
 from fem3d.solve.objective import Objective
+from fem3d.solve.settings import AMG_ITERATIONS_PER_DECADE, FORCING_MAX, NewtonSettings
 from fem3d.solve.state import StepStats
 from fem3d.solve.system import SHIFT_LADDER_GROWTH, SHIFT_LADDER_START, System
 
-__all__ = ["NewtonProgress", "NewtonOptions", "DirectDirection", "ReuseDirection",
+__all__ = ["NewtonProgress", "DirectDirection", "ReuseDirection",
            "AMGDirection", "DIRECTIONS", "forcing_term", "eisenstat_walker",
            "AMG_ITERATIONS_PER_DECADE", "FORCING_MAX", "AMG_MATRIX_REUSE_FACTOR",
            "REUSE_FORCING_MAX", "REUSE_LAG_FRACTION"]
 
-#: ``"amg"``: rebuild the hierarchy when a solve needs more CG iterations than this per decade
-#: of residual reduction (a fresh hierarchy needs about 3-4 on the swinging box; a setup costs
-#: about 15 iterations).
-AMG_ITERATIONS_PER_DECADE = 8.0
-#: ``"amg"``: the loosest forcing term (relative CG residual) of the inexact Newton.
-FORCING_MAX = 0.1
 #: ``"amg"``: an iteration solves with the previous iteration's Newton matrix (no assembly)
 #: when that iteration cut ``|g|`` by a factor below this fraction of the forcing term: the
 #: Hessian's change is then far below the residual CG is asked for.
@@ -55,21 +50,6 @@ REUSE_FORCING_MAX = 0.1
 #: assembly) when the gradient that lagging is estimated to leave is below this fraction of
 #: the tolerance.
 REUSE_LAG_FRACTION = 0.1
-
-
-@dataclass(frozen=True)
-class NewtonOptions:
-    """How a step's Newton systems are solved and where Newton starts (see
-    :func:`fem3d.solve.backward_euler.implicit_euler` for each option's meaning)."""
-
-    psd: bool = False
-    cg_rtol: float = 1e-6
-    cg_maxiter: int = 16
-    amg_maxiter: int = 200
-    amg_budget: float = AMG_ITERATIONS_PER_DECADE
-    forcing_max: float = FORCING_MAX
-    warm_start: str = "previous"
-    line_search: str = "backtrack"
 
 
 @dataclass
@@ -168,11 +148,11 @@ class NewtonDirection:
     stats : StepStats
         Counts and times are added to it.
     progress : NewtonProgress
-    options : NewtonOptions
+    options : NewtonSettings
     """
 
     def __init__(self, system: System, objective: Objective, stats: StepStats,
-                 progress: NewtonProgress, options: NewtonOptions) -> None:
+                 progress: NewtonProgress, options: NewtonSettings) -> None:
         self.system = system
         self.objective = objective
         self.stats = stats

@@ -1,28 +1,29 @@
-"""Newton's method with a backtracking (Armijo) line search, on any objective."""
+"""Newton's method with a backtracking (Armijo) line search, on any objective.
+
+:func:`newtons_method` is the loop; one iteration (:func:`_iterate`) finds the direction,
+asks the hooks (:class:`NewtonHooks`: a step limit such as CCD, a stopping rule, a changed
+objective) and takes the step either at round-off (:func:`_roundoff_step`) or through the
+line search (:class:`LineSearch`); the iterate and its counters live in :class:`_Newton`.
+"""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from fem3d.errors import SimulationError
+from fem3d.solve.settings import LINE_SEARCHES
 
-__all__ = ["NewtonResult", "newtons_method", "gradient_norm", "ROUNDOFF_GRADIENT_FACTOR",
-           "LINE_SEARCHES", "PARABOLIC_TRIALS"]
+__all__ = ["NewtonResult", "newtons_method", "gradient_norm", "LineSearch", "NewtonHooks",
+           "ROUNDOFF_GRADIENT_FACTOR", "LINE_SEARCHES", "PARABOLIC_TRIALS"]
 
 #: With ``roundoff_rtol``: a failed full step with ``||g||`` under this many tolerances is
 #: round-off (measured floors on the swinging box: 10-20 tolerances).
 ROUNDOFF_GRADIENT_FACTOR = 1e3
 
-#: The line searches of :func:`newtons_method`: ``"backtrack"`` accepts the first trial of
-#: ``a0, a0 p, a0 p^2, ...`` that passes Armijo's test; ``"parabolic"`` does the same and then,
-#: when that took a halving, moves the accepted step to the minimum of the parabola through
-#: the energies at the bracket ``0 < a < a / p`` (at most :data:`PARABOLIC_TRIALS` more
-#: energy evaluations, each kept only where it lowers the energy).
-LINE_SEARCHES = ("backtrack", "parabolic")
 #: ``"parabolic"``: the most extra energy evaluations per line search.
 PARABOLIC_TRIALS = 2
 
@@ -67,6 +68,138 @@ def gradient_norm(g: np.ndarray) -> float:
 
 
 
+
+@dataclass(frozen=True)
+class LineSearch:
+    """The line search of :func:`newtons_method` and its round-off rules.
+
+    Attributes
+    ----------
+    alpha, p, c : float
+        Initial step, shrink factor and Armijo constant: accept ``x + a d`` when
+        ``E(x + a d) <= E(x) + c a g.d``; otherwise ``a *= p``.
+    max_halvings : int
+        Trials before giving up.
+    decrement_rtol : float
+        When the Newton decrement ``-g.d`` is below ``decrement_rtol (|E(x)| +
+        energy_scale)`` the decrease left is at the objective's round-off, where Armijo tests
+        are noise: the full step is then taken if it is admissible and reduces ``||g||``;
+        otherwise Newton stops (converged at round-off).
+    energy_scale : float
+        The magnitude of the objective's summands when it is a sum of terms that cancel (an
+        elastic energy near rest sums element energies whose own round-off is relative to
+        ``E vol``, not to their tiny total); 0: ``|E(x)|`` alone sets the round-off.
+    roundoff_rtol : float
+        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
+        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
+        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
+        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance (where a step changes the energy by
+        less than its round-off, which scales with its terms rather than with ``|E|``), accept
+        it whenever it is finite and reduces ``||g||``, or else stop (converged at round-off)
+        rather than halve through noise. 0: plain backtracking.
+    kind : {"backtrack", "parabolic"}
+        :data:`LINE_SEARCHES`. ``"parabolic"`` pays off where the energy's curvature jumps
+        along ``d`` (lagged friction, small ``eps_v``: a full step carries a slip far past
+        the static zone; the halving that passes Armijo is far from the minimum along ``d``).
+    """
+
+    alpha: float = 1.0
+    p: float = 0.5
+    c: float = 1e-8
+    max_halvings: int = 30
+    decrement_rtol: float = 1e-14
+    energy_scale: float = 0.0
+    roundoff_rtol: float = 0.0
+    kind: str = "backtrack"
+
+    def __post_init__(self) -> None:
+        if self.kind not in LINE_SEARCHES:
+            raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
+                             f"{self.kind!r}")
+
+    @property
+    def refine(self) -> int:
+        """The parabolic refinement's trials (0: none)."""
+        return PARABOLIC_TRIALS if self.kind == "parabolic" else 0
+
+    def at_roundoff(self, slope: float, fx: float) -> bool:
+        """Whether the predicted decrease ``-slope`` is below the objective's round-off."""
+        return -slope <= self.decrement_rtol * (abs(fx) + self.energy_scale)
+
+
+@dataclass(frozen=True)
+class NewtonHooks:
+    """What the objective tells :func:`newtons_method` beyond its energy and gradient.
+
+    Attributes
+    ----------
+    on_no_step : callable ``(x, d)`` or None
+        Called when every trial point was inadmissible (``+inf``); expected to raise. When it
+        is None or returns, Newton stops at the current ``x``.
+    max_step : callable ``(x, d) -> float`` or None
+        Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
+        the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
+        A non-positive value stops Newton at ``x`` (not converged).
+    converged_step : callable ``(x, d) -> bool`` or None
+        A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
+        from the second iteration on and not on the gradient fallback (``-g`` says nothing
+        of the step to the minimum): True stops Newton at ``x``, converged.
+    accept_first_step : bool
+        Judge the first direction too: one that passes is taken and ends the solve unless
+        ``after_step`` changes the objective there (False: the second is judged).
+    after_step : callable ``(x) -> bool`` or None
+        Called at every accepted iterate; True means the objective itself changed there
+        (IPC's adaptive barrier stiffness), so its value is re-evaluated.
+    """
+
+    on_no_step: Callable[[np.ndarray, np.ndarray], None] | None = None
+    max_step: Callable[[np.ndarray, np.ndarray], float] | None = None
+    converged_step: Callable[[np.ndarray, np.ndarray], bool] | None = None
+    accept_first_step: bool = False
+    after_step: Callable[[np.ndarray], bool] | None = None
+
+    def last_step(self, x: np.ndarray, d: np.ndarray, newton_step: bool, it: int) -> bool:
+        """Whether the stopping rule ends the solve at (iteration ``it > 0``) or after
+        (the first, with ``accept_first_step``) the step ``d``."""
+        return self.converged_step is not None and newton_step and \
+            (it > 0 or self.accept_first_step) and self.converged_step(x, d)
+
+
+@dataclass
+class _Newton:
+    """One solve's iterate ``x`` (energy ``fx``, gradient ``g``, ``||g|| = gn``), its
+    tolerance and counters."""
+
+    energy: Callable[[np.ndarray], float]
+    gradient: Callable[[np.ndarray], np.ndarray]
+    x: np.ndarray
+    fx: float
+    g: np.ndarray
+    gn: float
+    tol: float
+    norms: list[float] = field(default_factory=list)
+    halvings: int = 0
+    it: int = 0
+
+    @classmethod
+    def start(cls, x0, energy, gradient, f0: float | None, rtol: float, atol: float) -> _Newton:
+        x = np.array(x0, dtype=np.float64)
+        fx = energy(x) if f0 is None else float(f0)
+        g = gradient(x)
+        gn = gradient_norm(g)
+        return cls(energy, gradient, x, fx, g, gn, max(atol, rtol * gn), [gn])
+
+    def accept(self, x: np.ndarray, fx: float, g: np.ndarray, gn: float | None = None) -> None:
+        """Move to ``x``: one iteration more."""
+        self.x, self.fx, self.g = x, fx, g
+        self.gn = gradient_norm(g) if gn is None else gn
+        self.norms.append(self.gn)
+        self.it += 1
+
+    def result(self, converged: bool) -> NewtonResult:
+        return NewtonResult(self.x, self.it, self.norms, converged, self.halvings)
+
+
 def newtons_method(
     x0: np.ndarray,
     energy: Callable[[np.ndarray], float],
@@ -101,57 +234,19 @@ def newtons_method(
         Objective; ``+inf`` marks an inadmissible point (e.g. an inverted tet).
     gradient : callable ``(N,) -> (N,)``
     newton_direction : callable ``(x, g) -> d``
-        Solves ``H(x) d = -g`` with an SPD (possibly shifted) Hessian.
+        Solves ``H(x) d = -g`` with an SPD (possibly shifted) Hessian; a ``d`` that is not a
+        finite descent direction is replaced by ``-g``.
     max_iterations : int or None, optional
         Cap on Newton steps (default 5, the assignment's); None: no cap (stops at tolerance
         or round-off).
     rtol, atol : float, optional
         Stop when ``||g|| <= max(atol, rtol ||g(x0)||)``.
-    alpha, p, c : float, optional
-        Initial step, shrink factor and Armijo constant: accept ``x + a d`` when
-        ``E(x + a d) <= E(x) + c a g.d``; otherwise ``a *= p``.
-    max_halvings : int, optional
-        Line-search trials before giving up.
-    decrement_rtol : float, optional
-        When the Newton decrement ``-g.d`` is below ``decrement_rtol (|E(x)| +
-        energy_scale)`` the decrease left is at the objective's round-off, where Armijo tests
-        are noise: the full step is then taken if it is admissible and reduces ``||g||``;
-        otherwise Newton stops (converged at round-off).
-    energy_scale : float, optional
-        The magnitude of the objective's summands when it is a sum of terms that cancel (an
-        elastic energy near rest sums element energies whose own round-off is relative to
-        ``E vol``, not to their tiny total); default 0: ``|E(x)|`` alone sets the round-off.
-    on_no_step : callable ``(x, d)``, optional
-        Called when every trial point was inadmissible (``+inf``); expected to raise. When it
-        is None or returns, Newton stops at the current ``x``.
-    max_step : callable ``(x, d) -> float``, optional
-        Largest admissible step fraction along ``d`` (e.g. continuous collision detection);
-        the line search starts at ``min(alpha, max_step(x, d))`` and backtracks from there.
-        A non-positive value stops Newton at ``x`` (not converged).
-    converged_step : callable ``(x, d) -> bool``, optional
-        A further stopping rule on the Newton direction (IPC's velocity-based tolerance),
-        from the second iteration on and not on the gradient fallback (``-g`` says nothing
-        of the step to the minimum): True stops Newton at ``x``, converged.
-    accept_first_step : bool, optional
-        Judge the first direction too: one that passes is taken and ends the solve unless
-        ``after_step`` changes the objective there (default False: the second is judged).
-    after_step : callable ``(x) -> bool``, optional
-        Called at every accepted iterate; True means the objective itself changed there
-        (IPC's adaptive barrier stiffness), so its value is re-evaluated.
-    roundoff_rtol : float, optional
-        ``> 0``: when the full (clamped) step fails the Armijo test but raises the energy by
-        at most ``roundoff_rtol |E|`` (round-off for an inexact Newton direction near the
-        solution), accept it if it reduces ``||g||``; and when ``||g||`` is already within
-        :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance (where a step changes the energy by
-        less than its round-off, which scales with its terms rather than with ``|E|``), accept
-        it whenever it is finite and reduces ``||g||``, or else stop (converged at round-off)
-        rather than halve through noise. 0 (default): plain backtracking.
+    alpha, p, c, max_halvings, decrement_rtol, energy_scale, roundoff_rtol, line_search
+        The line search (:class:`LineSearch`; ``line_search`` is its ``kind``).
+    on_no_step, max_step, converged_step, accept_first_step, after_step
+        The objective's hooks (:class:`NewtonHooks`).
     f0 : float, optional
         ``energy(x0)`` when the caller has it already (saves one evaluation).
-    line_search : {"backtrack", "parabolic"}, optional
-        :data:`LINE_SEARCHES`. ``"parabolic"`` pays off where the energy's curvature jumps
-        along ``d`` (lagged friction, small ``eps_v``: a full step carries a slip far past
-        the static zone; the halving that passes Armijo is far from the minimum along ``d``).
 
     Returns
     -------
@@ -159,73 +254,61 @@ def newtons_method(
         A line search that finds only finite, non-decreasing trial points means round-off
         has been reached: Newton stops there and reports ``converged=True``.
     """
-    refine = _parabolic_trials(line_search)
-    x = np.array(x0, dtype=np.float64)
-    fx = energy(x) if f0 is None else float(f0)
-    g = gradient(x)
-    gn = gradient_norm(g)
-    norms = [gn]
-    tol = max(atol, rtol * gn)
-    halvings = 0
-    it = 0
-    while max_iterations is None or it < max_iterations:
-        if gn <= tol:
-            return NewtonResult(x, it, norms, True, halvings)
-        d = newton_direction(x, g)
-        slope = float(g @ d)
-        newton_step = slope < 0 and np.isfinite(d).all()
-        if not newton_step:  # not a descent direction: fall back
-            d, slope = -g, -gn * gn
-        # the rule stops Newton at x; a first direction that passes is taken, then stops it
-        last = converged_step is not None and newton_step and \
-            (it > 0 or accept_first_step) and converged_step(x, d)
-        if last and it > 0:
-            return NewtonResult(x, it, norms, True, halvings)
-        a0 = alpha
-        if max_step is not None:
-            a0 = min(alpha, float(max_step(x, d)))
-            if not a0 > 0.0:
-                return NewtonResult(x, it, norms, False, halvings)
-        if -slope <= decrement_rtol * (abs(fx) + energy_scale):
-            # The predicted decrease is below the objective's round-off, so Armijo tests are
-            # noise: take the full step while it is admissible and shrinks the gradient.
-            taken = _roundoff_step(x, d, a0, gn, energy, gradient)
-            if taken is None:
-                return NewtonResult(x, it, norms, True, halvings)
-            x, fx, g, gn = taken
-            norms.append(gn)
-            it += 1
-            if last:
-                return NewtonResult(x, it, norms, True, halvings)
-            continue
-        search = _backtrack(x, fx, gn, d, slope, a0, energy, gradient, p=p, c=c,
-                            max_halvings=max_halvings, roundoff_rtol=roundoff_rtol,
-                            end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * tol, refine=refine)
-        halvings += search.halvings
-        if search.outcome != "accepted":  # round-off (converged, any_finite) or failed
-            if not search.any_finite and on_no_step is not None:
-                on_no_step(x, d)
-            return NewtonResult(x, it, norms, search.any_finite, halvings)
-        x, fx, gt = search.x, search.f, search.g
-        if after_step is not None and after_step(x):
-            fx = energy(x)  # the objective changed at x (barrier stiffness)
-            gt, last = None, False
-        g = gradient(x) if gt is None else gt
-        gn = gradient_norm(g)
-        norms.append(gn)
-        it += 1
-        if last:
-            return NewtonResult(x, it, norms, True, halvings)
-    return NewtonResult(x, it, norms, gn <= tol, halvings)
+    search = LineSearch(alpha, p, c, max_halvings, decrement_rtol, energy_scale,
+                        roundoff_rtol, line_search)
+    hooks = NewtonHooks(on_no_step, max_step, converged_step, accept_first_step, after_step)
+    run = _Newton.start(x0, energy, gradient, f0, rtol, atol)
+    while max_iterations is None or run.it < max_iterations:
+        stop = _iterate(run, newton_direction, search, hooks)
+        if stop is not None:
+            return run.result(stop)
+    return run.result(run.gn <= run.tol)
 
 
-def _parabolic_trials(line_search: str) -> int:
-    """The parabolic refinement's trials of ``line_search`` (:data:`LINE_SEARCHES`)."""
-    if line_search not in LINE_SEARCHES:
-        raise ValueError(f"line_search must be one of {', '.join(LINE_SEARCHES)}, got "
-                         f"{line_search!r}")
-    return PARABOLIC_TRIALS if line_search == "parabolic" else 0
-
+def _iterate(run: _Newton, newton_direction, search: LineSearch,
+             hooks: NewtonHooks) -> bool | None:
+    """One Newton iteration from ``run``'s iterate: None to go on, or whether Newton
+    converged where it stops."""
+    if run.gn <= run.tol:
+        return True
+    x, g, gn = run.x, run.g, run.gn
+    d = newton_direction(x, g)
+    slope = float(g @ d)
+    newton_step = slope < 0 and np.isfinite(d).all()
+    if not newton_step:  # not a descent direction: fall back
+        d, slope = -g, -gn * gn
+    # the rule stops Newton at x; a first direction that passes is taken, then stops it
+    last = hooks.last_step(x, d, newton_step, run.it)
+    if last and run.it > 0:
+        return True
+    a0 = search.alpha
+    if hooks.max_step is not None:
+        a0 = min(search.alpha, float(hooks.max_step(x, d)))
+        if not a0 > 0.0:
+            return False
+    if search.at_roundoff(slope, run.fx):
+        # The predicted decrease is below the objective's round-off, so Armijo tests are
+        # noise: take the full step while it is admissible and shrinks the gradient.
+        taken = _roundoff_step(x, d, a0, gn, run.energy, run.gradient)
+        if taken is None:
+            return True
+        run.accept(*taken)
+        return True if last else None
+    found = _backtrack(x, run.fx, gn, d, slope, a0, run.energy, run.gradient, p=search.p,
+                       c=search.c, max_halvings=search.max_halvings,
+                       roundoff_rtol=search.roundoff_rtol,
+                       end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * run.tol, refine=search.refine)
+    run.halvings += found.halvings
+    if found.outcome != "accepted":  # round-off (converged, any_finite) or failed
+        if not found.any_finite and hooks.on_no_step is not None:
+            hooks.on_no_step(x, d)
+        return found.any_finite
+    x, fx, gt = found.x, found.f, found.g
+    if hooks.after_step is not None and hooks.after_step(x):
+        fx = run.energy(x)  # the objective changed at x (barrier stiffness)
+        gt, last = None, False
+    run.accept(x, fx, run.gradient(x) if gt is None else gt)
+    return True if last else None
 
 def _roundoff_step(x: np.ndarray, d: np.ndarray, a0: float, gn: float,
                    energy: Callable[[np.ndarray], float],

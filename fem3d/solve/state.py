@@ -5,7 +5,8 @@ A state is immutable (:class:`State`); an integrator is ``step(...) -> (State, S
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,20 +31,23 @@ class State:
         Time.
     step : int
         Number of steps taken to get here.
-    q_prev, v_prev : (n, 3) float64 or None
-        Positions and velocities one step earlier (BDF2's history; None: no history, the
-        next BDF2 step is a backward-Euler start-up step).
-    a : (n, 3) float64 or None
-        Acceleration (Newmark's; None: the next Newmark step computes ``M a = f(q)``).
+    history : mapping of str to (n, 3) float64
+        What the scheme that made the state carries to its next step, by name, never changed
+        once made (:attr:`fem3d.solve.schemes.base.Scheme.history`: BDF2's ``q_prev``,
+        ``v_prev``, the positions and velocities one step earlier; Newmark's acceleration
+        ``a``). A name absent: no history (the scheme starts afresh: BDF2 with a
+        backward-Euler step).
     """
 
     q: np.ndarray
     v: np.ndarray
     t: float = 0.0
     step: int = 0
-    q_prev: np.ndarray | None = None
-    v_prev: np.ndarray | None = None
-    a: np.ndarray | None = None
+    history: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    def with_history(self, **history: np.ndarray) -> State:
+        """The same instant with ``history`` (and nothing else) as its history."""
+        return replace(self, history=history)
 
     @classmethod
     def at_rest(cls, model: Model) -> State:

@@ -31,9 +31,9 @@ import numpy as np
 from fem3d.errors import SimulationError
 from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import Term, as_term
-from fem3d.solve.backward_euler import check_linear_solver, minimise_step
-from fem3d.solve.directions import NewtonOptions
+from fem3d.solve.minimise import minimise_step
 from fem3d.solve.objective import Objective
+from fem3d.solve.settings import NewtonSettings
 from fem3d.solve.state import State, StepStats, check_finite
 from fem3d.solve.step_maps import affine_step_map, end_positions
 from fem3d.solve.system import System
@@ -65,20 +65,16 @@ def static(
     terms: Sequence,
     state: State,
     dt: float,
+    settings: NewtonSettings,
     *,
     fixed_positions: np.ndarray | None = None,
-    max_iterations: int | None = None,
-    rtol: float = 1e-10,
-    atol_factor: float = 1e-12,
-    linear_solver: str = "direct",
-    options: NewtonOptions | None = None,
     converged_max_iterations: int = 50,
 ) -> tuple[State, StepStats]:
     """The equilibrium at ``t + dt`` (see the module docstring).
 
-    Parameters and returns as in :func:`fem3d.solve.backward_euler.backward_euler`, but
-    Newton runs to convergence (at most ``converged_max_iterations`` per solve; the scene's
-    iteration cap is a dynamic scheme's). ``dt`` is the load path's step.
+    Parameters and returns as in :meth:`fem3d.solve.schemes.base.Scheme.step`, but Newton
+    runs to convergence (at most ``converged_max_iterations`` per solve; the settings'
+    ``max_iterations`` is a dynamic scheme's). ``dt`` is the load path's step.
 
     Raises
     ------
@@ -86,8 +82,7 @@ def static(
         Newton failed on the smallest load increment.
     """
     dt = validate_dt(dt)
-    options = NewtonOptions() if options is None else options
-    linear_solver = check_linear_solver(system, linear_solver)
+    settings = settings.with_(max_iterations=converged_max_iterations)
     p = end_positions(system, state, fixed_positions)
     p_n = state.q[system.constraints.fixed_vertices]
     terms = [t for t in map(as_term, terms) if not (t.inertial or t.dissipative)]
@@ -104,10 +99,8 @@ def static(
         step = _with_start(step, x_start)
         try:
             x, stats = minimise_step(
-                system, step_terms, state, step, max_iterations=converged_max_iterations,
-                rtol=rtol, atol_factor=atol_factor, linear_solver=linear_solver,
-                options=options, converged_max_iterations=converged_max_iterations,
-                scheme="static")
+                system, step_terms, state, step, settings,
+                converged_max_iterations=converged_max_iterations, scheme="static")
         except SimulationError:
             return None
         _merge(total, stats)

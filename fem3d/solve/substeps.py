@@ -22,11 +22,12 @@ it is not free, when Newton stopped on its iteration cap, or when the step raise
   at the substep times); without it, they move on the straight line from where they are to
   ``fixed_positions``.
 * **Schemes.** Backward Euler and Newmark (whose history, the acceleration ``a``, does not
-  depend on the step size) chain their substeps. A state's ``q_prev`` / ``v_prev`` is the
-  state one step earlier (BDF2's history, backward Euler's extrapolated warm start): the
-  first substep starts without it (BDF2's backward-Euler start-up step), the later ones use
-  the previous substep, and the state after the substeps carries the step's start as its
-  history again, one ``dt`` earlier, as the next whole step expects. ``static`` is not
+  depend on the step size) chain their substeps. History that is the state one step earlier
+  (a scheme's ``previous_state``: BDF2's, backward Euler's extrapolated warm start) is
+  dropped for the first substep (BDF2's backward-Euler start-up step), the later ones use
+  the previous substep, and the state after the substeps carries the step's start as that
+  history again, one ``dt`` earlier, as the next whole step expects
+  (``Scheme.begin_substeps``, ``end_substeps``). ``static`` is not
   substepped (its load steps are its own).
 * **Cap.** At ``max_substeps`` (a power of two): a straight motion that still meets a
   surface raises :class:`SimulationError`; so does a :class:`SimulationError` of the finest
@@ -53,8 +54,6 @@ __all__ = ["step_with_substeps", "check_max_substeps", "path_checked_terms", "me
 
 #: The largest ``max_substeps`` accepted (substeps of ``dt / 1024``).
 MAX_SUBSTEPS_LIMIT = 1024
-
-Scheme = Callable[..., tuple[State, StepStats]]
 
 #: StepStats counters summed over every attempt and substep.
 _SUMMED = ("newton_iterations", "line_search_halvings", "shifted_factorizations",
@@ -100,24 +99,24 @@ def merge_stats(parts: Sequence[StepStats], accepted: Sequence[StepStats],
 
 
 def step_with_substeps(
-    scheme: Scheme,
+    scheme,
     system,
     terms: Sequence,
     state: State,
     dt: float,
+    settings,
     *,
     max_substeps: int = 1,
     fixed_positions: np.ndarray | None = None,
     fixed_at: Callable[[float], np.ndarray | None] | None = None,
-    **settings,
 ) -> tuple[State, StepStats]:
     """One step of ``scheme``, redone in substeps where needed (see the module docstring).
 
     Parameters
     ----------
-    scheme : callable
-        ``scheme(system, terms, state, dt, *, fixed_positions, **settings)``: one of
-        :data:`fem3d.solve.integrators.TERM_INTEGRATORS` (not ``static``).
+    scheme : fem3d.solve.schemes.base.Scheme
+        Its ``step(system, terms, state, dt, settings, *, fixed_positions)`` takes each
+        (sub)step; its ``begin_substeps`` / ``end_substeps`` keep its history one step back.
     system : System
     terms : sequence of Term
     state : State
@@ -128,8 +127,7 @@ def step_with_substeps(
         The fixed vertices at the end of the step (None: they stay).
     fixed_at : callable, optional
         ``t -> (n_fixed, 3)`` (or None): the fixed vertices at a substep's end time.
-    **settings
-        Passed to ``scheme``.
+    settings : NewtonSettings
 
     Returns
     -------
@@ -144,7 +142,7 @@ def step_with_substeps(
     max_substeps = check_max_substeps(max_substeps)
     checked = path_checked_terms(terms)
     if max_substeps == 1 or not checked:
-        return scheme(system, terms, state, dt, fixed_positions=fixed_positions, **settings)
+        return scheme.step(system, terms, state, dt, settings, fixed_positions=fixed_positions)
     kept = [t for t in checked if callable(getattr(t, "state_array", None))]
     at_start = [t.state_array() for t in kept]
     pins = _pins(system, state, dt, fixed_positions, fixed_at)
@@ -203,8 +201,8 @@ def _attempt(scheme, system, terms, state: State, dt: float, n: int, pins, check
     string ``"path"`` (a straight motion meets a surface) or the SimulationError raised."""
     if n == 1:  # exactly the call without substeps
         try:
-            new, stats = scheme(system, terms, state, dt, fixed_positions=fixed_positions,
-                                **settings)
+            new, stats = scheme.step(system, terms, state, dt, settings,
+                                     fixed_positions=fixed_positions)
         except SimulationError as exc:
             return None, [], exc
         free = all(t.straight_path_is_free(state.q, new.q, state.t, state.t + dt)
@@ -212,20 +210,19 @@ def _attempt(scheme, system, terms, state: State, dt: float, n: int, pins, check
         return new, [stats], None if free else "path"
     h = dt / n
     parts: list[StepStats] = []
-    current = dataclasses.replace(state, q_prev=None, v_prev=None)
+    current = scheme.begin_substeps(state)
     for k in range(n):
         t0 = state.t + dt * k / n
         t1 = state.t + dt if k == n - 1 else state.t + dt * (k + 1) / n
         start = dataclasses.replace(current, t=t0, step=state.step)
         try:
-            new, stats = scheme(system, terms, start, h, fixed_positions=pins(k + 1, n),
-                                **settings)
+            new, stats = scheme.step(system, terms, start, h, settings,
+                                     fixed_positions=pins(k + 1, n))
         except SimulationError as exc:
             return None, parts, exc
         parts.append(stats)
         if not all(t.straight_path_is_free(start.q, new.q, t0, t1) for t in checked):
             return None, parts, "path"
         current = new
-    history = {} if current.q_prev is None else {"q_prev": state.q, "v_prev": state.v}
-    return dataclasses.replace(current, t=state.t + dt, step=state.step + 1,
-                               **history), parts, None
+    current = scheme.end_substeps(state, current)
+    return dataclasses.replace(current, t=state.t + dt, step=state.step + 1), parts, None

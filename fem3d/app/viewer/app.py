@@ -443,11 +443,9 @@ class Viewer:
 
     def _error_text(self, error: str) -> str:
         hint = ""
-        if self._state.integrator == "linear":
-            hint = (
-                " (the linearly-implicit integrator is unstable here:"
-                " press N for backward Euler)"
-            )
+        scheme = self._state.sim.scheme
+        if not scheme.minimises:  # no line search: nothing keeps its energy down
+            hint = f" (the {scheme.label} integrator is unstable here: press N for another)"
         return (
             f"{error}. The viewer paused at the last good step; press R (Reset) to restart"
             f"{hint}."

@@ -30,7 +30,7 @@ from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.scene import apply_overrides, material_names
 from fem3d.scene.load import SCENES, load_scene
 from fem3d.simulation import Simulation
-from fem3d.solve.integrators import DYNAMIC_INTEGRATORS
+from fem3d.solve.schemes.registry import SCHEMES, dynamic_scheme_names
 
 __all__ = [
     "ENERGY_PLOTS",
@@ -50,9 +50,7 @@ __all__ = [
     "spring_segments",
 ]
 
-INTEGRATOR_LABELS = {"linear": "linearly-implicit Euler", "implicit": "backward Euler",
-                     "bdf2": "BDF2", "newmark": "Newmark (average acceleration)",
-                     "static": "static equilibrium"}
+INTEGRATOR_LABELS = {name: s.label for name, s in SCHEMES.items()}
 MESH_MODE_LABELS = {"skin": "skinned display mesh", "sim": "simulation mesh"}
 
 #: Hotkeys. S is not used: viser's camera moves with W/A/S/D (and Q/E), so the mesh
@@ -685,16 +683,16 @@ class ViewerState:
             self.mesh_mode = "sim" if self.mesh_mode == "skin" else "skin"
 
     def toggle_integrator(self) -> None:
-        """Cycle through the dynamic integrators (:data:`DYNAMIC_INTEGRATORS`: linear,
-        implicit, BDF2, Newmark), skipping the linearly-implicit one in a contact scene.
+        """Cycle through the dynamic schemes of the registry (:func:`dynamic_scheme_names`:
+        linear, implicit, BDF2, Newmark), skipping those without contact in a contact scene.
 
         Raises
         ------
         Fem3dError
             The simulation refuses.
         """
-        names = [n for n in DYNAMIC_INTEGRATORS
-                 if not (n == "linear" and getattr(self.sim, "contact", None) is not None)]
+        contact = getattr(self.sim, "contact", None) is not None
+        names = [n for n in dynamic_scheme_names() if SCHEMES[n].contact or not contact]
         now = self.integrator
         new = names[(names.index(now) + 1) % len(names)] if now in names else names[0]
         self.sim.integrator = new

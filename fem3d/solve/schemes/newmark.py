@@ -13,7 +13,7 @@ run logs) is conserved to the solver's tolerance; on a nonlinear one it stays bo
 Rayleigh damping enters as ``h/2 x^T D x``, so the damping force is averaged over the step
 like the others (``D`` at the start of the step).
 
-The state carries ``a``. A state without it (the first step, a changed integrator, a
+The state carries ``a`` in its history. A state without it (the first step, a changed integrator, a
 :meth:`~fem3d.simulation.Simulation.set_state`) gets ``a_0`` from ``M a_0 = f(q_0, v_0)``:
 one solve with the mass matrix on the free DOFs; the fixed DOFs' acceleration is zero. Pins
 move with the secant velocity ``(p - q_n) / dt`` and the backward-difference acceleration.
@@ -37,15 +37,13 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import NewtonPolicy, StepMap, as_term
-from fem3d.solve.backward_euler import check_linear_solver, minimise_step
-from fem3d.solve.directions import NewtonOptions
-from fem3d.solve.state import State, StepStats, check_finite
+from fem3d.solve.schemes.base import Scheme, Step
+from fem3d.solve.state import State
 from fem3d.solve.step_maps import affine_step_map, end_positions, fixed_dofs
 from fem3d.solve.system import System
 
-__all__ = ["newmark", "initial_acceleration", "newmark_gamma", "CONTACT_ALPHA"]
+__all__ = ["Newmark", "initial_acceleration", "newmark_gamma", "CONTACT_ALPHA"]
 
 #: Newmark with contact: ``gamma = 1/2 + CONTACT_ALPHA``, ``beta = gamma^2``; spectral radius
 #: 0.914 at ``omega dt -> inf``, 0.9998 at ``omega dt = 0.1``. On the bunny drop (150 steps)
@@ -97,50 +95,43 @@ def initial_acceleration(system: System, terms: Sequence, state: State, dt: floa
     return a.reshape(-1, 3)
 
 
-def newmark(
-    system: System,
-    terms: Sequence,
-    state: State,
-    dt: float,
-    *,
-    fixed_positions: np.ndarray | None = None,
-    max_iterations: int | None = 5,
-    rtol: float = 1e-10,
-    atol_factor: float = 1e-12,
-    linear_solver: str = "direct",
-    options: NewtonOptions | None = None,
-    converged_max_iterations: int = 100,
-) -> tuple[State, StepStats]:
-    """One Newmark (average acceleration) step minimising the sum of ``terms``.
+class Newmark(Scheme):
+    """Newmark, average acceleration (see the module docstring); its states carry the
+    acceleration ``a``."""
 
-    Parameters and returns as in :func:`fem3d.solve.backward_euler.backward_euler`; the
-    returned state carries the acceleration ``a``.
-    """
-    dt = validate_dt(dt)
-    options = NewtonOptions() if options is None else options
-    linear_solver = check_linear_solver(system, linear_solver)
-    p = end_positions(system, state, fixed_positions)
-    a_n = state.a if state.a is not None else initial_acceleration(system, terms, state, dt)
-    a_n = a_n.reshape(-1)
-    v_n = state.v.reshape(-1)
-    gamma = newmark_gamma(terms)
-    if gamma == 0.5:  # average acceleration
-        h = 0.5 * dt
-        offset, v_hat = h * v_n, v_n + h * a_n
-    else:  # beta = gamma^2 (module docstring)
-        h = gamma * dt
-        offset = (1.0 - gamma) * dt * v_n + (0.5 - gamma) * dt * dt * a_n
-        v_hat = v_n + (1.0 - gamma) * dt * a_n
-    step = affine_step_map(system, state, dt, p, h=h, offset=offset, v_hat=v_hat)
-    x, stats = minimise_step(
-        system, terms, state, step, max_iterations=max_iterations, rtol=rtol,
-        atol_factor=atol_factor, linear_solver=linear_solver, options=options,
-        converged_max_iterations=converged_max_iterations, scheme="Newmark")
-    q = step.positions(x).reshape(-1, 3)
-    v = step.velocity(x)
-    a = (v - v_n) / h - a_n if gamma == 0.5 else (v - v_hat) / h
-    fd = fixed_dofs(system)
-    a[fd] = (v[fd] - v_n[fd]) / dt
-    check_finite(q, v, state.step, "Newmark")
-    return State(q=q, v=v.reshape(-1, 3), t=state.t + dt, step=state.step + 1,
-                 a=a.reshape(-1, 3)), stats
+    name = "newmark"
+    label = "Newmark"
+    history = ("a",)
+
+    def prepare(self, system, terms, state, dt, fixed_positions, settings) -> Step:
+        """``h = gamma dt``, ``q_base``, ``v_hat`` from ``q_n``, ``v_n``, ``a_n`` (``a_n``
+        from ``M a = f`` where the state has none)."""
+        p = end_positions(system, state, fixed_positions)
+        a_n = state.history.get("a")
+        if a_n is None:
+            a_n = initial_acceleration(system, terms, state, dt)
+        a_n = a_n.reshape(-1)
+        v_n = state.v.reshape(-1)
+        gamma = newmark_gamma(terms)
+        if gamma == 0.5:  # average acceleration
+            h = 0.5 * dt
+            offset, v_hat = h * v_n, v_n + h * a_n
+        else:  # beta = gamma^2 (module docstring)
+            h = gamma * dt
+            offset = (1.0 - gamma) * dt * v_n + (0.5 - gamma) * dt * dt * a_n
+            v_hat = v_n + (1.0 - gamma) * dt * a_n
+        step = affine_step_map(system, state, dt, p, h=h, offset=offset, v_hat=v_hat)
+        return Step(step, data={"a_n": a_n, "v_hat": v_hat, "gamma": gamma})
+
+    def finish(self, system, state, step, x, settings) -> State:
+        """``a_{n+1}`` from ``v_{n+1}`` (the pins': the backward difference)."""
+        a_n, v_hat, gamma = step.data["a_n"], step.data["v_hat"], step.data["gamma"]
+        h, dt = step.map.h, step.map.dt
+        v_n = state.v.reshape(-1)
+        q = step.map.positions(x).reshape(-1, 3)
+        v = step.map.velocity(x)
+        a = (v - v_n) / h - a_n if gamma == 0.5 else (v - v_hat) / h
+        fd = fixed_dofs(system)
+        a[fd] = (v[fd] - v_n[fd]) / dt
+        return State(q=q, v=v.reshape(-1, 3), t=state.t + dt, step=state.step + 1,
+                     history={"a": a.reshape(-1, 3)})

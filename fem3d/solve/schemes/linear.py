@@ -6,6 +6,10 @@ their stiffness part of ``K`` (the whole force is linearised). The assignment's 
 linearises only the elastic force and adds the spring force explicitly; with the scenes'
 spring stiffness (``k dt^2`` far above a vertex mass) that explicit term alone makes the
 scheme explode on the first step of a scripted pull, on either mesh.
+
+As a scheme (:class:`LinearlyImplicit`) it takes the objective's terms like the others and
+linearises the model's own: the pull springs it finds among them, gravity and damping from
+the system's loads; a term it cannot linearise (contact) is refused.
 """
 
 from __future__ import annotations
@@ -24,6 +28,9 @@ from fem3d.physics.assembly import (
 )
 from fem3d.physics.model import validate_dt
 from fem3d.physics.springs import Pull
+from fem3d.physics.terms.base import as_term
+from fem3d.physics.terms.pull import PullSprings
+from fem3d.solve.schemes.base import Scheme
 from fem3d.solve.state import (
     State,
     StepStats,
@@ -34,7 +41,7 @@ from fem3d.solve.state import (
 )
 from fem3d.solve.system import System
 
-__all__ = ["linearly_implicit_euler"]
+__all__ = ["linearly_implicit_euler", "LinearlyImplicit"]
 
 
 def linearly_implicit_euler(
@@ -139,3 +146,30 @@ def linearly_implicit_euler(
             step=state.step,
         )
     return new, stats
+
+
+class LinearlyImplicit(Scheme):
+    """Linearly-implicit Euler (:func:`linearly_implicit_euler`): one linear solve, no line
+    search; the runaway guard ``energy_bound`` stands in for one."""
+
+    name = "linear"
+    label = "linearly-implicit Euler"
+    minimises = False
+    contact = False
+    substeps = False
+
+    def step(self, system, terms, state, dt, settings, *, fixed_positions=None,
+             energy_bound=None):
+        """One step of the model's terms among ``terms`` (the pull springs read from their
+        :class:`~fem3d.physics.terms.pull.PullSprings`); ``settings`` unused."""
+        own = {id(t) for t in (*system.model_terms(), *system.loads.terms())}
+        pull = None
+        for term in map(as_term, terms):
+            if isinstance(term, PullSprings):
+                pull = term.pull if pull is None else pull
+            elif id(term) not in own and term.active:
+                raise SimulationError(f"{self.label} linearises only the model's terms, not "
+                                      f"{term.name!r} (choose a minimising integrator)",
+                                      step=state.step)
+        return linearly_implicit_euler(system, state, dt, pull, energy_bound=energy_bound,
+                                       fixed_positions=fixed_positions)
