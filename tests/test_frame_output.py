@@ -25,7 +25,7 @@ from fem3d.app.cli import main
 from fem3d.app.run import run_scene
 from fem3d.errors import SimulationError
 from fem3d.io.framequeue import BackgroundWriter
-from fem3d.io.frames import FrameWriter, RawVtu, UsdWriter
+from fem3d.io.frames import NumberedFilesWriter, ObjWriter, RawVtu, UsdWriter, VtuWriter
 from fem3d.scene import apply_overrides, load_scene
 from tests.test_output import torus
 
@@ -52,7 +52,7 @@ def test_raw_vtu_reads_back_in_meshio(tmp_path):
 
     _, F = torus()
     frames = _frames(3)
-    fw = FrameWriter(tmp_path, F)  # the default: appended raw binary
+    fw = VtuWriter(tmp_path, F)  # the default: appended raw binary
     for k, V in enumerate(frames):
         fw.write(k, 0.01 * k, V, point_data={"speed": np.linalg.norm(V, axis=1)} if k == 2
                  else None)
@@ -65,7 +65,7 @@ def test_raw_vtu_reads_back_in_meshio(tmp_path):
     np.testing.assert_array_equal(meshio.read(fw.path_of(2)).point_data["speed"],
                                   np.linalg.norm(frames[2], axis=1))
     # the same positions as meshio's own (compressed) writer, the format used before
-    old = FrameWriter(tmp_path / "old", F, compression="zlib")
+    old = VtuWriter(tmp_path / "old", F, compression="zlib")
     old.write(1, 0.01, frames[1])
     np.testing.assert_array_equal(meshio.read(old.path_of(1)).points,
                                   meshio.read(fw.path_of(1)).points)
@@ -98,8 +98,12 @@ def test_raw_vtu_bytes_are_fixed():
 # ----------------------------------------------------------------------------- the thread
 
 
-class _SlowWriter(FrameWriter):
-    """A frame writer whose writes take a random while (thread timing varies)."""
+#: The numbered-file writers by format.
+_WRITERS: dict[str, type[NumberedFilesWriter]] = {"vtu": VtuWriter, "obj": ObjWriter}
+
+
+class _SlowWrites:
+    """Mixed into a frame writer: writes that take a random while (thread timing varies)."""
 
     def __init__(self, *args, seed: int = 0, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -110,15 +114,20 @@ class _SlowWriter(FrameWriter):
         return super().write(step_index, t, V, point_data)
 
 
+def _slow_writer(fmt: str, *args, seed: int) -> NumberedFilesWriter:
+    """A ``fmt`` writer with :class:`_SlowWrites`."""
+    return type(f"Slow_{fmt}", (_SlowWrites, _WRITERS[fmt]), {})(*args, seed=seed)
+
+
 @pytest.mark.parametrize("fmt", ["vtu", "obj"])
 def test_background_writer_same_bytes_whatever_the_timing(tmp_path, fmt):
     _, F = torus()
     frames = _frames(12)
-    direct = FrameWriter(tmp_path / "direct", F, fmt)
+    direct = _WRITERS[fmt](tmp_path / "direct", F)
     for k, V in enumerate(frames):
         direct.write(2 * k, 0.02 * k, V)
     for seed, depth in ((1, 1), (2, 3), (3, 64)):
-        bg = BackgroundWriter(_SlowWriter(tmp_path / f"bg{seed}", F, fmt, seed=seed),
+        bg = BackgroundWriter(_slow_writer(fmt, tmp_path / f"bg{seed}", F, seed=seed),
                               depth=depth, index_seconds=0.0)
         for k, V in enumerate(frames):
             bg.write(2 * k, 0.02 * k, V)
@@ -132,7 +141,7 @@ def test_background_writer_same_bytes_whatever_the_timing(tmp_path, fmt):
 
 def test_background_writer_copies_and_refuses_non_finite_at_once(tmp_path):
     V, F = torus()
-    bg = BackgroundWriter(FrameWriter(tmp_path, F))
+    bg = BackgroundWriter(VtuWriter(tmp_path, F))
     W = V.copy()
     bg.write(0, 0.0, W)
     W += 5.0  # changed after the call: the frame keeps what was given
@@ -150,8 +159,8 @@ def test_background_writer_copies_and_refuses_non_finite_at_once(tmp_path):
 
 def test_background_writer_error_surfaces_with_the_file_and_stops(tmp_path, monkeypatch):
     _, F = torus()
-    fw = FrameWriter(tmp_path, F)
-    real = FrameWriter.write
+    fw = VtuWriter(tmp_path, F)
+    real = VtuWriter.write
     calls = []
 
     def write(self, step_index, t, V, point_data=None):  # noqa: ANN001, ANN202
@@ -161,7 +170,7 @@ def test_background_writer_error_surfaces_with_the_file_and_stops(tmp_path, monk
                           str(self.path_of(step_index)))
         return real(self, step_index, t, V, point_data)
 
-    monkeypatch.setattr(FrameWriter, "write", write)
+    monkeypatch.setattr(VtuWriter, "write", write)
     bg = BackgroundWriter(fw, depth=64)
     frames = _frames(8)
     with pytest.raises(OSError) as exc:
@@ -181,7 +190,7 @@ def test_background_writer_waits_only_when_full(tmp_path):
     _, F = torus()
     gate = threading.Event()
 
-    class Gated(FrameWriter):
+    class Gated(VtuWriter):
         def write(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201
             gate.wait()
             return super().write(*args, **kwargs)

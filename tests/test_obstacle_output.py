@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fem3d.io.frames import FrameWriter, UsdWriter
+from fem3d.io.frames import UsdWriter, VtuWriter
 from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.io.preview import render_preview
 
@@ -88,7 +88,7 @@ def test_the_preview_draws_a_moving_mesh_obstacle_where_it_is(tmp_path) -> None:
 @pytest.mark.parametrize("compression", [None, "zlib"])
 def test_vtu_frames_hold_the_obstacles(tmp_path, compression) -> None:  # noqa: ANN001
     V, F = _box()
-    w = FrameWriter(tmp_path, F, "vtu", compression=compression,
+    w = VtuWriter(tmp_path, F, compression=compression,
                     obstacles=[_ground(), _ramp(moving=True)])
     for k in range(3):
         w.write(k, 0.1 * k, V + [0.0, -0.01 * k, 0.0])
@@ -116,7 +116,7 @@ def test_vtu_frames_hold_the_obstacles(tmp_path, compression) -> None:  # noqa: 
 
 def test_frames_without_obstacles_are_unchanged(tmp_path) -> None:  # noqa: ANN001
     V, F = _box()
-    w = FrameWriter(tmp_path, F, "vtu")
+    w = VtuWriter(tmp_path, F)
     w.write(0, 0.0, V)
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["frame_00000.vtu"]
     assert w.pvd_text().count("<DataSet") == 1

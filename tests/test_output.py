@@ -14,7 +14,7 @@ from fem3d.errors import InputError, SimulationError
 from fem3d.io.checkpoint import load_checkpoint, save_checkpoint
 from fem3d.io.energy import EnergyLog, read_energy_csv
 from fem3d.io.files import atomic_path, atomic_write
-from fem3d.io.frames import FrameWriter
+from fem3d.io.frames import ObjWriter, VtuWriter, make_frame_writer
 from fem3d.io.preview import _cluster_decimate, plot_energy, render_preview
 
 
@@ -94,7 +94,7 @@ def test_frame_writer_vtu_and_pvd(tmp_path, compression):
     import meshio
 
     V, F = torus()
-    fw = FrameWriter(tmp_path / "run", F, compression=compression)
+    fw = VtuWriter(tmp_path / "run", F, compression=compression)
     times = [0.0, 0.01, 0.02, 0.03]
     for k, t in enumerate(times):
         fw.write(k, t, V * (1 + k))
@@ -117,7 +117,7 @@ def test_frame_writer_vtu_and_pvd(tmp_path, compression):
 
 def test_frame_writer_refuses_non_finite(tmp_path):
     V, F = torus()
-    fw = FrameWriter(tmp_path, F)
+    fw = VtuWriter(tmp_path, F)
     fw.write(0, 0.0, V)
     pvd_before = (tmp_path / "frames.pvd").read_text()
     bad = V.copy()
@@ -133,12 +133,12 @@ def test_frame_writer_refuses_non_finite(tmp_path):
     with pytest.raises(ValueError):
         fw.write(1, 0.01, V[:10])  # faces reference missing vertices
     with pytest.raises(ValueError):
-        FrameWriter(tmp_path, F, fmt="stl")
+        make_frame_writer(tmp_path, F, "stl")
 
 
 def test_frame_writer_obj(tmp_path):
     V, F = torus(8, 6)
-    fw = FrameWriter(tmp_path, F, fmt="obj")
+    fw = ObjWriter(tmp_path, F)
     fw.write(7, 0.07, V)
     path = tmp_path / "frames" / "frame_00007.obj"
     assert _listing(tmp_path / "frames") == ["frame_00007.obj"]

@@ -275,10 +275,11 @@ def test_lock_is_released_after_a_run(tmp_path: Path) -> None:
 def test_disk_full_names_the_file_and_keeps_the_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import fem3d.io.frames as output
+    from fem3d.io.files import atomic_write
+    from fem3d.io.frames import NumberedFilesWriter
 
     out = tmp_path / "full"
-    real = output.FrameWriter.write
+    real = NumberedFilesWriter.write
     calls = {"n": 0}
 
     def write(self, step_index, t, V, point_data=None):  # noqa: ANN001, ANN202
@@ -291,10 +292,10 @@ def test_disk_full_names_the_file_and_keeps_the_checkpoint(
             p.write_bytes(b"partial")
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-        output.atomic_write(target, fill)
+        atomic_write(target, fill)
         raise AssertionError("unreachable")
 
-    monkeypatch.setattr(output.FrameWriter, "write", write)
+    monkeypatch.setattr(NumberedFilesWriter, "write", write)
     code = main(["run", ARMA, "--steps", "20", "--checkpoint-every", "3", "--out", str(out),
                  "--no-preview", "--quiet"])
     err = capsys.readouterr().err
