@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from fem3d.app.cli import main
 from fem3d.errors import InputError
 from fem3d.kernels.dispatch import geometry_kernels
-from fem3d.mesh import formats, textscan
+from fem3d.mesh import medit, textscan
 from fem3d.mesh.formats import read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, box_tet_mesh, validate_tet_mesh
 from fem3d.physics import pattern as pattern_module
@@ -82,8 +82,9 @@ def test_plain_medit_reader_gives_the_token_readers_arrays(tmp_path, shuffled_bo
     path = tmp_path / "box.mesh"
     write_tet_mesh(path, TetMesh(X, T))
     text = path.read_text()
-    plain = formats._read_medit_plain(path, text)
-    tokens = formats._read_medit_tokens(path, formats._Tokens(path, text=text))
+    plain = medit._read_medit_plain(path, text)
+    tokens = medit._read_medit_tokens(path, textscan.Tokens(path, text=text,
+                                                            keywords=medit.MEDIT_KEYWORDS))
     assert plain.keys() == tokens.keys()
     for key, (values, lines) in plain.items():
         assert values.dtype == tokens[key][0].dtype
