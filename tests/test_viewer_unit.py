@@ -773,10 +773,10 @@ mesh = {{ path = "{data / 'coarser_bunny.obj'}", transform = {{ scale = 0.001, t
 """)  # noqa: E501
     with Viewer(str(scene), port=0, realtime=False, mesh_mode="sim",
                 run_unwatched=True) as v:
-        wait_for(lambda: len(v._obstacle_handles) == 2 or None, 60, "the obstacles")
-        plane, mesh = v._obstacle_handles
+        wait_for(lambda: len(v._graph.obstacle_handles) == 2 or None, 60, "the obstacles")
+        plane, mesh = v._graph.obstacle_handles
         assert np.allclose(np.asarray(plane.vertices)[:, 1], 0.0)  # the floor
-        (grid,) = v._plane_grid_handles  # and its grid lines, just above it
+        (grid,) = v._graph.plane_grid_handles  # and its grid lines, just above it
         pts = np.asarray(grid.points).reshape(-1, 3)
         assert pts.shape[0] == 2 * 2 * 13 and np.ptp(pts[:, 1]) < 1e-9 and pts[0, 1] > 0
         assert np.ptp(pts[:, 0]) == pytest.approx(np.ptp(np.asarray(plane.vertices)[:, 0]))
