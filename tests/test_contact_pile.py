@@ -1,6 +1,6 @@
 """The contact pile (data/scenes/contact_pile.toml): 13 soft bodies in an open box.
 
-The whole pile (16,464 tets) is run to rest by ``python -m bench.pile_check`` (minutes; its
+The whole pile (16,464 tets) is run to rest by ``python -m bench.tools.pile_check`` (minutes; its
 figures are in docs/contact.md). Here, in seconds: the scene file meets its brief, its initial
 state is intersection-free and inside the box, and the pile's lower part (four blocks, an
 upright bunny on each, the board across their ears: the scene's bodies 0-8, built from the
@@ -18,7 +18,7 @@ import meshio
 import numpy as np
 import pytest
 
-from bench.pile_check import box_bounds, check_frames, rest_step
+from bench.tools.pile_check import box_bounds, check_frames, rest_step
 from fem3d.app.run import run_scene
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
@@ -28,7 +28,7 @@ SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
 #: blocks 1-4, bunnies 1-4 (upright on them), the board (across the bunnies' ears)
 COLUMNS = tuple(range(9))
 #: with ``contact.self_contact = false`` the ears the board squashes pass into the bunnies'
-#: heads from frame 11 on (measured: frames 11-15 intersect, ``python -m bench.pile_check
+#: heads from frame 11 on (measured: frames 11-15 intersect, ``python -m bench.tools.pile_check
 #: --bodies 0,1,2,3,4,5,6,7,8 --steps 30 --set contact.self_contact=false``), so the run
 #: goes past that
 COLUMN_STEPS = 15
@@ -82,7 +82,7 @@ def test_the_frame_check_sees_intersections_and_vertices_outside(tmp_path):
 
 
 def test_the_state_check_names_a_rest_that_ended():
-    from bench.contact_check import last_rest
+    from bench.tools.contact_check import last_rest
 
     slipped = np.array([0.0, 1.0, 0.5, *[1e-8] * 12, 1e-3, 1e-2])
     assert last_rest(slipped, 1e-6) == (3, 14)
@@ -91,10 +91,10 @@ def test_the_state_check_names_a_rest_that_ended():
 
 
 def test_the_state_check_sees_intersections_planes_boxes_and_obstacles():
-    """``bench.contact_check``'s per-state test: a body pushed into another, a vertex behind
+    """``bench.tools.contact_check``'s per-state test: a body pushed into another, a vertex behind
     a plane, one out of the box, and a body crossing a mesh obstacle's triangle (the
     obstacle is in the same collision mesh), each flagged at its state only."""
-    from bench.contact_check import StateChecks
+    from bench.tools.contact_check import StateChecks
 
     tet = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]], float) + [0, 0.1, 0]
     F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])

@@ -1,9 +1,9 @@
 """The straight-motion check of contact substeps (``fem3d/physics/contact/path.py``) timed
 inside a run, this tree's against an older checkout's, on the same steps.
 
-    python -m bench.path_check --old /path/to/old/checkout contact_stack contact_fold
-    python -m bench.path_check --old ../old contact_pile --steps 40
-    python -m bench.path_check --old ../old contact_stack --set contact.newton_start=clamped
+    python -m bench.tools.path_check --old /path/to/old/checkout contact_stack contact_fold
+    python -m bench.tools.path_check --old ../old contact_pile --steps 40
+    python -m bench.tools.path_check --old ../old contact_stack --set contact.newton_start=clamped
 
 Each scene runs as :class:`fem3d.simulation.Simulation` steps it, with
 ``contact.max_substeps = 1`` (so the trajectory is the same whichever check says what).

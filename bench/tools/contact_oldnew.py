@@ -1,6 +1,6 @@
 """Contact scenes, this tree against an older checkout: speed and how far the trajectories part.
 
-    python -m bench.contact_oldnew --old /path/to/old/checkout [--scenes contact_stack ...]
+    python -m bench.tools.contact_oldnew --old /path/to/old/checkout [--scenes contact_stack ...]
                                    [--steps N] [--repeat 1] [--new-set KEY=VALUE ...]
 
 Each scene runs in a fresh process per code version (``OMP_NUM_THREADS=1``, alternating old
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 _CHILD = r"""
 import json, os, sys, time

@@ -1,8 +1,8 @@
 """Every contact gallery scene run for its whole duration, each step's state checked.
 
-    python -m bench.contact_check                           # every data/scenes/contact_*.toml
-    python -m bench.contact_check contact_stack contact_fold --steps 50
-    python -m bench.contact_check contact_pile --set contact.self_contact=false
+    python -m bench.tools.contact_check                           # every data/scenes/contact_*.toml
+    python -m bench.tools.contact_check contact_stack contact_fold --steps 50
+    python -m bench.tools.contact_check contact_pile --set contact.self_contact=false
 
 Each scene runs as :class:`fem3d.simulation.Simulation` steps it (the scene file's settings,
 one thread). After every step its state is checked by a test of its own, built from the
@@ -20,7 +20,7 @@ positions alone (not the solver's contact set, filter or candidates):
   A run not at rest at the end names its last stretch at rest, if it had one (a pile that
   settled and then slipped), and the bodies still moving faster than :data:`MOVING`.
 
-Prints one line per scene and exits 1 when a check fails. ``python -m bench.pile_check`` is
+Prints one line per scene and exits 1 when a check fails. ``python -m bench.tools.pile_check`` is
 the pile's run through ``fem3d run`` with its frames checked the same way.
 """
 
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENES = ROOT / "data" / "scenes"
 
 #: gallery scenes whose bodies must come to rest within their duration

@@ -1,8 +1,8 @@
 """The contact pile (``data/scenes/contact_pile.toml``) run to rest and checked frame by frame.
 
-    python -m bench.pile_check [--steps N] [--out DIR] [--set KEY=VALUE ...] [--rest 1e-6]
-    python -m bench.pile_check --check DIR [--set ...]   # a run already made (or still going)
-    python -m bench.pile_check --bodies 0,1,2,3,4,5,6,7,8 ...  # the pile without its top layer
+    python -m bench.tools.pile_check [--steps N] [--out DIR] [--set KEY=VALUE ...] [--rest 1e-6]
+    python -m bench.tools.pile_check --check DIR [--set ...]   # a run already made (or still going)
+    python -m bench.tools.pile_check --bodies 0,1,2,3,4,5,6,7,8 ...  # without its top layer
 
 The scene runs as ``fem3d run`` runs it (:func:`fem3d.app.run.run_scene`, frames written every
 step, one thread). Then every written frame is checked by a test of its own, built from the
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.contact_check import StateChecks, rest_step  # noqa: F401 (rest_step: re-exported)
+from bench.tools.contact_check import StateChecks, rest_step  # noqa: F401 (rest_step: re-exported)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
 
 
@@ -63,7 +63,7 @@ def box_bounds(scene) -> tuple[np.ndarray, np.ndarray]:
 
 def check_frames(out: Path, lower: np.ndarray, upper: np.ndarray) -> FrameReport:
     """Check every ``frames/frame_*.vtu`` of a run in ``out`` (see the module) with
-    :class:`bench.contact_check.StateChecks` (the box's floor and walls at ``lower``,
+    :class:`bench.tools.contact_check.StateChecks` (the box's floor and walls at ``lower``,
     ``upper``; the box's own triangles are not in the frames)."""
     import meshio
 
