@@ -2,8 +2,8 @@
 ``--format``, the sweeps' checks and the run loop's writer are derived from.
 
 Adding a format is one module (a :class:`~fem3d.io.frames.base.FrameFormat` whose ``open``
-makes a :class:`~fem3d.io.frames.base.FrameSink`) and one line in :data:`FRAME_FORMATS`
-below, or a call of :func:`register_frame_format` from outside fem3d (before
+makes a :class:`~fem3d.io.frames.base.FrameSink`), its import and its entry in
+:data:`FRAME_FORMATS` below, or a call of :func:`register_frame_format` from outside fem3d (before
 :mod:`fem3d.scene` is imported: the scene schema's enum is read at import).
 """
 
@@ -15,8 +15,10 @@ import numpy as np
 
 from fem3d.errors import InputError
 from fem3d.io.files import PathLike
-from fem3d.io.frames import obj, usd, vtu
 from fem3d.io.frames.base import Bodies, FrameFormat, FrameSink
+from fem3d.io.frames.obj import FORMAT as OBJ
+from fem3d.io.frames.usd import FORMAT as USD
+from fem3d.io.frames.vtu import FORMAT as VTU
 from fem3d.io.obstacles import ObstacleMesh
 
 __all__ = ["FRAME_FORMATS", "frame_format", "frame_format_names", "make_frame_writer",
@@ -24,7 +26,7 @@ __all__ = ["FRAME_FORMATS", "frame_format", "frame_format_names", "make_frame_wr
 
 #: The output formats by name, the default first.
 FRAME_FORMATS: dict[str, FrameFormat] = {
-    f.name: f for f in (vtu.FORMAT, obj.FORMAT, usd.FORMAT)
+    f.name: f for f in (VTU, OBJ, USD)
 }
 
 
