@@ -16,8 +16,8 @@ format     files                                                        module
 - :mod:`.registry` - the formats by name (the scene's enum, ``--format``, the sweeps).
 
 A new format is one module here with its ``FORMAT``, imported into
-:mod:`.registry` and listed in :data:`~fem3d.io.frames.registry.FRAME_FORMATS`. Every file is written atomically
-(:func:`fem3d.io.files.atomic_write`).
+:mod:`.registry` and listed in :data:`~fem3d.io.frames.registry.FRAME_FORMATS`. Every file is
+written atomically (:func:`fem3d.io.files.atomic_write`).
 """
 
 from fem3d.io.frames.base import FrameFormat, FrameSink, check_faces, check_vertices
