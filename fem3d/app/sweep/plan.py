@@ -263,10 +263,6 @@ def _scene_schema() -> dict[str, Any]:
     return scene_schema()
 
 
-def _frame_format(scene_dict: Mapping[str, Any]) -> Any:
-    return (scene_dict.get("output") or {}).get("format", "vtu")
-
-
 # --------------------------------------------------------------------------------------
 # planning
 
@@ -316,7 +312,7 @@ def plan_sweep(spec: SweepFile, out: Path, *, retry_failed: bool = False,
             continue
         digest = scene.digest()
         d = scene.to_dict()
-        fmt = _frame_format(d)
+        fmt = scene.output.format
         error = None
         if spec.dataset is not None and not frame_format(fmt).reads_back:
             readable = [f.name for f in FRAME_FORMATS.values() if f.reads_back]
