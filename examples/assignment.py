@@ -1,5 +1,5 @@
 """The assignment's function names, as thin wrappers over the generated kernels and the runtime
-(an example of using the runtime's parts directly; ``tests/test_assembly.py`` runs it).
+(an example of using the runtime's parts directly; ``tests/physics/test_assembly.py`` runs it).
 
 For readers who know the CSC417 linear-tetrahedron assignment: each function below has the
 assignment's name and computes the same quantity, vectorized over elements (a leading ``m``

@@ -18,7 +18,7 @@ from fem3d.scene.arrays import hand_vertex, top_vertex
 from fem3d.scene.load import SCENES, load_scene
 from fem3d.simulation import Simulation, StepInfo
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_scene_table():

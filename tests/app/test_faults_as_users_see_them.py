@@ -34,7 +34,7 @@ from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
 BUNNY = str(ROOT / "data" / "coarser_bunny.mesh")
 #: A Python exception class name quoted in a message ("IndexError", "KeyError: 'x'", ...).

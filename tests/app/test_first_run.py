@@ -14,7 +14,7 @@ from fem3d.app.viewer.logic import HOTKEYS, console_help
 from fem3d.errors import InputError
 from fem3d.scene import load_scene
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_console_names_the_viewer_keys_that_work():

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.app.cli import main
 from fem3d.app.fit import load_fit_file
@@ -17,6 +16,7 @@ from fem3d.app.run import run_scene
 from fem3d.errors import InputError
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.scene.load import scene_from_arrays
+from tests.physics.test_assembly import box_mesh
 
 E_TRUE, NU_TRUE = 3e5, 0.3
 E_KEY, NU_KEY = "bodies[0].material.E", "bodies[0].material.nu"

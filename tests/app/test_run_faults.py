@@ -34,7 +34,7 @@ from fem3d.simulation import Simulation
 from fem3d.solve.integrators import State, implicit_euler, linearly_implicit_euler
 from fem3d.solve.state import new_state
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
 BUNNY = str(ROOT / "data" / "coarser_bunny.mesh")
 
@@ -327,7 +327,7 @@ def test_cli_stops_on_non_finite_state_without_writing_nan(tmp_path, capsys, mon
 
 # ------------------------------------------------------------------------------------------
 # parameters: a clear error, one stderr line, exit status 2 (the --dt -1 and --steps -3 cases
-# are in test_scenes_cli.py)
+# are in tests/app/test_cli_run.py)
 
 
 @pytest.mark.parametrize(

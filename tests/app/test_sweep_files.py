@@ -14,7 +14,7 @@ from fem3d.app.sweep.plan import check_key_path, expand_cases
 from fem3d.app.sweep.spec import load_sweep_file
 from fem3d.errors import InputError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _write(tmp_path: Path, text: str, name: str = "s.toml") -> Path:

@@ -8,9 +8,9 @@ import csv
 import json
 
 import numpy as np
-from test_sweep import MESH, _main, _sweep_file
 
 from fem3d.io.dataset import read_run_frames
+from tests.app.test_sweep_runs import MESH, _main, _sweep_file
 
 SCHEMES = ["linear", "implicit", "bdf2", "newmark", "static"]
 

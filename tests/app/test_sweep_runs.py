@@ -24,7 +24,7 @@ import pytest
 from fem3d.app.cli import main
 from fem3d.io.dataset import load_case, load_sweep, read_run_frames
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 MESH = ROOT / "data" / "arma_6.node"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
 

@@ -656,7 +656,7 @@ def test_scene_file_radius_and_mesh_swaps_keep_pushing(tmp_path) -> None:  # noq
 
     from fem3d.app.viewer.app import Viewer
 
-    toml = Path(__file__).resolve().parent.parent / "data" / "scenes" / "arma.toml"
+    toml = Path(__file__).resolve().parents[2] / "data" / "scenes" / "arma.toml"
     with Viewer(str(toml), port=0, realtime=False, mesh_mode="skin",
                 run_unwatched=True) as v:
         snap = wait_for(lambda: (lambda s: s if s["steps"] > 2 else None)(v.snapshot()), 60,
@@ -749,7 +749,7 @@ def test_obstacles_are_drawn_and_moving_ones_follow(tmp_path) -> None:  # noqa: 
 
     from fem3d.app.viewer.app import Viewer
 
-    data = Path(__file__).resolve().parent.parent / "data"
+    data = Path(__file__).resolve().parents[2] / "data"
     scene = tmp_path / "obstacles.toml"
     scene.write_text(f"""
 [simulation]

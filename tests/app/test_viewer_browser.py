@@ -227,7 +227,7 @@ def viewer():
 
     # Start on the small simulation mesh and push at 10 Hz: WebGL runs in software.
     # Backward Euler: the linearly-implicit integrator may (legitimately) blow up under a
-    # strong pull, which is tested separately (tests/test_viewer_unit.py).
+    # strong pull, which is tested separately (tests/app/test_viewer.py).
     v = Viewer(
         "bunny", port=0, integrator="implicit", mesh_mode="sim", push_hz=10.0, plot_hz=4.0
     )

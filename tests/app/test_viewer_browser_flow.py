@@ -1,6 +1,6 @@
 """The viewer as a user sees it: what reaches the browser after each key, click and drag.
 
-Headless Debian chromium (Playwright, as ``tests/test_viewer_browser.py``) loads the page;
+Headless Debian chromium (Playwright, as ``tests/app/test_viewer_browser.py``) loads the page;
 the test decodes every websocket frame the page receives (viser's wire format: a
 zstd-compressed msgpack header followed by raw binary buffers) and checks, after each user
 action, that the page keeps receiving updates: the status line's simulated time advances,
@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from test_viewer_browser import (
+
+from tests.app.test_viewer_browser import (
     _REASON,
     CHROMIUM,
     CHROMIUM_FLAGS,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("fem3d_setup", ROOT / "setup.py")
 assert _spec is not None and _spec.loader is not None
 setup_py = importlib.util.module_from_spec(_spec)

@@ -18,7 +18,7 @@ from codegen.materials import MATERIALS
 from fem3d.kernels.backend import c_extension
 from fem3d.kernels.dispatch import kernel_module, material_kernels
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(
     c_extension() is None, reason="C extension not built"))]
 PARAMS = {

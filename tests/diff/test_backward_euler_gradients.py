@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
 from fem3d.diff.adjoint import Stats, scene_with
 from fem3d.diff.damping import DEFAULT_CACHE_BYTES
 from fem3d.errors import ParameterError
 from fem3d.scene.load import scene_from_arrays
+from tests.physics.test_assembly import box_mesh
 
 STEPS = 10
 VALUES = {

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.app.cli import main
 from fem3d.app.fit.run import scene_toml
@@ -20,6 +19,7 @@ from fem3d.diff.adjoint import _prepare, scene_with
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.scene.load import scene_from_arrays
 from fem3d.solve.state import State
+from tests.physics.test_assembly import box_mesh
 
 STEPS = 10
 E_KEY = "bodies[0].material.E"

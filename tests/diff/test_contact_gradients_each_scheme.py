@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_diff_contact import E_KEY, drop_scene, variant
 
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
 from fem3d.diff.adjoint import _prepare, scene_with
 from fem3d.scene import apply_overrides
 from fem3d.solve.newmark import CONTACT_ALPHA
+from tests.diff.test_contact_gradients import E_KEY, drop_scene, variant
 
 STEPS = 6
 V_KEY = "bodies[0].velocity"

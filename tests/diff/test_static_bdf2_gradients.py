@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_diff import VALUES, apply_pin, box_scene, central, noisy_loss, two_halves
 
 from fem3d.diff import PositionLoss, simulate, trajectory_gradient
 from fem3d.diff.adjoint import scene_with
 from fem3d.errors import ParameterError
 from fem3d.scene import apply_overrides
+from tests.diff.test_backward_euler_gradients import (
+    VALUES,
+    apply_pin,
+    box_scene,
+    central,
+    noisy_loss,
+    two_halves,
+)
 
 STEPS = 6
 
@@ -84,7 +91,8 @@ def test_static_gradients_match_central_differences() -> None:
 @pytest.mark.parametrize("beta", [0.0, 0.002])
 def test_bdf2_and_newmark_gradients_match_central_differences(integrator: str,
                                                               beta: float) -> None:
-    """The box of tests/test_diff.py with BDF2 (first step backward Euler) and Newmark (its
+    """The box of tests/diff/test_backward_euler_gradients.py with BDF2 (first step backward
+    Euler) and Newmark (its
     a_0 from M a_0 = f(q_0, v_0)), 6 steps: E, nu, density, alpha (and beta), initial
     velocity, gravity; relative steps 1e-5; to 1e-6."""
     scene, values = box_scene(beta)
@@ -129,12 +137,12 @@ def test_static_initial_velocity_key_is_refused() -> None:
 
 
 def test_contact_with_a_scheme_without_contact_is_refused_in_one_line(monkeypatch) -> None:
-    """Every registered scheme differentiates contact (``tests/test_diff_contact_schemes.py``);
+    """Every registered scheme differentiates contact
+    (``tests/diff/test_contact_gradients_each_scheme.py``);
     one registered without (``SchemeAdjoint.contact = False``) is refused in one line."""
-    from test_diff_contact import drop_scene
-
     from fem3d.diff.bdf2 import BDF2Adjoint
     from fem3d.diff.schemes import SCHEMES
+    from tests.diff.test_contact_gradients import drop_scene
 
     without = BDF2Adjoint()
     without.contact = False

@@ -1,7 +1,7 @@
 """A toy output format from outside fem3d: one NumPy ``.npz`` per frame (``positions``,
 ``time``), registered on import (before :mod:`fem3d.scene`, whose schema reads the names).
 
-Used by ``tests/test_frame_formats.py``: a format is this module (a writer and a
+Used by ``tests/io/test_frame_formats.py``: a format is this module (a writer and a
 :class:`~fem3d.io.frames.FrameFormat`) and one registration.
 """
 

@@ -13,7 +13,7 @@ import pytest
 
 from fem3d.io import extras
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _fem3d(tmp_path: Path, hidden: str, *argv: str, **env: str) -> subprocess.CompletedProcess:

@@ -1,6 +1,6 @@
 """The output formats as a registry (:mod:`fem3d.io.frames`): the scene's ``output.format``
 choices, ``--format``, the sweeps' check and the extras come from it, and a format registered
-from outside fem3d (``tests/frame_format_plugin.py``) is written by ``fem3d run --format``."""
+from outside fem3d (``tests/io/frame_format_plugin.py``) is written by ``fem3d run --format``."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from fem3d.io.extras import MissingExtra
 from fem3d.io.frames import FRAME_FORMATS, frame_format, frame_format_names, make_frame_writer
 from fem3d.scene import scene_schema
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_schema_and_the_cli_list_the_registered_formats() -> None:
@@ -57,7 +57,7 @@ def test_a_registered_format_is_written_by_fem3d_run(tmp_path: Path) -> None:
     """The toy ``npz`` format: registered before the scene schema is built (a plug-in's
     order), ``fem3d run --format npz`` writes a frame per step with the positions a VTU
     run writes."""
-    script = ("import sys, tests.frame_format_plugin; from fem3d.app.cli import main; "
+    script = ("import sys, tests.io.frame_format_plugin; from fem3d.app.cli import main; "
               "sys.exit(main(sys.argv[1:]))")
     args = ["run", str(ROOT / "data" / "arma_6.node"), "--steps", "3", "--no-preview",
             "--quiet"]

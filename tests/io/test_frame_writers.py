@@ -27,9 +27,9 @@ from fem3d.errors import SimulationError
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import NumberedFilesWriter, ObjWriter, RawVtu, UsdWriter, VtuWriter
 from fem3d.scene import apply_overrides, load_scene
-from tests.test_output import torus
+from tests.io.test_outputs import torus
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ARMA = str(ROOT / "data" / "arma_6.node")  # 259 vertices, no skin: cheap frames
 
 

@@ -149,7 +149,7 @@ def test_usd_stage_has_a_prim_per_obstacle(tmp_path) -> None:  # noqa: ANN001
 
 def test_a_contact_run_writes_the_ground(tmp_path) -> None:  # noqa: ANN001
     out = tmp_path / "drop"
-    env_path = str(Path(__file__).resolve().parent.parent)
+    env_path = str(Path(__file__).resolve().parents[2])
     cmd = [sys.executable, "-m", "fem3d.app.cli", "run", "contact_bunny_drop", "--steps", "2",
            "--out", str(out), "--quiet"]
     import os

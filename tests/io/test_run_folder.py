@@ -17,7 +17,7 @@ from fem3d.app.cli import main
 from fem3d.errors import InputError, SimulationError
 from fem3d.io import rundir
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 QUICK = ["--steps", "3", "--no-preview", "--quiet"]
 
 

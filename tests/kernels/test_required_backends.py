@@ -8,11 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import missing_required_c
 
 from fem3d.kernels.backend import c_extension
+from tests.conftest import missing_required_c
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_required_c_reason_only_when_required_and_missing():
@@ -44,7 +44,8 @@ def test_pytest_run_fails_when_required_c_is_missing(tmp_path):
         "sys.meta_path.insert(0, _Block())\n")
     path = os.pathsep.join([str(block), str(ROOT), os.environ.get("PYTHONPATH", "")])
     env = dict(os.environ, FEM3D_REQUIRE_C="1", PYTHONPATH=path)
-    target = "test_required_backends.py::test_required_c_reason_only_when_required_and_missing"
+    target = ("kernels/test_required_backends.py"
+              "::test_required_c_reason_only_when_required_and_missing")
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          str(ROOT / "tests" / target)],

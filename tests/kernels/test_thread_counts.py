@@ -189,7 +189,7 @@ needs_c = pytest.mark.skipif(c_extension() is None or not c_extension().OPENMP,
 @needs_c
 def test_forced_one_and_two_threads_give_the_same_amg_solve(monkeypatch):
     pytest.importorskip("pyamg")
-    from test_amg import _threaded_setup
+    from tests.solve.test_amg import _threaded_setup
 
     c_extension().set_max_threads(2)
     b = np.random.default_rng(1).standard_normal(3 * 15**3)

@@ -8,7 +8,6 @@ another exception and never a half-read mesh.
 from __future__ import annotations
 
 import re
-import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -18,9 +17,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from conftest_mesh_helpers import (  # noqa: E402
+from fem3d.errors import InputError  # noqa: E402
+from fem3d.mesh.formats import (  # noqa: E402
+    read_surface_mesh,
+    read_tet_mesh,
+    write_surface_mesh,
+    write_tet_mesh,
+)
+from fem3d.mesh.tetmesh import MeshWarning, TetMesh  # noqa: E402
+from tests.conftest_mesh_helpers import (  # noqa: E402
     DATA,
     T2,
     X2,
@@ -30,15 +35,6 @@ from conftest_mesh_helpers import (  # noqa: E402
     obj_text,
     tetgen_texts,
 )
-
-from fem3d.errors import InputError  # noqa: E402
-from fem3d.mesh.formats import (  # noqa: E402
-    read_surface_mesh,
-    read_tet_mesh,
-    write_surface_mesh,
-    write_tet_mesh,
-)
-from fem3d.mesh.tetmesh import MeshWarning, TetMesh  # noqa: E402
 
 F2 = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # one tet's surface
 

@@ -10,20 +10,6 @@ import meshio
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from conftest_mesh_helpers import (  # noqa: E402
-    DATA,
-    ROOT,
-    T2,
-    X2,
-    assert_valid_surface,
-    assert_valid_tet_mesh,
-    medit_text,
-    obj_text,
-    tetgen_texts,
-)
-
 from fem3d.errors import InputError  # noqa: E402
 from fem3d.mesh.formats import (  # noqa: E402
     read_surface_mesh,
@@ -37,6 +23,17 @@ from fem3d.mesh.tetmesh import (  # noqa: E402
     TetMesh,
     boundary_faces,
     tet_signed_volumes,
+)
+from tests.conftest_mesh_helpers import (  # noqa: E402
+    DATA,
+    ROOT,
+    T2,
+    X2,
+    assert_valid_surface,
+    assert_valid_tet_mesh,
+    medit_text,
+    obj_text,
+    tetgen_texts,
 )
 
 SHIPPED_TET = [

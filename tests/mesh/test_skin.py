@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from fem3d.errors import InputError
 from fem3d.mesh.skin import build_skinning_matrix
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA_DIRS = [ROOT / "data", ROOT.parent / "shared" / "reference-meshes"]
 
 

@@ -95,8 +95,8 @@ def test_surface_run_records_tets_and_mesh_scene_reproduces_it(cube_scene, tmp_p
 
 
 def test_tet_mesh_run_writes_no_record(tmp_path):
-    scene = _scene(tmp_path, str(Path(__file__).parent.parent / "data" / "contact_block.mesh"),
-                   "block.toml")
+    block = Path(__file__).resolve().parents[2] / "data" / "contact_block.mesh"
+    scene = _scene(tmp_path, str(block), "block.toml")
     assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--quiet",
                  "--no-preview"]) == 0
     assert not (tmp_path / "o" / "meshes").exists()
@@ -110,7 +110,7 @@ def test_tet_mesh_run_writes_no_record(tmp_path):
 ])
 def test_tetrahedralize_bad_input(argv, needle, cube_scene, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    names = {"block": str(Path(__file__).parent.parent / "data" / "contact_block.mesh"),
+    names = {"block": str(Path(__file__).resolve().parents[2] / "data" / "contact_block.mesh"),
              "cube": str(tmp_path / "cube.obj"), "tmp": str(tmp_path)}
     before = sorted(p.name for p in tmp_path.iterdir())
     status = main(["tetrahedralize", *[a.format(**names) for a in argv]])

@@ -23,7 +23,7 @@ from fem3d.physics.assembly import (
 )
 from fem3d.physics.model import build_model, material_parameters
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.errors import ParameterError
 from fem3d.kernels.backend import c_extension
 from fem3d.physics import materials
 from fem3d.physics.assembly import assemble_gradient, hessian_data, potential_energy
 from fem3d.physics.model import GROUP_PARAMS, MaterialGroup, build_model
+from tests.physics.test_assembly import box_mesh
 
 BACKENDS = ["numpy"] + (["c"] if c_extension() is not None else [])
 

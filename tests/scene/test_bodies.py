@@ -18,7 +18,7 @@ from fem3d.scene.arrays import build_arrays as assemble
 from fem3d.scene.arrays import rotation_matrix, select_vertices
 from fem3d.simulation import Simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ARMA = str(ROOT / "data" / "arma_6.node")
 MAT = {"model": "neo_hookean", "E": 6e5, "nu": 0.4, "density": 0.1}
 PIN = [{"select": {"lowest_y": {"tol": 0.1}}}]

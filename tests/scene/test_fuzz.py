@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from fem3d.errors import InputError
 from fem3d.scene import Scene, load_scene, read_scene_file
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENES = ROOT / "data" / "scenes"
 TEXTS = {p.stem: p.read_text() for p in sorted(SCENES.glob("*.toml"))}
 # the shipped scenes with their relative paths made absolute (so mutants can load meshes)

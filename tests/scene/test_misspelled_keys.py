@@ -12,7 +12,7 @@ from fem3d.app.cli import main
 from fem3d.errors import InputError
 from fem3d.scene import apply_overrides, load_scene
 
-DATA = Path(__file__).resolve().parent.parent / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
 
 SCENE = f'''
 [simulation]

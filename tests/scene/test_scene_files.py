@@ -17,7 +17,7 @@ from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.scene import Scene, apply_overrides, load_scene, scene_names, scene_schema
 from fem3d.simulation import Simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
 ARMA_MESH = DATA / "arma_6.node"
 

@@ -29,7 +29,7 @@ from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from fem3d.solve.backward_euler import implicit_euler
 
-REF = Path(__file__).resolve().parent / "data" / "classic_reference.npz"
+REF = Path(__file__).resolve().parents[1] / "data" / "classic_reference.npz"
 
 
 #: the pinned tolerances (see the module docstring); not to be loosened

@@ -23,7 +23,7 @@ from fem3d.app.run import run_scene
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "data" / "scenes" / "contact_pile.toml"
 #: blocks 1-4, bunnies 1-4 (upright on them), the board (across the bunnies' ears)
 COLUMNS = tuple(range(9))

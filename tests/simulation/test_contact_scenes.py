@@ -17,9 +17,9 @@ from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.simulation import Simulation
 from tests.conftest_mesh_helpers import medit_text
-from tests.test_contact import box_mesh
+from tests.physics.contact.test_potentials import box_mesh
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def write_scene(tmp_path: Path, *, lower_y=0.004, upper_y=0.07, integrator="implicit",
@@ -96,7 +96,8 @@ def test_stack_with_the_opt_in_newton_settings_stays_valid(overrides):
     converges, no surfaces intersect (a fresh ipctk mesh), nothing goes below the ground,
     and the line search took halvings (so the refinement had work to do; the exact contact
     Hessian, ``contact.hessian_projection = "exact"``, too: its full steps were all accepted
-    only while shifted steps could pass IPC's rule, tests/test_contact_projection.py)."""
+    only while shifted steps could pass IPC's rule,
+    tests/physics/contact/test_hessian_projection.py)."""
     sim = Simulation(apply_overrides(load_scene("contact_stack"), overrides))
     assert sim.newton_line_search == overrides.get("simulation.newton.line_search",
                                                    "backtrack")

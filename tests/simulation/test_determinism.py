@@ -2,7 +2,7 @@
 interrupted by a checkpoint and ``fem3d resume``d (issue 39; docs/testing.md).
 
 Every comparison is between runs made during the test, never against a committed file: bits
-are a property of one machine (``tests/test_trajectories.py`` holds what any machine must
+are a property of one machine (``tests/simulation/test_trajectories.py`` holds what any machine must
 reproduce). The cases: a classic scene (``arma``: direct Newton, scripted pulls), the Newton
 solvers that keep state between steps (``arma_reuse``: a factorization as CG's preconditioner;
 ``cantilever_amg``: AMG's hierarchy) and a contact case (``contact_bunny_drop_reuse``: barrier
@@ -15,7 +15,8 @@ import json
 
 import numpy as np
 import pytest
-from record_trajectories import (  # tests/ is on sys.path
+
+from tests.record_trajectories import (
     CASE,
     digest,
     fem3d_in_a_new_process,

@@ -16,7 +16,7 @@ from fem3d.scene import load_scene, scene_names
 from fem3d.scene.arrays import is_surface_file
 from fem3d.simulation import Simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = importlib.util.spec_from_file_location("make_gallery", ROOT / "examples" / "make_gallery.py")
 make_gallery = importlib.util.module_from_spec(SPEC)
 SPEC.loader.exec_module(make_gallery)

@@ -18,7 +18,7 @@ import pytest
 
 from fem3d.app.cli import main
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "data" / "scenes" / "contact_fold.toml"
 # the upper half is laid down by t = 1 s; without self-contact it sinks through the lower
 # half from about step 88 on (measured), so 100 steps show it

@@ -1,7 +1,8 @@
 """Trajectory regressions that hold on any CPU (issue 39; the figures: docs/testing.md).
 
 Bits are a property of one machine (the BLAS and NumPy kernels its instruction set selects, the
-compiler's FMA contraction): ``tests/test_determinism.py`` checks them within one machine. Here
+compiler's FMA contraction): ``tests/simulation/test_determinism.py`` checks them within one
+machine. Here
 each case of ``record_trajectories.CASES`` is compared with ``tests/data/trajectory_reference.npz``
 within a tolerance measured, per case, as the spread of runs whose input moved by one ulp (E,
 gravity, mu) and checked to sit well below a real change (E moved by 1e-6 relative must fail:
@@ -24,7 +25,8 @@ from typing import NamedTuple
 import ipctk
 import numpy as np
 import pytest
-from record_trajectories import (  # tests/ is on sys.path
+
+from tests.record_trajectories import (
     CONTACT_CASES,
     REFERENCE,
     SMOOTH_CASES,
@@ -260,7 +262,7 @@ def test_contact_final_pose_within_its_band(reference, name):
 
 # ------------------------------------------------------------ checkpoints written by old code
 #: two checkpoints written at 6cbcdd9 (before the restructuring of issue 19), in this checkout
-CHECKPOINTS = Path(__file__).resolve().parent / "data" / "checkpoints_before_restructure"
+CHECKPOINTS = Path(__file__).resolve().parents[1] / "data" / "checkpoints_before_restructure"
 RECORDED_ROOT = "/work/main"  # the checkout they were written in (absolute paths inside)
 OLD_CHECKPOINTS = {"arma": ("arma_step50.npz", 100),
                    "contact_bunny_drop_reuse": ("contact_bunny_drop_reuse_step40.npz", 80)}
@@ -270,7 +272,7 @@ def _relocated_checkpoint(src: Path, dst: Path) -> None:
     """``src`` with the recording checkout's absolute paths pointed at this checkout."""
     with np.load(src, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     meta = bytes(arrays["__fem3d_metadata__"]).decode()
     meta = meta.replace(json.dumps(RECORDED_ROOT)[1:-1], json.dumps(root)[1:-1])
     arrays["__fem3d_metadata__"] = np.frombuffer(meta.encode(), dtype=np.uint8)

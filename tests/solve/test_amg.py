@@ -10,14 +10,13 @@ import scipy.sparse as sp
 
 pytest.importorskip("pyamg")
 
-from test_assembly import box_mesh  # noqa: E402
-
 from fem3d.physics.constraints import Constraints  # noqa: E402
 from fem3d.physics.model import build_model  # noqa: E402
 from fem3d.solve.integrators import State, System, implicit_euler, linearly_implicit_euler  # noqa: E402
 from fem3d.solve.linear import amg as solve_amg  # noqa: E402
 from fem3d.solve.linear import resolve_linear_solver  # noqa: E402
 from fem3d.solve.linear.amg_cg import AMGCGSolver  # noqa: E402
+from tests.physics.test_assembly import box_mesh  # noqa: E402
 
 
 def clamped_box(n=(6, 6, 6), E=6e5, rho=100.0):
@@ -136,7 +135,7 @@ def test_a_saved_hierarchy_resumes_bit_for_bit():
 
 
 def test_linear_scheme_and_objective_terms_with_the_amg_back_end():
-    from test_integrators import PairSprings
+    from tests.solve.test_integrators import PairSprings
 
     model, c = clamped_box((3, 3, 3))
     system = System(model, c, "amg")

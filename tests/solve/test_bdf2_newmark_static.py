@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
@@ -16,6 +15,7 @@ from fem3d.scene import scene_from_arrays
 from fem3d.scene.build import build_loads
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import INTEGRATORS, State, System
+from tests.physics.test_assembly import box_mesh
 
 G = np.array([0.0, -9.81, 0.0])
 

@@ -22,7 +22,7 @@ from fem3d.physics.model import build_model
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.scene.build import build_loads
 from fem3d.solve.integrators import State, System, implicit_euler
-from tests.test_contact import box_mesh
+from tests.physics.contact.test_potentials import box_mesh
 
 G = np.array([0.0, -9.81, 0.0])
 DT = 0.01

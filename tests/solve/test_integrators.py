@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.errors import SimulationError
 from fem3d.scene import Scene, load_scene, scene_from_arrays
@@ -17,6 +16,7 @@ from fem3d.solve.integrators import (
     linearly_implicit_euler,
 )
 from fem3d.solve.newton import NewtonResult, newtons_method
+from tests.physics.test_assembly import box_mesh
 
 _BOX_KEYS = {"E": "bodies[0].material.E", "nu": "bodies[0].material.nu",
              "rho": "bodies[0].material.density", "dt": "simulation.dt",

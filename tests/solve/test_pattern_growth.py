@@ -8,7 +8,7 @@ import pytest
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import build_model
 from fem3d.solve.system import System
-from tests.test_contact import two_boxes
+from tests.physics.contact.test_potentials import two_boxes
 
 
 def _system() -> System:

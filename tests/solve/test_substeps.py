@@ -6,7 +6,7 @@ step that needs no substeps is bit for bit the step without the check; the step 
 time; pins at the substep times; a resume across a substepped step is bit-exact; the cap
 fails with one line naming the setting; a pair pressed closer than Tight-Inclusion's default
 tolerance catches is not a crossing, one pushed into or through the other is. The fast body
-itself is ``tests/test_contact_integrator.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
+itself is ``tests/solve/test_contact_steps.py::test_a_fast_body_hits_a_free_body_...[20.0]``.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from fem3d.simulation import Simulation
 from fem3d.solve.integrators import State, implicit_euler
 from fem3d.solve.substeps import check_max_substeps
 from tests.conftest_mesh_helpers import medit_text
-from tests.test_contact import box_mesh
-from tests.test_contact_integrator import DT, free_system, independent_intersections
+from tests.physics.contact.test_potentials import box_mesh
+from tests.solve.test_contact_steps import DT, free_system, independent_intersections
 
 
 def two_boxes(speed: float, gap: float = 0.03, mu: float = 0.0):

@@ -12,7 +12,7 @@ import pytest
 from fem3d.physics.contact import ContactModel
 from fem3d.physics.contact import collisions as contact
 
-MISS = Path(__file__).resolve().parent.parent / "bench" / "results" / \
+MISS = Path(__file__).resolve().parents[3] / "bench" / "results" / \
     "accd_miss_pile_step184.npz"
 
 

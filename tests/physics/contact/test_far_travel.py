@@ -18,7 +18,7 @@ from fem3d.physics.contact.candidates import StepCandidates
 from fem3d.physics.contact.far_travel import FAR_TRAVEL
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
-from tests.test_contact import independent_intersection, two_boxes
+from tests.physics.contact.test_potentials import independent_intersection, two_boxes
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from fem3d.physics.contact import ContactModel, PlaneObstacle
 from fem3d.physics.contact.friction_majorizer import FrictionMajorizer
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.integrators import State, implicit_euler
-from tests.test_contact import two_boxes
-from tests.test_contact_integrator import DT, free_system
+from tests.physics.contact.test_potentials import two_boxes
+from tests.solve.test_contact_steps import DT, free_system
 
 DHAT = 1e-3
 

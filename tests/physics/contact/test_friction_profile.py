@@ -10,8 +10,8 @@ from fem3d.physics.contact import ContactModel, PlaneObstacle
 from fem3d.physics.contact.friction_profile import friction_profile, point_plane_friction
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.solve.integrators import State, implicit_euler
-from tests.test_contact import box_mesh
-from tests.test_contact_integrator import DT, free_system
+from tests.physics.contact.test_potentials import box_mesh
+from tests.solve.test_contact_steps import DT, free_system
 
 EPS = 1e-3
 
