@@ -54,7 +54,7 @@ browser:  ## Debian chromium for the browser test (skipped with a reason if this
 
 # The announcement comes first, before anything is installed (hence the sub-make).
 test:  ## the test suite (what CI runs)
-	@echo "make test: sets up fem3d[dev] and CHOLMOD, and installs Debian's chromium (apt-get, only when /usr/bin/chromium is missing) for the browser test of the viewer (tests/test_viewer_browser.py), then runs pytest"
+	@echo "make test: sets up fem3d[dev] and CHOLMOD, and installs Debian's chromium (apt-get, only when /usr/bin/chromium is missing) for the browser test of the viewer (tests/app/test_viewer_browser.py), then runs pytest"
 	@$(MAKE) --no-print-directory install browser PYTHON=$(PYTHON)
 	$(PYTHON) -m pytest -q
 

@@ -34,11 +34,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
-#: Commands whose figures are per core (``python -m bench.contact_check`` ...): one thread
+#: Commands whose figures are per core (``python -m bench.tools.contact_check`` ...): one thread
 #: unless the caller says otherwise. Set here, before this package imports NumPy and with it
 #: the BLAS that reads the variables once (a module's own ``__main__`` block comes too late).
-ONE_CORE_COMMANDS = frozenset({"bench.adjoint", "bench.contact", "bench.contact_check",
-                               "bench.path_check", "bench.pile_check"})
+ONE_CORE_COMMANDS = frozenset({"bench.adjoint", "bench.contact", "bench.tools.contact_check",
+                               "bench.tools.path_check", "bench.tools.pile_check"})
 _argv = getattr(sys, "orig_argv", [])
 if "-m" in _argv[:-1] and _argv[_argv.index("-m") + 1] in ONE_CORE_COMMANDS:
     os.environ.setdefault("OMP_NUM_THREADS", "1")

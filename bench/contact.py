@@ -15,7 +15,7 @@ ground (3,036 tets); ``--refine k`` also runs each case on the mesh red-refined 
 (x8 tets per level: about 1.2e4 and 1e5 tets). Scene cases (``contact_*``, a name of
 ``data/scenes``) run the gallery scene as ``fem3d run`` steps it (``Simulation.step``) for its
 first ``--scene-steps`` steps: ``contact_stack`` (three bodies, 1,902 tets) and
-``contact_pile`` (13 bodies in an open box, 16,464 tets; ``python -m bench.pile_check`` runs
+``contact_pile`` (13 bodies in an open box, 16,464 tets; ``python -m bench.tools.pile_check`` runs
 it to rest and checks every frame). Every step is a full backward-Euler step as ``fem3d run``
 takes it (Newton to IPC's velocity tolerance, CCD-clamped line search), one thread
 (``OMP_NUM_THREADS=1`` is set here before NumPy loads).

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import SimulationError
-from fem3d.io.frames import FrameWriter, make_frame_writer
+from fem3d.io.frames import VtuWriter, make_frame_writer
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 
@@ -69,7 +69,7 @@ def frame_writing(frames: int, repeats: int) -> list[str]:
         "vtu (appended raw binary)": lambda d: make_frame_writer(d, F, "vtu"),
         "obj": lambda d: make_frame_writer(d, F, "obj"),
         "usd (value clips)": lambda d: make_frame_writer(d, F, "usd", dt=sim.dt),
-        "vtu before 0.2 (meshio, zlib)": lambda d: FrameWriter(d, F, compression="zlib"),
+        "vtu before 0.2 (meshio, zlib)": lambda d: VtuWriter(d, F, compression="zlib"),
     }
     rows = ["| writer | ms / frame | MB / frame |", "| --- | ---: | ---: |"]
     for name, make in writers.items():

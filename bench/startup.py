@@ -129,6 +129,17 @@ def _wrap(owner, name: str, marks: _Marks, before: str | None, after: str | None
     setattr(owner, name, wrapper)
 
 
+def _mesh_readers(formats) -> list:
+    """The modules of a checkout's mesh readers that call ``validate_tet_mesh``."""
+    import importlib
+    import importlib.util
+
+    names = ("fem3d.mesh.medit", "fem3d.mesh.tetgen", "fem3d.mesh.meshio_formats")
+    modules = [formats] + [importlib.import_module(n) for n in names
+                           if importlib.util.find_spec(n) is not None]
+    return [m for m in modules if hasattr(m, "validate_tet_mesh")]
+
+
 def child(scene: str, out: str, result: str) -> int:
     """One ``fem3d run`` with the stage wrappers (run with the checkout on PYTHONPATH)."""
     import warnings
@@ -143,7 +154,10 @@ def child(scene: str, out: str, result: str) -> int:
     from fem3d.app.cli import main
 
     marks.mark("start-up (Python, imports)")
-    _wrap(formats, "validate_tet_mesh", marks, "scene file, read mesh", "validate mesh")
+    # the readers call validate_tet_mesh: from formats (before the reader modules), or from
+    # the module of each reader family (medit, tetgen, meshio_formats)
+    for reader in _mesh_readers(formats):
+        _wrap(reader, "validate_tet_mesh", marks, "scene file, read mesh", "validate mesh")
     _wrap(build, "build_arrays", marks, None, "scene arrays (transforms, selections)")
     _wrap(model, "block_pattern", marks, "model: rest shape, materials",
           "model: sparsity pattern")

@@ -4,7 +4,7 @@ Run:  python examples/pull_bunny.py [--steps 40]
 
 The scene is the assignment's bunny (linearly-implicit Euler, E = 6e6, spring k = 1e8, dt =
 0.01); its scripted pull drags the top-most vertex (the ear tip) toward a target 15 % of the
-bunny's height along +x. The printed number is checked by tests/test_scenes_cli.py.
+bunny's height along +x. The printed number is checked by tests/app/test_cli_run.py.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install Debian's chromium for the browser tests (tests/test_viewer_browser.py), unless it is
+# Install Debian's chromium for the browser tests (tests/app/test_viewer_browser.py), unless it is
 # already there. Never downloads a browser through playwright: the tests drive this one with
 # executable_path=/usr/bin/chromium.
 #
@@ -26,7 +26,7 @@ else
         exit 1
     fi
     echo "install_chromium.sh: installing Debian's chromium with apt-get for the browser test" \
-         "of the viewer (tests/test_viewer_browser.py); this may take a minute"
+         "of the viewer (tests/app/test_viewer_browser.py); this may take a minute"
     export DEBIAN_FRONTEND=noninteractive
     $SUDO apt-get update -q
     $SUDO apt-get install -y -q --no-install-recommends chromium fonts-liberation

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-from test_time_integrators import _energy, bar, set_vibrating  # noqa: E402
+from tests.solve.test_bdf2_newmark_static import _energy, bar, set_vibrating  # noqa: E402
 
 from fem3d.solve.integrators import INTEGRATORS  # noqa: E402
 

@@ -1,4 +1,5 @@
-"""Helpers shared by tests/test_mesh_io.py and tests/test_bad_input.py (not a conftest)."""
+"""Helpers shared by tests/mesh/test_formats.py and tests/mesh/test_bad_mesh_files.py (not a
+conftest)."""
 
 from __future__ import annotations
 

@@ -9,8 +9,8 @@ states, never digests (bits are a property of one machine; docs/testing.md):
   6cbcdd9 recording (``--historical``), the earlier rows were recorded by the current code;
 * contact cases: each body's centre of mass and bounding box at the last step.
 
-``tests/test_trajectories.py`` compares against it within per-case tolerances,
-``tests/test_determinism.py`` compares runs made during the test bit for bit. Run
+``tests/simulation/test_trajectories.py`` compares against it within per-case tolerances,
+``tests/simulation/test_determinism.py`` compares runs made during the test bit for bit. Run
 ``python tests/record_trajectories.py`` only to re-record on purpose (a deliberate change of
 behaviour), never to make a failing test pass; ``--deviations`` prints each case's largest
 deviation from the reference (the table of docs/testing.md).
@@ -86,7 +86,7 @@ CASES: list[tuple[str, str, int, dict]] = [
     ("contact_twisted_bar", "contact_twisted_bar", 300, CONTACT_AS_RECORDED),
 ]
 CASE = {c[0]: c for c in CASES}
-#: checked by their physics and a final pose band (tests/test_trajectories.py)
+#: checked by their physics and a final pose band (tests/simulation/test_trajectories.py)
 CONTACT_CASES = tuple(c[0] for c in CASES if c[0].startswith("contact_"))
 SMOOTH_CASES = tuple(c[0] for c in CASES if c[0] not in CONTACT_CASES)
 

@@ -36,22 +36,20 @@ PACKAGE = "fem3d"
 #: Anything at all (the entry points).
 ANYTHING = "*"
 
-_BELOW_RUN = ("errors", "_deprecated", "kernels", "io", "mesh", "physics", "solve", "scene")
+_BELOW_RUN = ("errors", "kernels", "io", "mesh", "physics", "solve", "scene")
 
 #: The parts of fem3d (top-level subpackages and modules) from the lowest up, and the other
 #: parts each may import (its own part always). A part missing here fails the test: add it.
 LAYERS: dict[str, tuple[str, ...] | str] = {
     "errors": (),
-    "_deprecated": (),  # the forwarder of old import paths (imports nothing of fem3d)
-    "kernels": ("errors", "_deprecated"),  # _deprecated: fem3d.kernels was a module
+    "kernels": ("errors",),
     "io": ("errors",),
-    "mesh": ("errors", "io", "kernels", "_deprecated"),  # fem3d.mesh was a module
+    "mesh": ("errors", "io", "kernels"),
     "physics": ("errors", "kernels", "mesh", "io"),
     "solve": ("errors", "kernels", "physics"),
     "scene": ("errors", "io", "mesh", "kernels", "physics", "solve"),
     "diff": ("errors", "kernels", "physics", "solve", "scene"),  # adjoint gradients
-    "simulation": (*_BELOW_RUN, "assignment"),  # anything but app
-    "assignment": (*_BELOW_RUN, "simulation"),  # anything but app
+    "simulation": _BELOW_RUN,  # anything but app
     "app": ANYTHING,
     "__main__": ANYTHING,  # ``python -m fem3d``: runs the command line
 }
@@ -63,11 +61,6 @@ PART_ALIASES: dict[str, str] = {"fem3d._generated": "kernels", "fem3d._ckernels"
 #: ``fem3d/__init__.py`` imports at module level only from these parts; inside functions (the
 #: lazy ``__getattr__`` exposing public names such as ``fem3d.Scene``) from any.
 ROOT_EAGER: tuple[str, ...] = ("errors",)
-
-#: A module whose docstring starts with this is a deprecation shim at an old import path
-#: (e.g. ``fem3d/integrators.py`` forwarding to ``fem3d.solve.integrators``): exempt from the
-#: layering (it is no part of it), still part of the circle check.
-SHIM_MARKER = "Deprecated alias"
 
 MAX_FUNCTION_LINES = 120
 MAX_MODULE_LINES = 900
@@ -102,7 +95,6 @@ class Module:
     path: str  # relative to the checked root, with "/"
     tree: ast.Module
     n_lines: int
-    shim: bool
     edges: list[Edge] = field(default_factory=list)
 
 
@@ -178,10 +170,8 @@ class Package:
                 continue
             text = path.read_text()
             tree = ast.parse(text, filename=str(rel))
-            doc = ast.get_docstring(tree) or ""
             name = module_name(rel)
-            self.modules[name] = Module(name, rel.as_posix(), tree, len(text.splitlines()),
-                                        doc.startswith(SHIM_MARKER))
+            self.modules[name] = Module(name, rel.as_posix(), tree, len(text.splitlines()))
         for mod in self.modules.values():
             mod.edges = self._edges(mod)
         #: Names the package's ``__init__`` binds at module level (not lazily).
@@ -343,8 +333,6 @@ def layering_violations(pkg: Package, layers: dict = LAYERS) -> list[str]:
     problems = []
     for mod in pkg.modules.values():
         part = pkg.part(mod.name)
-        if mod.shim:
-            continue
         if part and part not in layers:
             problems.append(f"{mod.path}: part {part!r} of {pkg.package} is not in the "
                             "layering table LAYERS (tests/test_architecture.py): add it")
@@ -508,8 +496,6 @@ def test_checker_finds_planted_forbidden_imports(tmp_path):
         "mesh/io.py": "from fem3d import Scene\n",
         "io/rundir.py": "from fem3d import Fem3dError, __version__\n",
         "widgets.py": "",
-        "integrators.py": '"""Deprecated alias of fem3d.solve.newton."""\n'
-                          "from fem3d.solve.newton import *  # noqa\n",
         "__init__.py": "from fem3d.errors import Fem3dError\nfrom fem3d.solve import newton\n"
                        "__version__ = '0'\n\n\n"
                        "def __getattr__(name):\n    from fem3d.scene.spec import Scene\n",
@@ -520,18 +506,18 @@ def test_checker_finds_planted_forbidden_imports(tmp_path):
             "fem3d.physics.terms: 'physics' may import only errors, kernels, mesh, io, not "
             "'app'") in text
     assert ("fem3d/kernels/dispatch.py:1 (import of fem3d.scene.spec) in fem3d.kernels.dispatch:"
-            " 'kernels' may import only errors, _deprecated, not 'scene'") in text
+            " 'kernels' may import only errors, not 'scene'") in text
     assert "fem3d/mesh/io.py:1 (import of fem3d) in fem3d.mesh.io: 'mesh' imports Scene from " \
         "the fem3d package itself" in text
     assert "fem3d/widgets.py: part 'widgets' of fem3d is not in the layering table" in text
     assert "fem3d/__init__.py:2 (import of fem3d.solve.newton)" in text
     assert "fem3d/__init__.py imports at module level only from errors" in text
     # allowed: app anything; solve -> errors, physics; the generated kernels count as kernels
-    # (physics may import them); TYPE_CHECKING; the shim; the root's lazy __getattr__; the
+    # (physics may import them); TYPE_CHECKING; the root's lazy __getattr__; the
     # root's eagerly bound names
     assert not [p for p in problems if p.startswith(("fem3d/app/", "fem3d/solve/",
                                                      "fem3d/physics/mats.py", "fem3d/io/",
-                                                     "fem3d/scene/", "fem3d/integrators.py",
+                                                     "fem3d/scene/",
                                                      "fem3d/__init__.py:7"))]
     assert len(problems) == 5, text
     cycles = import_cycles(pkg)  # the forbidden physics -> app closes a circle, too

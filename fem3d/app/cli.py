@@ -2,7 +2,7 @@
 sub-commands other modules register.
 
 ``fem3d run NAME|FILE.toml|MESH [--steps N] [--dt DT] [--integrator NAME]
-[--material NAME] [--E E] [--nu NU] [--rho RHO] [--format vtu|obj|usd] [--frame-every K]
+[--material NAME] [--E E] [--nu NU] [--rho RHO] [--format NAME] [--frame-every K]
 [--set KEY=VALUE ...] [--out DIR] [--kernels numpy|c] [--checkpoint-every N] [--profile]
 [--debug]`` runs
 a scene (:mod:`fem3d.scene.spec`: a name of ``data/scenes``, a scene file, or a one-body scene
@@ -12,7 +12,8 @@ around a mesh file) with its scripted pulls. Every flag but ``--out``, ``--kerne
 memory of each stage of the start (:mod:`fem3d.app.profile`). It writes into ``DIR``:
 
 * ``frames/frame_00000.vtu`` ... and ``frames.pvd`` - the display mesh per frame (open
-  ``frames.pvd`` in ParaView), ``frames/*.obj``, or one ``frames.usdc`` (``output.format``);
+  ``frames.pvd`` in ParaView), ``frames/*.obj``, or one ``frames.usdc`` (``output.format``,
+  :mod:`fem3d.io.frames`);
 * ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
 * ``preview.gif`` - a shaded offscreen animation;
 * ``checkpoint.npz`` - with ``--checkpoint-every N`` every N steps and at the end, and always
@@ -65,6 +66,7 @@ from fem3d.app.run import resume_run, run_scene
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
+from fem3d.io.frames import FRAME_FORMATS, frame_format_names
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 from fem3d.solve.linear.registry import linear_solver_names
 from fem3d.solve.schemes.registry import scheme_names
@@ -142,8 +144,9 @@ def add_run_subcommand(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="save DIR/checkpoint.npz every N steps and at the end (default 0: only "
                    "on SIGINT/SIGTERM)")
-    p.add_argument("--format", choices=("vtu", "obj", "usd"), default=None,
-                   help="frame format (output.format)")
+    p.add_argument("--format", choices=frame_format_names(), default=None,
+                   help="frame format (output.format): " + "; ".join(
+                       f"{f.name}: {f.summary}" for f in FRAME_FORMATS.values()))
     p.add_argument("--skin", default=None, help="display mesh of the first body (bodies[0].skin)")
     p.add_argument("--newton-iterations", type=int, default=None,
                    help="Newton iterations per backward-Euler step "

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from fem3d.app.surfaces import record_tet_meshes
 from fem3d.errors import InputError, ParameterError, SimulationError
-from fem3d.io import extras, rundir
+from fem3d.io import rundir
 from fem3d.io.checkpoint import (
     CHECKPOINT_NAME,
     RunCheckpoint,
@@ -50,7 +50,7 @@ from fem3d.io.checkpoint import (
 )
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
-from fem3d.io.frames import make_frame_writer
+from fem3d.io.frames import frame_format, make_frame_writer
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
@@ -490,8 +490,7 @@ def _require_extras(scene) -> None:
     """Refuse, in one line naming the extra to install, a scene that needs a missing
     optional dependency (:mod:`fem3d.io.extras`). Surfaces (wildmeshing) are checked where
     they are tetrahedralized, the sparse solver where it is chosen: both before any output."""
-    if scene.output.format == "usd":
-        extras.require("pxr", "--format usd (output.format)")
+    frame_format(scene.output.format).require()
 
 
 def _scene_inputs(scene) -> dict[str, Any]:

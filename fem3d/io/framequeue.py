@@ -1,15 +1,15 @@
 """Frames written off the stepping thread: a bounded queue and one writer thread.
 
-:class:`BackgroundWriter` wraps a frame writer (:class:`fem3d.io.frames.FrameWriter`,
-:class:`fem3d.io.frames.UsdWriter`). :meth:`~BackgroundWriter.write` checks the positions
+:class:`BackgroundWriter` wraps a frame writer (a :class:`fem3d.io.frames.FrameSink` of any
+output format). :meth:`~BackgroundWriter.write` checks the positions
 (a non-finite coordinate is refused at once, with its step), copies them and puts them in a
 queue of ``depth`` frames; one thread takes them in order and writes them with the wrapped
 writer. The caller waits only when the queue is full (the disk is slower than the steps).
 
 - **Order and bytes.** One thread, first in first out: the same calls as writing in the
   caller's thread, in the same order, so the files are the same byte for byte whatever the
-  timing. ``frames.pvd`` is rewritten when the queue runs dry (at most every
-  ``index_seconds``) and by :meth:`~BackgroundWriter.flush`; its last contents do not
+  timing. The format's index (VTU's ``frames.pvd``) is rewritten when the queue runs dry
+  (at most every ``index_seconds``) and by :meth:`~BackgroundWriter.flush`; its last contents do not
   depend on the timing either.
 - **Errors.** The first exception of the writer thread (disk full: an ``OSError`` naming
   the file) is raised in the caller's thread by the next :meth:`~BackgroundWriter.write` or
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from fem3d.io.frames import check_vertices
+from fem3d.io.frames.base import check_vertices
 
 __all__ = ["BackgroundWriter"]
 
@@ -47,13 +47,13 @@ class BackgroundWriter:
 
     Parameters
     ----------
-    writer : FrameWriter or UsdWriter
+    writer : FrameSink
         The writer doing the work (used by the thread only, until :meth:`flush` returns).
     depth : int
         Frames queued at most; a :meth:`write` finding the queue full waits for the thread.
     index_seconds : float
-        ``frames.pvd`` is rewritten at most this often while frames come (and at every
-        :meth:`flush`).
+        The writer's index (``frames.pvd``) is rewritten at most this often while frames
+        come (and at every :meth:`flush`).
 
     Attributes
     ----------
@@ -65,8 +65,8 @@ class BackgroundWriter:
         self.writer = writer
         self.fmt = getattr(writer, "fmt", "")
         self.faces = writer.faces
-        if hasattr(writer, "pvd_every_frame"):
-            writer.pvd_every_frame = False  # rewritten here, when the queue runs dry
+        if hasattr(writer, "index_every_frame"):
+            writer.index_every_frame = False  # rewritten here, when the queue runs dry
         self.index_seconds = float(index_seconds)
         self.waited_seconds = 0.0
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
@@ -99,9 +99,9 @@ class BackgroundWriter:
             self._error = exc
 
     def _write_index(self) -> None:
-        write_pvd = getattr(self.writer, "write_pvd", None)
-        if write_pvd is not None:
-            write_pvd()
+        write_index = getattr(self.writer, "write_index", None)
+        if write_index is not None:
+            write_index()
 
     # ------------------------------------------------------------------ the caller's thread
     def _raise_error(self) -> None:

@@ -16,7 +16,7 @@ from PIL import Image
 
 from fem3d.io.energy import energy_columns
 from fem3d.io.files import PathLike, atomic_write
-from fem3d.io.frames import check_faces, check_vertices
+from fem3d.io.frames.base import check_faces, check_vertices
 from fem3d.io.obstacles import ObstacleMesh, plane_square
 
 __all__ = ["plot_energy", "render_preview"]

@@ -1,11 +1,4 @@
-"""Tet meshes: the mesh and its checks (:mod:`.tetmesh`), file formats (:mod:`.formats`),
-display-mesh skinning (:mod:`.skin`) and surfaces tetrahedralized by fTetWild
-(:mod:`.tetrahedralize`).
-
-Names imported from ``fem3d.mesh`` itself (the module it was before 0.2) still resolve, with a
-DeprecationWarning, until 0.3.
+"""Tet meshes: the mesh and its checks (:mod:`.tetmesh`), file formats (:mod:`.formats`, one
+module per reader family), display-mesh skinning (:mod:`.skin`) and surfaces tetrahedralized by
+fTetWild (:mod:`.tetrahedralize`).
 """
-
-from fem3d._deprecated import forward
-
-__getattr__ = forward(__name__, "fem3d.mesh.formats, fem3d.mesh.tetmesh, fem3d.mesh.skin")

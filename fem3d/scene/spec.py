@@ -68,6 +68,7 @@ from pydantic import (
 
 from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
+from fem3d.io.frames.registry import frame_format_names
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
 from fem3d.solve.linear.registry import linear_solver_names
@@ -94,6 +95,8 @@ NonNegative = Annotated[StrictFloat, Field(ge=0)]
 Index = Annotated[StrictInt, Field(ge=0)]
 #: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
+#: ``output.format``'s choices: the registered output formats (:mod:`fem3d.io.frames`).
+FrameFormatName = Literal[frame_format_names()]  # type: ignore[valid-type]
 
 
 def _registered_scheme(name: str) -> str:
@@ -519,7 +522,7 @@ class PreviewSpec(_Spec):
 class OutputSpec(_Spec):
     """Frames written by ``fem3d run``: format and stride (steps); the preview's camera."""
 
-    format: Literal["vtu", "obj", "usd"] = "vtu"
+    format: FrameFormatName = "vtu"
     every: Annotated[StrictInt, Field(ge=1)] = 1
     preview: PreviewSpec = PreviewSpec()
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from fem3d.app.sweep.spec import SampleSpec, SweepFile, _loc
 from fem3d.errors import InputError
+from fem3d.io.frames import FRAME_FORMATS, frame_format
 from fem3d.scene import apply_overrides, load_scene, scene_schema
 
 __all__ = ["Case", "SweepPlan", "expand_cases", "check_key_path", "plan_sweep", "SUMMARY_NAME",
@@ -262,10 +263,6 @@ def _scene_schema() -> dict[str, Any]:
     return scene_schema()
 
 
-def _frame_format(scene_dict: Mapping[str, Any]) -> Any:
-    return (scene_dict.get("output") or {}).get("format", "vtu")
-
-
 # --------------------------------------------------------------------------------------
 # planning
 
@@ -315,11 +312,12 @@ def plan_sweep(spec: SweepFile, out: Path, *, retry_failed: bool = False,
             continue
         digest = scene.digest()
         d = scene.to_dict()
-        fmt = _frame_format(d)
+        fmt = scene.output.format
         error = None
-        if spec.dataset is not None and fmt not in ("vtu", "obj"):
+        if spec.dataset is not None and not frame_format(fmt).reads_back:
+            readable = [f.name for f in FRAME_FORMATS.values() if f.reads_back]
             error = (f"invalid: dataset mode reads the run's frames: output.format must be "
-                     f"'vtu' or 'obj', got {fmt!r}")
+                     f"{' or '.join(map(repr, readable))}, got {fmt!r}")
         cases.append(Case(index, params, digest[:16], digest, d, error))
     todo: dict[str, Case] = {}
     done: dict[str, Case] = {}

@@ -28,6 +28,7 @@ The package: this module wires the viewer (server, scene graph, simulation threa
 the entry points (``fem3d view``, :func:`serve`); :mod:`~fem3d.app.viewer.panel` the panel,
 :mod:`~fem3d.app.viewer.clients` the browser clients (frame acknowledgements, notifications,
 drags), :mod:`~fem3d.app.viewer.logic` the shared state and the logic that needs no viser,
+:mod:`~fem3d.app.viewer.scene_graph` the scene nodes (mesh, obstacles, spring),
 :mod:`~fem3d.app.viewer.pacing` when to step (only while a page watches, at wall time),
 :mod:`~fem3d.app.viewer.plots` the energy history and the plots' axes,
 :mod:`~fem3d.app.viewer.ports` the port checks. viser is an optional dependency
@@ -65,30 +66,19 @@ from fem3d.app.viewer.logic import (
     ViewerState,
     _builtin_scene_names,
     _material_names,
-    _surface_faces,
     camera_for_points,
     console_help,
-    plane_grid_segments,
-    plane_quad,
     scene_points,
-    spring_segments,
 )
 from fem3d.app.viewer.panel import Panel
 from fem3d.app.viewer.ports import check_port_free, free_port, import_viser
+from fem3d.app.viewer.scene_graph import SceneGraph
 from fem3d.errors import Fem3dError, InputError, ParameterError
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
     import viser
 
 __all__ = ["Viewer", "add_view_subcommand", "serve"]
-
-OBSTACLE_COLOR = (150, 150, 150)
-PLANE_GRID_COLOR = (90, 90, 90)
-
-SKIN_COLOR = (236, 196, 150)
-SIM_COLOR = (90, 160, 230)
-SPRING_COLOR = (220, 40, 40)
-
 
 # --------------------------------------------------------------------------------------
 # The viewer
@@ -175,17 +165,10 @@ class Viewer:
         # Simulation-thread-only state.
         self._server: Any = None
         self._thread: threading.Thread | None = None
-        self._mesh_handle: Any = None
-        self._mesh_handle_mode: str | None = None
-        self._spring_handle: Any = None
-        self._obstacle_handles: list[Any] = []
-        self._obstacle_shown: list[np.ndarray | None] = []
-        self._plane_grid_handles: list[Any] = []
-        self._spring_key: tuple[int, ...] | None = None
+        self._graph: SceneGraph | None = None  # the scene nodes (after start)
         self._last_push = 0.0
         self._last_plot = 0.0
         self._loops = 0  # passes of the simulation loop (an idle viewer makes none)
-        self._mesh_serial = 0  # incremented whenever the mesh node is replaced
         self._shown: tuple[Any, Any] | None = None  # (mesh serial, pull) last sent
         self._shown_q = np.zeros((0, 3))
         self._camera: dict[str, Any] = self._scene_camera()
@@ -251,8 +234,9 @@ class Viewer:
             radius_range=s.radius_range(), history=s.history, plot_window=self.plot_window,
         )
         self._apply_camera(initial=True)
+        self._graph = SceneGraph(self._server)
         self._rebuild_mesh()
-        self._rebuild_obstacles()
+        self._graph.rebuild_obstacles(self._sim)
         self._server.on_client_connect(self._on_client_connect)
         self._server.on_client_disconnect(self._on_client_disconnect)
         self._thread = threading.Thread(target=self._run, name="fem3d-view-sim", daemon=True)
@@ -460,94 +444,11 @@ class Viewer:
                                seconds=seconds)
 
     # ---------------------------------------------------------------- scene graph
-    def _display_positions(self) -> np.ndarray:
-        if self._mesh_handle_mode == "skin":
-            return np.asarray(self._sim.skin_positions(), dtype=np.float64)
-        return np.asarray(self._sim.q, dtype=np.float64)
-
     def _rebuild_mesh(self) -> None:
         """Replace the displayed mesh node (simulation thread only)."""
         mode = self._state.mesh_mode if self._state.has_skin() else "sim"
-        if self._mesh_handle is not None:
-            old, self._mesh_handle = self._mesh_handle, None
-            old.remove()
-        self._mesh_handle_mode = mode
-        self._mesh_serial += 1
-        if mode == "skin":
-            verts = np.asarray(self._sim.skin_positions(), dtype=np.float64)
-            faces = np.asarray(self._sim.display_faces, dtype=np.uint32)
-            handle = self._server.scene.add_mesh_simple(
-                "/fem3d/skin", verts, faces, color=SKIN_COLOR, flat_shading=False,
-                cast_shadow=False, receive_shadow=False,
-            )
-        else:
-            verts = np.asarray(self._sim.q, dtype=np.float64)
-            handle = self._server.scene.add_mesh_simple(
-                "/fem3d/sim", verts, _surface_faces(self._sim), color=SIM_COLOR, flat_shading=True,
-                cast_shadow=False, receive_shadow=False,
-            )
-        handle.on_drag("left")(drag_handler(self.begin_pull, self.move_pull, self.end_pull))
-        self._mesh_handle = handle
-
-    def _rebuild_obstacles(self) -> None:
-        """Draw the contact scene's obstacles (simulation thread only): planes as squares
-        three mesh diagonals wide, mesh obstacles at their current positions."""
-        for h in self._obstacle_handles + self._plane_grid_handles:
-            h.remove()
-        self._obstacle_handles, self._obstacle_shown, self._plane_grid_handles = [], [], []
-        contact = getattr(self._sim, "contact", None)
-        if contact is None:
-            return
-        q = np.asarray(self._sim.q, dtype=np.float64)
-        center = 0.5 * (q.min(axis=0) + q.max(axis=0))
-        half = 1.5 * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
-        for k, plane in enumerate(contact.contact.planes):
-            V, F = plane_quad(plane.point, plane.normal, center, half)
-            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
-                f"/fem3d/obstacles/plane_{k}", V, F, color=OBSTACLE_COLOR, opacity=0.5,
-                side="double", cast_shadow=False, receive_shadow=False))
-            self._obstacle_shown.append(None)  # static
-            seg = plane_grid_segments(plane.point, plane.normal, center, half)
-            self._plane_grid_handles.append(self._server.scene.add_line_segments(
-                f"/fem3d/obstacles/plane_{k}_grid", seg, PLANE_GRID_COLOR, thickness=1.0,
-                thickness_units="screen"))
-        for k, (_name, V, F) in enumerate(self._sim.obstacles()):
-            V = np.asarray(V, dtype=np.float64)
-            self._obstacle_handles.append(self._server.scene.add_mesh_simple(
-                f"/fem3d/obstacles/mesh_{k}", V, np.asarray(F, dtype=np.uint32),
-                color=OBSTACLE_COLOR, flat_shading=True, side="double", cast_shadow=False,
-                receive_shadow=False))
-            self._obstacle_shown.append(V.copy())
-
-    def _update_obstacles(self) -> None:
-        """Move the mesh obstacles that moved (keyframed); inside ``atomic()``."""
-        moving = [i for i, v in enumerate(self._obstacle_shown) if v is not None]
-        if not moving:
-            return
-        for i, (_name, V, _F) in zip(moving, self._sim.obstacles(), strict=True):
-            V = np.asarray(V, dtype=np.float64)
-            if not np.array_equal(V, self._obstacle_shown[i]):
-                self._obstacle_handles[i].vertices = V.astype(np.float32)
-                self._obstacle_shown[i] = V.copy()
-
-    def _update_spring(self, pull: PullState | None, q: np.ndarray) -> None:
-        if pull is None or pull.generation != self._state.generation or pull.ids.size == 0:
-            if self._spring_handle is not None:
-                self._spring_handle.remove()
-                self._spring_handle = None
-                self._spring_key = None
-            return
-        seg = spring_segments(q, pull.ids, pull.target)
-        key = tuple(pull.ids.tolist())
-        if self._spring_handle is None or self._spring_key != key:
-            if self._spring_handle is not None:
-                self._spring_handle.remove()
-            self._spring_handle = self._server.scene.add_line_segments(
-                "/fem3d/spring", seg, SPRING_COLOR, thickness=3.0, thickness_units="screen"
-            )
-            self._spring_key = key
-        else:
-            self._spring_handle.points = seg
+        self._graph.rebuild_mesh(self._sim, mode,
+                                 drag_handler(self.begin_pull, self.move_pull, self.end_pull))
 
     # ---------------------------------------------------------------- commands (sim thread)
     def _do_toggle_mesh_mode(self) -> None:
@@ -599,8 +500,8 @@ class Viewer:
         self._notes.clear()
         s.install(name, scene, sim)
         self._rebuild_mesh()
-        self._rebuild_obstacles()
-        self._update_spring(None, sim.q)
+        self._graph.rebuild_obstacles(sim)
+        self._graph.update_spring(None, sim.q, s.generation)
         self._apply_camera()
         self._panel.show_scene(s.material, s.material_model(), s.radius_range())
         s.pacer.reset()
@@ -621,7 +522,8 @@ class Viewer:
         pull_key = None if pull is None else (pull.ids.tobytes(), pull.target.tobytes())
         # The mesh node is identified by a serial number: viser's handles compare their
         # vertex arrays, so comparing handles raises once the mesh is replaced.
-        shown = (self._mesh_serial, pull_key)
+        graph = self._graph
+        shown = (graph.mesh_serial, pull_key)
         changed = (
             self._shown is None or shown[0] != self._shown[0] or shown[1] != self._shown[1]
             or q.shape != self._shown_q.shape or not np.array_equal(q, self._shown_q)
@@ -631,12 +533,12 @@ class Viewer:
         elif not force and self._acks.busy(now):
             self._acks.hold_back()  # a page is still busy with the last update
         else:
-            verts = self._display_positions()
+            verts = graph.display_positions(self._sim)
             if np.isfinite(verts).all():
                 with self._server.atomic():
-                    self._mesh_handle.vertices = verts.astype(np.float32)
-                    self._update_spring(pull, q)
-                    self._update_obstacles()
+                    graph.mesh_handle.vertices = verts.astype(np.float32)
+                    graph.update_spring(pull, q, self._state.generation)
+                    graph.update_obstacles(self._sim)
                 self._acks.request(self._server.get_clients().values(), now)
                 self._shown, self._shown_q = shown, q.copy()
                 with self._state.lock:
@@ -649,7 +551,8 @@ class Viewer:
     def _push_gui(self) -> None:
         s = self._state
         with s.lock:
-            text = s.status_locked(self._mesh_handle_mode or s.mesh_mode)
+            shown = None if self._graph is None else self._graph.mesh_mode
+            text = s.status_locked(shown or s.mesh_mode)
             x, *series = s.history.plot_series(self.plot_window, n=PLOT_POINTS)
             latest = s.history.latest_split()
             peaks = s.history.peaks()

@@ -1,9 +1,0 @@
-"""Deprecated alias of :mod:`fem3d.mesh.skin`.
-
-Moved in the restructuring of fem3d 0.2; the alias goes in 0.3 (see docs/architecture.md).
-"""
-
-from fem3d._deprecated import forward
-
-__getattr__ = forward(__name__, (
-    "fem3d.mesh.skin"))
