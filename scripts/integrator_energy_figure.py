@@ -16,10 +16,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))
+from fem3d.solve.schemes.registry import SCHEMES  # noqa: E402
 from tests.solve.test_bdf2_newmark_static import _energy, bar, set_vibrating  # noqa: E402
-
-from fem3d.solve.integrators import INTEGRATORS  # noqa: E402
 
 
 def main() -> None:
@@ -32,7 +31,7 @@ def main() -> None:
         try:
             for _ in range(n):
                 kw = {} if name == "linear" else {"max_iterations": None}
-                s, _ = INTEGRATORS[name](system, s, dt, **kw)
+                s, _ = SCHEMES[name].model_step(system, s, dt, **kw)
                 es.append(_energy(model, s))
         except Exception as exc:  # noqa: BLE001 - the unstable scheme stops the curve
             print(name, "stopped:", exc)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_assembly import box_mesh
 
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
@@ -21,6 +20,7 @@ from fem3d.solve.schemes.registry import SCHEMES, dynamic_scheme_names, register
 from fem3d.solve.state import State
 from fem3d.solve.step_maps import affine_step_map, end_positions, fixed_dofs
 from fem3d.solve.system import System
+from tests.physics.test_assembly import box_mesh
 
 
 # ---------------------------------------------------------------- the toy scheme: one class
