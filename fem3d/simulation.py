@@ -159,8 +159,10 @@ class Simulation:
     pick_radius, spring_k : float
         Interactive picking radius and pull-spring stiffness (``scene.interaction``,
         resolved); settable.
-    max_newton_iterations, newton_hessian, newton_solver, newton_warm_start, newton_line_search
-        Backward Euler's Newton settings (``scene.simulation.newton``).
+    max_newton_iterations, newton_tolerance, newton_hessian, newton_solver
+        The implicit schemes' Newton settings (``scene.simulation.newton``).
+    newton_warm_start, newton_line_search
+        Likewise.
     max_substeps : int
         Contact steps whose straight motion passes through a surface are redone in up to
         this many substeps (``scene.contact.max_substeps``; :mod:`fem3d.solve.substeps`;
@@ -201,6 +203,7 @@ class Simulation:
         _check_static_support(self)
         self.scripted = scripted
         self.max_newton_iterations = sim.newton.max_iterations
+        self.newton_tolerance = sim.newton.tolerance
         self.newton_hessian = sim.newton.hessian
         self.newton_solver = sim.newton.solver
         self.newton_warm_start = sim.newton.warm_start
@@ -610,7 +613,8 @@ class Simulation:
             new, stats = step_with_substeps(
                 TERM_INTEGRATORS[self._integrator],
                 self.system, self.objective_terms(), self._state, self._dt,
-                max_iterations=self.max_newton_iterations, linear_solver=self.newton_solver,
+                max_iterations=self.max_newton_iterations, rtol=self.newton_tolerance,
+                linear_solver=self.newton_solver,
                 options=newton_options(self.newton_hessian, warm_start=self.newton_warm_start,
                                        line_search=self.newton_line_search),
                 fixed_positions=fixed, fixed_at=self.fixed_positions,

@@ -304,9 +304,16 @@ class BodySpec(_Spec):
 
 # ------------------------------------------------------------------------------ the rest
 class NewtonSpec(_Spec):
-    """Backward Euler's Newton solve."""
+    """The Newton solve of the implicit schemes (implicit, bdf2, newmark, static)."""
 
+    #: Newton iterations per step (dynamic schemes: the step keeps its last iterate; contact
+    #: raises it to 100) or per load increment (static: an unconverged increment is halved);
+    #: none: until converged (static: at most 50)
     max_iterations: Annotated[StrictInt, Field(ge=1)] | None = 5
+    #: converged when the gradient norm is below this fraction of its norm at Newton's start,
+    #: or below the scheme's absolute floor (dynamic: 1e-12 h E L^2; static: 1e-15 E L^2,
+    #: about ten times round-off; L the diagonal of the rest bounding box)
+    tolerance: Annotated[StrictFloat, Field(gt=0, lt=1)] = 1e-10
     hessian: Literal["exact", "psd"] = "exact"
     solver: Literal["direct", "reuse"] = "direct"
     #: where each step's Newton starts: the last velocity, or the lower-energy of it and its
