@@ -31,7 +31,7 @@ from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
-from fem3d.physics.constraints import pick_nearest_vertices
+from fem3d.physics.constraints import free_rigid_modes, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.scene.build import build
@@ -93,18 +93,26 @@ def _check_supported(scene: Scene) -> None:
 
 
 def _check_static_support(sim) -> None:
-    """Refuse ``static`` where a body has neither pins nor contact to hold it (its
-    equilibrium is not unique: a rigid motion costs nothing)."""
+    """Refuse ``static`` where a body has neither pins nor contact to hold it, or pins that
+    leave a rigid motion free (its equilibrium is not unique: that motion costs nothing)."""
     if sim.integrator != "static" or sim.contact is not None:
         return
     fixed = np.zeros(sim.model.n_vertices, dtype=bool)
     fixed[sim.constraints.fixed_vertices] = True
+    fd = sim.constraints.fixed_dofs
     for i, vs in enumerate(sim.assembled.body_vertices):
+        label = f"body {i} ({sim.scene.bodies[i].label})"
         if not fixed[vs].any():
             raise sim.scene.error(
                 "simulation.integrator", f"static needs every body held by pins or contact: "
-                f"body {i} ({sim.scene.bodies[i].label}) has neither, so it has no unique "
-                "equilibrium")
+                f"{label} has neither, so it has no unique equilibrium")
+        mine = fd[(fd >= 3 * vs.start) & (fd < 3 * vs.stop)] - 3 * vs.start
+        free = free_rigid_modes(sim.model.X[vs], mine)
+        if free:
+            raise sim.scene.error(
+                f"bodies[{i}].pins", f"static: {label} is under-supported: its pins leave "
+                f"the rigid motion{'s' if len(free) > 1 else ''} {', '.join(free)} free (it "
+                "costs nothing: no unique equilibrium; hold more dofs)")
 
 
 #: Why the linearly-implicit scheme refuses contact scenes (one line, CLI and viewer).
@@ -220,7 +228,8 @@ class Simulation:
         q = self.model.X.copy()
         p = self.fixed_positions(0.0)
         if p is not None:
-            q[self.constraints.fixed_vertices] = p
+            c = self.constraints
+            q.reshape(-1)[c.fixed_dofs] = p.reshape(-1)[c.fixed_slots]
         return q
 
     def obstacles(self, t: float | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -385,7 +394,7 @@ class Simulation:
         self._script_active: tuple[int, ...] = ()
         rest = State.at_rest(self.model)
         v0 = self.assembled.v0.copy()
-        v0[self.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
+        v0.reshape(-1)[self.constraints.fixed_dofs] = 0.0  # pinned DOFs start at rest
         self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
         self._injected = kinetic_energy(self.model, self.v)
         if self.contact is not None:

@@ -140,7 +140,8 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
         raise scene.error(
             "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
             "[{ select = { lowest_y = { tol = 0.0 } } }])")
-    constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
+    constraints = (Constraints.from_fixed_vertices(a.X, a.fixed) if a.fixed_dofs is None
+                   else Constraints.from_fixed_dofs(a.X, a.fixed_dofs))
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)

@@ -207,10 +207,25 @@ class MotionSpec(_Spec):
 
 
 class PinSpec(_Spec):
-    """Fixed vertices (``motion``: prescribed keyframed positions instead of fixed)."""
+    """Fixed vertices (``motion``: prescribed keyframed positions instead of fixed); ``dofs``:
+    the components held (``"z"``: a roller or symmetry plane normal to z; default all)."""
 
     select: Selector
     motion: MotionSpec | None = None
+    dofs: StrictStr = "xyz"
+
+    @field_validator("dofs")
+    @classmethod
+    def _axes(cls, dofs: str) -> str:
+        if not dofs or set(dofs) - set("xyz") or len(set(dofs)) != len(dofs):
+            raise ValueError(f"dofs = {dofs!r}: give the held components as x, y and/or z, "
+                             "each once (e.g. \"z\", \"xy\"; default \"xyz\")")
+        return dofs
+
+    @property
+    def axes(self) -> list[int]:
+        """The fixed components, ``0, 1, 2`` for x, y, z."""
+        return sorted("xyz".index(c) for c in self.dofs)
 
 
 # ------------------------------------------------------------------------------ bodies
