@@ -56,6 +56,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from fem3d.diff.damping import DEFAULT_CACHE_BYTES, RecordingDamping
+from fem3d.diff.loads import PressureAdjoint
 from fem3d.diff.params import (
     PARAMETER_KEYS,
     ParamKey,
@@ -75,6 +76,7 @@ from fem3d.diff.terms import (
     sparse_of,
 )
 from fem3d.errors import ParameterError, SimulationError
+from fem3d.physics.terms.surface import FollowerPressure
 from fem3d.scene.arrays import select_vertices
 from fem3d.scene.build import Built, build
 from fem3d.scene.load import apply_overrides
@@ -420,6 +422,8 @@ class _Adjoint:
             *([InertiaAdjoint(self.model, a, density)] if dynamic else []),
             ElasticAdjoint(self.model, self.groups),
             GravityAdjoint(self.model, a, run.built.gravity, density),
+            *[PressureAdjoint(t) for t in system.loads.surface
+              if isinstance(t, FollowerPressure)],
             *([DampingAdjoint(system, a, self.groups, density, run.damping)] if dynamic
               else []),
             *run.terms]

@@ -54,7 +54,6 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
-    ConfigDict,
     Field,
     StrictBool,
     StrictFloat,
@@ -69,13 +68,31 @@ from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
+from fem3d.scene.selection import (  # re-exported: the scene's one description
+    ZERO3,
+    HalfSpace,
+    Index,
+    LoadKeyframe,
+    LoadSpec,
+    LowestY,
+    NearestTo,
+    NearVertex,
+    NonNegative,
+    Positive,
+    Selector,
+    Sphere,
+    Vec3,
+    _nonzero,
+    _Spec,
+)
 from fem3d.solve.linear.registry import linear_solver_names
 
 __all__ = [
     "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
     "Selector", "PinSpec", "MotionSpec", "Keyframe", "PullSpec", "ContactSpec",
     "ObstacleSpec", "PlaneObstacleSpec", "MeshObstacleSpec", "OutputSpec", "PreviewSpec",
-    "InteractionSpec", "TransformSpec", "TetrahedralizeSpec", "DampingSpec", "scene_schema",
+    "InteractionSpec", "TransformSpec", "TetrahedralizeSpec", "DampingSpec", "LoadSpec",
+    "LoadKeyframe", "LowestY", "HalfSpace", "Sphere", "NearVertex", "NearestTo", "scene_schema",
     "material_names", "DEFAULT_STEPS", "SURFACE_SUFFIXES",
 ]
 
@@ -85,97 +102,8 @@ DEFAULT_STEPS = 100
 #: Closed-surface file types a body's ``mesh`` may be (tetrahedralized with fTetWild).
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
 
-Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
-ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
-Positive = Annotated[StrictFloat, Field(gt=0)]
-NonNegative = Annotated[StrictFloat, Field(ge=0)]
-Index = Annotated[StrictInt, Field(ge=0)]
 #: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
-
-
-class _Spec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-def _nonzero(v: Vec3, what: str = "vector") -> Vec3:
-    if not any(c != 0 for c in v):
-        raise ValueError(f"{what} must not be zero")
-    return v
-
-
-# ------------------------------------------------------------------------------ selectors
-class LowestY(_Spec):
-    """Vertices with ``y <= min y + tol``."""
-
-    tol: NonNegative = 0.0
-
-
-class HalfSpace(_Spec):
-    """Vertices with ``(x - point) . normal >= 0``."""
-
-    point: Vec3
-    normal: Vec3
-
-    @field_validator("normal")
-    @classmethod
-    def _normal(cls, v: Vec3) -> Vec3:
-        return _nonzero(v, "normal")
-
-
-class Sphere(_Spec):
-    """Vertices with ``|x - center| <= radius``."""
-
-    center: Vec3
-    radius: NonNegative
-
-
-class NearVertex(_Spec):
-    """Vertices within ``radius`` of vertex ``vertex`` (body-local index)."""
-
-    vertex: Index
-    radius: NonNegative = 0.0
-
-
-class NearestTo(_Spec):
-    """The vertex nearest to ``point`` and every vertex within ``radius`` of it."""
-
-    point: Vec3
-    radius: NonNegative = 0.0
-
-
-_SELECTOR_KEYS = ("lowest_y", "box", "half_space", "sphere", "vertices", "vertices_file",
-                  "near_vertex", "nearest_to")
-
-
-class Selector(_Spec):
-    """Exactly one way of choosing vertices (see the module docstring)."""
-
-    lowest_y: LowestY | None = None
-    box: tuple[Vec3, Vec3] | None = None
-    half_space: HalfSpace | None = None
-    sphere: Sphere | None = None
-    vertices: Annotated[list[Index], Field(min_length=1)] | None = None
-    vertices_file: StrictStr | None = None
-    near_vertex: NearVertex | None = None
-    nearest_to: NearestTo | None = None
-
-    @model_validator(mode="after")
-    def _exactly_one(self) -> Selector:
-        given = [k for k in _SELECTOR_KEYS if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(_SELECTOR_KEYS)} (got "
-                f"{', '.join(given) if given else 'none'})"
-            )
-        if self.box is not None and any(a > b for a, b in zip(*self.box, strict=True)):
-            raise ValueError("box: each min must be <= its max")
-        return self
-
-    @property
-    def kind(self) -> str:
-        """The selector's key (``"box"``, ...)."""
-        return next(k for k in _SELECTOR_KEYS if getattr(self, k) is not None)
 
 
 # ------------------------------------------------------------------------------ motion
@@ -310,6 +238,7 @@ class BodySpec(_Spec):
     material: MaterialSpec
     damping: DampingSpec = DampingSpec()
     pins: list[PinSpec] = Field(default_factory=list)
+    loads: list[LoadSpec] = Field(default_factory=list)
 
     @property
     def label(self) -> str:
