@@ -195,6 +195,9 @@ class Simulation:
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = built.motions
+        #: each pin's key and the DOFs it holds (:meth:`reactions`' groups)
+        self.pin_groups = built.pin_groups
+        self._before: State | None = None
         #: The IPC contact term of a contact scene
         #: (:class:`fem3d.physics.terms.contact.ContactTerm`).
         self.contact = built.contact
@@ -397,6 +400,7 @@ class Simulation:
         v0.reshape(-1)[self.constraints.fixed_dofs] = 0.0  # pinned DOFs start at rest
         self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
         self._injected = kinetic_energy(self.model, self.v)
+        self._before = None
         if self.contact is not None:
             self.contact.reset()
 
@@ -556,6 +560,45 @@ class Simulation:
         return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot,
                 "strain": strain, "gravity": gravity}
 
+    def reactions(self) -> np.ndarray:
+        """``(n_pins, 3)``: the force each pin exerts on the body in the current state, in
+        the order of :attr:`pin_groups` (zero in the components a pin leaves free).
+
+        ``R = dV/dq - f_ext + M a`` on the pin's DOFs: ``V`` the position terms' potentials
+        (strain, pull springs, surface and point loads, contact), ``f_ext`` gravity, ``a``
+        the acceleration of the last step's equation of motion (:meth:`_acceleration`; zero
+        in ``static``); Rayleigh damping's force is left out. In a static equilibrium the
+        reactions balance the applied loads (docs/loads.md).
+        """
+        q = self.q.reshape(-1)
+        g = np.zeros(q.size)
+        for term in self.objective_terms():
+            if getattr(term, "variable", "position") == "position" and term.active:
+                g += term.gradient(q)
+        if self.system.loads.gravity is not None:
+            g -= self.system.loads.gravity.force
+        a = self._acceleration()
+        if a is not None:
+            g += self.model.mass @ a
+        out = np.zeros((len(self.pin_groups), 3))
+        for k, (_, dofs) in enumerate(self.pin_groups):
+            np.add.at(out[k], dofs % 3, g[dofs])
+        return out
+
+    def _acceleration(self) -> np.ndarray | None:
+        """``(3n,)`` the acceleration the last step's equation of motion holds at its end:
+        the state's own (Newmark's ``a``), the two-step difference ``(3 v - 4 v_n +
+        v_(n-1)) / (2 dt)`` of a state with a history (BDF2), else ``(v - v_n) / dt``
+        (backward Euler); None before a step and in a static run (no inertia)."""
+        before, s = self._before, self._state
+        if before is None or not any(v.any() for v in (s.v, before.v)) and s.a is None:
+            return None
+        if s.a is not None:
+            return s.a.reshape(-1)
+        if s.v_prev is not None and before.v_prev is not None:
+            return (3.0 * s.v - 4.0 * before.v + before.v_prev).reshape(-1) / (2.0 * self._dt)
+        return (s.v - before.v).reshape(-1) / self._dt
+
     def gravity_energy(self) -> float:
         """Gravity's potential ``-M g . (q - X)`` of the current state (the part of
         ``energies()["potential"]`` that is not strain)."""
@@ -609,6 +652,7 @@ class Simulation:
         driven = bool(self._motions) and self.t < self.motion_end
         before = self._energy_with_pull() if driven else 0.0
         fixed = self.fixed_positions(self.t + self._dt)
+        self._before = self._state
         t0 = time.perf_counter()
         if self._integrator == "linear":
             new, stats = INTEGRATORS["linear"](

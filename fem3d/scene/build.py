@@ -59,8 +59,8 @@ from fem3d.scene.arrays import (
 from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
 __all__ = ["Built", "PinMotion", "build", "build_loads", "surface_loads_from_scene",
-           "model_from_scene", "damping_from_scene",
-           "pin_motions", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
+           "model_from_scene", "damping_from_scene", "pin_motions", "pin_groups",
+           "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
@@ -108,6 +108,10 @@ class Built:
     pick_radius, spring_k : float
         Interaction values: ``interaction.pick_radius`` / ``spring_k``, or their defaults
         ``0.01 h`` / ``0.15 E h`` (``E`` the first body's, else the model's).
+    pin_groups : tuple of (str, ndarray)
+        Each pin's key (``bodies[0].pins[1]``) and the fixed DOFs it holds (``(k,) int64``;
+        a DOF two pins hold counts for the first): the reactions' groups
+        (:func:`pin_groups`).
     """
 
     arrays: SceneArrays
@@ -121,6 +125,7 @@ class Built:
     contact: ContactTerm | None
     pick_radius: float
     spring_k: float
+    pin_groups: tuple = ()
 
 
 def build(scene: Scene, *, backend: str | None = None) -> Built:
@@ -168,7 +173,25 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
                  rayleigh_alpha=alpha, rayleigh_beta=beta, loads=loads, motions=motions,
                  contact=contact,
-                 pick_radius=a.pick_radius, spring_k=spring_k)
+                 pick_radius=a.pick_radius, spring_k=spring_k,
+                 pin_groups=pin_groups(scene, a))
+
+
+def pin_groups(scene: Scene, a: SceneArrays) -> tuple:
+    """``((key, dofs), ...)``: each pin's key and the DOFs it holds, in scene order (a DOF
+    that two pins hold belongs to the first)."""
+    out, taken = [], np.zeros(3 * a.X.shape[0], dtype=bool)
+    for i, body in enumerate(scene.bodies):
+        off = a.body_vertices[i].start
+        for j, pin in enumerate(body.pins):
+            key = f"bodies[{i}].pins[{j}]"
+            ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
+                                  f"{key}.select") + off
+            dofs = (3 * ids[:, None] + np.array(pin.axes)).reshape(-1)
+            dofs = np.sort(dofs[~taken[dofs]])
+            taken[dofs] = True
+            out.append((key, dofs))
+    return tuple(out)
 
 
 def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0, *,
