@@ -158,3 +158,36 @@ def test_free_rigid_modes():
     assert len(free_rigid_modes(X, 3 * line + 2)) == 5
     held = Constraints.from_fixed_dofs(X, planes)
     assert held.partial and held.fixed_vertices.size == np.unique(planes // 3).size
+
+
+@pytest.mark.parametrize(("lines", "key", "says"), [
+    ('pins = [{ select = { lowest_y = {} }, dofs = "zz" }]', "bodies[0].pins[0].dofs",
+     "dofs = 'zz'"),
+    ('pins = [{ select = { lowest_y = {} }, dofs = "w" }]', "bodies[0].pins[0].dofs",
+     "dofs = 'w'"),
+    ("loads = [{ select = { vertices = [0] } }]", "bodies[0].loads[0]",
+     "give exactly one of traction, pressure, force (got none)"),
+    ("loads = [{ select = { vertices = [0] }, force = [1.0, 0.0, 0.0], pressure = 1.0 }]",
+     "bodies[0].loads[0]", "(got pressure, force)"),
+    ("loads = [{ select = { vertices = [0] }, force = [1.0, 0.0, 0.0], keyframes = "
+     "[{ t = 1.0, scale = 1.0 }, { t = 0.5, scale = 0.0 }] }]", "bodies[0].loads[0]",
+     "must be after"),
+    ("loads = [{ select = { vertices = [0, 1] }, traction = [1.0, 0.0, 0.0] }]",
+     "bodies[0].loads[0].select", "selects no whole boundary face"),
+])
+def test_bad_support_and_load_keys_are_one_line_errors(lines, key, says, tmp_path, capsys):
+    """``fem3d run`` on a scene with a bad ``dofs`` or load: exit 2, one line naming the
+    key and what is wrong."""
+    from fem3d.app.cli import main
+
+    X, T = box_tet_mesh((2, 1, 1))
+    mesh = _scene(X, T, [face(0, 0.0)]).bodies[0].mesh
+    pins = "" if lines.startswith("pins") else "pins = [{ select = { lowest_y = {} } }]\n"
+    path = tmp_path / "s.toml"
+    path.write_text(f'[[bodies]]\nmesh = "{mesh}"\nmaterial = {{ E = 1e5, nu = 0.3 }}\n'
+                    f"{pins}{lines}\n")
+    status = main(["run", str(path), "--steps", "1", "--out", str(tmp_path / "out"),
+                   "--quiet", "--no-preview"])
+    err = capsys.readouterr().err.strip()
+    print(err)
+    assert status == 2 and "\n" not in err and key in err and says in err
