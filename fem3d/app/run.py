@@ -5,7 +5,8 @@
 in, a :class:`RunSummary` out. It writes into its output folder:
 
 * the display mesh per frame (``scene.output``: ``frames/*.vtu`` + ``frames.pvd``,
-  ``frames/*.obj``, or one ``frames.usdc``);
+  ``frames/*.obj``, or one ``frames.usdc``); the VTU frames carry the von Mises stress, the
+  Cauchy stress and the principal stretches as point data (vertex averages of the elements');
 * ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
 * ``reactions.csv`` - the force each pin exerts per step (:mod:`fem3d.io.reactions`);
 * ``preview.gif`` - a shaded offscreen animation;
@@ -54,6 +55,7 @@ from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import make_frame_writer
 from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
+from fem3d.physics.stress import vertex_fields
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
 
@@ -244,7 +246,8 @@ class RunLoop:
             raise SimulationError("non-finite energy (nothing written for this step)", step=step)
         if step % self.frame_every == 0:
             V = self.sim.skin_positions()
-            self.writer.write(step, t, V)  # refuses non-finite coordinates
+            fields = self._stress_fields() if self.scene.output.format == "vtu" else None
+            self.writer.write(step, t, V, fields)  # refuses non-finite coordinates
             if self.frame_count % self.preview_stride == 0:
                 self.preview.append(V)
                 self.preview_times.append(float(t))
@@ -253,6 +256,14 @@ class RunLoop:
                         pull=pull)
         if self.reactions.pins:
             self.reactions.append(step, t, self.sim.reactions())
+
+    def _stress_fields(self) -> dict[str, np.ndarray]:
+        """The frame's point data: von Mises stress, Cauchy stress (9 components) and principal
+        stretches averaged at the vertices (:func:`fem3d.physics.stress.vertex_fields`), on
+        the display mesh (through the skinning weights when it is a skin)."""
+        fields = vertex_fields(self.sim.model, self.sim.q)
+        W = self.sim.skinning_matrix
+        return fields if W is None else {k: np.asarray(W @ v) for k, v in fields.items()}
 
     def save_checkpoint(self) -> Path:
         """Write ``energy.csv``, flush the frames and save ``checkpoint.npz``; its path."""
