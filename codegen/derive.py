@@ -508,7 +508,7 @@ def spring_module() -> ModuleSpec:
 
 def module_names() -> list[str]:
     """Every module the generator emits, in a fixed order."""
-    return ["tet", "spring", *sorted(MATERIALS)]
+    return ["tet", "spring", "pressure", *sorted(MATERIALS)]
 
 
 def build_module(name: str) -> ModuleSpec:
@@ -517,6 +517,9 @@ def build_module(name: str) -> ModuleSpec:
         return tet_module()
     if name == "spring":
         return spring_module()
+    if name == "pressure":  # codegen/pressure.py (imported here: it imports codegen.spec)
+        from codegen.pressure import pressure_module
+        return pressure_module()
     return material_module(name)
 
 
@@ -558,7 +561,11 @@ def reference_outputs(module: str, kernel: str) -> tuple[list[sp.Symbol], list[l
             names = MATERIALS[module].PARAM_NAMES
             return symbols, [[sp.diff(g, d.params[p]) for g in gradient for p in names]]
         return symbols, [[sp.diff(g, s) for g in gradient for s in dofs]]
-    raw = {"tet": _tet_raw, "spring": _spring_raw}[module]()
+    if module == "pressure":
+        from codegen.pressure import pressure_raw
+        raw = pressure_raw()
+    else:
+        raw = {"tet": _tet_raw, "spring": _spring_raw}[module]()
     inputs, params, outputs = raw[kernel]
     symbols = [s for a in (*inputs, *params) for s in a.symbols]
     return symbols, [list(exprs) for _, _, exprs, _ in outputs]

@@ -31,7 +31,7 @@ from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
-from fem3d.physics.constraints import pick_nearest_vertices
+from fem3d.physics.constraints import free_rigid_modes, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.scene.build import build
@@ -101,18 +101,26 @@ def _check_supported(scene: Scene) -> None:
 
 def _check_static_support(sim) -> None:
     """Refuse a scheme without inertia (``static``) where a body has neither pins nor contact
-    to hold it (its equilibrium is not unique: a rigid motion costs nothing)."""
+    to hold it, or pins that leave a rigid motion free (its equilibrium is not unique: that
+    motion costs nothing)."""
     if sim.scheme.dynamic or sim.contact is not None:
         return
     fixed = np.zeros(sim.model.n_vertices, dtype=bool)
     fixed[sim.constraints.fixed_vertices] = True
+    fd = sim.constraints.fixed_dofs
     for i, vs in enumerate(sim.assembled.body_vertices):
+        label = f"body {i} ({sim.scene.bodies[i].label})"
         if not fixed[vs].any():
             raise sim.scene.error(
                 "simulation.integrator", f"{sim.integrator} needs every body held by pins or "
-                "contact: "
-                f"body {i} ({sim.scene.bodies[i].label}) has neither, so it has no unique "
-                "equilibrium")
+                f"contact: {label} has neither, so it has no unique equilibrium")
+        mine = fd[(fd >= 3 * vs.start) & (fd < 3 * vs.stop)] - 3 * vs.start
+        free = free_rigid_modes(sim.model.X[vs], mine)
+        if free:
+            raise sim.scene.error(
+                f"bodies[{i}].pins", f"{sim.integrator}: {label} is under-supported: its pins "
+                f"leave the rigid motion{'s' if len(free) > 1 else ''} {', '.join(free)} free "
+                "(it costs nothing: no unique equilibrium; hold more dofs)")
 
 
 #: Why the linearly-implicit scheme refuses contact scenes (one line, CLI and viewer).
@@ -185,6 +193,9 @@ class Simulation:
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = built.motions
+        #: each pin's key and the DOFs it holds (:meth:`reactions`' groups)
+        self.pin_groups = built.pin_groups
+        self._before: State | None = None
         #: The IPC contact term of a contact scene
         #: (:class:`fem3d.physics.terms.contact.ContactTerm`).
         self.contact = built.contact
@@ -213,7 +224,8 @@ class Simulation:
         q = self.model.X.copy()
         p = self.fixed_positions(0.0)
         if p is not None:
-            q[self.constraints.fixed_vertices] = p
+            c = self.constraints
+            q.reshape(-1)[c.fixed_dofs] = p.reshape(-1)[c.fixed_slots]
         return q
 
     def obstacles(self, t: float | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -379,9 +391,10 @@ class Simulation:
         self._script_active: tuple[int, ...] = ()
         rest = State.at_rest(self.model)
         v0 = self.assembled.v0.copy()
-        v0[self.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
+        v0.reshape(-1)[self.constraints.fixed_dofs] = 0.0  # pinned DOFs start at rest
         self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
         self._injected = kinetic_energy(self.model, self.v)
+        self._before = None
         if self.contact is not None:
             self.contact.reset()
 
@@ -537,6 +550,45 @@ class Simulation:
         return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot,
                 "strain": strain, "gravity": gravity}
 
+    def reactions(self) -> np.ndarray:
+        """``(n_pins, 3)``: the force each pin exerts on the body in the current state, in
+        the order of :attr:`pin_groups` (zero in the components a pin leaves free).
+
+        ``R = dV/dq - f_ext + M a`` on the pin's DOFs: ``V`` the position terms' potentials
+        (strain, pull springs, surface and point loads, contact), ``f_ext`` gravity, ``a``
+        the acceleration of the last step's equation of motion (:meth:`_acceleration`; zero
+        in ``static``); Rayleigh damping's force is left out. In a static equilibrium the
+        reactions balance the applied loads (docs/loads.md).
+        """
+        q = self.q.reshape(-1)
+        g = np.zeros(q.size)
+        for term in self.objective_terms():
+            if getattr(term, "variable", "position") == "position" and term.active:
+                g += term.gradient(q)
+        if self.system.loads.gravity is not None:
+            g -= self.system.loads.gravity.force
+        a = self._acceleration()
+        if a is not None:
+            g += self.model.mass @ a
+        out = np.zeros((len(self.pin_groups), 3))
+        for k, (_, dofs) in enumerate(self.pin_groups):
+            np.add.at(out[k], dofs % 3, g[dofs])
+        return out
+
+    def _acceleration(self) -> np.ndarray | None:
+        """``(3n,)`` the acceleration the last step's equation of motion holds at its end:
+        the state's own (Newmark's ``a``), the two-step difference ``(3 v - 4 v_n +
+        v_(n-1)) / (2 dt)`` of a state with a history (BDF2), else ``(v - v_n) / dt``
+        (backward Euler); None before a step and in a static run (no inertia)."""
+        before, s = self._before, self._state
+        if before is None or not any(v.any() for v in (s.v, before.v)) and s.a is None:
+            return None
+        if s.a is not None:
+            return s.a.reshape(-1)
+        if s.v_prev is not None and before.v_prev is not None:
+            return (3.0 * s.v - 4.0 * before.v + before.v_prev).reshape(-1) / (2.0 * self._dt)
+        return (s.v - before.v).reshape(-1) / self._dt
+
     def gravity_energy(self) -> float:
         """Gravity's potential ``-M g . (q - X)`` of the current state (the part of
         ``energies()["potential"]`` that is not strain)."""
@@ -590,6 +642,7 @@ class Simulation:
         driven = bool(self._motions) and self.t < self.motion_end
         before = self._energy_with_pull() if driven else 0.0
         fixed = self.fixed_positions(self.t + self._dt)
+        self._before = self._state
         t0 = time.perf_counter()
         new, stats = self._scheme.advance(
             self.system, self.objective_terms(), self._state, self._dt, self.newton,

@@ -5,8 +5,10 @@
 in, a :class:`RunSummary` out. It writes into its output folder:
 
 * the display mesh per frame (``scene.output``: ``frames/*.vtu`` + ``frames.pvd``,
-  ``frames/*.obj``, or one ``frames.usdc``);
+  ``frames/*.obj``, or one ``frames.usdc``); the VTU frames carry the von Mises stress, the
+  Cauchy stress and the principal stretches as point data (vertex averages of the elements');
 * ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
+* ``reactions.csv`` - the force each pin exerts per step (:mod:`fem3d.io.reactions`);
 * ``preview.gif`` - a shaded offscreen animation;
 * ``checkpoint.npz`` - every N steps and at the end, and always on SIGINT / SIGTERM (see
   :mod:`fem3d.io.checkpoint`). It holds the whole scene.
@@ -51,7 +53,9 @@ from fem3d.io.checkpoint import (
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import frame_format, make_frame_writer
+from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
+from fem3d.physics.stress import vertex_fields
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
 
@@ -209,6 +213,9 @@ class RunLoop:
         self.preview: list[np.ndarray] = []
         self.preview_times: list[float] = []
         self.frame_count = 0
+        self.reactions = ReactionLog(out / "reactions.csv", [k for k, _ in sim.pin_groups])
+        if ckpt is not None:
+            self.reactions.keep_until(ckpt.step)
         if ckpt is None:
             self.log = EnergyLog(out / "energy.csv")
         else:  # resume: the saved energy rows and frame list; frames after the checkpoint go
@@ -239,17 +246,29 @@ class RunLoop:
             raise SimulationError("non-finite energy (nothing written for this step)", step=step)
         if step % self.frame_every == 0:
             V = self.sim.skin_positions()
-            self.writer.write(step, t, V)  # refuses non-finite coordinates
+            fields = self._stress_fields() if self.scene.output.format == "vtu" else None
+            self.writer.write(step, t, V, fields)  # refuses non-finite coordinates
             if self.frame_count % self.preview_stride == 0:
                 self.preview.append(V)
                 self.preview_times.append(float(t))
             self.frame_count += 1
         self.log.append(t, kinetic, potential, total, gravity=self.sim.gravity_energy(),
                         pull=pull)
+        if self.reactions.pins:
+            self.reactions.append(step, t, self.sim.reactions())
+
+    def _stress_fields(self) -> dict[str, np.ndarray]:
+        """The frame's point data: von Mises stress, Cauchy stress (9 components) and principal
+        stretches averaged at the vertices (:func:`fem3d.physics.stress.vertex_fields`), on
+        the display mesh (through the skinning weights when it is a skin)."""
+        fields = vertex_fields(self.sim.model, self.sim.q)
+        W = self.sim.skinning_matrix
+        return fields if W is None else {k: np.asarray(W @ v) for k, v in fields.items()}
 
     def save_checkpoint(self) -> Path:
         """Write ``energy.csv``, flush the frames and save ``checkpoint.npz``; its path."""
         self.log.write()  # energy.csv and the checkpoint agree
+        self.reactions.write()
         self.writer.flush()
         return save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
             settings=self.settings, snapshot=self.sim.snapshot(), energy=self.log.as_array(),
@@ -301,9 +320,11 @@ class RunLoop:
         except BaseException:  # a frame that could not be written (disk full), ...
             bar.close()
             self.log.write()
+            self.reactions.write()
             raise
         bar.close()
         self.log.write()
+        self.reactions.write()
         if intr.signum is not None:  # stop before any slow output
             return self._interrupted(intr, t_start)
         self.writer.close()  # every frame on disk (or the writer's error)

@@ -56,6 +56,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from fem3d.diff.damping import DEFAULT_CACHE_BYTES, RecordingDamping
+from fem3d.diff.loads import PressureAdjoint
 from fem3d.diff.params import (
     PARAMETER_KEYS,
     ParamKey,
@@ -75,6 +76,7 @@ from fem3d.diff.terms import (
     sparse_of,
 )
 from fem3d.errors import ParameterError, SimulationError
+from fem3d.physics.terms.surface import FollowerPressure
 from fem3d.scene.arrays import select_vertices
 from fem3d.scene.build import Built, build
 from fem3d.scene.load import apply_overrides
@@ -221,7 +223,7 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float,
                     loads=built.loads)
     a = built.arrays
     v0 = np.array(a.v0, dtype=np.float64)
-    v0[built.constraints.fixed_vertices] = 0.0  # pinned vertices start at rest
+    v0.reshape(-1)[built.constraints.fixed_dofs] = 0.0  # pinned DOFs start at rest
     state = State(q=built.model.X.copy(), v=v0, t=0.0, step=0)
     run = _Run(scene, built, system, state, float(scene.simulation.dt), rtol, atol_factor,
                scheme)
@@ -410,8 +412,7 @@ class _Adjoint:
         system = run.system
         self.model, self.c = system.model, system.constraints
         self.free = self.c.free_dofs
-        fv = self.c.fixed_vertices
-        self.fixed = (3 * fv[:, None] + np.arange(3)).reshape(-1)
+        self.fixed = self.c.fixed_dofs
         self.dt = run.dt
         a = run.built.arrays
         self.groups = run.groups
@@ -421,6 +422,8 @@ class _Adjoint:
             *([InertiaAdjoint(self.model, a, density)] if dynamic else []),
             ElasticAdjoint(self.model, self.groups),
             GravityAdjoint(self.model, a, run.built.gravity, density),
+            *[PressureAdjoint(t) for t in system.loads.surface
+              if isinstance(t, FollowerPressure)],
             *([DampingAdjoint(system, a, self.groups, density, run.damping)] if dynamic
               else []),
             *run.terms]
@@ -463,7 +466,9 @@ class _Adjoint:
         if self.fixed.size:  # u[F] = w = (p - q_t[F]) / tau, q_B[F] = p - h w
             F, r = self.fixed, lin.h / lin.tau
             w_bar = u_bar[F] - (K @ lf)[F]
-            p_bar = (w_bar / lin.tau + (1.0 - r) * qb_bar[F]).reshape(-1, 3)
+            p_bar = np.zeros(3 * self.c.fixed_vertices.size)  # per fixed vertex, (k, 3)
+            p_bar[self.c.fixed_slots] = w_bar / lin.tau + (1.0 - r) * qb_bar[F]
+            p_bar = p_bar.reshape(-1, 3)
             qt_bar[F] += r * qb_bar[F] - w_bar / lin.tau
             qb_bar[F] = 0.0
             for key, (slots, weights) in self.keyframes.items():
@@ -508,7 +513,7 @@ class _Adjoint:
                 out[p.key] = g.gravity.copy()
             elif p.kind == "velocity":
                 vb = self.v_bar0.reshape(-1, 3).copy()
-                vb[self.c.fixed_vertices] = 0.0  # pinned vertices start at rest
+                vb.reshape(-1)[self.c.fixed_dofs] = 0.0  # pinned DOFs start at rest
                 out[p.key] = vb[a.body_vertices[p.body]].sum(axis=0)
             elif p.kind in ("density", "rayleigh_mass", "rayleigh_stiffness"):
                 out[p.key] = float(getattr(g, p.kind)[p.body])

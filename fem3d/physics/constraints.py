@@ -1,10 +1,15 @@
-"""Fixed-vertex (Dirichlet) constraints and vertex selection.
+"""Fixed-DOF (Dirichlet) constraints and vertex selection.
 
-Fixed vertices are removed from the unknowns with a selection matrix ``P`` of the free DOFs
+Fixed DOFs are removed from the unknowns with a selection matrix ``P`` of the free DOFs
 (the assignment's formulation)::
 
     q_full = P.T @ q_free + x0        x0: the fixed positions on fixed DOFs, 0 on free ones
     K_free = P @ K @ P.T              f_free = P @ f
+
+A pin fixes every DOF of its vertices (the assignment's) or some of them (``dofs = "z"``: a
+roller, a symmetry plane). ``fixed_vertices`` are the vertices with at least one fixed DOF;
+prescribed positions are given per fixed vertex, ``(n_fixed, 3)``, of which only the fixed
+components are read (:attr:`Constraints.fixed_slots`).
 
 DOF vectors are vertex-major (``q.reshape(-1)`` = ``[x0, y0, z0, x1, ...]``).
 """
@@ -12,6 +17,7 @@ DOF vectors are vertex-major (``q.reshape(-1)`` = ``[x0, y0, z0, x1, ...]``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -21,6 +27,7 @@ from fem3d.errors import InputError, ParameterError
 
 __all__ = [
     "Constraints",
+    "free_rigid_modes",
     "fixed_point_constraints",
     "fixed_vertices_lowest_y",
     "pick_nearest_vertices",
@@ -74,7 +81,7 @@ def _free_dofs(n_vertices: int, fixed: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Constraints:
-    """Fixed vertices held at given positions.
+    """Fixed DOFs held at given positions (every DOF of a pinned vertex, or some).
 
     Attributes
     ----------
@@ -83,7 +90,7 @@ class Constraints:
     free_dofs : (n_free_dofs,) int64
         Indices of the free DOFs in the full vertex-major vector, increasing.
     fixed_vertices : (n_fixed,) int64
-        Fixed vertices, sorted, unique.
+        Vertices with a fixed DOF, sorted, unique (:attr:`fixed_dofs`: which DOFs).
     x0 : (3 n,) float64
         Fixed positions on fixed DOFs, zeros on free DOFs.
     """
@@ -97,7 +104,7 @@ class Constraints:
 
     @classmethod
     def from_fixed_vertices(cls, X: np.ndarray, fixed_vertices: np.ndarray) -> Constraints:
-        """Hold ``fixed_vertices`` at their positions in ``X``.
+        """Hold ``fixed_vertices`` at their positions in ``X`` (every DOF).
 
         Parameters
         ----------
@@ -106,24 +113,60 @@ class Constraints:
         fixed_vertices : (n_fixed,) int
             Vertex indices; duplicates are merged.
         """
-        X = np.asarray(X, dtype=np.float64)
-        if X.ndim != 2 or X.shape[1] != 3:
-            raise InputError(f"X must have shape (n, 3), got {X.shape}")
+        X = _positions(X)
+        fixed = _fixed_index_array(X.shape[0], fixed_vertices)
+        return cls.from_fixed_dofs(X, (3 * fixed[:, None] + np.arange(3)).reshape(-1))
+
+    @classmethod
+    def from_fixed_dofs(cls, X: np.ndarray, fixed_dofs: np.ndarray) -> Constraints:
+        """Hold the DOFs ``fixed_dofs`` (``3 vertex + axis``) at their values in ``X``.
+
+        Parameters
+        ----------
+        X : (n_vertices, 3) float64
+        fixed_dofs : (k,) int
+            DOF indices in ``[0, 3 n)``; duplicates are merged.
+        """
+        X = _positions(X)
         n = X.shape[0]
-        fixed = _fixed_index_array(n, fixed_vertices)
-        free_dofs = _free_dofs(n, fixed)
+        dofs = _fixed_index_array(3 * n, fixed_dofs)
+        fixed_dof = np.zeros(3 * n, dtype=bool)
+        fixed_dof[dofs] = True
+        free_dofs = np.flatnonzero(~fixed_dof).astype(np.int64)
+        fixed = np.unique(dofs // 3)
         nf = free_dofs.size
         P = sp.csr_matrix(
             (np.ones(nf), free_dofs, np.arange(nf + 1, dtype=np.int64)), shape=(nf, 3 * n)
         )
         x0 = np.zeros(3 * n)
-        fixed_dofs = (3 * fixed[:, None] + np.arange(3)).reshape(-1)
-        x0[fixed_dofs] = X.reshape(-1)[fixed_dofs]
+        x0[dofs] = X.reshape(-1)[dofs]
         new_index = np.full(3 * n, -1, dtype=np.int64)
         new_index[free_dofs] = np.arange(nf)
         for a in (free_dofs, fixed, x0, new_index):
             a.setflags(write=False)
         return cls(P=P, free_dofs=free_dofs, fixed_vertices=fixed, x0=x0, _new_index=new_index)
+
+    @cached_property
+    def fixed_dofs(self) -> np.ndarray:
+        """``(k,) int64`` the fixed DOFs, increasing (``3 vertex + axis``)."""
+        a = np.flatnonzero(self._new_index < 0).astype(np.int64)
+        a.setflags(write=False)
+        return a
+
+    @cached_property
+    def fixed_slots(self) -> np.ndarray:
+        """``(k,) int64``: where each fixed DOF sits in a flattened ``(n_fixed, 3)`` array of
+        the fixed vertices' positions (``p.reshape(-1)[fixed_slots]`` are the fixed DOFs'
+        values; with every DOF of the fixed vertices fixed, ``arange(3 n_fixed)``)."""
+        d = self.fixed_dofs
+        a = 3 * np.searchsorted(self.fixed_vertices, d // 3) + d % 3
+        a.setflags(write=False)
+        return a
+
+    @property
+    def partial(self) -> bool:
+        """Some fixed vertex has a free DOF (a roller or symmetry-plane support)."""
+        return self.fixed_dofs.size != 3 * self.fixed_vertices.size
 
     @property
     def n_dofs(self) -> int:
@@ -259,6 +302,81 @@ class Constraints:
         self._cache.insert(0, c)
         del self._cache[self._MAX_PATTERNS :]
         return c
+
+
+def _positions(X: np.ndarray) -> np.ndarray:
+    X = np.asarray(X, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise InputError(f"X must have shape (n, 3), got {X.shape}")
+    return X
+
+
+#: Names of the rigid modes :func:`free_rigid_modes` reports (translations, rotations).
+_AXES = ("x", "y", "z")
+
+
+def free_rigid_modes(X: np.ndarray, fixed_dofs: np.ndarray) -> list[str]:
+    """The rigid motions of a body that its fixed DOFs leave free, in words.
+
+    A rigid motion ``u = t + w x (X - c)`` (``c`` the vertex centroid) is held when some fixed
+    DOF moves under it; the free ones are the null space of the rigid modes restricted to
+    the fixed DOFs (6 columns: three translations, three rotations).
+
+    Parameters
+    ----------
+    X : (n, 3) float64
+        The body's rest positions.
+    fixed_dofs : (k,) int
+        The body's fixed DOFs, ``3 vertex + axis`` (vertex indices local to ``X``).
+
+    Returns
+    -------
+    list of str
+        One name per free mode (``"translation along x"``, ``"rotation about an axis along
+        z"``; an oblique direction as a unit vector); empty when the body is held.
+    """
+    X = _positions(X)
+    dofs = np.asarray(fixed_dofs, dtype=np.int64).reshape(-1)
+    c = X.mean(axis=0)
+    scale = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
+    R = np.zeros((3 * X.shape[0], 6))
+    for a in range(3):
+        R[a::3, a] = 1.0
+        e = np.zeros(3)
+        e[a] = 1.0
+        R[:, 3 + a] = (np.cross(e, X - c) / scale).reshape(-1)
+    Rf = R[dofs]
+    if Rf.shape[0] == 0:
+        return [f"{kind} {a}" for kind in ("translation along", "rotation about an axis along")
+                for a in _AXES]
+    _, sv, Vt = np.linalg.svd(Rf, full_matrices=True)
+    rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
+    N = Vt[rank:].T  # (6, k): the free modes
+    if N.shape[1] == 0:
+        return []
+    # name the free modes that are a plain translation or rotation first, then the rest
+    plain = [i for i in range(6) if np.linalg.norm(N @ N[i]) > 1.0 - 1e-9]
+    rest = N.copy()
+    rest[plain] = 0.0  # less their plain parts (each plain mode lies in the free space)
+    U, s, _ = np.linalg.svd(rest, full_matrices=False)
+    others = U[:, s > 1e-6].T
+    return [_mode_name(np.eye(6)[i]) for i in plain] + [_mode_name(v) for v in others]
+
+
+def _mode_name(v: np.ndarray) -> str:
+    """A rigid mode ``(t, w)`` in words: a translation, or a rotation about an axis."""
+    t, w = v[:3], v[3:]
+    if np.linalg.norm(w) < 1e-6:
+        return f"translation along {_direction(t)}"
+    return f"rotation about an axis along {_direction(w)}"
+
+
+def _direction(d: np.ndarray) -> str:
+    d = d / np.linalg.norm(d)
+    a = int(np.argmax(np.abs(d)))
+    if abs(abs(d[a]) - 1.0) < 1e-6:
+        return _AXES[a]
+    return "(" + ", ".join(f"{x:.3g}" for x in d * np.sign(d[a])) + ")"
 
 
 def fixed_vertices_lowest_y(X: np.ndarray, tol: float) -> np.ndarray:

@@ -311,7 +311,7 @@ class SceneArrays:
     v0 : (n, 3) float64
         Initial velocities (linear + angular about each body's vertex centroid).
     fixed : (n_fixed,) int64
-        Pinned vertices (sorted).
+        Pinned vertices (sorted): those with a fixed DOF.
     pulls : list of ScriptedPull
     body_vertices, body_tets : list of slice
         Each body's range of vertices / tets.
@@ -328,6 +328,9 @@ class SceneArrays:
         the first body gives no ``E``: :func:`fem3d.scene.build.build` takes the model's);
         ``height`` the extent along y of the rest mesh.
     mesh_paths : list of str
+    fixed_dofs : (k,) int64 or None
+        The fixed DOFs (``3 vertex + axis``, sorted; a pin's ``dofs``); None: every DOF of
+        :attr:`fixed`.
     """
 
     X: np.ndarray
@@ -345,6 +348,7 @@ class SceneArrays:
     spring_k: float | None
     height: float
     mesh_paths: list[str] = field(default_factory=list)
+    fixed_dofs: np.ndarray | None = None
 
 
 def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -375,7 +379,7 @@ def build_arrays(scene: Scene) -> SceneArrays:
             v += np.cross(w, X - X.mean(axis=0))
         for j, pin in enumerate(body.pins):
             ids = select_vertices(scene, X, pin.select, f"bodies[{i}].pins[{j}].select")
-            fixed.append(ids + nv)
+            fixed.append((3 * (ids + nv)[:, None] + np.array(pin.axes)).reshape(-1))
         skin = None
         if bm.skin_V is not None:
             skin = (transform_points(bm.skin_V, body.transform),
@@ -391,7 +395,8 @@ def build_arrays(scene: Scene) -> SceneArrays:
     X = Xs[0] if len(Xs) == 1 else np.concatenate(Xs)
     T = Ts[0] if len(Ts) == 1 else np.concatenate(Ts)
     v0 = np.concatenate(v0s)
-    fixed_ids = (np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, np.int64))
+    fixed_dofs = (np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, np.int64))
+    fixed_ids = np.unique(fixed_dofs // 3)
     height = float(X[:, 1].max() - X[:, 1].min())
 
     # display mesh: bodies' skins, or (for a body without one) its own boundary
@@ -448,5 +453,5 @@ def build_arrays(scene: Scene) -> SceneArrays:
         skin_V=skin_V, skin_F=skin_F, skin_bodies=skin_bodies, skin_identity=identity,
         pick_radius=float(pick_radius), spring_k=None if spring_k is None else float(spring_k),
         height=height,
-        mesh_paths=[m.path for m in meshes],
+        mesh_paths=[m.path for m in meshes], fixed_dofs=fixed_dofs,
     )

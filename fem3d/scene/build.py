@@ -32,6 +32,7 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.mesh.formats import read_surface_mesh
+from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.physics.model import MaterialGroup, Model, build_model
@@ -40,6 +41,14 @@ from fem3d.physics.terms.contact import ContactTerm
 from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
 from fem3d.physics.terms.gravity import Gravity, check_gravity
 from fem3d.physics.terms.loads import Loads
+from fem3d.physics.terms.surface import (
+    Amplitude,
+    DeadLoad,
+    FollowerPressure,
+    faces_within,
+    point_forces,
+    traction_forces,
+)
 from fem3d.scene.arrays import (
     SceneArrays,
     build_arrays,
@@ -49,8 +58,9 @@ from fem3d.scene.arrays import (
 )
 from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
-__all__ = ["Built", "PinMotion", "build", "build_loads", "model_from_scene", "damping_from_scene",
-           "pin_motions", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
+__all__ = ["Built", "PinMotion", "build", "build_loads", "surface_loads_from_scene",
+           "model_from_scene", "damping_from_scene", "pin_motions", "pin_groups",
+           "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
@@ -98,6 +108,10 @@ class Built:
     pick_radius, spring_k : float
         Interaction values: ``interaction.pick_radius`` / ``spring_k``, or their defaults
         ``0.01 h`` / ``0.15 E h`` (``E`` the first body's, else the model's).
+    pin_groups : tuple of (str, ndarray)
+        Each pin's key (``bodies[0].pins[1]``) and the fixed DOFs it holds (``(k,) int64``;
+        a DOF two pins hold counts for the first): the reactions' groups
+        (:func:`pin_groups`).
     """
 
     arrays: SceneArrays
@@ -111,6 +125,7 @@ class Built:
     contact: ContactTerm | None
     pick_radius: float
     spring_k: float
+    pin_groups: tuple = ()
 
 
 def build(scene: Scene, *, backend: str | None = None) -> Built:
@@ -140,12 +155,14 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
         raise scene.error(
             "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
             "[{ select = { lowest_y = { tol = 0.0 } } }])")
-    constraints = Constraints.from_fixed_vertices(a.X, a.fixed)
+    constraints = (Constraints.from_fixed_vertices(a.X, a.fixed) if a.fixed_dofs is None
+                   else Constraints.from_fixed_dofs(a.X, a.fixed_dofs))
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)
     try:
-        loads = build_loads(model, gravity, alpha, beta)
+        loads = build_loads(model, gravity, alpha, beta,
+                            surface=surface_loads_from_scene(scene, a, model))
     except ParameterError as exc:
         raise scene.error("simulation", str(exc)) from None
     motions = pin_motions(scene, a, constraints.fixed_vertices)
@@ -156,11 +173,30 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
                  rayleigh_alpha=alpha, rayleigh_beta=beta, loads=loads, motions=motions,
                  contact=contact,
-                 pick_radius=a.pick_radius, spring_k=spring_k)
+                 pick_radius=a.pick_radius, spring_k=spring_k,
+                 pin_groups=pin_groups(scene, a))
 
 
-def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0) -> Loads:
-    """Gravity and Rayleigh damping of ``model`` as terms.
+def pin_groups(scene: Scene, a: SceneArrays) -> tuple:
+    """``((key, dofs), ...)``: each pin's key and the DOFs it holds, in scene order (a DOF
+    that two pins hold belongs to the first)."""
+    out, taken = [], np.zeros(3 * a.X.shape[0], dtype=bool)
+    for i, body in enumerate(scene.bodies):
+        off = a.body_vertices[i].start
+        for j, pin in enumerate(body.pins):
+            key = f"bodies[{i}].pins[{j}]"
+            ids = select_vertices(scene, a.X[a.body_vertices[i]], pin.select,
+                                  f"{key}.select") + off
+            dofs = (3 * ids[:, None] + np.array(pin.axes)).reshape(-1)
+            dofs = np.sort(dofs[~taken[dofs]])
+            taken[dofs] = True
+            out.append((key, dofs))
+    return tuple(out)
+
+
+def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0, *,
+                surface=()) -> Loads:
+    """Gravity, Rayleigh damping and the surface and point loads of ``model`` as terms.
 
     Parameters
     ----------
@@ -169,6 +205,8 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
         None or zero: no gravity term.
     rayleigh_alpha, rayleigh_beta : float or (n_vertices,) / (n_tets,) float64
         Damping ``alpha M + beta K`` (zero: no damping term).
+    surface : sequence of DeadLoad or FollowerPressure, optional
+        The bodies' loads (:func:`surface_loads_from_scene`).
 
     Raises
     ------
@@ -181,7 +219,61 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
     beta = check_coefficient(rayleigh_beta, "rayleigh_beta", model.n_tets, "tet")
     damping = RayleighDamping(model, alpha, beta)
     return Loads(None if g is None else Gravity(model, g),
-                 damping if damping.active else None, alpha, beta)
+                 damping if damping.active else None, alpha, beta, tuple(surface))
+
+
+def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list:
+    """The bodies' ``loads`` as terms, in scene order: a traction or a point force as a
+    :class:`DeadLoad`, a pressure as a :class:`FollowerPressure` (docs/loads.md).
+
+    Raises
+    ------
+    InputError
+        ``FILE: bodies[i].loads[j].select: ...``: a traction or pressure whose selection
+        holds no whole boundary face, a selector that selects nothing.
+    """
+    out: list = []
+    faces = None
+    for i, body in enumerate(scene.bodies):
+        off = a.body_vertices[i].start
+        for j, load in enumerate(body.loads):
+            key = f"bodies[{i}].loads[{j}]"
+            ids = select_vertices(scene, a.X[a.body_vertices[i]], load.select,
+                                  f"{key}.select") + off
+            amplitude = None if load.keyframes is None else Amplitude(
+                [k.t for k in load.keyframes], [k.scale for k in load.keyframes])
+            if load.kind == "force":
+                out.append(DeadLoad(model, point_forces(a.X.shape[0], ids, load.force),
+                                    amplitude, key))
+                continue
+            faces = boundary_faces(a.T) if faces is None else faces
+            mine = faces_within(faces, ids)
+            if mine.size == 0:
+                raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
+                                  "is loaded when its three vertices are selected)")
+            if load.kind == "traction":
+                out.append(DeadLoad(model, traction_forces(a.X, mine, load.traction),
+                                    amplitude, key))
+                continue
+            out.append(FollowerPressure(model, mine, load.pressure, amplitude, key))
+            _check_open_edge(scene, a, out[-1], key)
+    return out
+
+
+def _check_open_edge(scene: Scene, a: SceneArrays, term: FollowerPressure, key: str) -> None:
+    """Refuse a pressure on an open patch whose edge forces (the potential's, which a true
+    follower pressure does not have) would act on free DOFs."""
+    edge = term.edge_forces()
+    held = np.zeros(edge.size, dtype=bool)
+    held[a.fixed_dofs if a.fixed_dofs is not None else
+         (3 * a.fixed[:, None] + np.arange(3)).reshape(-1)] = True
+    scale = abs(term.pressure) * float(np.linalg.norm(np.ptp(a.X, axis=0))) ** 2
+    n = int(np.count_nonzero(np.abs(edge[~held]) > 1e-9 * scale))
+    if n:
+        raise scene.error(f"{key}.select", "a follower pressure needs a closed loaded surface, "
+                          "or an open patch whose edge is held or lies in symmetry planes "
+                          f"through the origin; this patch's edge leaves {n} DOFs free (use "
+                          "traction for a dead load on an open patch)")
 
 
 # ------------------------------------------------------------------------------ materials

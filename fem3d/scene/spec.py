@@ -55,7 +55,6 @@ from typing import Annotated, Any, Literal
 from pydantic import (
     AfterValidator,
     BaseModel,
-    ConfigDict,
     Field,
     StrictBool,
     StrictFloat,
@@ -71,6 +70,23 @@ from fem3d.io.files import check_input_file
 from fem3d.io.frames.registry import frame_format_names
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
+from fem3d.scene.selection import (  # re-exported: the scene's one description
+    ZERO3,
+    HalfSpace,
+    Index,
+    LoadKeyframe,
+    LoadSpec,
+    LowestY,
+    NearestTo,
+    NearVertex,
+    NonNegative,
+    Positive,
+    Selector,
+    Sphere,
+    Vec3,
+    _nonzero,
+    _Spec,
+)
 from fem3d.solve.linear.registry import linear_solver_names
 from fem3d.solve.schemes.registry import DEFAULT_SCHEME, SCHEMES, get_scheme
 
@@ -78,7 +94,8 @@ __all__ = [
     "Scene", "SimulationSpec", "NewtonSpec", "BodySpec", "MaterialSpec", "RegionSpec",
     "Selector", "PinSpec", "MotionSpec", "Keyframe", "PullSpec", "ContactSpec",
     "ObstacleSpec", "PlaneObstacleSpec", "MeshObstacleSpec", "OutputSpec", "PreviewSpec",
-    "InteractionSpec", "TransformSpec", "TetrahedralizeSpec", "DampingSpec", "scene_schema",
+    "InteractionSpec", "TransformSpec", "TetrahedralizeSpec", "DampingSpec", "LoadSpec",
+    "LoadKeyframe", "LowestY", "HalfSpace", "Sphere", "NearVertex", "NearestTo", "scene_schema",
     "material_names", "DEFAULT_STEPS", "SURFACE_SUFFIXES",
 ]
 
@@ -88,11 +105,6 @@ DEFAULT_STEPS = 100
 #: Closed-surface file types a body's ``mesh`` may be (tetrahedralized with fTetWild).
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
 
-Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
-ZERO3: tuple[float, float, float] = (0.0, 0.0, 0.0)
-Positive = Annotated[StrictFloat, Field(gt=0)]
-NonNegative = Annotated[StrictFloat, Field(ge=0)]
-Index = Annotated[StrictInt, Field(ge=0)]
 #: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
 #: ``output.format``'s choices: the registered output formats (:mod:`fem3d.io.frames`).
@@ -111,90 +123,6 @@ def _registered_scheme(name: str) -> str:
 #: (:mod:`fem3d.solve.schemes.registry`; the JSON Schema lists those registered when printed).
 IntegratorName = Annotated[StrictStr, AfterValidator(_registered_scheme), Field(
     json_schema_extra=lambda schema: schema.update(enum=list(SCHEMES)))]
-
-
-class _Spec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-def _nonzero(v: Vec3, what: str = "vector") -> Vec3:
-    if not any(c != 0 for c in v):
-        raise ValueError(f"{what} must not be zero")
-    return v
-
-
-# ------------------------------------------------------------------------------ selectors
-class LowestY(_Spec):
-    """Vertices with ``y <= min y + tol``."""
-
-    tol: NonNegative = 0.0
-
-
-class HalfSpace(_Spec):
-    """Vertices with ``(x - point) . normal >= 0``."""
-
-    point: Vec3
-    normal: Vec3
-
-    @field_validator("normal")
-    @classmethod
-    def _normal(cls, v: Vec3) -> Vec3:
-        return _nonzero(v, "normal")
-
-
-class Sphere(_Spec):
-    """Vertices with ``|x - center| <= radius``."""
-
-    center: Vec3
-    radius: NonNegative
-
-
-class NearVertex(_Spec):
-    """Vertices within ``radius`` of vertex ``vertex`` (body-local index)."""
-
-    vertex: Index
-    radius: NonNegative = 0.0
-
-
-class NearestTo(_Spec):
-    """The vertex nearest to ``point`` and every vertex within ``radius`` of it."""
-
-    point: Vec3
-    radius: NonNegative = 0.0
-
-
-_SELECTOR_KEYS = ("lowest_y", "box", "half_space", "sphere", "vertices", "vertices_file",
-                  "near_vertex", "nearest_to")
-
-
-class Selector(_Spec):
-    """Exactly one way of choosing vertices (see the module docstring)."""
-
-    lowest_y: LowestY | None = None
-    box: tuple[Vec3, Vec3] | None = None
-    half_space: HalfSpace | None = None
-    sphere: Sphere | None = None
-    vertices: Annotated[list[Index], Field(min_length=1)] | None = None
-    vertices_file: StrictStr | None = None
-    near_vertex: NearVertex | None = None
-    nearest_to: NearestTo | None = None
-
-    @model_validator(mode="after")
-    def _exactly_one(self) -> Selector:
-        given = [k for k in _SELECTOR_KEYS if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(_SELECTOR_KEYS)} (got "
-                f"{', '.join(given) if given else 'none'})"
-            )
-        if self.box is not None and any(a > b for a, b in zip(*self.box, strict=True)):
-            raise ValueError("box: each min must be <= its max")
-        return self
-
-    @property
-    def kind(self) -> str:
-        """The selector's key (``"box"``, ...)."""
-        return next(k for k in _SELECTOR_KEYS if getattr(self, k) is not None)
 
 
 # ------------------------------------------------------------------------------ motion
@@ -226,10 +154,25 @@ class MotionSpec(_Spec):
 
 
 class PinSpec(_Spec):
-    """Fixed vertices (``motion``: prescribed keyframed positions instead of fixed)."""
+    """Fixed vertices (``motion``: prescribed keyframed positions instead of fixed); ``dofs``:
+    the components held (``"z"``: a roller or symmetry plane normal to z; default all)."""
 
     select: Selector
     motion: MotionSpec | None = None
+    dofs: StrictStr = "xyz"
+
+    @field_validator("dofs")
+    @classmethod
+    def _axes(cls, dofs: str) -> str:
+        if not dofs or set(dofs) - set("xyz") or len(set(dofs)) != len(dofs):
+            raise ValueError(f"dofs = {dofs!r}: give the held components as x, y and/or z, "
+                             "each once (e.g. \"z\", \"xy\"; default \"xyz\")")
+        return dofs
+
+    @property
+    def axes(self) -> list[int]:
+        """The fixed components, ``0, 1, 2`` for x, y, z."""
+        return sorted("xyz".index(c) for c in self.dofs)
 
 
 # ------------------------------------------------------------------------------ bodies
@@ -314,6 +257,7 @@ class BodySpec(_Spec):
     material: MaterialSpec
     damping: DampingSpec = DampingSpec()
     pins: list[PinSpec] = Field(default_factory=list)
+    loads: list[LoadSpec] = Field(default_factory=list)
 
     @property
     def label(self) -> str:
@@ -323,9 +267,16 @@ class BodySpec(_Spec):
 
 # ------------------------------------------------------------------------------ the rest
 class NewtonSpec(_Spec):
-    """Backward Euler's Newton solve."""
+    """The Newton solve of the implicit schemes (implicit, bdf2, newmark, static)."""
 
+    #: Newton iterations per step (dynamic schemes: the step keeps its last iterate; contact
+    #: raises it to 100) or per load increment (static: an unconverged increment is halved);
+    #: none: until converged (static: at most 50)
     max_iterations: Annotated[StrictInt, Field(ge=1)] | None = 5
+    #: converged when the gradient norm is below this fraction of its norm at Newton's start,
+    #: or below the scheme's absolute floor (dynamic: 1e-12 h E L^2; static: 1e-15 E L^2,
+    #: about ten times round-off; L the diagonal of the rest bounding box)
+    tolerance: Annotated[StrictFloat, Field(gt=0, lt=1)] = 1e-10
     hessian: Literal["exact", "psd"] = "exact"
     solver: Literal["direct", "reuse"] = "direct"
     #: where each step's Newton starts: the last velocity, or the lower-energy of it and its

@@ -114,10 +114,11 @@ class NewtonSettings:
     @classmethod
     def from_spec(cls, newton) -> NewtonSettings:
         """The settings of a scene's ``simulation.newton`` (:class:`fem3d.scene.spec.
-        NewtonSpec`: ``max_iterations``, ``hessian``, ``solver``, ``warm_start``,
-        ``line_search``)."""
+        NewtonSpec`: ``max_iterations``, ``tolerance``, ``hessian``, ``solver``,
+        ``warm_start``, ``line_search``)."""
         return cls.make(newton.hessian, newton.solver, max_iterations=newton.max_iterations,
-                        warm_start=newton.warm_start, line_search=newton.line_search)
+                        rtol=newton.tolerance, warm_start=newton.warm_start,
+                        line_search=newton.line_search)
 
     def with_(self, **changes) -> NewtonSettings:
         """A copy with ``changes``."""

@@ -131,7 +131,7 @@ def pins_over_step(constraints, state: State, dt: float, fixed_positions) -> Pin
     c = constraints
     fv = c.fixed_vertices
     q_t = state.q.reshape(-1)
-    fixed_dofs = (3 * fv[:, None] + np.arange(3)).reshape(-1)
+    fixed_dofs = c.fixed_dofs
     v_t_fixed = None
     if fixed_dofs.size and np.any(state.v.reshape(-1)[fixed_dofs]):
         v_t_fixed = np.zeros(c.n_dofs)
@@ -144,36 +144,38 @@ def pins_over_step(constraints, state: State, dt: float, fixed_positions) -> Pin
         raise ParameterError(f"fixed_positions must have shape ({fv.size}, 3), got {p.shape}")
     if not np.isfinite(p).all():
         raise ParameterError("fixed_positions are not finite")
+    p_fixed = p.reshape(-1)[c.fixed_slots]
     q_base = q_t.copy()
-    q_base[fixed_dofs] = p.reshape(-1)
+    q_base[fixed_dofs] = p_fixed
     v_fixed = np.zeros(c.n_dofs)
-    v_fixed[fixed_dofs] = (p.reshape(-1) - q_t[fixed_dofs]) / dt
+    v_fixed[fixed_dofs] = (p_fixed - q_t[fixed_dofs]) / dt
     if v_t_fixed is None:
         v_t_fixed = np.zeros(c.n_dofs)
     return Pins(p, q_base, v_fixed, v_t_fixed)
 
 
 def new_state(constraints, state: State, v_free: np.ndarray, dt: float) -> State:
-    """``q+ = q_t + dt v+`` from the free velocities; fixed vertices at rest."""
+    """``q+ = q_t + dt v+`` from the free velocities; fixed DOFs at rest."""
     v = constraints.expand_zero(v_free).reshape(-1, 3)
     q = state.q + dt * v
-    if constraints.fixed_vertices.size:  # fixed vertices stay exactly at rest
-        fv = constraints.fixed_vertices
-        q[fv] = constraints.x0.reshape(-1, 3)[fv]
+    if constraints.fixed_vertices.size:  # fixed DOFs stay exactly at rest
+        fd = constraints.fixed_dofs
+        q.reshape(-1)[fd] = constraints.x0[fd]
     return State(q=q, v=v, t=state.t + dt, step=state.step + 1)
 
 
 def place_pins(constraints, new: State, pins: Pins) -> State:
-    """``new`` with the fixed vertices where ``pins`` puts them (exactly) and their velocity."""
+    """``new`` with the fixed DOFs where ``pins`` puts them (exactly) and their velocity."""
     fv = constraints.fixed_vertices
     if fv.size == 0:
         return new
+    fd = constraints.fixed_dofs
     q = np.array(new.q)
-    q[fv] = pins.p
+    q.reshape(-1)[fd] = pins.p.reshape(-1)[constraints.fixed_slots]
     v = new.v
     if pins.v_fixed is not None:
         v = np.array(v)
-        v[fv] = pins.v_fixed.reshape(-1, 3)[fv]
+        v.reshape(-1)[fd] = pins.v_fixed[fd]
     return State(q=q, v=v, t=new.t, step=new.step)
 
 

@@ -19,9 +19,8 @@ __all__ = ["affine_step_map", "fixed_dofs", "end_positions"]
 
 
 def fixed_dofs(system: System) -> np.ndarray:
-    """``(3 n_fixed,)`` DOF indices of the fixed vertices."""
-    fv = system.constraints.fixed_vertices
-    return (3 * fv[:, None] + np.arange(3)).reshape(-1)
+    """``(k,)`` the fixed DOFs (:attr:`Constraints.fixed_dofs`)."""
+    return system.constraints.fixed_dofs
 
 
 def end_positions(system: System, state: State, fixed_positions) -> np.ndarray:
@@ -73,12 +72,13 @@ def affine_step_map(system: System, state: State, dt: float, p: np.ndarray, *, h
     c = system.constraints
     q_t = state.q.reshape(-1)
     fd = fixed_dofs(system)
+    p_fixed = p.reshape(-1)[c.fixed_slots]
     q_base = q_t.copy() if offset is None else q_t + offset
-    q_base[fd] = p.reshape(-1)
+    q_base[fd] = p_fixed
     v_prescribed = dv = None
     if fd.size and moving_pins:
         vp = np.zeros(c.n_dofs)
-        vp[fd] = (p.reshape(-1) - q_t[fd]) / dt
+        vp[fd] = (p_fixed - q_t[fd]) / dt
         if np.any(vp):
             v_prescribed = vp
         d = np.zeros(c.n_dofs)

@@ -2225,6 +2225,7 @@ done:
 
 #include "tet.c"
 #include "spring.c"
+#include "pressure.c"
 #include "fibre_reinforced.c"
 #include "fung.c"
 #include "linear.c"
@@ -2273,6 +2274,9 @@ static PyMethodDef methods[] = {
     {"spring_energy", py_spring_energy, METH_VARARGS, "Spring energy 1/2 k |x_a - x_b|^2."},
     {"spring_gradient", py_spring_gradient, METH_VARARGS, "Spring gradient (d/dx_a, d/dx_b), length 6."},
     {"spring_hessian", py_spring_hessian, METH_VARARGS, "Spring Hessian (6x6)."},
+    {"pressure_energy", py_pressure_energy, METH_VARARGS, "Pressure potential p/6 x_0 . (x_1 x x_2) of one triangle."},
+    {"pressure_gradient", py_pressure_gradient, METH_VARARGS, "Its gradient (d/dx_0, d/dx_1, d/dx_2), length 9."},
+    {"pressure_hessian", py_pressure_hessian, METH_VARARGS, "Its Hessian (9x9, symmetric, indefinite)."},
     {"fibre_reinforced_psi", py_fibre_reinforced_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"fibre_reinforced_dpsi_dF", py_fibre_reinforced_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"fibre_reinforced_d2psi_dF2", py_fibre_reinforced_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},

@@ -2,5 +2,5 @@
 # Source: codegen.derive; SymPy 1.14.0. Regenerate with `make codegen`.
 """Generated NumPy kernels, one module per material plus the tet geometry and the spring."""
 
-MODULES = ('tet', 'spring', 'fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk')
+MODULES = ('tet', 'spring', 'pressure', 'fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk')
 MATERIALS = ('fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk')

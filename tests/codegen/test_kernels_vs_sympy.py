@@ -139,6 +139,9 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
     if module == "spring":
         a, b = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
         return (a, b, (123.0,)), [*a.T, *b.T, 123.0]
+    if module == "pressure":
+        xf = rng.normal(size=(m, 3, 3))
+        return (xf, (2.5,)), [*xf.reshape(m, 9).T, 2.5]
     if kernel == "rest_shape":
         return (X,), [*X.reshape(m, 12).T]
     if kernel == "phi":
@@ -598,7 +601,8 @@ def test_generated_files_are_up_to_date_and_deterministic(tmp_path: Path) -> Non
         assert old == new, f"generated/{rel} is stale: run `make codegen` and commit"
         assert "do not edit" in old.splitlines()[0]
     committed = {p.stem for p in (ROOT / "generated").rglob("*") if p.suffix in (".py", ".c")}
-    assert committed == {"__init__", "_support", "_ckernels", "tet", "spring", *MATERIALS}
+    assert committed == {"__init__", "_support", "_ckernels", "tet", "spring", "pressure",
+                         *MATERIALS}
 
 
 def test_show_prints_a_materials_formulas() -> None:

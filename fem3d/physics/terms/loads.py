@@ -1,4 +1,5 @@
-"""The model's loads: gravity and Rayleigh damping as terms, built once per scene.
+"""The model's loads: gravity, Rayleigh damping and the bodies' surface and point loads as
+terms, built once per scene.
 
 :func:`fem3d.scene.build.build_loads` makes them from the scene (or a script's values); the
 integrators read them through :attr:`fem3d.solve.system.System.loads`.
@@ -6,7 +7,7 @@ integrators read them through :attr:`fem3d.solve.system.System.loads`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -14,6 +15,7 @@ from fem3d.physics.model import Model
 from fem3d.physics.terms.base import Term
 from fem3d.physics.terms.damping import RayleighDamping
 from fem3d.physics.terms.gravity import Gravity
+from fem3d.physics.terms.surface import DeadLoad, FollowerPressure
 
 __all__ = ["Loads"]
 
@@ -30,16 +32,27 @@ class Loads:
         ``D = alpha M + beta K``; None when it is zero.
     rayleigh_alpha, rayleigh_beta : float or ndarray
         The checked coefficients (per vertex / per tet, or one value), zero included.
+    surface : tuple of DeadLoad or FollowerPressure
+        The bodies' ``loads`` (tractions, point forces, pressures), in scene order.
     """
 
     gravity: Gravity | None = None
     damping: RayleighDamping | None = None
     rayleigh_alpha: float | np.ndarray = 0.0
     rayleigh_beta: float | np.ndarray = 0.0
+    surface: tuple[DeadLoad | FollowerPressure, ...] = field(default=())
 
     def terms(self) -> list[Term]:
-        """The terms present, in objective order (gravity, then damping)."""
-        return [t for t in (self.gravity, self.damping) if t is not None]
+        """The terms present, in objective order (gravity, damping, the surface loads)."""
+        return [t for t in (self.gravity, self.damping, *self.surface) if t is not None]
+
+    def applied_forces(self, q: np.ndarray) -> np.ndarray:
+        """``(3n,)`` the external forces at ``q``: gravity, and the surface and point loads
+        at their last step's scale."""
+        f = np.zeros(q.size) if self.gravity is None else np.array(self.gravity.force)
+        for load in self.surface:
+            f += load.applied(q) if isinstance(load, FollowerPressure) else load.applied()
+        return f
 
     @property
     def gravity_force(self) -> np.ndarray | None:
@@ -59,4 +72,5 @@ class Loads:
         """The same loads on ``model`` (new material values, same mesh)."""
         return Loads(None if self.gravity is None else self.gravity.with_model(model),
                      None if self.damping is None else self.damping.with_model(model),
-                     self.rayleigh_alpha, self.rayleigh_beta)
+                     self.rayleigh_alpha, self.rayleigh_beta,
+                     tuple(t.with_model(model) for t in self.surface))
