@@ -69,6 +69,7 @@ from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
+from fem3d.solve.linear.petsc import parse_options
 from fem3d.solve.linear.registry import linear_solver_names
 
 __all__ = [
@@ -332,6 +333,9 @@ class SimulationSpec(_Spec):
     #: with short columns), or forced (multi-body contact patterns mislead the rule: the
     #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
     cholmod: Literal["auto", "simplicial", "supernodal"] = "auto"
+    #: PETSc options of linear_solver = "petsc" ("-ksp_type cg -pc_type gamg -ksp_rtol
+    #: 1e-10"; docs/parallel.md); FEM3D_PETSC_OPTIONS adds to them
+    petsc_options: str = ""
     #: eigen-solver of the per-element PSD projection (Newton's "psd" Hessian, stiffness
     #: damping) where dP/dF is indefinite: "svd" (dP/dF block diagonal in F's singular frame,
     #: for isotropic materials; QL for the others), "ql" (tridiagonal QL: the round-off of
@@ -345,6 +349,11 @@ class SimulationSpec(_Spec):
         if self.cholmod != "auto" and self.linear_solver not in ("auto", "cholmod"):
             raise ValueError(f"cholmod = {self.cholmod!r} applies to linear_solver = 'cholmod' "
                              f"(or 'auto'), not {self.linear_solver!r}")
+        if self.petsc_options and self.linear_solver != "petsc":
+            raise ValueError("petsc_options applies to linear_solver = 'petsc', not "
+                             f"{self.linear_solver!r}")
+        if self.petsc_options:
+            parse_options(self.petsc_options)  # a stray word: one line naming the key
         if self.newton.warm_start != "previous" and self.integrator != "implicit":
             raise ValueError(f"newton.warm_start = {self.newton.warm_start!r} applies to "
                              f"integrator = 'implicit' only, not {self.integrator!r}")
