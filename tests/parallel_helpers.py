@@ -44,6 +44,7 @@ pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]] }} }}]
 
 
 def write_scene(folder: Path, **kwargs) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
     path = folder / "box.toml"
     path.write_text(box_scene_text(**kwargs))
     return path
@@ -73,7 +74,8 @@ def mpiexec_or_skip() -> list[str]:
         pytest.skip(reason)
     version = subprocess.run([exe, "--version"], capture_output=True, text=True).stdout
     openmpi = "Open MPI" in version or "OpenRTE" in version
-    return [exe, *(["--oversubscribe"] if openmpi else []), "-n"]
+    # Open MPI's --quiet: without it, a rank's non-zero exit adds mpiexec's own banner
+    return [exe, *(["--oversubscribe", "--quiet"] if openmpi else []), "-n"]
 
 
 def mpi_env() -> dict[str, str]:
@@ -83,7 +85,7 @@ def mpi_env() -> dict[str, str]:
             "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1"}
 
 
-def run_mpi(ranks: int, *args: str, cwd: Path, timeout: float = 240.0
+def run_mpi(ranks: int, *args: str, cwd: Path, timeout: float = 120.0
             ) -> subprocess.CompletedProcess:
     """``mpiexec -n ranks python -m fem3d args...``."""
     cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, "-m", "fem3d", *args]

@@ -52,6 +52,8 @@ LAYERS: dict[str, tuple[str, ...] | str] = {
     "diff": ("errors", "kernels", "physics", "solve", "scene"),  # adjoint gradients
     "simulation": (*_BELOW_RUN, "assignment"),  # anything but app
     "assignment": (*_BELOW_RUN, "simulation"),  # anything but app
+    # one simulation on MPI ranks (PETSc): a Simulation with a distributed System
+    "parallel": (*_BELOW_RUN, "simulation"),
     "app": ANYTHING,
     "__main__": ANYTHING,  # ``python -m fem3d``: runs the command line
 }
