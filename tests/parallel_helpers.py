@@ -82,7 +82,9 @@ def mpi_env() -> dict[str, str]:
     """The environment of an ``mpiexec`` run: one thread per rank, Open MPI allowed as
     root."""
     return {**os.environ, "OMP_NUM_THREADS": "1", "OMPI_ALLOW_RUN_AS_ROOT": "1",
-            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1"}
+            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
+            # a rank waiting for the other gives its core up (machines shared by other work)
+            "OMPI_MCA_mpi_yield_when_idle": "1"}
 
 
 def run_mpi(ranks: int, *args: str, cwd: Path, timeout: float = 120.0

@@ -88,14 +88,30 @@ def test_two_ranks_write_pieces(tmp_path):
      '[0, 1, 0] }', "contact.enabled"),
     ('[[pulls]]\nbody = 0\nselect = { box = [[0.9, -1, -1], [2, 1, 1]] }\nstart = 0.0\n'
      'duration = 0.1\ntarget = [0.0, 0.1, 0.0]', "pulls"),
+    ('', "simulation.integrator"),
 ])
 def test_refused_in_one_line(tmp_path, extra, key):
-    scene = write_scene(tmp_path, steps=1)
+    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "newmark")
     scene.write_text(scene.read_text() + "\n" + extra + "\n")
     proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and key in lines[0] and "mpiexec -n 2" in lines[0], proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_extra_is_one_line(tmp_path, monkeypatch):
+    """petsc4py that does not import: one line naming the extra, exit 2, nothing written."""
+    blocker = tmp_path / "block" / "petsc4py"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('blocked by the test')\n")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "block"))
+    scene = write_scene(tmp_path, steps=1)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "fem3d[mpi]" in lines[0] and "mpiexec -n 2" in lines[0], \
+        proc.stderr
     assert not (tmp_path / "out").exists()
 
 

@@ -158,7 +158,7 @@ class PetscSolver(DirectSolver):
         try:
             import mpi4py  # noqa: F401
             import petsc4py  # noqa: F401
-        except ImportError:
+        except (ImportError, OSError):  # OSError: a shared library that does not load
             return False
         return True
 
