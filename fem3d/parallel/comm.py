@@ -12,9 +12,9 @@ __all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "world", "sum_sc
            "sum_vector"]
 
 #: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
-#: MPICH/Hydra and PMIx, Slurm's srun).
-RANK_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS",
-                  "SLURM_NTASKS")
+#: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
+#: fem3d without a launcher also sees).
+RANK_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
 
 
 def launched_ranks() -> int:
@@ -27,7 +27,7 @@ def launched_ranks() -> int:
     return 1
 
 #: The launchers' variables of this process's rank, in :data:`RANK_VARIABLES`' order.
-_RANK_OF = ("OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK", "MPI_LOCALRANKID", "SLURM_PROCID")
+_RANK_OF = ("OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK", "MPI_LOCALRANKID")
 
 
 def launched_rank() -> int:
