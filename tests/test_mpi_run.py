@@ -193,3 +193,16 @@ def test_local_models_sum_to_the_whole(tmp_path):
     assert abs(H0 + H1 - H).max() <= 1e-9 * abs(H).max()
     assert parts[0].loads.gravity_energy(q) + parts[1].loads.gravity_energy(q) == \
         pytest.approx(system.loads.gravity_energy(q), rel=1e-12)
+
+
+def test_launched_ranks_from_the_launcher(monkeypatch):
+    from fem3d.parallel.comm import RANK_VARIABLES, launched_rank, launched_ranks
+
+    for name in (*RANK_VARIABLES, "OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK",
+                 "MPI_LOCALRANKID"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("SLURM_NTASKS", "8")  # a batch script without a launcher
+    assert launched_ranks() == 1 and launched_rank() == 0
+    monkeypatch.setenv("PMI_SIZE", "4")
+    monkeypatch.setenv("PMI_RANK", "3")
+    assert launched_ranks() == 4 and launched_rank() == 3
