@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,9 +32,10 @@ from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
-from fem3d.physics.constraints import free_rigid_modes, pick_nearest_vertices
+from fem3d.physics.constraints import Constraints, free_rigid_modes, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
+from fem3d.physics.terms.loads import Loads
 from fem3d.scene.build import build
 from fem3d.scene.spec import Scene
 from fem3d.solve.schemes.base import Scheme, model_terms
@@ -146,6 +148,9 @@ class Simulation:
     scripted : bool, optional
         Apply the scene's scripted pulls (each attaches at its ``start`` and is released
         after its ``duration``) inside :meth:`step`. Default False (interactive use).
+    make_system : callable ``(model, constraints, loads) -> System``, optional
+        Makes the system instead of :class:`System` on the scene's linear solver (one MPI
+        rank's share of a distributed run: :func:`fem3d.parallel.run.distributed_system`).
 
     Raises
     ------
@@ -178,7 +183,9 @@ class Simulation:
     """
 
     def __init__(self, scene: Scene, *, backend: str | None = None,
-                 scripted: bool = False) -> None:
+                 scripted: bool = False,
+                 make_system: Callable[[Model, Constraints, Loads], System] | None = None
+                 ) -> None:
         self.scene = scene
         _check_supported(scene)
         built = build(scene, backend=backend)  # arrays, model, pins, motions, contact
@@ -188,8 +195,12 @@ class Simulation:
         self.constraints = built.constraints
         sim = scene.simulation
         try:
-            self.system = System(self.model, self.constraints, sim.linear_solver,
-                                 loads=built.loads, cholmod_mode=sim.cholmod)
+            if make_system is not None:  # e.g. one rank's share (fem3d.parallel)
+                self.system = make_system(self.model, self.constraints, built.loads)
+            else:
+                self.system = System(self.model, self.constraints, sim.linear_solver,
+                                     loads=built.loads, cholmod_mode=sim.cholmod,
+                                     petsc_options=sim.petsc_options)
         except (ValueError, ImportError) as exc:
             raise scene.error("simulation.linear_solver", str(exc)) from None
         self._motions = built.motions

@@ -50,6 +50,8 @@ LAYERS: dict[str, tuple[str, ...] | str] = {
     "scene": ("errors", "io", "mesh", "kernels", "physics", "solve"),
     "diff": ("errors", "kernels", "physics", "solve", "scene"),  # adjoint gradients
     "simulation": _BELOW_RUN,  # anything but app
+    # one simulation on MPI ranks (PETSc): a Simulation with a distributed System
+    "parallel": (*_BELOW_RUN, "simulation"),
     "app": ANYTHING,
     "__main__": ANYTHING,  # ``python -m fem3d``: runs the command line
 }

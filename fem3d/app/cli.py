@@ -67,6 +67,8 @@ from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.io.frames import FRAME_FORMATS, frame_format_names
+from fem3d.parallel.comm import launched_rank, launched_ranks
+from fem3d.parallel.run import run_distributed
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 from fem3d.solve.linear.registry import linear_solver_names
 from fem3d.solve.schemes.registry import scheme_names
@@ -306,6 +308,8 @@ def _run_command(args: argparse.Namespace) -> int:
         scene = scene_from_args(args)
         _stages.debug("scene file")
         out = Path(args.out) if args.out else Path("out") / scene.name
+        if launched_ranks() > 1:  # mpiexec -n N fem3d run: one simulation on N ranks
+            return run_distributed(scene, out, quiet=args.quiet, backend=args.kernels)
         summary = run_scene(scene, out, quiet=args.quiet,
                             checkpoint_every=args.checkpoint_every,
                             preview=not args.no_preview, backend=args.kernels,
@@ -337,23 +341,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2
+    ranks = launched_ranks()
+    # under mpiexec every rank meets the same error: rank 0 says it
+    say = print if launched_rank() == 0 else (lambda *a, **k: None)
     try:
+        if ranks > 1 and args.command not in ("run", "schema"):
+            raise InputError(f"fem3d {args.command} runs in one process, not under mpiexec "
+                             f"-n {ranks} (only fem3d run is distributed: docs/parallel.md)")
         with rundir.warnings_as_lines(f"fem3d {args.command}"):
             return int(args.func(args) or 0)
     except InputError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
+        say(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except SimulationError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"fem3d {args.command}: simulation failed: {exc}", file=sys.stderr)
+        say(f"fem3d {args.command}: simulation failed: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:  # e.g. an output folder that cannot be written
         if args.debug:
             traceback.print_exc()
-        print(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
+        say(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fem3d {args.command}: interrupted", file=sys.stderr)

@@ -27,6 +27,8 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "wildmeshing": ("wildmeshing", "scenes"),
     "sksparse": ("scikit-sparse", "cholmod"),
     "viser": ("viser", "view"),
+    "petsc4py": ("petsc4py", "mpi"),
+    "mpi4py": ("mpi4py", "mpi"),
 }
 
 

@@ -87,6 +87,7 @@ from fem3d.scene.selection import (  # re-exported: the scene's one description
     _nonzero,
     _Spec,
 )
+from fem3d.solve.linear.petsc import parse_options
 from fem3d.solve.linear.registry import linear_solver_names
 from fem3d.solve.schemes.registry import DEFAULT_SCHEME, SCHEMES, get_scheme
 
@@ -302,6 +303,9 @@ class SimulationSpec(_Spec):
     #: with short columns), or forced (multi-body contact patterns mislead the rule: the
     #: gallery stack factorizes 2x faster simplicial; docs/contact.md)
     cholmod: Literal["auto", "simplicial", "supernodal"] = "auto"
+    #: PETSc options of linear_solver = "petsc" ("-ksp_type cg -pc_type gamg -ksp_rtol
+    #: 1e-10"; docs/parallel.md); FEM3D_PETSC_OPTIONS adds to them
+    petsc_options: str = ""
     #: eigen-solver of the per-element PSD projection (Newton's "psd" Hessian, stiffness
     #: damping) where dP/dF is indefinite: "svd" (dP/dF block diagonal in F's singular frame,
     #: for isotropic materials; QL for the others), "ql" (tridiagonal QL: the round-off of
@@ -315,6 +319,11 @@ class SimulationSpec(_Spec):
         if self.cholmod != "auto" and self.linear_solver not in ("auto", "cholmod"):
             raise ValueError(f"cholmod = {self.cholmod!r} applies to linear_solver = 'cholmod' "
                              f"(or 'auto'), not {self.linear_solver!r}")
+        if self.petsc_options and self.linear_solver != "petsc":
+            raise ValueError("petsc_options applies to linear_solver = 'petsc', not "
+                             f"{self.linear_solver!r}")
+        if self.petsc_options:
+            parse_options(self.petsc_options)  # a stray word: one line naming the key
         scheme = get_scheme(self.integrator)
         if self.newton.warm_start != "previous" and not scheme.warm_starts:
             warm = " or ".join(repr(n) for n, s in SCHEMES.items() if s.warm_starts)

@@ -69,6 +69,9 @@ class System:
         Gravity and Rayleigh damping (:func:`fem3d.scene.build.build_loads`); default none.
     cholmod_mode : {"auto", "simplicial", "supernodal"}, optional
         CHOLMOD's factorization (:attr:`fem3d.solve.linear.SolverOptions.cholmod_mode`).
+    petsc_options : str, optional
+        The ``"petsc"`` solver's options (:attr:`fem3d.solve.linear.SolverOptions.
+        petsc_options`).
 
     Attributes
     ----------
@@ -95,6 +98,7 @@ class System:
         *,
         loads: Loads | None = None,
         cholmod_mode: str = "auto",
+        petsc_options: str = "",
     ):
         if constraints.n_dofs != model.n_dofs:
             raise ValueError("constraints and model have different DOF counts")
@@ -107,6 +111,8 @@ class System:
         #: CHOLMOD's factorization (:attr:`~fem3d.solve.linear.SolverOptions.cholmod_mode`;
         #: the other solvers ignore it)
         self.cholmod_mode = cholmod_mode
+        #: PETSc options of the ``"petsc"`` solver (the others ignore them)
+        self.petsc_options = petsc_options
         kept, self.pattern_free = _reduced_pattern(model.pattern, constraints)
         self.mass_free = self._reduced_mass(model, kept)
         self._kept = kept
@@ -551,8 +557,8 @@ class System:
             self.factorize(A)
 
     def _new_direct_solver(self, pattern: sp.csr_matrix) -> DirectSolver:
-        solver = make_linear_solver(self.solver_backend,
-                                    SolverOptions(cholmod_mode=self.cholmod_mode), direct=True)
+        solver = make_linear_solver(self.solver_backend, self.direct_solver_options(),
+                                    direct=True)
         assert isinstance(solver, DirectSolver)  # direct=True resolves to a direct solver
         # the reduced elastic pattern and its widenings (which add each key's transpose)
         solver.analyse(pattern, symmetric=True)
@@ -565,6 +571,12 @@ class System:
             # bit for bit what a long-lived one does.
             solver.factorize(self.mass_free)
         return solver
+
+    def direct_solver_options(self) -> SolverOptions:
+        """What a direct solver is made with: CHOLMOD's mode, PETSc's options and the free
+        vertices' rest positions (PETSc's GAMG: their rigid-body modes)."""
+        return SolverOptions(cholmod_mode=self.cholmod_mode, petsc_options=self.petsc_options,
+                             points=self.model.X[self.free[0::3] // 3])
 
     @property
     def solver(self) -> DirectSolver:

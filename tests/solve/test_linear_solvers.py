@@ -253,11 +253,11 @@ def test_env_override(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_registry_names_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("FEM3D_SOLVER", raising=False)
     assert linear_solver_names() == ("auto", *LINEAR_SOLVERS)
-    assert DIRECT == ("cholmod", "pardiso", "superlu")
+    assert DIRECT == ("cholmod", "pardiso", "superlu", "petsc")
     assert "amg" in LINEAR_SOLVERS and LINEAR_SOLVERS["amg"].iterative
-    with pytest.raises(ValueError, match="unknown linear solver 'petsc'; available: auto, "
-                                         "cholmod, pardiso, superlu, amg"):
-        resolve_linear_solver("petsc")
+    with pytest.raises(ValueError, match="unknown linear solver 'mumps'; available: auto, "
+                                         "cholmod, pardiso, superlu, amg, petsc"):
+        resolve_linear_solver("mumps")
     # a missing library: one line naming how to install it
     monkeypatch.setattr(LINEAR_SOLVERS["pardiso"], "available", classmethod(lambda cls: False))
     with pytest.raises(ImportError, match="'pardiso' is not installed: pip install pypardiso"):

@@ -90,10 +90,14 @@ class SolverOptions:
     points : (n / 3, 3) float64 or None
         Rest positions of the vertices whose 3 DOFs are the unknowns, in order (AMG's
         near-nullspace: their rigid-body modes).
+    petsc_options : str
+        PETSc options of the ``"petsc"`` solver (``"-ksp_type cg -pc_type gamg"``;
+        :mod:`fem3d.solve.linear.petsc`).
     """
 
     cholmod_mode: str = "auto"
     points: np.ndarray | None = None
+    petsc_options: str = ""
 
 
 @runtime_checkable
@@ -208,6 +212,9 @@ class DirectSolver:
     def __init__(self, options: SolverOptions | None = None) -> None:
         self.options = options or SolverOptions()
         self.n = 0
+        #: The pattern is one rank's part of a distributed matrix (rows of other ranks'
+        #: vertices may lack their diagonal entry): not checked for a whole diagonal.
+        self.partial = False
         self._factored = False
         self.shift = 0.0
         self.analyze_seconds = 0.0
@@ -253,7 +260,7 @@ class DirectSolver:
         self._indices = P.indices.copy()
         rows = np.repeat(np.arange(n), np.diff(P.indptr))
         diag_pos = np.flatnonzero(rows == P.indices)
-        if len(diag_pos) != n:
+        if len(diag_pos) != n and not self.partial:
             raise ValueError("pattern must contain every diagonal entry")
         if not symmetric:
             ones = sp.csr_matrix((np.ones(len(P.indices)), P.indices, P.indptr), shape=P.shape)

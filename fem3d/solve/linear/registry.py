@@ -20,6 +20,7 @@ from fem3d.solve.linear.amg_cg import AMGCGSolver
 from fem3d.solve.linear.base import LinearSolver, SolverOptions
 from fem3d.solve.linear.cholmod import CholmodSolver
 from fem3d.solve.linear.pardiso import PardisoSolver
+from fem3d.solve.linear.petsc import PetscSolver
 from fem3d.solve.linear.superlu import SuperLUSolver
 
 __all__ = ["AUTO", "ENV_VAR", "LINEAR_SOLVERS", "available_linear_solvers", "direct_solver_names",
@@ -33,7 +34,8 @@ ENV_VAR = "FEM3D_SOLVER"
 
 #: The solvers by name, the direct ones in the order ``"auto"`` tries them.
 LINEAR_SOLVERS: dict[str, type[LinearSolver]] = {
-    cls.name: cls for cls in (CholmodSolver, PardisoSolver, SuperLUSolver, AMGCGSolver)
+    cls.name: cls
+    for cls in (CholmodSolver, PardisoSolver, SuperLUSolver, AMGCGSolver, PetscSolver)
 }
 
 

@@ -84,6 +84,9 @@ class Scheme:
     warm_starts: ClassVar[bool] = False
     #: a contact step may be redone as substeps (:mod:`fem3d.solve.substeps`)
     substeps: ClassVar[bool] = True
+    #: runs under ``mpiexec -n N`` (:mod:`fem3d.parallel`: every solve through the distributed
+    #: System; Newmark's start solves with the mass matrix outside it)
+    distributed: ClassVar[bool] = False
     #: the history arrays the scheme's states carry (``(n, 3)`` each, by name)
     history: ClassVar[tuple[str, ...]] = ()
     #: the history that is the state one step earlier, ``{name: State field}`` (it depends

@@ -31,6 +31,7 @@ class BDF2(Scheme):
     label = "BDF2"
     history = ("q_prev", "v_prev")
     previous_state = {"q_prev": "q", "v_prev": "v"}
+    distributed = True
 
     def step(self, system, terms, state, dt, settings, *, fixed_positions=None,
              energy_bound=None):

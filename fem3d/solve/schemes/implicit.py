@@ -43,6 +43,7 @@ class BackwardEuler(Scheme):
     name = "implicit"
     label = "backward Euler"
     warm_starts = True
+    distributed = True
     history = ("q_prev", "v_prev")
     previous_state = {"q_prev": "q", "v_prev": "v"}
 

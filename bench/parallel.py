@@ -1,0 +1,111 @@
+"""Strong scaling of ``mpiexec -n N fem3d run``: the same box on 1, 2, ... ranks.
+
+    python -m bench.parallel --tets 1e5 --steps 3 --ranks 1,2
+    python -m bench.parallel --tets 1e5 --steps 3 --ranks 1,2 --petsc-options "-pc_type gamg"
+
+A box (``bench.meshes.box_mesh``) clamped at its lowest z, swinging under gravity
+(backward Euler, Neo-Hookean, ``dt = 0.01``), written to a temporary folder; each rank count
+runs ``mpiexec -n N python -m fem3d run`` (one thread per rank) and the run's own summary
+line is parsed: wall time of the steps, set-up time, Newton iterations, and the peak RSS of
+each rank. 1 rank is the one-process ``fem3d run`` (the same PETSc solver, no MPI layer; its
+RSS from the operating system; the first rank count, so that the children's peak is its).
+Prints one row per rank count and the speed-up over the first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from bench.meshes import box_mesh
+from fem3d.mesh.formats import write_tet_mesh
+from fem3d.mesh.tetmesh import TetMesh
+
+SUMMARY = re.compile(r"(\d+) steps on (\d+) ranks in ([\d.]+) s \(([\d.]+) s set-up\), "
+                     r"(\d+) Newton iterations.*peak RSS per rank ([\d., ]+) MiB")
+ONE = re.compile(r"(\d+) steps in ([\d.]+) s; [\d.]+ ms/step \(([\d.]+) Newton iterations/step\)")
+
+
+def scene_text(mesh: Path, steps: int, petsc_options: str) -> str:
+    extra = f'petsc_options = "{petsc_options}"' if petsc_options else ""
+    return f"""
+[simulation]
+integrator = "implicit"
+dt = 0.01
+steps = {steps}
+gravity = [0.0, -9.81, 0.0]
+linear_solver = "petsc"
+{extra}
+
+[[bodies]]
+mesh = "{mesh}"
+velocity = [0.5, 0.0, 0.0]
+material = {{ model = "neo_hookean", E = 1e6, nu = 0.3, density = 1000.0 }}
+pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [2.0, 2.0, 1e-6]] }} }}]
+
+[output]
+every = 1000000
+"""
+
+
+def run(ranks: int, scene: Path, out: Path) -> dict:
+    """One run; 1 rank: the one-process ``fem3d run`` (the same PETSc solver, no MPI
+    layer), its peak RSS from the operating system."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    fem3d = [sys.executable, "-m", "fem3d", "run", str(scene), "--out", str(out), "--no-preview"]
+    cmd = fem3d if ranks == 1 else ["mpiexec", "--oversubscribe", "-n", str(ranks), *fem3d]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if ranks == 1:
+        match = ONE.search(proc.stderr + proc.stdout)
+        rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    else:
+        match = SUMMARY.search(proc.stdout)
+    if proc.returncode or match is None:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    if ranks == 1:
+        steps, wall, newton = match.groups()
+        return {"ranks": 1, "steps": int(steps), "wall": float(wall), "setup": float("nan"),
+                "newton": round(float(newton) * int(steps)), "rss": [rss]}
+    steps, _, wall, setup, newton, rss = match.groups()
+    return {"ranks": ranks, "steps": int(steps), "wall": float(wall), "setup": float(setup),
+            "newton": int(newton), "rss": [float(r) for r in rss.split(",")]}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tets", type=float, default=1e5)
+    p.add_argument("--steps", type=int, default=3)
+    p.add_argument("--ranks", default="1,2")
+    p.add_argument("--petsc-options", default="")
+    args = p.parse_args(argv)
+    X, T = box_mesh(args.tets)
+    tmp = Path(tempfile.mkdtemp(prefix="fem3d_parallel_"))
+    try:
+        mesh = tmp / "box.mesh"
+        write_tet_mesh(mesh, TetMesh(X, T))
+        scene = tmp / "box.toml"
+        scene.write_text(scene_text(mesh, args.steps, args.petsc_options))
+        print(f"box: {T.shape[0]:,} tets, {X.shape[0]:,} vertices, {args.steps} backward-Euler "
+              f"steps, linear_solver = petsc {args.petsc_options or '(default)'}")
+        rows = []
+        for n in (int(r) for r in args.ranks.split(",")):
+            rows.append(run(n, scene, tmp / f"out{n}"))
+            r = rows[-1]
+            print(f"  {n} rank(s): {r['wall'] / r['steps']:.2f} s/step "
+                  f"(x{rows[0]['wall'] / r['wall']:.2f}), set-up {r['setup']:.2f} s, "
+                  f"{r['newton']} Newton iterations, peak RSS per rank "
+                  f"{', '.join(f'{m:.0f}' for m in r['rss'])} MiB")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,23 @@
+"""One simulation on several MPI ranks through PETSc (``mpiexec -n N fem3d run scene.toml``).
+
+The road, each stage a module:
+
+* :mod:`~fem3d.parallel.comm`: whether this process is one of several MPI ranks, the
+  communicator, and sums every rank agrees on bit for bit;
+* :mod:`~fem3d.parallel.partition`: the tets split by PETSc's graph partitioner (PT-Scotch or
+  ParMETIS) on their face-adjacency graph, the vertices given to the lowest rank among their
+  tets, and the free DOFs numbered rank by rank (:class:`~fem3d.solve.linear.petsc.
+  DofLayout`);
+* :mod:`~fem3d.parallel.local`: a rank's own model, the model of its tets alone (the same
+  generated kernels, materials, mass and damping), over the whole vertex numbering;
+* :mod:`~fem3d.parallel.system`: :class:`DistributedSystem`, a
+  :class:`~fem3d.solve.system.System` on the local model whose terms sum their energies and
+  gradients over the ranks and whose Newton matrices go into one distributed PETSc matrix
+  (:class:`~fem3d.solve.linear.petsc.PetscSolver`): the integrators, the objective, Newton's
+  line search and stopping rule run unchanged, the same on every rank;
+* :mod:`~fem3d.parallel.run`: the run loop of ``fem3d run`` under ``mpiexec``: frames as one
+  ``.vtu`` piece per rank with a ``.pvtu`` per frame and a ``.pvd``, ``energy.csv`` from
+  rank 0.
+
+docs/parallel.md says what runs, how, and what it measured.
+"""

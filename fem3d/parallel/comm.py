@@ -1,0 +1,71 @@
+"""The MPI side of a distributed run: is this process one of several ranks, and sums that
+every rank agrees on bit for bit (so every rank's Newton takes the same decisions)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+__all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "world", "sum_scalar",
+           "sum_vector"]
+
+#: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
+#: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
+#: fem3d without a launcher also sees).
+RANK_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
+
+
+def launched_ranks() -> int:
+    """How many ranks the MPI launcher started this process among (1 without ``mpiexec``),
+    read from the launcher's environment without importing MPI."""
+    for name in RANK_VARIABLES:
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    return 1
+
+#: The launchers' variables of this process's rank, in :data:`RANK_VARIABLES`' order.
+_RANK_OF = ("OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK", "MPI_LOCALRANKID")
+
+
+def launched_rank() -> int:
+    """This process's rank among :func:`launched_ranks` (0 without ``mpiexec``)."""
+    for name in _RANK_OF:
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value)
+    return 0
+
+
+def world() -> Any:
+    """``mpi4py.MPI.COMM_WORLD`` (PETSc initialised first, on the same communicator)."""
+    from fem3d.solve.linear.petsc import petsc_module
+
+    petsc_module()
+    from mpi4py import MPI  # optional (fem3d[mpi]): imported for mpiexec runs
+
+    return MPI.COMM_WORLD
+
+
+def sum_scalar(comm: Any, value: float) -> float:
+    """``sum`` of one float over the ranks, added in rank order: the same bits on every rank
+    (an ``MPI_Allreduce`` may associate differently per rank)."""
+    values = comm.allgather(float(value))
+    total = 0.0
+    for v in values:
+        total += v
+    return total
+
+
+def sum_vector(comm: Any, a: np.ndarray) -> np.ndarray:
+    """The element-wise sum of ``a`` over the ranks, reduced on rank 0 and broadcast: the
+    same bits on every rank."""
+    from mpi4py import MPI  # optional (fem3d[mpi])
+
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    out = np.empty_like(a)
+    comm.Reduce(a, out, op=MPI.SUM, root=0)
+    comm.Bcast(out, root=0)
+    return out

@@ -1,0 +1,137 @@
+"""The mesh split between the ranks: tets by PETSc's graph partitioner on their face
+adjacency, vertices to the lowest rank among their tets, free DOFs numbered rank by rank."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fem3d.solve.linear.petsc import DofLayout, petsc_module
+
+__all__ = ["PARTITIONERS", "dual_graph", "partition_tets", "dof_layout"]
+
+#: PETSc's graph partitioners in order of preference (the first one PETSc was built with).
+PARTITIONERS = ("parmetis", "ptscotch", "chaco", "party")
+
+#: The four faces of a tet (vertex positions in ``T``'s rows).
+_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+
+
+def dual_graph(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tets' face adjacency as CSR arrays: ``indices[indptr[e]:indptr[e + 1]]`` are the
+    tets sharing a face with tet ``e`` (sorted).
+
+    Parameters
+    ----------
+    T : (m, 4) int64
+
+    Returns
+    -------
+    indptr : (m + 1,) int64
+    indices : (2 * interior faces,) int64
+    """
+    m = T.shape[0]
+    faces = np.sort(T[:, _FACES].reshape(-1, 3), axis=1)
+    owner = np.repeat(np.arange(m, dtype=np.int64), 4)
+    order = np.lexsort((faces[:, 2], faces[:, 1], faces[:, 0]))
+    faces, owner = faces[order], owner[order]
+    same = (faces[1:] == faces[:-1]).all(axis=1)  # a face shared by the tets i and i + 1
+    a, b = owner[:-1][same], owner[1:][same]
+    rows = np.concatenate([a, b])
+    cols = np.concatenate([b, a])
+    order = np.lexsort((cols, rows))
+    rows, cols = rows[order], cols[order]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=m), out=indptr[1:])
+    return indptr, cols
+
+
+def _partitioner(PETSc: Any) -> str:
+    for name in PARTITIONERS:
+        if PETSc.Sys.hasExternalPackage(name):
+            return name
+    raise ImportError(f"PETSc has no graph partitioner ({', '.join(PARTITIONERS)}): "
+                      "install a PETSc built with PT-Scotch or ParMETIS "
+                      "(scripts/install_petsc.sh)")
+
+
+def partition_tets(T: np.ndarray, comm: Any) -> np.ndarray:
+    """The rank of each tet: PETSc's graph partitioner (:data:`PARTITIONERS`) on the face
+    adjacency of the tets, each rank handing it a consecutive block of the tets' rows.
+
+    Parameters
+    ----------
+    T : (m, 4) int64
+        The whole mesh (every rank has it).
+    comm : mpi4py.MPI.Comm
+
+    Returns
+    -------
+    (m,) int64
+        Every tet's rank, the same on every rank.
+    """
+    size, rank = comm.Get_size(), comm.Get_rank()
+    m = T.shape[0]
+    if size == 1:
+        return np.zeros(m, dtype=np.int64)
+    PETSc = petsc_module()
+    bounds = np.linspace(0, m, size + 1).astype(np.int64)
+    lo, hi = int(bounds[rank]), int(bounds[rank + 1])
+    indptr, indices = dual_graph(T)
+    ia = (indptr[lo:hi + 1] - indptr[lo]).astype(PETSc.IntType)
+    ja = indices[indptr[lo]:indptr[hi]].astype(PETSc.IntType)
+    pcomm = PETSc.Comm(comm)
+    # the graph as an AIJ matrix of ones (the partitioner converts it to MPIAdj)
+    adj = PETSc.Mat().createAIJ(((hi - lo, m), (hi - lo, m)), csr=(ia, ja, np.ones(ja.size)),
+                                comm=pcomm)
+    adj.assemble()
+    part = PETSc.MatPartitioning().create(comm=pcomm)
+    part.setAdjacency(adj)
+    part.setType(_partitioner(PETSc))
+    part.setFromOptions()
+    parts = PETSc.IS()
+    part.apply(parts)
+    mine = parts.getIndices().astype(np.int64)
+    for obj in (parts, part, adj):
+        obj.destroy()
+    out = np.empty(m, dtype=np.int64)
+    counts = np.diff(bounds)
+    comm.Allgatherv(mine, [out, counts])
+    return out
+
+
+def dof_layout(T: np.ndarray, tet_rank: np.ndarray, free_dofs: np.ndarray, comm: Any
+               ) -> DofLayout:
+    """PETSc's numbering of the free DOFs: each vertex to the lowest rank among its tets,
+    each rank's free DOFs consecutive (vertex by vertex, in fem3d's order within a rank).
+
+    Parameters
+    ----------
+    T : (m, 4) int64
+    tet_rank : (m,) int64
+        :func:`partition_tets`.
+    free_dofs : (n_free,) int64
+        The free DOFs, whole vertices (x, y, z of each).
+    comm : mpi4py.MPI.Comm
+
+    Returns
+    -------
+    DofLayout
+    """
+    size, rank = comm.Get_size(), comm.Get_rank()
+    n_vertices = int(T.max()) + 1 if T.size else 0
+    owner = np.full(max(n_vertices, int(free_dofs.max(initial=-1)) // 3 + 1), size,
+                    dtype=np.int64)
+    np.minimum.at(owner, T.reshape(-1), np.repeat(tet_rank, 4))
+    owner[owner == size] = 0  # a vertex of no tet (none in a checked mesh)
+    dof_owner = owner[free_dofs // 3]
+    by_rank = np.argsort(dof_owner, kind="stable")  # free DOFs in PETSc's order
+    order = np.empty_like(by_rank)
+    order[by_rank] = np.arange(by_rank.size)
+    counts = np.bincount(dof_owner, minlength=size).astype(np.int64)
+    start = int(counts[:rank].sum())
+    owned = by_rank[start:start + int(counts[rank])]
+    for a in (order, owned, counts):
+        a.setflags(write=False)
+    return DofLayout(comm=comm, order=order, owned=owned, start=start, counts=counts)

@@ -1,0 +1,135 @@
+"""The distributed system: a :class:`~fem3d.solve.system.System` on a rank's local model
+whose terms sum over the ranks and whose linear solver is one distributed PETSc matrix.
+
+Every rank holds the whole reduced vector (velocities, gradient, Newton direction): the
+integrators, :class:`~fem3d.solve.objective.Objective` and :func:`~fem3d.solve.newton.
+newtons_method` run unchanged and, because every sum they see is the same bits on every
+rank (:mod:`fem3d.parallel.comm`), take the same decisions on every rank. What is
+distributed is the work over the elements (energies, gradients, element Hessians: each rank
+its own tets) and the linear algebra (the Newton matrix's rows and the Krylov solve or
+factorization: PETSc).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fem3d.parallel.comm import sum_scalar, sum_vector
+from fem3d.physics.constraints import Constraints
+from fem3d.physics.model import Model
+from fem3d.physics.terms.base import HessianSink, NewtonPolicy, StepMap, Term
+from fem3d.physics.terms.loads import Loads
+from fem3d.solve.linear.base import DirectSolver
+from fem3d.solve.linear.petsc import DofLayout, PetscSolver
+from fem3d.solve.system import System
+
+__all__ = ["DistributedSystem", "ReducedLoads", "ReducedTerm"]
+
+
+class ReducedTerm(Term):
+    """A term of a rank's local model, its energy and gradient summed over the ranks.
+
+    Its Hessian is the rank's part (its tets): the distributed PETSc matrix sums the ranks'
+    parts. Only element-wise terms (inertia, elasticity, gravity, Rayleigh damping) are
+    additive over the tets like this.
+
+    Parameters
+    ----------
+    term : Term
+        The local model's term.
+    comm : mpi4py.MPI.Comm
+    """
+
+    def __init__(self, term: Term, comm: Any) -> None:
+        self.term = term
+        self.comm = comm
+        self.name = term.name
+        self.variable = term.variable
+        self.inertial = term.inertial
+        self.dissipative = term.dissipative
+        self.requires_convergence = term.requires_convergence
+        self.allows_lagged_matrix = term.allows_lagged_matrix
+        self.newton_policy: NewtonPolicy = term.newton_policy
+
+    @property
+    def active(self) -> bool:
+        return self.term.active
+
+    @property
+    def energy_scale(self) -> float:  # type: ignore[override]
+        return sum_scalar(self.comm, self.term.energy_scale)
+
+    def energy(self, u: np.ndarray) -> float:
+        return sum_scalar(self.comm, float(self.term.energy(u)))
+
+    def gradient(self, u: np.ndarray) -> np.ndarray:
+        return sum_vector(self.comm, self.term.gradient(u))
+
+    def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
+        self.term.add_hessian(u, sink)
+
+    def begin_step(self, step: StepMap) -> None:
+        self.term.begin_step(step)
+
+    def with_model(self, model: Model) -> ReducedTerm:
+        return ReducedTerm(self.term.with_model(model), self.comm)
+
+    # pull springs, contact: not element-wise, refused by fem3d.parallel.run
+
+
+class ReducedLoads(Loads):
+    """A rank's gravity and damping (:class:`Loads` of its local model) as
+    :class:`ReducedTerm` s, gravity's potential summed over the ranks."""
+
+    def __init__(self, loads: Loads, comm: Any) -> None:
+        super().__init__(loads.gravity, loads.damping, loads.rayleigh_alpha,
+                         loads.rayleigh_beta)
+        object.__setattr__(self, "comm", comm)
+        object.__setattr__(self, "local", loads)
+
+    def terms(self) -> list[Term]:
+        return [ReducedTerm(t, self.comm) for t in self.local.terms()]
+
+    def gravity_energy(self, q: np.ndarray) -> float:
+        return sum_scalar(self.comm, self.local.gravity_energy(q))
+
+    def with_model(self, model: Model) -> ReducedLoads:
+        return ReducedLoads(self.local.with_model(model), self.comm)
+
+
+class DistributedSystem(System):
+    """:class:`System` of one rank: its local model (:func:`~fem3d.parallel.local.
+    local_model`), the whole constraint set, terms summed over the ranks, and the
+    ``"petsc"`` solver over the ranks' :class:`DofLayout`.
+
+    Parameters
+    ----------
+    model : Model
+        The rank's local model.
+    constraints : Constraints
+        The whole model's (every rank the same).
+    layout : DofLayout
+    loads : Loads
+        The local model's gravity and damping (:func:`~fem3d.parallel.local.local_loads`).
+    petsc_options : str, optional
+        The scene's ``simulation.petsc_options``.
+    """
+
+    def __init__(self, model: Model, constraints: Constraints, layout: DofLayout, *,
+                 loads: Loads, petsc_options: str = "") -> None:
+        self.layout = layout
+        super().__init__(model, constraints, PetscSolver.name,
+                         loads=ReducedLoads(loads, layout.comm), petsc_options=petsc_options)
+
+    def _physics_cache(self) -> None:
+        super()._physics_cache()
+        comm = self.layout.comm
+        self._model_terms = tuple(ReducedTerm(t, comm) for t in self._model_terms)
+
+    def _new_direct_solver(self, pattern) -> DirectSolver:
+        solver = PetscSolver(self.direct_solver_options(), layout=self.layout)
+        solver.analyse(pattern, symmetric=True)
+        self.analyses += 1
+        return solver

@@ -1,0 +1,95 @@
+"""What the PETSc and MPI tests share: a two-material box scene and how to launch
+``mpiexec`` here (tests/solve/test_petsc_solver.py, tests/parallel/test_mpi_run.py)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+MESH = Path(__file__).resolve().parents[1] / "data" / "scenes" / "meshes" / "bar_16x4x4.mesh"
+
+
+def box_scene_text(integrator: str = "implicit", *, steps: int = 20,
+                   linear_solver: str = "auto", extra: str = "") -> str:
+    """Two 1 x 0.25 x 0.25 bars (1,536 tets each) clamped at x = 0, sagging under gravity
+    and set moving: Neo-Hookean, and StVK with Rayleigh damping."""
+    return f"""
+[simulation]
+integrator = "{integrator}"
+dt = 0.01
+steps = {steps}
+gravity = [0.0, -9.81, 0.0]
+linear_solver = "{linear_solver}"
+{extra}
+
+[[bodies]]
+mesh = "{MESH}"
+velocity = [0.0, 0.0, 0.3]
+material = {{ model = "neo_hookean", E = 2e5, nu = 0.35, density = 1000.0 }}
+pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]] }} }}]
+
+[[bodies]]
+mesh = "{MESH}"
+transform = {{ translate = [0.0, 0.0, 0.5] }}
+material = {{ model = "stvk", E = 5e5, nu = 0.3, density = 800.0 }}
+damping = {{ rayleigh_stiffness = 0.002, rayleigh_mass = 0.5 }}
+pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]] }} }}]
+"""
+
+
+def write_scene(folder: Path, **kwargs) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "box.toml"
+    path.write_text(box_scene_text(**kwargs))
+    return path
+
+
+def relative_difference(q: np.ndarray, reference: np.ndarray, rest: np.ndarray) -> float:
+    """``|q - reference| / |reference - rest|``: the difference relative to the motion."""
+    return float(np.linalg.norm(q - reference) / np.linalg.norm(reference - rest))
+
+
+def mpiexec_or_skip() -> list[str]:
+    """The ``mpiexec -n`` prefix of this machine (Open MPI as root allowed); skips when MPI
+    or petsc4py cannot run here, fails instead under ``FEM3D_REQUIRE_MPI=1`` (CI)."""
+    reason = None
+    exe = shutil.which("mpiexec")
+    if exe is None:
+        reason = "no mpiexec (bash scripts/install_petsc.sh installs Open MPI and PETSc)"
+    else:
+        try:
+            import mpi4py  # noqa: F401
+            import petsc4py  # noqa: F401
+        except ImportError as exc:
+            reason = f"{exc} (pip install 'fem3d[mpi]' after scripts/install_petsc.sh)"
+    if reason is not None:
+        if os.environ.get("FEM3D_REQUIRE_MPI") == "1":
+            pytest.fail(f"FEM3D_REQUIRE_MPI=1 but MPI cannot run here: {reason}")
+        pytest.skip(reason)
+    version = subprocess.run([exe, "--version"], capture_output=True, text=True).stdout
+    openmpi = "Open MPI" in version or "OpenRTE" in version
+    # Open MPI's --quiet: without it, a rank's non-zero exit adds mpiexec's own banner
+    return [exe, *(["--oversubscribe", "--quiet"] if openmpi else []), "-n"]
+
+
+def mpi_env() -> dict[str, str]:
+    """The environment of an ``mpiexec`` run: one thread per rank, Open MPI allowed as
+    root."""
+    return {**os.environ, "OMP_NUM_THREADS": "1", "OMPI_ALLOW_RUN_AS_ROOT": "1",
+            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
+            # a rank waiting for the other gives its core up (machines shared by other work)
+            "OMPI_MCA_mpi_yield_when_idle": "1"}
+
+
+def run_mpi(ranks: int, *args: str, cwd: Path, timeout: float = 120.0
+            ) -> subprocess.CompletedProcess:
+    """``mpiexec -n ranks python -m fem3d args...``."""
+    cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, "-m", "fem3d", *args]
+    return subprocess.run(cmd, cwd=cwd, env=mpi_env(), capture_output=True, text=True,
+                          timeout=timeout)

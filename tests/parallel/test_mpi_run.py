@@ -1,0 +1,208 @@
+"""One simulation on several ranks: ``mpiexec -n 2 fem3d run`` equals the one-process run,
+writes its pieces, and refuses what it cannot do in one line; the parts it is made of
+(face graph, DOF layout, local models) checked in one process."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fem3d.io.energy import read_energy_csv
+from fem3d.parallel.local import local_loads, local_model
+from fem3d.parallel.partition import dof_layout, dual_graph
+from fem3d.physics.terms.base import StepMap
+from fem3d.scene import load_scene
+from fem3d.simulation import Simulation
+from fem3d.solve.integrators import model_terms
+from fem3d.solve.system import System
+from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+
+
+def _one_process(scene_path, steps=20) -> Simulation:
+    sim = Simulation(load_scene(str(scene_path)))
+    for _ in range(steps):
+        sim.step()
+    return sim
+
+
+@pytest.mark.parametrize("integrator, options", [("implicit", ""), ("bdf2", ""),
+                                                 ("implicit", "-ksp_type cg -pc_type gamg")])
+def test_two_ranks_equal_one_process(tmp_path, integrator, options):
+    """20 steps of the two-material box (Neo-Hookean, damped StVK) on 2 ranks (MUMPS, and
+    CG + GAMG) equal the one-process run (the default direct solver) to 1e-8 of the
+    motion."""
+    scene = write_scene(tmp_path, integrator=integrator)
+    if options:
+        scene.write_text(scene.read_text().replace(
+            'linear_solver = "auto"', f'linear_solver = "petsc"\npetsc_options = "{options}"'))
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = np.load(tmp_path / "out" / "state.npz")
+    assert int(state["step"]) == 20
+    sim = _one_process(write_scene(tmp_path / "one", integrator=integrator))
+    diff = relative_difference(state["q"], sim.q, sim.model.X)
+    print(f"{integrator} {options or 'mumps'}: 2 ranks vs one process: relative difference "
+          f"{diff:.2e}")
+    assert diff <= 1e-8
+    assert relative_difference(state["v"], sim.v, 0.0 * sim.v) <= 1e-6
+    energy = read_energy_csv(tmp_path / "out" / "energy.csv")
+    assert len(energy["t"]) == 21
+    assert abs(energy["kinetic"][-1] - sim.energies()["kinetic"]) <= \
+        1e-6 * sim.energies()["kinetic"]
+
+
+def test_two_ranks_write_pieces(tmp_path):
+    """Each frame: one .vtu piece per rank (the surface of its tets), a .pvtu naming both,
+    frames.pvd listing the frames; the pieces' points are the run's positions."""
+    import meshio
+
+    scene = write_scene(tmp_path, steps=3)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    frames = tmp_path / "out" / "frames"
+    pvd = ET.parse(tmp_path / "out" / "frames.pvd").getroot()
+    files = [d.get("file") for d in pvd.iter("DataSet")]
+    assert files == [f"frames/frame_{i:05d}.pvtu" for i in range(4)]
+    pvtu = ET.parse(frames / "frame_00003.pvtu").getroot()
+    sources = [p.get("Source") for p in pvtu.iter("Piece")]
+    assert sources == ["frame_00003_0.vtu", "frame_00003_1.vtu"]
+    state = np.load(tmp_path / "out" / "state.npz")
+    seen = []
+    for rank, src in enumerate(sources):
+        piece = meshio.read(frames / src)
+        assert piece.cells[0].data.shape[1] == 3 and len(piece.points) > 0
+        assert (piece.point_data["rank"] == rank).all()
+        # every piece point is a vertex of the run, where the run left it
+        d = np.linalg.norm(piece.points[:, None, :] - state["q"][None, :, :], axis=2)
+        assert d.min(axis=1).max() == 0.0
+        seen.append(d.argmin(axis=1))
+    surface = Simulation(load_scene(str(scene))).surface_faces
+    assert set(np.unique(surface)) <= set(np.concatenate(seen))  # the pieces cover it
+
+
+@pytest.mark.parametrize("extra, key", [
+    ('[contact]\nenabled = true\n[[obstacles]]\nplane = { point = [0, -1, 0], normal = '
+     '[0, 1, 0] }', "contact.enabled"),
+    ('[[pulls]]\nbody = 0\nselect = { box = [[0.9, -1, -1], [2, 1, 1]] }\nstart = 0.0\n'
+     'duration = 0.1\ntarget = [0.0, 0.1, 0.0]', "pulls"),
+    ('', "simulation.integrator"),
+])
+def test_refused_in_one_line(tmp_path, extra, key):
+    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "newmark")
+    scene.write_text(scene.read_text() + "\n" + extra + "\n")
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and key in lines[0] and "mpiexec -n 2" in lines[0], proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_extra_is_one_line(tmp_path, monkeypatch):
+    """petsc4py that does not import: one line naming the extra, exit 2, nothing written."""
+    blocker = tmp_path / "block" / "petsc4py"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('blocked by the test')\n")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "block"))
+    scene = write_scene(tmp_path, steps=1)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "fem3d[mpi]" in lines[0] and "mpiexec -n 2" in lines[0], \
+        proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_viewer_refused_in_one_line(tmp_path):
+    proc = run_mpi(2, "view", "bunny", cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "runs in one process, not under mpiexec -n 2" in lines[0]
+
+
+# -- the parts, in one process ------------------------------------------------------------
+def test_dual_graph_of_two_tets():
+    T = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [5, 6, 7, 8]])
+    indptr, indices = dual_graph(T)
+    assert indptr.tolist() == [0, 1, 2, 2]
+    assert indices.tolist() == [1, 0]
+
+
+def test_dof_layout_numbers_rank_by_rank():
+    T = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    tet_rank = np.array([1, 0])
+    free = np.arange(3, 15)  # vertex 0 pinned
+    layouts = [dof_layout(T, tet_rank, free, SimpleNamespace(Get_size=lambda: 2,
+                                                             Get_rank=lambda r=r: r))
+               for r in (0, 1)]
+    assert layouts[0].counts.tolist() == [12, 0]  # vertices 1-4 touch the rank-0 tet
+    assert layouts[0].order.tolist() == list(range(12))
+    assert layouts[1].owned.size == 0 and layouts[1].start == 12
+    tet_rank = np.array([0, 1])
+    lay = dof_layout(T, tet_rank, free, SimpleNamespace(Get_size=lambda: 2,
+                                                        Get_rank=lambda: 1))
+    assert lay.counts.tolist() == [9, 3]  # vertex 4 only in the rank-1 tet
+    assert lay.owned.tolist() == [9, 10, 11] and lay.order[9:].tolist() == [9, 10, 11]
+
+
+class _Unsolved(System):
+    """A System that never solves (a local model's rows of other ranks' vertices are empty:
+    no solver of its own could factorize them)."""
+
+    def _new_direct_solver(self, pattern):
+        return None
+
+
+def test_local_models_sum_to_the_whole(tmp_path):
+    """The local models of a split of the tets (two materials, damping, gravity): their
+    energies, gradients and Newton matrices sum to the whole model's."""
+    sim = Simulation(load_scene(str(write_scene(tmp_path))))
+    model, system = sim.model, sim.system
+    rng = np.random.default_rng(1)
+    halves = [np.sort(rng.permutation(model.n_tets)[:model.n_tets // 2])]
+    halves.append(np.setdiff1d(np.arange(model.n_tets), halves[0]))
+    parts = []
+    for tets in halves:
+        local = local_model(model, tets)
+        assert local.E == model.E and local.n_vertices == model.n_vertices
+        parts.append(_Unsolved(local, sim.constraints, "superlu",
+                               loads=local_loads(system.loads, local, tets)))
+    c = sim.constraints
+    q = sim.q.reshape(-1) + 1e-3 * rng.standard_normal(model.n_dofs)
+    v = 0.1 * rng.standard_normal(model.n_dofs)
+    step = StepMap(constraints=c, h=0.01, dt=0.01, t=0.0, step=0, q_t=q, v_t=v,
+                   q_base=q, v_hat_free=v[c.free_dofs])
+    x = v[c.free_dofs]
+
+    def evaluate(s):
+        terms = [t for t in model_terms(s) if t.active]
+        for t in terms:
+            t.begin_step(step)
+        e = [t.energy(q if t.variable == "position" else x) for t in terms]
+        g = [t.gradient(q if t.variable == "position" else x) for t in terms]
+        return e, g, s.newton_matrix(q, 0.01, damping=s.loads.damping_data(q))
+
+    e, g, H = evaluate(system)
+    (e0, g0, H0), (e1, g1, H1) = (evaluate(s) for s in parts)
+    assert len(e) == len(e0) == 4  # inertia, elasticity, gravity, damping
+    for k in range(len(e)):
+        assert e0[k] + e1[k] == pytest.approx(e[k], rel=1e-12, abs=1e-12)
+        assert np.allclose(g0[k] + g1[k], g[k], rtol=1e-12, atol=1e-9)
+    assert abs(H0 + H1 - H).max() <= 1e-9 * abs(H).max()
+    assert parts[0].loads.gravity_energy(q) + parts[1].loads.gravity_energy(q) == \
+        pytest.approx(system.loads.gravity_energy(q), rel=1e-12)
+
+
+def test_launched_ranks_from_the_launcher(monkeypatch):
+    from fem3d.parallel.comm import RANK_VARIABLES, launched_rank, launched_ranks
+
+    for name in (*RANK_VARIABLES, "OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK",
+                 "MPI_LOCALRANKID"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("SLURM_NTASKS", "8")  # a batch script without a launcher
+    assert launched_ranks() == 1 and launched_rank() == 0
+    monkeypatch.setenv("PMI_SIZE", "4")
+    monkeypatch.setenv("PMI_RANK", "3")
+    assert launched_ranks() == 4 and launched_rank() == 3

@@ -1,0 +1,167 @@
+"""The ``"petsc"`` linear solver in one process (``linear_solver = "petsc"``): PETSc's MUMPS
+Cholesky and CG + GAMG against SciPy and CHOLMOD, the options passed through, and the
+one-line errors without the ``fem3d[mpi]`` extra."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from fem3d.scene import load_scene
+from fem3d.scene.spec import SimulationSpec
+from fem3d.simulation import Simulation
+from fem3d.solve.linear import LINEAR_SOLVERS, NotPositiveDefinite, SolverOptions
+from fem3d.solve.linear.petsc import PetscSolver, parse_options
+from tests.parallel.helpers import relative_difference, write_scene
+
+needs_petsc = pytest.mark.skipif(not PetscSolver.available(),
+                                 reason="petsc4py is not installed (fem3d[mpi])")
+
+
+def test_parse_options():
+    assert parse_options("-ksp_type cg -pc_type gamg -ksp_rtol 1e-12 -log_view") == {
+        "ksp_type": "cg", "pc_type": "gamg", "ksp_rtol": "1e-12", "log_view": ""}
+    assert parse_options("-ksp_atol -1e-3") == {"ksp_atol": "-1e-3"}
+    with pytest.raises(ValueError, match="'gamg' follows no option"):
+        parse_options("-pc_type hypre gamg")
+    with pytest.raises(ValueError, match="'cg' follows no option"):
+        parse_options("cg")
+
+
+def _newton_matrix() -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """A backward-Euler Newton matrix of the box scene's first step, its free vertices'
+    rest positions and a right-hand side."""
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = Simulation(load_scene(str(write_scene(Path(tmp)))))
+    system = sim.system
+    A = system.newton_matrix(sim.q.reshape(-1) + 0.01, 0.01)
+    points = sim.model.X[system.free[0::3] // 3]
+    b = np.random.default_rng(0).standard_normal(A.shape[0])
+    return A, points, b
+
+
+@needs_petsc
+@pytest.mark.parametrize("options", ["", "-ksp_type cg -pc_type gamg -ksp_rtol 1e-12",
+                                     "-ksp_type cg -pc_type jacobi -ksp_rtol 1e-12 "
+                                     "-ksp_max_it 5000"])
+def test_solves_like_scipy(options):
+    A, points, b = _newton_matrix()
+    solver = PetscSolver(SolverOptions(points=points, petsc_options=options))
+    solver.analyse(A)
+    solver.factorize(A)
+    x = solver.solve(b)
+    expected = spla.spsolve(A.tocsc(), b)
+    assert np.linalg.norm(x - expected) <= 1e-9 * np.linalg.norm(expected)
+    ksp = solver._ksp
+    wanted = parse_options(options).get("ksp_type", "preonly")
+    assert ksp.getType() == wanted
+    assert ksp.getPC().getType() == parse_options(options).get("pc_type", "cholesky")
+    report = solver.report
+    assert report.backend == "petsc" and report.converged
+    if wanted == "cg":
+        assert report.iterations > 1 and report.residual <= 1e-12
+
+
+@needs_petsc
+def test_environment_options_win(monkeypatch):
+    A, points, b = _newton_matrix()
+    monkeypatch.setenv("FEM3D_PETSC_OPTIONS", "-pc_type jacobi -ksp_type cg -ksp_rtol 1e-11")
+    solver = PetscSolver(SolverOptions(points=points, petsc_options="-pc_type gamg"))
+    solver.analyse(A)
+    solver.factorize(A)
+    solver.solve(b)
+    assert solver._ksp.getPC().getType() == "jacobi"
+
+
+@needs_petsc
+def test_indefinite_matrix_is_refused_and_shifted():
+    """MUMPS' LDL^T counts negative pivots: an indefinite matrix raises, and the shift ladder
+    lands on the first positive-definite rung, as with CHOLMOD."""
+    n = 30
+    A = sp.diags([np.r_[np.ones(n - 1), -0.5]], [0], format="csr") + \
+        sp.diags([0.1 * np.ones(n - 1), 0.1 * np.ones(n - 1)], [-1, 1], format="csr")
+    solver = PetscSolver()
+    solver.analyse(A)
+    with pytest.raises(NotPositiveDefinite, match="negative pivots"):
+        solver.factorize(A)
+    mu = solver.factorize_shifted(A, np.ones(n), mu0=0.1, growth=10.0, max_tries=4)
+    assert mu == 1.0  # -0.5 + 0.1 and the off-diagonals: indefinite; -0.5 + 1: definite
+    x = solver.solve(np.ones(n))
+    assert np.allclose((A + sp.identity(n)) @ x, 1.0)
+
+
+@needs_petsc
+@pytest.mark.parametrize("integrator", ["implicit", "bdf2"])
+@pytest.mark.parametrize("options", ["", "-ksp_type cg -pc_type gamg"])
+def test_simulation_equals_the_default_solver(tmp_path, integrator, options):
+    """20 steps of the two-material box with linear_solver = "petsc" (MUMPS, and GAMG-CG)
+    equal the default direct solver's to Newton's tolerance (1e-8 of the motion)."""
+    extra = f'petsc_options = "{options}"' if options else ""
+    runs = {}
+    for name in ("auto", "petsc"):
+        scene = load_scene(str(write_scene(tmp_path, integrator=integrator, linear_solver=name,
+                                           extra=extra if name == "petsc" else "")))
+        sim = Simulation(scene)
+        assert sim.system.linear_backend == name if name == "petsc" else True
+        for _ in range(20):
+            sim.step()
+        runs[name] = sim.q.copy()
+    rest = sim.model.X
+    diff = relative_difference(runs["petsc"], runs["auto"], rest)
+    print(f"{integrator} {options or 'mumps'}: relative difference {diff:.2e}")
+    assert diff <= 1e-8
+
+
+def test_registered_and_in_the_schema():
+    assert LINEAR_SOLVERS["petsc"] is PetscSolver
+    assert "petsc" in SimulationSpec.model_json_schema()["properties"]["linear_solver"]["enum"]
+
+
+def _fem3d(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "fem3d", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_missing_extra_is_one_line(tmp_path):
+    """Without petsc4py, linear_solver = "petsc" fails in one line naming the extra, exit 2,
+    nothing written."""
+    scene = write_scene(tmp_path, linear_solver="petsc", steps=1)
+    blocker = tmp_path / "block" / "petsc4py"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('blocked by the test')\n")
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path / 'block'}:{os.environ.get('PYTHONPATH', '')}"}
+    proc = subprocess.run([sys.executable, "-m", "fem3d", "run", str(scene), "--out",
+                           str(tmp_path / "out")], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "simulation.linear_solver" in lines[0] and "fem3d[mpi]" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    ('petsc_options = "-ksp_type cg"', "petsc_options applies to linear_solver = 'petsc'"),
+])
+def test_petsc_options_need_the_petsc_solver(tmp_path, extra, message):
+    scene = write_scene(tmp_path, steps=1, extra=extra)
+    proc = _fem3d("run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_stray_word_in_petsc_options_is_one_line(tmp_path):
+    scene = write_scene(tmp_path, steps=1, linear_solver="petsc",
+                        extra='petsc_options = "-pc_type hypre boomeramg"')
+    proc = _fem3d("run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "'boomeramg' follows no option" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
