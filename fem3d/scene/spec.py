@@ -67,6 +67,7 @@ from pydantic import (
 
 from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
+from fem3d.mesh.element import element_names
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
 from fem3d.solve.linear.registry import linear_solver_names
@@ -92,6 +93,8 @@ NonNegative = Annotated[StrictFloat, Field(ge=0)]
 Index = Annotated[StrictInt, Field(ge=0)]
 #: ``simulation.linear_solver``'s choices: ``"auto"`` and the registered linear solvers.
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
+#: ``bodies[].element``'s choices: the registered finite elements (``"p1"``, ``"p2"``).
+ElementName = Literal[element_names()]  # type: ignore[valid-type]
 
 
 class _Spec(BaseModel):
@@ -295,6 +298,9 @@ class BodySpec(_Spec):
     material: MaterialSpec
     damping: DampingSpec = DampingSpec()
     pins: list[PinSpec] = Field(default_factory=list)
+    #: The finite element (docs/elements.md): ``"p1"`` linear tets, ``"p2"`` quadratic tets
+    #: (a 4-node mesh or a surface is lifted: a node on every edge).
+    element: ElementName = "p1"
 
     @property
     def label(self) -> str:
