@@ -55,6 +55,9 @@ class Element:
         oriented like the face.
     geometry_module : str
         Generated kernel module of the rest shape and the mass matrix.
+    material_prefix : str
+        Prefix of the generated material modules on this element (``""``: ``neo_hookean``;
+        ``"p2_"``: ``p2_neo_hookean``, quadrature kernels over the element's points).
     """
 
     name: str = ""
@@ -65,6 +68,7 @@ class Element:
     face_nodes: np.ndarray = np.zeros((0, 0), dtype=np.int64)
     face_triangles: np.ndarray = np.zeros((0, 3), dtype=np.int64)
     geometry_module: str = ""
+    material_prefix: str = ""
 
     def __repr__(self) -> str:
         return f"<element {self.name}: {self.n_nodes}-node tetrahedron>"
@@ -161,10 +165,62 @@ class Element:
         """The generated geometry kernels (``rest_shape``, ``mass_matrix``, ...)."""
         return kernel_module(self.geometry_module, resolve_backend(backend))
 
-    def corner_geometry(self, backend: str | None = None):
-        """The linear tet's generated kernels, for the corner tets (``deformed_volume``:
-        the inversion guard of the line search)."""
-        return kernel_module("tet", resolve_backend(backend))
+    def material_kernels(self, material: str, backend: str | None = None):
+        """The generated kernels of ``material`` on this element (``energy``, ``gradient``,
+        ``hessian``, ... taking ``(x_e, dphi_dX, vol, *inputs, params)``)."""
+        return kernel_module(self.material_prefix + material, resolve_backend(backend))
+
+    def rest_shape(self, geo, X_e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rest-shape arrays the material kernels take, from the geometry kernels.
+
+        Parameters
+        ----------
+        geo : KernelModule
+            :meth:`geometry`.
+        X_e : (m, n_nodes, 3) float64
+            Rest node positions.
+
+        Returns
+        -------
+        dphi_dX : float64
+            Shape-function gradients (P1 ``(m, 4, 3)``; P2 ``(m, nq, 10, 3)``, per quadrature
+            point).
+        vol : float64
+            Volume weights (P1: the volumes ``(m,)``; P2: ``weight * det J`` per point,
+            ``(m, nq)``; all positive for a valid element).
+        """
+        return geo.rest_shape(X_e)
+
+    def volumes(self, vol: np.ndarray) -> np.ndarray:
+        """Element volumes ``(m,)`` from :meth:`rest_shape`'s ``vol``."""
+        return vol
+
+    def deformed_volumes(self, geo, q: np.ndarray, T: np.ndarray, dphi_dX: np.ndarray,
+                         slots: np.ndarray) -> np.ndarray:
+        """The inversion measure of every element at positions ``q`` (the line search's
+        guard): positive when the element is not inverted anywhere.
+
+        Parameters
+        ----------
+        geo : KernelModule
+            :meth:`geometry`.
+        q : (n, 3) or (3n,) float64
+        T : (m, n_nodes) int64
+        dphi_dX : float64
+            :meth:`rest_shape`'s gradients.
+        slots : (m,) int32
+            ``0 .. m - 1`` (the fused kernel's map).
+
+        Returns
+        -------
+        (m,) float64
+            P1: the signed deformed volumes, ``det([x1-x0, x2-x0, x3-x0]) / 6`` (generated
+            ``tet.deformed_volume``).
+        """
+        if geo.has_assemble("deformed_volume"):  # C: gather and evaluate in one pass
+            out = np.zeros(T.shape[0])
+            return geo.deformed_volume_assemble(q, T, (), slots, out)
+        return geo.deformed_volume(_gather(q, T))
 
 
 class P1Tet(Element):
@@ -183,6 +239,11 @@ class P1Tet(Element):
     def shape_values(self, lam: np.ndarray) -> np.ndarray:
         """The barycentric coordinates themselves (``lam``, not copied)."""
         return lam
+
+
+def _gather(q: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``q[T]``: ``(m, n_nodes, 3)`` node positions of every element."""
+    return np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), T, axis=0)
 
 
 def _p2_face_nodes() -> np.ndarray:
@@ -205,7 +266,23 @@ class P2Tet(Element):
     vtk_type = 24
     face_nodes = _p2_face_nodes()
     face_triangles = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]], dtype=np.int64)
-    geometry_module = "tet_p2"
+    geometry_module = "p2_tet"
+    material_prefix = "p2_"
+
+    def rest_shape(self, geo, X_e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(dN_dX (m, nq, 10, 3), w_detJ (m, nq))`` of the generated ``p2_tet.rest_shape``."""
+        dN_dX, _, w_detJ = geo.rest_shape(X_e)
+        return dN_dX, w_detJ
+
+    def volumes(self, vol: np.ndarray) -> np.ndarray:
+        """``sum_q w_q det J_q``: the element volumes ``(m,)``."""
+        return vol.sum(axis=1)
+
+    def deformed_volumes(self, geo, q: np.ndarray, T: np.ndarray, dphi_dX: np.ndarray,
+                         slots: np.ndarray) -> np.ndarray:
+        """The smallest ``det F`` over the quadrature points (generated
+        ``p2_tet.deformation_jacobian``), ``(m,)``: positive when no point is inverted."""
+        return geo.deformation_jacobian(_gather(q, T), dphi_dX).min(axis=1)
 
     def shape_values(self, lam: np.ndarray) -> np.ndarray:
         """``l_i (2 l_i - 1)`` (corners), ``4 l_a l_b`` (edge ``ab``), ``(..., 10)``."""

@@ -204,22 +204,17 @@ def kinetic_energy(model: Model, v: np.ndarray) -> float:
 
 
 def deformed_volumes(model: Model, q: np.ndarray) -> np.ndarray:
-    """Signed volumes of the deformed elements' corner tets (P1: ``vol_e det F_e``).
+    """Signed deformed volumes of the elements (P1: ``vol_e det F_e``), or for elements whose
+    ``F`` varies (P2), the smallest ``det F`` over their quadrature points.
 
     Returns
     -------
     (m,) float64
-        ``det([x1-x0, x2-x0, x3-x0]) / 6`` of the corners (generated
-        ``tet.deformed_volume``); ``<= 0`` means the element is inverted or flat.
+        ``<= 0`` means the element is inverted or flat (somewhere, for P2); see
+        :meth:`fem3d.mesh.element.Element.deformed_volumes`.
     """
-    geo = model.element.corner_geometry(model.backend)
-    T = model.element.corners(model.T)
-    if geo.has_assemble("deformed_volume"):  # C: gather and evaluate in one pass
-        out = np.zeros(model.n_tets)
-        return geo.deformed_volume_assemble(q, np.ascontiguousarray(T), (),
-                                            model.element_slots, out)
-    return geo.deformed_volume(np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), T,
-                                       axis=0))
+    return model.element.deformed_volumes(model.geo, q, model.T, model.dphi_dX,
+                                          model.element_slots)
 
 
 def count_inverted(model: Model, q: np.ndarray) -> int:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from fem3d.errors import ParameterError
-from fem3d.kernels.dispatch import material_kernels
+from fem3d.mesh.element import ELEMENTS, Element
 from fem3d.physics.materials import info, lame_to_E_nu, parameters_from, small_strain_lame
 
 __all__ = ["GROUP_PARAMS", "GroupData", "GroupedKernels", "MaterialGroup", "kernels_of",
@@ -201,8 +201,9 @@ class GroupedKernels:
 
 
 def resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
-                    path: str | None) -> tuple[GroupData, ...]:
-    """Check the groups against a mesh of ``m`` tets and resolve their parameters."""
+                   path: str | None, element: Element = ELEMENTS["p1"]) -> tuple[GroupData, ...]:
+    """Check the groups against a mesh of ``m`` elements and resolve their parameters (and
+    the material kernels on ``element``)."""
     if not groups:
         raise ParameterError("build_model needs at least one material group")
     owner = np.full(m, -1, dtype=np.int64)
@@ -246,12 +247,12 @@ def resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
                              "tets); give one group elements=None for the rest")
     resolved = []
     for i, (g, el) in enumerate(zip(groups, element_sets, strict=True)):
-        resolved.append(_resolve_group(i, g, el, m, backend))
+        resolved.append(_resolve_group(i, g, el, m, backend, element))
     return tuple(resolved)
 
 
 def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
-                   backend: str | None) -> GroupData:
+                   backend: str | None, element: Element) -> GroupData:
     material = info(g.material)
     k = m if el is None else el.size
     where = f"material group {i} ({g.material})"
@@ -299,7 +300,7 @@ def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
             (np.diff(el) == 1).all():
         span = slice(int(el[0]), int(el[-1]) + 1)
     return GroupData(material=g.material, elements=el, values=values, params=params,
-                     inputs=tuple(inputs), kernels=material_kernels(g.material, backend),
+                     inputs=tuple(inputs), kernels=element.material_kernels(g.material, backend),
                      n_tets=m, span=span)
 
 

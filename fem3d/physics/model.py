@@ -355,7 +355,7 @@ class Model:
         groups, mat, params = self.groups, self.mat, self.params
         if material is not None:
             groups = resolve_groups([MaterialGroup(material, None, {"E": E, "nu": nu})],
-                                     self.n_tets, self.backend, None)
+                                     self.n_tets, self.backend, None, self.element)
             mat, params = kernels_of(groups)
         elif (E, nu) != (self.E, self.nu):
             groups = tuple(with_E_nu(g, E, nu) for g in self.groups)
@@ -495,19 +495,20 @@ def build_model(
     el = _element_of(element)
     X, T = _mesh_arrays(X, T, el, path)
     geo, dphi_dX, vol = _rest_shape(el, X, T, backend, path)
-    resolved = resolve_groups(groups, T.shape[0], backend, path)
+    volumes = el.volumes(vol)
+    resolved = resolve_groups(groups, T.shape[0], backend, path, el)
     mat, params = kernels_of(resolved)
     rho_e = None
     if per_element_density:
-        rho_e = _element_density(density, vol)
-        rho = float((rho_e * vol).sum() / vol.sum())
+        rho_e = _element_density(density, volumes)
+        rho = float((rho_e * volumes).sum() / volumes.sum())
     if given_E_nu is None:
-        E, nu = summary_E_nu(resolved, vol)
+        E, nu = summary_E_nu(resolved, volumes)
 
     _stages.debug("model: rest shape, materials")
     pattern, scatter = block_pattern(T, X.shape[0])
     _stages.debug("model: sparsity pattern")
-    mass_data = assemble_mass(geo, vol, rho, rho_e, scatter, T, pattern.indptr)
+    mass_data = assemble_mass(geo, volumes, rho, rho_e, scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
     _readonly(X, T, dphi_dX, vol, mass.data, scatter, pattern.indices, pattern.indptr)
@@ -533,7 +534,10 @@ def _rest_shape(el: Element, X: np.ndarray, T: np.ndarray, backend: str | None,
     refuses an element whose volume (P1) or Jacobian at a quadrature point (P2) is not
     positive."""
     geo = el.geometry(backend)
-    dphi_dX, vol = geo.rest_shape(X[T])
+    try:
+        dphi_dX, vol = el.rest_shape(geo, X[T])
+    except ValueError as error:  # a generated rest shape that refuses det J <= 0 itself
+        raise InputError(str(error), path=path) from None
     dphi_dX = np.ascontiguousarray(dphi_dX, dtype=np.float64)
     vol = np.ascontiguousarray(vol, dtype=np.float64)
     bad = ~(vol > 0) if vol.ndim == 1 else ~(vol > 0).reshape(vol.shape[0], -1).all(axis=1)
