@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 from fem3d.errors import InputError
 from fem3d.mesh.element import ELEMENTS, TET_EDGES, element
-from fem3d.mesh.quadratic import lift_to_p2, read_p2_mesh
+from fem3d.mesh.quadratic import lift_to_p2, read_p2_mesh, write_element_mesh
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces, box_tet_mesh
 from fem3d.physics.pattern import block_pattern
@@ -151,3 +151,15 @@ def test_read_refuses_non_conforming_and_linear(tmp_path):
     meshio.write(linear, meshio.Mesh(X, [("tetra", T)]))
     with pytest.raises(InputError, match="no 10-node"):
         read_p2_mesh(linear)
+
+
+def test_write_quadratic_vtu(tmp_path):
+    X, T = box_tet_mesh((1, 2, 1))
+    X2, T2 = lift_to_p2(X, T)
+    path = tmp_path / "p2.vtu"
+    write_element_mesh(path, X2 * 2.0, T2, P2, {"u": X2})
+    mesh = meshio.read(path)
+    assert [c.type for c in mesh.cells] == ["tetra10"]  # VTK type 24, quadratic tetra
+    assert len(mesh.cells[0].data) == 6 and np.array_equal(mesh.point_data["u"], X2)
+    Xr, Tr = read_p2_mesh(path)
+    assert np.array_equal(Xr[Tr], 2.0 * X2[T2])

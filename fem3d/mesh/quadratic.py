@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.mesh.element import TET_EDGES
+from fem3d.mesh.element import TET_EDGES, Element
 
-__all__ = ["edge_nodes", "lift_to_p2", "read_p2_mesh", "has_p2_cells"]
+__all__ = ["edge_nodes", "has_p2_cells", "lift_to_p2", "read_p2_mesh", "write_element_mesh"]
 
 
 def edge_nodes(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,3 +153,27 @@ def _check_shared_edges(T: np.ndarray, path: Path) -> None:
         e = int(np.flatnonzero(bad.any(axis=1))[0])
         raise InputError("10-node tet has an edge node that a neighbour on the same edge "
                          "numbers differently (not a conforming P2 mesh)", path=path, element=e)
+
+
+def write_element_mesh(path: str | Path, X: np.ndarray, T: np.ndarray, element: Element,
+                       point_data: dict[str, np.ndarray] | None = None) -> None:
+    """Write a mesh of ``element`` cells through meshio (VTU: ``tetra10`` is VTK's quadratic
+    tetrahedron, which ParaView draws curved).
+
+    Parameters
+    ----------
+    path : str or Path
+        Any volume format meshio writes (``.vtu``, ``.msh``, ...).
+    X : (n, 3) float64
+        Node positions (deformed or rest).
+    T : (m, element.n_nodes) int64
+    element : Element
+        Gives the cell type (:attr:`Element.cell_type`).
+    point_data : dict, optional
+        Per-node arrays (a displacement ``(n, 3)``, ...).
+    """
+    import meshio
+
+    meshio.write(Path(path), meshio.Mesh(np.asarray(X, dtype=np.float64),
+                                         [(element.cell_type, np.asarray(T, dtype=np.int64))],
+                                         point_data=point_data or {}))

@@ -199,7 +199,7 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
         raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
                           f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
                           ) from None
-    blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
+    blocks = [j for j, c in enumerate(mesh.cells) if c.type in ("tetra", a.element.cell_type)]
     if name not in mesh.cell_data or not blocks:
         have = ", ".join(sorted(mesh.cell_data)) or "none"
         raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
