@@ -160,6 +160,6 @@ def test_write_quadratic_vtu(tmp_path):
     write_element_mesh(path, X2 * 2.0, T2, P2, {"u": X2})
     mesh = meshio.read(path)
     assert [c.type for c in mesh.cells] == ["tetra10"]  # VTK type 24, quadratic tetra
-    assert len(mesh.cells[0].data) == 6 and np.array_equal(mesh.point_data["u"], X2)
+    assert len(mesh.cells[0].data) == 12 and np.array_equal(mesh.point_data["u"], X2)
     Xr, Tr = read_p2_mesh(path)
     assert np.array_equal(Xr[Tr], 2.0 * X2[T2])
