@@ -182,10 +182,10 @@ class Model:
         Consistent mass matrix, on :attr:`pattern`'s sparsity.
     pattern : (3n, 3n) scipy.sparse.csr_matrix
         Shared sparsity pattern (data zeros).
-    scatter : (m * 144,) int32
-        Element-block to CSR-``data`` map (see :func:`block_pattern`).
-    elem_dofs : (m, 12) int64
-        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map (made when
+    scatter : (m * d^2,) int32
+        Element-block to CSR-``data`` map (see :func:`block_pattern`; ``d = 3 k``, 12 for P1).
+    elem_dofs : (m, d) int64
+        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * d,)`` force scatter map (made when
         first asked for: the C kernels use :attr:`dof_slots`).
     backend : str or None
         Kernel back end requested (None: automatic).
@@ -440,8 +440,8 @@ def build_model(
     ----------
     X : (n, 3) float64
         Rest positions.
-    T : (m, 4) int
-        Tets, 0-based, positively oriented.
+    T : (m, k) int
+        Elements of ``element`` (``k`` nodes, corners first), 0-based, positively oriented.
     E, nu : float, optional
         Young's modulus (> 0), Poisson's ratio (-1, 0.5) of ``material`` on every tet (the
         one-material form; not together with ``groups``).
