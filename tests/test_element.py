@@ -163,3 +163,42 @@ def test_write_quadratic_vtu(tmp_path):
     assert len(mesh.cells[0].data) == 12 and np.array_equal(mesh.point_data["u"], X2)
     Xr, Tr = read_p2_mesh(path)
     assert np.array_equal(Xr[Tr], 2.0 * X2[T2])
+
+
+def _scene(tmp_path, mesh: str, element: str | None, second: str | None = None) -> str:
+    body = 'mesh = "{}"\nmaterial = {{ E = 1e5, nu = 0.3, density = 1000.0 }}\n'
+    text = "[simulation]\nsteps = 1\n\n[[bodies]]\n" + body.format(mesh)
+    if element is not None:
+        text += f'element = "{element}"\n'
+    if second is not None:
+        text += "\n[[bodies]]\n" + body.format(mesh) + f'element = "{second}"\n'
+        text += "transform = { translate = [3.0, 0.0, 0.0] }\n"
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_scene_element_key(tmp_path):
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh
+    from fem3d.scene import load_scene
+    from fem3d.scene.arrays import build_arrays
+
+    X, T = box_tet_mesh((2, 1, 1))
+    write_tet_mesh(tmp_path / "box.mesh", TetMesh(X, T))
+    a = build_arrays(load_scene(_scene(tmp_path, "box.mesh", None)))
+    assert a.element is P1 and a.T.shape == T.shape
+    a = build_arrays(load_scene(_scene(tmp_path, "box.mesh", "p2")))
+    X2, T2 = lift_to_p2(X, T)
+    assert a.element is P2 and np.array_equal(a.T, T2) and np.array_equal(a.X, X2)
+    with pytest.raises(InputError, match=r"bodies\[0\]\.element.*p1.*p2"):
+        load_scene(_scene(tmp_path, "box.mesh", "p3"))
+    with pytest.raises(InputError, match=r"bodies\[1\]\.element: 'p1', but bodies\[0\] has "
+                                         r"'p2'"):
+        build_arrays(load_scene(_scene(tmp_path, "box.mesh", "p2", "p1")))
+    write_element_mesh(tmp_path / "box10.vtu", X2, T2, P2)
+    with pytest.raises(InputError, match=r'bodies\[0\]\.element: box10.vtu has 10-node '
+                                         r'\(quadratic\) tets: set element = "p2"'):
+        build_arrays(load_scene(_scene(tmp_path, "box10.vtu", None)))
+    a = build_arrays(load_scene(_scene(tmp_path, "box10.vtu", "p2")))
+    assert np.array_equal(a.X[a.T], X2[T2])

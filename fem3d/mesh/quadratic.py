@@ -11,6 +11,7 @@ model's check (:func:`fem3d.physics.model.build_model`).
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -80,8 +81,18 @@ def has_p2_cells(path: str | Path) -> bool:
     if p.suffix.lower() not in _MESHIO_SUFFIXES:
         return False
     try:
+        st = p.stat()
+    except OSError:
+        return False
+    return _has_p2_cells(str(p.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=32)
+def _has_p2_cells(path: str, mtime_ns: int, size: int) -> bool:
+    """:func:`has_p2_cells` of one version of a file (read once)."""
+    try:
         import meshio
-        mesh = meshio.read(p)
+        mesh = meshio.read(path)
     except Exception:  # noqa: BLE001 - not ours to read: the linear readers report it
         return False
     return any(c.type == "tetra10" for c in mesh.cells)

@@ -151,7 +151,10 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
         raise scene.error(key, f"{path}: {exc.reason}") from None
     skin_V = skin_F = None
     try:
-        if body.element == "p2" and has_p2_cells(path):
+        if has_p2_cells(path):
+            if body.element != "p2":
+                raise scene.error(f"bodies[{i}].element", f"{path.name} has 10-node "
+                                  f"(quadratic) tets: set element = \"p2\"")
             X, T = read_p2_mesh(path)
             tet_path = path
         elif is_surface_file(path):
