@@ -310,7 +310,7 @@ def summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, f
     total_E = total_nu = total_vol = 0.0
     for g in groups:
         w = vol if g.elements is None else vol[g.elements]
-        names = [n for n, _ in g.kernels.SIGNATURES["psi"]["inputs"][1:]]
+        names = list(info(g.material).per_element_inputs)  # the order of g.inputs
         mu, lam = small_strain_lame(g.material, g.values,
                                     dict(zip(names, g.inputs, strict=True)))
         E, nu = lame_to_E_nu(np.asarray(mu), np.asarray(lam))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -537,7 +538,10 @@ def _rest_shape(el: Element, X: np.ndarray, T: np.ndarray, backend: str | None,
     try:
         dphi_dX, vol = el.rest_shape(geo, X[T])
     except ValueError as error:  # a generated rest shape that refuses det J <= 0 itself
-        raise InputError(str(error), path=path) from None
+        hit = re.search(r"element (\d+)", str(error))
+        raise InputError(f"{el.name} element has a non-positive Jacobian at a quadrature "
+                         f"point: {error}", path=path,
+                         element=int(hit.group(1)) if hit else None) from None
     dphi_dX = np.ascontiguousarray(dphi_dX, dtype=np.float64)
     vol = np.ascontiguousarray(vol, dtype=np.float64)
     bad = ~(vol > 0) if vol.ndim == 1 else ~(vol > 0).reshape(vol.shape[0], -1).all(axis=1)
