@@ -22,6 +22,10 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 SOURCE = "generated/c/_ckernels.c"
+# The translation units of the extension: the entry file, then the units of their own that
+# codegen emits (_ckernels_p2.c: the quadratic tets' kernels, compiled apart to keep each
+# unit's compile time down; see codegen.render.render_unit)
+SOURCES = [SOURCE, *sorted(str(p) for p in Path("generated/c").glob("_ckernels_*.c"))]
 # -ffp-contract=fast: fused multiply-adds where the target has them (native x86-64, and the
 # armv8-a baseline itself); the x86-64 baseline has no FMA, so it changes nothing there
 BASE_FLAGS = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast"]
@@ -109,7 +113,7 @@ if __name__ == "__main__":
         ext_modules=[
             Extension(
                 "fem3d._ckernels",
-                [SOURCE],
+                SOURCES,
                 depends=sorted(str(p) for p in Path("generated/c").glob("*.c")),
                 optional=True,
             )

@@ -9,6 +9,10 @@ Stages, each with a named input and output:
    Each derivative is taken twice, directly in the entries of ``F`` and by the chain rule
    through the invariants (``J``, ``I1``, ...) that :mod:`codegen.invariants` finds in
    ``psi``; the variant with fewer operations is kept.
+   Higher-order tetrahedra (P2) are described by :mod:`codegen.elements` (Lagrange nodes,
+   shape functions, exact mass, quadrature rules); :mod:`codegen.element_kernels` makes their
+   quadrature kernels (the material's steps per point, summed) and documents their calling
+   convention; :mod:`codegen.quadrature_check` measures each rule's energy error.
 2. **spec** (:mod:`codegen.spec`): expressions -> a frozen :class:`~codegen.spec.KernelSpec`
    per kernel: inputs and their shapes, CSE'd intermediates, outputs, operation count.
    Back-end independent.

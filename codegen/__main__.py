@@ -3,6 +3,7 @@
     python -m codegen                 # regenerate generated/ and docs/materials.md
     python -m codegen --check         # fail with a diff when either is stale
     python -m codegen show neo_hookean.hessian [--backend c]
+    python -m codegen show p2_stvk.gradient     # a quadratic tet's quadrature kernel
     python -m codegen show stable_neo_hookean   # a material's formulas
     python -m codegen docs            # write docs/materials.md only
 
@@ -124,8 +125,12 @@ def show(kernel: str, backend: str) -> int:
         return show_material(kernel)
     module_name, _, kernel_name = kernel.partition(".")
     builders = {"tet": tet_module, "spring": spring_module}
+    from codegen import element_kernels
+
     if module_name in MATERIALS:
         modules = [material_module(module_name)]
+    elif module_name in element_kernels.module_names():
+        modules = [element_kernels.build_module(module_name)]
     elif module_name in builders:
         modules = [builders[module_name]()]
     else:

@@ -507,12 +507,16 @@ def spring_module() -> ModuleSpec:
 
 
 def module_names() -> list[str]:
-    """Every module the generator emits, in a fixed order."""
-    return ["tet", "spring", "pressure", *sorted(MATERIALS)]
+    """Every module the generator emits, in a fixed order: P1's, then the higher-order
+    elements' (:func:`codegen.element_kernels.module_names`)."""
+    from codegen import element_kernels  # it builds on this module
+
+    return ["tet", "spring", "pressure", *sorted(MATERIALS), *element_kernels.module_names()]
 
 
 def build_module(name: str) -> ModuleSpec:
-    """The spec of one module (``tet``, ``spring`` or a material)."""
+    """The spec of one module (``tet``, ``spring``, a material, or a higher-order element's
+    ``<element>_tet`` / ``<element>_<material>``)."""
     if name == "tet":
         return tet_module()
     if name == "spring":
@@ -520,7 +524,11 @@ def build_module(name: str) -> ModuleSpec:
     if name == "pressure":  # codegen/pressure.py (imported here: it imports codegen.spec)
         from codegen.pressure import pressure_module
         return pressure_module()
-    return material_module(name)
+    if name in MATERIALS:
+        return material_module(name)
+    from codegen import element_kernels  # it builds on this module
+
+    return element_kernels.build_module(name)
 
 
 def all_modules() -> list[ModuleSpec]:

@@ -140,6 +140,8 @@ def _arg_view(arg: Argument, used: set[sp.Symbol]) -> dict:
         "used": [(i, str(s)) for i, s in enumerate(arg.symbols) if s in used],
         "doc": arg.doc,
         "per_element": arg.per_element,
+        "per_point": arg.per_point,
+        "point_size": arg.point_size,
     }
 
 
@@ -183,16 +185,23 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
         ],
         "op_count": kernel.op_count,
         "assemble": kernel_view_assemble(kernel),
+        "points": kernel.points,
+        "positive": kernel.positive,
+        "module": kernel.module,
+        # nodes of the element (x_e's rows): the fused assembly's gather
+        "nodes": kernel.inputs[0].shape[0] if kernel_view_assemble(kernel) else 0,
     }
 
 
 def kernel_view_assemble(kernel: KernelSpec) -> bool:
     """Whether the C back end adds a fused ``*_assemble`` entry point for this kernel: element
-    kernels of deformed positions ``x_e`` with one output (materials and tet geometry)."""
-    return (kernel.module in (*MATERIALS, "tet") and bool(kernel.inputs)
+    kernels of deformed node positions ``x_e`` (``(nodes, 3)``) with one output (materials and
+    tet geometry, of every element)."""
+    return (bool(kernel.inputs)
             and kernel.name != "dgradient_dparams"  # per element, not scattered
             and kernel.inputs[0].name == "x_e"
-            and kernel.inputs[0].shape == (4, 3) and len(kernel.outputs) == 1)
+            and len(kernel.inputs[0].shape) == 2 and kernel.inputs[0].shape[1] == 3
+            and len(kernel.outputs) == 1)
 
 
 def material_view(module: ModuleSpec, printer) -> dict | None:
@@ -222,6 +231,7 @@ def render_module(module: ModuleSpec, backend: str) -> str:
     template = _environment().get_template(spec.template)
     return template.render(
         module=module,
+        refuses=any(k.positive for k in module.kernels),
         material=material_view(module, printer),
         kernels=[kernel_view(k, printer) for k in module.kernels],
         template_name=f"templates/{spec.template}",
@@ -229,17 +239,38 @@ def render_module(module: ModuleSpec, backend: str) -> str:
     )
 
 
+def _method_views(modules: list[ModuleSpec]) -> list[dict]:
+    return [{"name": m.name, "kernels": [
+        {"qualified_name": k.qualified_name, "doc": k.doc, "assemble": kernel_view_assemble(k)}
+        for k in m.kernels]} for m in modules]
+
+
+def units(modules: list[ModuleSpec]) -> list[str]:
+    """The extra C translation units (``_ckernels_<unit>.c``) of ``modules``, in order."""
+    return list(dict.fromkeys(m.unit for m in modules if m.unit))
+
+
 def render_extension(modules: list[ModuleSpec]) -> str:
-    """The C extension's entry file: includes every module and lists its kernels."""
+    """The C extension's entry file: includes every module of its own unit and lists its
+    kernels; adds the method tables of the other units."""
     template = _environment().get_template("c/extension.c.jinja")
     return template.render(
-        modules=[{"name": m.name, "kernels": [
-            {"qualified_name": k.qualified_name, "doc": k.doc,
-             "assemble": kernel_view_assemble(k)}
-            for k in m.kernels]} for m in modules],
+        modules=_method_views([m for m in modules if not m.unit]),
+        units=units(modules),
         template_name="templates/c/extension.c.jinja",
         sympy_version=sp.__version__,
     )
+
+
+def render_unit(unit: str, modules: list[ModuleSpec]) -> str:
+    """The translation unit ``_ckernels_<unit>.c``: its modules and its method table."""
+    mine = [m for m in modules if m.unit == unit]
+    nodes = {k.inputs[0].shape[0] for m in mine for k in m.kernels if kernel_view_assemble(k)}
+    if len(nodes) != 1:
+        raise ValueError(f"unit {unit}: the fused kernels must share one node count, got {nodes}")
+    return _environment().get_template("c/unit.c.jinja").render(
+        unit=unit, nodes=nodes.pop(), modules=_method_views(mine),
+        template_name="templates/c/unit.c.jinja", sympy_version=sp.__version__)
 
 
 def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
@@ -251,10 +282,14 @@ def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
     files["numpy/__init__.py"] = _environment().get_template("numpy/package.py.jinja").render(
         modules=tuple(m.name for m in modules),
         materials=tuple(m.name for m in modules if m.name in MATERIALS),
+        elements={unit: tuple(m.name for m in modules if m.unit == unit)
+                  for unit in units(modules)},
         template_name="templates/numpy/package.py.jinja",
         sympy_version=sp.__version__,
     )
     files["numpy/_support.py"] = _environment().get_template("numpy/support.py.jinja").render(
         template_name="templates/numpy/support.py.jinja", sympy_version=sp.__version__)
     files["c/_ckernels.c"] = render_extension(modules)
+    for unit in units(modules):
+        files[f"c/_ckernels_{unit}.c"] = render_unit(unit, modules)
     return files

@@ -22,10 +22,18 @@ class Argument:
     symbols: tuple[sp.Symbol, ...]
     per_element: bool = True
     doc: str = ""
+    per_point: bool = False
+    """A quadrature kernel's input with a leading quadrature-point axis (``shape[0]`` points):
+    ``symbols`` are one point's entries, read afresh at each point of the kernel's loop."""
 
     @property
     def size(self) -> int:
         return math.prod(self.shape)
+
+    @property
+    def point_size(self) -> int:
+        """Entries read at one quadrature point (``size`` unless ``per_point``)."""
+        return len(self.symbols) if self.per_point else self.size
 
 
 @dataclass(frozen=True)
@@ -93,6 +101,13 @@ class KernelSpec:
     """This kernel is that one of the same module with its :class:`Projection` steps by
     another method: the C back end renders a wrapper passing its projection to the twin's
     element body, the NumPy back end (LAPACK for every method) an alias; neither a copy."""
+    points: int = 0
+    """A quadrature kernel (``points > 0``): the intermediates and outputs are one quadrature
+    point's, in the symbols of the ``per_point`` inputs at that point; the kernel loops over
+    the ``points`` points and returns the sum of the outputs (0: no loop)."""
+    positive: tuple[str, ...] = ()
+    """Outputs every entry of which must be ``> 0`` (a rest shape's ``det J``): both back
+    ends raise ``ValueError`` naming the first element and entry that is not."""
 
     @property
     def projection_method(self) -> str | None:
@@ -109,13 +124,24 @@ class KernelSpec:
                       for s in self.intermediates)
         return replace(self, name=name, doc=doc, intermediates=steps, twin_of=self.name)
 
+    def requiring_positive(self, *outputs: str) -> KernelSpec:
+        """This kernel refusing elements where an entry of ``outputs`` is not ``> 0``."""
+        known = {o.name for o in self.outputs}
+        if not set(outputs) <= known:
+            raise ValueError(f"{self.qualified_name} has no output {set(outputs) - known}")
+        return replace(self, positive=tuple(outputs))
+
     @property
     def op_count(self) -> int:
         """Arithmetic operations per element, as counted by ``sympy.count_ops``
-        (a :class:`Projection` counts as zero: it is an eigen-solve, not an expression)."""
+        (a :class:`Projection` counts as zero: it is an eigen-solve, not an expression);
+        a quadrature kernel's are one point's (plus the sum's additions) times ``points``."""
         exprs = [s[1] for s in self.intermediates if not isinstance(s, Projection)]
         exprs += [e for out in self.outputs for _, e, _ in out.entries()]
-        return int(sum(sp.count_ops(e) for e in exprs))
+        ops = int(sum(sp.count_ops(e) for e in exprs))
+        if not self.points:
+            return ops
+        return self.points * (ops + sum(len(out.entries()) for out in self.outputs))
 
     @property
     def qualified_name(self) -> str:
@@ -133,6 +159,12 @@ class ModuleSpec:
     kernels: tuple[KernelSpec, ...]
     info: dict | None = None
     """Materials only: :func:`codegen.derive.material_info` (mapping, inversion, formulas)."""
+    unit: str = ""
+    """The C translation unit the module is compiled in: ``""`` the extension's own file
+    (``_ckernels.c``), else ``_ckernels_<unit>.c`` (the quadratic elements': ``p2``)."""
+    constants: tuple[tuple[str, str], ...] = ()
+    """Module-level constants of the NumPy module, ``(name, Python literal)`` (an element's
+    node layout, its quadrature rule)."""
 
 
 def make_kernel(
@@ -143,12 +175,14 @@ def make_kernel(
     params: Sequence[Argument],
     outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], bool]],
     prelude: Sequence[Step] = (),
+    points: int = 0,
 ) -> KernelSpec:
     """Run common-subexpression elimination over all outputs and freeze a :class:`KernelSpec`.
 
     ``prelude`` holds named assignments (and projections) computed before the CSE'd block
     (for example ``F`` from the element DOFs), which the outputs may reference by symbol.
     Only the entries a symmetric output actually computes take part in the CSE.
+    ``points``: a quadrature kernel's point count (:attr:`KernelSpec.points`).
     """
     pending = []
     for out_name, shape, exprs, symmetric in outputs:
@@ -178,6 +212,7 @@ def make_kernel(
         params=tuple(params),
         intermediates=_live(steps, outs),
         outputs=tuple(outs),
+        points=points,
     )
 
 

@@ -30,7 +30,6 @@ import scipy.sparse as sp
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.skin import build_skinning_matrix
-from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints, free_rigid_modes, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
@@ -216,7 +215,7 @@ class Simulation:
             except SimulationError as exc:
                 raise scene.error("bodies", f"in the initial state, {exc.reason.split(': ', 1)[1]}"
                                   ) from None
-        self.surface_faces = boundary_faces(a.T)
+        self.surface_faces = self.model.element.surface_triangles(a.T)
         self._dt = validate_dt(sim.dt)
         self._scheme: Scheme | None = None
         self.integrator = sim.integrator
@@ -364,7 +363,8 @@ class Simulation:
                 if a.skin_identity[i]:
                     W_i = sp.identity(n_i, format="csr")
                 else:
-                    W_i = build_skinning_matrix(a.X[bv], a.T[bt] - bv.start, a.skin_V[vs])
+                    W_i = build_skinning_matrix(a.X[bv], a.T[bt] - bv.start, a.skin_V[vs],
+                                                element=self.model.element)
                 blocks.append(W_i)
             self._W = blocks[0] if len(blocks) == 1 else sp.block_diag(blocks, format="csr")
         return self._W

@@ -161,9 +161,10 @@ def _assemble_wrapper(fused: Callable[..., None], name: str) -> Callable[..., np
     Parameters
     ----------
     q : (n, 3) float64
-    T : (m, 4) int64
-    *inputs : the kernel's other per-element inputs (``dphi_dX (m, 4, 3)``, ``vol (m,)``, then
-        the material's own, e.g. a fibre direction ``(m, 3)``)
+    T : (m, k) int64
+        The elements' ``k`` nodes (P1: 4, P2: 10).
+    *inputs : the kernel's other per-element inputs (P1: ``dphi_dX (m, 4, 3)``, ``vol (m,)``;
+        P2: per quadrature point), then the material's own, e.g. a fibre direction ``(m, 3)``
     params : (n_params,) or (m, n_params) float64
         Shared by every element, or per element.
     index : (m, size) int32

@@ -104,9 +104,9 @@ def _block_starts(m: int) -> np.ndarray:
 def _rcm_order(T: np.ndarray) -> np.ndarray:
     """Elements sorted by their first vertex in reverse Cuthill-McKee order (a banded sweep
     through the mesh whatever its numbering)."""
-    n = int(T.max()) + 1
-    rows = np.repeat(T, 4, axis=1).reshape(-1)
-    cols = np.tile(T, (1, 4)).reshape(-1)
+    n, k = int(T.max()) + 1, T.shape[1]  # k nodes per element
+    rows = np.repeat(T, k, axis=1).reshape(-1)
+    cols = np.tile(T, (1, k)).reshape(-1)
     graph = sp.csr_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n, n))
     perm = reverse_cuthill_mckee(graph, symmetric_mode=True)
     rank = np.empty(n, dtype=np.int64)
@@ -120,8 +120,8 @@ def build_schedule(T: np.ndarray, index: np.ndarray, n_out: int, *,
 
     Parameters
     ----------
-    T : (m, 4) int64
-        The elements' vertices (only their number, and the vertex graph when the element order
+    T : (m, k) int64
+        The elements' nodes (only their number, and the vertex graph when the element order
         colours badly, are used).
     index : (m, k) int
         Destination of every element output entry, in ``[0, n_out)``.

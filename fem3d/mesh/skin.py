@@ -1,9 +1,11 @@
 """Skinning: carry a high-resolution display mesh along with the deforming tet mesh.
 
 Each display ("skin") vertex is bound to one rest tetrahedron by its barycentric coordinates
-there, so its deformed position is the same affine combination of that tet's deformed corners:
+there, so its deformed position is the element's shape functions at those coordinates applied
+to the element's deformed nodes (P1: the same affine combination of the tet's corners):
 
-    skin_positions = W @ q          W : (k_skin, n_vertices) sparse, 4 entries a row, rows sum to 1
+    skin_positions = W @ q    W : (k_skin, n_nodes) sparse, one entry per element node a row,
+                              rows sum to 1
 
 The containing tet is found with a k-d tree over the tet centroids (K nearest candidates, K
 grown for the vertices not yet placed), never by testing every tet against every vertex.
@@ -22,6 +24,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from fem3d.errors import InputError
+from fem3d.mesh.element import ELEMENTS, Element
 from fem3d.mesh.tetmesh import MeshWarning, PathArg, boundary_faces
 
 __all__ = ["build_skinning_matrix", "barycentric_in_tets", "check_skin_inside",
@@ -70,27 +73,31 @@ def build_skinning_matrix(
     skin_V: np.ndarray,
     *,
     eps: float = 1e-9,
+    element: Element = ELEMENTS["p1"],
 ) -> sp.csr_matrix:
     """Sparse matrix mapping simulation positions to skin (display) positions.
 
     Parameters
     ----------
     X : (n_vertices, 3) float64
-        Rest positions of the simulation mesh.
-    T : (n_tets, 4) int
-        Tets, 0-based (orientation does not matter here).
+        Rest positions of the simulation mesh's nodes.
+    T : (n_tets, k) int
+        Elements of ``element`` (corners first), 0-based (orientation does not matter here).
     skin_V : (n_skin, 3) float64
         Rest positions of the display mesh, in the same frame as ``X``.
     eps : float, optional
         Tolerance on barycentric coordinates: a vertex is inside a tet when all four are
         ``>= -eps``.
+    element : Element, optional
+        The element of ``T`` (default P1): its :meth:`~Element.shape_values` at the
+        barycentric coordinates are the weights.
 
     Returns
     -------
     W : (n_skin, n_vertices) scipy.sparse.csr_matrix
-        Four stored entries per row (the barycentric coordinates in the chosen tet), each row
-        summing to 1, so that ``W @ q`` is ``(n_skin, 3)`` for ``q`` of shape
-        ``(n_vertices, 3)``. Exact for every affine map of ``X``.
+        ``k`` stored entries per row (P1: the barycentric coordinates in the chosen tet), each
+        row summing to 1, so that ``W @ q`` is ``(n_skin, 3)`` for ``q`` of shape
+        ``(n_vertices, 3)``. Exact for every polynomial map of ``X`` of the element's order.
 
     Raises
     ------
@@ -107,8 +114,9 @@ def build_skinning_matrix(
     X = _as_points(X, "X")
     skin_V = _as_points(skin_V, "skin vertices")
     T = np.asarray(T)
-    if T.ndim != 2 or T.shape[1] != 4 or T.shape[0] == 0:
-        raise InputError(f"tets must have shape (m, 4) with m > 0, got {T.shape}")
+    if T.ndim != 2 or T.shape[1] != element.n_nodes or T.shape[0] == 0:
+        raise InputError(f"tets must have shape (m, {element.n_nodes}) with m > 0, got "
+                         f"{T.shape}")
     if not np.issubdtype(T.dtype, np.integer):
         raise InputError(f"tet indices must be integers, got dtype {T.dtype}")
     T = T.astype(np.int64, copy=False)
@@ -121,7 +129,7 @@ def build_skinning_matrix(
     if k == 0:
         return sp.csr_matrix((0, n))
 
-    corners = X[T]  # (m, 4, 3)
+    corners = X[element.corners(T)]  # (m, 4, 3)
     origin = corners[:, 0, :]
     edges = np.transpose(corners[:, 1:, :] - origin[:, None, :], (0, 2, 1))  # columns = edges
     det = np.linalg.det(edges)
@@ -164,9 +172,11 @@ def build_skinning_matrix(
         if todo.size == 0:
             break
 
-    cols = T[tet_of]  # (k, 4)
-    indptr = np.arange(0, 4 * k + 1, 4, dtype=np.int64)
-    W = sp.csr_matrix((bary.reshape(-1), cols.reshape(-1), indptr), shape=(k, n))
+    cols = T[tet_of]  # (k, n_nodes)
+    weights = element.shape_values(bary)
+    nodes = element.n_nodes
+    indptr = np.arange(0, nodes * k + 1, nodes, dtype=np.int64)
+    W = sp.csr_matrix((weights.reshape(-1), cols.reshape(-1), indptr), shape=(k, n))
     W.sum_duplicates()  # only changes anything for tets with repeated vertices
     return W
 
@@ -221,8 +231,9 @@ def skin_outside_distance(skin_V: np.ndarray, X: np.ndarray,
     ----------
     skin_V : (n_skin, 3) float64
     X : (n_vertices, 3) float64
-    T : (n_tets, 4) int64, optional
-        Without it the distance is to the bounding box of ``X``.
+    T : (n_tets, k) int64, optional
+        Elements (corners first; their corner tets are measured). Without them the distance
+        is to the bounding box of ``X``.
     k : int
         Candidate tets / boundary faces looked at per vertex (nearest by centroid).
 
@@ -238,7 +249,7 @@ def skin_outside_distance(skin_V: np.ndarray, X: np.ndarray,
     d_box = np.linalg.norm(np.maximum(0.0, np.maximum(lo - P, P - hi)), axis=1)
     if T is None:
         return d_box
-    T = np.asarray(T, np.int64)
+    T = np.ascontiguousarray(np.asarray(T, np.int64)[:, :4])  # the corner tets
     d = d_box.copy()
     cand = np.flatnonzero(d_box == 0)
     if cand.size:
@@ -279,8 +290,9 @@ def check_skin_inside(skin_V: np.ndarray, X: np.ndarray, tol: float = 0.05,
         Simulation rest positions.
     tol : float
         Allowed distance, as a fraction of the diagonal of ``X``'s bounding box.
-    T : (n_tets, 4) int64, optional
-        Simulation tets: measure to the mesh itself, not just its bounding box.
+    T : (n_tets, k) int64, optional
+        Simulation elements (corners first): measure to the mesh itself, not just its
+        bounding box.
     name : str
         What to call the display mesh in the warning.
 

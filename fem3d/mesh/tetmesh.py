@@ -32,6 +32,7 @@ __all__ = [
     "MeshWarning",
     "TET_FACES",
     "TetMesh",
+    "boundary_face_index",
     "boundary_faces",
     "box_tet_mesh",
     "tet_signed_volumes",
@@ -176,6 +177,48 @@ def _face_keys(faces: np.ndarray) -> np.ndarray:
     return key
 
 
+def boundary_face_index(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary faces of a tet mesh as (tet, local face) pairs.
+
+    A face is on the boundary when exactly one tet has it.
+
+    Parameters
+    ----------
+    T : (n_tets, k >= 4) int64
+        Elements; their first four nodes are the corners (positively oriented).
+
+    Returns
+    -------
+    tet, face : (n_faces,) int64
+        The element having each boundary face and the face's row of :data:`TET_FACES`, in
+        the order of the elements (then of their faces).
+    """
+    T = np.asarray(T, dtype=np.int64)
+    if T.ndim != 2 or T.shape[1] < 4:
+        raise ValueError(f"T must be (n_tets, 4), got {T.shape}")
+    T = T[:, :4]
+    keys = _tet_face_keys(T)
+    if keys is not None:  # keys of the faces only one tet has, then a lookup (no argsort)
+        none = np.zeros(0, dtype=np.int64)
+        if keys.size == 0:
+            return none, none
+        s = np.sort(keys)
+        single = np.ones(s.size, dtype=bool)
+        same = s[1:] == s[:-1]
+        single[1:] &= ~same
+        single[:-1] &= ~same
+        once = s[single]
+        if once.size == 0:
+            return none, none
+        pos = np.searchsorted(once, keys)
+        np.minimum(pos, once.size - 1, out=pos)
+        return np.divmod(np.flatnonzero(once[pos] == keys), 4)
+    faces = _tet_faces(T)
+    keys = _face_keys(faces)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return np.divmod(np.flatnonzero(counts[inverse.reshape(-1)] == 1), 4)
+
+
 def boundary_faces(T: np.ndarray) -> np.ndarray:
     """Boundary triangles of a tet mesh, oriented outward.
 
@@ -196,26 +239,8 @@ def boundary_faces(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.int64)
     if T.ndim != 2 or T.shape[1] != 4:
         raise ValueError(f"T must be (n_tets, 4), got {T.shape}")
-    keys = _tet_face_keys(T)
-    if keys is not None:  # keys of the faces only one tet has, then a lookup (no argsort)
-        if keys.size == 0:
-            return np.zeros((0, 3), dtype=np.int64)
-        s = np.sort(keys)
-        single = np.ones(s.size, dtype=bool)
-        same = s[1:] == s[:-1]
-        single[1:] &= ~same
-        single[:-1] &= ~same
-        once = s[single]
-        if once.size == 0:
-            return np.zeros((0, 3), dtype=np.int64)
-        pos = np.searchsorted(once, keys)
-        np.minimum(pos, once.size - 1, out=pos)
-        tet, k = np.divmod(np.flatnonzero(once[pos] == keys), 4)
-        return np.ascontiguousarray(T[tet[:, None], TET_FACES[k]])
-    faces = _tet_faces(T)
-    keys = _face_keys(faces)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return np.ascontiguousarray(faces[counts[inverse.reshape(-1)] == 1])
+    tet, k = boundary_face_index(T)
+    return np.ascontiguousarray(T[tet[:, None], TET_FACES[k]]).reshape(-1, 3)
 
 
 # --------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ __all__ = [
 
 
 def element_positions(model: Model, q: np.ndarray) -> np.ndarray:
-    """Deformed corner positions of every tet.
+    """Deformed node positions of every element.
 
     Parameters
     ----------
@@ -48,8 +48,9 @@ def element_positions(model: Model, q: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    x_e : (m, 4, 3) float64
-        ``q[T]`` (``np.take`` gathers about 4x faster than fancy indexing).
+    x_e : (m, k, 3) float64
+        ``q[T]``, ``k`` nodes per element (``np.take`` gathers about 4x faster than fancy
+        indexing).
     """
     return np.take(np.asarray(q, dtype=np.float64).reshape(-1, 3), model.T, axis=0)
 
@@ -142,8 +143,9 @@ def add_element_hessians(model: Model, kernel: str, q: np.ndarray, vol: np.ndarr
     q : (n, 3) or (3n,) float64
     vol : (m,) float64
         Element volumes with any per-element scale folded in (``dt^2 vol``, ``beta vol``).
-    scatter : (m, 144) int
-        Slot in ``out`` of every element-matrix entry (the model's, or a reduced pattern's).
+    scatter : (m, d^2) int
+        Slot in ``out`` of every element-matrix entry (the model's, or a reduced pattern's;
+        ``d = model.element.n_dofs``).
     out : (k,) float64
         Accumulated into.
     """
@@ -202,18 +204,17 @@ def kinetic_energy(model: Model, v: np.ndarray) -> float:
 
 
 def deformed_volumes(model: Model, q: np.ndarray) -> np.ndarray:
-    """Signed volumes of the deformed tets (``vol_e det F_e``).
+    """Signed deformed volumes of the elements (P1: ``vol_e det F_e``), or for elements whose
+    ``F`` varies (P2), the smallest ``det F`` over their quadrature points.
 
     Returns
     -------
     (m,) float64
-        ``det([x1-x0, x2-x0, x3-x0]) / 6`` (generated ``tet.deformed_volume``); ``<= 0`` means
-        the tet is inverted or flat.
+        ``<= 0`` means the element is inverted or flat (somewhere, for P2); see
+        :meth:`fem3d.mesh.element.Element.deformed_volumes`.
     """
-    if model.geo.has_assemble("deformed_volume"):  # C: gather and evaluate in one pass
-        out = np.zeros(model.n_tets)
-        return model.geo.deformed_volume_assemble(q, model.T, (), model.element_slots, out)
-    return model.geo.deformed_volume(element_positions(model, q))
+    return model.element.deformed_volumes(model.geo, q, model.T, model.dphi_dX,
+                                          model.element_slots)
 
 
 def count_inverted(model: Model, q: np.ndarray) -> int:

@@ -2,15 +2,18 @@
 
 A :class:`Model` is built once per mesh (:func:`build_model`) and holds
 
-* the rest shape: ``X``, ``T``, the shape-function gradients ``dphi_dX`` and volumes ``vol``
-  (from the generated geometry kernels);
+* the element (:mod:`fem3d.mesh.element`: ``"p1"``, ``"p2"``), which says how many nodes an
+  element has, which kernels give its rest shape and mass, and what its faces are;
+* the rest shape: ``X``, ``T`` (one row of nodes per element), the shape-function gradients
+  ``dphi_dX`` and volumes ``vol`` (from the element's generated geometry kernels);
 * the material: one or several :class:`MaterialGroup` (a registered material on a subset of
-  the elements, its parameters per group or per element, see :mod:`fem3d.physics.materials`), a
+  the elements, its parameters per group or per element, see :mod:`fem3d.physics.groups`), a
   density per mesh or per element, and the summary values ``E``, ``nu``, ``rho``;
 * the exact consistent mass matrix (generated ``mass_matrix`` kernel, assembled);
 * the sparsity pattern of the ``3n x 3n`` system and two precomputed scatter maps:
-  ``scatter`` sends the ``(m, 12, 12)`` element blocks straight into CSR ``data`` positions
-  and ``elem_dofs`` sends ``(m, 12)`` element vectors into the ``3n`` DOF vector, so that an
+  ``scatter`` sends the ``(m, d, d)`` element blocks (``d = 3 x`` nodes per element) straight
+  into CSR ``data`` positions and ``elem_dofs`` sends ``(m, d)`` element vectors into the
+  ``3n`` DOF vector, so that an
   assembly is one ``np.bincount`` and the pattern is never rebuilt.
 
 The stiffness and the mass matrix share the pattern, so ``M + dt^2 H`` is arithmetic on the
@@ -21,7 +24,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -30,12 +34,25 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import InputError, ParameterError
-from fem3d.kernels.dispatch import geometry_kernels, material_kernels
-from fem3d.physics.materials import info, lame_to_E_nu, parameters_from, small_strain_lame
+from fem3d.mesh import element as elements
+from fem3d.mesh.element import Element
+from fem3d.physics.groups import (
+    GROUP_PARAMS,
+    GroupData,
+    GroupedKernels,
+    MaterialGroup,
+    kernels_of,
+    resolve_groups,
+    summary_E_nu,
+    with_E_nu,
+)
+from fem3d.physics.materials import parameters_from
 from fem3d.physics.pattern import assemble_mass, block_pattern
 
 __all__ = [
+    "GROUP_PARAMS",
     "GroupData",
+    "GroupedKernels",
     "MaterialGroup",
     "Model",
     "build_model",
@@ -111,317 +128,25 @@ def material_parameters(material: str, E: float, nu: float, param_names: tuple[s
 
 
 def element_dofs(T: np.ndarray) -> np.ndarray:
-    """Global DOF indices of each element's 12 vertex-major DOFs.
+    """Global DOF indices of each element's node-major DOFs.
 
     Parameters
     ----------
-    T : (m, 4) int64
+    T : (m, k) int64
+        Elements of ``k`` nodes.
 
     Returns
     -------
-    (m, 12) int64
+    (m, 3 k) int64
         ``[3 T[e,0], 3 T[e,0]+1, 3 T[e,0]+2, 3 T[e,1], ...]``.
     """
-    return (3 * np.asarray(T, dtype=np.int64)[:, :, None] + np.arange(3)).reshape(-1, 12)
+    T = np.asarray(T, dtype=np.int64)
+    return (3 * T[:, :, None] + np.arange(3)).reshape(T.shape[0], -1)
 
 
 def _readonly(*arrays: np.ndarray) -> None:
     for a in arrays:
         a.setflags(write=False)
-
-
-@dataclass(frozen=True)
-class MaterialGroup:
-    """A material on a set of elements, as given to :func:`build_model`.
-
-    Parameters
-    ----------
-    material : str
-        Registered material name (:func:`fem3d.physics.materials.names`).
-    elements : (k,) int64, optional
-        The tets of this group; None: every tet no other group lists (at most one group).
-    params : mapping, optional
-        ``E`` and ``nu`` (mapped by :func:`fem3d.physics.materials.parameters_from`) and/or the
-        material's own parameters, each a number or a per-element ``(k,)`` array (a
-        stiffness field), plus the material's per-element inputs (e.g. a fibre direction
-        ``a``: one ``(3,)`` value or ``(k, 3)``; a missing one defaults to the first unit
-        vector, the x axis).
-    """
-
-    material: str
-    elements: np.ndarray | None = None
-    params: Mapping[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, eq=False)
-class GroupData:
-    """A :class:`MaterialGroup` resolved for one mesh (built by :func:`build_model`).
-
-    Attributes
-    ----------
-    material : str
-    elements : (k,) int64 or None
-        None: every tet of the mesh (the arrays of the model are used as they are).
-    values : dict of str -> float or (k,) float64
-        The material's parameters (resolved from ``E, nu`` where given).
-    params : (n_params,) or (k, n_params) float64
-        Kernel parameters, shared by the group or per element.
-    inputs : tuple of (k, ...) float64
-        The material's per-element inputs, in kernel order.
-    kernels : KernelModule
-    """
-
-    material: str
-    elements: np.ndarray | None
-    values: dict
-    params: np.ndarray
-    inputs: tuple[np.ndarray, ...]
-    kernels: Any = field(repr=False)
-    n_tets: int = 0
-    _cache: dict = field(default_factory=dict, repr=False)
-    #: ``slice(first, last + 1)`` when the elements are consecutive tets (a body's): its
-    #: subsets are views, not copies (a copy of the scatter map is 576 bytes per tet).
-    span: slice | None = field(default=None, repr=False)
-
-    @property
-    def allows_inversion(self) -> bool:
-        """Whether this group's material is defined for ``J <= 0``."""
-        return info(self.material).allows_inversion
-
-    def subset(self, array: np.ndarray) -> np.ndarray:
-        """``array``'s rows of this group's elements. ``array`` has a leading tet axis, or is
-        flat with a fixed number of entries per tet (a scatter map). Subsets of read-only
-        arrays (the model's maps, the integrator's scaled volumes) are cached, so repeated
-        fused-kernel calls copy nothing."""
-        if self.elements is None:
-            return array
-        a = np.asarray(array)
-        if self.span is not None and a.flags.c_contiguous:
-            rows = a.reshape(self.n_tets, -1)[self.span] if a.ndim == 1 else a[self.span]
-            return rows.reshape(-1) if a.ndim == 1 else rows
-        cached = self._cache.get(id(a))
-        if cached is not None and cached[0] is a:
-            return cached[1]
-        if a.ndim == 1:
-            if a.size % self.n_tets:
-                raise ValueError(f"an array of {a.size} values does not hold one row per tet "
-                                 f"({self.n_tets} tets)")
-            picked = np.ascontiguousarray(a.reshape(self.n_tets, -1)[self.elements]).reshape(-1)
-        else:
-            picked = np.ascontiguousarray(a[self.elements])
-        if not a.flags.writeable:
-            picked.setflags(write=False)
-            if len(self._cache) >= 16:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[id(a)] = (a, picked)
-        return picked
-
-
-class _GroupToken:
-    """``model.params`` of a model whose material is not one set of shared parameters: the
-    kernels of :class:`GroupedKernels` take it in place of a parameter array."""
-
-    def __repr__(self) -> str:
-        return "<per-group material parameters>"
-
-
-GROUP_PARAMS = _GroupToken()
-
-
-class GroupedKernels:
-    """``model.mat`` of a model with several material groups, per-element parameters or
-    per-element inputs: the kernels of :class:`fem3d.kernels.dispatch.KernelModule` with the same
-    arguments over the whole mesh, evaluated group by group.
-
-    Element arrays (``x_e``, ``dphi_dX``, ``vol``, the fused kernels' ``T`` and ``index``) are
-    split by the groups' elements; each group adds its own inputs and parameters. The
-    parameter argument must be ``model.params`` (:data:`GROUP_PARAMS`).
-    """
-
-    def __init__(self, groups: Sequence[GroupData]) -> None:
-        self.groups = tuple(groups)
-        first = self.groups[0].kernels
-        self.backend = first.backend
-        self.name = "+".join(dict.fromkeys(g.material for g in self.groups))
-        self.SIGNATURES = first.SIGNATURES
-        for kernel, signature in first.SIGNATURES.items():
-            setattr(self, kernel, self._kernel(kernel, signature))
-            if all(g.kernels.has_assemble(kernel) for g in self.groups):
-                setattr(self, f"{kernel}_assemble", self._assemble(kernel))
-
-    def has_assemble(self, kernel: str) -> bool:
-        """Whether the fused ``<kernel>_assemble`` exists for every group (C back end)."""
-        return hasattr(self, f"{kernel}_assemble")
-
-    def __repr__(self) -> str:
-        return f"GroupedKernels({self.name!r}, {len(self.groups)} groups, backend={self.backend!r})"
-
-    @staticmethod
-    def _check(params: object, kernel: str) -> None:
-        if params is not GROUP_PARAMS:
-            raise TypeError(f"{kernel}: this model's material parameters are per group; pass "
-                            "model.params")
-
-    def _base_inputs(self, kernel: str, group: GroupData) -> int:
-        own = len(group.inputs)
-        return len(group.kernels.SIGNATURES[kernel]["inputs"]) - own
-
-    def _kernel(self, kernel: str, signature: dict):
-        def call(*args, out=None):
-            *arrays, params = args
-            self._check(params, kernel)
-            m = len(arrays[0])
-            shapes = [(m, *shape) for _, shape in signature["outputs"]]
-            results = [np.empty(s) for s in shapes] if out is None else \
-                list(out) if isinstance(out, tuple | list) else [out]
-            for g in self.groups:
-                n_base = self._base_inputs(kernel, g)
-                base = [np.asarray(a) if g.elements is None else
-                        np.asarray(a)[g.span if g.span is not None else g.elements]
-                        for a in arrays[:n_base]]
-                values = getattr(g.kernels, kernel)(*base, *g.inputs, g.params)
-                values = values if isinstance(values, tuple) else (values,)
-                for r, v in zip(results, values, strict=True):
-                    if g.elements is None:
-                        r[...] = v
-                    else:
-                        r[g.elements] = v
-            return results[0] if len(results) == 1 else tuple(results)
-
-        call.__name__ = kernel
-        return call
-
-    def _assemble(self, kernel: str):
-        def call(q, T, *rest):
-            *arrays, params, index, out = rest
-            self._check(params, kernel)
-            for g in self.groups:
-                fused = getattr(g.kernels, f"{kernel}_assemble")
-                fused(q, g.subset(T), *(g.subset(a) for a in arrays), *g.inputs, g.params,
-                      g.subset(index), out)
-            return out
-
-        call.__name__ = f"{kernel}_assemble"
-        return call
-
-
-def _resolve_groups(groups: Sequence[MaterialGroup], m: int, backend: str | None,
-                    path: str | None) -> tuple[GroupData, ...]:
-    """Check the groups against a mesh of ``m`` tets and resolve their parameters."""
-    if not groups:
-        raise ParameterError("build_model needs at least one material group")
-    owner = np.full(m, -1, dtype=np.int64)
-    rest = [i for i, g in enumerate(groups) if g.elements is None]
-    if len(rest) > 1:
-        raise ParameterError(f"material groups {rest[0]} and {rest[1]} both have elements=None "
-                             "(at most one group takes the remaining tets)")
-    element_sets: list[np.ndarray | None] = []
-    for i, g in enumerate(groups):
-        if not isinstance(g, MaterialGroup):
-            raise ParameterError(f"material group {i} must be a MaterialGroup, got "
-                                 f"{type(g).__name__}")
-        info(g.material)  # unknown names: ParameterError
-        if g.elements is None:
-            element_sets.append(None)
-            continue
-        el = np.asarray(g.elements)
-        if el.ndim != 1 or not (el.size == 0 or np.issubdtype(el.dtype, np.integer)):
-            raise ParameterError(f"material group {i} ({g.material}): elements must be a 1-d "
-                                 f"array of tet indices, got shape {el.shape} {el.dtype}")
-        el = el.astype(np.int64)
-        bad = (el < 0) | (el >= m)
-        if bad.any():
-            raise ParameterError(f"material group {i} ({g.material}): element "
-                                 f"{int(el[bad][0])} is outside [0, {m})")
-        taken = owner[el] >= 0
-        if taken.any() or np.unique(el).size != el.size:
-            e = int(el[taken][0]) if taken.any() else int(el[np.argmax(np.bincount(el))])
-            other = int(owner[e]) if taken.any() else i
-            raise ParameterError(f"material group {i} ({g.material}): element {e} is already "
-                                 f"in material group {other}")
-        owner[el] = i
-        element_sets.append(el)
-    if rest:
-        remaining = np.flatnonzero(owner < 0)
-        element_sets[rest[0]] = None if remaining.size == m else remaining
-        owner[remaining] = rest[0]
-    elif (owner < 0).any():
-        e = int(np.flatnonzero(owner < 0)[0])
-        raise ParameterError(f"tet {e} is in no material group ({int((owner < 0).sum())} such "
-                             "tets); give one group elements=None for the rest")
-    resolved = []
-    for i, (g, el) in enumerate(zip(groups, element_sets, strict=True)):
-        resolved.append(_resolve_group(i, g, el, m, backend))
-    return tuple(resolved)
-
-
-def _resolve_group(i: int, g: MaterialGroup, el: np.ndarray | None, m: int,
-                   backend: str | None) -> GroupData:
-    material = info(g.material)
-    k = m if el is None else el.size
-    where = f"material group {i} ({g.material})"
-    given = dict(g.params)
-    inputs = []
-    for name, shape in material.per_element_inputs.items():
-        value = given.pop(name, None)
-        if value is None:
-            a = np.zeros((k, *shape))
-            a.reshape(k, -1)[:, 0] = 1.0
-        else:
-            a = np.asarray(value, dtype=np.float64)
-            if a.shape == shape:
-                a = np.broadcast_to(a, (k, *shape))
-            if a.shape != (k, *shape):
-                raise ParameterError(f"{where}: input {name!r} must have shape {shape} or "
-                                     f"({k}, {', '.join(map(str, shape))}), got {a.shape}")
-            flat = a.reshape(k, -1)
-            bad = ~(np.isfinite(flat).all(axis=1) & (np.abs(flat).sum(axis=1) > 0))
-            if bad.any():
-                raise ParameterError(f"{where}: input {name!r} of element "
-                                     f"{int(bad.argmax()) if el is None else int(el[bad.argmax()])}"
-                                     " is zero or not finite")
-        inputs.append(np.ascontiguousarray(a, dtype=np.float64))
-    for key, value in given.items():
-        size = np.asarray(value).size
-        if np.ndim(value) > 0 and size != k:
-            raise ParameterError(f"{where}: parameter {key!r} has {size} values for {k} "
-                                 "elements")
-    E, nu = given.pop("E", None), given.pop("nu", None)
-    try:
-        values = parameters_from(g.material, E=E, nu=nu, params=given)
-    except ParameterError as error:
-        raise ParameterError(f"{where}: {error}") from None
-    names = material.param_names
-    if all(np.ndim(values[p]) == 0 for p in names):
-        params = np.array([values[p] for p in names], dtype=np.float64)
-    else:
-        params = np.ascontiguousarray(np.stack(
-            [np.broadcast_to(np.asarray(values[p], dtype=np.float64), (k,)) for p in names],
-            axis=1))
-    _readonly(params, *inputs)
-    span = None
-    if el is not None and el.size and int(el[-1]) - int(el[0]) + 1 == el.size and \
-            (np.diff(el) == 1).all():
-        span = slice(int(el[0]), int(el[-1]) + 1)
-    return GroupData(material=g.material, elements=el, values=values, params=params,
-                     inputs=tuple(inputs), kernels=material_kernels(g.material, backend),
-                     n_tets=m, span=span)
-
-
-def _summary_E_nu(groups: Sequence[GroupData], vol: np.ndarray) -> tuple[float, float]:
-    """Volume-weighted mean small-strain ``E`` and ``nu`` of the groups (for scales, such as
-    the Newton tolerance, and the viewer's sliders)."""
-    total_E = total_nu = total_vol = 0.0
-    for g in groups:
-        w = vol if g.elements is None else vol[g.elements]
-        names = [n for n, _ in g.kernels.SIGNATURES["psi"]["inputs"][1:]]
-        mu, lam = small_strain_lame(g.material, g.values,
-                                    dict(zip(names, g.inputs, strict=True)))
-        E, nu = lame_to_E_nu(np.asarray(mu), np.asarray(lam))
-        total_E += float(np.sum(np.broadcast_to(E, w.shape) * w))
-        total_nu += float(np.sum(np.broadcast_to(nu, w.shape) * w))
-        total_vol += float(w.sum())
-    return total_E / total_vol, total_nu / total_vol
 
 
 @dataclass(frozen=True, eq=False)
@@ -431,11 +156,12 @@ class Model:
     Attributes
     ----------
     X : (n, 3) float64
-        Rest positions.
-    T : (m, 4) int64
-        Positively oriented tets.
-    dphi_dX : (m, 4, 3) float64
-        Gradients of the linear shape functions (constant per tet).
+        Rest positions of the nodes.
+    T : (m, k) int64
+        Elements: ``k`` nodes each (:attr:`element`), corners first, positively oriented.
+    dphi_dX : float64
+        Shape-function gradients, the element's ``rest_shape`` output (P1: ``(m, 4, 3)``,
+        constant per tet).
     vol : (m,) float64
         Rest volumes (all ``> 0``).
     material : str
@@ -457,10 +183,10 @@ class Model:
         Consistent mass matrix, on :attr:`pattern`'s sparsity.
     pattern : (3n, 3n) scipy.sparse.csr_matrix
         Shared sparsity pattern (data zeros).
-    scatter : (m * 144,) int32
-        Element-block to CSR-``data`` map (see :func:`block_pattern`).
-    elem_dofs : (m, 12) int64
-        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * 12,)`` force scatter map (made when
+    scatter : (m * d^2,) int32
+        Element-block to CSR-``data`` map (see :func:`block_pattern`; ``d = 3 k``, 12 for P1).
+    elem_dofs : (m, d) int64
+        Element DOFs; ``elem_dofs.ravel()`` is the ``(m * d,)`` force scatter map (made when
         first asked for: the C kernels use :attr:`dof_slots`).
     backend : str or None
         Kernel back end requested (None: automatic).
@@ -471,6 +197,8 @@ class Model:
         Per-element density when one was given, else None (``rho`` everywhere).
     psd_projection : {"svd", "ql", "jacobi"}
         Eigen-solver of the per-element PSD projection (:attr:`psd_hessian`).
+    element : Element
+        The finite element of every cell (:func:`fem3d.mesh.element.element`).
     """
 
     X: np.ndarray
@@ -491,6 +219,7 @@ class Model:
     groups: tuple[GroupData, ...] = field(default=(), repr=False)
     density: np.ndarray | None = field(default=None, repr=False)
     psd_projection: str = "svd"
+    element: Element = field(default=elements.ELEMENTS["p1"], repr=False)
 
     @property
     def psd_hessian(self) -> str:
@@ -535,7 +264,8 @@ class Model:
 
         Parameters
         ----------
-        blocks : (m, 12, 12) float64
+        blocks : (m, d, d) float64
+            ``d`` = :attr:`Element.n_dofs`.
 
         Returns
         -------
@@ -559,18 +289,18 @@ class Model:
 
     @cached_property
     def elem_dofs(self) -> np.ndarray:
-        """``(m, 12) int64`` element DOFs (:func:`element_dofs`), read-only."""
-        dofs = element_dofs(self.T)
+        """``(m, d) int64`` element DOFs (:meth:`Element.element_dofs`), read-only."""
+        dofs = self.element.element_dofs(self.T)
         dofs.setflags(write=False)
         return dofs
 
     @cached_property
     def dof_slots(self) -> np.ndarray:
-        """``(m, 12) int32`` :attr:`elem_dofs`: the fused gradient's scatter map."""
+        """``(m, d) int32`` :attr:`elem_dofs`: the fused gradient's scatter map."""
         if 3 * self.n_vertices > np.iinfo(np.int32).max:
             raise ValueError("more DOFs than int32 indexes")
         slots = (3 * self.T.astype(np.int32)[:, :, None]
-                 + np.arange(3, dtype=np.int32)).reshape(-1, 12)
+                 + np.arange(3, dtype=np.int32)).reshape(-1, self.element.n_dofs)
         slots.setflags(write=False)
         return slots
 
@@ -579,7 +309,7 @@ class Model:
 
         Parameters
         ----------
-        vecs : (m, 12) float64
+        vecs : (m, d) float64
 
         Returns
         -------
@@ -625,12 +355,12 @@ class Model:
         )
         groups, mat, params = self.groups, self.mat, self.params
         if material is not None:
-            groups = _resolve_groups([MaterialGroup(material, None, {"E": E, "nu": nu})],
-                                     self.n_tets, self.backend, None)
-            mat, params = _kernels_of(groups)
+            groups = resolve_groups([MaterialGroup(material, None, {"E": E, "nu": nu})],
+                                     self.n_tets, self.backend, None, self.element)
+            mat, params = kernels_of(groups)
         elif (E, nu) != (self.E, self.nu):
-            groups = tuple(_with_E_nu(g, E, nu) for g in self.groups)
-            mat, params = _kernels_of(groups)
+            groups = tuple(with_E_nu(g, E, nu) for g in self.groups)
+            mat, params = kernels_of(groups)
         mass, density = self.mass, self.density
         if rho != self.rho:
             mass = self.csr(self.mass.data * (rho / self.rho))  # M is linear in rho
@@ -643,24 +373,6 @@ class Model:
                        mass=mass, groups=groups, density=density)
 
 
-def _with_E_nu(g: GroupData, E: float, nu: float) -> GroupData:
-    """Group ``g`` with the parameters of ``E, nu`` (scalar shape parameters kept)."""
-    material = info(g.material)
-    shape = {p: g.values[p] for p in material.shape_params if np.ndim(g.values[p]) == 0}
-    values = parameters_from(g.material, E=E, nu=nu, params=shape)
-    params = np.array([values[p] for p in material.param_names], dtype=np.float64)
-    _readonly(params)
-    return replace(g, values=values, params=params, _cache={})
-
-
-def _kernels_of(groups: Sequence[GroupData]) -> tuple[Any, Any]:
-    """``(model.mat, model.params)`` of a model with ``groups``."""
-    if len(groups) == 1 and groups[0].elements is None and not groups[0].inputs \
-            and groups[0].params.ndim == 1:
-        return groups[0].kernels, groups[0].params
-    return GroupedKernels(groups), GROUP_PARAMS
-
-
 def _own_copy(a, dtype) -> np.ndarray:
     """``a`` as a C-ordered array of ``dtype`` the caller may make read-only: ``a`` itself
     when it is one already and read-only (a validated mesh's arrays), else a copy."""
@@ -670,9 +382,9 @@ def _own_copy(a, dtype) -> np.ndarray:
     return np.array(a, dtype=dtype, order="C")
 
 
-def _mesh_arrays(X, T, path: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """Own C-ordered copies of the rest positions ``(n, 3)`` and tets ``(m, 4) int64``,
-    checked (InputError names the vertex or tet)."""
+def _mesh_arrays(X, T, el: Element, path: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Own C-ordered copies of the rest positions ``(n, 3)`` and elements ``(m, k) int64``,
+    checked (InputError names the vertex or element)."""
     X = _own_copy(X, np.float64)  # made read-only
     T = _own_copy(T, None)
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] < 4:
@@ -680,8 +392,8 @@ def _mesh_arrays(X, T, path: str | None) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(X).all():
         bad = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
         raise InputError("vertex has a non-finite coordinate", path=path, element=bad)
-    if T.ndim != 2 or T.shape[1] != 4 or T.shape[0] < 1:
-        raise InputError(f"T must have shape (m >= 1, 4), got {T.shape}", path=path)
+    if T.ndim != 2 or T.shape[1] != el.n_nodes or T.shape[0] < 1:
+        raise InputError(f"T must have shape (m >= 1, {el.n_nodes}), got {T.shape}", path=path)
     if not np.issubdtype(T.dtype, np.integer):
         raise InputError(f"T must hold integers, got {T.dtype}", path=path)
     T = T.astype(np.int64, copy=False)
@@ -721,6 +433,7 @@ def build_model(
     density: float | np.ndarray | None = None,
     backend: str | None = None,
     path: str | None = None,
+    element: str | Element = "p1",
 ) -> Model:
     """Precompute everything about a mesh and its materials.
 
@@ -728,8 +441,8 @@ def build_model(
     ----------
     X : (n, 3) float64
         Rest positions.
-    T : (m, 4) int
-        Tets, 0-based, positively oriented.
+    T : (m, k) int
+        Elements of ``element`` (``k`` nodes, corners first), 0-based, positively oriented.
     E, nu : float, optional
         Young's modulus (> 0), Poisson's ratio (-1, 0.5) of ``material`` on every tet (the
         one-material form; not together with ``groups``).
@@ -746,6 +459,9 @@ def build_model(
         Kernel back end (None: C if built, else NumPy; ``FEM3D_KERNELS`` overrides).
     path : str, optional
         Mesh file, for error messages.
+    element : str or Element, optional
+        The finite element (:data:`fem3d.mesh.element.ELEMENTS`; default ``"p1"``): ``T`` has
+        its number of nodes per row.
 
     Returns
     -------
@@ -777,32 +493,23 @@ def build_model(
         rho = 1.0 if per_element_density else float(density)
         if not per_element_density:
             validate_material(1.0, 0.0, rho)
-    X, T = _mesh_arrays(X, T, path)
-
-    geo = geometry_kernels(backend=backend)
-    dphi_dX, vol = geo.rest_shape(X[T])
-    dphi_dX = np.ascontiguousarray(dphi_dX, dtype=np.float64)
-    vol = np.ascontiguousarray(vol, dtype=np.float64)
-    bad = ~(vol > 0)
-    if bad.any():
-        e = int(np.flatnonzero(bad)[0])
-        raise InputError(
-            f"tet has non-positive volume {vol[e]:.3g} (degenerate or inverted; "
-            f"{int(bad.sum())} such tets)", path=path, element=e,
-        )
-    resolved = _resolve_groups(groups, T.shape[0], backend, path)
-    mat, params = _kernels_of(resolved)
+    el = _element_of(element)
+    X, T = _mesh_arrays(X, T, el, path)
+    geo, dphi_dX, vol = _rest_shape(el, X, T, backend, path)
+    volumes = el.volumes(vol)
+    resolved = resolve_groups(groups, T.shape[0], backend, path, el)
+    mat, params = kernels_of(resolved)
     rho_e = None
     if per_element_density:
-        rho_e = _element_density(density, vol)
-        rho = float((rho_e * vol).sum() / vol.sum())
+        rho_e = _element_density(density, volumes)
+        rho = float((rho_e * volumes).sum() / volumes.sum())
     if given_E_nu is None:
-        E, nu = _summary_E_nu(resolved, vol)
+        E, nu = summary_E_nu(resolved, volumes)
 
     _stages.debug("model: rest shape, materials")
     pattern, scatter = block_pattern(T, X.shape[0])
     _stages.debug("model: sparsity pattern")
-    mass_data = assemble_mass(geo, vol, rho, rho_e, scatter, T, pattern.indptr)
+    mass_data = assemble_mass(geo, volumes, rho, rho_e, scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
     _readonly(X, T, dphi_dX, vol, mass.data, scatter, pattern.indices, pattern.indptr)
@@ -811,5 +518,38 @@ def build_model(
     return Model(
         X=X, T=T, dphi_dX=dphi_dX, vol=vol, material=material_name, E=float(E), nu=float(nu),
         rho=float(rho), params=params, mat=mat, geo=geo, mass=mass, pattern=pattern,
-        scatter=scatter, backend=backend, groups=resolved, density=rho_e,
+        scatter=scatter, backend=backend, groups=resolved, density=rho_e, element=el,
     )
+
+
+def _element_of(name: str | Element) -> Element:
+    try:
+        return elements.element(name)
+    except ValueError as error:
+        raise ParameterError(str(error)) from None
+
+
+def _rest_shape(el: Element, X: np.ndarray, T: np.ndarray, backend: str | None,
+                path: str | None) -> tuple[Any, np.ndarray, np.ndarray]:
+    """The element's geometry kernels and their rest shape ``(dphi_dX, vol)`` of ``X[T]``;
+    refuses an element whose volume (P1) or Jacobian at a quadrature point (P2) is not
+    positive."""
+    geo = el.geometry(backend)
+    try:
+        dphi_dX, vol = el.rest_shape(geo, X[T])
+    except ValueError as error:  # a generated rest shape that refuses det J <= 0 itself
+        hit = re.search(r"element (\d+)", str(error))
+        raise InputError(f"{el.name} element has a non-positive Jacobian at a quadrature "
+                         f"point: {error}", path=path,
+                         element=int(hit.group(1)) if hit else None) from None
+    dphi_dX = np.ascontiguousarray(dphi_dX, dtype=np.float64)
+    vol = np.ascontiguousarray(vol, dtype=np.float64)
+    bad = ~(vol > 0) if vol.ndim == 1 else ~(vol > 0).reshape(vol.shape[0], -1).all(axis=1)
+    if bad.any():
+        e = int(np.flatnonzero(bad)[0])
+        what, which = (f"tet has non-positive volume {vol[e]:.3g}", "tets") if vol.ndim == 1 \
+            else (f"{el.name} element has a non-positive Jacobian at a quadrature point (min "
+                  f"{vol[e].min():.3g})", "elements")
+        raise InputError(f"{what} (degenerate or inverted; {int(bad.sum())} such {which})",
+                         path=path, element=e)
+    return geo, dphi_dX, vol

@@ -1,9 +1,11 @@
-"""The sparsity pattern of a tet mesh's ``3n x 3n`` matrices, its scatter map, and the
+"""The sparsity pattern of a mesh's ``3n x 3n`` matrices, its scatter map, and the
 consistent mass matrix assembled on it (the parts of :func:`fem3d.physics.model.build_model`
-that see every vertex pair of every tet).
+that see every node pair of every element).
 
-Both are built without a global sort of the ``16 m`` vertex pairs and without an
-``(m, 144)`` temporary: at 1e6 tets the pattern took 6 s and the mass matrix 2.3 GB before.
+Elements have ``k`` nodes (the columns of ``T``: 4 for P1, 10 for P2); their element
+matrices are ``d x d`` with ``d = 3 k``. Both are built without a global sort of the ``k^2 m``
+node pairs and without an ``(m, d^2)`` temporary: at 1e6 P1 tets the pattern took 6 s and the
+mass matrix 2.3 GB before.
 """
 
 from __future__ import annotations
@@ -15,35 +17,35 @@ __all__ = ["block_pattern", "assemble_mass"]
 
 
 def _vertex_pairs(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The vertex pairs of tets ``T`` (each ``(T[e, a], T[e, b])``, ``a, b`` in 0..3): their
-    CSR pattern over vertices and the pair index of every ``(e, a, b)``.
+    """The node pairs of elements ``T`` (each ``(T[e, a], T[e, b])``, ``a, b`` in
+    ``0..k-1``): their CSR pattern over nodes and the pair index of every ``(e, a, b)``.
 
-    Grouping the ``16 m`` pairs by row is a counting sort (scipy's CSC -> CSR conversion of
-    the tet-vertex incidence) and sorting them within a row (about a hundred each) is cache
-    local, where a global sort of ``16 m`` keys is neither.
+    Grouping the ``k^2 m`` pairs by row is a counting sort (scipy's CSC -> CSR conversion of
+    the element-node incidence) and sorting them within a row (about a hundred each) is cache
+    local, where a global sort of ``k^2 m`` keys is neither.
 
     Returns
     -------
     block_ptr : (n + 1,) int64
     block_cols : (nnzb,) int32
         Sorted within each row, no duplicates.
-    pair : (m, 4, 4) int32
+    pair : (m, k, k) int32
         ``pair[e, a, b]``: the position in ``block_cols`` of ``(T[e, a], T[e, b])``.
     """
-    m = T.shape[0]
-    if 16 * m > np.iinfo(np.int32).max or n > np.iinfo(np.int32).max:
-        raise ValueError(f"{m} tets: more vertex pairs than int32 indexes")
-    # incidence (vertex x tet-corner), rows in tet order: a counting sort by vertex
-    corner = sp.csr_matrix((np.arange(4 * m, dtype=np.int32), T.reshape(-1).astype(np.int32),
-                            np.arange(0, 4 * m + 1, 4, dtype=np.int32)), shape=(m, n))
-    by_vertex = corner.T.tocsr()  # (n, m): data = e * 4 + a, grouped by vertex T[e, a]
+    m, k = T.shape
+    if k * k * m > np.iinfo(np.int32).max or n > np.iinfo(np.int32).max:
+        raise ValueError(f"{m} elements: more node pairs than int32 indexes")
+    # incidence (node x element-node), rows in element order: a counting sort by node
+    corner = sp.csr_matrix((np.arange(k * m, dtype=np.int32), T.reshape(-1).astype(np.int32),
+                            np.arange(0, k * m + 1, k, dtype=np.int32)), shape=(m, n))
+    by_vertex = corner.T.tocsr()  # (n, m): data = e * k + a, grouped by node T[e, a]
     ea = by_vertex.data
-    # every (e, a) of row T[e, a] brings the 4 pairs (T[e, a], T[e, b]), b = 0..3
+    # every (e, a) of row T[e, a] brings the k pairs (T[e, a], T[e, b]), b = 0..k-1
     cols = T.astype(np.int32, copy=False).reshape(-1)[
-        (ea - ea % 4)[:, None] + np.arange(4, dtype=np.int32)].reshape(-1)
-    origin = (4 * ea[:, None] + np.arange(4, dtype=np.int32)).reshape(-1)  # e*16 + a*4 + b
+        (ea - ea % k)[:, None] + np.arange(k, dtype=np.int32)].reshape(-1)
+    origin = (k * ea[:, None] + np.arange(k, dtype=np.int32)).reshape(-1)  # e k^2 + a k + b
     del ea, corner
-    pairs = sp.csr_matrix((origin, cols, 4 * by_vertex.indptr.astype(np.int32)), shape=(n, n))
+    pairs = sp.csr_matrix((origin, cols, k * by_vertex.indptr.astype(np.int32)), shape=(n, n))
     del by_vertex, cols, origin
     pairs.has_sorted_indices = False
     pairs.sort_indices()  # within each row, (column, origin) sorted by column
@@ -57,42 +59,42 @@ def _vertex_pairs(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.nda
     np.cumsum(first, out=count[1:])
     block_ptr = count[ptr].astype(np.int64)
     block_cols = cols[first]
-    pair = np.empty(16 * m, dtype=np.int32)
+    pair = np.empty(k * k * m, dtype=np.int32)
     pair[origin] = count[1:]
     pair -= 1
-    return block_ptr, block_cols, pair.reshape(m, 4, 4)
+    return block_ptr, block_cols, pair.reshape(m, k, k)
 
 
-#: Tets per chunk of the scatter map's expansion.
+#: P1 tets per chunk of the scatter map's expansion (fewer elements of more nodes).
 _PATTERN_CHUNK = 1 << 14
 
 
 def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """CSR pattern of the ``3n x 3n`` element matrices of tets ``T`` and their scatter map.
+    """CSR pattern of the ``3n x 3n`` element matrices of elements ``T`` and their scatter map.
 
-    The pattern is found over vertex pairs (16 per tet, :func:`_vertex_pairs`) and expanded
+    The pattern is found over node pairs (``k^2`` per element, :func:`_vertex_pairs`) and expanded
     to 3x3 blocks arithmetically: the entry ``(3 i + c, 3 j + d)`` of block ``p = (i, j)``
     sits at ``9 bp_i + 3 c deg_i + 3 (p - bp_i) + d`` (``bp_i`` the first block of vertex row
     ``i``, ``deg_i`` its block count), so no ``3n x 3n`` conversion is needed.
 
     Parameters
     ----------
-    T : (m, 4) int64
-        Tets.
+    T : (m, k) int64
+        Elements of ``k`` nodes.
     n_vertices : int
-        Number of vertices ``n``; the matrices are ``N x N`` with ``N = 3 n`` (vertex-major
-        DOFs, see :func:`element_dofs`).
+        Number of nodes ``n``; the matrices are ``N x N`` with ``N = 3 n`` (node-major
+        DOFs, see :meth:`fem3d.mesh.element.Element.element_dofs`).
 
     Returns
     -------
     pattern : (N, N) scipy.sparse.csr_matrix
         Canonical (sorted, no duplicates), ``data`` all zeros: every ``(3 i + c, 3 j + d)`` with
-        vertices ``i, j`` in a common tet.
-    scatter : (m * 144,) int32
-        ``scatter[e * 144 + 12 r + s]`` is the ``data`` position of the entry of element DOFs
-        ``(r, s)`` of tet ``e``, so ``np.bincount(scatter, blocks.ravel(), nnz)`` assembles
-        ``(m, 12, 12)`` blocks. int32 halves the memory and the bandwidth of the fused C
-        assembly, which reads it on every call.
+        nodes ``i, j`` in a common element.
+    scatter : (m * d^2,) int32
+        ``scatter[e d^2 + d r + s]`` (``d = 3 k``) is the ``data`` position of the entry of
+        element DOFs ``(r, s)`` of element ``e``, so ``np.bincount(scatter, blocks.ravel(),
+        nnz)`` assembles ``(m, d, d)`` blocks. int32 halves the memory and the bandwidth of
+        the fused C assembly, which reads it on every call.
 
     Raises
     ------
@@ -100,7 +102,7 @@ def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.nda
         More than ``2**31 - 1`` stored entries.
     """
     T = np.asarray(T, dtype=np.int64)
-    m = T.shape[0]
+    m, k = T.shape
     n = int(n_vertices)
     block_ptr, block_cols, pair = _vertex_pairs(T, n)
     nnzb = block_cols.size
@@ -114,11 +116,12 @@ def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.nda
     base = pair
     base *= 3
     base += (6 * bp[Ti])[:, :, None]
-    stride = 3 * deg[Ti]  # (m, 4): row length of vertex T[e, a]'s rows
-    scatter = np.empty((m, 4, 3, 4, 3), dtype=np.int32)
+    stride = 3 * deg[Ti]  # (m, k): row length of node T[e, a]'s rows
+    scatter = np.empty((m, k, 3, k, 3), dtype=np.int32)
     three = np.arange(3, dtype=np.int32)
-    for a in range(0, m, _PATTERN_CHUNK):  # one pass over scatter, temporaries in cache
-        b = min(m, a + _PATTERN_CHUNK)
+    chunk = max(1, _PATTERN_CHUNK * 16 // (k * k))
+    for a in range(0, m, chunk):  # one pass over scatter, temporaries in cache
+        b = min(m, a + chunk)
         row = base[a:b, :, None, :] + (stride[a:b, :, None] * three)[:, :, :, None]
         np.add(row[..., None], three, out=scatter[a:b])
     del base, stride
@@ -147,12 +150,12 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
                   scatter: np.ndarray, T: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     """CSR ``data`` of the consistent mass matrix (generated ``mass_matrix`` kernel) on the
     pattern of :func:`block_pattern` (``scatter``, ``indptr``): the sums of
-    ``np.bincount(scatter, all_blocks)`` bit for bit, without its ``(m, 144)`` float64
-    blocks and ``(m * 144,)`` intp copy of ``scatter`` (2.3 GB at 1e6 tets).
+    ``np.bincount(scatter, all_blocks)`` bit for bit, without its ``(m, d^2)`` float64
+    blocks and ``(m d^2,)`` intp copy of ``scatter`` (2.3 GB at 1e6 P1 tets).
 
     The kernel's blocks are ``M_ab I_3`` (made a chunk of tets at a time, their structure
     checked), so the three entries ``(3 i + c, 3 j + c)`` of a vertex pair ``p = (i, j)`` are
-    one sum over its tets: a bincount of the ``16 m`` pairs ``(T[e, a], T[e, b])`` in element
+    one sum over its elements: a bincount of the ``k^2 m`` pairs ``(T[e, a], T[e, b])`` in element
     order, the order every entry got its terms in before (the other entries got zeros).
     Blocks of any other structure are added entry by entry in element order
     (``np.add.at``). M is linear in rho: a per-tet density scales each tet's volume.
@@ -161,14 +164,14 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     ----------
     geo : KernelModule
         The geometry kernels (``mass_matrix``).
-    vol : (m,) float64
-        Rest volumes.
+    vol : (m, ...) float64
+        The mass kernel's volume input (P1: rest volumes ``(m,)``).
     rho : float
         Density (used when ``rho_e`` is None).
     rho_e : (m,) float64 or None
         Per-tet density.
-    scatter : (m * 144,) int32
-    T : (m, 4) int64
+    scatter : (m * d^2,) int32
+    T : (m, k) int64
     indptr : (3 n + 1,) int32
         The scatter map and row pointers of :func:`block_pattern` ``(T, n)``.
 
@@ -177,14 +180,13 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     (nnz,) float64
     """
     nnz = int(indptr[-1])
-    m = vol.shape[0]
-    pair_mass = np.empty((m, 4, 4))
+    m, k = T.shape
+    pair_mass = np.empty((m, k, k))
     identity = np.eye(3, dtype=bool)
-    for a in range(0, m, _MASS_CHUNK):
-        b = min(m, a + _MASS_CHUNK)
-        blocks = geo.mass_matrix(vol[a:b], (rho,)) if rho_e is None else \
-            geo.mass_matrix(vol[a:b] * rho_e[a:b], (1.0,))
-        B = blocks.reshape(b - a, 4, 3, 4, 3)
+    chunk = max(1, _MASS_CHUNK * 16 // (k * k))
+    for a in range(0, m, chunk):
+        b = min(m, a + chunk)
+        B = _mass_blocks(geo, vol, rho, rho_e, a, b).reshape(b - a, k, 3, k, 3)
         if not ((np.moveaxis(B, 3, 2)[:, :, :, ~identity] == 0).all()
                 and (B[:, :, 1, :, 1] == B[:, :, 0, :, 0]).all()
                 and (B[:, :, 2, :, 2] == B[:, :, 0, :, 0]).all()):
@@ -195,7 +197,7 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     n = (indptr.size - 1) // 3
     bp = (np.asarray(indptr[0:3 * n + 1:3]) // 9).astype(np.int64)
     deg = np.diff(bp)
-    pair = scatter.reshape(m, 4, 3, 4, 3)[:, :, 0, :, 0] // 3
+    pair = scatter.reshape(m, k, 3, k, 3)[:, :, 0, :, 0] // 3
     pair -= (2 * bp[:-1][T]).astype(pair.dtype)[:, :, None]
     sums = np.bincount(pair.reshape(-1), weights=pair_mass.reshape(-1), minlength=int(bp[-1]))
     del pair, pair_mass
@@ -214,11 +216,20 @@ def _assemble_entries(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None
     element order, a chunk of tets at a time."""
     data = np.zeros(nnz)
     m = vol.shape[0]
+    d2 = scatter.size // m
     for a in range(0, m, _MASS_CHUNK):
         b = min(m, a + _MASS_CHUNK)
-        blocks = geo.mass_matrix(vol[a:b], (rho,)) if rho_e is None else \
-            geo.mass_matrix(vol[a:b] * rho_e[a:b], (1.0,))
-        w = blocks.reshape(-1)
+        w = _mass_blocks(geo, vol, rho, rho_e, a, b).reshape(-1)
         nonzero = w != 0.0
-        np.add.at(data, scatter[144 * a:144 * b][nonzero], w[nonzero])
+        np.add.at(data, scatter[d2 * a:d2 * b][nonzero], w[nonzero])
     return data
+
+
+def _mass_blocks(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None, a: int,
+                 b: int) -> np.ndarray:
+    """The generated element mass matrices of elements ``a..b-1``: ``(b - a, d, d)``; M is
+    linear in rho, so a per-element density scales the element's volume input."""
+    if rho_e is None:
+        return geo.mass_matrix(vol[a:b], (rho,))
+    scale = rho_e[a:b].reshape((b - a,) + (1,) * (vol.ndim - 1))
+    return geo.mass_matrix(vol[a:b] * scale, (1.0,))

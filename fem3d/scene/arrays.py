@@ -26,9 +26,10 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.io.files import check_input_file
+from fem3d.mesh.element import ELEMENTS, Element
 from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
+from fem3d.mesh.quadratic import has_p2_cells, lift_to_p2, read_p2_mesh
 from fem3d.mesh.skin import check_skin_placement
-from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.mesh.tetrahedralize import tetrahedralize_file
 from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.physics.springs import Pull
@@ -96,7 +97,9 @@ class BodyMesh:
     Attributes
     ----------
     X : (n, 3) float64
-    T : (m, 4) int64
+        Nodes (P2: the vertices, then the edge nodes).
+    T : (m, k) int64
+        Elements of the body's ``element`` (a linear mesh lifted to P2 for ``"p2"``).
     skin_V : (k, 3) float64 or None
     skin_F : (f, 3) int64 or None
     path : str
@@ -148,7 +151,13 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
         raise scene.error(key, f"{path}: {exc.reason}") from None
     skin_V = skin_F = None
     try:
-        if is_surface_file(path):
+        if has_p2_cells(path):
+            if body.element != "p2":
+                raise scene.error(f"bodies[{i}].element", f"{path.name} has 10-node "
+                                  f"(quadratic) tets: set element = \"p2\"")
+            X, T = read_p2_mesh(path)
+            tet_path = path
+        elif is_surface_file(path):
             X, T, tet_path = tetrahedralize_file(
                 path, edge_length=body.tetrahedralize.edge_length,
                 epsilon=body.tetrahedralize.epsilon,
@@ -159,6 +168,8 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
             X, T, tet_path = mesh.X, mesh.T, str(mesh.path)
     except InputError as exc:
         raise _in_key(scene, key, exc) from None
+    if body.element == "p2" and T.shape[1] == 4:
+        X, T = lift_to_p2(X, T)
     if body.skin is not None:
         skin_path = scene.path(body.skin)
         try:
@@ -306,8 +317,9 @@ class SceneArrays:
     Attributes
     ----------
     X : (n, 3) float64
-        Rest positions (transformed).
-    T : (m, 4) int64
+        Rest positions of the nodes (transformed).
+    T : (m, k) int64
+        Elements of :attr:`element`.
     v0 : (n, 3) float64
         Initial velocities (linear + angular about each body's vertex centroid).
     fixed : (n_fixed,) int64
@@ -331,6 +343,8 @@ class SceneArrays:
     fixed_dofs : (k,) int64 or None
         The fixed DOFs (``3 vertex + axis``, sorted; a pin's ``dofs``); None: every DOF of
         :attr:`fixed`.
+    element : Element
+        The finite element of every body (``bodies[].element``).
     """
 
     X: np.ndarray
@@ -349,10 +363,21 @@ class SceneArrays:
     height: float
     mesh_paths: list[str] = field(default_factory=list)
     fixed_dofs: np.ndarray | None = None
+    element: Element = ELEMENTS["p1"]
 
 
-def _surface_of(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.arange(n), boundary_faces(T)
+def _surface_of(T: np.ndarray, n: int, element: Element) -> tuple[np.ndarray, np.ndarray]:
+    return np.arange(n), element.surface_triangles(T)
+
+
+def _scene_element(scene: Scene) -> Element:
+    """The element of every body; bodies with different elements are refused."""
+    first = scene.bodies[0].element
+    for i, body in enumerate(scene.bodies):
+        if body.element != first:
+            raise scene.error(f"bodies[{i}].element", f"{body.element!r}, but bodies[0] has "
+                              f"{first!r}: every body of a scene has the same element")
+    return ELEMENTS[first]
 
 
 def build_arrays(scene: Scene) -> SceneArrays:
@@ -364,6 +389,7 @@ def build_arrays(scene: Scene) -> SceneArrays:
         ``FILE: key.path: ...`` for a missing or bad mesh, a selector that selects nothing,
         a vertex id out of range.
     """
+    element = _scene_element(scene)
     Xs, Ts, v0s, fixed, skins = [], [], [], [], []
     body_v, body_t = [], []
     nv = nt = 0
@@ -408,7 +434,7 @@ def build_arrays(scene: Scene) -> SceneArrays:
         kv = kf = 0
         for i, s in enumerate(skins):
             if s is None:
-                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0])
+                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0], element)
                 s = (Xs[i][idx], F)
             Vs.append(s[0])
             Fs.append(s[1] + kv)
@@ -453,5 +479,5 @@ def build_arrays(scene: Scene) -> SceneArrays:
         skin_V=skin_V, skin_F=skin_F, skin_bodies=skin_bodies, skin_identity=identity,
         pick_radius=float(pick_radius), spring_k=None if spring_k is None else float(spring_k),
         height=height,
-        mesh_paths=[m.path for m in meshes], fixed_dofs=fixed_dofs,
+        mesh_paths=[m.path for m in meshes], fixed_dofs=fixed_dofs, element=element,
     )

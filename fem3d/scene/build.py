@@ -291,7 +291,7 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
         raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
                           f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
                           ) from None
-    blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
+    blocks = [j for j, c in enumerate(mesh.cells) if c.type in ("tetra", a.element.cell_type)]
     if name not in mesh.cell_data or not blocks:
         have = ", ".join(sorted(mesh.cell_data)) or "none"
         raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
@@ -312,7 +312,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -
         if len(bodies) == 1 and _simple_material(bodies[0].material):
             m = bodies[0].material
             return build_model(a.X, a.T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
-                               backend=backend, path=path)
+                               backend=backend, path=path, element=a.element)
     except InputError as exc:
         key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
         raise scene.error(key, str(exc)) from None
@@ -356,7 +356,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -
     rho = float(density[0]) if (density == density[0]).all() else density
     try:
         return build_model(a.X, a.T, groups=[g for _, g in groups], density=rho,
-                           backend=backend, path=path)
+                           backend=backend, path=path, element=a.element)
     except ParameterError as exc:
         # name the group the message is about when it says which (else the first body's)
         hit = re.search(r"material group (\d+)", str(exc))
@@ -510,7 +510,7 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
                       mu=spec.static_mu, mu_k=spec.kinetic_mu,
                       eps_v=spec.eps_v * L, self_contact=spec.self_contact,
                       hessian_projection=spec.hessian_projection,
-                      friction_hessian=spec.friction_hessian)
+                      friction_hessian=spec.friction_hessian, element=a.element)
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
                        friction_tolerance=spec.friction_tolerance,

@@ -68,6 +68,7 @@ from pydantic import (
 from fem3d.errors import InputError
 from fem3d.io.files import check_input_file
 from fem3d.io.frames.registry import frame_format_names
+from fem3d.mesh.element import element_names
 from fem3d.physics.materials import names as material_names
 from fem3d.scene.keys import format_key, parse_key, set_path
 from fem3d.scene.selection import (  # re-exported: the scene's one description
@@ -110,6 +111,8 @@ SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
 LinearSolverName = Literal[linear_solver_names()]  # type: ignore[valid-type]
 #: ``output.format``'s choices: the registered output formats (:mod:`fem3d.io.frames`).
 FrameFormatName = Literal[frame_format_names()]  # type: ignore[valid-type]
+#: ``bodies[].element``'s choices: the registered finite elements (``"p1"``, ``"p2"``).
+ElementName = Literal[element_names()]  # type: ignore[valid-type]
 
 
 def _registered_scheme(name: str) -> str:
@@ -259,6 +262,9 @@ class BodySpec(_Spec):
     damping: DampingSpec = DampingSpec()
     pins: list[PinSpec] = Field(default_factory=list)
     loads: list[LoadSpec] = Field(default_factory=list)
+    #: The finite element (docs/elements.md): ``"p1"`` linear tets, ``"p2"`` quadratic tets
+    #: (a 4-node mesh or a surface is lifted: a node on every edge).
+    element: ElementName = "p1"
 
     @property
     def label(self) -> str:

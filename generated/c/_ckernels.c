@@ -2235,6 +2235,9 @@ done:
 #include "stable_neo_hookean.c"
 #include "stvk.c"
 
+// the kernels of _ckernels_p2.c, a translation unit of their own (compile time)
+extern PyMethodDef fem3d_p2_methods[];
+
 static PyObject *py_max_threads(PyObject *self, PyObject *unused)
 {
     (void)self;
@@ -2481,6 +2484,10 @@ PyMODINIT_FUNC PyInit__ckernels(void)
     if (module != NULL && (PyModule_AddIntConstant(module, "OPENMP", FEM3D_OPENMP) != 0 ||
                            PyModule_AddIntConstant(module, "PRIVATE_MAX_OUT",
                                                    FEM3D_PRIVATE_MAX_OUT) != 0)) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    if (module != NULL && PyModule_AddFunctions(module, fem3d_p2_methods) != 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -2,5 +2,8 @@
 # Source: codegen.derive; SymPy 1.14.0. Regenerate with `make codegen`.
 """Generated NumPy kernels, one module per material plus the tet geometry and the spring."""
 
-MODULES = ('tet', 'spring', 'pressure', 'fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk')
+MODULES = ('tet', 'spring', 'pressure', 'fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk', 'p2_tet', 'p2_fibre_reinforced', 'p2_fung', 'p2_linear', 'p2_mooney_rivlin', 'p2_neo_hookean', 'p2_neo_hookean_lame', 'p2_stable_neo_hookean', 'p2_stvk')
 MATERIALS = ('fibre_reinforced', 'fung', 'linear', 'mooney_rivlin', 'neo_hookean', 'neo_hookean_lame', 'stable_neo_hookean', 'stvk')
+#: The modules of the higher-order elements, per element: "<element>_tet" (geometry) and
+#: "<element>_<material>" (quadrature kernels); see codegen.element_kernels.
+ELEMENT_MODULES = {'p2': ('p2_tet', 'p2_fibre_reinforced', 'p2_fung', 'p2_linear', 'p2_mooney_rivlin', 'p2_neo_hookean', 'p2_neo_hookean_lame', 'p2_stable_neo_hookean', 'p2_stvk')}

@@ -55,3 +55,13 @@ def _project_psd(m, n, entries):
 
 def _finish(out, m, shape):
     return numpy.ascontiguousarray(out.T).reshape((m, *shape))
+
+
+def _require_positive(out, kernel, name):
+    """Raise ``ValueError`` naming the first element and entry of ``out`` (``(size, m)``)
+    that is not ``> 0`` (NaN included): the kernels that refuse inverted or flat elements."""
+    bad = ~(out > 0.0)
+    if bad.any():
+        entry, element = min(zip(*numpy.nonzero(bad)), key=lambda p: (p[1], p[0]))
+        raise ValueError(f"{kernel}: element {element} has {name}[{entry}] = "
+                         f"{out[entry, element]:.6g}, not > 0 (inverted or degenerate)")

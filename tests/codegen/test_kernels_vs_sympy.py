@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sympy as sp
-from fem3d._generated import MODULES
+from fem3d._generated import ELEMENT_MODULES, MODULES
 
 from codegen.derive import reference_outputs
 from codegen.materials import MATERIALS
@@ -102,9 +102,11 @@ def assert_close(generated: np.ndarray, reference: np.ndarray, rtol: float = 1e-
 
 
 def kernel_cases():
-    """(module, kernel) of every generated kernel, from the generated signatures (deriving
-    every module again would take minutes)."""
-    for module in MODULES:
+    """(module, kernel) of every generated P1 kernel, from the generated signatures (deriving
+    every module again would take minutes); the higher-order elements' kernels are
+    tests/test_codegen_p2.py's."""
+    elements = {m for modules in ELEMENT_MODULES.values() for m in modules}
+    for module in (m for m in MODULES if m not in elements):
         for kernel in kernel_module(module, "numpy").SIGNATURES:
             yield module, kernel
 
@@ -601,8 +603,11 @@ def test_generated_files_are_up_to_date_and_deterministic(tmp_path: Path) -> Non
         assert old == new, f"generated/{rel} is stale: run `make codegen` and commit"
         assert "do not edit" in old.splitlines()[0]
     committed = {p.stem for p in (ROOT / "generated").rglob("*") if p.suffix in (".py", ".c")}
+    units = {f"_ckernels_{e}" for e in ELEMENT_MODULES}
     assert committed == {"__init__", "_support", "_ckernels", "tet", "spring", "pressure",
-                         *MATERIALS}
+                         *MATERIALS, *units,
+                         *(m for modules in ELEMENT_MODULES.values() for m in modules)}
+    assert units == {"_ckernels_p2"}
 
 
 def test_show_prints_a_materials_formulas() -> None:

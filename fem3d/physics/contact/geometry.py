@@ -1,8 +1,10 @@
 """The collision mesh: the bodies' boundary surface and the mesh obstacles as one
 ``ipctk.CollisionMesh``, and the maps between its vertices and fem3d's degrees of freedom.
 
-The boundary surface of the simulation mesh (:func:`fem3d.mesh.tetmesh.boundary_faces`;
-interior vertices are not in it) comes first, followed by the vertices and triangles of the
+The boundary surface of the simulation mesh (the element's
+:meth:`~fem3d.mesh.element.Element.surface_triangles`: the boundary faces, each quadratic face
+split into four linear triangles through its corner and edge nodes; interior nodes are not in
+it) comes first, followed by the vertices and triangles of the
 triangle-mesh obstacles (static, or kinematic: their positions are a function of time).
 Collision vertex ``i < n_surface`` is fem3d vertex :attr:`CollisionGeometry.surface` ``[i]``;
 the obstacles' vertices are not degrees of freedom. Which pairs can touch: different bodies
@@ -20,7 +22,7 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.mesh.tetmesh import boundary_faces
+from fem3d.mesh.element import ELEMENTS, Element
 from fem3d.physics.contact.obstacles import MeshObstacle
 
 __all__ = ["CollisionGeometry", "Entries", "group_chain"]
@@ -61,8 +63,8 @@ class CollisionGeometry:
     ----------
     X : (n, 3) float64
         Rest positions of the simulation mesh (every body, concatenated).
-    T : (m, 4) int64
-        Tets, indexing ``X``.
+    T : (m, k) int64
+        Elements of ``element``, indexing ``X``.
     body_ids : (n,) int, optional
         Body of each vertex (default: all one body, 0).
     body_names : sequence of str, optional
@@ -70,6 +72,8 @@ class CollisionGeometry:
     meshes : sequence of MeshObstacle
     self_contact : bool
         Let a body touch itself.
+    element : Element, optional
+        The finite element of ``T`` (default P1), asked for the surface triangles.
 
     Attributes
     ----------
@@ -92,7 +96,8 @@ class CollisionGeometry:
 
     def __init__(self, X: np.ndarray, T: np.ndarray, *, body_ids: np.ndarray | None = None,
                  body_names: Sequence[str] | None = None,
-                 meshes: Sequence[MeshObstacle] = (), self_contact: bool = False) -> None:
+                 meshes: Sequence[MeshObstacle] = (), self_contact: bool = False,
+                 element: Element = ELEMENTS["p1"]) -> None:
         X = np.ascontiguousarray(X, dtype=np.float64)
         n = X.shape[0]
         self.n_vertices = n
@@ -107,7 +112,7 @@ class CollisionGeometry:
         self.body_names = (list(body_names) if body_names is not None else
                            [f"body {i}" for i in range(int(body_ids.max()) + 1 if n else 0)])
         # dynamic part: the boundary surface, renumbered
-        F = boundary_faces(np.ascontiguousarray(T, dtype=np.int64))
+        F = element.surface_triangles(np.ascontiguousarray(T, dtype=np.int64))
         self.surface = surface = np.unique(F)
         renum = np.full(n, -1, dtype=np.int64)
         renum[surface] = np.arange(surface.size)

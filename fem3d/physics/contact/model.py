@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
+from fem3d.mesh.element import ELEMENTS, Element
 from fem3d.physics.contact.barrier import Barrier
 from fem3d.physics.contact.collisions import CollisionSets, ContactStats, choice
 from fem3d.physics.contact.diagnostics import intersecting_pairs
@@ -60,8 +61,8 @@ class ContactModel:
     ----------
     X : (n, 3) float64
         Rest positions of the simulation mesh (every body, concatenated).
-    T : (m, 4) int64
-        Tets (positively oriented), indexing ``X``.
+    T : (m, k) int64
+        Elements of ``element`` (positively oriented), indexing ``X``.
     body_ids : (n,) int, optional
         Body of each vertex (default: all one body, 0).
     body_names : sequence of str, optional
@@ -93,7 +94,9 @@ class ContactModel:
         A key of :data:`~fem3d.physics.contact.friction.FRICTION_HESSIANS`: ``"exact"``
         (default; ipctk's, projected as the barrier's) or ``"majorizer"``
         (:mod:`fem3d.physics.contact.friction_majorizer`).
-
+    element : Element, optional
+        The finite element of ``T`` (default P1): it gives the collision surface
+        (:meth:`fem3d.mesh.element.Element.surface_triangles`).
     Attributes
     ----------
     geometry : CollisionGeometry
@@ -114,7 +117,8 @@ class ContactModel:
                  dhat: float, kappa: float | None = None, mu: float = 0.0,
                  mu_k: float | None = None, eps_v: float = 1e-3, self_contact: bool = False,
                  broad_phase: str = "hash_grid", narrow_phase: str = "additive",
-                 hessian_projection: str = "clamp", friction_hessian: str = "exact") -> None:
+                 hessian_projection: str = "clamp", friction_hessian: str = "exact",
+                 element: Element = ELEMENTS["p1"]) -> None:
         dhat = _positive("dhat", dhat)
         mu, mu_k = _coefficients(mu, mu_k)
         eps_v = _positive("eps_v", eps_v)
@@ -126,7 +130,8 @@ class ContactModel:
         self.dhat, self.eps_v = dhat, eps_v
         self.stats = ContactStats()
         g = self.geometry = CollisionGeometry(X, T, body_ids=body_ids, body_names=body_names,
-                                              meshes=meshes, self_contact=self_contact)
+                                              meshes=meshes, self_contact=self_contact,
+                                              element=element)
         self.collisions = CollisionSets(g, dhat, broad_phase, narrow_phase, self.stats)
         psd = choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
         self.hessian_projection = hessian_projection
