@@ -410,8 +410,9 @@ def test_straight_p2_reproduces_p1_energy_of_a_linear_displacement(material: str
     dN, _, w = kernel_module("p2_tet", backend).rest_shape(X)
     p2 = kernel_module(f"p2_{material}", backend)
     x10 = np.einsum("mij,mvj->mvi", A, X) + b
-    np.testing.assert_allclose(p2.energy(x10, dN, w, *extra, params),
-                               p1.energy(x4, dphi, vol, *extra, params), rtol=1e-12)
+    e1 = p1.energy(x4, dphi, vol, *extra, params)  # 0 where A is a rotation
+    np.testing.assert_allclose(p2.energy(x10, dN, w, *extra, params), e1, rtol=1e-12,
+                               atol=1e-14 * np.abs(e1).max())
     # and the P1 gradient is the P2 one lumped to the corners (edge forces split in half)
     g2 = p2.gradient(x10, dN, w, *extra, params).reshape(m, 10, 3)
     lumped = g2[:, :4].copy()
@@ -451,5 +452,5 @@ def test_p2_fused_assemble_equals_kernel_then_scatter(material: str, kernel: str
     getattr(k, f"{kernel}_assemble")(q, T, dN, w, *extra, params, index, out)
     np.testing.assert_allclose(out - 1.0, expected, rtol=1e-12,
                                atol=1e-12 * np.abs(expected).max())
-    with pytest.raises(ValueError, match="T m\\*10"):
+    with pytest.raises(ValueError, match="m \\* 120 values"):  # a P1 T: 4 of 10 nodes
         getattr(k, f"{kernel}_assemble")(q, T[:, :4].copy(), dN, w, *extra, params, index, out)
