@@ -3,8 +3,8 @@
 ``python -m bench.elements`` prints the cantilever of docs/scenes.md ("Check against theory":
 1 x 0.1 x 0.1, StVK, nu = 0, E = 1e9, static under gravity) against Euler-Bernoulli for P1 and
 P2 meshes, with DOFs and wall time of the static solve; ``--cells 10x1x1,20x2x2`` chooses the
-meshes and ``--elements p2`` the elements. Nothing here is run by CI (tests/test_p2.py checks
-the bounds).
+meshes and ``--elements p2`` the elements. Nothing here is run by CI
+(tests/physics/test_p2.py checks the bounds).
 """
 
 from __future__ import annotations

@@ -89,7 +89,7 @@ def _rule(name: str, degree: int, orbits: list[tuple[tuple[sp.Expr, ...], sp.Exp
 def _degree5_orbits() -> list[tuple[tuple[sp.Expr, ...], sp.Expr]]:
     """The 14-point degree-5 rule: two ``S31`` orbits ``(a, a, a, 1 - 3a)`` and one ``S22``
     orbit ``(b, b, 1/2 - b, 1/2 - b)``, the published 16-digit values (exact to 4e-16 on
-    every monomial of degree <= 5: ``tests/test_codegen_p2.py``)."""
+    every monomial of degree <= 5: ``tests/codegen/test_p2_kernels_vs_sympy.py``)."""
     a1, w1 = sp.Float("0.0927352503108912", 16), sp.Float("0.01224884051939366", 16)
     a2, w2 = sp.Float("0.3108859192633006", 16), sp.Float("0.01878132095300264", 16)
     b, w3 = sp.Float("0.04550370412564965", 16), sp.Float("0.007091003462846911", 16)

@@ -587,18 +587,11 @@ class Simulation:
         return out
 
     def _acceleration(self) -> np.ndarray | None:
-        """``(3n,)`` the acceleration the last step's equation of motion holds at its end:
-        the state's own (Newmark's ``a``), the two-step difference ``(3 v - 4 v_n +
-        v_(n-1)) / (2 dt)`` of a state with a history (BDF2), else ``(v - v_n) / dt``
-        (backward Euler); None before a step and in a static run (no inertia)."""
-        before, s = self._before, self._state
-        if before is None or not any(v.any() for v in (s.v, before.v)) and s.a is None:
+        """``(3n,)`` the acceleration the last step's equation of motion holds at its end
+        (:meth:`Scheme.acceleration`); None before a step and without inertia."""
+        if self._before is None:
             return None
-        if s.a is not None:
-            return s.a.reshape(-1)
-        if s.v_prev is not None and before.v_prev is not None:
-            return (3.0 * s.v - 4.0 * before.v + before.v_prev).reshape(-1) / (2.0 * self._dt)
-        return (s.v - before.v).reshape(-1) / self._dt
+        return self._scheme.acceleration(self._before, self._state, self._dt)
 
     def gravity_energy(self) -> float:
         """Gravity's potential ``-M g . (q - X)`` of the current state (the part of

@@ -104,7 +104,7 @@ def assert_close(generated: np.ndarray, reference: np.ndarray, rtol: float = 1e-
 def kernel_cases():
     """(module, kernel) of every generated P1 kernel, from the generated signatures (deriving
     every module again would take minutes); the higher-order elements' kernels are
-    tests/test_codegen_p2.py's."""
+    tests/codegen/test_p2_kernels_vs_sympy.py's."""
     elements = {m for modules in ELEMENT_MODULES.values() for m in modules}
     for module in (m for m in MODULES if m not in elements):
         for kernel in kernel_module(module, "numpy").SIGNATURES:

@@ -171,6 +171,14 @@ class Scheme:
                                   fixed_at=fixed_at)
 
     # ------------------------------------------------------------------ history
+    def acceleration(self, before: State, state: State, dt: float) -> np.ndarray | None:
+        """``(3n,)`` the acceleration the step from ``before`` to ``state`` holds at its end
+        (the reactions' inertia): the backward difference ``(v - v_n) / dt`` here; None for a
+        scheme without inertia."""
+        if not self.dynamic:
+            return None
+        return (state.v - before.v).reshape(-1) / dt
+
     def save_history(self, state: State) -> dict[str, np.ndarray]:
         """The history a checkpoint keeps: ``{name: (n, 3)}`` of :attr:`history` present."""
         return {k: state.history[k] for k in self.history if k in state.history}

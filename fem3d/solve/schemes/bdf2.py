@@ -52,6 +52,12 @@ class BDF2(Scheme):
         return Step(affine_step_map(system, state, dt, p, h=2.0 * dt / 3.0, offset=offset,
                                     v_hat=v_hat))
 
+    def acceleration(self, before, state, dt):
+        if "v_prev" in before.history:  # two steps: BDF2's own difference
+            v_nm1 = before.history["v_prev"]
+            return (3.0 * state.v - 4.0 * before.v + v_nm1).reshape(-1) / (2.0 * dt)
+        return super().acceleration(before, state, dt)  # the first step is backward Euler's
+
     def finish(self, system, state, step, x, settings) -> State:
         q = step.map.positions(x).reshape(-1, 3)
         v = step.map.velocity(x).reshape(-1, 3)

@@ -123,6 +123,11 @@ class Newmark(Scheme):
         step = affine_step_map(system, state, dt, p, h=h, offset=offset, v_hat=v_hat)
         return Step(step, data={"a_n": a_n, "v_hat": v_hat, "gamma": gamma})
 
+    def acceleration(self, before, state, dt):
+        if "a" in state.history:  # the state's own
+            return state.history["a"].reshape(-1)
+        return super().acceleration(before, state, dt)
+
     def finish(self, system, state, step, x, settings) -> State:
         """``a_{n+1}`` from ``v_{n+1}`` (the pins': the backward difference)."""
         a_n, v_hat, gamma = step.data["a_n"], step.data["v_hat"], step.data["gamma"]
