@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import fem3d.solve.newmark as newmark_module  # noqa: E402
+import fem3d.solve.schemes.newmark as newmark_module  # noqa: E402
 from fem3d.scene import load_scene  # noqa: E402
 from fem3d.simulation import Simulation  # noqa: E402
 
