@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-MESH = Path(__file__).resolve().parents[1] / "data" / "scenes" / "meshes" / "bar_16x4x4.mesh"
+MESH = Path(__file__).resolve().parents[2] / "data" / "scenes" / "meshes" / "bar_16x4x4.mesh"
 
 
 def box_scene_text(integrator: str = "implicit", *, steps: int = 20,

@@ -21,7 +21,7 @@ from fem3d.physics.model import build_model
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("make_gallery",
                                                ROOT / "examples" / "make_gallery.py")
 make_gallery = importlib.util.module_from_spec(_spec)
