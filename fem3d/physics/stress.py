@@ -1,10 +1,11 @@
 """Stress and strain for output: each element's Cauchy stress, von Mises stress and principal
 stretches, and their volume-weighted averages at the vertices (what the VTU frames carry).
 
-Per element (constant in a linear tet): ``F`` from the generated geometry kernel, the first
-Piola-Kirchhoff stress ``P = dpsi/dF`` from the element's generated material kernel, the
-Cauchy stress ``sigma = P F^T / J``, von Mises ``sqrt(3/2 s : s)`` with ``s`` the deviator
-of ``sigma``, and the principal stretches ``sqrt(eig(F^T F))`` (ascending).
+Per element (constant in a linear tet; over a quadratic one's quadrature points, averaged by
+their weights): ``F`` from the element's generated geometry kernel, the first Piola-Kirchhoff
+stress ``P = dpsi/dF`` from the material's generated per-F kernel, the Cauchy stress
+``sigma = P F^T / J``, von Mises ``sqrt(3/2 s : s)`` with ``s`` the deviator of ``sigma``, and
+the principal stretches ``sqrt(eig(F^T F))`` (ascending).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fem3d.kernels.dispatch import geometry_kernels
+from fem3d.mesh.element import ELEMENTS
 from fem3d.physics.model import Model
 
 __all__ = ["ElementStress", "element_stress", "vertex_fields"]
@@ -37,37 +38,52 @@ class ElementStress:
 
 
 def element_stress(model: Model, q: np.ndarray) -> ElementStress:
-    """The stress and stretches of every element at positions ``q`` (``(n, 3)`` or ``(3n,)``).
-    """
+    """The stress and stretches of every element at positions ``q`` (``(n, 3)`` or ``(3n,)``):
+    per quadrature point of the element (one for P1), averaged with the points' weights."""
+    m = model.T.shape[0]
     x = np.asarray(q, dtype=np.float64).reshape(-1, 3)[model.T]
-    F = geometry_kernels(backend=model.backend).deformation_gradient(x, model.dphi_dX)
-    F = np.asarray(F).reshape(-1, 3, 3)
+    geo = model.element.geometry(model.backend)
+    F = np.asarray(geo.deformation_gradient(x, model.dphi_dX)).reshape(m, -1, 3, 3)
+    nq = F.shape[1]
+    w = np.asarray(model.vol, dtype=np.float64).reshape(m, nq)
     P = np.empty_like(F)
     for g in model.groups:
         els = slice(None) if g.elements is None else np.asarray(g.elements)
-        P[els] = np.asarray(g.kernels.dpsi_dF(F[els], *g.inputs, g.params)).reshape(-1, 3, 3)
+        Fg = F[els].reshape(-1, 3, 3)
+        per_point = [np.repeat(a, nq, axis=0) if np.ndim(a) == 2 else a
+                     for a in (*g.inputs, g.params)]
+        per_f = ELEMENTS["p1"].material_kernels(g.material, model.backend)  # psi's P(F)
+        P[els] = np.asarray(per_f.dpsi_dF(Fg, *per_point)).reshape(-1, nq, 3, 3)
+    F, P = F.reshape(-1, 3, 3), P.reshape(-1, 3, 3)
     J = np.linalg.det(F)
     sigma = np.einsum("mij,mkj->mik", P, F) / J[:, None, None]
     s = sigma - np.trace(sigma, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
     von_mises = np.sqrt(1.5 * np.einsum("mij,mij->m", s, s))
     C = np.einsum("mki,mkj->mij", F, F)
     stretches = np.sqrt(np.clip(np.linalg.eigvalsh(C), 0.0, None))
-    return ElementStress(sigma, von_mises, stretches)
+    share = (w / w.sum(axis=1, keepdims=True)).reshape(-1)
+
+    def mean(a: np.ndarray) -> np.ndarray:  # over each element's points, by weight
+        return (a * share.reshape((-1,) + (1,) * (a.ndim - 1))).reshape(
+            (m, nq) + a.shape[1:]).sum(axis=1)
+
+    return ElementStress(mean(sigma), mean(von_mises), mean(stretches))
 
 
 def vertex_fields(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
     """Volume-weighted vertex averages of :func:`element_stress` for point data: ``von_mises``
     ``(n,)``, ``cauchy_stress`` ``(n, 9)`` (row-major), ``principal_stretches`` ``(n, 3)``."""
     e = element_stress(model, q)
-    w = np.repeat(model.vol, 4)
+    k = model.T.shape[1]
+    w = np.repeat(model.element.volumes(model.vol), k)
     idx = model.T.reshape(-1)
     total = np.bincount(idx, weights=w, minlength=model.n_vertices)
     total[total == 0] = 1.0
 
     def average(values: np.ndarray) -> np.ndarray:
         v = values.reshape(values.shape[0], -1)
-        out = np.stack([np.bincount(idx, weights=w * np.repeat(v[:, k], 4),
-                                    minlength=model.n_vertices) for k in range(v.shape[1])],
+        out = np.stack([np.bincount(idx, weights=w * np.repeat(v[:, c], k),
+                                    minlength=model.n_vertices) for c in range(v.shape[1])],
                        axis=1) / total[:, None]
         return out[:, 0] if values.ndim == 1 else out
 
