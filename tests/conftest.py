@@ -8,10 +8,19 @@ failed build fails the run instead of silently skipping about 140 tests.
 from __future__ import annotations
 
 import os
+import sys
 
-import pytest
+# One BLAS thread in this process and in every fem3d process a test starts (they inherit the
+# environment): a trajectory's bits depend on OpenBLAS's thread count (cantilever_amg parts
+# between 1 and 2 threads), and tests/simulation/test_determinism.py compares this process's
+# runs with another process's bit for bit. Set before NumPy loads OpenBLAS; a caller's own
+# setting wins.
+if "numpy" not in sys.modules:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from fem3d.kernels.backend import c_extension
+import pytest  # noqa: E402
+
+from fem3d.kernels.backend import c_extension  # noqa: E402
 
 
 def missing_required_c(environ=os.environ, extension=c_extension) -> str | None:
