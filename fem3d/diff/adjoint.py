@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from fem3d.diff.damping import DEFAULT_CACHE_BYTES, RecordingDamping
+from fem3d.diff.damping import DEFAULT_CACHE_BYTES, RecordingDamping, point_kernels
 from fem3d.diff.loads import PressureAdjoint
 from fem3d.diff.params import (
     PARAMETER_KEYS,
@@ -230,8 +230,8 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float,
     run.groups = element_groups(built.model)
     term = system.loads.damping
     if scheme.dynamic and term is not None and term._beta_vol is not None and all(
-            hasattr(g.kernels, "d3psi_contract") and hasattr(g.kernels, "d2psi_dF2")
-            for g, _, _, _ in run.groups):
+            hasattr(k, "d3psi_contract") and hasattr(k, "d2psi_dF2")
+            for k in (point_kernels(g) for g, _, _, _ in run.groups)):
         run.damping = RecordingDamping(term, run.groups, cache_bytes)
     run.terms = [t for f, _, _ in _FACTORIES if (t := f(run)) is not None]
     run.state0 = scheme.start(run, state)

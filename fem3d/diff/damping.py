@@ -1,7 +1,11 @@
 """Stiffness damping's matrix with its eigendecompositions, kept for the backward pass.
 
-``D(q) = alpha M + beta K_psd(q)``: ``K_psd`` is the elastic Hessian with each element's
-``A = dP/dF`` (9x9) projected to positive semi-definite. The backward pass needs, at each
+``D(q) = alpha M + beta K_psd(q)``: ``K_psd`` is the elastic Hessian with ``A = dP/dF`` (9x9)
+projected to positive semi-definite at each of the element's quadrature points (a linear
+tet: one point, its volume the weight; a quadratic tet: its rule's points, ``w det J`` the
+weights), ``K_psd,e = sum_q w_q B_q^T A_psd(F_q) B_q`` with ``B_q = dF_q/dx_e``
+(:func:`quadrature_points`, :func:`strain_operators`; the material's per-``F`` kernels
+:func:`point_kernels`, the same on every element). The backward pass needs, at each
 step's start ``q_n``, both ``D(q_n)`` (in the transposed Newton matrix) and the eigenvectors
 and eigenvalues of every projected ``A`` (the projection's derivative, Daleckii-Krein:
 :func:`fem3d.diff.terms.psd_bilinear_vjp`). :func:`linearize_damping` computes both from one
@@ -20,11 +24,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from fem3d.kernels.backend import c_extension
+from fem3d.kernels.dispatch import material_kernels
 from fem3d.physics.terms.damping import RayleighDamping
 
 __all__ = ["DampingLinearization", "linearize_damping", "projected_eigen", "psd_elements",
-           "strain_operators", "RecordingDamping",
-           "DEFAULT_CACHE_BYTES"]
+           "strain_operators", "quadrature_points", "point_kernels", "chunk_elements", "per_point",
+           "RecordingDamping", "DEFAULT_CACHE_BYTES"]
 
 #: Default byte budget of the kept linearizations (``trajectory_gradient(cache_bytes=...)``).
 DEFAULT_CACHE_BYTES = 1 << 30
@@ -42,9 +47,10 @@ class DampingLinearization:
         ``D = alpha M + beta K_psd(q)`` on ``model.pattern``.
     eig : list of (bad, values, V)
         Per material group (:func:`fem3d.diff.terms.element_groups`' order): the group-local
-        indices ``(k,)`` of the elements whose ``A`` has a negative eigenvalue (projected), its
-        eigenvalues ``(k, 9)`` and eigenvectors ``(k, 9, 9)`` (columns); every other element's
-        ``A`` is kept exactly.
+        indices ``(k,)`` of the quadrature points (element ``i``'s point ``j`` is
+        ``i nq + j``; a linear tet's one point: the element's index) whose ``A`` has a
+        negative eigenvalue (projected), its eigenvalues ``(k, 9)`` and eigenvectors
+        ``(k, 9, 9)`` (columns); every other point's ``A`` is kept exactly.
     """
 
     q: np.ndarray
@@ -99,13 +105,54 @@ def projected_eigen(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def strain_operators(Dm: np.ndarray) -> np.ndarray:
-    """``B = dF/dx`` of each element, ``(m, 9, 12)``: ``F_cj = sum_v x_vc Dm_vj`` with ``F``
-    row-major ``(c, j)`` and ``x`` ``(v, c)``."""
-    m = Dm.shape[0]
-    B = np.zeros((m, 3, 3, 4, 3))
+    """``B = dF/dx`` at each point, ``(p, 9, 3 n)``: ``F_cj = sum_v x_vc Dm_vj`` with ``F``
+    row-major ``(c, j)`` and ``x`` ``(v, c)``; ``Dm``: ``(p, n, 3)`` shape-function
+    gradients of the ``n`` nodes at ``p`` points (a linear tet: ``(m, 4, 3)``, ``B (m, 9, 12)``)."""
+    m, n = Dm.shape[0], Dm.shape[1]
+    B = np.zeros((m, 3, 3, n, 3))
     for c in range(3):
         B[:, c, :, :, c] = Dm.transpose(0, 2, 1)
-    return B.reshape(m, 9, 12)
+    return B.reshape(m, 9, 3 * n)
+
+
+def quadrature_points(model, els: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The element's quadrature points of elements ``els`` (None: all), flattened.
+
+    Parameters
+    ----------
+    model : Model
+        Its ``dphi_dX`` and ``vol`` (:meth:`fem3d.mesh.element.Element.rest_shape`: one
+        point per linear tet, ``(m, 4, 3)`` and ``(m,)``; ``nq`` per quadratic tet,
+        ``(m, nq, 10, 3)`` and ``(m, nq)``).
+    els : (k,) int, optional
+
+    Returns
+    -------
+    D : (k nq, n, 3) float64
+        Shape-function gradients at each point (element ``i``'s point ``j``: row
+        ``i nq + j``).
+    w : (k, nq) float64
+        The points' weights (``w det J``; a linear tet: its volume).
+    """
+    D = model.dphi_dX if els is None else model.dphi_dX[els]
+    w = model.vol if els is None else model.vol[els]
+    w = w.reshape(w.shape[0], -1)
+    return D.reshape(-1, model.element.n_nodes, 3), w
+
+
+def point_kernels(group):
+    """The per-``F`` kernels of a material group (``d2psi_dF2``, ``d3psi_contract``): the
+    material's own module, the same on every element (its element kernels evaluate them at
+    each quadrature point)."""
+    return material_kernels(group.material, group.kernels.backend)
+
+
+def chunk_elements(model) -> int:
+    """Elements per chunk of :func:`linearize_damping`: :data:`CHUNK` linear tets, and as
+    many bytes of an element's points' blocks for another element (``CHUNK * 144 /
+    (nq d^2)``, ``d`` its DOFs)."""
+    nq = model.vol.reshape(model.vol.shape[0], -1).shape[1]
+    return max(1, CHUNK * 144 // (nq * model.element.n_entries))
 
 
 #: Elements per chunk of :func:`linearize_damping` (bounds its temporaries, about 5 kB a tet:
@@ -121,49 +168,62 @@ def _add_blocks(data: np.ndarray, slots: np.ndarray, blocks: np.ndarray) -> None
                                minlength=hi - lo)
 
 
+def per_point(a: np.ndarray, nq: int) -> np.ndarray:
+    """Each element's row of ``a`` once per quadrature point (``a`` itself for one point)."""
+    return a if nq == 1 else np.repeat(a, nq, axis=0)
+
+
 def linearize_damping(term: RayleighDamping, groups: list[tuple], q: np.ndarray,
                       B: np.ndarray | None = None) -> DampingLinearization:
     """``D(q)`` of a Rayleigh damping term and its eigendecompositions (see
     :class:`DampingLinearization`): the same matrix as ``term.matrix_data(q)`` up to
     round-off (the projection by :func:`projected_eigen` instead of the C kernels' Jacobi
-    rotations). Elements go by chunks of :data:`CHUNK`.
+    rotations). Elements go by chunks of :func:`chunk_elements`.
 
     Parameters
     ----------
     term : RayleighDamping
-        Its ``alpha M`` and ``beta vol`` (active).
+        Its ``alpha M`` and ``beta w`` (active; per element, or per quadrature point).
     groups : list
         :func:`fem3d.diff.terms.element_groups` of its model.
     q : (3n,) or (n, 3) float64
-    B : (m, 9, 12) float64, optional
-        :func:`strain_operators` of the model (None: made per chunk).
+    B : (m nq, 9, d) float64, optional
+        :func:`strain_operators` at every quadrature point of the model (None: made per
+        chunk).
     """
     model = term.model
     q = np.array(q, dtype=np.float64).reshape(-1)
     data = np.zeros(model.nnz)
     eig = []
-    beta_vol = term._beta_vol
+    beta_w = term._beta_vol
     x = q.reshape(-1, 3)
-    scatter = model.scatter.reshape(-1, 144)
-    for g, els, params, inputs in groups if beta_vol is not None else ():
+    d, nq = model.element.n_dofs, model.vol.reshape(model.n_tets, -1).shape[1]
+    scatter = model.scatter.reshape(-1, d * d)
+    chunk = chunk_elements(model)
+    for g, els, params, inputs in groups if beta_w is not None else ():
+        kernels = point_kernels(g)
         parts = [(np.zeros(0, dtype=np.int64), np.zeros((0, 9)), np.zeros((0, 9, 9)))]
-        for lo in range(0, els.size, CHUNK):
-            cut = slice(lo, lo + CHUNK)
+        for lo in range(0, els.size, chunk):
+            cut = slice(lo, lo + chunk)
             e = els[cut]
             whole = e.size == model.n_tets  # every element, in order: no copies
-            Dm = model.dphi_dX if whole else model.dphi_dX[e]
-            Be = strain_operators(Dm) if B is None else B if whole else B[e]
-            F = np.einsum("evc,evj->ecj", x[model.T[e]], Dm)
-            A = g.kernels.d2psi_dF2(F, *(v[cut] for v in inputs), params[cut]).reshape(-1, 9, 9)
+            Dm, _ = quadrature_points(model, None if whole else e)
+            Be = strain_operators(Dm) if B is None else B if whole else \
+                B.reshape(model.n_tets, nq, 9, d)[e].reshape(-1, 9, d)
+            F = np.einsum("evc,evj->ecj", per_point(x[model.T[e]], nq), Dm)
+            A = kernels.d2psi_dF2(F, *(per_point(v[cut], nq) for v in inputs),
+                                  per_point(params[cut], nq)).reshape(-1, 9, 9)
             bad, values, V = projected_eigen(A)
             A[bad] = (V * np.maximum(values, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
             H = Be.transpose(0, 2, 1) @ (A @ Be)
-            H *= beta_vol[e, None, None]
+            H *= beta_w[e].reshape(-1)[:, None, None]
+            if nq > 1:  # the element's blocks: the sum over its points
+                H = H.reshape(e.size, nq, d, d).sum(axis=1)
             if whole:
                 data += np.bincount(model.scatter, weights=H.reshape(-1), minlength=data.size)
             else:
                 _add_blocks(data, scatter[e], H)
-            parts.append((bad + lo, values, V))
+            parts.append((bad + lo * nq, values, V))
         eig.append(tuple(np.concatenate(p) for p in zip(*parts, strict=True)))
     if term._alpha_mass is not None:
         data += term._alpha_mass
@@ -188,8 +248,10 @@ class RecordingDamping(RayleighDamping):
                  cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         super().__init__(term.model, term.alpha, term.beta)
         self.groups, self.cache_bytes = groups, int(cache_bytes)
-        #: the strain operators, kept for a model of one chunk (else made per chunk)
-        self.B = strain_operators(term.model.dphi_dX) if term.model.n_tets <= CHUNK else None
+        #: the strain operators at every quadrature point, kept for a model of one chunk
+        #: (else made per chunk)
+        self.B = strain_operators(quadrature_points(term.model)[0]) \
+            if term.model.n_tets <= chunk_elements(term.model) else None
         self.recording = False
         self.kept: dict[int, DampingLinearization] = {}
         self.peak_bytes = 0

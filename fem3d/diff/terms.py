@@ -34,7 +34,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from fem3d.diff.damping import DampingLinearization, linearize_damping
+from fem3d.diff.damping import (
+    DampingLinearization,
+    linearize_damping,
+    per_point,
+    point_kernels,
+    quadrature_points,
+)
 from fem3d.physics.assembly import hessian_data
 from fem3d.physics.materials import info
 
@@ -217,7 +223,8 @@ def element_groups(model) -> list[tuple]:
 
 
 def _lam_e(model, lf: np.ndarray, els: np.ndarray) -> np.ndarray:
-    return lf.reshape(-1, 3)[model.T[els]].reshape(-1, 12)
+    """``lf``'s values at the nodes of elements ``els``, node-major ``(k, 3 n_nodes)``."""
+    return lf.reshape(-1, 3)[model.T[els]].reshape(-1, model.element.n_dofs)
 
 
 class ElasticAdjoint(AdjointTerm):
@@ -299,8 +306,9 @@ class DampingAdjoint(AdjointTerm):
 
     @property
     def exact(self) -> bool:
-        """Whether every group's kernels have ``d3psi_contract`` (else: differences)."""
-        return all(hasattr(g.kernels, "d3psi_contract") for g, _, _, _ in self.groups)
+        """Whether every group's per-``F`` kernels have ``d3psi_contract`` (else:
+        differences)."""
+        return all(hasattr(point_kernels(g), "d3psi_contract") for g, _, _, _ in self.groups)
 
     def start_vjp(self, lf):
         self._exact = None
@@ -386,9 +394,10 @@ def psd_bilinear_vjp(kernels, F: np.ndarray, a: np.ndarray, b: np.ndarray, input
 
 def _damping_exact(adj: DampingAdjoint, lf: np.ndarray,
                    lin: DampingLinearization | None = None):
-    """Exact ``d/dq_n`` and ``d/dparams`` of ``sum_e beta_e vol_e a_e^T A_psd(F_e) b_e``
-    (``a = B lambda_e``, ``b = B u_e``; ``B``: ``dF/dx``) and the per-element
-    ``vol_e a_e^T A_psd b_e`` (for ``d/dbeta``): ``(dq (n_dofs,), (n_tets,), [per group
+    """Exact ``d/dq_n`` and ``d/dparams`` of ``sum_e beta_e sum_q w_q a_q^T A_psd(F_q) b_q``
+    over the elements' quadrature points (``a_q = B_q lambda_e``, ``b_q = B_q u_e``; ``B_q``:
+    ``dF_q/dx_e``, :func:`~fem3d.diff.damping.quadrature_points`) and the per-element
+    ``sum_q w_q a_q^T A_psd b_q`` (for ``d/dbeta``): ``(dq (n_dofs,), (n_tets,), [per group
     (k, n_params)])``; ``lin``: the eigendecompositions at ``q_n`` (None: computed here)."""
     model, pair = adj.model, adj.pair
     x = pair.q0.reshape(-1, 3)
@@ -397,26 +406,30 @@ def _damping_exact(adj: DampingAdjoint, lf: np.ndarray,
     per_tet = np.zeros(model.n_tets)
     per_group = []
     for i, (g, els, params, inputs) in enumerate(adj.groups):
-        T, D = model.T[els], model.dphi_dX[els]
+        D, w_q = quadrature_points(model, els)  # (k nq, n, 3), (k, nq)
+        nq = w_q.shape[1]
+        T = per_point(model.T[els], nq)
         F = np.einsum("evc,evj->ecj", x[T], D)
         a = np.einsum("evc,evj->ecj", lam[T], D).reshape(-1, 9)
         b = np.einsum("evc,evj->ecj", u[T], D).reshape(-1, 9)
-        s, dF, dp = psd_bilinear_vjp(g.kernels, F, a, b, inputs, params,
+        s, dF, dp = psd_bilinear_vjp(point_kernels(g), F, a, b,
+                                     tuple(per_point(v, nq) for v in inputs),
+                                     per_point(params, nq),
                                      None if lin is None else lin.eig[i])
-        w = adj.beta[els] * model.vol[els]
-        f = (w[:, None, None] * dF) @ D.transpose(0, 2, 1)  # (k, 3 c, 4 v)
+        w = (adj.beta[els][:, None] * w_q).reshape(-1)
+        f = (w[:, None, None] * dF) @ D.transpose(0, 2, 1)  # (k nq, 3 c, n v)
         for c in range(3):
             dq[:, c] += np.bincount(T.reshape(-1), weights=f[:, c, :].reshape(-1),
                                     minlength=model.n_vertices)
-        per_tet[els] = model.vol[els] * s
-        per_group.append(w[:, None] * dp)
+        per_tet[els] = (w_q * s.reshape(w_q.shape)).sum(axis=1)
+        per_group.append((w[:, None] * dp).reshape(els.size, nq, -1).sum(axis=1))
     return dq.reshape(-1), per_tet, per_group
 
 
 def _bilinear(adj: DampingAdjoint, q0, lf, v, *, with_beta: bool = True,
               group_params=None, x_e=None) -> np.ndarray:
     """``beta_e lambda_e^T H_psd,e v_e`` of every element (``with_beta=False``: without
-    ``beta_e``), at ``q0`` or at element positions ``x_e (m, 4, 3)``; ``group_params``: a
+    ``beta_e``), at ``q0`` or at element positions ``x_e (m, n_nodes, 3)``; ``group_params``: a
     function of the group index giving its (perturbed) parameters."""
     model = adj.model
     if x_e is None:
@@ -426,8 +439,9 @@ def _bilinear(adj: DampingAdjoint, q0, lf, v, *, with_beta: bool = True,
     for i, (g, els, params, inputs) in enumerate(adj.groups):
         p = params if group_params is None else group_params(i)
         H = g.kernels.hessian_psd(x_e[els], model.dphi_dX[els], model.vol[els], *inputs, p)
-        out[els] = np.einsum("ea,eab,eb->e", lam[model.T[els]].reshape(-1, 12), H,
-                             vv[model.T[els]].reshape(-1, 12))
+        d = model.element.n_dofs
+        out[els] = np.einsum("ea,eab,eb->e", lam[model.T[els]].reshape(-1, d), H,
+                             vv[model.T[els]].reshape(-1, d))
     return out * adj.beta if with_beta else out
 
 
@@ -462,7 +476,7 @@ def _damping_state_vjp(adj: DampingAdjoint, q0, lf, v1) -> np.ndarray:
     h = 1e-6 * L
     out = np.zeros(model.n_dofs)
     base = q0.reshape(-1, 3)
-    for a in range(12):
+    for a in range(model.element.n_dofs):
         vert, comp = divmod(a, 3)
         diffs = 0.0
         for sign in (1.0, -1.0):

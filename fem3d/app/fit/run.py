@@ -30,6 +30,7 @@ from fem3d.diff.params import is_field_key, parse_param_key
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io.dataset import read_run_frames
 from fem3d.io.files import atomic_write
+from fem3d.mesh.element import element
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.scene.arrays import build_arrays, select_vertices
 from fem3d.scene.build import _cell_field
@@ -247,16 +248,17 @@ class FieldMeshes:
         if self.folder is None:
             self.folder = Path(tempfile.mkdtemp(prefix="fem3d-fit-"))
         mesh = meshio.read(base.path(base.bodies[body].mesh))
-        blocks = [j for j, c in enumerate(mesh.cells) if c.type == "tetra"]
-        T = np.concatenate([mesh.cells[j].data for j in blocks])
-        data = {n: [np.concatenate([np.asarray(a[j]) for j in blocks])]
-                for n, a in mesh.cell_data.items()}
+        kinds = ("tetra", element(base.bodies[body].element).cell_type)  # as _cell_field reads
+        blocks = [j for j, c in enumerate(mesh.cells) if c.type in kinds]
+        cells = [(mesh.cells[j].type, mesh.cells[j].data) for j in blocks]
+        cuts = np.cumsum([len(mesh.cells[j].data) for j in blocks])[:-1]
+        data = {n: [np.asarray(a[j]) for j in blocks] for n, a in mesh.cell_data.items()}
         names = base.bodies[body].material.cell_fields
         for param, v in fields.items():
-            data[names[param]] = [v]
+            data[names[param]] = np.split(v, cuts)
         self.count += 1
         path = self.folder / f"body{body}_{self.count}.vtu"
-        meshio.write(path, meshio.Mesh(mesh.points, [("tetra", T)], cell_data=data))
+        meshio.write(path, meshio.Mesh(mesh.points, cells, cell_data=data))
         old = self.meshes.get(body)
         self.meshes[body] = path
         if old is not None and old != path:
