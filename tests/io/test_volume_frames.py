@@ -125,6 +125,20 @@ def test_volume_frames_resume(beam, tmp_path):
     assert (whole / "volume.pvd").read_text() == (part / "volume.pvd").read_text()
 
 
+def test_distributed_runs_refuse_the_volume(beam):
+    """``mpiexec`` runs write the surface's pieces only: ``output.volume`` is refused in one
+    line naming the key, not ignored."""
+    from fem3d.errors import InputError
+    from fem3d.parallel.run import check_distributable
+
+    scene = load_scene("cantilever", _overrides(beam, "p1", 1))
+    with pytest.raises(InputError, match=r"output\.volume: mpiexec -n 2 runs") as info:
+        check_distributable(scene, 2)
+    assert "\n" not in str(info.value)
+    check_distributable(load_scene("cantilever", {**_overrides(beam, "p1", 1),
+                                                  "output.volume": False}), 2)
+
+
 # ---------------------------------------------------------------------------- other outputs
 HAS_USD = importlib.util.find_spec("pxr") is not None
 
