@@ -77,6 +77,7 @@ def test_bad_tetrahedra_p2_files_are_one_line(beam, tmp_path, capsys):
     line = _one_line(capsys, ["run", "cantilever", "--set", f"bodies[0].mesh={str(good)!r}",
                               "--steps", "1", "--out", str(tmp_path / "o1"), "--quiet"])
     assert "bodies[0].element" in line and 'element = "p2"' in line
+    assert line.count("bodies[0]") == 1 and line.count("cantilever.toml") == 1  # said once
 
     T_bad = T2.copy()
     T_bad[2, 7] = len(X2) + 5  # 1-based: len + 6
