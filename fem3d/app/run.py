@@ -255,10 +255,11 @@ class RunLoop:
         if step % self.frame_every == 0:
             V = self.sim.skin_positions()
             vtu = self.scene.output.format == "vtu"
-            stress = element_stress(self.sim.model, self.sim.q) if vtu or self.volume else None
+            volume = self.volume is not None
+            stress = element_stress(self.sim.model, self.sim.q) if vtu or volume else None
             fields = self._stress_fields(stress) if vtu else None
             self.writer.write(step, t, V, fields)  # refuses non-finite coordinates
-            if self.volume is not None:
+            if volume:
                 self.volume.write(step, t, self.sim.q.reshape(-1, 3),
                                   vertex_fields(self.sim.model, self.sim.q, stress),
                                   cell_data=element_fields(stress))

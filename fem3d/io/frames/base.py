@@ -6,7 +6,8 @@
 - :class:`FrameSink` - the writer's protocol: ``write`` appends a frame, ``flush`` puts
   everything on disk, ``close`` ends, ``restore`` continues a run from a checkpoint's list,
   ``read_frames`` reads frames back.
-- :func:`check_faces`, :func:`check_vertices` - the input checks every writer makes.
+- :func:`check_faces`, :func:`check_cells`, :func:`check_vertices` - the input checks every
+  writer makes.
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ def _le(a: np.ndarray) -> np.ndarray:
 def _data_array(name: str | None, a: np.ndarray, offset: int, components: int) -> str:
     vtk = _VTK_TYPES.get(a.dtype.str)
     if vtk is None:
-        raise ValueError(f"point data {name!r}: cannot write dtype {a.dtype} to VTU")
+        raise ValueError(f"field {name!r}: cannot write dtype {a.dtype} to VTU")
     named = f" Name={quoteattr(name)}" if name is not None else ""
     comps = f' NumberOfComponents="{components}"' if components > 1 else ""
     return f'<DataArray type="{vtk}"{named}{comps} format="appended" offset="{offset}"/>'
