@@ -33,6 +33,8 @@ SCENES = ["cantilever", "twist", "bunny_surface", "armadillo_surface", "jelly_ne
 #: name -> (cells (nx, ny, nz), size (x, y, z))
 BOXES = {
     "beam_40x4x4": ((40, 4, 4), (1.0, 0.1, 0.1)),
+    "beam_20x2x2": ((20, 2, 2), (1.0, 0.1, 0.1)),  # beam_p1: as many nodes as beam_p2's P2
+    "beam_10x1x1": ((10, 1, 1), (1.0, 0.1, 0.1)),
     "bar_16x4x4": ((16, 4, 4), (1.0, 0.25, 0.25)),
     "cube_6": ((6, 6, 6), (0.2, 0.2, 0.2)),
     "hanging_bar_3x12x3": ((3, 12, 3), (0.1, 0.6, 0.1)),

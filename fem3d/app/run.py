@@ -7,6 +7,8 @@ in, a :class:`RunSummary` out. It writes into its output folder:
 * the display mesh per frame (``scene.output``: ``frames/*.vtu`` + ``frames.pvd``,
   ``frames/*.obj``, or one ``frames.usdc``); the VTU frames carry the von Mises stress, the
   Cauchy stress and the principal stretches as point data (vertex averages of the elements');
+* with ``output.volume``, the volume mesh per frame (``volume/*.vtu`` + ``volume.pvd``: the
+  element's own cells, per-element stress as cell data and its vertex averages);
 * ``energy.csv`` (``t,kinetic,potential,total``) and ``energy.png``;
 * ``reactions.csv`` - the force each pin exerts per step (:mod:`fem3d.io.reactions`);
 * ``preview.gif`` - a shaded offscreen animation;
@@ -53,9 +55,10 @@ from fem3d.io.checkpoint import (
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import frame_format, make_frame_writer
+from fem3d.io.frames.volume import VolumeVtuWriter
 from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.physics.stress import vertex_fields
+from fem3d.physics.stress import element_fields, element_stress, vertex_fields
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
 
@@ -208,6 +211,9 @@ class RunLoop:
         self.writer = BackgroundWriter(make_frame_writer(
             out, self.faces, scene.output.format, bodies=_display_bodies(scene, sim),
             dt=sim.dt, obstacles=self.obstacles))
+        self.volume = (BackgroundWriter(VolumeVtuWriter(out, sim.model.T,
+                                                        sim.model.element.vtk_type))
+                       if scene.output.volume else None)
         n_frames = self.steps // self.frame_every + 1
         self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
         self.preview: list[np.ndarray] = []
@@ -221,6 +227,8 @@ class RunLoop:
         else:  # resume: the saved energy rows and frame list; frames after the checkpoint go
             self.log = EnergyLog.from_array(ckpt.energy, out / "energy.csv")
             self.writer.restore(ckpt.frames, ckpt.step)
+            if self.volume is not None:
+                self.volume.restore(ckpt.frames, ckpt.step)
             self.frame_count = ckpt.frame_count
             self.log.write()
             if self.preview_on:
@@ -246,8 +254,15 @@ class RunLoop:
             raise SimulationError("non-finite energy (nothing written for this step)", step=step)
         if step % self.frame_every == 0:
             V = self.sim.skin_positions()
-            fields = self._stress_fields() if self.scene.output.format == "vtu" else None
+            vtu = self.scene.output.format == "vtu"
+            volume = self.volume is not None
+            stress = element_stress(self.sim.model, self.sim.q) if vtu or volume else None
+            fields = self._stress_fields(stress) if vtu else None
             self.writer.write(step, t, V, fields)  # refuses non-finite coordinates
+            if volume:
+                self.volume.write(step, t, self.sim.q.reshape(-1, 3),
+                                  vertex_fields(self.sim.model, self.sim.q, stress),
+                                  cell_data=element_fields(stress))
             if self.frame_count % self.preview_stride == 0:
                 self.preview.append(V)
                 self.preview_times.append(float(t))
@@ -257,11 +272,12 @@ class RunLoop:
         if self.reactions.pins:
             self.reactions.append(step, t, self.sim.reactions())
 
-    def _stress_fields(self) -> dict[str, np.ndarray]:
+    def _stress_fields(self, stress) -> dict[str, np.ndarray]:
         """The frame's point data: von Mises stress, Cauchy stress (9 components) and principal
-        stretches averaged at the vertices (:func:`fem3d.physics.stress.vertex_fields`), on
-        the display mesh (through the skinning weights when it is a skin)."""
-        fields = vertex_fields(self.sim.model, self.sim.q)
+        stretches averaged at the vertices (:func:`fem3d.physics.stress.vertex_fields` of the
+        elements' ``stress``), on the display mesh (through the skinning weights when it is a
+        skin)."""
+        fields = vertex_fields(self.sim.model, self.sim.q, stress)
         W = self.sim.skinning_matrix
         return fields if W is None else {k: np.asarray(W @ v) for k, v in fields.items()}
 
@@ -270,6 +286,8 @@ class RunLoop:
         self.log.write()  # energy.csv and the checkpoint agree
         self.reactions.write()
         self.writer.flush()
+        if self.volume is not None:
+            self.volume.flush()
         return save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
             settings=self.settings, snapshot=self.sim.snapshot(), energy=self.log.as_array(),
             frames=dict(self.writer.frames), frame_count=self.frame_count,
@@ -281,7 +299,9 @@ class RunLoop:
         try:
             return self._run()
         finally:
-            self.writer.abandon()  # the frame thread stops on every way out
+            self.writer.abandon()  # the frame threads stop on every way out
+            if self.volume is not None:
+                self.volume.abandon()
 
     def _run(self) -> RunSummary:
         sim, out, command = self.sim, self.out, self.command
@@ -328,6 +348,8 @@ class RunLoop:
         if intr.signum is not None:  # stop before any slow output
             return self._interrupted(intr, t_start)
         self.writer.close()  # every frame on disk (or the writer's error)
+        if self.volume is not None:
+            self.volume.close()
         wall = time.perf_counter() - t_start
         self._write_outputs(status, wall)
         return self._summary(status, message, wall)

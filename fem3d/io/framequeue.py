@@ -88,9 +88,13 @@ class BackgroundWriter:
                 self._queue.task_done()
 
     def _write_one(self, step: int, t: float, V: np.ndarray,
-                   point_data: Mapping[str, np.ndarray] | None) -> None:
+                   point_data: Mapping[str, np.ndarray] | None,
+                   cell_data: Mapping[str, np.ndarray] | None) -> None:
         try:
-            self.writer.write(step, t, V, point_data)
+            if cell_data is None:
+                self.writer.write(step, t, V, point_data)
+            else:
+                self.writer.write(step, t, V, point_data, cell_data=cell_data)
             now = time.monotonic()
             if self._queue.empty() and now - self._last_index >= self.index_seconds:
                 self._write_index()
@@ -114,8 +118,11 @@ class BackgroundWriter:
         return self._error is not None
 
     def write(self, step_index: int, t: float, V: np.ndarray,
-              point_data: Mapping[str, np.ndarray] | None = None) -> None:
-        """Queue one frame (a copy of ``V``); wait if ``depth`` frames are queued.
+              point_data: Mapping[str, np.ndarray] | None = None,
+              cell_data: Mapping[str, np.ndarray] | None = None) -> None:
+        """Queue one frame (a copy of ``V``; ``cell_data`` only for a writer that takes it,
+        :class:`~fem3d.io.frames.volume.VolumeVtuWriter`); wait if ``depth`` frames are
+        queued.
 
         Raises
         ------
@@ -131,7 +138,8 @@ class BackgroundWriter:
             raise RuntimeError("frame writer closed: no frame can be queued after close()")
         V = np.array(check_vertices(V, self.faces, int(step_index)), dtype=np.float64)
         data = None if point_data is None else {k: np.array(v) for k, v in point_data.items()}
-        item = (int(step_index), float(t), V, data)
+        cells = None if cell_data is None else {k: np.array(v) for k, v in cell_data.items()}
+        item = (int(step_index), float(t), V, data, cells)
         try:
             self._queue.put_nowait(item)
         except queue.Full:

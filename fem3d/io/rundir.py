@@ -11,12 +11,12 @@
   line naming the other process. It is removed when the run ends (normally, failed, or
   interrupted), so a finished run folder holds only the run's outputs.
 * **Overwrite check**: the run refuses when a file it writes (``frames/*``, ``frames.pvd``,
-  ``energy.csv``, ``energy.png``, ``preview.gif``, ``checkpoint.npz``) is one of its inputs
-  (mesh, skin, scene file, ...). ``fem3d resume`` passes the checkpoint it resumes as
-  ``allow`` (it replaces it atomically, on purpose).
+  ``volume/*``, ``volume.pvd``, ``energy.csv``, ``energy.png``, ``preview.gif``,
+  ``checkpoint.npz``) is one of its inputs (mesh, skin, scene file, ...). ``fem3d resume``
+  passes the checkpoint it resumes as ``allow`` (it replaces it atomically, on purpose).
 * **Temp cleanup**: the hidden ``.<name>.tmp*`` files that only a killed writer leaves
-  behind (:func:`fem3d.io.files.atomic_path`) in ``DIR`` and ``DIR/frames`` are removed once
-  the lock is held (:func:`fem3d.io.files.clean_temp_files`).
+  behind (:func:`fem3d.io.files.atomic_path`) in ``DIR`` and its output folders are removed
+  once the lock is held (:func:`fem3d.io.files.clean_temp_files`).
 
 The checks every reader makes (:func:`fem3d.io.files.check_input_file`) and the atomic writes
 live in :mod:`fem3d.io.files`.
@@ -42,11 +42,12 @@ __all__ = ["LOCK_NAME", "OUTPUT_NAMES", "OUTPUT_FOLDERS", "claim",
            "check_overwrite", "warnings_as_lines"]
 
 LOCK_NAME = ".fem3d.lock"
-#: Files a run writes into its output folder (``frames/`` and ``obstacles/`` are written as
-#: wholes).
-OUTPUT_NAMES = ("frames.pvd", "energy.csv", "energy.png", "preview.gif", "checkpoint.npz")
+#: Files a run writes into its output folder (``frames/``, ``obstacles/`` and ``volume/`` are
+#: written as wholes).
+OUTPUT_NAMES = ("frames.pvd", "volume.pvd", "energy.csv", "energy.png", "preview.gif",
+                "checkpoint.npz")
 #: The folders of files a run writes.
-OUTPUT_FOLDERS = ("frames", "obstacles")
+OUTPUT_FOLDERS = ("frames", "obstacles", "volume")
 
 
 def _same_file(a: Path, b: Path) -> bool:

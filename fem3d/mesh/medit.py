@@ -8,6 +8,8 @@ digits), and its error messages carry no line numbers.
   (:func:`_read_medit_plain`), anything else token by token with line numbers
   (:func:`_read_medit_tokens`, :class:`fem3d.mesh.textscan.Tokens`).
 - :func:`medit_tet_mesh`, :func:`medit_surface_mesh` - the validated meshes of a file.
+- :func:`medit_p2_tets` - the 10-node tets of a ``TetrahedraP2`` section (:func:`has_tetrahedra_p2`
+  says whether a file has one without parsing it).
 - :func:`write_medit` - version 2 (double precision).
 """
 
@@ -25,8 +27,8 @@ from fem3d.io.files import read_text_file
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, validate_surface_mesh, validate_tet_mesh
 from fem3d.mesh.textscan import Tokens, is_number
 
-__all__ = ["MEDIT_KEYWORDS", "medit_surface_mesh", "medit_tet_mesh", "read_medit",
-           "write_medit"]
+__all__ = ["MEDIT_KEYWORDS", "has_tetrahedra_p2", "medit_p2_tets", "medit_surface_mesh",
+           "medit_tet_mesh", "read_medit", "write_medit"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
@@ -37,6 +39,7 @@ _MEDIT_SECTIONS: dict[str, int] = {
     "triangles": 4,
     "quadrilaterals": 5,
     "tetrahedra": 5,
+    "tetrahedrap2": 11,  # 4 corners, 6 edge nodes (edges 12, 23, 13, 14, 24, 34), reference
     "hexahedra": 9,
     "prisms": 7,
     "pyramids": 6,
@@ -226,6 +229,66 @@ def medit_tet_mesh(path: Path) -> TetMesh:
     _stages.debug("read mesh")
     return validate_tet_mesh(Xr[:, :3], Tr[:, :4] - 1, path=path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=1)
+
+
+#: A ``TetrahedraP2`` keyword at a line's start (any case).
+_TETRAHEDRA_P2 = re.compile(rb"(?im)^[ \t]*tetrahedrap2\b")
+
+
+def has_tetrahedra_p2(path: Path) -> bool:
+    """Whether the MEDIT file ``path`` has a ``TetrahedraP2`` keyword (a byte scan, no
+    parsing: a linear mesh is parsed once, by its own reader)."""
+    try:
+        return _TETRAHEDRA_P2.search(Path(path).read_bytes()) is not None
+    except OSError:
+        return False
+
+
+def medit_p2_tets(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices and 10-node tets of a MEDIT file's ``TetrahedraP2`` section.
+
+    The node order of a record is MEDIT's (P. L. Georges, *Génération automatique de
+    maillages*, 1994): the four corners, then the nodes of edges 12, 23, 13, 14, 24, 34 (1-based
+    corners), which is VTK's ``tetra10`` and :data:`fem3d.mesh.element.TET_EDGES`.
+
+    Returns
+    -------
+    X : (n, 3) float64
+        Every vertex of the file.
+    T : (m, 10) int64
+        0-based.
+
+    Raises
+    ------
+    InputError
+        No vertices, no or an empty ``TetrahedraP2`` section, linear tetrahedra beside it,
+        an index outside the vertices (naming the line), a non-finite coordinate.
+    """
+    sec = read_medit(path)
+    if "vertices" not in sec:
+        raise InputError("no Vertices section", path=path)
+    X, vlines = sec["vertices"]
+    if "tetrahedrap2" not in sec or sec["tetrahedrap2"][0].shape[0] == 0:
+        raise InputError("mesh has no 10-node tetrahedra (no or empty TetrahedraP2 section)",
+                         path=path)
+    if "tetrahedra" in sec and sec["tetrahedra"][0].shape[0]:
+        raise InputError("mesh mixes 4-node (Tetrahedra) and 10-node (TetrahedraP2) "
+                         "tetrahedra", path=path)
+    records, lines = sec["tetrahedrap2"]
+    T = records[:, :10] - 1
+    bad = ((T < 0) | (T >= X.shape[0])).any(axis=1)
+    if bad.any():
+        e = int(np.flatnonzero(bad)[0])
+        v = int(records[e, :10][(T[e] < 0) | (T[e] >= X.shape[0])][0])
+        raise InputError(f"TetrahedraP2 record {e + 1} refers to vertex {v}, outside "
+                         f"1..{X.shape[0]}", path=path, line=int(lines[e]))
+    finite = np.isfinite(X[:, :3]).all(axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise InputError(f"vertex {i + 1} has a non-finite coordinate", path=path,
+                         line=int(vlines[i]))
+    _stages.debug("read mesh")
+    return np.ascontiguousarray(X[:, :3]), np.ascontiguousarray(T)
 
 
 def medit_surface_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:

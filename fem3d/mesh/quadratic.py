@@ -4,7 +4,8 @@ A P2 mesh has the nodes of :class:`fem3d.mesh.element.P2Tet`: each element's fou
 then one node on each of its six edges (:data:`fem3d.mesh.element.TET_EDGES` order, VTK's
 ``tetra10``). :func:`lift_to_p2` makes one from any linear mesh (the edge nodes at the edges'
 midpoints, each shared edge once); :func:`read_p2_mesh` reads the ``tetra10`` cells of a file
-meshio reads (Gmsh ``.msh``: meshio maps Gmsh's node order to VTK's; ``.vtu``/``.vtk``).
+meshio reads (Gmsh ``.msh``: meshio maps Gmsh's node order to VTK's; ``.vtu``/``.vtk``) or
+the ``TetrahedraP2`` section of a MEDIT ``.mesh`` (an own reader: meshio has none).
 Whether the elements are valid (the Jacobian positive at every quadrature point) is the
 model's check (:func:`fem3d.physics.model.build_model`).
 """
@@ -18,6 +19,7 @@ import numpy as np
 
 from fem3d.errors import InputError
 from fem3d.mesh.element import TET_EDGES, Element
+from fem3d.mesh.medit import has_tetrahedra_p2, medit_p2_tets
 
 __all__ = ["edge_nodes", "has_p2_cells", "lift_to_p2", "read_p2_mesh", "write_element_mesh"]
 
@@ -75,9 +77,12 @@ def lift_to_p2(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def has_p2_cells(path: str | Path) -> bool:
-    """Whether ``path`` is a file meshio reads that holds ``tetra10`` cells (False for any
-    file meshio cannot read, a MEDIT ``.mesh`` or a surface: those are read as linear)."""
+    """Whether ``path`` is a file meshio reads that holds ``tetra10`` cells, or a MEDIT
+    ``.mesh`` with a ``TetrahedraP2`` section (False for any other file: those are read as
+    linear)."""
     p = Path(path)
+    if p.suffix.lower() == ".mesh":
+        return has_tetrahedra_p2(p)
     if p.suffix.lower() not in _MESHIO_SUFFIXES:
         return False
     try:
@@ -103,12 +108,14 @@ _MESHIO_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf")
 
 
 def read_p2_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read the 10-node tets of a mesh file (through meshio).
+    """Read the 10-node tets of a mesh file (through meshio; MEDIT's ``TetrahedraP2`` by
+    :func:`fem3d.mesh.medit.medit_p2_tets`, which meshio does not read).
 
     Parameters
     ----------
     path : str or Path
-        A Gmsh ``.msh``, VTK ``.vtu``/``.vtk`` or XDMF file with ``tetra10`` cells.
+        A Gmsh ``.msh``, VTK ``.vtu``/``.vtk`` or XDMF file with ``tetra10`` cells, or a
+        MEDIT ``.mesh`` with a ``TetrahedraP2`` section.
 
     Returns
     -------
@@ -123,9 +130,29 @@ def read_p2_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         No ``tetra10`` cells, linear and quadratic tets mixed, an index out of range, a
         non-finite coordinate or an edge node that two tets number differently.
     """
+    p = Path(path)
+    if p.suffix.lower() == ".mesh":
+        points, T = medit_p2_tets(p)
+    else:
+        points, T = _meshio_p2_cells(p)
+    if T.min() < 0 or T.max() >= points.shape[0]:
+        e = int(np.flatnonzero(((T < 0) | (T >= points.shape[0])).any(axis=1))[0])
+        raise InputError(f"10-node tet refers to node {int(T[e].max())}, outside "
+                         f"[0, {points.shape[0]})", path=p, element=e)
+    used, T = np.unique(T, return_inverse=True)
+    T = T.reshape(-1, 10)
+    X = np.ascontiguousarray(points[used])
+    if not np.isfinite(X).all():
+        raise InputError("node has a non-finite coordinate", path=p,
+                         element=int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0]))
+    _check_shared_edges(T, p)
+    return X, T
+
+
+def _meshio_p2_cells(p: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The points ``(n, 3)`` and ``tetra10`` cells ``(m, 10)`` of a file meshio reads."""
     import meshio
 
-    p = Path(path)
     try:
         mesh = meshio.read(p)
     except Exception as exc:  # noqa: BLE001 - meshio raises many kinds
@@ -139,19 +166,7 @@ def read_p2_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     points = np.asarray(mesh.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] < 3:
         points = np.pad(points, ((0, 0), (0, 3 - points.shape[1])))
-    points = points[:, :3]
-    if T.min() < 0 or T.max() >= points.shape[0]:
-        e = int(np.flatnonzero(((T < 0) | (T >= points.shape[0])).any(axis=1))[0])
-        raise InputError(f"10-node tet refers to node {int(T[e].max())}, outside "
-                         f"[0, {points.shape[0]})", path=p, element=e)
-    used, T = np.unique(T, return_inverse=True)
-    T = T.reshape(-1, 10)
-    X = np.ascontiguousarray(points[used])
-    if not np.isfinite(X).all():
-        raise InputError("node has a non-finite coordinate", path=p,
-                         element=int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0]))
-    _check_shared_edges(T, p)
-    return X, T
+    return points[:, :3], T
 
 
 def _check_shared_edges(T: np.ndarray, path: Path) -> None:

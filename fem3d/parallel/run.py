@@ -56,7 +56,7 @@ def check_distributable(scene: Any, ranks: int) -> None:
     ------
     InputError
         Contact, pulls, a scheme not marked ``distributed``, a Newton
-        direction other than ``direct``, frames other than ``vtu``.
+        direction other than ``direct``, frames other than ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"
     if scene.contact.enabled:
@@ -76,6 +76,9 @@ def check_distributable(scene: Any, ranks: int) -> None:
     if scene.output.format != "vtu":
         raise scene.error("output.format", f"{why} write vtu pieces, not "
                           f"{scene.output.format!r}")
+    if scene.output.volume:
+        raise scene.error("output.volume", f"{why} write the surface's vtu pieces, not the "
+                          "volume mesh: run without mpiexec for volume/*.vtu")
 
 
 def distributed_system(comm: Any, petsc_options: str = ""):

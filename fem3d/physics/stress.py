@@ -17,7 +17,7 @@ import numpy as np
 from fem3d.mesh.element import ELEMENTS
 from fem3d.physics.model import Model
 
-__all__ = ["ElementStress", "element_stress", "vertex_fields"]
+__all__ = ["ElementStress", "element_fields", "element_stress", "vertex_fields"]
 
 
 @dataclass(frozen=True)
@@ -70,10 +70,19 @@ def element_stress(model: Model, q: np.ndarray) -> ElementStress:
     return ElementStress(mean(sigma), mean(von_mises), mean(stretches))
 
 
-def vertex_fields(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
+def element_fields(e: ElementStress) -> dict[str, np.ndarray]:
+    """:func:`element_stress` as cell data: ``von_mises`` ``(m,)``, ``cauchy_stress``
+    ``(m, 9)`` (row-major), ``principal_stretches`` ``(m, 3)``."""
+    return {"von_mises": e.von_mises, "cauchy_stress": e.cauchy.reshape(-1, 9),
+            "principal_stretches": e.stretches}
+
+
+def vertex_fields(model: Model, q: np.ndarray,
+                  e: ElementStress | None = None) -> dict[str, np.ndarray]:
     """Volume-weighted vertex averages of :func:`element_stress` for point data: ``von_mises``
-    ``(n,)``, ``cauchy_stress`` ``(n, 9)`` (row-major), ``principal_stretches`` ``(n, 3)``."""
-    e = element_stress(model, q)
+    ``(n,)``, ``cauchy_stress`` ``(n, 9)`` (row-major), ``principal_stretches`` ``(n, 3)``
+    (``e``: the elements' stress at ``q`` if already computed)."""
+    e = element_stress(model, q) if e is None else e
     k = model.T.shape[1]
     w = np.repeat(model.element.volumes(model.vol), k)
     idx = model.T.reshape(-1)

@@ -150,11 +150,12 @@ def body_mesh(scene: Scene, i: int) -> BodyMesh:
     except InputError as exc:
         raise scene.error(key, f"{path}: {exc.reason}") from None
     skin_V = skin_F = None
+    quadratic = has_p2_cells(path)
+    if quadratic and body.element != "p2":
+        raise scene.error(f"bodies[{i}].element", f"{path.name} has 10-node (quadratic) "
+                          "tets: set element = \"p2\"")
     try:
-        if has_p2_cells(path):
-            if body.element != "p2":
-                raise scene.error(f"bodies[{i}].element", f"{path.name} has 10-node "
-                                  f"(quadratic) tets: set element = \"p2\"")
+        if quadratic:
             X, T = read_p2_mesh(path)
             tet_path = path
         elif is_surface_file(path):

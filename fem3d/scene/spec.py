@@ -486,10 +486,15 @@ class PreviewSpec(_Spec):
 
 
 class OutputSpec(_Spec):
-    """Frames written by ``fem3d run``: format and stride (steps); the preview's camera."""
+    """Frames written by ``fem3d run``: format and stride (steps); the volume mesh beside them;
+    the preview's camera."""
 
     format: FrameFormatName = "vtu"
     every: Annotated[StrictInt, Field(ge=1)] = 1
+    volume: StrictBool = Field(
+        default=False,
+        description="also write the volume mesh at every frame: volume/*.vtu + volume.pvd, "
+                    "the element's own cells (tetra, tetra10) with per-element stress")
     preview: PreviewSpec = PreviewSpec()
 
 

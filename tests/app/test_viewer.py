@@ -843,3 +843,53 @@ def test_contact_scene_camera_frames_the_ground_under_the_body() -> None:
         z = d @ fwd
         assert (z > 0).all(), name
         assert (np.abs(d @ up / z) < half).all(), f"the {name} leaves the view vertically"
+
+
+@needs_viser
+def test_a_p2_body_is_drawn_subdivided_and_dragged(tmp_path) -> None:  # noqa: ANN001
+    """A P2 scene opens; the mesh node sent to the browser holds every node (corners and edge
+    nodes) and the subdivided quadratic surface (4 triangles per boundary face); a drag picks
+    nodes (edge nodes among them), the body follows it and the node's vertices move."""
+    from fem3d.app.viewer.app import Viewer
+    from fem3d.mesh.element import ELEMENTS
+    from fem3d.mesh.formats import write_tet_mesh
+    from fem3d.mesh.tetmesh import TetMesh, box_tet_mesh
+
+    write_tet_mesh(tmp_path / "beam.mesh", TetMesh(*box_tet_mesh((4, 1, 1), (1.0, 0.25, 0.25))))
+    (tmp_path / "p2.toml").write_text(
+        'name = "p2_beam"\n[simulation]\nintegrator = "implicit"\ndt = 0.01\n'
+        '[[bodies]]\nmesh = "beam.mesh"\nelement = "p2"\n'
+        'material = { model = "neo_hookean", E = 1e5, nu = 0.3, density = 1000.0 }\n'
+        'pins = [{ select = { box = [[-1, -1, -1], [1e-6, 1, 1]] } }]\n')
+    p2 = ELEMENTS["p2"]
+    with Viewer(str(tmp_path / "p2.toml"), port=0, realtime=False, run_unwatched=True,
+                push_hz=30.0) as v:
+        wait_for(lambda: v.snapshot()["steps"] > 2, 60, "steps")
+        sim = v._sim
+        assert sim.model.element is p2
+        T = sim.model.T
+        handle = v._graph.mesh_handle
+        faces = np.asarray(handle.faces)
+        assert faces.shape == (4 * p2.boundary_faces(T).shape[0], 3)
+        assert np.array_equal(faces, p2.surface_triangles(T))
+        assert np.asarray(handle.vertices).shape == (sim.model.n_vertices, 3) == (81, 3)
+        assert np.isin(faces, T[:, 4:]).any()  # the edge nodes are drawn
+        q = v.positions()
+        tip = int(np.argmax(q[:, 0] + q[:, 1] + q[:, 2]))  # a corner at the free end
+        shown0 = np.asarray(handle.vertices, dtype=np.float64)[tip].copy()
+        target = q[tip] + np.array([0.0, 0.3, 0.0])
+        v.set_pick_radius(0.2)
+        v.begin_pull(q[tip], target)
+        ids = np.asarray(v.snapshot()["pull"]["ids"])
+        assert tip in ids and np.isin(ids, T[:, 4:]).any()  # edge nodes picked too
+
+        def followed() -> Any:
+            y = float(np.asarray(handle.vertices, dtype=np.float64)[tip, 1])
+            return y > shown0[1] + 0.1 or f"tip drawn at y {y:.4f} (from {shown0[1]:.4f})"
+
+        wait_for(followed, 60, "the drawn P2 body to follow the drag")
+        assert v.positions()[tip, 1] > q[tip, 1] + 0.1
+        v.end_pull()
+        wait_for(lambda: v.snapshot()["pull"] is None, 10, "the release")
+        snap = v.snapshot()
+        assert snap["error"] is None and v.exceptions == [], (snap["error"], v.exceptions)

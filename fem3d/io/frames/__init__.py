@@ -14,6 +14,8 @@ format     files                                                        module
 - :mod:`.numbered` - what the one-file-per-frame formats share (numbering, obstacles,
   resuming).
 - :mod:`.registry` - the formats by name (the scene's enum, ``--format``, the sweeps).
+- :mod:`.volume` - the volume mesh beside the frames (``output.volume``: ``volume/*.vtu`` +
+  ``volume.pvd``, the element's own cells, per-element fields as cell data).
 
 A new format is one module here with its ``FORMAT``, imported into
 :mod:`.registry` and listed in :data:`~fem3d.io.frames.registry.FRAME_FORMATS`. Every file is

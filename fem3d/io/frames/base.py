@@ -6,7 +6,8 @@
 - :class:`FrameSink` - the writer's protocol: ``write`` appends a frame, ``flush`` puts
   everything on disk, ``close`` ends, ``restore`` continues a run from a checkpoint's list,
   ``read_frames`` reads frames back.
-- :func:`check_faces`, :func:`check_vertices` - the input checks every writer makes.
+- :func:`check_faces`, :func:`check_cells`, :func:`check_vertices` - the input checks every
+  writer makes.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 from fem3d.errors import SimulationError
 from fem3d.io import extras
 
-__all__ = ["Bodies", "FrameFormat", "FrameSink", "check_faces", "check_vertices"]
+__all__ = ["Bodies", "FrameFormat", "FrameSink", "check_cells", "check_faces", "check_vertices"]
 
 #: Each body's part of the display mesh: ``(name, vertex slice, face slice)``.
 Bodies = Sequence[tuple[str, slice, slice]]
@@ -41,6 +42,22 @@ def check_faces(faces: np.ndarray) -> np.ndarray:
     if F.size and F.min() < 0:
         raise ValueError("faces hold a negative vertex index")
     return np.ascontiguousarray(F, dtype=np.int64)
+
+
+def check_cells(cells: np.ndarray) -> np.ndarray:
+    """``cells`` as a contiguous int64 ``(n_cells, k)`` array, ``k >= 1`` nodes per cell.
+
+    Raises
+    ------
+    ValueError
+        Not a 2-D integer array, or a negative index.
+    """
+    C = np.asarray(cells)
+    if C.ndim != 2 or C.shape[1] < 1 or not np.issubdtype(C.dtype, np.integer):
+        raise ValueError(f"cells must be an integer (m, k) array, got {C.dtype} {C.shape}")
+    if C.size and C.min() < 0:
+        raise ValueError("cells hold a negative vertex index")
+    return np.ascontiguousarray(C, dtype=np.int64)
 
 
 def check_vertices(V: np.ndarray, faces: np.ndarray, step: int | None) -> np.ndarray:

@@ -62,13 +62,16 @@ class NumberedFilesWriter:
     fmt = ""
     #: Suffix of every file (``".vtu"``).
     suffix = ""
+    #: Folder of the frames in ``out_dir`` and the files' stem (``frames/frame_00042``).
+    folder = "frames"
+    stem = "frame"
 
     def __init__(self, out_dir: PathLike, faces: np.ndarray, *, digits: int = 5,
                  obstacles: Sequence[ObstacleMesh] = ()) -> None:
         self.out_dir = Path(out_dir)
-        self.frame_dir = self.out_dir / "frames"
+        self.frame_dir = self.out_dir / self.folder
         self.frame_dir.mkdir(parents=True, exist_ok=True)
-        self.faces = check_faces(faces)
+        self.faces = self.check_cells(faces)
         self.digits = int(digits)
         self.index_every_frame = True
         self.frames: dict[int, tuple[float, str]] = {}
@@ -82,6 +85,10 @@ class NumberedFilesWriter:
         self._obstacle_encoders = [self.encoder(F) for F in self._obstacle_faces]
         self._static_written = False
 
+    def check_cells(self, faces: np.ndarray) -> np.ndarray:
+        """The frames' cells, checked (triangles: :func:`~fem3d.io.frames.base.check_faces`)."""
+        return check_faces(faces)
+
     def encoder(self, faces: np.ndarray) -> FileEncoder:
         """The encoder of the files of the triangle mesh ``faces`` (checked int64)."""
         raise NotImplementedError
@@ -92,7 +99,7 @@ class NumberedFilesWriter:
     # ------------------------------------------------------------------ paths
     def path_of(self, step_index: int) -> Path:
         """File of frame ``step_index``."""
-        return self.frame_dir / f"frame_{int(step_index):0{self.digits}d}{self.suffix}"
+        return self.frame_dir / f"{self.stem}_{int(step_index):0{self.digits}d}{self.suffix}"
 
     def obstacle_path(self, i: int, step_index: int) -> Path:
         """File of obstacle ``i`` at frame ``step_index`` (one file for a static one)."""
@@ -108,6 +115,7 @@ class NumberedFilesWriter:
         t: float,
         V: np.ndarray,
         point_data: Mapping[str, np.ndarray] | None = None,
+        cell_data: Mapping[str, np.ndarray] | None = None,
     ) -> Path:
         """Write one frame.
 
@@ -122,6 +130,8 @@ class NumberedFilesWriter:
             Vertex positions.
         point_data : mapping of str to (n_skin, ...) arrays, optional
             Extra per-vertex fields (where the format has them).
+        cell_data : mapping of str to (n_cells, ...) arrays, optional
+            Per-cell fields (only to an encoder that takes them: the VTU volume frames).
 
         Returns
         -------
@@ -138,7 +148,10 @@ class NumberedFilesWriter:
         step_index = int(step_index)
         V = check_vertices(V, self.faces, step_index)
         path = self.path_of(step_index)
-        self._encoder.write(path, V, point_data)
+        if cell_data is None:
+            self._encoder.write(path, V, point_data)
+        else:
+            self._encoder.write(path, V, point_data, cell_data=cell_data)
         self._write_obstacles(step_index, t)
         self.frames[step_index] = (float(t), path.relative_to(self.out_dir).as_posix())
         if self.index_every_frame:
@@ -165,7 +178,7 @@ class NumberedFilesWriter:
         """Continue a run: the frames written up to ``step`` (a checkpoint's list); files of
         later frames (written after the checkpoint by an interrupted run) are removed."""
         self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()}
-        for folder, pattern in ((self.frame_dir, f"frame_*{self.suffix}"),
+        for folder, pattern in ((self.frame_dir, f"{self.stem}_*{self.suffix}"),
                                 (self.obstacle_dir, f"obstacle_*_*{self.suffix}")):
             for f in folder.glob(pattern):
                 with contextlib.suppress(ValueError):

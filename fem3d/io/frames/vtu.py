@@ -18,7 +18,7 @@ import meshio
 import numpy as np
 
 from fem3d.io.files import PathLike, atomic_write
-from fem3d.io.frames.base import Bodies, FrameFormat, check_faces
+from fem3d.io.frames.base import Bodies, FrameFormat, check_cells, check_faces
 from fem3d.io.frames.numbered import FileEncoder, NumberedFilesWriter
 from fem3d.io.obstacles import ObstacleMesh
 
@@ -41,41 +41,47 @@ def _le(a: np.ndarray) -> np.ndarray:
 def _data_array(name: str | None, a: np.ndarray, offset: int, components: int) -> str:
     vtk = _VTK_TYPES.get(a.dtype.str)
     if vtk is None:
-        raise ValueError(f"point data {name!r}: cannot write dtype {a.dtype} to VTU")
+        raise ValueError(f"field {name!r}: cannot write dtype {a.dtype} to VTU")
     named = f" Name={quoteattr(name)}" if name is not None else ""
     comps = f' NumberOfComponents="{components}"' if components > 1 else ""
     return f'<DataArray type="{vtk}"{named}{comps} format="appended" offset="{offset}"/>'
 
 
 class RawVtu:
-    """VTK XML unstructured grids of one triangle mesh, appended raw binary data.
+    """VTK XML unstructured grids of one cell mesh, appended raw binary data.
 
-    The triangles (connectivity, offsets, cell types) are encoded once; a frame is the XML
-    header, the positions' bytes (float64, exactly the values given) and the cells' bytes.
-    No compression, no base64: writing a frame is a few ``memcpy`` and the file system's
-    work. ParaView, VTK's ``vtkXMLUnstructuredGridReader`` and meshio read it.
+    The cells (connectivity, offsets, cell types) are encoded once; a frame is the XML
+    header, the positions' bytes (float64, exactly the values given), the cells' bytes and
+    the fields'. No compression, no base64: writing a frame is a few ``memcpy`` and the file
+    system's work. ParaView, VTK's ``vtkXMLUnstructuredGridReader`` and meshio read it.
 
     Parameters
     ----------
-    faces : (n_faces, 3) int
-        Triangles (0-based).
+    faces : (n_cells, k) int
+        Cells (0-based): triangles ``(n_faces, 3)`` by default.
+    vtk_type : int
+        VTK's cell type of every cell (5 triangle, 10 tetra, 24 quadratic tetra); ``k`` is
+        its node count.
     """
 
-    def __init__(self, faces: np.ndarray) -> None:
-        F = check_faces(faces)
+    def __init__(self, faces: np.ndarray, vtk_type: int = _VTK_TRIANGLE) -> None:
+        F = check_faces(faces) if vtk_type == _VTK_TRIANGLE else check_cells(faces)
+        k = int(F.shape[1])
         idx = np.int32 if F.size == 0 or F.max() < 2**31 - 1 else np.int64
         self.n_cells = int(F.shape[0])
         self.cells = [  # (name, little-endian array)
             ("connectivity", _le(F.astype(idx).reshape(-1))),
-            ("offsets", _le(np.arange(3, 3 * self.n_cells + 1, 3, dtype=idx))),
-            ("types", np.full(self.n_cells, _VTK_TRIANGLE, dtype=np.uint8)),
+            ("offsets", _le(np.arange(k, k * self.n_cells + 1, k, dtype=idx))),
+            ("types", np.full(self.n_cells, vtk_type, dtype=np.uint8)),
         ]
         self._cell_bytes = b"".join(
             np.uint64(a.nbytes).tobytes() + a.tobytes() for _, a in self.cells)
         self._headers: dict[tuple, bytes] = {}
 
-    def _header(self, n_points: int, fields: list[tuple[str, np.ndarray, int]]) -> bytes:
-        key = (n_points, tuple((n, a.dtype.str, c) for n, a, c in fields))
+    def _header(self, n_points: int, fields: list[tuple[str, np.ndarray, int]],
+                cell_fields: list[tuple[str, np.ndarray, int]] = ()) -> bytes:
+        key = (n_points, tuple((n, a.dtype.str, c) for n, a, c in fields),
+               tuple((n, a.dtype.str, c) for n, a, c in cell_fields))
         if key in self._headers:
             return self._headers[key]
         offset = 0
@@ -85,9 +91,12 @@ class RawVtu:
         for name, a in self.cells:
             cells.append(_data_array(name, a, offset, 1))
             offset += 8 + a.nbytes
-        data = []
+        data, cell_data = [], []
         for name, a, comps in fields:
             data.append(_data_array(name, a, offset, comps))
+            offset += 8 + a.nbytes
+        for name, a, comps in cell_fields:
+            cell_data.append(_data_array(name, a, offset, comps))
             offset += 8 + a.nbytes
         lines = [
             '<?xml version="1.0"?>',
@@ -100,6 +109,9 @@ class RawVtu:
         ]
         if data:
             lines += ["      <PointData>", *(f"        {d}" for d in data), "      </PointData>"]
+        if cell_data:
+            lines += ["      <CellData>", *(f"        {d}" for d in cell_data),
+                      "      </CellData>"]
         lines += ["    </Piece>", "  </UnstructuredGrid>", '  <AppendedData encoding="raw">',
                   "   _"]
         header = "\n".join(lines).encode("ascii")
@@ -107,8 +119,8 @@ class RawVtu:
             self._headers[key] = header
         return header
 
-    def parts(self, V: np.ndarray,
-              point_data: Mapping[str, np.ndarray] | None = None) -> list[bytes]:
+    def parts(self, V: np.ndarray, point_data: Mapping[str, np.ndarray] | None = None,
+              cell_data: Mapping[str, np.ndarray] | None = None) -> list[bytes]:
         """The file's bytes, in pieces (header, positions, cells, fields, end).
 
         Parameters
@@ -117,26 +129,24 @@ class RawVtu:
             Positions.
         point_data : mapping of str to (n,) or (n, k) arrays, optional
             Extra per-vertex fields.
+        cell_data : mapping of str to (n_cells,) or (n_cells, k) arrays, optional
+            Per-cell fields.
         """
         V = _le(np.asarray(V, dtype=np.float64))
-        fields = []
-        for name, a in (point_data or {}).items():
-            a = _le(np.asarray(a))
-            if a.shape[0] != V.shape[0]:
-                raise ValueError(f"point data {name!r} has {a.shape[0]} rows, "
-                                 f"expected {V.shape[0]}")
-            fields.append((str(name), a, int(np.prod(a.shape[1:], dtype=int))))
-        out = [self._header(V.shape[0], fields), np.uint64(V.nbytes).tobytes(), V.tobytes(),
-               self._cell_bytes]
-        for _, a, _ in fields:
+        fields = _fields(point_data, V.shape[0], "point")
+        cell_fields = _fields(cell_data, self.n_cells, "cell")
+        out = [self._header(V.shape[0], fields, cell_fields), np.uint64(V.nbytes).tobytes(),
+               V.tobytes(), self._cell_bytes]
+        for _, a, _ in fields + cell_fields:
             out += [np.uint64(a.nbytes).tobytes(), a.tobytes()]
         out.append(b"\n  </AppendedData>\n</VTKFile>\n")
         return out
 
     def write(self, path: PathLike, V: np.ndarray,
-              point_data: Mapping[str, np.ndarray] | None = None) -> Path:
+              point_data: Mapping[str, np.ndarray] | None = None,
+              cell_data: Mapping[str, np.ndarray] | None = None) -> Path:
         """Write one frame to ``path`` atomically."""
-        parts = self.parts(V, point_data)
+        parts = self.parts(V, point_data, cell_data)
 
         def _write(p: Path) -> None:
             with open(p, "wb") as fh:
@@ -144,6 +154,17 @@ class RawVtu:
 
         return atomic_write(path, _write)
 
+
+def _fields(data: Mapping[str, np.ndarray] | None, rows: int,
+            kind: str) -> list[tuple[str, np.ndarray, int]]:
+    """``(name, little-endian array, components)`` of each field, its rows checked."""
+    fields = []
+    for name, a in (data or {}).items():
+        a = _le(np.asarray(a))
+        if a.shape[0] != rows:
+            raise ValueError(f"{kind} data {name!r} has {a.shape[0]} rows, expected {rows}")
+        fields.append((str(name), a, int(np.prod(a.shape[1:], dtype=int))))
+    return fields
 
 
 class MeshioVtu:
