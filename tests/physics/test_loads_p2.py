@@ -137,3 +137,38 @@ def test_p2_patch_under_uniform_traction_is_exact():
     assert np.abs(u - model.X @ eps.T).max() < 1e-9 * np.abs(model.X @ eps.T).max()
     sigma = element_stress(model, sim.q).cauchy
     assert np.abs(sigma - np.diag(s)).max() < 1e-4 * np.abs(s).max()
+
+
+def _lame(mesh: str, scene: str = "lame_sphere_eighth") -> Simulation:
+    from fem3d.scene import load_scene
+
+    sim = Simulation(load_scene(scene, {"bodies[0].mesh": f"meshes/{mesh}",
+                                        "bodies[0].element": "p2"}))
+    sim.step()
+    return sim
+
+
+def test_lame_sphere_on_curved_p2_within_one_percent_and_octant_equals_whole():
+    """Lame's thick-walled sphere (docs/loads.md) on the isoparametric P2 octant
+    ``lame_eighth_8_p2.vtu``: the radial displacement of every inner and outer surface node
+    within 1 % of ``u(r)`` (measured: 0.50 % at the worst node, means +0.03 % and +0.12 %);
+    the octant on three symmetry planes equals the whole sphere (``lame_sphere_4_p2.vtu``,
+    the octant ``lame_eighth_4_p2.vtu`` mirrored) at the octant's nodes."""
+    from scipy.spatial import cKDTree
+
+    a, b, E, nu, p = 1.0, 2.0, 1000.0, 0.3, 1.0
+    sim = _lame("lame_eighth_8_p2.vtu")
+    X = sim.model.X
+    r = np.linalg.norm(X, axis=1)
+    ur = np.einsum("ij,ij->i", sim.q - X, X) / r
+    exact = p * a**3 * r / (E * (b**3 - a**3)) * ((1 - 2 * nu) + (1 + nu) * b**3 / (2 * r**3))
+    surface = (np.abs(r - a) < 1e-9) | (np.abs(r - b) < 1e-9)
+    assert surface.sum() > 500
+    rel = ur[surface] / exact[surface] - 1
+    assert np.abs(rel).max() < 0.01
+    assert abs(rel[np.abs(r[surface] - a) < 1e-9].mean()) < 0.002
+    eighth, whole = _lame("lame_eighth_4_p2.vtu"), _lame("lame_sphere_4_p2.vtu", "lame_sphere")
+    dist, idx = cKDTree(whole.model.X).query(eighth.model.X)
+    assert dist.max() < 1e-12
+    u = eighth.q - eighth.model.X
+    assert np.abs(u - (whole.q - whole.model.X)[idx]).max() < 1e-9 * np.abs(u).max()
