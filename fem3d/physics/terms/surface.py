@@ -220,27 +220,42 @@ class FollowerPressure(_TimedLoad):
         return np.bincount(self._dofs.reshape(-1), weights=g.reshape(-1),
                            minlength=3 * self.model.n_vertices)
 
+    def consistent_load(self, q: np.ndarray, scale: float | None = None) -> np.ndarray:
+        """``(3n,)`` the follower load of the pressure on the faces at ``q``: ``-s p A_f n_f /
+        3`` on each face's vertices (``-s p integral N_i n dA`` on 6-node faces: the generated
+        ``pressure.p2_follower_load``); ``scale``: ``s`` (None: the last step's)."""
+        x = self._x(q)
+        p = (self.scale if scale is None else scale) * self.pressure
+        if self.faces.shape[1] == 6:
+            load = p * self._kernels.p2_follower_load(x).reshape(-1, 3)
+        else:
+            area_normals = 0.5 * np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+            load = np.repeat(-p / 3.0 * area_normals, 3, axis=0)
+        out = np.zeros((self.model.n_vertices, 3))
+        np.add.at(out, self.faces.reshape(-1), load)
+        return out.reshape(-1)
+
     def applied(self, q: np.ndarray) -> np.ndarray:
-        """``(3n,)`` the pressure's nodal forces at ``q`` (minus :meth:`gradient`)."""
-        return -self.gradient(q)
+        """``(3n,)`` the pressure's nodal forces at ``q``: :meth:`consistent_load` (minus
+        :meth:`gradient` on a closed loaded surface; on an open patch without the potential's
+        edge forces, which only held DOFs take)."""
+        return self.consistent_load(q)
+
+    def reaction_gradient(self, q: np.ndarray) -> np.ndarray:
+        """``(3n,)`` what the pins' reactions count of this term: minus the follower load
+        (:meth:`gradient` less the edge forces: a pin holding an open patch's edge reports
+        the physical reaction, not the potential's edge forces)."""
+        return -self.consistent_load(q)
 
     def edge_forces(self) -> np.ndarray:
         """``(3n,)`` at rest and scale 1: the potential's forces less the consistent follower
-        load ``-p A_f n_f / 3`` on each face's vertices (``-p integral N_i n dA`` on 6-node
-        faces: the generated ``pressure.p2_follower_load``) (zero on a closed loaded surface;
-        on an open patch, the forces along its edge that only held DOFs may take)."""
-        x = self.model.X[self.faces]
-        consistent = np.zeros_like(self.model.X)
-        if self.faces.shape[1] == 6:
-            load = self.pressure * self._kernels.p2_follower_load(x).reshape(-1, 3)
-        else:
-            area_normals = 0.5 * np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
-            load = np.repeat(-self.pressure / 3.0 * area_normals, 3, axis=0)
-        np.add.at(consistent, self.faces.reshape(-1), load)
+        load (:meth:`consistent_load`; zero on a closed loaded surface; on an open patch, the
+        forces along its edge that only held DOFs may take)."""
+        X = self.model.X.reshape(-1)
         scale, self.scale = self.scale, 1.0
-        potential = -self.gradient(self.model.X.reshape(-1))
+        potential = -self.gradient(X)
         self.scale = scale
-        return potential - consistent.reshape(-1)
+        return potential - self.consistent_load(X, 1.0)
 
     def hessian_data(self, q: np.ndarray, scale: float | None = None) -> np.ndarray:
         """``(nnz,)`` the Hessian at ``q`` as CSR data on ``model.pattern`` (``scale``: the
