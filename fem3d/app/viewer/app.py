@@ -494,6 +494,9 @@ class Viewer:
 
     def _do_set_colour_field(self, name: str) -> None:
         self._graph.colouring.select(name)
+        menu = self._panel.widgets.get("colour")
+        if menu is not None and menu.value != name:  # chosen by a call, not on the page
+            menu.value = name
         self._rebuild_mesh()
         self._state.gui_dirty = True
 
