@@ -61,7 +61,7 @@ def face_shape_functions() -> list[sp.Expr]:
     """The 6-node triangle's shape functions in ``(xi, eta)`` (corners at ``(0, 0)``,
     ``(1, 0)``, ``(0, 1)``; then the edges ``01, 12, 20``)."""
     lam = (1 - XI - ETA, XI, ETA)
-    corners = [l * (2 * l - 1) for l in lam]
+    corners = [c * (2 * c - 1) for c in lam]
     return corners + [4 * lam[a] * lam[b] for a, b in ((0, 1), (1, 2), (2, 0))]
 
 

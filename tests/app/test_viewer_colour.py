@@ -81,9 +81,8 @@ def test_the_panel_colours_the_surface_and_shows_the_range(tmp_path):
     """Choosing a field in the panel's "Colour by" menu turns the mesh node into a GLB whose
     vertex colours are the field at the display vertices (sim mesh: the nodes on the surface)
     and writes the range into the legend; "none" brings the plain mesh back."""
-    from tests.app.test_viewer import wait_for
-
     from fem3d.app.viewer.app import Viewer
+    from tests.app.test_viewer import wait_for
 
     scene = tmp_path / "sag.toml"
     scene.write_text(f"""
