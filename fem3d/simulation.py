@@ -566,7 +566,9 @@ class Simulation:
         the order of :attr:`pin_groups` (zero in the components a pin leaves free).
 
         ``R = dV/dq - f_ext + M a`` on the pin's DOFs: ``V`` the position terms' potentials
-        (strain, pull springs, surface and point loads, contact), ``f_ext`` gravity, ``a``
+        (strain, pull springs, surface and point loads, contact; a term's
+        ``reaction_gradient`` where it has one: a follower pressure counts its follower load,
+        not its potential's edge forces), ``f_ext`` gravity, ``a``
         the acceleration of the last step's equation of motion (:meth:`_acceleration`; zero
         in ``static``); Rayleigh damping's force is left out. In a static equilibrium the
         reactions balance the applied loads (docs/loads.md).
@@ -575,7 +577,7 @@ class Simulation:
         g = np.zeros(q.size)
         for term in self.objective_terms():
             if getattr(term, "variable", "position") == "position" and term.active:
-                g += term.gradient(q)
+                g += getattr(term, "reaction_gradient", term.gradient)(q)
         if self.system.loads.gravity is not None:
             g -= self.system.loads.gravity.force
         a = self._acceleration()

@@ -32,7 +32,6 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.mesh.formats import read_surface_mesh
-from fem3d.mesh.tetmesh import boundary_faces
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.physics.model import MaterialGroup, Model, build_model
@@ -246,13 +245,14 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
                 out.append(DeadLoad(model, point_forces(a.X.shape[0], ids, load.force),
                                     amplitude, key))
                 continue
-            faces = boundary_faces(a.T) if faces is None else faces
+            faces = a.element.boundary_faces(a.T) if faces is None else faces
             mine = faces_within(faces, ids)
             if mine.size == 0:
                 raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
-                                  "is loaded when its three vertices are selected)")
+                                  "is loaded when all its nodes are selected)")
             if load.kind == "traction":
-                out.append(DeadLoad(model, traction_forces(a.X, mine, load.traction),
+                out.append(DeadLoad(model, traction_forces(a.X, mine, load.traction,
+                                                           model.backend),
                                     amplitude, key))
                 continue
             out.append(FollowerPressure(model, mine, load.pressure, amplitude, key))

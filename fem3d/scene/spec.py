@@ -274,16 +274,29 @@ class BodySpec(_Spec):
 
 # ------------------------------------------------------------------------------ the rest
 class NewtonSpec(_Spec):
-    """The Newton solve of the implicit schemes (implicit, bdf2, newmark, static)."""
+    """Each step's Newton solve, per scheme: implicit, bdf2, newmark: max_iterations per step
+    (default 5, the step keeps its last iterate; contact raises it to 100; none: until
+    converged), tolerance relative to the step's first gradient with the floor 1e-12 h E L^2;
+    static: max_iterations per load increment (an unconverged increment is halved; none: 50),
+    tolerance with the floor 1e-15 E L^2; linear: one linear solve per step, neither key
+    applies (docs/loads.md)."""
 
     #: Newton iterations per step (dynamic schemes: the step keeps its last iterate; contact
     #: raises it to 100) or per load increment (static: an unconverged increment is halved);
     #: none: until converged (static: at most 50)
-    max_iterations: Annotated[StrictInt, Field(ge=1)] | None = 5
+    max_iterations: Annotated[StrictInt, Field(ge=1)] | None = Field(5, description=(
+        "Newton iterations: per step for implicit, bdf2 and newmark (the step keeps its last "
+        "iterate; contact raises the cap to 100; null: until converged), per load increment "
+        "for static (an increment that does not converge within it is halved, down to 1/64 "
+        "of the step; null: 50); not used by linear (one linear solve per step)"))
     #: converged when the gradient norm is below this fraction of its norm at Newton's start,
     #: or below the scheme's absolute floor (dynamic: 1e-12 h E L^2; static: 1e-15 E L^2,
     #: about ten times round-off; L the diagonal of the rest bounding box)
-    tolerance: Annotated[StrictFloat, Field(gt=0, lt=1)] = 1e-10
+    tolerance: Annotated[StrictFloat, Field(gt=0, lt=1, description=(
+        "Newton has converged when the gradient norm is below this fraction of its norm at "
+        "Newton's start, or below the scheme's absolute floor: 1e-12 h E L^2 for implicit, "
+        "bdf2 and newmark (h the scheme's dq/dv), 1e-15 E L^2 for static (L the diagonal of "
+        "the rest bounding box); not used by linear"))] = 1e-10
     hessian: Literal["exact", "psd"] = "exact"
     solver: Literal["direct", "reuse"] = "direct"
     #: where each step's Newton starts: the last velocity, or the lower-energy of it and its

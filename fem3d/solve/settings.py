@@ -43,11 +43,19 @@ class NewtonSettings:
     Attributes
     ----------
     max_iterations : int or None
-        Newton iterations per step (None: until converged); a term that
-        ``requires_convergence`` (contact) raises it to ``converged_max_iterations``.
+        The scene's ``simulation.newton.max_iterations`` (default 5). ``implicit``, ``bdf2``,
+        ``newmark``: Newton iterations per step, the step keeping its last iterate (None: until
+        converged); a term that ``requires_convergence`` (contact) raises it to
+        ``converged_max_iterations``. ``static``: per load increment, an increment that does
+        not converge within it being halved (None: ``converged_max_iterations``, 50).
+        ``linear``: not used (one linear solve per step).
     rtol, atol_factor : float
-        Relative gradient tolerance, and the absolute one as a fraction of ``h E L^2`` (``L``
-        the diagonal of the rest bounding box, ``h`` the scheme's ``dq/dx``).
+        The scene's ``simulation.newton.tolerance`` (default ``1e-10``): the gradient
+        tolerance relative to its norm at Newton's start; and the absolute floor as a
+        fraction of ``h E L^2`` (``L`` the diagonal of the rest bounding box, ``h`` the
+        scheme's ``dq/dx``): ``1e-12`` for the dynamic schemes; ``static`` replaces it by
+        :data:`fem3d.solve.static.STATIC_ATOL_FACTOR` (``1e-15``, ``h = 1``). Neither is used
+        by ``linear``.
     solver : {"direct", "reuse", "amg"}
         The Newton direction (:mod:`fem3d.solve.directions`); a system whose linear back end
         is AMG always uses ``"amg"``.

@@ -141,9 +141,11 @@ def kernel_inputs(module: str, kernel: str, rng: np.random.Generator, m: int):
     if module == "spring":
         a, b = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
         return (a, b, (123.0,)), [*a.T, *b.T, 123.0]
-    if module == "pressure":
-        xf = rng.normal(size=(m, 3, 3))
-        return (xf, (2.5,)), [*xf.reshape(m, 9).T, 2.5]
+    if module == "pressure":  # 3-node faces, or 6-node (P2) faces: the p2_ kernels
+        xf = rng.normal(size=(m, 6 if kernel.startswith("p2_") else 3, 3))
+        if kernel in ("p2_follower_load", "p2_traction_weights"):  # no parameter
+            return (xf,), [*xf.reshape(m, -1).T]
+        return (xf, (2.5,)), [*xf.reshape(m, -1).T, 2.5]
     if kernel == "rest_shape":
         return (X,), [*X.reshape(m, 12).T]
     if kernel == "phi":

@@ -294,6 +294,11 @@ class Viewer:
         """Load another scene (runs on the simulation thread)."""
         self._state.post(lambda: self._do_switch_scene(name))
 
+    def set_colour_field(self, name: str) -> None:
+        """Colour the surface by ``name`` (``"none"`` or a key of
+        :data:`fem3d.app.viewer.colour.FIELDS`)."""
+        self._state.post(lambda: self._do_set_colour_field(name))
+
     def set_material(
         self, E: float | None = None, nu: float | None = None, rho: float | None = None
     ) -> None:
@@ -487,6 +492,14 @@ class Viewer:
             self._notify_all("Material not changed", str(exc), color="yellow", seconds=10.0)
             self._panel.widgets["material"].value = self._state.material_model()
 
+    def _do_set_colour_field(self, name: str) -> None:
+        self._graph.colouring.select(name)
+        menu = self._panel.widgets.get("colour")
+        if menu is not None and menu.value != name:  # chosen by a call, not on the page
+            menu.value = name
+        self._rebuild_mesh()
+        self._state.gui_dirty = True
+
     def _do_switch_scene(self, name: str) -> None:
         s = self._state
         if name == s.scene_label:
@@ -536,7 +549,7 @@ class Viewer:
             verts = graph.display_positions(self._sim)
             if np.isfinite(verts).all():
                 with self._server.atomic():
-                    graph.mesh_handle.vertices = verts.astype(np.float32)
+                    graph.show_positions(self._sim, verts)
                     graph.update_spring(pull, q, self._state.generation)
                     graph.update_obstacles(self._sim)
                 self._acks.request(self._server.get_clients().values(), now)
@@ -557,6 +570,7 @@ class Viewer:
             latest = s.history.latest_split()
             peaks = s.history.peaks()
         self._panel.update(text, latest, x, series, peaks)
+        self._panel.show_legend(self._graph.colouring.legend_text)
 
     def _run_commands(self) -> None:
         """Apply the queued commands (a bad one fails the simulation, not the loop)."""

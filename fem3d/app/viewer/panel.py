@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from fem3d.app.viewer.colour import FIELDS, NONE
 from fem3d.app.viewer.logic import ENERGY_PLOTS, HOTKEYS, EnergyHistory, energy_text
 from fem3d.app.viewer.plots import YAxis, y_axis
 
@@ -83,6 +84,8 @@ class Panel:
         g["radius"] = gui.add_slider(
             "Grab radius", min=lo, max=hi, step=(hi - lo) / 200.0, initial_value=r0
         )
+        g["colour"] = gui.add_dropdown("Colour by", (NONE, *FIELDS), initial_value=NONE)
+        g["legend"] = gui.add_markdown("")
         g["energy"] = gui.add_markdown("")
         x, *series = history.plot_series(plot_window)
         peaks, scene = history.peaks()
@@ -146,6 +149,12 @@ class Panel:
 
         g["scene"].on_update(_on_scene)
 
+        def _on_colour(event: Any) -> None:
+            if event.client is not None:
+                v.set_colour_field(str(event.target.value))
+
+        g["colour"].on_update(_on_colour)
+
         def _on_material(event: Any) -> None:
             if event.client is not None:
                 v.switch_material(str(event.target.value))
@@ -186,6 +195,12 @@ class Panel:
         g["nu"].value = material["nu"]
         g["rho"].min, g["rho"].max, g["rho"].step = rho / 10.0, rho * 10.0, rho / 10.0
         g["rho"].value = rho
+
+    def show_legend(self, text: str) -> None:
+        """The colour map's legend (empty: no colour map)."""
+        legend = self.widgets.get("legend")
+        if legend is not None and legend.content != text:
+            legend.content = text
 
     def update(self, status: str, latest: Sequence[float] | None, x: np.ndarray,
                series: Sequence[np.ndarray], peaks: tuple[tuple[float, ...], float]) -> None:

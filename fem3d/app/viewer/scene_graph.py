@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from fem3d.app.viewer.colour import SurfaceColouring
 from fem3d.app.viewer.logic import (
     PullState,
     _surface_faces,
@@ -62,6 +63,8 @@ class SceneGraph:
         self.obstacle_handles: list[Any] = []
         self._obstacle_shown: list[np.ndarray | None] = []  # None: static
         self.plane_grid_handles: list[Any] = []
+        #: The surface's colour map (:mod:`fem3d.app.viewer.colour`; off: the plain colour).
+        self.colouring = SurfaceColouring()
 
     def display_positions(self, sim: Any) -> np.ndarray:
         """``(n, 3)`` positions of the mesh shown: the skin's or the simulation mesh's."""
@@ -77,7 +80,11 @@ class SceneGraph:
             old.remove()
         self.mesh_mode = mode
         self.mesh_serial += 1
-        if mode == "skin":
+        if self.colouring.active:  # a GLB: viser's plain meshes have one colour
+            handle = self.server.scene.add_glb(
+                f"/fem3d/{mode}_coloured", self.colouring.glb(sim, mode),
+                cast_shadow=False, receive_shadow=False)
+        elif mode == "skin":
             verts = np.asarray(sim.skin_positions(), dtype=np.float64)
             faces = np.asarray(sim.display_faces, dtype=np.uint32)
             handle = self.server.scene.add_mesh_simple(
@@ -92,6 +99,14 @@ class SceneGraph:
             )
         handle.on_drag("left")(on_drag)
         self.mesh_handle = handle
+
+    def show_positions(self, sim: Any, verts: np.ndarray) -> None:
+        """Move the mesh node to the display positions ``verts`` (coloured: the GLB of the
+        current frame); inside ``server.atomic()``."""
+        if self.colouring.active:
+            self.mesh_handle.glb_data = self.colouring.glb(sim, self.mesh_mode or "sim")
+        else:
+            self.mesh_handle.vertices = verts.astype(np.float32)
 
     def rebuild_obstacles(self, sim: Any) -> None:
         """Draw the contact scene's obstacles: planes as squares three mesh diagonals wide
