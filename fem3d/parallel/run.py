@@ -1,4 +1,5 @@
-"""``mpiexec -n N fem3d run scene.toml``: one simulation on N ranks.
+"""``mpiexec -n N fem3d run scene.toml`` and ``mpiexec -n N fem3d resume DIR``: one
+simulation on N ranks.
 
 Every rank reads the scene and builds the whole model (the pins, motions and reported
 energies are the whole model's), partitions the tets (:mod:`fem3d.parallel.partition`) and
@@ -7,8 +8,14 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
 
 * ``frames/frame_NNNNN_R.vtu``: rank ``R``'s piece, the surface of its tets (a ``rank``
   field per point); ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and
-  ``frames.pvd`` lists the frames by time (ParaView opens it);
+  ``frames.pvd`` lists the frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
 * ``energy.csv`` (rank 0), the columns of a one-process run;
+* ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
+  the one-process run checkpoint (:mod:`fem3d.io.checkpoint`) of the whole state, which
+  every rank holds; ``fem3d resume DIR`` continues it on any number of ranks, one included
+  (bit for bit on the rank count that wrote it: the partition, the PETSc numbering and so
+  every sum are the same), and ``mpiexec -n N fem3d resume`` continues a one-process
+  run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
 Contact, scripted pulls, the linearly-implicit, static and Newmark schemes, Newton's ``reuse`` and
@@ -22,18 +29,18 @@ import resource
 import time
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from fem3d.errors import InputError, ParameterError
 from fem3d.io import extras
+from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
-from fem3d.io.files import atomic_write
-from fem3d.io.frames import RawVtu
-from fem3d.mesh.tetmesh import boundary_faces
+from fem3d.kernels.dispatch import resolve_backend
 from fem3d.parallel.comm import launched_ranks, world
 from fem3d.parallel.local import local_loads, local_model
 from fem3d.parallel.partition import dof_layout, partition_tets
+from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
@@ -42,11 +49,8 @@ from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "distributed_system",
-           "run_distributed", "PieceWriter"]
-
-#: The schemes a distributed run steps (their Newton sees only element-wise terms; Newmark's
-#: initial acceleration solves with the mass matrix outside the linear-solver seam).
+__all__ = ["check_distributable", "distributed_system", "run_distributed", "DistributedLoop",
+           "PieceWriter"]
 
 
 def check_distributable(scene: Any, ranks: int) -> None:
@@ -94,60 +98,102 @@ def distributed_system(comm: Any, petsc_options: str = ""):
     return make
 
 
-class PieceWriter:
-    """One rank's frames: the surface of its tets as ``frame_NNNNN_R.vtu``; rank 0 also
-    writes each frame's ``.pvtu`` and ``frames.pvd``.
+class DistributedLoop:
+    """Step a distributed ``sim`` up to ``scene.n_steps`` on every rank, writing the pieces,
+    ``energy.csv`` and the checkpoints (rank 0) into ``out``.
 
     Parameters
     ----------
+    scene : fem3d.scene.spec.Scene
+    sim : Simulation
+        This rank's (its system a :class:`DistributedSystem`), at the checkpoint's state on a
+        resume.
     out : Path
-    T : (m, 4) int64
-        The whole mesh.
-    tet_rank : (m,) int64
+    settings : dict
+        The checkpoint's ``settings`` (``scene``, ``kernels``, ``solver``,
+        ``checkpoint_every``, ``preview``, ``ranks``).
     comm : mpi4py.MPI.Comm
+    ckpt : RunCheckpoint, optional
+        The checkpoint a resume continues from (its energy rows and frames are kept).
     """
 
-    def __init__(self, out: Path, T: np.ndarray, tet_rank: np.ndarray, comm: Any) -> None:
-        self.rank, self.size = comm.Get_rank(), comm.Get_size()
-        self.out = Path(out)
-        self.frame_dir = self.out / "frames"
-        faces = boundary_faces(T[tet_rank == self.rank])
-        self.vertices, local = np.unique(faces, return_inverse=True)
-        self._vtu = RawVtu(local.reshape(-1, 3))
-        self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)
-        self.frames: dict[int, tuple[float, str]] = {}
+    def __init__(self, scene: Any, sim: Simulation, out: Path, settings: dict[str, Any],
+                 comm: Any, ckpt: RunCheckpoint | None = None) -> None:
+        self.scene, self.sim, self.out, self.settings = scene, sim, Path(out), settings
+        self.comm, self.rank, self.ckpt = comm, comm.Get_rank(), ckpt
+        self.every = int(settings["checkpoint_every"])
+        if self.rank == 0:
+            (self.out / "frames").mkdir(parents=True, exist_ok=True)
+        comm.Barrier()
+        self.writer = PieceWriter(self.out, sim.model.T, sim.system.tet_rank, comm)
+        if ckpt is None:
+            self.log = EnergyLog(self.out / "energy.csv")
+        else:
+            self.log = EnergyLog.from_array(ckpt.energy, self.out / "energy.csv")
+            self.writer.restore(ckpt.frames, ckpt.step)
+            comm.Barrier()  # later frames' files are gone before any rank writes
+        self.iterations = 0
 
-    def name(self, step: int, rank: int | None = None) -> str:
-        return f"frame_{step:05d}" + ("" if rank is None else f"_{rank}") + \
-            (".pvtu" if rank is None else ".vtu")
+    def record(self) -> None:
+        """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
+        sim = self.sim
+        e = sim.energies()
+        if self.rank == 0:
+            self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
+                            pull=e["pull"])
+        if sim.step_index % self.scene.output.every == 0:
+            self.writer.write(sim.step_index, sim.t, sim.q)
 
-    def write(self, step: int, t: float, q: np.ndarray) -> None:
-        """This rank's piece of frame ``step``; rank 0: the ``.pvtu`` and ``frames.pvd``."""
-        self._vtu.write(self.frame_dir / self.name(step, self.rank), q[self.vertices],
-                        {"rank": self._rank_field})
+    def save_checkpoint(self) -> None:
+        """Rank 0: ``energy.csv`` and ``checkpoint.npz`` of the whole state (every rank holds
+        it), the one-process format."""
         if self.rank:
             return
-        pieces = "\n".join(f"    <Piece Source={quoteattr(self.name(step, r))}/>"
-                           for r in range(self.size))
-        atomic_write(self.frame_dir / self.name(step), (
-            '<?xml version="1.0"?>\n<VTKFile type="PUnstructuredGrid" version="1.0" '
-            'byte_order="LittleEndian" header_type="UInt64">\n'
-            '  <PUnstructuredGrid GhostLevel="0">\n'
-            '    <PPointData><PDataArray type="Int32" Name="rank"/></PPointData>\n'
-            '    <PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>\n'
-            f"{pieces}\n  </PUnstructuredGrid>\n</VTKFile>\n"))
-        self.frames[step] = (t, f"frames/{self.name(step)}")
-        rows = "\n".join(f'    <DataSet timestep="{tt!r}" group="" part="0" '
-                         f"file={quoteattr(rel)}/>" for _, (tt, rel) in sorted(self.frames.items()))
-        atomic_write(self.out / "frames.pvd", (
-            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" '
-            f'byte_order="LittleEndian">\n  <Collection>\n{rows}\n  </Collection>\n'
-            "</VTKFile>\n"))
+        self.log.write()
+        sim = self.sim
+        save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
+            settings=self.settings, snapshot=sim.snapshot(), energy=self.log.as_array(),
+            frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
+            mesh_digest=mesh_digest(sim.model.X, sim.model.T)))
+
+    def run(self) -> float:
+        """Step to ``scene.n_steps``; the wall time of the steps."""
+        sim = self.sim
+        if self.ckpt is None:
+            self.record()
+        t1 = time.perf_counter()
+        while sim.step_index < self.scene.n_steps:
+            info = sim.step()
+            self.iterations += info.newton_iterations
+            self.record()
+            if self.every and sim.step_index % self.every == 0:
+                self.save_checkpoint()
+        wall = time.perf_counter() - t1
+        if self.every and sim.step_index % self.every:
+            self.save_checkpoint()  # and at the end
+        return wall
 
 
-def run_distributed(scene: Any, out: Path, *, quiet: bool = True,
-                    backend: str | None = None) -> int:
-    """Run ``scene`` on the ranks of ``mpiexec`` into ``out`` (see the module docstring).
+def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str | None = None,
+                    checkpoint_every: int = 0, ckpt: RunCheckpoint | None = None,
+                    settings: dict[str, Any] | None = None) -> int:
+    """Run ``scene`` on the ranks of ``mpiexec`` into ``out`` (see the module docstring), or
+    continue the run of checkpoint ``ckpt`` there (``fem3d resume``).
+
+    Parameters
+    ----------
+    scene : fem3d.scene.spec.Scene
+    out : Path
+    quiet : bool
+        No summary line.
+    backend : {None, "numpy", "c"}
+        Kernel back end (a resume: the checkpoint's, in ``settings``).
+    checkpoint_every : int
+        ``checkpoint.npz`` every this many steps and at the end (0: none).
+    ckpt : RunCheckpoint, optional
+        The checkpoint to continue (written by any number of ranks).
+    settings : dict, optional
+        With ``ckpt``: its settings as the resume amends them (``checkpoint_every``).
 
     Returns
     -------
@@ -157,51 +203,55 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True,
     Raises
     ------
     InputError
-        What :func:`check_distributable` refuses, or the missing ``fem3d[mpi]`` extra; nothing
-        is written.
+        What :func:`check_distributable` refuses, the missing ``fem3d[mpi]`` extra, or a
+        checkpoint whose mesh or state does not fit; nothing is written.
     """
     ranks = launched_ranks()
-    extras.require("mpi4py", f"mpiexec -n {ranks} fem3d run")
-    extras.require("petsc4py", f"mpiexec -n {ranks} fem3d run")
+    command = "fem3d run" if ckpt is None else "fem3d resume"
+    extras.require("mpi4py", f"mpiexec -n {ranks} {command}")
+    extras.require("petsc4py", f"mpiexec -n {ranks} {command}")
     if not PetscSolver.available():  # installed but does not import (a PETSc it was not built for)
-        raise extras.MissingExtra(f"mpiexec -n {ranks} fem3d run needs petsc4py and mpi4py, "
+        raise extras.MissingExtra(f"mpiexec -n {ranks} {command} needs petsc4py and mpi4py, "
                                   f"which do not import here: {PetscSolver.install_hint}")
     check_distributable(scene, ranks)
+    if checkpoint_every < 0:
+        raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     comm = world()
-    rank = comm.Get_rank()
+    settings = dict(settings or {"checkpoint_every": int(checkpoint_every), "preview": False})
+    settings.update(scene=scene.to_dict(), solver=PetscSolver.name, ranks=comm.Get_size(),
+                    kernels=resolve_backend(settings.get("kernels", backend)))
     t0 = time.perf_counter()
-    sim = Simulation(scene, backend=backend,
+    sim = Simulation(scene, backend=settings["kernels"],
                      make_system=distributed_system(comm, scene.simulation.petsc_options))
+    if ckpt is not None:
+        _restore(sim, ckpt, Path(out))
     setup = time.perf_counter() - t0
-    out = Path(out)
-    if rank == 0:
-        (out / "frames").mkdir(parents=True, exist_ok=True)
-    comm.Barrier()
-    writer = PieceWriter(out, sim.model.T, sim.system.tet_rank, comm)
-    log = EnergyLog(out / "energy.csv")
-    every = scene.output.every
-
-    def record() -> None:
-        e = sim.energies()
-        if rank == 0:
-            log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"], pull=e["pull"])
-        if sim.step_index % every == 0:
-            writer.write(sim.step_index, sim.t, sim.q)
-
-    record()
-    iterations = 0
-    t1 = time.perf_counter()
-    for _ in range(scene.n_steps):
-        info = sim.step()
-        iterations += info.newton_iterations
-        record()
-    wall = time.perf_counter() - t1
+    loop = DistributedLoop(scene, sim, Path(out), settings, comm, ckpt)
+    wall = loop.run()
     rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, root=0)
-    if rank == 0:
-        log.write()
-        np.savez(out / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
+    if comm.Get_rank() == 0:
+        loop.log.write()
+        np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
         if not quiet:
-            print(f"{scene.name}: {scene.n_steps} steps on {comm.Get_size()} ranks in "
-                  f"{wall:.2f} s ({setup:.2f} s set-up), {iterations} Newton iterations, "
+            steps = sim.step_index - (0 if ckpt is None else ckpt.step)
+            print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
+                  f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "
                   f"peak RSS per rank {', '.join(f'{m:.0f}' for m in rss)} MiB -> {out}")
     return 0
+
+
+def _restore(sim: Simulation, ckpt: RunCheckpoint, out: Path) -> None:
+    """Set the checkpoint's state (the whole model's, on every rank).
+
+    Raises
+    ------
+    InputError
+        A mesh other than the checkpoint's, or a state that does not fit it.
+    """
+    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
+        raise InputError("the mesh differs from the one the checkpoint was made with",
+                         path=sim.assembled.mesh_paths[0])
+    try:
+        sim.restore(ckpt.snapshot)
+    except (ParameterError, KeyError) as exc:
+        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
