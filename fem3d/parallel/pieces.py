@@ -25,17 +25,16 @@ class PieceWriter:
     Parameters
     ----------
     out : Path
-    T : (m, 4) int64
-        The whole mesh.
-    tet_rank : (m,) int64
+    T : (k, 4) int64
+        This rank's tets (the whole mesh's vertex numbers).
     comm : mpi4py.MPI.Comm
     """
 
-    def __init__(self, out: Path, T: np.ndarray, tet_rank: np.ndarray, comm: Any) -> None:
+    def __init__(self, out: Path, T: np.ndarray, comm: Any) -> None:
         self.rank, self.size = comm.Get_rank(), comm.Get_size()
         self.out = Path(out)
         self.frame_dir = self.out / "frames"
-        faces = boundary_faces(T[tet_rank == self.rank])
+        faces = boundary_faces(T)
         self.vertices, local = np.unique(faces, return_inverse=True)
         self._vtu = RawVtu(local.reshape(-1, 3))
         self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)

@@ -32,16 +32,17 @@ from typing import Any
 
 import numpy as np
 
-from fem3d.errors import InputError, ParameterError
+from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import extras
 from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.parallel.comm import launched_ranks, world
+from fem3d.parallel.comm import launched_ranks, sum_scalar, world
 from fem3d.parallel.local import local_loads, local_model
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
+from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
@@ -49,8 +50,8 @@ from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "distributed_system", "run_distributed", "DistributedLoop",
-           "PieceWriter"]
+__all__ = ["check_distributable", "distributed_system", "distributed_simulation",
+           "local_energies", "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
 def check_distributable(scene: Any, ranks: int) -> None:
@@ -90,11 +91,9 @@ def distributed_system(comm: Any, petsc_options: str = ""):
         tets = np.flatnonzero(tet_rank == comm.Get_rank())
         layout = dof_layout(model.T, tet_rank, constraints.free_dofs, comm)
         local = local_model(model, tets)
-        system = DistributedSystem(local, constraints, layout,
-                                   loads=local_loads(loads, local, tets),
-                                   petsc_options=petsc_options)
-        system.tet_rank = tet_rank
-        return system
+        return DistributedSystem(local, constraints, layout,
+                                 loads=local_loads(loads, local, tets),
+                                 petsc_options=petsc_options)
     return make
 
 
@@ -106,26 +105,28 @@ class DistributedLoop:
     ----------
     scene : fem3d.scene.spec.Scene
     sim : Simulation
-        This rank's (its system a :class:`DistributedSystem`), at the checkpoint's state on a
-        resume.
+        This rank's (:func:`distributed_simulation`), at the checkpoint's state on a resume.
     out : Path
     settings : dict
         The checkpoint's ``settings`` (``scene``, ``kernels``, ``solver``,
         ``checkpoint_every``, ``preview``, ``ranks``).
     comm : mpi4py.MPI.Comm
+    digest : str
+        :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
     ckpt : RunCheckpoint, optional
         The checkpoint a resume continues from (its energy rows and frames are kept).
     """
 
     def __init__(self, scene: Any, sim: Simulation, out: Path, settings: dict[str, Any],
-                 comm: Any, ckpt: RunCheckpoint | None = None) -> None:
+                 comm: Any, digest: str, ckpt: RunCheckpoint | None = None) -> None:
         self.scene, self.sim, self.out, self.settings = scene, sim, Path(out), settings
         self.comm, self.rank, self.ckpt = comm, comm.Get_rank(), ckpt
+        self.digest = digest
         self.every = int(settings["checkpoint_every"])
         if self.rank == 0:
             (self.out / "frames").mkdir(parents=True, exist_ok=True)
         comm.Barrier()
-        self.writer = PieceWriter(self.out, sim.model.T, sim.system.tet_rank, comm)
+        self.writer = PieceWriter(self.out, sim.model.T, comm)
         if ckpt is None:
             self.log = EnergyLog(self.out / "energy.csv")
         else:
@@ -137,12 +138,24 @@ class DistributedLoop:
     def record(self) -> None:
         """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
         sim = self.sim
-        e = sim.energies()
+        e = local_energies(sim, self.comm)
         if self.rank == 0:
             self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
                             pull=e["pull"])
         if sim.step_index % self.scene.output.every == 0:
             self.writer.write(sim.step_index, sim.t, sim.q)
+
+    def _step(self) -> Any:
+        """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's
+        closing checks see the local model: a rank may fail alone)."""
+        try:
+            info, failure = self.sim.step(), ""
+        except SimulationError as exc:
+            info, failure = None, str(exc)
+        failures = [f for f in self.comm.allgather(failure) if f]
+        if failures:
+            raise SimulationError(failures[0])
+        return info
 
     def save_checkpoint(self) -> None:
         """Rank 0: ``energy.csv`` and ``checkpoint.npz`` of the whole state (every rank holds
@@ -154,7 +167,7 @@ class DistributedLoop:
         save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
             settings=self.settings, snapshot=sim.snapshot(), energy=self.log.as_array(),
             frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
-            mesh_digest=mesh_digest(sim.model.X, sim.model.T)))
+            mesh_digest=self.digest))
 
     def run(self) -> float:
         """Step to ``scene.n_steps``; the wall time of the steps."""
@@ -163,7 +176,7 @@ class DistributedLoop:
             self.record()
         t1 = time.perf_counter()
         while sim.step_index < self.scene.n_steps:
-            info = sim.step()
+            info = self._step()
             self.iterations += info.newton_iterations
             self.record()
             if self.every and sim.step_index % self.every == 0:
@@ -221,12 +234,11 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     settings.update(scene=scene.to_dict(), solver=PetscSolver.name, ranks=comm.Get_size(),
                     kernels=resolve_backend(settings.get("kernels", backend)))
     t0 = time.perf_counter()
-    sim = Simulation(scene, backend=settings["kernels"],
-                     make_system=distributed_system(comm, scene.simulation.petsc_options))
+    sim, digest = distributed_simulation(scene, comm, settings["kernels"])
     if ckpt is not None:
-        _restore(sim, ckpt, Path(out))
+        _restore(sim, ckpt, digest, Path(out))
     setup = time.perf_counter() - t0
-    loop = DistributedLoop(scene, sim, Path(out), settings, comm, ckpt)
+    loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
     wall = loop.run()
     rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, root=0)
     if comm.Get_rank() == 0:
@@ -240,7 +252,36 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     return 0
 
 
-def _restore(sim: Simulation, ckpt: RunCheckpoint, out: Path) -> None:
+def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
+                           ) -> tuple[Simulation, str]:
+    """This rank's :class:`Simulation` of ``scene`` and the whole mesh's
+    :func:`~fem3d.io.checkpoint.mesh_digest`.
+
+    The simulation's system is the rank's :class:`DistributedSystem`, and its ``model`` the
+    rank's local model (:func:`~fem3d.parallel.local.local_model`: its tets over the whole
+    vertex numbering): the whole model, built to partition and restrict, is let go (its
+    pattern, scatter maps and mass matrix would hold memory per rank that does not fall
+    with the rank count). Its energies are :func:`local_energies`, summed over the ranks.
+    """
+    sim = Simulation(scene, backend=backend,
+                     make_system=distributed_system(comm, scene.simulation.petsc_options))
+    digest = mesh_digest(sim.model.X, sim.model.T)
+    sim.model = sim.system.model
+    return sim, digest
+
+
+def local_energies(sim: Simulation, comm: Any) -> dict[str, float]:
+    """:meth:`Simulation.energies` of a distributed ``sim`` (:func:`distributed_simulation`):
+    each rank's kinetic and strain energies summed over the ranks (the same bits on every
+    rank), gravity's reduced by its loads; no pulls."""
+    kinetic = sum_scalar(comm, kinetic_energy(sim.model, sim.v))
+    strain = sum_scalar(comm, potential_energy(sim.model, sim.q))
+    gravity = sim.gravity_energy()
+    return {"kinetic": kinetic, "potential": strain + gravity, "pull": 0.0,
+            "total": kinetic + strain + gravity, "strain": strain, "gravity": gravity}
+
+
+def _restore(sim: Simulation, ckpt: RunCheckpoint, digest: str, out: Path) -> None:
     """Set the checkpoint's state (the whole model's, on every rank).
 
     Raises
@@ -248,7 +289,7 @@ def _restore(sim: Simulation, ckpt: RunCheckpoint, out: Path) -> None:
     InputError
         A mesh other than the checkpoint's, or a state that does not fit it.
     """
-    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
+    if digest != ckpt.mesh_digest:
         raise InputError("the mesh differs from the one the checkpoint was made with",
                          path=sim.assembled.mesh_paths[0])
     try:
