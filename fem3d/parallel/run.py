@@ -239,8 +239,12 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
         _restore(sim, ckpt, digest, Path(out))
     setup = time.perf_counter() - t0
     loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
+    setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    cpu = time.process_time()
     wall = loop.run()
-    rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, root=0)
+    cpu = time.process_time() - cpu
+    rss = comm.gather((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, setup_rss,
+                       cpu), root=0)
     if comm.Get_rank() == 0:
         loop.log.write()
         np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
@@ -248,7 +252,9 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
             steps = sim.step_index - (0 if ckpt is None else ckpt.step)
             print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
                   f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "
-                  f"peak RSS per rank {', '.join(f'{m:.0f}' for m in rss)} MiB -> {out}")
+                  f"peak RSS per rank {', '.join(f'{m:.0f}' for m, _, _ in rss)} MiB "
+                  f"(after set-up {', '.join(f'{m:.0f}' for _, m, _ in rss)}), CPU of the "
+                  f"steps per rank {', '.join(f'{c:.2f}' for _, _, c in rss)} s -> {out}")
     return 0
 
 
