@@ -38,7 +38,7 @@ from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, sav
 from fem3d.io.energy import EnergyLog
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.parallel.comm import launched_ranks, sum_scalar, world
-from fem3d.parallel.local import local_loads, local_model
+from fem3d.parallel.local import local_model
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
@@ -47,10 +47,10 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
 from fem3d.simulation import Simulation
-from fem3d.solve.linear.petsc import PetscSolver
+from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "distributed_system", "distributed_simulation",
+__all__ = ["check_distributable", "RankShare", "distributed_simulation",
            "local_energies", "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
@@ -60,7 +60,7 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Contact, pulls, a scheme not marked ``distributed``, a Newton
+        Contact, pulls, surface and point loads, a scheme not marked ``distributed``, a Newton
         direction other than ``direct``, frames other than ``vtu``.
     """
     why = f"mpiexec -n {ranks} runs"
@@ -70,6 +70,11 @@ def check_distributable(scene: Any, ranks: int) -> None:
     if scene.pulls:
         raise scene.error("pulls", f"{why} have no scripted pulls yet (their springs are not "
                           "element-wise): run without mpiexec, or --no-pull")
+    for i, body in enumerate(scene.bodies):
+        if body.loads:
+            raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
+                              "yet (their faces and points have no owner rank): run in one "
+                              "process")
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)
@@ -83,18 +88,49 @@ def check_distributable(scene: Any, ranks: int) -> None:
                           f"{scene.output.format!r}")
 
 
-def distributed_system(comm: Any, petsc_options: str = ""):
-    """A ``make_system`` for :class:`~fem3d.simulation.Simulation`: this rank's
-    :class:`DistributedSystem` of the whole model (partitioned here)."""
-    def make(model: Model, constraints: Constraints, loads: Loads) -> DistributedSystem:
-        tet_rank = partition_tets(model.T, comm)
-        tets = np.flatnonzero(tet_rank == comm.Get_rank())
-        layout = dof_layout(model.T, tet_rank, constraints.free_dofs, comm)
-        local = local_model(model, tets)
-        return DistributedSystem(local, constraints, layout,
-                                 loads=local_loads(loads, local, tets),
-                                 petsc_options=petsc_options)
-    return make
+class RankShare:
+    """One rank's share of a scene, made while the scene is built
+    (:class:`~fem3d.simulation.Simulation`'s ``restrict_model`` and ``make_system``).
+
+    :meth:`restrict` partitions the whole model's tets (:func:`partition_tets`), numbers the
+    free DOFs (:func:`dof_layout`), records the whole mesh's digest and returns the model of
+    this rank's tets (:func:`~fem3d.parallel.local.local_model`: over the whole vertex
+    numbering); the whole model is let go there, before the system is made (its pattern,
+    scatter maps and mass matrix would otherwise hold memory per rank that does not fall
+    with the rank count). :meth:`make_system` makes the :class:`DistributedSystem` of the
+    share.
+
+    Parameters
+    ----------
+    comm : mpi4py.MPI.Comm
+    petsc_options : str, optional
+        The scene's ``simulation.petsc_options``.
+
+    Attributes
+    ----------
+    layout : DofLayout
+    digest : str
+        :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
+    """
+
+    def __init__(self, comm: Any, petsc_options: str = "") -> None:
+        self.comm, self.petsc_options = comm, petsc_options
+        self.layout: DofLayout | None = None
+        self.digest = ""
+
+    def restrict(self, model: Model, constraints: Constraints) -> tuple[Model, np.ndarray]:
+        """The model of this rank's tets and their indices ``(k,) int64`` in ``model``."""
+        tet_rank = partition_tets(model.T, self.comm)
+        tets = np.flatnonzero(tet_rank == self.comm.Get_rank())
+        self.layout = dof_layout(model.T, tet_rank, constraints.free_dofs, self.comm)
+        self.digest = mesh_digest(model.X, model.T)
+        return local_model(model, tets), tets
+
+    def make_system(self, model: Model, constraints: Constraints, loads: Loads
+                    ) -> DistributedSystem:
+        """The :class:`DistributedSystem` of the share's ``model`` and ``loads``."""
+        return DistributedSystem(model, constraints, self.layout, loads=loads,
+                                 petsc_options=self.petsc_options)
 
 
 class DistributedLoop:
@@ -260,20 +296,13 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
 
 def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
                            ) -> tuple[Simulation, str]:
-    """This rank's :class:`Simulation` of ``scene`` and the whole mesh's
-    :func:`~fem3d.io.checkpoint.mesh_digest`.
-
-    The simulation's system is the rank's :class:`DistributedSystem`, and its ``model`` the
-    rank's local model (:func:`~fem3d.parallel.local.local_model`: its tets over the whole
-    vertex numbering): the whole model, built to partition and restrict, is let go (its
-    pattern, scatter maps and mass matrix would hold memory per rank that does not fall
-    with the rank count). Its energies are :func:`local_energies`, summed over the ranks.
-    """
-    sim = Simulation(scene, backend=backend,
-                     make_system=distributed_system(comm, scene.simulation.petsc_options))
-    digest = mesh_digest(sim.model.X, sim.model.T)
-    sim.model = sim.system.model
-    return sim, digest
+    """This rank's :class:`Simulation` of ``scene`` (:class:`RankShare`: its ``model`` the
+    rank's local model, its system the rank's :class:`DistributedSystem`, its energies
+    :func:`local_energies`) and the whole mesh's :func:`~fem3d.io.checkpoint.mesh_digest`."""
+    share = RankShare(comm, scene.simulation.petsc_options)
+    sim = Simulation(scene, backend=backend, restrict_model=share.restrict,
+                     make_system=share.make_system)
+    return sim, share.digest
 
 
 def local_energies(sim: Simulation, comm: Any) -> dict[str, float]:

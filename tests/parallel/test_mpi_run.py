@@ -100,6 +100,19 @@ def test_refused_in_one_line(tmp_path, extra, key):
     assert not (tmp_path / "out").exists()
 
 
+def test_surface_and_point_loads_refused_in_one_line(tmp_path):
+    """A body's loads (not element-wise: no owner rank yet) are refused, not dropped."""
+    scene = write_scene(tmp_path, steps=1)
+    scene.write_text(scene.read_text() + '\n[[bodies.loads]]\nselect = { vertices = [12] }\n'
+                     'force = [0.0, -5.0, 0.0]\n')
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bodies[1].loads" in lines[0] and "mpiexec -n 2" in lines[0], \
+        proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_missing_extra_is_one_line(tmp_path, monkeypatch):
     """petsc4py that does not import: one line naming the extra, exit 2, nothing written."""
     blocker = tmp_path / "block" / "petsc4py"
