@@ -267,8 +267,13 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
         raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     comm = world()
     settings = dict(settings or {"checkpoint_every": int(checkpoint_every), "preview": False})
+    kernels = settings.get("kernels", backend)
+    try:
+        kernels = resolve_backend(kernels)
+    except (ImportError, ValueError) as exc:
+        raise InputError(f"--kernels {kernels}: {exc}") from None
     settings.update(scene=scene.to_dict(), solver=PetscSolver.name, ranks=comm.Get_size(),
-                    kernels=resolve_backend(settings.get("kernels", backend)))
+                    kernels=kernels)
     t0 = time.perf_counter()
     sim, digest = distributed_simulation(scene, comm, settings["kernels"])
     if ckpt is not None:
