@@ -220,3 +220,34 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
     monkeypatch.setenv("PMI_SIZE", "4")
     monkeypatch.setenv("PMI_RANK", "3")
     assert launched_ranks() == 4 and launched_rank() == 3
+
+
+def test_build_restricted_to_a_share_lets_the_whole_model_go(tmp_path):
+    """``build(scene, restrict=)`` (a rank's share): the model and loads are the share's (a
+    per-tet damping coefficient restricted), equal to the whole model's restricted; the whole
+    model is not kept."""
+    import gc
+    import weakref
+
+    from fem3d.scene.build import build
+
+    scene = load_scene(str(write_scene(tmp_path)))  # two bodies: per-tet Rayleigh beta
+    whole = build(scene)
+    tets = np.arange(0, whole.model.n_tets, 3)
+    seen = []
+
+    def restrict(model, constraints):
+        seen.append(weakref.ref(model))
+        assert constraints.free_dofs.size == whole.constraints.free_dofs.size
+        return local_model(model, tets), tets
+
+    share = build(scene, restrict=restrict)
+    gc.collect()
+    assert seen and seen[0]() is None  # the whole model is gone
+    assert share.model.n_tets == tets.size and share.model.n_vertices == whole.model.n_vertices
+    expected = local_loads(whole.loads, local_model(whole.model, tets), tets)
+    assert np.array_equal(share.loads.rayleigh_beta, expected.rayleigh_beta)
+    assert np.ndim(share.loads.rayleigh_beta) == 1 and share.loads.rayleigh_beta.size == tets.size
+    q = whole.model.X.reshape(-1) + 1e-3
+    assert share.loads.gravity_energy(q) == pytest.approx(expected.gravity_energy(q), rel=1e-14)
+    assert share.model.E == whole.model.E
