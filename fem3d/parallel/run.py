@@ -18,7 +18,7 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
   run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
-Contact, scripted pulls, surface and point loads, the linearly-implicit and static schemes,
+Contact, scripted pulls, surface and point loads, the linearly-implicit scheme,
 Newton's ``reuse`` and ``amg`` directions and OBJ/USD frames are refused in one line naming
 the key (what runs: docs/parallel.md).
 """
