@@ -6,10 +6,13 @@
 A box (``bench.meshes.box_mesh``) clamped at its lowest z, swinging under gravity
 (backward Euler, Neo-Hookean, ``dt = 0.01``), written to a temporary folder; each rank count
 runs ``mpiexec -n N python -m fem3d run`` (one thread per rank) and the run's own summary
-line is parsed: wall time of the steps, set-up time, Newton iterations, and the peak RSS of
-each rank. 1 rank is the one-process ``fem3d run`` (the same PETSc solver, no MPI layer; its
-RSS from the operating system; the first rank count, so that the children's peak is its).
-Prints one row per rank count and the speed-up over the first.
+line is parsed: wall time of the steps, set-up time, Newton iterations, the peak RSS of
+each rank (and after set-up) and the CPU time of each rank's steps. 1 rank is the one-process
+``fem3d run`` (the same PETSc solver, no MPI layer; its RSS from the operating system; the
+first rank count, so that the children's peak is its). Every row also gives the CPU time of
+all the processes it ran (set-up included) and the 1-minute load average before and after
+(the machine may be shared: wall-time speed-ups are only as good as the load lets them be).
+Prints one row per rank count, the speed-up and the peak memory per rank over the first.
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ from fem3d.mesh.formats import write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh
 
 SUMMARY = re.compile(r"(\d+) steps on (\d+) ranks in ([\d.]+) s \(([\d.]+) s set-up\), "
-                     r"(\d+) Newton iterations.*peak RSS per rank ([\d., ]+) MiB")
+                     r"(\d+) Newton iterations.*peak RSS per rank ([\d., ]+) MiB "
+                     r"\(after set-up ([\d., ]+)\), CPU of the steps per rank ([\d., ]+) s")
 ONE = re.compile(r"(\d+) steps in ([\d.]+) s; [\d.]+ ms/step \(([\d.]+) Newton iterations/step\)")
 
 
@@ -62,10 +66,14 @@ def run(ranks: int, scene: Path, out: Path) -> dict:
            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
     fem3d = [sys.executable, "-m", "fem3d", "run", str(scene), "--out", str(out), "--no-preview"]
     cmd = fem3d if ranks == 1 else ["mpiexec", "--oversubscribe", "-n", str(ranks), *fem3d]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # every process's CPU (ranks and mpiexec, set-up included)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
     if ranks == 1:
         match = ONE.search(proc.stderr + proc.stdout)
-        rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+        rss = after.ru_maxrss / 1024.0
     else:
         match = SUMMARY.search(proc.stdout)
     if proc.returncode or match is None:
@@ -73,10 +81,16 @@ def run(ranks: int, scene: Path, out: Path) -> dict:
     if ranks == 1:
         steps, wall, newton = match.groups()
         return {"ranks": 1, "steps": int(steps), "wall": float(wall), "setup": float("nan"),
-                "newton": round(float(newton) * int(steps)), "rss": [rss]}
-    steps, _, wall, setup, newton, rss = match.groups()
+                "newton": round(float(newton) * int(steps)), "rss": [rss], "cpu": cpu,
+                "setup_rss": [float("nan")], "step_cpu": [float("nan")]}
+    steps, _, wall, setup, newton, rss, setup_rss, step_cpu = match.groups()
     return {"ranks": ranks, "steps": int(steps), "wall": float(wall), "setup": float(setup),
-            "newton": int(newton), "rss": [float(r) for r in rss.split(",")]}
+            "newton": int(newton), "rss": _floats(rss), "cpu": cpu,
+            "setup_rss": _floats(setup_rss), "step_cpu": _floats(step_cpu)}
+
+
+def _floats(text: str) -> list[float]:
+    return [float(r) for r in text.split(",")]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -97,12 +111,18 @@ def main(argv: list[str] | None = None) -> None:
               f"steps, linear_solver = petsc {args.petsc_options or '(default)'}")
         rows = []
         for n in (int(r) for r in args.ranks.split(",")):
+            load = os.getloadavg()[0]
             rows.append(run(n, scene, tmp / f"out{n}"))
             r = rows[-1]
             print(f"  {n} rank(s): {r['wall'] / r['steps']:.2f} s/step "
                   f"(x{rows[0]['wall'] / r['wall']:.2f}), set-up {r['setup']:.2f} s, "
                   f"{r['newton']} Newton iterations, peak RSS per rank "
-                  f"{', '.join(f'{m:.0f}' for m in r['rss'])} MiB")
+                  f"{', '.join(f'{m:.0f}' for m in r['rss'])} MiB (after set-up "
+                  f"{', '.join(f'{m:.0f}' for m in r['setup_rss'])}; "
+                  f"x{max(r['rss']) / rows[0]['rss'][0]:.2f} of the first), CPU of the steps "
+                  f"per rank {', '.join(f'{c:.1f}' for c in r['step_cpu'])} s, CPU of every "
+                  f"process {r['cpu']:.1f} s, load average {load:.1f} -> "
+                  f"{os.getloadavg()[0]:.1f}", flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

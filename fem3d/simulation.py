@@ -149,7 +149,10 @@ class Simulation:
         after its ``duration``) inside :meth:`step`. Default False (interactive use).
     make_system : callable ``(model, constraints, loads) -> System``, optional
         Makes the system instead of :class:`System` on the scene's linear solver (one MPI
-        rank's share of a distributed run: :func:`fem3d.parallel.run.distributed_system`).
+        rank's share of a distributed run: :func:`fem3d.parallel.run.distributed_simulation`).
+    restrict_model : callable ``(model, constraints) -> (model, tets)``, optional
+        The model of a share of the tets instead of the whole (one MPI rank's:
+        :func:`fem3d.scene.build.build`'s ``restrict``); :attr:`model` is then the share's.
 
     Raises
     ------
@@ -183,11 +186,13 @@ class Simulation:
 
     def __init__(self, scene: Scene, *, backend: str | None = None,
                  scripted: bool = False,
-                 make_system: Callable[[Model, Constraints, Loads], System] | None = None
-                 ) -> None:
+                 make_system: Callable[[Model, Constraints, Loads], System] | None = None,
+                 restrict_model: Callable[[Model, Constraints], tuple[Model, np.ndarray]]
+                 | None = None) -> None:
         self.scene = scene
         _check_supported(scene)
-        built = build(scene, backend=backend)  # arrays, model, pins, motions, contact
+        # arrays, model, pins, motions, contact
+        built = build(scene, backend=backend, restrict=restrict_model)
         a = built.arrays
         self.assembled = a
         self.model: Model = built.model

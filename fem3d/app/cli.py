@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import Any
 
 from fem3d.app.profile import STAGES_LOGGER, profiled
-from fem3d.app.run import resume_run, run_scene
+from fem3d.app.run import resume_inputs, resume_run, run_scene
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
@@ -309,7 +309,8 @@ def _run_command(args: argparse.Namespace) -> int:
         _stages.debug("scene file")
         out = Path(args.out) if args.out else Path("out") / scene.name
         if launched_ranks() > 1:  # mpiexec -n N fem3d run: one simulation on N ranks
-            return run_distributed(scene, out, quiet=args.quiet, backend=args.kernels)
+            return run_distributed(scene, out, quiet=args.quiet, backend=args.kernels,
+                                   checkpoint_every=args.checkpoint_every)
         summary = run_scene(scene, out, quiet=args.quiet,
                             checkpoint_every=args.checkpoint_every,
                             preview=not args.no_preview, backend=args.kernels,
@@ -318,6 +319,9 @@ def _run_command(args: argparse.Namespace) -> int:
 
 
 def _resume_command(args: argparse.Namespace) -> int:
+    if launched_ranks() > 1:  # mpiexec -n N fem3d resume: continued on N ranks
+        out, ckpt, scene, settings = resume_inputs(args)
+        return run_distributed(scene, out, quiet=args.quiet, ckpt=ckpt, settings=settings)
     return resume_run(args)
 
 
@@ -345,9 +349,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # under mpiexec every rank meets the same error: rank 0 says it
     say = print if launched_rank() == 0 else (lambda *a, **k: None)
     try:
-        if ranks > 1 and args.command not in ("run", "schema"):
+        if ranks > 1 and args.command not in ("run", "resume", "schema"):
             raise InputError(f"fem3d {args.command} runs in one process, not under mpiexec "
-                             f"-n {ranks} (only fem3d run is distributed: docs/parallel.md)")
+                             f"-n {ranks} (only fem3d run and resume are distributed: "
+                             "docs/parallel.md)")
         with rundir.warnings_as_lines(f"fem3d {args.command}"):
             return int(args.func(args) or 0)
     except InputError as exc:

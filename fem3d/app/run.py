@@ -62,7 +62,7 @@ from fem3d.physics.stress import element_fields, element_stress, vertex_fields
 from fem3d.scene import Scene, apply_overrides
 from fem3d.simulation import Simulation
 
-__all__ = ["run_scene", "resume_run", "RunSummary", "RunLoop", "PREVIEW_FRAMES",
+__all__ = ["run_scene", "resume_run", "resume_inputs", "RunSummary", "RunLoop", "PREVIEW_FRAMES",
            "EXIT_INTERRUPTED"]
 
 #: Frames kept in memory for the GIF preview (evenly spaced).
@@ -552,6 +552,34 @@ def resume_run(args: argparse.Namespace) -> int:
     InputError
         No or a bad checkpoint, a mesh changed since, or a bad ``--steps``.
     """
+    out, ckpt, scene, settings = resume_inputs(args)
+    sim = Simulation(scene, backend=settings["kernels"], scripted=True)
+    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
+        raise InputError("the mesh differs from the one the checkpoint was made with",
+                         path=sim.assembled.mesh_paths[0])
+    try:
+        sim.restore(ckpt.snapshot)
+    except (ParameterError, KeyError) as exc:
+        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
+    ck = out / CHECKPOINT_NAME
+    inputs = {**_scene_inputs(scene), "checkpoint": ck}
+    with rundir.claim(out, inputs=inputs, allow=(ck,)):
+        summary = RunLoop(scene, sim, out, settings, quiet=args.quiet,
+                          debug=getattr(args, "debug", False), ckpt=ckpt,
+                          command="resume").run()
+    return summary.exit_status
+
+
+def resume_inputs(args: argparse.Namespace) -> tuple[Path, RunCheckpoint, Scene, dict]:
+    """What ``fem3d resume DIR`` continues (in one process or on MPI ranks): the output
+    folder, its checkpoint, the scene (with ``--steps``) and the run's settings (with
+    ``--checkpoint-every``, ``--no-preview``, the kernels resolved).
+
+    Raises
+    ------
+    InputError
+        No or a bad checkpoint, or a bad ``--steps`` / ``--checkpoint-every``.
+    """
     out = Path(args.dir)
     ckpt = load_run_checkpoint(out / CHECKPOINT_NAME)
     settings = dict(ckpt.settings)
@@ -577,19 +605,5 @@ def resume_run(args: argparse.Namespace) -> int:
         settings["preview"] = False
     _require_extras(scene)
     settings["kernels"] = _resolve_kernels(settings["kernels"])
-    sim = Simulation(scene, backend=settings["kernels"], scripted=True)
-    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
-    ck = out / CHECKPOINT_NAME
-    inputs = {**_scene_inputs(scene), "checkpoint": ck}
-    with rundir.claim(out, inputs=inputs, allow=(ck,)):
-        summary = RunLoop(scene, sim, out, settings, quiet=args.quiet,
-                          debug=getattr(args, "debug", False), ckpt=ckpt,
-                          command="resume").run()
-    return summary.exit_status
+    return out, ckpt, scene, settings
 

@@ -1,4 +1,5 @@
-"""``mpiexec -n N fem3d run scene.toml``: one simulation on N ranks.
+"""``mpiexec -n N fem3d run scene.toml`` and ``mpiexec -n N fem3d resume DIR``: one
+simulation on N ranks.
 
 Every rank reads the scene and builds the whole model (the pins, motions and reported
 energies are the whole model's), partitions the tets (:mod:`fem3d.parallel.partition`) and
@@ -7,13 +8,19 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
 
 * ``frames/frame_NNNNN_R.vtu``: rank ``R``'s piece, the surface of its tets (a ``rank``
   field per point); ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and
-  ``frames.pvd`` lists the frames by time (ParaView opens it);
+  ``frames.pvd`` lists the frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
 * ``energy.csv`` (rank 0), the columns of a one-process run;
+* ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
+  the one-process run checkpoint (:mod:`fem3d.io.checkpoint`) of the whole state, which
+  every rank holds; ``fem3d resume DIR`` continues it on any number of ranks, one included
+  (bit for bit on the rank count that wrote it: the partition, the PETSc numbering and so
+  every sum are the same), and ``mpiexec -n N fem3d resume`` continues a one-process
+  run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
-Contact, scripted pulls, the linearly-implicit, static and Newmark schemes, Newton's ``reuse`` and
-``amg`` directions and OBJ/USD frames are refused in one line naming the key (what runs:
-docs/parallel.md).
+Contact, scripted pulls, surface and point loads, the linearly-implicit scheme,
+Newton's ``reuse`` and ``amg`` directions and OBJ/USD frames are refused in one line naming
+the key (what runs: docs/parallel.md).
 """
 
 from __future__ import annotations
@@ -22,31 +29,29 @@ import resource
 import time
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import extras
+from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
-from fem3d.io.files import atomic_write
-from fem3d.io.frames import RawVtu
-from fem3d.mesh.tetmesh import boundary_faces
-from fem3d.parallel.comm import launched_ranks, world
-from fem3d.parallel.local import local_loads, local_model
+from fem3d.kernels.dispatch import resolve_backend
+from fem3d.parallel.comm import launched_ranks, sum_scalar, world
+from fem3d.parallel.local import local_model
 from fem3d.parallel.partition import dof_layout, partition_tets
+from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
+from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
 from fem3d.simulation import Simulation
-from fem3d.solve.linear.petsc import PetscSolver
+from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "distributed_system",
-           "run_distributed", "PieceWriter"]
-
-#: The schemes a distributed run steps (their Newton sees only element-wise terms; Newmark's
-#: initial acceleration solves with the mass matrix outside the linear-solver seam).
+__all__ = ["check_distributable", "RankShare", "distributed_simulation",
+           "local_energies", "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
 def check_distributable(scene: Any, ranks: int) -> None:
@@ -55,7 +60,7 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Contact, pulls, a scheme not marked ``distributed``, a Newton
+        Contact, pulls, surface and point loads, a scheme not marked ``distributed``, a Newton
         direction other than ``direct``, frames other than ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"
@@ -65,6 +70,11 @@ def check_distributable(scene: Any, ranks: int) -> None:
     if scene.pulls:
         raise scene.error("pulls", f"{why} have no scripted pulls yet (their springs are not "
                           "element-wise): run without mpiexec, or --no-pull")
+    for i, body in enumerate(scene.bodies):
+        if body.loads:
+            raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
+                              "yet (their faces and points have no owner rank): run in one "
+                              "process")
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)
@@ -81,76 +91,161 @@ def check_distributable(scene: Any, ranks: int) -> None:
                           "volume mesh: run without mpiexec for volume/*.vtu")
 
 
-def distributed_system(comm: Any, petsc_options: str = ""):
-    """A ``make_system`` for :class:`~fem3d.simulation.Simulation`: this rank's
-    :class:`DistributedSystem` of the whole model (partitioned here)."""
-    def make(model: Model, constraints: Constraints, loads: Loads) -> DistributedSystem:
-        tet_rank = partition_tets(model.T, comm)
-        tets = np.flatnonzero(tet_rank == comm.Get_rank())
-        layout = dof_layout(model.T, tet_rank, constraints.free_dofs, comm)
-        local = local_model(model, tets)
-        system = DistributedSystem(local, constraints, layout,
-                                   loads=local_loads(loads, local, tets),
-                                   petsc_options=petsc_options)
-        system.tet_rank = tet_rank
-        return system
-    return make
+class RankShare:
+    """One rank's share of a scene, made while the scene is built
+    (:class:`~fem3d.simulation.Simulation`'s ``restrict_model`` and ``make_system``).
 
-
-class PieceWriter:
-    """One rank's frames: the surface of its tets as ``frame_NNNNN_R.vtu``; rank 0 also
-    writes each frame's ``.pvtu`` and ``frames.pvd``.
+    :meth:`restrict` partitions the whole model's tets (:func:`partition_tets`), numbers the
+    free DOFs (:func:`dof_layout`), records the whole mesh's digest and returns the model of
+    this rank's tets (:func:`~fem3d.parallel.local.local_model`: over the whole vertex
+    numbering); the whole model is let go there, before the system is made (its pattern,
+    scatter maps and mass matrix would otherwise hold memory per rank that does not fall
+    with the rank count). :meth:`make_system` makes the :class:`DistributedSystem` of the
+    share.
 
     Parameters
     ----------
-    out : Path
-    T : (m, 4) int64
-        The whole mesh.
-    tet_rank : (m,) int64
     comm : mpi4py.MPI.Comm
+    petsc_options : str, optional
+        The scene's ``simulation.petsc_options``.
+
+    Attributes
+    ----------
+    layout : DofLayout
+    digest : str
+        :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
     """
 
-    def __init__(self, out: Path, T: np.ndarray, tet_rank: np.ndarray, comm: Any) -> None:
-        self.rank, self.size = comm.Get_rank(), comm.Get_size()
-        self.out = Path(out)
-        self.frame_dir = self.out / "frames"
-        faces = boundary_faces(T[tet_rank == self.rank])
-        self.vertices, local = np.unique(faces, return_inverse=True)
-        self._vtu = RawVtu(local.reshape(-1, 3))
-        self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)
-        self.frames: dict[int, tuple[float, str]] = {}
+    def __init__(self, comm: Any, petsc_options: str = "") -> None:
+        self.comm, self.petsc_options = comm, petsc_options
+        self.layout: DofLayout | None = None
+        self.digest = ""
 
-    def name(self, step: int, rank: int | None = None) -> str:
-        return f"frame_{step:05d}" + ("" if rank is None else f"_{rank}") + \
-            (".pvtu" if rank is None else ".vtu")
+    def restrict(self, model: Model, constraints: Constraints) -> tuple[Model, np.ndarray]:
+        """The model of this rank's tets and their indices ``(k,) int64`` in ``model``."""
+        tet_rank = partition_tets(model.T, self.comm)
+        tets = np.flatnonzero(tet_rank == self.comm.Get_rank())
+        self.layout = dof_layout(model.T, tet_rank, constraints.free_dofs, self.comm)
+        self.digest = mesh_digest(model.X, model.T)
+        return local_model(model, tets), tets
 
-    def write(self, step: int, t: float, q: np.ndarray) -> None:
-        """This rank's piece of frame ``step``; rank 0: the ``.pvtu`` and ``frames.pvd``."""
-        self._vtu.write(self.frame_dir / self.name(step, self.rank), q[self.vertices],
-                        {"rank": self._rank_field})
+    def make_system(self, model: Model, constraints: Constraints, loads: Loads
+                    ) -> DistributedSystem:
+        """The :class:`DistributedSystem` of the share's ``model`` and ``loads``."""
+        return DistributedSystem(model, constraints, self.layout, loads=loads,
+                                 petsc_options=self.petsc_options)
+
+
+class DistributedLoop:
+    """Step a distributed ``sim`` up to ``scene.n_steps`` on every rank, writing the pieces,
+    ``energy.csv`` and the checkpoints (rank 0) into ``out``.
+
+    Parameters
+    ----------
+    scene : fem3d.scene.spec.Scene
+    sim : Simulation
+        This rank's (:func:`distributed_simulation`), at the checkpoint's state on a resume.
+    out : Path
+    settings : dict
+        The checkpoint's ``settings`` (``scene``, ``kernels``, ``solver``,
+        ``checkpoint_every``, ``preview``, ``ranks``).
+    comm : mpi4py.MPI.Comm
+    digest : str
+        :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
+    ckpt : RunCheckpoint, optional
+        The checkpoint a resume continues from (its energy rows and frames are kept).
+    """
+
+    def __init__(self, scene: Any, sim: Simulation, out: Path, settings: dict[str, Any],
+                 comm: Any, digest: str, ckpt: RunCheckpoint | None = None) -> None:
+        self.scene, self.sim, self.out, self.settings = scene, sim, Path(out), settings
+        self.comm, self.rank, self.ckpt = comm, comm.Get_rank(), ckpt
+        self.digest = digest
+        self.every = int(settings["checkpoint_every"])
+        if self.rank == 0:
+            (self.out / "frames").mkdir(parents=True, exist_ok=True)
+        comm.Barrier()
+        self.writer = PieceWriter(self.out, sim.model.T, comm)
+        if ckpt is None:
+            self.log = EnergyLog(self.out / "energy.csv")
+        else:
+            self.log = EnergyLog.from_array(ckpt.energy, self.out / "energy.csv")
+            self.writer.restore(ckpt.frames, ckpt.step)
+            comm.Barrier()  # later frames' files are gone before any rank writes
+        self.iterations = 0
+
+    def record(self) -> None:
+        """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
+        sim = self.sim
+        e = local_energies(sim, self.comm)
+        if self.rank == 0:
+            self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
+                            pull=e["pull"])
+        if sim.step_index % self.scene.output.every == 0:
+            self.writer.write(sim.step_index, sim.t, sim.q)
+
+    def _step(self) -> Any:
+        """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's
+        closing checks see the local model: a rank may fail alone)."""
+        try:
+            info, failure = self.sim.step(), ""
+        except SimulationError as exc:
+            info, failure = None, str(exc)
+        failures = [f for f in self.comm.allgather(failure) if f]
+        if failures:
+            raise SimulationError(failures[0])
+        return info
+
+    def save_checkpoint(self) -> None:
+        """Rank 0: ``energy.csv`` and ``checkpoint.npz`` of the whole state (every rank holds
+        it), the one-process format."""
         if self.rank:
             return
-        pieces = "\n".join(f"    <Piece Source={quoteattr(self.name(step, r))}/>"
-                           for r in range(self.size))
-        atomic_write(self.frame_dir / self.name(step), (
-            '<?xml version="1.0"?>\n<VTKFile type="PUnstructuredGrid" version="1.0" '
-            'byte_order="LittleEndian" header_type="UInt64">\n'
-            '  <PUnstructuredGrid GhostLevel="0">\n'
-            '    <PPointData><PDataArray type="Int32" Name="rank"/></PPointData>\n'
-            '    <PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>\n'
-            f"{pieces}\n  </PUnstructuredGrid>\n</VTKFile>\n"))
-        self.frames[step] = (t, f"frames/{self.name(step)}")
-        rows = "\n".join(f'    <DataSet timestep="{tt!r}" group="" part="0" '
-                         f"file={quoteattr(rel)}/>" for _, (tt, rel) in sorted(self.frames.items()))
-        atomic_write(self.out / "frames.pvd", (
-            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" '
-            f'byte_order="LittleEndian">\n  <Collection>\n{rows}\n  </Collection>\n'
-            "</VTKFile>\n"))
+        self.log.write()
+        sim = self.sim
+        save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
+            settings=self.settings, snapshot=sim.snapshot(), energy=self.log.as_array(),
+            frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
+            mesh_digest=self.digest))
+
+    def run(self) -> float:
+        """Step to ``scene.n_steps``; the wall time of the steps."""
+        sim = self.sim
+        if self.ckpt is None:
+            self.record()
+        t1 = time.perf_counter()
+        while sim.step_index < self.scene.n_steps:
+            info = self._step()
+            self.iterations += info.newton_iterations
+            self.record()
+            if self.every and sim.step_index % self.every == 0:
+                self.save_checkpoint()
+        wall = time.perf_counter() - t1
+        if self.every and sim.step_index % self.every:
+            self.save_checkpoint()  # and at the end
+        return wall
 
 
-def run_distributed(scene: Any, out: Path, *, quiet: bool = True,
-                    backend: str | None = None) -> int:
-    """Run ``scene`` on the ranks of ``mpiexec`` into ``out`` (see the module docstring).
+def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str | None = None,
+                    checkpoint_every: int = 0, ckpt: RunCheckpoint | None = None,
+                    settings: dict[str, Any] | None = None) -> int:
+    """Run ``scene`` on the ranks of ``mpiexec`` into ``out`` (see the module docstring), or
+    continue the run of checkpoint ``ckpt`` there (``fem3d resume``).
+
+    Parameters
+    ----------
+    scene : fem3d.scene.spec.Scene
+    out : Path
+    quiet : bool
+        No summary line.
+    backend : {None, "numpy", "c"}
+        Kernel back end (a resume: the checkpoint's, in ``settings``).
+    checkpoint_every : int
+        ``checkpoint.npz`` every this many steps and at the end (0: none).
+    ckpt : RunCheckpoint, optional
+        The checkpoint to continue (written by any number of ranks).
+    settings : dict, optional
+        With ``ckpt``: its settings as the resume amends them (``checkpoint_every``).
 
     Returns
     -------
@@ -160,51 +255,87 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True,
     Raises
     ------
     InputError
-        What :func:`check_distributable` refuses, or the missing ``fem3d[mpi]`` extra; nothing
-        is written.
+        What :func:`check_distributable` refuses, the missing ``fem3d[mpi]`` extra, or a
+        checkpoint whose mesh or state does not fit; nothing is written.
     """
     ranks = launched_ranks()
-    extras.require("mpi4py", f"mpiexec -n {ranks} fem3d run")
-    extras.require("petsc4py", f"mpiexec -n {ranks} fem3d run")
+    command = "fem3d run" if ckpt is None else "fem3d resume"
+    extras.require("mpi4py", f"mpiexec -n {ranks} {command}")
+    extras.require("petsc4py", f"mpiexec -n {ranks} {command}")
     if not PetscSolver.available():  # installed but does not import (a PETSc it was not built for)
-        raise extras.MissingExtra(f"mpiexec -n {ranks} fem3d run needs petsc4py and mpi4py, "
+        raise extras.MissingExtra(f"mpiexec -n {ranks} {command} needs petsc4py and mpi4py, "
                                   f"which do not import here: {PetscSolver.install_hint}")
     check_distributable(scene, ranks)
+    if checkpoint_every < 0:
+        raise ParameterError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     comm = world()
-    rank = comm.Get_rank()
+    settings = dict(settings or {"checkpoint_every": int(checkpoint_every), "preview": False})
+    kernels = settings.get("kernels", backend)
+    try:
+        kernels = resolve_backend(kernels)
+    except (ImportError, ValueError) as exc:
+        raise InputError(f"--kernels {kernels}: {exc}") from None
+    settings.update(scene=scene.to_dict(), solver=PetscSolver.name, ranks=comm.Get_size(),
+                    kernels=kernels)
     t0 = time.perf_counter()
-    sim = Simulation(scene, backend=backend,
-                     make_system=distributed_system(comm, scene.simulation.petsc_options))
+    sim, digest = distributed_simulation(scene, comm, settings["kernels"])
+    if ckpt is not None:
+        _restore(sim, ckpt, digest, Path(out))
     setup = time.perf_counter() - t0
-    out = Path(out)
-    if rank == 0:
-        (out / "frames").mkdir(parents=True, exist_ok=True)
-    comm.Barrier()
-    writer = PieceWriter(out, sim.model.T, sim.system.tet_rank, comm)
-    log = EnergyLog(out / "energy.csv")
-    every = scene.output.every
-
-    def record() -> None:
-        e = sim.energies()
-        if rank == 0:
-            log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"], pull=e["pull"])
-        if sim.step_index % every == 0:
-            writer.write(sim.step_index, sim.t, sim.q)
-
-    record()
-    iterations = 0
-    t1 = time.perf_counter()
-    for _ in range(scene.n_steps):
-        info = sim.step()
-        iterations += info.newton_iterations
-        record()
-    wall = time.perf_counter() - t1
-    rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, root=0)
-    if rank == 0:
-        log.write()
-        np.savez(out / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
+    loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
+    setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    cpu = time.process_time()
+    wall = loop.run()
+    cpu = time.process_time() - cpu
+    rss = comm.gather((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, setup_rss,
+                       cpu), root=0)
+    if comm.Get_rank() == 0:
+        loop.log.write()
+        np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
         if not quiet:
-            print(f"{scene.name}: {scene.n_steps} steps on {comm.Get_size()} ranks in "
-                  f"{wall:.2f} s ({setup:.2f} s set-up), {iterations} Newton iterations, "
-                  f"peak RSS per rank {', '.join(f'{m:.0f}' for m in rss)} MiB -> {out}")
+            steps = sim.step_index - (0 if ckpt is None else ckpt.step)
+            print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
+                  f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "
+                  f"peak RSS per rank {', '.join(f'{m:.0f}' for m, _, _ in rss)} MiB "
+                  f"(after set-up {', '.join(f'{m:.0f}' for _, m, _ in rss)}), CPU of the "
+                  f"steps per rank {', '.join(f'{c:.2f}' for _, _, c in rss)} s -> {out}")
     return 0
+
+
+def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
+                           ) -> tuple[Simulation, str]:
+    """This rank's :class:`Simulation` of ``scene`` (:class:`RankShare`: its ``model`` the
+    rank's local model, its system the rank's :class:`DistributedSystem`, its energies
+    :func:`local_energies`) and the whole mesh's :func:`~fem3d.io.checkpoint.mesh_digest`."""
+    share = RankShare(comm, scene.simulation.petsc_options)
+    sim = Simulation(scene, backend=backend, restrict_model=share.restrict,
+                     make_system=share.make_system)
+    return sim, share.digest
+
+
+def local_energies(sim: Simulation, comm: Any) -> dict[str, float]:
+    """:meth:`Simulation.energies` of a distributed ``sim`` (:func:`distributed_simulation`):
+    each rank's kinetic and strain energies summed over the ranks (the same bits on every
+    rank), gravity's reduced by its loads; no pulls."""
+    kinetic = sum_scalar(comm, kinetic_energy(sim.model, sim.v))
+    strain = sum_scalar(comm, potential_energy(sim.model, sim.q))
+    gravity = sim.gravity_energy()
+    return {"kinetic": kinetic, "potential": strain + gravity, "pull": 0.0,
+            "total": kinetic + strain + gravity, "strain": strain, "gravity": gravity}
+
+
+def _restore(sim: Simulation, ckpt: RunCheckpoint, digest: str, out: Path) -> None:
+    """Set the checkpoint's state (the whole model's, on every rank).
+
+    Raises
+    ------
+    InputError
+        A mesh other than the checkpoint's, or a state that does not fit it.
+    """
+    if digest != ckpt.mesh_digest:
+        raise InputError("the mesh differs from the one the checkpoint was made with",
+                         path=sim.assembled.mesh_paths[0])
+    try:
+        sim.restore(ckpt.snapshot)
+    except (ParameterError, KeyError) as exc:
+        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None

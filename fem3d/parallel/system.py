@@ -128,6 +128,16 @@ class DistributedSystem(System):
         comm = self.layout.comm
         self._model_terms = tuple(ReducedTerm(t, comm) for t in self._model_terms)
 
+    def solve_mass(self, rhs: np.ndarray) -> np.ndarray:
+        """``M^-1 rhs`` with the mass matrix summed over the ranks (each rank's
+        :attr:`mass_free` is its tets' part): a :class:`PetscSolver` over the
+        :class:`DofLayout` (MUMPS or CG + GAMG, as for the Newton systems); the whole
+        ``(n_free,)`` result on every rank."""
+        solver = PetscSolver(self.direct_solver_options(), layout=self.layout)
+        solver.analyse(self.mass_free, symmetric=True)
+        solver.factorize(self.mass_free)
+        return solver.solve(rhs)
+
     def _new_direct_solver(self, pattern) -> DirectSolver:
         solver = PetscSolver(self.direct_solver_options(), layout=self.layout)
         solver.analyse(pattern, symmetric=True)

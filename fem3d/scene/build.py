@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -127,7 +128,9 @@ class Built:
     pin_groups: tuple = ()
 
 
-def build(scene: Scene, *, backend: str | None = None) -> Built:
+def build(scene: Scene, *, backend: str | None = None,
+          restrict: Callable[[Model, Constraints], tuple[Model, np.ndarray]] | None = None
+          ) -> Built:
     """Everything a run of ``scene`` needs that the scene decides.
 
     Parameters
@@ -135,6 +138,10 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     scene : Scene
     backend : {None, "numpy", "c"}, optional
         Kernel back end of the model (None: C if built).
+    restrict : callable ``(model, constraints) -> (model, tets)``, optional
+        One MPI rank's share (:mod:`fem3d.parallel`): the model of the tets ``tets`` alone,
+        made from the whole one, which is let go at once; the loads are the share's (a
+        per-tet damping coefficient restricted to ``tets``).
 
     Returns
     -------
@@ -159,6 +166,9 @@ def build(scene: Scene, *, backend: str | None = None) -> Built:
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)
+    if restrict is not None:
+        model, tets = restrict(model, constraints)
+        beta = beta if np.ndim(beta) == 0 else beta[tets]
     try:
         loads = build_loads(model, gravity, alpha, beta,
                             surface=surface_loads_from_scene(scene, a, model))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from fem3d.errors import SimulationError
 from fem3d.kernels.backend import c_extension
@@ -571,6 +572,20 @@ class System:
             # bit for bit what a long-lived one does.
             solver.factorize(self.mass_free)
         return solver
+
+    def solve_mass(self, rhs: np.ndarray) -> np.ndarray:
+        """``M^-1 rhs`` with the mass matrix on the free DOFs (:attr:`mass_free`; Newmark's
+        initial acceleration): SuperLU (a distributed system: PETSc over its ranks).
+
+        Parameters
+        ----------
+        rhs : (n_free,) float64
+
+        Returns
+        -------
+        (n_free,) float64
+        """
+        return spla.spsolve(self.mass_free.tocsc(), rhs)
 
     def direct_solver_options(self) -> SolverOptions:
         """What a direct solver is made with: CHOLMOD's mode, PETSc's options and the free

@@ -29,7 +29,8 @@ def _one_process(scene_path, steps=20) -> Simulation:
 
 
 @pytest.mark.parametrize("integrator, options", [("implicit", ""), ("bdf2", ""),
-                                                 ("implicit", "-ksp_type cg -pc_type gamg")])
+                                                 ("implicit", "-ksp_type cg -pc_type gamg"),
+                                                 ("newmark", "")])
 def test_two_ranks_equal_one_process(tmp_path, integrator, options):
     """20 steps of the two-material box (Neo-Hookean, damped StVK) on 2 ranks (MUMPS, and
     CG + GAMG) equal the one-process run (the default direct solver) to 1e-8 of the
@@ -52,6 +53,22 @@ def test_two_ranks_equal_one_process(tmp_path, integrator, options):
     assert len(energy["t"]) == 21
     assert abs(energy["kinetic"][-1] - sim.energies()["kinetic"]) <= \
         1e-6 * sim.energies()["kinetic"]
+
+
+def test_static_on_two_ranks_equals_one_process(tmp_path):
+    """3 static steps (equilibria under gravity, load increments where Newton needs them) of
+    the two-material box at rest on 2 ranks equal the one-process run to 1e-8 of the
+    displacement."""
+    scene = write_scene(tmp_path, integrator="static", steps=3)
+    scene.write_text(scene.read_text().replace("velocity = [0.0, 0.0, 0.3]", ""))
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = np.load(tmp_path / "out" / "state.npz")
+    sim = _one_process(scene, steps=3)
+    diff = relative_difference(state["q"], sim.q, sim.model.X)
+    print(f"static: 2 ranks vs one process: relative difference {diff:.2e}")
+    assert int(state["step"]) == 3 and diff <= 1e-8
+    assert not state["v"].any()
 
 
 def test_two_ranks_write_pieces(tmp_path):
@@ -91,12 +108,25 @@ def test_two_ranks_write_pieces(tmp_path):
     ('', "simulation.integrator"),
 ])
 def test_refused_in_one_line(tmp_path, extra, key):
-    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "newmark")
+    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "linear")
     scene.write_text(scene.read_text() + "\n" + extra + "\n")
     proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and key in lines[0] and "mpiexec -n 2" in lines[0], proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_surface_and_point_loads_refused_in_one_line(tmp_path):
+    """A body's loads (not element-wise: no owner rank yet) are refused, not dropped."""
+    scene = write_scene(tmp_path, steps=1)
+    scene.write_text(scene.read_text() + '\n[[bodies.loads]]\nselect = { vertices = [12] }\n'
+                     'force = [0.0, -5.0, 0.0]\n')
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bodies[1].loads" in lines[0] and "mpiexec -n 2" in lines[0], \
+        proc.stderr
     assert not (tmp_path / "out").exists()
 
 
@@ -206,3 +236,34 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
     monkeypatch.setenv("PMI_SIZE", "4")
     monkeypatch.setenv("PMI_RANK", "3")
     assert launched_ranks() == 4 and launched_rank() == 3
+
+
+def test_build_restricted_to_a_share_lets_the_whole_model_go(tmp_path):
+    """``build(scene, restrict=)`` (a rank's share): the model and loads are the share's (a
+    per-tet damping coefficient restricted), equal to the whole model's restricted; the whole
+    model is not kept."""
+    import gc
+    import weakref
+
+    from fem3d.scene.build import build
+
+    scene = load_scene(str(write_scene(tmp_path)))  # two bodies: per-tet Rayleigh beta
+    whole = build(scene)
+    tets = np.arange(0, whole.model.n_tets, 3)
+    seen = []
+
+    def restrict(model, constraints):
+        seen.append(weakref.ref(model))
+        assert constraints.free_dofs.size == whole.constraints.free_dofs.size
+        return local_model(model, tets), tets
+
+    share = build(scene, restrict=restrict)
+    gc.collect()
+    assert seen and seen[0]() is None  # the whole model is gone
+    assert share.model.n_tets == tets.size and share.model.n_vertices == whole.model.n_vertices
+    expected = local_loads(whole.loads, local_model(whole.model, tets), tets)
+    assert np.array_equal(share.loads.rayleigh_beta, expected.rayleigh_beta)
+    assert np.ndim(share.loads.rayleigh_beta) == 1 and share.loads.rayleigh_beta.size == tets.size
+    q = whole.model.X.reshape(-1) + 1e-3
+    assert share.loads.gravity_energy(q) == pytest.approx(expected.gravity_energy(q), rel=1e-14)
+    assert share.model.E == whole.model.E

@@ -149,6 +149,7 @@ class PetscSolver(DirectSolver):
         self.partial = layout is not None and layout.comm.Get_size() > 1
         self.ksp_options = self._ksp_options()
         self._mat = self._ksp = None
+        self._keeps_ksp = True
         self._iterations, self._residual, self._converged = 0, float("nan"), True
 
     @classmethod
@@ -281,8 +282,12 @@ class PetscSolver(DirectSolver):
         A.setValuesIJV(self._row_ptr, self._cols, np.ascontiguousarray(data[self._by_row]),
                        addv=PETSc.InsertMode.ADD_VALUES, rowmap=self._row_of)
         A.assemble()
+        if self._ksp is not None and not self._keeps_ksp:
+            self._ksp.destroy()
+            self._ksp = None
         if self._ksp is None:
             self._ksp = self._new_ksp()
+            self._keeps_ksp = self._ksp.getPC().getType() in _FACTORIZATIONS
         else:
             self._ksp.setOperators(self._mat)
         try:
@@ -322,6 +327,13 @@ class PetscSolver(DirectSolver):
         if reason < 0 and reason != PETSc.KSP.ConvergedReason.DIVERGED_ITS:
             part[:] = np.nan  # indefinite or broken down: Newton falls back to -g
         return part
+
+
+#: The preconditioners whose KSP is kept from one matrix to the next (a factorization keeps
+#: its symbolic analysis, and its factor is a function of the matrix alone). Any other (GAMG)
+#: carries state from one set-up to the next, so its KSP is made anew for each matrix: a
+#: resumed run then computes bit for bit what an uninterrupted one does.
+_FACTORIZATIONS = ("cholesky", "lu")
 
 
 def _mumps_outcome(pc: Any) -> tuple[int, int]:

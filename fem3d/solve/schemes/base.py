@@ -85,7 +85,7 @@ class Scheme:
     #: a contact step may be redone as substeps (:mod:`fem3d.solve.substeps`)
     substeps: ClassVar[bool] = True
     #: runs under ``mpiexec -n N`` (:mod:`fem3d.parallel`: every solve through the distributed
-    #: System; Newmark's start solves with the mass matrix outside it)
+    #: System, Newmark's start too: :meth:`System.solve_mass`)
     distributed: ClassVar[bool] = False
     #: the history arrays the scheme's states carry (``(n, 3)`` each, by name)
     history: ClassVar[tuple[str, ...]] = ()

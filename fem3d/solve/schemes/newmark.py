@@ -35,7 +35,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from fem3d.physics.terms.base import NewtonPolicy, StepMap, as_term
 from fem3d.solve.schemes.base import Scheme, Step
@@ -91,7 +90,7 @@ def initial_acceleration(system: System, terms: Sequence, state: State, dt: floa
             g += term.gradient(x)
     a = np.zeros(c.n_dofs)
     if np.any(g):
-        a[c.free_dofs] = spla.spsolve(system.mass_free.tocsc(), -g)
+        a[c.free_dofs] = system.solve_mass(-g)
     return a.reshape(-1, 3)
 
 
@@ -102,6 +101,7 @@ class Newmark(Scheme):
     name = "newmark"
     label = "Newmark"
     history = ("a",)
+    distributed = True  # the initial acceleration's mass solve goes through the system
 
     def prepare(self, system, terms, state, dt, fixed_positions, settings) -> Step:
         """``h = gamma dt``, ``q_base``, ``v_hat`` from ``q_n``, ``v_n``, ``a_n`` (``a_n``

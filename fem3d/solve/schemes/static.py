@@ -17,6 +17,7 @@ class Static(Scheme):
     label = "static"
     dynamic = False
     substeps = False
+    distributed = True  # its solves go through the system (load increments: its terms)
     converged_max_iterations = 50
 
     def step(self, system, terms, state, dt, settings, *, fixed_positions=None,

@@ -1,0 +1,86 @@
+"""The frames of a distributed run: each rank writes the surface of its tets as one ``.vtu``
+piece, rank 0 the ``.pvtu`` that gathers a frame's pieces and ``frames.pvd`` (ParaView)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from fem3d.io.files import atomic_write
+from fem3d.io.frames import RawVtu
+from fem3d.mesh.tetmesh import boundary_faces
+
+__all__ = ["PieceWriter"]
+
+
+class PieceWriter:
+    """One rank's frames: the surface of its tets as ``frame_NNNNN_R.vtu``; rank 0 also
+    writes each frame's ``.pvtu`` and ``frames.pvd``.
+
+    Parameters
+    ----------
+    out : Path
+    T : (k, 4) int64
+        This rank's tets (the whole mesh's vertex numbers).
+    comm : mpi4py.MPI.Comm
+    """
+
+    def __init__(self, out: Path, T: np.ndarray, comm: Any) -> None:
+        self.rank, self.size = comm.Get_rank(), comm.Get_size()
+        self.out = Path(out)
+        self.frame_dir = self.out / "frames"
+        faces = boundary_faces(T)
+        self.vertices, local = np.unique(faces, return_inverse=True)
+        self._vtu = RawVtu(local.reshape(-1, 3))
+        self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)
+        #: step -> (time, path relative to ``out``) of every frame listed in ``frames.pvd``
+        self.frames: dict[int, tuple[float, str]] = {}
+
+    def name(self, step: int, rank: int | None = None) -> str:
+        return f"frame_{step:05d}" + ("" if rank is None else f"_{rank}") + \
+            (".pvtu" if rank is None else ".vtu")
+
+    def restore(self, frames: Mapping[int, tuple[float, str]], step: int) -> None:
+        """Continue a run from a checkpoint at ``step``: its frames (a one-process run's
+        ``.vtu`` frames, or pieces) stay listed; rank 0 removes the files of later frames
+        (written after the checkpoint) and rewrites ``frames.pvd``."""
+        self.frames = {int(k): (float(t), str(r)) for k, (t, r) in frames.items()
+                       if int(k) <= step}
+        if self.rank:
+            return
+        for f in self.frame_dir.glob("frame_*.*vtu"):
+            with contextlib.suppress(ValueError, IndexError):
+                if int(f.stem.split("_")[1]) > step:
+                    f.unlink()
+        self._write_pvd()
+
+    def write(self, step: int, t: float, q: np.ndarray) -> None:
+        """This rank's piece of frame ``step``; rank 0: the ``.pvtu`` and ``frames.pvd``."""
+        self._vtu.write(self.frame_dir / self.name(step, self.rank), q[self.vertices],
+                        {"rank": self._rank_field})
+        if self.rank:
+            return
+        pieces = "\n".join(f"    <Piece Source={quoteattr(self.name(step, r))}/>"
+                           for r in range(self.size))
+        atomic_write(self.frame_dir / self.name(step), (
+            '<?xml version="1.0"?>\n<VTKFile type="PUnstructuredGrid" version="1.0" '
+            'byte_order="LittleEndian" header_type="UInt64">\n'
+            '  <PUnstructuredGrid GhostLevel="0">\n'
+            '    <PPointData><PDataArray type="Int32" Name="rank"/></PPointData>\n'
+            '    <PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>\n'
+            f"{pieces}\n  </PUnstructuredGrid>\n</VTKFile>\n"))
+        self.frames[step] = (t, f"frames/{self.name(step)}")
+        self._write_pvd()
+
+    def _write_pvd(self) -> None:
+        rows = "\n".join(f'    <DataSet timestep="{tt!r}" group="" part="0" '
+                         f"file={quoteattr(rel)}/>" for _, (tt, rel) in sorted(self.frames.items()))
+        atomic_write(self.out / "frames.pvd", (
+            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" '
+            f'byte_order="LittleEndian">\n  <Collection>\n{rows}\n  </Collection>\n'
+            "</VTKFile>\n"))
