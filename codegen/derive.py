@@ -114,6 +114,8 @@ def _invariant_steps(dec: Decomposition, exprs: list[sp.Expr], names: list[sp.Sy
 
 
 _DERIVATIVES = ("psi", "P", "dP_dF")
+#: A material module's kernels at one F, its first three (``<name>_pointwise.c`` in C).
+POINTWISE = ("psi", "dpsi_dF", "d2psi_dF2")
 _UPPER = tuple((a, b) for a in range(9) for b in range(a, 9))  # dP/dF is symmetric
 _PREFIX = {"psi": "e", "P": "s", "dP_dF": "h"}
 
@@ -336,7 +338,7 @@ def material_module(name: str) -> ModuleSpec:
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),
-                      info=material_info(name))
+                      info=material_info(name), pointwise=POINTWISE)
 
 
 @cache

@@ -836,6 +836,33 @@ FEM3D_DISPATCH static void fem3d_project_psd_svd(int n, double *a, const double 
 }
 
 
+// The materials' steps at one F, the P1 kernels' own files with their element functions only
+#define FEM3D_POINTWISE_ONLY
+#include "fibre_reinforced_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "fung_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "linear_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "mooney_rivlin_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "neo_hookean_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "neo_hookean_lame_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "stable_neo_hookean_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+#define FEM3D_POINTWISE_ONLY
+#include "stvk_pointwise.c"
+#undef FEM3D_POINTWISE_ONLY
+// The quadrature loops every material's kernels share, then the modules
+#include "p2_quadrature.c"
 #include "p2_tet.c"
 #include "p2_fibre_reinforced.c"
 #include "p2_fung.c"
