@@ -281,7 +281,7 @@ def _method_views(modules: list[ModuleSpec]) -> list[dict]:
 
 def units(modules: list[ModuleSpec]) -> list[str]:
     """The extra C translation units (``_ckernels_<unit>.c``) of ``modules``, in order."""
-    return list(dict.fromkeys(m.unit for m in modules if m.unit))
+    return list(dict.fromkeys(m.unit for m in modules if m.unit and m.role == "kernels"))
 
 
 def render_extension(modules: list[ModuleSpec]) -> str:
@@ -308,19 +308,25 @@ def render_unit(unit: str, modules: list[ModuleSpec]) -> str:
         template_name="templates/c/unit.c.jinja", sympy_version=sp.__version__)
 
 
+def module_files(module: ModuleSpec) -> dict[str, str]:
+    """Relative path under ``generated/`` -> file text, for one module on every back end."""
+    if module.role == "quadrature":
+        return {f"c/{module.name}.c": render_quadrature(module)}
+    files = {}
+    for name, backend in BACKENDS.items():
+        if name == "c" and module.pointwise:
+            files[f"c/{module.name}_pointwise.c"] = render_module(module, name, "pointwise")
+            files[f"c/{module.name}.c"] = render_module(module, name, "rest")
+        else:
+            files[f"{name}/{module.name}{backend.suffix}"] = render_module(module, name)
+    return files
+
+
 def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
     """Relative path under ``generated/`` -> file text, for every module and back end."""
     files = {}
     for module in modules:
-        if module.role == "quadrature":
-            files[f"c/{module.name}.c"] = render_quadrature(module)
-            continue
-        for name, backend in BACKENDS.items():
-            if name == "c" and module.pointwise:
-                files[f"c/{module.name}_pointwise.c"] = render_module(module, name, "pointwise")
-                files[f"c/{module.name}.c"] = render_module(module, name, "rest")
-            else:
-                files[f"{name}/{module.name}{backend.suffix}"] = render_module(module, name)
+        files.update(module_files(module))
     kernel_modules = [m for m in modules if m.role == "kernels"]
     files["numpy/__init__.py"] = _environment().get_template("numpy/package.py.jinja").render(
         modules=tuple(m.name for m in kernel_modules),

@@ -25,7 +25,7 @@ typedef struct {
 #endif
 
 // F = x_e^T dN/dX at one point.
-// inputs: x_e (m, 10, 3), dN (m, 10, 3); outputs: F (m, 3, 3); operation count: 171
+// inputs: x_e (10, 3), dN (10, 3); outputs: F (3, 3); operation count: 171
 static inline FEM3D_ELEMENT void fem3d_p2_F_point(const double *const *in, double *restrict out)
 {
     const double *restrict in_x_e = in[0];
@@ -103,7 +103,7 @@ static inline FEM3D_ELEMENT void fem3d_p2_F_point(const double *const *in, doubl
 
 
 // One point's energy term w psi.
-// inputs: psi (m), w_detJ (m); outputs: energy (m); operation count: 1
+// inputs: psi (), w_detJ (); outputs: energy (); operation count: 1
 static inline FEM3D_ELEMENT void fem3d_p2_energy_point(const double *const *in, double *restrict out)
 {
     const double *restrict in_psi = in[0];
@@ -115,7 +115,7 @@ static inline FEM3D_ELEMENT void fem3d_p2_energy_point(const double *const *in, 
 
 
 // One point's gradient terms (30) of P.
-// inputs: P (m, 3, 3), dN (m, 10, 3), w_detJ (m); outputs: gradient (m, 30); operation count: 180
+// inputs: P (3, 3), dN (10, 3), w_detJ (); outputs: gradient (30); operation count: 180
 static inline FEM3D_ELEMENT void fem3d_p2_gradient_point(const double *const *in, double *restrict out, int stride)
 {
     const double *restrict in_P = in[0];
@@ -195,7 +195,7 @@ static inline FEM3D_ELEMENT void fem3d_p2_gradient_point(const double *const *in
 
 
 // One point's Hessian terms (30x30) of dP/dF.
-// inputs: A (m, 9, 9), dN (m, 10, 3), w_detJ (m); outputs: hessian (m, 30, 30) (upper triangle); operation count: 3891
+// inputs: A (9, 9), dN (10, 3), w_detJ (); outputs: hessian (30, 30), upper triangle; operation count: 3891
 static inline FEM3D_ELEMENT void fem3d_p2_hessian_point(const double *const *in, double *restrict out)
 {
     const double *restrict in_A = in[0];
