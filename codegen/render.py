@@ -13,6 +13,7 @@ import sympy as sp
 from sympy.printing.c import C99CodePrinter
 from sympy.printing.numpy import NumPyPrinter
 
+from codegen.elements import QUADRATURE_ELEMENTS
 from codegen.materials import MATERIALS
 from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection
 
@@ -304,7 +305,10 @@ def render_unit(unit: str, modules: list[ModuleSpec]) -> str:
         raise ValueError(f"unit {unit}: the fused kernels must share one node count, got {nodes}")
     return _environment().get_template("c/unit.c.jinja").render(
         unit=unit, nodes=nodes.pop(), modules=_method_views(mine),
+        refuses=any(k.positive for m in mine for k in m.kernels),
         pointwise=[m.material_steps.name for m in mine if m.material_steps],
+        quadrature=next((m.name for m in modules if m.unit == unit and m.role == "quadrature"),
+                        ""),
         template_name="templates/c/unit.c.jinja", sympy_version=sp.__version__)
 
 
@@ -332,7 +336,7 @@ def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
         modules=tuple(m.name for m in kernel_modules),
         materials=tuple(m.name for m in kernel_modules if m.name in MATERIALS),
         elements={unit: tuple(m.name for m in kernel_modules if m.unit == unit)
-                  for unit in units(modules)},
+                  for unit in units(modules) if unit in QUADRATURE_ELEMENTS},
         template_name="templates/numpy/package.py.jinja",
         sympy_version=sp.__version__,
     )
