@@ -1,6 +1,6 @@
 """Stage 1 and 2 for higher-order tets: the kernels of a :class:`~codegen.elements.LagrangeTet`.
 
-Two kinds of module per element ``e`` (``p2``):
+Three kinds of module per element ``e`` (``p2``):
 
 * ``e_tet``: the geometry, written out for every quadrature point of the element's rule
   (:mod:`codegen.elements`): the rest-shape precompute ``rest_shape`` (``dN/dX``, ``det J``
@@ -11,7 +11,13 @@ Two kinds of module per element ``e`` (``p2``):
   ``sum_q w_q psi(F_q)``, where the body of the sum is one point's: ``F_q`` from the node
   positions and that point's ``dN/dX``, then the material's own CSE'd ``psi``, ``P`` or
   ``dP/dF`` steps (:func:`codegen.derive.derivative_steps`, the P1 kernels' very steps), then
-  the chain rule to the nodes. The back ends loop over the points and sum.
+  the chain rule to the nodes. The NumPy back end writes this sum out per material; the C
+  back end calls the element's shared loops (``e_quadrature``, below) with the material's
+  steps at one ``F`` (:class:`codegen.spec.MaterialSteps`: P1's pointwise kernels, compiled
+  from the same file, and ``dP/dp``).
+* ``e_quadrature`` (C only, :func:`quadrature_module`): what every material's quadrature
+  kernels share: ``F`` at a point and the terms a point adds to the energy, gradient and
+  Hessian, around which ``templates/c/quadrature.c.jinja`` writes one loop per kernel kind.
 
 Calling convention (``n`` nodes, ``nq`` quadrature points; P2: ``n = 10``, ``nq = 4``):
 
@@ -185,7 +191,7 @@ def quadrature_module(element: LagrangeTet) -> ModuleSpec:
     (module ``<element>_quadrature``, C only): ``F`` from the node positions and the point's
     ``dN/dX``, and the terms the point adds to the energy (of ``psi``), the gradient (of
     ``P``; the parameter derivative's too, of each ``dP/dp_k``) and the Hessian (of
-    ``dP/dF``, both triangles read: a projected one is not mirrored exactly)."""
+    ``dP/dF``, all 81 entries read, the projected ones as the projection returns them)."""
     n, nq = element.n_nodes, element.quadrature_rule().n_points
     x, D, w = _point_symbols(n)
     module = f"{element.name}_quadrature"
