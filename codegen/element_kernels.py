@@ -109,12 +109,22 @@ def _contraction(A: sp.Matrix, D: sp.Matrix, w: sp.Symbol, prelude: list) -> tup
     return [("hessian", (3 * n, 3 * n), flatten(hessian), True)], steps
 
 
+#: ``FEM3D_MAX_ARGS`` of ``templates/c/support.c.jinja``: the C quadrature loops' buffers hold
+#: ``F`` and at most this many less one per-element inputs, and ``dP/dp`` of at most this many
+#: parameters.
+C_MAX_ARGS = 16
+
+
 def _material_steps(module: str, name: str, d: derive.MaterialDerivation,
                     params) -> MaterialSteps:
     """What the C quadrature kernels of material ``name`` call at one ``F``: its pointwise
     kernels, and ``dP/dp`` (9 x n_params, row-major), a step of its own."""
     F_args = [derive._matrix_arg("F", d.F, "deformation gradient"), *derive._input_args(d)]
     k_params = len(d.params)
+    if k_params > C_MAX_ARGS or 1 + len(d.inputs) > C_MAX_ARGS:
+        raise ValueError(f"{name}: {k_params} parameters and {len(d.inputs)} per-element "
+                         f"inputs; the C quadrature loops take at most {C_MAX_ARGS} and "
+                         f"{C_MAX_ARGS - 1} (FEM3D_MAX_ARGS)")
     dP = [sp.Symbol(f"dP_{i}_{j}_{k}") for i in range(3) for j in range(3)
           for k in range(k_params)]
     dP_dparams = make_kernel(

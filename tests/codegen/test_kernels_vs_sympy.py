@@ -720,3 +720,26 @@ def test_fused_assemble_validates_indices_and_types() -> None:
         ext.neo_hookean_gradient_assemble(q, T, dphi[:1], vol, params, index, out)
     with pytest.raises(TypeError):
         ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index)
+
+
+def test_p2_c_files_share_the_quadrature_loops() -> None:
+    """Each material's P2 C file holds only its steps at one F (P1's pointwise kernels, from
+    their one file) and the kernels' entry points; the loops over the quadrature points and
+    the chain rule to the nodes are p2_quadrature.c's, once for every material (the P2
+    unit's compile time, issue 39)."""
+    check_p2_c_files(ROOT / "generated" / "c")
+
+
+def check_p2_c_files(c_dir: Path) -> None:
+    """The assertions of :func:`test_p2_c_files_share_the_quadrature_loops` on ``c_dir``."""
+    shared = (c_dir / "p2_quadrature.c").read_text()
+    for kind in ("energy", "gradient", "dgradient_dparams", "hessian"):
+        assert shared.count(f" static void fem3d_p2_{kind}(") == 1
+    unit = (c_dir / "_ckernels_p2.c").read_text()
+    for material in MATERIALS:
+        text = (c_dir / f"p2_{material}.c").read_text()
+        assert "for (int q = 0;" not in text and "T_0_0" not in text
+        assert f"{material}_d2psi_dF2_element(in, params, out);" in text
+        assert f'#include "{material}_pointwise.c"' in unit
+        assert f'#include "{material}_pointwise.c"' in (c_dir / f"{material}.c").read_text()
+        assert len(text.splitlines()) < 1000
