@@ -25,7 +25,7 @@ NO_COMPILE = $(if $(PYTHONDONTWRITEBYTECODE),,--no-compile)
 # isolation (no second download of setuptools into a throw-away environment) and alongside
 # the dependencies' install: the C compile (four translation units, ~40 s of CPU that
 # setup.py spreads over the cores) needs only setuptools, and the install (~25 s of CPU)
-# fills the cores' gaps. Fresh clone and venv, pip's cache warm, 2 cores at load 1-2: 41 s
+# fills the cores' gaps. Fresh clone and venv, pip's cache warm, 2 cores at load 0.4-2: 39-41 s
 # to the bunny's outputs (docs/elements.md, "Build time").
 $(RUN_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh  ## runtime only
 	@if [ -f $(PIP_STAMP) ]; then :; else \
