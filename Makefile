@@ -23,8 +23,10 @@ NO_COMPILE = $(if $(PYTHONDONTWRITEBYTECODE),,--no-compile)
 
 # Runtime only, in stages that each say what they do. fem3d itself is built without build
 # isolation (no second download of setuptools into a throw-away environment) and alongside
-# the dependencies' install: the C compile (~25 s of one core) needs only setuptools, so on
-# two cores the two take the time of the longer one instead of their sum.
+# the dependencies' install: the C compile (four translation units, ~40 s of CPU that
+# setup.py spreads over the cores) needs only setuptools, and the install (~25 s of CPU)
+# fills the cores' gaps. Fresh clone and venv, pip's cache warm, 2 cores at load 0.4-2: 39-41 s
+# to the bunny's outputs (docs/elements.md, "Build time").
 $(RUN_STAMP): pyproject.toml setup.py generated/c/*.c scripts/install_cholmod.sh  ## runtime only
 	@if [ -f $(PIP_STAMP) ]; then :; else \
 	  echo "make run: [1/3] installing fem3d's dependencies into $(PYTHON) and, alongside, building its C kernels (pip, quiet: up to a minute on a fresh machine)"; \

@@ -23,13 +23,19 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 SOURCE = "generated/c/_ckernels.c"
-# The translation units of the extension: the entry file, then the units of their own that
-# codegen emits (_ckernels_p2.c: the quadratic tets' kernels, compiled apart to keep each
-# unit's compile time down; see codegen.render.render_unit)
-SOURCES = [SOURCE, *sorted(str(p) for p in Path("generated/c").glob("_ckernels_*.c"))]
+# The translation units of the extension: the units codegen deals the kernels to
+# (_ckernels_p1a.c, _ckernels_p1b.c: P1's materials, codegen.derive.P1_UNITS; _ckernels_p2.c:
+# the quadratic tets'; see codegen.render.render_unit), then the entry file (with the support,
+# the tet and two materials: the smallest, so last). The threads of _parallel_compile take
+# them in this order; the build's wall time is about the sum of their compile times over the
+# threads (12-16 s of CPU each on a shared 2-core machine).
+SOURCES = [*sorted(str(p) for p in Path("generated/c").glob("_ckernels_*.c")), SOURCE]
 # -ffp-contract=fast: fused multiply-adds where the target has them (native x86-64, and the
 # armv8-a baseline itself); the x86-64 baseline has no FMA, so it changes nothing there
-BASE_FLAGS = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast"]
+# -g0: Python's own CFLAGS carry -g; the debug info of the generated straight-line kernels is
+# a fifth of the compile time (the P1 unit: 49 s of CPU with it, 39 s without) and two thirds
+# of the extension's size, and changes no instruction
+BASE_FLAGS = ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=fast", "-g0"]
 # Baseline per machine (platform.machine()); a compiler refusing it builds with its default.
 BASELINE = {"x86_64": "-march=x86-64", "amd64": "-march=x86-64", "aarch64": "-march=armv8-a",
             "arm64": "-march=armv8-a"}
@@ -92,8 +98,8 @@ def choose_flags(env: Mapping[str, str], machine: str,
 
 
 def _parallel_compile(compiler, jobs: int) -> None:
-    """Make ``compiler.compile`` compile its translation units on ``jobs`` threads (the P1
-    and P2 units of the extension at once: the build's wall time is the slower unit's)."""
+    """Make ``compiler.compile`` compile its translation units on ``jobs`` threads (the
+    extension's units at once, each thread taking the next unit of :data:`SOURCES`)."""
     def compile_all(sources, output_dir=None, macros=None, include_dirs=None, debug=0,
                     extra_preargs=None, extra_postargs=None, depends=None):
         macros, objects, extra_postargs, pp_opts, build = compiler._setup_compile(

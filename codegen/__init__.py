@@ -11,7 +11,8 @@ Stages, each with a named input and output:
    ``psi``; the variant with fewer operations is kept.
    Higher-order tetrahedra (P2) are described by :mod:`codegen.elements` (Lagrange nodes,
    shape functions, exact mass, quadrature rules); :mod:`codegen.element_kernels` makes their
-   quadrature kernels (the material's steps per point, summed) and documents their calling
+   quadrature kernels (the material's steps per point, summed; in C one shared loop per
+   kernel kind calling each material's steps at one ``F``) and documents their calling
    convention; :mod:`codegen.quadrature_check` measures each rule's energy error.
 2. **spec** (:mod:`codegen.spec`): expressions -> a frozen :class:`~codegen.spec.KernelSpec`
    per kernel: inputs and their shapes, CSE'd intermediates, outputs, operation count.

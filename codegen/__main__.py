@@ -119,7 +119,7 @@ def show(kernel: str, backend: str) -> int:
     formulas (a bare material name)."""
     from codegen.derive import all_modules, material_module, spring_module, tet_module
     from codegen.materials import MATERIALS
-    from codegen.render import BACKENDS
+    from codegen.render import BACKENDS, module_files
 
     if kernel in MATERIALS:
         return show_material(kernel)
@@ -139,10 +139,18 @@ def show(kernel: str, backend: str) -> int:
         spec = next((k for k in module.kernels if k.name == kernel_name), None)
         if module.name != module_name or spec is None:
             continue
-        text = render_all([module])[f"{backend}/{module.name}{BACKENDS[backend].suffix}"]
+        if module.role == "quadrature":  # one point's pieces: C only, no Python entry
+            backend = "c"
+        # the module's files (a material's C kernels at one F are a file of their own)
+        files = module_files(module)
+        text = "".join(files.get(f"{backend}/{module.name}{part}{BACKENDS[backend].suffix}", "")
+                       for part in ("_pointwise", ""))
         if backend == "numpy":
             start = text.index(f"\ndef {kernel_name}(")
             end = text.find("\ndef ", start + 1)
+        elif module.role == "quadrature":
+            start = text.index(f"\n// {spec.doc}\n")
+            end = text.find("\n\n", text.index("\n}\n", start))
         else:
             start = text.index(f"\n// {spec.doc}\n")
             end = text.find("\n// ", text.index(f"py_{spec.qualified_name}(", start))

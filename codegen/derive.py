@@ -114,6 +114,18 @@ def _invariant_steps(dec: Decomposition, exprs: list[sp.Expr], names: list[sp.Sy
 
 
 _DERIVATIVES = ("psi", "P", "dP_dF")
+#: A material module's kernels at one F, its first three (``<name>_pointwise.c`` in C).
+POINTWISE = ("psi", "dpsi_dF", "d2psi_dF2")
+#: The C translation units P1's material modules are dealt to in turn (sorted by name): ``""``
+#: is the extension's entry file, which also holds the support, the AMG sweeps and the tet,
+#: spring and pressure kernels; the others are ``_ckernels_<unit>.c``. Units compile in
+#: parallel (setup.py), so the build's wall time is the slowest unit's.
+P1_UNITS = ("p1a", "p1b", "")
+
+
+def p1_unit(name: str) -> str:
+    """The C translation unit of P1 material ``name``'s module (:data:`P1_UNITS`)."""
+    return P1_UNITS[sorted(MATERIALS).index(name) % len(P1_UNITS)]
 _UPPER = tuple((a, b) for a in range(9) for b in range(a, 9))  # dP/dF is symmetric
 _PREFIX = {"psi": "e", "P": "s", "dP_dF": "h"}
 
@@ -336,7 +348,7 @@ def material_module(name: str) -> ModuleSpec:
 
     return ModuleSpec(name=name, doc=material.DESCRIPTION, source=material.__name__,
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),
-                      info=material_info(name))
+                      info=material_info(name), pointwise=POINTWISE, unit=p1_unit(name))
 
 
 @cache

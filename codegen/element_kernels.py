@@ -1,6 +1,6 @@
 """Stage 1 and 2 for higher-order tets: the kernels of a :class:`~codegen.elements.LagrangeTet`.
 
-Two kinds of module per element ``e`` (``p2``):
+Three kinds of module per element ``e`` (``p2``):
 
 * ``e_tet``: the geometry, written out for every quadrature point of the element's rule
   (:mod:`codegen.elements`): the rest-shape precompute ``rest_shape`` (``dN/dX``, ``det J``
@@ -11,7 +11,13 @@ Two kinds of module per element ``e`` (``p2``):
   ``sum_q w_q psi(F_q)``, where the body of the sum is one point's: ``F_q`` from the node
   positions and that point's ``dN/dX``, then the material's own CSE'd ``psi``, ``P`` or
   ``dP/dF`` steps (:func:`codegen.derive.derivative_steps`, the P1 kernels' very steps), then
-  the chain rule to the nodes. The back ends loop over the points and sum.
+  the chain rule to the nodes. The NumPy back end writes this sum out per material; the C
+  back end calls the element's shared loops (``e_quadrature``, below) with the material's
+  steps at one ``F`` (:class:`codegen.spec.MaterialSteps`: P1's pointwise kernels, compiled
+  from the same file, and ``dP/dp``).
+* ``e_quadrature`` (C only, :func:`quadrature_module`): what every material's quadrature
+  kernels share: ``F`` at a point and the terms a point adds to the energy, gradient and
+  Hessian, around which ``templates/c/quadrature.c.jinja`` writes one loop per kernel kind.
 
 Calling convention (``n`` nodes, ``nq`` quadrature points; P2: ``n = 10``, ``nq = 4``):
 
@@ -51,13 +57,22 @@ either. The NumPy module ``p2_tet`` also holds the node layout and the rule as c
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import sympy as sp
 
 from codegen import derive
 from codegen.conventions import flatten, symbol_matrix, symbol_vector
 from codegen.elements import EDGES, ELEMENTS, LagrangeTet, reference_coordinates
 from codegen.materials import MATERIALS
-from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection, make_kernel
+from codegen.spec import (
+    Argument,
+    KernelSpec,
+    MaterialSteps,
+    ModuleSpec,
+    Projection,
+    make_kernel,
+)
 
 
 def _point_symbols(n: int) -> tuple[sp.Matrix, sp.Matrix, sp.Symbol]:
@@ -94,6 +109,33 @@ def _contraction(A: sp.Matrix, D: sp.Matrix, w: sp.Symbol, prelude: list) -> tup
     return [("hessian", (3 * n, 3 * n), flatten(hessian), True)], steps
 
 
+#: ``FEM3D_MAX_ARGS`` of ``templates/c/support.c.jinja``: the C quadrature loops' buffers hold
+#: ``F`` and at most this many less one per-element inputs, and ``dP/dp`` of at most this many
+#: parameters.
+C_MAX_ARGS = 16
+
+
+def _material_steps(module: str, name: str, d: derive.MaterialDerivation,
+                    params) -> MaterialSteps:
+    """What the C quadrature kernels of material ``name`` call at one ``F``: its pointwise
+    kernels, and ``dP/dp`` (9 x n_params, row-major), a step of its own."""
+    F_args = [derive._matrix_arg("F", d.F, "deformation gradient"), *derive._input_args(d)]
+    k_params = len(d.params)
+    if k_params > C_MAX_ARGS or 1 + len(d.inputs) > C_MAX_ARGS:
+        raise ValueError(f"{name}: {k_params} parameters and {len(d.inputs)} per-element "
+                         f"inputs; the C quadrature loops take at most {C_MAX_ARGS} and "
+                         f"{C_MAX_ARGS - 1} (FEM3D_MAX_ARGS)")
+    dP = [sp.Symbol(f"dP_{i}_{j}_{k}") for i in range(3) for j in range(3)
+          for k in range(k_params)]
+    dP_dparams = make_kernel(
+        module, "dP_dparams",
+        "dP/dp at one F: (9, n_params), the row-major flattening of F by the parameters.",
+        F_args, params, [("dP_dparams", (9, k_params), dP, False)],
+        list(derive.stress_param_steps(name)))
+    return MaterialSteps(name=name, n_inputs=len(d.inputs), n_params=k_params,
+                         isotropic=derive.is_isotropic(name), point_kernels=(dP_dparams,))
+
+
 def material_module(element: LagrangeTet, name: str) -> ModuleSpec:
     """Quadrature kernels of material ``name`` on ``element`` (module ``<element>_<name>``)."""
     material = MATERIALS[name]
@@ -112,8 +154,7 @@ def material_module(element: LagrangeTet, name: str) -> ModuleSpec:
                     [("energy", (), [w * sp.Symbol("psi")], False)], prelude_F + psi_steps,
                     points=nq),
         make_kernel(module, "gradient", f"Element gradient, node-major ({size}).", args, params,
-                    [("gradient", (3 * n,), [w * sum(P[c, j] * D[a, j] for j in range(3))
-                                             for a in range(n) for c in range(3)], False)],
+                    [("gradient", (3 * n,), _gradient_terms(P, D, w), False)],
                     prelude_F + P_steps, points=nq),
     ]
     k_params = len(d.params)
@@ -123,8 +164,8 @@ def material_module(element: LagrangeTet, name: str) -> ModuleSpec:
         f"Element gradient's derivative by each parameter, ({size}, n_params), node-major.",
         args, params,
         [("dgradient_dparams", (3 * n, k_params),
-          [w * sum(dP[k][c, j] * D[a, j] for j in range(3))
-           for a in range(n) for c in range(3) for k in range(k_params)], False)],
+          [g for terms in zip(*(_gradient_terms(dP[k], D, w) for k in range(k_params)),
+                              strict=True) for g in terms], False)],
         prelude_F + list(derive.stress_param_steps(name)), points=nq))
     A = sp.Matrix(9, 9, lambda a, b: sp.Symbol(f"A_{min(a, b)}_{max(a, b)}"))
     hess_doc = f"Element Hessian ({size}x{size}, node-major)."
@@ -140,10 +181,51 @@ def material_module(element: LagrangeTet, name: str) -> ModuleSpec:
     svd_doc = (" in the singular frame of F (block diagonal there: psi is isotropic)." if frame
                else " by QL (psi is not isotropic: no block-diagonal frame).")
     kernels.append(kernels[-1].projected_by("hessian_psd_svd", "svd", psd_doc + svd_doc))
+    kinds = {"energy": "energy", "gradient": "gradient", "dgradient_dparams": "dgradient_dparams",
+             "hessian": "hessian", "hessian_psd": "hessian", "hessian_psd_svd": "hessian"}
+    kernels = [replace(k, quadrature=kinds[k.name]) for k in kernels]
     return ModuleSpec(name=module, doc=f"{material.DESCRIPTION}; {_element_doc(element)}",
                       source=f"{__name__} ({material.__name__})",
                       param_names=tuple(material.PARAM_NAMES), kernels=tuple(kernels),
-                      unit=element.name, constants=_element_constants(element))
+                      unit=element.name, constants=_element_constants(element),
+                      material_steps=_material_steps(module, name, d, params))
+
+
+def _gradient_terms(P: sp.Matrix, D: sp.Matrix, w: sp.Symbol) -> list[sp.Expr]:
+    """One point's gradient terms ``w P dN/dX^T``, node-major (``3 n``), of a 3 x 3 ``P``."""
+    return [w * sum(P[c, j] * D[a, j] for j in range(3)) for a in range(D.rows) for c in range(3)]
+
+
+def quadrature_module(element: LagrangeTet) -> ModuleSpec:
+    """The material-independent pieces of ``element``'s quadrature kernels at one point
+    (module ``<element>_quadrature``, C only): ``F`` from the node positions and the point's
+    ``dN/dX``, and the terms the point adds to the energy (of ``psi``), the gradient (of
+    ``P``; the parameter derivative's too, of each ``dP/dp_k``) and the Hessian (of
+    ``dP/dF``, all 81 entries read, the projected ones as the projection returns them)."""
+    n, nq = element.n_nodes, element.quadrature_rule().n_points
+    x, D, w = _point_symbols(n)
+    module = f"{element.name}_quadrature"
+    P = symbol_matrix("P", 3, 3)
+    A = symbol_matrix("A", 9, 9)
+    dN_arg = Argument("dN", (n, 3), tuple(flatten(D)), doc="dN/dX at the point")
+    w_arg = Argument("w_detJ", (), (w,), doc="weight * det J at the point")
+    kernels = [
+        make_kernel(module, "F", "F = x_e^T dN/dX at one point.",
+                    [Argument("x_e", (n, 3), tuple(flatten(x))), dN_arg], [],
+                    [("F", (3, 3), flatten(x.T * D), False)]),
+        make_kernel(module, "energy", "One point's energy term w psi.",
+                    [Argument("psi", (), (sp.Symbol("psi"),)), w_arg], [],
+                    [("energy", (), [w * sp.Symbol("psi")], False)]),
+        make_kernel(module, "gradient", f"One point's gradient terms ({3 * n}) of P.",
+                    [Argument("P", (3, 3), tuple(flatten(P))), dN_arg, w_arg], [],
+                    [("gradient", (3 * n,), _gradient_terms(P, D, w), False)]),
+        make_kernel(module, "hessian", f"One point's Hessian terms ({3 * n}x{3 * n}) of dP/dF.",
+                    [Argument("A", (9, 9), tuple(flatten(A))), dN_arg, w_arg], [],
+                    *_contraction(A, D, w, [])),
+    ]
+    return ModuleSpec(name=module, doc=_element_doc(element), source=__name__, param_names=(),
+                      kernels=tuple(kernels), unit=element.name, role="quadrature",
+                      constants=(("N_NODES", repr(n)), ("N_POINTS", repr(nq))))
 
 
 def _element_doc(element: LagrangeTet) -> str:
@@ -262,7 +344,8 @@ def module_names() -> list[str]:
     """The modules of every element with quadrature kernels, in a fixed order."""
     from codegen.elements import QUADRATURE_ELEMENTS
 
-    return [f"{e}_{m}" for e in QUADRATURE_ELEMENTS for m in ("tet", *sorted(MATERIALS))]
+    return [f"{e}_{m}" for e in QUADRATURE_ELEMENTS
+            for m in ("tet", "quadrature", *sorted(MATERIALS))]
 
 
 def build_module(name: str) -> ModuleSpec:
@@ -271,6 +354,8 @@ def build_module(name: str) -> ModuleSpec:
     element = ELEMENTS[element_name]
     if rest == "tet":
         return geometry_module(element)
+    if rest == "quadrature":
+        return quadrature_module(element)
     return material_module(element, rest)
 
 

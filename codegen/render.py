@@ -13,6 +13,7 @@ import sympy as sp
 from sympy.printing.c import C99CodePrinter
 from sympy.printing.numpy import NumPyPrinter
 
+from codegen.elements import QUADRATURE_ELEMENTS
 from codegen.materials import MATERIALS
 from codegen.spec import Argument, KernelSpec, ModuleSpec, Projection
 
@@ -186,6 +187,7 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
         "op_count": kernel.op_count,
         "assemble": kernel_view_assemble(kernel),
         "points": kernel.points,
+        "quadrature": kernel.quadrature,
         "positive": kernel.positive,
         "module": kernel.module,
         # nodes of the element (x_e's rows): the fused assembly's gather
@@ -224,17 +226,50 @@ def material_view(module: ModuleSpec, printer) -> dict | None:
                 for p, e in mapping.exprs.items()]}
 
 
-def render_module(module: ModuleSpec, backend: str) -> str:
-    """Source text of one module for one back end."""
+def _printer(backend: str):
     spec = BACKENDS[backend]
-    printer = spec.printer({"strict": False}) if backend == "numpy" else spec.printer()
-    template = _environment().get_template(spec.template)
-    return template.render(
+    return spec.printer({"strict": False}) if backend == "numpy" else spec.printer()
+
+
+def render_module(module: ModuleSpec, backend: str, part: str = "all") -> str:
+    """Source text of one module for one back end. C only: ``part`` ``"pointwise"`` is a
+    material's kernels at one ``F`` (:attr:`~codegen.spec.ModuleSpec.pointwise`, its
+    ``<name>_pointwise.c``), ``"rest"`` the module's file that includes them."""
+    if module.role == "quadrature":
+        return render_quadrature(module)
+    spec = BACKENDS[backend]
+    printer = _printer(backend)
+    kernels = list(module.kernels)
+    if part != "all":
+        n = len(module.pointwise)
+        if tuple(k.name for k in kernels[:n]) != module.pointwise:
+            raise ValueError(f"{module.name}: the pointwise kernels {module.pointwise} must "
+                             "lead its kernels")
+        kernels = kernels[:n] if part == "pointwise" else kernels[n:]
+    steps = module.material_steps
+    return _environment().get_template(spec.template).render(
         module=module,
+        part=part,
+        pointwise_file=f"{module.name}_pointwise.c" if part == "rest" else "",
         refuses=any(k.positive for k in module.kernels),
         material=material_view(module, printer),
-        kernels=[kernel_view(k, printer) for k in module.kernels],
+        kernels=[kernel_view(k, printer) for k in kernels],
+        point_kernels=[kernel_view(k, printer) for k in steps.point_kernels] if steps else [],
         template_name=f"templates/{spec.template}",
+        sympy_version=sp.__version__,
+    )
+
+
+def render_quadrature(module: ModuleSpec) -> str:
+    """``<element>_quadrature.c``: an element's quadrature loops, shared by every material."""
+    constants = {name: int(value) for name, value in module.constants}
+    printer = _printer("c")
+    return _environment().get_template("c/quadrature.c.jinja").render(
+        module=module,
+        nodes=constants["N_NODES"],
+        points=constants["N_POINTS"],
+        kernels={k.name: kernel_view(k, printer) for k in module.kernels},
+        template_name="templates/c/quadrature.c.jinja",
         sympy_version=sp.__version__,
     )
 
@@ -242,12 +277,12 @@ def render_module(module: ModuleSpec, backend: str) -> str:
 def _method_views(modules: list[ModuleSpec]) -> list[dict]:
     return [{"name": m.name, "kernels": [
         {"qualified_name": k.qualified_name, "doc": k.doc, "assemble": kernel_view_assemble(k)}
-        for k in m.kernels]} for m in modules]
+        for k in m.kernels]} for m in modules if m.role == "kernels"]
 
 
 def units(modules: list[ModuleSpec]) -> list[str]:
     """The extra C translation units (``_ckernels_<unit>.c``) of ``modules``, in order."""
-    return list(dict.fromkeys(m.unit for m in modules if m.unit))
+    return list(dict.fromkeys(m.unit for m in modules if m.unit and m.role == "kernels"))
 
 
 def render_extension(modules: list[ModuleSpec]) -> str:
@@ -264,26 +299,44 @@ def render_extension(modules: list[ModuleSpec]) -> str:
 
 def render_unit(unit: str, modules: list[ModuleSpec]) -> str:
     """The translation unit ``_ckernels_<unit>.c``: its modules and its method table."""
-    mine = [m for m in modules if m.unit == unit]
+    mine = [m for m in modules if m.unit == unit and m.role == "kernels"]
     nodes = {k.inputs[0].shape[0] for m in mine for k in m.kernels if kernel_view_assemble(k)}
     if len(nodes) != 1:
         raise ValueError(f"unit {unit}: the fused kernels must share one node count, got {nodes}")
     return _environment().get_template("c/unit.c.jinja").render(
         unit=unit, nodes=nodes.pop(), modules=_method_views(mine),
+        refuses=any(k.positive for m in mine for k in m.kernels),
+        pointwise=[m.material_steps.name for m in mine if m.material_steps],
+        quadrature=next((m.name for m in modules if m.unit == unit and m.role == "quadrature"),
+                        ""),
         template_name="templates/c/unit.c.jinja", sympy_version=sp.__version__)
+
+
+def module_files(module: ModuleSpec) -> dict[str, str]:
+    """Relative path under ``generated/`` -> file text, for one module on every back end."""
+    if module.role == "quadrature":
+        return {f"c/{module.name}.c": render_quadrature(module)}
+    files = {}
+    for name, backend in BACKENDS.items():
+        if name == "c" and module.pointwise:
+            files[f"c/{module.name}_pointwise.c"] = render_module(module, name, "pointwise")
+            files[f"c/{module.name}.c"] = render_module(module, name, "rest")
+        else:
+            files[f"{name}/{module.name}{backend.suffix}"] = render_module(module, name)
+    return files
 
 
 def render_all(modules: list[ModuleSpec]) -> dict[str, str]:
     """Relative path under ``generated/`` -> file text, for every module and back end."""
     files = {}
     for module in modules:
-        for name, backend in BACKENDS.items():
-            files[f"{name}/{module.name}{backend.suffix}"] = render_module(module, name)
+        files.update(module_files(module))
+    kernel_modules = [m for m in modules if m.role == "kernels"]
     files["numpy/__init__.py"] = _environment().get_template("numpy/package.py.jinja").render(
-        modules=tuple(m.name for m in modules),
-        materials=tuple(m.name for m in modules if m.name in MATERIALS),
-        elements={unit: tuple(m.name for m in modules if m.unit == unit)
-                  for unit in units(modules)},
+        modules=tuple(m.name for m in kernel_modules),
+        materials=tuple(m.name for m in kernel_modules if m.name in MATERIALS),
+        elements={unit: tuple(m.name for m in kernel_modules if m.unit == unit)
+                  for unit in units(modules) if unit in QUADRATURE_ELEMENTS},
         template_name="templates/numpy/package.py.jinja",
         sympy_version=sp.__version__,
     )

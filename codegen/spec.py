@@ -108,6 +108,12 @@ class KernelSpec:
     positive: tuple[str, ...] = ()
     """Outputs every entry of which must be ``> 0`` (a rest shape's ``det J``): both back
     ends raise ``ValueError`` naming the first element and entry that is not."""
+    quadrature: str = ""
+    """A quadrature kernel of a material on a higher-order element: the kind of the element's
+    shared quadrature loop the C back end calls (``energy``, ``gradient``,
+    ``dgradient_dparams``, ``hessian``; :attr:`ModuleSpec.role` ``"quadrature"``) with the
+    material's steps at one ``F`` (:class:`MaterialSteps`), instead of writing the whole sum
+    out per material; the NumPy back end writes ``intermediates`` out as before."""
 
     @property
     def projection_method(self) -> str | None:
@@ -149,6 +155,21 @@ class KernelSpec:
 
 
 @dataclass(frozen=True)
+class MaterialSteps:
+    """The steps at one ``F`` a higher-order element's quadrature kernels of one material call
+    at each point (C): ``psi``, ``P`` and ``dP/dF`` are the pointwise kernels of the material's
+    own module (``<name>_pointwise.c``), ``point_kernels`` the ones of its own (``dP/dp``)."""
+
+    name: str
+    n_inputs: int
+    """The material's per-element inputs (after ``F``)."""
+    n_params: int
+    isotropic: bool
+    """``F`` is the frame of the ``"svd"`` projection (else QL)."""
+    point_kernels: tuple[KernelSpec, ...] = ()
+
+
+@dataclass(frozen=True)
 class ModuleSpec:
     """A group of kernels rendered into one file per back end (a material, or the tet)."""
 
@@ -165,6 +186,16 @@ class ModuleSpec:
     constants: tuple[tuple[str, str], ...] = ()
     """Module-level constants of the NumPy module, ``(name, Python literal)`` (an element's
     node layout, its quadrature rule)."""
+    pointwise: tuple[str, ...] = ()
+    """A P1 material's leading kernels at one ``F`` (``psi``, ``dpsi_dF``, ``d2psi_dF2``):
+    the C back end writes them to ``<name>_pointwise.c``, which ``<name>.c`` includes and the
+    higher-order elements' units include for their element functions."""
+    material_steps: MaterialSteps | None = None
+    """A higher-order element's material module: the steps its quadrature kernels call."""
+    role: str = "kernels"
+    """``"kernels"``: a module of kernels for every back end; ``"quadrature"``: a higher-order
+    element's shared quadrature pieces (one point's ``F`` and terms), C only, rendered by
+    ``templates/c/quadrature.c.jinja`` into ``<element>_quadrature.c``."""
 
 
 def make_kernel(

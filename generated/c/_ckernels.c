@@ -2226,14 +2226,14 @@ done:
 #include "tet.c"
 #include "spring.c"
 #include "pressure.c"
-#include "fibre_reinforced.c"
-#include "fung.c"
 #include "linear.c"
-#include "mooney_rivlin.c"
-#include "neo_hookean.c"
 #include "neo_hookean_lame.c"
-#include "stable_neo_hookean.c"
-#include "stvk.c"
+
+// the kernels of _ckernels_p1a.c, a translation unit of their own (compile time)
+extern PyMethodDef fem3d_p1a_methods[];
+
+// the kernels of _ckernels_p1b.c, a translation unit of their own (compile time)
+extern PyMethodDef fem3d_p1b_methods[];
 
 // the kernels of _ckernels_p2.c, a translation unit of their own (compile time)
 extern PyMethodDef fem3d_p2_methods[];
@@ -2285,52 +2285,6 @@ static PyMethodDef methods[] = {
     {"pressure_p2_hessian", py_pressure_p2_hessian, METH_VARARGS, "Its Hessian (18x18, symmetric, indefinite)."},
     {"pressure_p2_follower_load", py_pressure_p2_follower_load, METH_VARARGS, "Consistent load of unit pressure, -int N_i (x_xi x x_eta), 18."},
     {"pressure_p2_traction_weights", py_pressure_p2_traction_weights, METH_VARARGS, "Consistent traction weights int N_i dA of a 6-node triangle, 6."},
-    {"fibre_reinforced_psi", py_fibre_reinforced_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"fibre_reinforced_dpsi_dF", py_fibre_reinforced_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"fibre_reinforced_d2psi_dF2", py_fibre_reinforced_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"fibre_reinforced_energy", py_fibre_reinforced_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"fibre_reinforced_energy_assemble", py_fibre_reinforced_energy_assemble, METH_VARARGS,
-     "fibre_reinforced_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fibre_reinforced_gradient", py_fibre_reinforced_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"fibre_reinforced_gradient_assemble", py_fibre_reinforced_gradient_assemble, METH_VARARGS,
-     "fibre_reinforced_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fibre_reinforced_dgradient_dparams", py_fibre_reinforced_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"fibre_reinforced_d3psi_contract", py_fibre_reinforced_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"fibre_reinforced_hessian", py_fibre_reinforced_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"fibre_reinforced_hessian_assemble", py_fibre_reinforced_hessian_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fibre_reinforced_hessian_psd", py_fibre_reinforced_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"fibre_reinforced_hessian_psd_assemble", py_fibre_reinforced_hessian_psd_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fibre_reinforced_hessian_psd_jacobi", py_fibre_reinforced_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"fibre_reinforced_hessian_psd_jacobi_assemble", py_fibre_reinforced_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fibre_reinforced_hessian_psd_svd", py_fibre_reinforced_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame)."},
-    {"fibre_reinforced_hessian_psd_svd_assemble", py_fibre_reinforced_hessian_psd_svd_assemble, METH_VARARGS,
-     "fibre_reinforced_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_psi", py_fung_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"fung_dpsi_dF", py_fung_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"fung_d2psi_dF2", py_fung_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"fung_energy", py_fung_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"fung_energy_assemble", py_fung_energy_assemble, METH_VARARGS,
-     "fung_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_gradient", py_fung_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"fung_gradient_assemble", py_fung_gradient_assemble, METH_VARARGS,
-     "fung_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_dgradient_dparams", py_fung_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"fung_d3psi_contract", py_fung_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"fung_hessian", py_fung_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"fung_hessian_assemble", py_fung_hessian_assemble, METH_VARARGS,
-     "fung_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_hessian_psd", py_fung_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"fung_hessian_psd_assemble", py_fung_hessian_psd_assemble, METH_VARARGS,
-     "fung_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_hessian_psd_jacobi", py_fung_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"fung_hessian_psd_jacobi_assemble", py_fung_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "fung_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"fung_hessian_psd_svd", py_fung_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
-    {"fung_hessian_psd_svd_assemble", py_fung_hessian_psd_svd_assemble, METH_VARARGS,
-     "fung_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"linear_psi", py_linear_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"linear_dpsi_dF", py_linear_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"linear_d2psi_dF2", py_linear_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2354,52 +2308,6 @@ static PyMethodDef methods[] = {
     {"linear_hessian_psd_svd", py_linear_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by QL (psi is not isotropic: no block-diagonal frame)."},
     {"linear_hessian_psd_svd_assemble", py_linear_hessian_psd_svd_assemble, METH_VARARGS,
      "linear_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_psi", py_mooney_rivlin_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"mooney_rivlin_dpsi_dF", py_mooney_rivlin_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"mooney_rivlin_d2psi_dF2", py_mooney_rivlin_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"mooney_rivlin_energy", py_mooney_rivlin_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"mooney_rivlin_energy_assemble", py_mooney_rivlin_energy_assemble, METH_VARARGS,
-     "mooney_rivlin_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_gradient", py_mooney_rivlin_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"mooney_rivlin_gradient_assemble", py_mooney_rivlin_gradient_assemble, METH_VARARGS,
-     "mooney_rivlin_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_dgradient_dparams", py_mooney_rivlin_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"mooney_rivlin_d3psi_contract", py_mooney_rivlin_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"mooney_rivlin_hessian", py_mooney_rivlin_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"mooney_rivlin_hessian_assemble", py_mooney_rivlin_hessian_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_hessian_psd", py_mooney_rivlin_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"mooney_rivlin_hessian_psd_assemble", py_mooney_rivlin_hessian_psd_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_hessian_psd_jacobi", py_mooney_rivlin_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"mooney_rivlin_hessian_psd_jacobi_assemble", py_mooney_rivlin_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"mooney_rivlin_hessian_psd_svd", py_mooney_rivlin_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
-    {"mooney_rivlin_hessian_psd_svd_assemble", py_mooney_rivlin_hessian_psd_svd_assemble, METH_VARARGS,
-     "mooney_rivlin_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_psi", py_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"neo_hookean_dpsi_dF", py_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"neo_hookean_d2psi_dF2", py_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"neo_hookean_energy", py_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"neo_hookean_energy_assemble", py_neo_hookean_energy_assemble, METH_VARARGS,
-     "neo_hookean_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_gradient", py_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"neo_hookean_gradient_assemble", py_neo_hookean_gradient_assemble, METH_VARARGS,
-     "neo_hookean_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_dgradient_dparams", py_neo_hookean_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"neo_hookean_d3psi_contract", py_neo_hookean_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"neo_hookean_hessian", py_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"neo_hookean_hessian_assemble", py_neo_hookean_hessian_assemble, METH_VARARGS,
-     "neo_hookean_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_hessian_psd", py_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"neo_hookean_hessian_psd_assemble", py_neo_hookean_hessian_psd_assemble, METH_VARARGS,
-     "neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_hessian_psd_jacobi", py_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"neo_hookean_hessian_psd_jacobi_assemble", py_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"neo_hookean_hessian_psd_svd", py_neo_hookean_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
-    {"neo_hookean_hessian_psd_svd_assemble", py_neo_hookean_hessian_psd_svd_assemble, METH_VARARGS,
-     "neo_hookean_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"neo_hookean_lame_psi", py_neo_hookean_lame_psi, METH_VARARGS, "Strain energy density psi(F)."},
     {"neo_hookean_lame_dpsi_dF", py_neo_hookean_lame_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
     {"neo_hookean_lame_d2psi_dF2", py_neo_hookean_lame_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
@@ -2423,52 +2331,6 @@ static PyMethodDef methods[] = {
     {"neo_hookean_lame_hessian_psd_svd", py_neo_hookean_lame_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
     {"neo_hookean_lame_hessian_psd_svd_assemble", py_neo_hookean_lame_hessian_psd_svd_assemble, METH_VARARGS,
      "neo_hookean_lame_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_psi", py_stable_neo_hookean_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"stable_neo_hookean_dpsi_dF", py_stable_neo_hookean_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"stable_neo_hookean_d2psi_dF2", py_stable_neo_hookean_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"stable_neo_hookean_energy", py_stable_neo_hookean_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"stable_neo_hookean_energy_assemble", py_stable_neo_hookean_energy_assemble, METH_VARARGS,
-     "stable_neo_hookean_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_gradient", py_stable_neo_hookean_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"stable_neo_hookean_gradient_assemble", py_stable_neo_hookean_gradient_assemble, METH_VARARGS,
-     "stable_neo_hookean_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_dgradient_dparams", py_stable_neo_hookean_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"stable_neo_hookean_d3psi_contract", py_stable_neo_hookean_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"stable_neo_hookean_hessian", py_stable_neo_hookean_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"stable_neo_hookean_hessian_assemble", py_stable_neo_hookean_hessian_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_hessian_psd", py_stable_neo_hookean_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"stable_neo_hookean_hessian_psd_assemble", py_stable_neo_hookean_hessian_psd_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_hessian_psd_jacobi", py_stable_neo_hookean_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"stable_neo_hookean_hessian_psd_jacobi_assemble", py_stable_neo_hookean_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stable_neo_hookean_hessian_psd_svd", py_stable_neo_hookean_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
-    {"stable_neo_hookean_hessian_psd_svd_assemble", py_stable_neo_hookean_hessian_psd_svd_assemble, METH_VARARGS,
-     "stable_neo_hookean_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_psi", py_stvk_psi, METH_VARARGS, "Strain energy density psi(F)."},
-    {"stvk_dpsi_dF", py_stvk_dpsi_dF, METH_VARARGS, "First Piola-Kirchhoff stress P = dpsi/dF."},
-    {"stvk_d2psi_dF2", py_stvk_d2psi_dF2, METH_VARARGS, "dP/dF, 9x9 in the row-major flattening of F."},
-    {"stvk_energy", py_stvk_energy, METH_VARARGS, "Element potential energy vol * psi(F(x_e))."},
-    {"stvk_energy_assemble", py_stvk_energy_assemble, METH_VARARGS,
-     "stvk_energy_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_gradient", py_stvk_gradient, METH_VARARGS, "Element gradient d(vol psi)/dx_e, vertex-major (12)."},
-    {"stvk_gradient_assemble", py_stvk_gradient_assemble, METH_VARARGS,
-     "stvk_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_dgradient_dparams", py_stvk_dgradient_dparams, METH_VARARGS, "Element gradient's derivative by each parameter, (12, n_params), vertex-major."},
-    {"stvk_d3psi_contract", py_stvk_d3psi_contract, METH_VARARGS, "d/dF (3x3) and d/dparams of sum_kl dP/dF_kl C_kl: the third derivative of psi contracted with C."},
-    {"stvk_hessian", py_stvk_hessian, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major)."},
-    {"stvk_hessian_assemble", py_stvk_hessian_assemble, METH_VARARGS,
-     "stvk_hessian_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_hessian_psd", py_stvk_hessian_psd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite."},
-    {"stvk_hessian_psd_assemble", py_stvk_hessian_psd_assemble, METH_VARARGS,
-     "stvk_hessian_psd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_hessian_psd_jacobi", py_stvk_hessian_psd_jacobi, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite by cyclic Jacobi."},
-    {"stvk_hessian_psd_jacobi_assemble", py_stvk_hessian_psd_jacobi_assemble, METH_VARARGS,
-     "stvk_hessian_psd_jacobi_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
-    {"stvk_hessian_psd_svd", py_stvk_hessian_psd_svd, METH_VARARGS, "Element Hessian d2(vol psi)/dx_e2 (12x12, vertex-major) with dP/dF projected to positive semi-definite in the singular frame of F (block diagonal there: psi is isotropic)."},
-    {"stvk_hessian_psd_svd_assemble", py_stvk_hessian_psd_svd_assemble, METH_VARARGS,
-     "stvk_hessian_psd_svd_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},
     {"colour_blocks", py_colour_blocks, METH_VARARGS,
      "colour_blocks(index, order, blocks, n_out, colour): greedy race-free colouring of blocks."},
     FEM3D_AMG_METHODS
@@ -2489,6 +2351,14 @@ PyMODINIT_FUNC PyInit__ckernels(void)
     if (module != NULL && (PyModule_AddIntConstant(module, "OPENMP", FEM3D_OPENMP) != 0 ||
                            PyModule_AddIntConstant(module, "PRIVATE_MAX_OUT",
                                                    FEM3D_PRIVATE_MAX_OUT) != 0)) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    if (module != NULL && PyModule_AddFunctions(module, fem3d_p1a_methods) != 0) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    if (module != NULL && PyModule_AddFunctions(module, fem3d_p1b_methods) != 0) {
         Py_DECREF(module);
         return NULL;
     }

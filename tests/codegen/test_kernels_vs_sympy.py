@@ -13,7 +13,7 @@ import pytest
 import sympy as sp
 from fem3d._generated import ELEMENT_MODULES, MODULES
 
-from codegen.derive import reference_outputs
+from codegen.derive import P1_UNITS, reference_outputs
 from codegen.materials import MATERIALS
 from fem3d.kernels.backend import c_extension
 from fem3d.kernels.dispatch import kernel_module, material_kernels
@@ -599,17 +599,22 @@ def test_generated_files_are_up_to_date_and_deterministic(tmp_path: Path) -> Non
     fresh = {p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.suffix in (".py", ".c")}
     assert {p.stem for p in fresh} >= set(only)
     for rel in sorted(fresh):
-        if rel.name in ("__init__.py", "_ckernels.c"):  # they list every module
-            continue
+        if rel.name == "__init__.py" or rel.name.startswith("_ckernels"):  # they list
+            continue  # every module (of their translation unit)
         old, new = (ROOT / "generated" / rel).read_text(), (tmp_path / rel).read_text()
         assert old == new, f"generated/{rel} is stale: run `make codegen` and commit"
         assert "do not edit" in old.splitlines()[0]
     committed = {p.stem for p in (ROOT / "generated").rglob("*") if p.suffix in (".py", ".c")}
     units = {f"_ckernels_{e}" for e in ELEMENT_MODULES}
+    # C only: the translation units P1's materials are dealt to, each material's kernels at
+    # one F (shared by P1's file and the element units) and each element's quadrature loops
+    # (shared by its materials)
+    p1_units = {f"_ckernels_{u}" for u in P1_UNITS if u}
     assert committed == {"__init__", "_support", "_ckernels", "tet", "spring", "pressure",
-                         *MATERIALS, *units,
+                         *MATERIALS, *units, *p1_units, *(f"{m}_pointwise" for m in MATERIALS),
+                         *(f"{e}_quadrature" for e in ELEMENT_MODULES),
                          *(m for modules in ELEMENT_MODULES.values() for m in modules)}
-    assert units == {"_ckernels_p2"}
+    assert units == {"_ckernels_p2"} and p1_units == {"_ckernels_p1a", "_ckernels_p1b"}
 
 
 def test_show_prints_a_materials_formulas() -> None:
@@ -717,3 +722,26 @@ def test_fused_assemble_validates_indices_and_types() -> None:
         ext.neo_hookean_gradient_assemble(q, T, dphi[:1], vol, params, index, out)
     with pytest.raises(TypeError):
         ext.neo_hookean_gradient_assemble(q, T, dphi, vol, params, index)
+
+
+def test_p2_c_files_share_the_quadrature_loops() -> None:
+    """Each material's P2 C file holds only its steps at one F (P1's pointwise kernels, from
+    their one file) and the kernels' entry points; the loops over the quadrature points and
+    the chain rule to the nodes are p2_quadrature.c's, once for every material (the P2
+    unit's compile time, issue 39)."""
+    check_p2_c_files(ROOT / "generated" / "c")
+
+
+def check_p2_c_files(c_dir: Path) -> None:
+    """The assertions of :func:`test_p2_c_files_share_the_quadrature_loops` on ``c_dir``."""
+    shared = (c_dir / "p2_quadrature.c").read_text()
+    for kind in ("energy", "gradient", "dgradient_dparams", "hessian"):
+        assert shared.count(f" static void fem3d_p2_{kind}(") == 1
+    unit = (c_dir / "_ckernels_p2.c").read_text()
+    for material in MATERIALS:
+        text = (c_dir / f"p2_{material}.c").read_text()
+        assert "for (int q = 0;" not in text and "T_0_0" not in text
+        assert f"{material}_d2psi_dF2_element(in, params, out);" in text
+        assert f'#include "{material}_pointwise.c"' in unit
+        assert f'#include "{material}_pointwise.c"' in (c_dir / f"{material}.c").read_text()
+        assert len(text.splitlines()) < 1000
