@@ -406,6 +406,8 @@ def test_in_process_signal_finishes_or_abandons_the_step(tmp_path, capsys, monke
                                                           n_signals, saved_step):
     """One SIGINT during step 6 lets it finish; a second one abandons it (state of step 5)."""
     real_step = Simulation.step
+    # what the run must put back (a shell's background job starts with SIGINT ignored)
+    handler_before = signal.getsignal(signal.SIGINT)
 
     def step(self):
         if self.step_index == 5:
@@ -426,4 +428,4 @@ def test_in_process_signal_finishes_or_abandons_the_step(tmp_path, capsys, monke
     assert len(read_energy_csv(out / "energy.csv")["t"]) == saved_step + 1
     assert max(ckpt.frames) == saved_step - saved_step % 2
     assert not _leftovers(out)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+    assert signal.getsignal(signal.SIGINT) is handler_before  # handlers restored
