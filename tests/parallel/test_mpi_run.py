@@ -282,3 +282,34 @@ def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monk
     q = whole.model.X.reshape(-1) + 1e-3
     assert share.loads.gravity_energy(q) == pytest.approx(loads.gravity_energy(q), rel=1e-14)
     assert (m.E, m.nu, m.rho) == (whole.model.E, whole.model.nu, whole.model.rho)
+
+
+def test_rank_share_summary_is_the_whole_models(tmp_path):
+    """``RankShare.summary``: the ranks' models of a two-material box (built by
+    ``model_from_scene(tets=)``, halves of unequal materials) get the whole model's
+    ``E, nu, rho`` (the volume-weighted means over the ranks), the same on every rank."""
+    from fem3d.parallel.run import RankShare
+    from fem3d.scene.arrays import build_arrays
+    from fem3d.scene.build import model_from_scene
+
+    scene = load_scene(str(write_scene(tmp_path)))
+    a = build_arrays(scene)
+    whole = model_from_scene(scene, a)
+    halves = np.array_split(np.arange(whole.n_tets), [whole.n_tets // 3])
+    models = [model_from_scene(scene, a, tets=t) for t in halves]
+    assert models[0].E != models[1].E  # the halves' own summaries differ
+
+    class Comm:  # rank r of two: allgather returns both ranks' rows
+        def __init__(self, rows):
+            self.rows = rows
+
+        def allgather(self, row):
+            return self.rows
+
+    rows = [(m.E, m.nu, m.rho, m.total_volume) for m in models]
+    for m in models:
+        got = RankShare(Comm(rows)).summary(m)
+        assert got.E == pytest.approx(whole.E, rel=1e-13)
+        assert got.nu == pytest.approx(whole.nu, rel=1e-13)
+        assert got.rho == pytest.approx(whole.rho, rel=1e-13)
+        assert got.n_tets == m.n_tets
