@@ -35,7 +35,7 @@ from fem3d.physics.constraints import Constraints, free_rigid_modes, pick_neares
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
-from fem3d.scene.build import build
+from fem3d.scene.build import Share, build
 from fem3d.scene.spec import Scene
 from fem3d.solve.schemes.base import Scheme, model_terms
 from fem3d.solve.schemes.registry import get_scheme
@@ -150,7 +150,7 @@ class Simulation:
     make_system : callable ``(model, constraints, loads) -> System``, optional
         Makes the system instead of :class:`System` on the scene's linear solver (one MPI
         rank's share of a distributed run: :func:`fem3d.parallel.run.distributed_simulation`).
-    restrict_model : callable ``(model, constraints) -> (model, tets)``, optional
+    restrict_model : fem3d.scene.build.Share, optional
         The model of a share of the tets instead of the whole (one MPI rank's:
         :func:`fem3d.scene.build.build`'s ``restrict``); :attr:`model` is then the share's.
 
@@ -187,8 +187,7 @@ class Simulation:
     def __init__(self, scene: Scene, *, backend: str | None = None,
                  scripted: bool = False,
                  make_system: Callable[[Model, Constraints, Loads], System] | None = None,
-                 restrict_model: Callable[[Model, Constraints], tuple[Model, np.ndarray]]
-                 | None = None) -> None:
+                 restrict_model: Share | None = None) -> None:
         self.scene = scene
         _check_supported(scene)
         # arrays, model, pins, motions, contact

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import resource
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,6 @@ from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, sav
 from fem3d.io.energy import EnergyLog
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.parallel.comm import launched_ranks, sum_scalar, world
-from fem3d.parallel.local import local_model
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
@@ -95,13 +95,14 @@ class RankShare:
     """One rank's share of a scene, made while the scene is built
     (:class:`~fem3d.simulation.Simulation`'s ``restrict_model`` and ``make_system``).
 
-    :meth:`restrict` partitions the whole model's tets (:func:`partition_tets`), numbers the
-    free DOFs (:func:`dof_layout`), records the whole mesh's digest and returns the model of
-    this rank's tets (:func:`~fem3d.parallel.local.local_model`: over the whole vertex
-    numbering); the whole model is let go there, before the system is made (its pattern,
-    scatter maps and mass matrix would otherwise hold memory per rank that does not fall
-    with the rank count). :meth:`make_system` makes the :class:`DistributedSystem` of the
-    share.
+    It is :func:`~fem3d.scene.build.build`'s ``restrict``: :meth:`tets` partitions the whole
+    mesh's tets (:func:`partition_tets`, from ``T`` alone), numbers the free DOFs
+    (:func:`dof_layout`), records the whole mesh's digest and returns this rank's tets, of
+    which ``build`` makes the rank's model directly (over the whole vertex numbering; no
+    rank builds the whole model, whose pattern, scatter maps and mass matrix would hold
+    memory per rank that does not fall with the rank count); :meth:`summary` gives it the
+    whole model's ``E, nu, rho``. :meth:`make_system` makes the :class:`DistributedSystem`
+    of the share.
 
     Parameters
     ----------
@@ -121,13 +122,24 @@ class RankShare:
         self.layout: DofLayout | None = None
         self.digest = ""
 
-    def restrict(self, model: Model, constraints: Constraints) -> tuple[Model, np.ndarray]:
-        """The model of this rank's tets and their indices ``(k,) int64`` in ``model``."""
-        tet_rank = partition_tets(model.T, self.comm)
-        tets = np.flatnonzero(tet_rank == self.comm.Get_rank())
-        self.layout = dof_layout(model.T, tet_rank, constraints.free_dofs, self.comm)
-        self.digest = mesh_digest(model.X, model.T)
-        return local_model(model, tets), tets
+    def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
+        """This rank's tets ``(k,) int64`` of the whole mesh ``X, T`` (partitioned from the
+        mesh alone: no model is built for it)."""
+        tet_rank = partition_tets(T, self.comm)
+        self.layout = dof_layout(T, tet_rank, constraints.free_dofs, self.comm)
+        self.digest = mesh_digest(X, T)
+        return np.flatnonzero(tet_rank == self.comm.Get_rank())
+
+    def summary(self, model: Model) -> Model:
+        """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same
+        on every rank: Newton's tolerance is made from them): the ranks' own when they all
+        agree (one material), else their means weighted by the ranks' volumes."""
+        rows = self.comm.allgather((model.E, model.nu, model.rho, model.total_volume))
+        if all(r[:3] == rows[0][:3] for r in rows):
+            return model
+        total = sum(r[3] for r in rows)
+        E, nu, rho = (sum(r[i] * r[3] for r in rows) / total for i in range(3))
+        return replace(model, E=E, nu=nu, rho=rho)
 
     def make_system(self, model: Model, constraints: Constraints, loads: Loads
                     ) -> DistributedSystem:
@@ -308,7 +320,7 @@ def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
     rank's local model, its system the rank's :class:`DistributedSystem`, its energies
     :func:`local_energies`) and the whole mesh's :func:`~fem3d.io.checkpoint.mesh_digest`."""
     share = RankShare(comm, scene.simulation.petsc_options)
-    sim = Simulation(scene, backend=backend, restrict_model=share.restrict,
+    sim = Simulation(scene, backend=backend, restrict_model=share,
                      make_system=share.make_system)
     return sim, share.digest
 

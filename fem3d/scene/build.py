@@ -24,9 +24,8 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import meshio
 import numpy as np
@@ -63,6 +62,17 @@ __all__ = ["Built", "PinMotion", "build", "build_loads", "surface_loads_from_sce
            "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
+
+
+class Share(Protocol):
+    """A share of the tets (one MPI rank's, :class:`fem3d.parallel.run.RankShare`) that
+    :func:`build` makes the model of, instead of the whole."""
+
+    def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
+        """The share's tets ``(k,) int64``, sorted, chosen from the whole mesh ``X, T``."""
+
+    def summary(self, model: Model) -> Model:
+        """``model`` (the share's) with the whole model's summary ``E, nu, rho``."""
 
 
 class PinMotion(NamedTuple):
@@ -129,8 +139,7 @@ class Built:
 
 
 def build(scene: Scene, *, backend: str | None = None,
-          restrict: Callable[[Model, Constraints], tuple[Model, np.ndarray]] | None = None
-          ) -> Built:
+          restrict: Share | None = None) -> Built:
     """Everything a run of ``scene`` needs that the scene decides.
 
     Parameters
@@ -138,10 +147,11 @@ def build(scene: Scene, *, backend: str | None = None,
     scene : Scene
     backend : {None, "numpy", "c"}, optional
         Kernel back end of the model (None: C if built).
-    restrict : callable ``(model, constraints) -> (model, tets)``, optional
-        One MPI rank's share (:mod:`fem3d.parallel`): the model of the tets ``tets`` alone,
-        made from the whole one, which is let go at once; the loads are the share's (a
-        per-tet damping coefficient restricted to ``tets``).
+    restrict : Share, optional
+        One MPI rank's share (:mod:`fem3d.parallel`): the model of its tets alone, built
+        from them by :func:`model_from_scene` (the whole model is never built), with the
+        whole model's summary values; the loads are the share's (a per-tet damping
+        coefficient restricted to its tets).
 
     Returns
     -------
@@ -155,19 +165,20 @@ def build(scene: Scene, *, backend: str | None = None,
     """
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
-    model = replace(model_from_scene(scene, a, backend),
+    tets = None
+    if restrict is not None:  # the share's tets first: they decide the model
+        constraints = _constraints(scene, a)
+        tets = restrict.tets(a.X, a.T, constraints)
+    model = replace(model_from_scene(scene, a, backend, tets=tets),
                     psd_projection=scene.simulation.psd_projection)
-    if a.fixed.size == 0 and not scene.contact.enabled:
-        raise scene.error(
-            "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
-            "[{ select = { lowest_y = { tol = 0.0 } } }])")
-    constraints = (Constraints.from_fixed_vertices(a.X, a.fixed) if a.fixed_dofs is None
-                   else Constraints.from_fixed_dofs(a.X, a.fixed_dofs))
+    if restrict is None:
+        constraints = _constraints(scene, a)
+    else:
+        model = restrict.summary(model)
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)
-    if restrict is not None:
-        model, tets = restrict(model, constraints)
+    if tets is not None:
         beta = beta if np.ndim(beta) == 0 else beta[tets]
     try:
         loads = build_loads(model, gravity, alpha, beta,
@@ -184,6 +195,16 @@ def build(scene: Scene, *, backend: str | None = None,
                  contact=contact,
                  pick_radius=a.pick_radius, spring_k=spring_k,
                  pin_groups=pin_groups(scene, a))
+
+
+def _constraints(scene: Scene, a: SceneArrays) -> Constraints:
+    """The pinned vertices (or DOFs); refuses a scene without contact that pins none."""
+    if a.fixed.size == 0 and not scene.contact.enabled:
+        raise scene.error(
+            "bodies[0].pins", "no pinned vertex: a run needs at least one (add pins = "
+            "[{ select = { lowest_y = { tol = 0.0 } } }])")
+    return (Constraints.from_fixed_vertices(a.X, a.fixed) if a.fixed_dofs is None
+            else Constraints.from_fixed_dofs(a.X, a.fixed_dofs))
 
 
 def pin_groups(scene: Scene, a: SceneArrays) -> tuple:
@@ -313,15 +334,23 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
     return vals
 
 
-def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -> Model:
+def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *,
+                     tets: np.ndarray | None = None) -> Model:
     """The model of every body's material (one material form when there is one plain body,
-    else ``build_model(groups=)``: one group per body and per region)."""
+    else ``build_model(groups=)``: one group per body and per region).
+
+    ``tets`` (sorted ``(k,) int64``, optional): the model of these tets alone (one MPI
+    rank's, every vertex and its numbering kept), built from them: the groups, per-tet
+    parameters and densities are restricted before :func:`build_model`, which sees only
+    ``a.T[tets]``; its summary ``E, nu, rho`` are then the share's.
+    """
     bodies = scene.bodies
     path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
+    T = a.T if tets is None else a.T[tets]
     try:
         if len(bodies) == 1 and _simple_material(bodies[0].material):
             m = bodies[0].material
-            return build_model(a.X, a.T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
+            return build_model(a.X, T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
                                backend=backend, path=path, element=a.element)
     except InputError as exc:
         key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
@@ -329,14 +358,14 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -
     groups, density = [], np.empty(a.T.shape[0])
     for i, body in enumerate(bodies):
         m = body.material
-        tets = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
-        density[tets] = m.density
+        mine = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
+        density[mine] = m.density
         base = dict(m.params)
         if m.E is not None:
             base.update(E=m.E, nu=m.nu)
         for param, name in m.cell_fields.items():
             base[param] = _cell_field(scene, a, i, param, name)
-        region = np.full(tets.size, -1)
+        region = np.full(mine.size, -1)
         if m.regions:
             Xb = a.X[a.body_vertices[i]]
             Tb = a.T[a.body_tets[i]] - a.body_vertices[i].start
@@ -362,10 +391,12 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -
                 if r.nu is not None:
                     values["nu"] = r.nu
             groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
-                           MaterialGroup(m.model, tets[mask], values)))
+                           MaterialGroup(m.model, mine[mask], values)))
     rho = float(density[0]) if (density == density[0]).all() else density
+    if tets is not None:
+        groups, rho = _share_groups(groups, tets, a.T.shape[0]), _share_values(rho, tets)
     try:
-        return build_model(a.X, a.T, groups=[g for _, g in groups], density=rho,
+        return build_model(a.X, T, groups=[g for _, g in groups], density=rho,
                            backend=backend, path=path, element=a.element)
     except ParameterError as exc:
         # name the group the message is about when it says which (else the first body's)
@@ -375,6 +406,25 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None) -
         raise scene.error(key, str(exc)) from None
     except InputError as exc:
         raise scene.error("bodies", str(exc)) from None
+
+
+def _share_values(value, rows: np.ndarray):
+    """``value`` (a number, or an array of one row per element) at ``rows``."""
+    return value[rows] if isinstance(value, np.ndarray) else value
+
+
+def _share_groups(groups: list, tets: np.ndarray, n_tets: int) -> list:
+    """``(key, MaterialGroup)`` pairs restricted to the sorted ``tets`` (numbered by their
+    place in ``tets``); a group with none of them is dropped."""
+    local_of = np.full(n_tets, -1, dtype=np.int64)
+    local_of[tets] = np.arange(tets.size)
+    out = []
+    for key, g in groups:
+        keep = np.flatnonzero(local_of[g.elements] >= 0)
+        if keep.size:
+            values = {k: _share_values(v, keep) for k, v in g.params.items()}
+            out.append((key, MaterialGroup(g.material, local_of[g.elements[keep]], values)))
+    return out
 
 
 def damping_from_scene(scene: Scene, a: SceneArrays) -> tuple:

@@ -5,6 +5,7 @@ writes its pieces, and refuses what it cannot do in one line; the parts it is ma
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -238,32 +239,77 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
     assert launched_ranks() == 4 and launched_rank() == 3
 
 
-def test_build_restricted_to_a_share_lets_the_whole_model_go(tmp_path):
-    """``build(scene, restrict=)`` (a rank's share): the model and loads are the share's (a
-    per-tet damping coefficient restricted), equal to the whole model's restricted; the whole
-    model is not kept."""
-    import gc
-    import weakref
-
-    from fem3d.scene.build import build
+def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monkeypatch):
+    """``build(scene, restrict=)`` (a rank's share): the model is built from the share's
+    tets alone (``build_model`` never sees the whole mesh) and equals the whole model
+    restricted (rest shapes, per-tet parameters of two materials, mass); the loads are the
+    share's (a per-tet damping coefficient restricted); the summary values are the share's
+    ``summary``."""
+    import fem3d.scene.build as scene_build
 
     scene = load_scene(str(write_scene(tmp_path)))  # two bodies: per-tet Rayleigh beta
-    whole = build(scene)
+    whole = scene_build.build(scene)
     tets = np.arange(0, whole.model.n_tets, 3)
     seen = []
 
-    def restrict(model, constraints):
-        seen.append(weakref.ref(model))
-        assert constraints.free_dofs.size == whole.constraints.free_dofs.size
-        return local_model(model, tets), tets
+    class Share:
+        def tets(self, X, T, constraints):
+            assert constraints.free_dofs.size == whole.constraints.free_dofs.size
+            assert np.array_equal(T, whole.model.T)
+            return tets
 
-    share = build(scene, restrict=restrict)
-    gc.collect()
-    assert seen and seen[0]() is None  # the whole model is gone
-    assert share.model.n_tets == tets.size and share.model.n_vertices == whole.model.n_vertices
-    expected = local_loads(whole.loads, local_model(whole.model, tets), tets)
-    assert np.array_equal(share.loads.rayleigh_beta, expected.rayleigh_beta)
+        def summary(self, model):
+            return replace(model, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)
+
+    def spy(X, T, **kwargs):
+        seen.append(T.shape[0])
+        return build_model(X, T, **kwargs)
+
+    build_model = scene_build.build_model
+    monkeypatch.setattr(scene_build, "build_model", spy)
+    share = scene_build.build(scene, restrict=Share())
+    assert seen == [tets.size]  # the whole model is never built
+    expected = local_model(whole.model, tets)
+    m = share.model
+    assert m.n_tets == tets.size and m.n_vertices == whole.model.n_vertices
+    assert np.array_equal(m.T, whole.model.T[tets]) and np.array_equal(m.vol, expected.vol)
+    assert np.array_equal(m.dphi_dX, expected.dphi_dX)
+    assert np.array_equal(m.params, expected.params) and m.material == expected.material
+    assert (m.mass != expected.mass).nnz == 0
+    loads = local_loads(whole.loads, expected, tets)
+    assert np.array_equal(share.loads.rayleigh_beta, loads.rayleigh_beta)
     assert np.ndim(share.loads.rayleigh_beta) == 1 and share.loads.rayleigh_beta.size == tets.size
     q = whole.model.X.reshape(-1) + 1e-3
-    assert share.loads.gravity_energy(q) == pytest.approx(expected.gravity_energy(q), rel=1e-14)
-    assert share.model.E == whole.model.E
+    assert share.loads.gravity_energy(q) == pytest.approx(loads.gravity_energy(q), rel=1e-14)
+    assert (m.E, m.nu, m.rho) == (whole.model.E, whole.model.nu, whole.model.rho)
+
+
+def test_rank_share_summary_is_the_whole_models(tmp_path):
+    """``RankShare.summary``: the ranks' models of a two-material box (built by
+    ``model_from_scene(tets=)``, halves of unequal materials) get the whole model's
+    ``E, nu, rho`` (the volume-weighted means over the ranks), the same on every rank."""
+    from fem3d.parallel.run import RankShare
+    from fem3d.scene.arrays import build_arrays
+    from fem3d.scene.build import model_from_scene
+
+    scene = load_scene(str(write_scene(tmp_path)))
+    a = build_arrays(scene)
+    whole = model_from_scene(scene, a)
+    halves = np.array_split(np.arange(whole.n_tets), [whole.n_tets // 3])
+    models = [model_from_scene(scene, a, tets=t) for t in halves]
+    assert models[0].E != models[1].E  # the halves' own summaries differ
+
+    class Comm:  # rank r of two: allgather returns both ranks' rows
+        def __init__(self, rows):
+            self.rows = rows
+
+        def allgather(self, row):
+            return self.rows
+
+    rows = [(m.E, m.nu, m.rho, m.total_volume) for m in models]
+    for m in models:
+        got = RankShare(Comm(rows)).summary(m)
+        assert got.E == pytest.approx(whole.E, rel=1e-13)
+        assert got.nu == pytest.approx(whole.nu, rel=1e-13)
+        assert got.rho == pytest.approx(whole.rho, rel=1e-13)
+        assert got.n_tets == m.n_tets
