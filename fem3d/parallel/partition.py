@@ -24,7 +24,7 @@ def dual_graph(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    T : (m, 4) int64
+    T : (m, n_nodes) int64
 
     Returns
     -------
@@ -62,7 +62,7 @@ def partition_tets(T: np.ndarray, comm: Any) -> np.ndarray:
 
     Parameters
     ----------
-    T : (m, 4) int64
+    T : (m, n_nodes) int64
         The whole mesh (every rank has it).
     comm : mpi4py.MPI.Comm
 
@@ -108,7 +108,7 @@ def dof_layout(T: np.ndarray, tet_rank: np.ndarray, free_dofs: np.ndarray, comm:
 
     Parameters
     ----------
-    T : (m, 4) int64
+    T : (m, n_nodes) int64
     tet_rank : (m,) int64
         :func:`partition_tets`.
     free_dofs : (n_free,) int64
@@ -123,7 +123,7 @@ def dof_layout(T: np.ndarray, tet_rank: np.ndarray, free_dofs: np.ndarray, comm:
     n_vertices = int(T.max()) + 1 if T.size else 0
     owner = np.full(max(n_vertices, int(free_dofs.max(initial=-1)) // 3 + 1), size,
                     dtype=np.int64)
-    np.minimum.at(owner, T.reshape(-1), np.repeat(tet_rank, 4))
+    np.minimum.at(owner, T.reshape(-1), np.repeat(tet_rank, T.shape[1]))
     owner[owner == size] = 0  # a vertex of no tet (none in a checked mesh)
     dof_owner = owner[free_dofs // 3]
     by_rank = np.argsort(dof_owner, kind="stable")  # free DOFs in PETSc's order

@@ -13,7 +13,6 @@ import numpy as np
 
 from fem3d.io.files import atomic_write
 from fem3d.io.frames import RawVtu
-from fem3d.mesh.tetmesh import boundary_faces
 
 __all__ = ["PieceWriter"]
 
@@ -25,17 +24,17 @@ class PieceWriter:
     Parameters
     ----------
     out : Path
-    T : (k, 4) int64
-        This rank's tets (the whole mesh's vertex numbers).
+    triangles : (t, 3) int64
+        The surface of this rank's tets (the whole mesh's vertex numbers): the element's
+        ``surface_triangles``.
     comm : mpi4py.MPI.Comm
     """
 
-    def __init__(self, out: Path, T: np.ndarray, comm: Any) -> None:
+    def __init__(self, out: Path, triangles: np.ndarray, comm: Any) -> None:
         self.rank, self.size = comm.Get_rank(), comm.Get_size()
         self.out = Path(out)
         self.frame_dir = self.out / "frames"
-        faces = boundary_faces(T)
-        self.vertices, local = np.unique(faces, return_inverse=True)
+        self.vertices, local = np.unique(triangles, return_inverse=True)
         self._vtu = RawVtu(local.reshape(-1, 3))
         self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)
         #: step -> (time, path relative to ``out``) of every frame listed in ``frames.pvd``

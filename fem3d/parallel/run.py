@@ -130,6 +130,14 @@ class RankShare:
         self.digest = mesh_digest(X, T)
         return np.flatnonzero(tet_rank == self.comm.Get_rank())
 
+    def agree(self, failure: str) -> None:
+        """Every rank raises the first rank's :class:`InputError` when any rank's ``failure``
+        (its message, ``""`` for none) is not empty: a check of the rank's own elements
+        fails on that rank alone, and one line (rank 0's) names it."""
+        failures = [f for f in self.comm.allgather(failure) if f]
+        if failures:
+            raise InputError(failures[0])
+
     def summary(self, model: Model) -> Model:
         """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same
         on every rank: Newton's tolerance is made from them): the ranks' own when they all
@@ -177,7 +185,8 @@ class DistributedLoop:
         if self.rank == 0:
             (self.out / "frames").mkdir(parents=True, exist_ok=True)
         comm.Barrier()
-        self.writer = PieceWriter(self.out, sim.model.T, comm)
+        self.writer = PieceWriter(self.out, sim.model.element.surface_triangles(sim.model.T),
+                                  comm)
         if ckpt is None:
             self.log = EnergyLog(self.out / "energy.csv")
         else:

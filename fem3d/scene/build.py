@@ -74,6 +74,10 @@ class Share(Protocol):
     def summary(self, model: Model) -> Model:
         """``model`` (the share's) with the whole model's summary ``E, nu, rho``."""
 
+    def agree(self, failure: str) -> None:
+        """Raise :class:`InputError` on every share when any share's ``failure`` (its
+        message; ``""``: none) is not empty."""
+
 
 class PinMotion(NamedTuple):
     """A moving pin: which pinned vertices, where they rest, how they move.
@@ -169,12 +173,19 @@ def build(scene: Scene, *, backend: str | None = None,
     if restrict is not None:  # the share's tets first: they decide the model
         constraints = _constraints(scene, a)
         tets = restrict.tets(a.X, a.T, constraints)
-    model = replace(model_from_scene(scene, a, backend, tets=tets),
-                    psd_projection=scene.simulation.psd_projection)
     if restrict is None:
+        model = model_from_scene(scene, a, backend)
         constraints = _constraints(scene, a)
     else:
+        # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
+        # rank learns of it before the next collective call, which would otherwise wait
+        try:
+            model, failure = model_from_scene(scene, a, backend, tets=tets), ""
+        except InputError as exc:
+            model, failure = None, str(exc)
+        restrict.agree(failure)
         model = restrict.summary(model)
+    model = replace(model, psd_projection=scene.simulation.psd_projection)
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)

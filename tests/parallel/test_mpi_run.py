@@ -19,7 +19,7 @@ from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import model_terms
 from fem3d.solve.system import System
-from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+from tests.parallel.helpers import MESH, relative_difference, run_mpi, write_scene
 
 
 def _one_process(scene_path, steps=20) -> Simulation:
@@ -258,6 +258,9 @@ def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monk
             assert np.array_equal(T, whole.model.T)
             return tets
 
+        def agree(self, failure):
+            assert failure == ""
+
         def summary(self, model):
             return replace(model, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)
 
@@ -313,3 +316,68 @@ def test_rank_share_summary_is_the_whole_models(tmp_path):
         assert got.nu == pytest.approx(whole.nu, rel=1e-13)
         assert got.rho == pytest.approx(whole.rho, rel=1e-13)
         assert got.n_tets == m.n_tets
+
+
+def _p2_bar(folder, bad_tet: int | None = None, steps: int = 1):
+    """The box's first bar lifted to P2 (``bar_p2.vtu``), clamped at x = 0, sagging; with
+    ``bad_tet``, that tet's edge node pushed far beyond its edge's far corner (det J < 0)."""
+    import meshio
+
+    from fem3d.mesh.quadratic import lift_to_p2
+
+    mesh = meshio.read(MESH)
+    X2, T2 = lift_to_p2(mesh.points, mesh.cells_dict["tetra"])
+    if bad_tet is not None:
+        tet = bad_tet % len(T2)
+        X2[T2[tet, 4]] = X2[T2[tet, 0]] + 3.0 * (X2[T2[tet, 1]] - X2[T2[tet, 0]])
+    folder.mkdir(parents=True, exist_ok=True)
+    meshio.write(folder / "bar_p2.vtu", meshio.Mesh(X2, [("tetra10", T2)]))
+    scene = folder / "bar.toml"
+    scene.write_text(f"""
+[simulation]
+integrator = "implicit"
+dt = 0.01
+steps = {steps}
+gravity = [0.0, -9.81, 0.0]
+
+[[bodies]]
+mesh = "{folder / 'bar_p2.vtu'}"
+element = "p2"
+material = {{ model = "neo_hookean", E = 2e5, nu = 0.35, density = 1000.0 }}
+pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]] }} }}]
+""")
+    return scene
+
+
+def test_p2_on_two_ranks_equals_one_process(tmp_path):
+    """5 implicit steps of a P2 bar (edge nodes owned, numbered and written like corners) on
+    2 ranks equal the one-process run to 1e-8 of the motion; the pieces hold the P2
+    display surface (4 triangles per quadratic face)."""
+    import meshio
+
+    scene = _p2_bar(tmp_path, steps=5)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = np.load(tmp_path / "out" / "state.npz")
+    sim = _one_process(scene, steps=5)
+    diff = relative_difference(state["q"], sim.q, sim.model.X)
+    print(f"P2 bar: 2 ranks vs one process: relative difference {diff:.2e}")
+    assert int(state["step"]) == 5 and diff <= 1e-8
+    pieces = sorted((tmp_path / "out" / "frames").glob("frame_00005_*.vtu"))
+    triangles = sum(len(meshio.read(p).cells_dict["triangle"]) for p in pieces)
+    faces = sim.model.element.boundary_faces(sim.model.T)
+    assert len(pieces) == 2 and triangles >= 4 * len(faces)  # plus the faces between ranks
+
+
+@pytest.mark.parametrize("bad_tet", ["first", "last"])
+def test_an_element_one_rank_refuses_is_one_line_on_every_rank(tmp_path, bad_tet):
+    """A P2 element with a non-positive Jacobian is found by the rank that owns it alone (each
+    rank checks only its own elements): every rank stops with exit status 2, no rank waits
+    for the others, and one line names the element, whichever rank owns it (the first and
+    the last tet of the bar lie in different ranks' parts)."""
+    scene = _p2_bar(tmp_path, bad_tet=0 if bad_tet == "first" else -1)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path,
+                   timeout=60)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Jacobian" in lines[0] and "bar_p2.vtu" in lines[0], proc.stderr
