@@ -57,7 +57,7 @@ import logging
 import sys
 import tomllib
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +67,7 @@ from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.io.frames import FRAME_FORMATS, frame_format_names
-from fem3d.parallel.comm import launched_rank, launched_ranks
+from fem3d.parallel.comm import launched_rank, launched_ranks, leave_together
 from fem3d.parallel.run import run_distributed
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 from fem3d.solve.linear.registry import linear_solver_names
@@ -348,6 +348,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ranks = launched_ranks()
     # under mpiexec every rank meets the same error: rank 0 says it
     say = print if launched_rank() == 0 else (lambda *a, **k: None)
+    status = _status_of(args, ranks, say)
+    if status in (1, 2):
+        leave_together()  # rank 0's line first: mpiexec ends every rank once one exits non-zero
+    return status
+
+
+def _status_of(args: argparse.Namespace, ranks: int, say: Callable[..., None]) -> int:
+    """Run ``args``' command; its exit status, an error said in one line (by ``say``)."""
     try:
         if ranks > 1 and args.command not in ("run", "resume", "schema"):
             raise InputError(f"fem3d {args.command} runs in one process, not under mpiexec "

@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "world", "sum_scalar",
-           "sum_vector"]
+__all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "leave_together", "world",
+           "sum_scalar", "sum_vector"]
 
 #: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
 #: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
@@ -47,6 +47,31 @@ def world() -> Any:
     from mpi4py import MPI  # optional (fem3d[mpi]): imported for mpiexec runs
 
     return MPI.COMM_WORLD
+
+
+def leave_together(timeout: float = 30.0) -> None:
+    """Under ``mpiexec``, wait (at most ``timeout`` seconds) until every rank has come here.
+
+    A failed run exits non-zero on every rank, and Open MPI's ``mpiexec`` kills the ranks
+    still running as soon as one exits non-zero: a rank that is quick to fail would take rank
+    0's one-line message with it before rank 0 had printed it. A non-blocking barrier with a
+    deadline, so a rank that never arrives (a failure of one rank alone) delays the exit and
+    cannot hang it. Nothing happens in one process or without mpi4py.
+    """
+    import sys
+    import time
+
+    if launched_ranks() < 2:
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        request = world().Ibarrier()
+    except Exception:  # noqa: BLE001 - no MPI to wait with: leave at once
+        return
+    deadline = time.monotonic() + timeout
+    while not request.Test() and time.monotonic() < deadline:
+        time.sleep(0.005)
 
 
 def sum_scalar(comm: Any, value: float) -> float:

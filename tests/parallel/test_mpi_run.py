@@ -4,6 +4,8 @@ writes its pieces, and refuses what it cannot do in one line; the parts it is ma
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from dataclasses import replace
 from types import SimpleNamespace
@@ -19,7 +21,14 @@ from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import model_terms
 from fem3d.solve.system import System
-from tests.parallel.helpers import MESH, relative_difference, run_mpi, write_scene
+from tests.parallel.helpers import (
+    MESH,
+    mpi_env,
+    mpiexec_or_skip,
+    relative_difference,
+    run_mpi,
+    write_scene,
+)
 
 
 def _one_process(scene_path, steps=20) -> Simulation:
@@ -151,6 +160,24 @@ def test_viewer_refused_in_one_line(tmp_path):
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "runs in one process, not under mpiexec -n 2" in lines[0]
+
+
+def test_a_slow_rank_0_still_says_the_failure(tmp_path):
+    """Rank 1 fails at once, rank 0 takes 2 s to say why: Open MPI's mpiexec ends every rank
+    as soon as one exits non-zero, so without :func:`leave_together` rank 0's line was lost
+    (seen under load: exit 2 and nothing on stderr)."""
+    script = ("import sys, time\n"
+              "from fem3d.parallel.comm import launched_rank, leave_together\n"
+              "if launched_rank() == 0:\n"
+              "    time.sleep(2.0)\n"
+              "    print('rank 0: the one line', file=sys.stderr)\n"
+              "leave_together()\n"
+              "sys.exit(2)\n")
+    cmd = [*mpiexec_or_skip(), "2", sys.executable, "-c", script]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=mpi_env(), capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["rank 0: the one line"]
 
 
 # -- the parts, in one process ------------------------------------------------------------
