@@ -54,11 +54,15 @@ lint:
 browser:  ## Debian chromium for the browser test (skipped with a reason if this fails)
 	-@bash scripts/install_chromium.sh
 
+# One pytest worker per core (pytest-xdist), each taking whole files: a file's module-level
+# fixtures and state stay in one process. PYTEST_WORKERS= runs the suite in one process.
+PYTEST_WORKERS ?= -n auto --dist loadfile
+
 # The announcement comes first, before anything is installed (hence the sub-make).
 test:  ## the test suite (what CI runs)
-	@echo "make test: sets up fem3d[dev] and CHOLMOD, and installs Debian's chromium (apt-get, only when /usr/bin/chromium is missing) for the browser test of the viewer (tests/app/test_viewer_browser.py), then runs pytest"
+	@echo "make test: sets up fem3d[dev] and CHOLMOD, and installs Debian's chromium (apt-get, only when /usr/bin/chromium is missing) for the browser test of the viewer (tests/app/test_viewer_browser.py), then runs pytest, one worker per core"
 	@$(MAKE) --no-print-directory install browser PYTHON=$(PYTHON)
-	$(PYTHON) -m pytest -q
+	$(PYTHON) -m pytest -q $(PYTEST_WORKERS)
 
 run: $(RUN_STAMP)  ## the main job (runtime dependencies only, not the [dev] tools) on the built-in bunny scene
 	@echo "make run: [3/3] simulating the bunny into runs/bunny (then energy.png and preview.gif)"
