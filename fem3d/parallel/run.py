@@ -46,6 +46,7 @@ from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
+from fem3d.scene.build import refuse_mixed_elements
 from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
@@ -75,6 +76,7 @@ def check_distributable(scene: Any, ranks: int) -> None:
             raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
                               "yet (their faces and points have no owner rank): run in one "
                               "process")
+    refuse_mixed_elements(scene, why)
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)
