@@ -268,3 +268,44 @@ def test_what_mixed_scenes_do_not_run_is_refused_in_one_line(bar, tmp_path):
     loss = PositionLoss(targets={2: np.zeros((103, 3))})
     with pytest.raises(InputError, match=r"bodies\[1\]\.element: .*the adjoint"):
         trajectory_gradient(scene, loss, ["bodies[0].material.E"])
+
+
+def test_fem3d_fit_refuses_a_mixed_scene_in_one_line(bar, tmp_path, capsys):
+    """``fem3d fit`` of a mixed scene: exit 2, one line naming ``bodies[1].element``, before
+    reading any target."""
+    scene = _scene(tmp_path, "mixed", bar, [0, 1], "implicit", extra="")
+    scene.write_text(scene.read_text().split("[[pulls]]")[0])
+    (tmp_path / "target").mkdir()  # no frames in it: the refusal comes first
+    fit = tmp_path / "fit.toml"
+    fit.write_text(f'scene = "{scene}"\ntarget = "{tmp_path / "target"}"\n\n[[params]]\n'
+                   'key = "bodies[0].material.E"\nstart = 2e6\nbounds = [1e5, 1e9]\n')
+    assert main(["fit", str(fit), "--out", str(tmp_path / "fit_out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    assert "bodies[1].element: 'p2' beside bodies[0]'s 'p1': fem3d fit (the adjoint) need " \
+        "every body on one element" in err
+
+
+def test_a_sweep_over_the_second_bodys_element(bar, tmp_path):
+    """``fem3d sweep`` runs mixed cases: a grid over ``bodies[1].element`` (P1 + P1, P1 + P2),
+    each case's frames bit for bit what ``fem3d run`` gives."""
+    from fem3d.io.dataset import read_run_frames
+    from tests.app.test_sweep_runs import _main
+
+    scene = _scene(tmp_path, "pair", bar, [0, 1], "implicit", steps=2)
+    scene.write_text(scene.read_text().split("[[pulls]]")[0])
+    spec = tmp_path / "s.toml"
+    spec.write_text('scene = "pair.toml"\n[grid]\n"bodies[1].element" = ["p1", "p2"]\n'
+                    '[dataset]\ndtype = "float64"\n')
+    out = tmp_path / "out"
+    rc, err = _main("sweep", str(spec), "--workers", "1", "--out", str(out), "--quiet")
+    assert rc == 0 and "2 ok, 0 failed, 0 lost" in err, err
+    for case in sorted((out / "cases").iterdir()):
+        element = "p2" if read_run_frames(case)[2].shape[1] == 20 + 81 else "p1"
+        alone = tmp_path / f"alone_{element}"
+        rc, err = _main("run", str(scene), "--set", f'bodies[1].element="{element}"',
+                        "--out", str(alone), "--no-preview", "--quiet")
+        assert rc == 0, err
+        for a, b in zip(read_run_frames(case), read_run_frames(alone), strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert sorted(p.name for p in tmp_path.glob("alone_*")) == ["alone_p1", "alone_p2"]
