@@ -84,27 +84,30 @@ def _scene(tmp_path: Path, name: str, bar: Path, bodies: list[int], integrator: 
     return path
 
 
-def _run(path: Path, steps: int = 4) -> Simulation:
-    sim = Simulation(load_scene(str(path)))
+def _run(path: Path, steps: int = 4, backend: str | None = None) -> Simulation:
+    sim = Simulation(load_scene(str(path)), backend=backend)
     for _ in range(steps):
         sim.step()
         assert sim.last_stats.converged
     return sim
 
 
-@pytest.mark.parametrize("integrator", ["implicit", "bdf2", "newmark", "linear", "static"])
-def test_each_body_moves_as_it_does_alone(integrator, bar, tmp_path):
+@pytest.mark.parametrize("integrator,backend", [
+    ("implicit", None), ("bdf2", None), ("newmark", None), ("linear", None), ("static", None),
+    ("implicit", "numpy")])
+def test_each_body_moves_as_it_does_alone(integrator, backend, bar, tmp_path):
     """P1, P2 and P1 bars in one scene (three element blocks: materials with a region,
     per-body damping, a pull and a traction on the P2 bar, a keyframed clamp) end where each
     ends alone."""
-    mixed = _run(_scene(tmp_path, "mixed", bar, [0, 1, 2], integrator))
+    mixed = _run(_scene(tmp_path, "mixed", bar, [0, 1, 2], integrator), backend=backend)
     model = mixed.model
     assert model.is_mixed and model.element_names == "p1+p2"
+    assert backend is None or model.kernel_backend == backend
     assert [b.element for _, b in model.element_blocks()] == [P1, P2, P1]
     assert [(s.start, s.stop) for s in model.spans] == [(0, 24), (24, 48), (48, 72)]
     assert model.n_tets == 72 and model.n_vertices == 20 + 81 + 20
     for i, vs in enumerate(mixed.assembled.body_vertices):
-        alone = _run(_scene(tmp_path, f"alone{i}", bar, [i], integrator))
+        alone = _run(_scene(tmp_path, f"alone{i}", bar, [i], integrator), backend=backend)
         moved = np.abs(alone.q - alone.model.X).max()
         assert moved > 1e-3  # it moved (sagged, was pulled or lifted)
         gap = np.abs(mixed.q[vs] - alone.q).max()
@@ -285,3 +288,27 @@ def test_a_sweep_over_the_second_bodys_element(bar, tmp_path):
         for a, b in zip(read_run_frames(case), read_run_frames(alone), strict=True):
             np.testing.assert_array_equal(a, b)
     assert sorted(p.name for p in tmp_path.glob("alone_*")) == ["alone_p1", "alone_p2"]
+
+
+def test_the_mixed_models_matrices_are_the_bodies_own(bar, tmp_path):
+    """The mixed model's pattern, mass, Hessian, gradient and energy are each body's own
+    model's, block diagonal (the union pattern holds exactly the bodies' entries)."""
+    from fem3d.physics.assembly import assemble_gradient, assemble_hessian, potential_energy
+
+    mixed = Simulation(load_scene(str(_scene(tmp_path, "m", bar, [0, 1], "implicit")))).model
+    alone = [Simulation(load_scene(str(_scene(tmp_path, f"a{i}", bar, [i], "implicit")))).model
+             for i in (0, 1)]
+    assert mixed.nnz == alone[0].nnz + alone[1].nnz
+    q = mixed.X + 0.01 * np.random.default_rng(3).standard_normal(mixed.X.shape)
+    n0 = 3 * alone[0].n_vertices
+    parts = [q[:n0 // 3], q[n0 // 3:]]
+    H, M = assemble_hessian(mixed, q).toarray(), mixed.mass.toarray()
+    for (rows, A, Q) in ((slice(0, n0), alone[0], parts[0]), (slice(n0, None), alone[1], parts[1])):
+        np.testing.assert_allclose(H[rows, rows], assemble_hessian(A, Q).toarray(),
+                                   rtol=1e-13, atol=1e-9)
+        np.testing.assert_array_equal(M[rows, rows], A.mass.toarray())
+        np.testing.assert_allclose(assemble_gradient(mixed, q)[rows], assemble_gradient(A, Q),
+                                   rtol=1e-13, atol=1e-12)
+    assert not H[:n0, n0:].any() and not M[:n0, n0:].any()
+    assert potential_energy(mixed, q) == pytest.approx(
+        potential_energy(alone[0], parts[0]) + potential_energy(alone[1], parts[1]), rel=1e-14)
