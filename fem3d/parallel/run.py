@@ -61,10 +61,12 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Contact, pulls, surface and point loads, a scheme not marked ``distributed``, a Newton
-        direction other than ``direct``, frames other than ``vtu``, ``output.volume``.
+        Bodies of several elements, contact, pulls, surface and point loads, a scheme not
+        marked ``distributed``, a Newton direction other than ``direct``, frames other than
+        ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"
+    refuse_mixed_elements(scene, why)  # the rank's share is built for one element
     if scene.contact.enabled:
         raise scene.error("contact.enabled", f"{why} have no contact (the IPC Toolkit is "
                           "serial): run contact scenes in one process (docs/parallel.md)")
@@ -76,7 +78,6 @@ def check_distributable(scene: Any, ranks: int) -> None:
             raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
                               "yet (their faces and points have no owner rank): run in one "
                               "process")
-    refuse_mixed_elements(scene, why)
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)

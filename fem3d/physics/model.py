@@ -256,15 +256,14 @@ class Model:
         """Cut a mixed model's flat per-element array (:attr:`vol` or :attr:`scatter`, or one
         made from them: ``vol * dt^2``, a reduced scatter map) into the blocks' arrays,
         shaped like each block's ``like`` attribute (views)."""
-        out, start = [], 0
-        for b in self.blocks:
-            ref = getattr(b, like)
-            out.append(flat[start:start + ref.size].reshape(ref.shape))
-            start += ref.size
-        if start != flat.size:
+        refs = [getattr(b, like) for b in self.blocks]
+        total = sum(r.size for r in refs)
+        if flat.size != total:
             raise ValueError(f"an array of {flat.size} values is not the blocks' {like} "
-                             f"({start} values)")
-        return out
+                             f"({total} values)")
+        bounds = np.cumsum([0] + [r.size for r in refs])
+        return [flat[a:b].reshape(r.shape) for a, b, r in zip(bounds[:-1], bounds[1:], refs,
+                                                                 strict=True)]
 
     def element_volumes(self) -> np.ndarray:
         """``(m,) float64`` rest volume of each element (:meth:`Element.volumes`)."""
