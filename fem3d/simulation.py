@@ -219,7 +219,7 @@ class Simulation:
             except SimulationError as exc:
                 raise scene.error("bodies", f"in the initial state, {exc.reason.split(': ', 1)[1]}"
                                   ) from None
-        self.surface_faces = self.model.element.surface_triangles(a.T)
+        self.surface_faces = a.surface_triangles()
         self._dt = validate_dt(sim.dt)
         self._scheme: Scheme | None = None
         self.integrator = sim.integrator
@@ -362,13 +362,13 @@ class Simulation:
         if self._W is None and a.skin_V is not None:
             blocks = []
             for i, (vs, _) in enumerate(a.skin_bodies):
-                bv, bt = a.body_vertices[i], a.body_tets[i]
+                bv = a.body_vertices[i]
                 n_i = bv.stop - bv.start
                 if a.skin_identity[i]:
                     W_i = sp.identity(n_i, format="csr")
                 else:
-                    W_i = build_skinning_matrix(a.X[bv], a.T[bt] - bv.start, a.skin_V[vs],
-                                                element=self.model.element)
+                    W_i = build_skinning_matrix(a.X[bv], a.body_elements(i) - bv.start,
+                                                a.skin_V[vs], element=a.body_element(i))
                 blocks.append(W_i)
             self._W = blocks[0] if len(blocks) == 1 else sp.block_diag(blocks, format="csr")
         return self._W

@@ -204,16 +204,18 @@ class RunLoop:
         self.steps, self.frame_every = scene.n_steps, scene.output.every
         self.every = settings["checkpoint_every"]
         self.preview_on = bool(settings["preview"])
-        self.digest = mesh_digest(sim.model.X, sim.model.T)
+        self.digest = mesh_digest(sim.model.X, model_cells(sim.model))
         self.faces = sim.display_faces
         self.obstacles = sim.obstacle_meshes()
         # frames are written by a thread of their own (fem3d.io.framequeue)
         self.writer = BackgroundWriter(make_frame_writer(
             out, self.faces, scene.output.format, bodies=_display_bodies(scene, sim),
             dt=sim.dt, obstacles=self.obstacles))
-        self.volume = (BackgroundWriter(VolumeVtuWriter(out, sim.model.T,
-                                                        sim.model.element.vtk_type))
-                       if scene.output.volume else None)
+        blocks = [b for _, b in sim.model.element_blocks()]
+        self.volume = (BackgroundWriter(VolumeVtuWriter(
+            out, *((sim.model.T, sim.model.element.vtk_type) if len(blocks) == 1 else
+                   ([b.T for b in blocks], [b.element.vtk_type for b in blocks]))))
+            if scene.output.volume else None)
         n_frames = self.steps // self.frame_every + 1
         self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
         self.preview: list[np.ndarray] = []
@@ -314,7 +316,7 @@ class RunLoop:
         print(
             f"fem3d {command} {scene.name}: {sim.model.n_vertices} vertices, {sim.model.n_tets} "
             f"tets, {sim.constraints.fixed_vertices.size} fixed, integrator {sim.integrator}, "
-            f"material {sim.model.material}, dt {sim.dt:g}, kernels {sim.model.mat.backend}, "
+            f"material {sim.model.material}, dt {sim.dt:g}, kernels {sim.model.kernel_backend}, "
             f"steps {start} -> {self.steps} -> {out}",
             file=sys.stderr,
         )
@@ -428,6 +430,11 @@ class RunLoop:
     def _summary(self, status: str, message: str, wall: float) -> RunSummary:
         return _summary(self.sim, status, message, wall, self.iterations, self.max_disp,
                         self.log, self.out)
+
+
+def model_cells(model):
+    """The model's elements for :func:`mesh_digest`: ``T``, or each element block's."""
+    return [b.T for b in model.blocks] if model.is_mixed else model.T
 
 
 def _display_bodies(scene, sim) -> list[tuple[str, slice, slice]]:
@@ -554,7 +561,7 @@ def resume_run(args: argparse.Namespace) -> int:
     """
     out, ckpt, scene, settings = resume_inputs(args)
     sim = Simulation(scene, backend=settings["kernels"], scripted=True)
-    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
+    if mesh_digest(sim.model.X, model_cells(sim.model)) != ckpt.mesh_digest:
         raise InputError("the mesh differs from the one the checkpoint was made with",
                          path=sim.assembled.mesh_paths[0])
     try:

@@ -78,7 +78,7 @@ from fem3d.diff.terms import (
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.physics.terms.surface import FollowerPressure
 from fem3d.scene.arrays import select_vertices
-from fem3d.scene.build import Built, build
+from fem3d.scene.build import Built, build, refuse_mixed_elements
 from fem3d.scene.load import apply_overrides
 from fem3d.scene.spec import Scene
 from fem3d.solve.schemes.base import model_terms
@@ -218,6 +218,7 @@ def _prepare(scene: Scene, rtol: float, atol_factor: float,
         raise ParameterError("trajectory_gradient: contact is not differentiated with "
                              f"simulation.integrator = {scene.simulation.integrator!r} "
                              f"(differentiated with contact: {with_contact})")
+    refuse_mixed_elements(scene, "the adjoint (trajectory_gradient, fem3d fit)")
     built = build(scene)
     system = System(built.model, built.constraints, scene.simulation.linear_solver,
                     loads=built.loads)

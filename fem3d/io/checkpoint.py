@@ -158,10 +158,12 @@ _SNAPSHOT_OPTIONAL = ("preconditioner", "contact", "pattern_keys")
 _HISTORY = "history_"
 
 
-def mesh_digest(X: np.ndarray, T: np.ndarray) -> str:
-    """SHA-256 of the rest positions ``X (n, 3) float64`` and tets ``T (m, 4) int64``."""
+def mesh_digest(X: np.ndarray, T) -> str:
+    """SHA-256 of the rest positions ``X (n, 3) float64`` and elements ``T (m, k) int64``
+    (or a sequence of them: the element blocks of bodies on several elements)."""
     h = hashlib.sha256()
-    for a, dtype in ((X, np.float64), (T, np.int64)):
+    Ts = list(T) if isinstance(T, (list, tuple)) else [T]
+    for a, dtype in ((X, np.float64), *((t, np.int64) for t in Ts)):
         a = np.ascontiguousarray(a, dtype=dtype)
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())

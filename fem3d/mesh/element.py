@@ -21,7 +21,8 @@ from fem3d.kernels.backend import resolve_backend
 from fem3d.kernels.dispatch import kernel_module
 from fem3d.mesh.tetmesh import TET_FACES, boundary_face_index, boundary_faces
 
-__all__ = ["ELEMENTS", "Element", "P1Tet", "P2Tet", "TET_EDGES", "element", "element_names"]
+__all__ = ["ELEMENTS", "Element", "MixedElementError", "MixedElements", "P1Tet", "P2Tet",
+           "TET_EDGES", "element", "element_names"]
 
 #: Corner pairs of a tet's six edges, in the order of the edge nodes ``4..9`` of a P2 tet.
 TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]], dtype=np.int64)
@@ -316,3 +317,46 @@ def element(name: str | Element) -> Element:
     except KeyError:
         raise ValueError(f"unknown element {name!r}; available: "
                          f"{', '.join(ELEMENTS)}") from None
+
+
+class MixedElementError(TypeError):
+    """An element-shaped attribute (``T``, ``element``, ``dphi_dX``, ...) of a model or of scene
+    arrays whose bodies mix elements was used as if there were one element."""
+
+
+class MixedElements:
+    """Stands in for an element-shaped attribute of a model or of scene arrays whose bodies
+    mix elements (P1 and P2): the elements are in blocks, one per element kind, and any use
+    of this stand-in (an attribute, an index, a conversion to an array, a length, a truth
+    value) raises :class:`MixedElementError` naming the attribute. Code that handles mixed
+    elements iterates the blocks (``model.element_blocks()``, ``arrays.blocks``); code that
+    does not fails loudly here instead of computing with the wrong element.
+
+    Parameters
+    ----------
+    what : str
+        The attribute (``"model.T"``).
+    names : sequence of str
+        The elements of the blocks (``("p1", "p2")``).
+    """
+
+    __slots__ = ("_what", "_names")
+
+    def __init__(self, what: str, names) -> None:
+        object.__setattr__(self, "_what", what)
+        object.__setattr__(self, "_names", tuple(names))
+
+    def _fail(self, *_args, **_kwargs):
+        raise MixedElementError(
+            f"{self._what}: the bodies mix elements ({', '.join(self._names)}), so there is "
+            "no single one; iterate the element blocks (model.element_blocks(), "
+            "arrays.blocks)")
+
+    def __getattr__(self, name: str):
+        self._fail()
+
+    __getitem__ = __len__ = __iter__ = __bool__ = __array__ = __call__ = _fail
+    __add__ = __radd__ = __sub__ = __mul__ = __rmul__ = _fail
+
+    def __repr__(self) -> str:
+        return f"<mixed elements {'+'.join(self._names)}: {self._what}>"

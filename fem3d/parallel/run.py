@@ -46,6 +46,7 @@ from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
+from fem3d.scene.build import refuse_mixed_elements
 from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
@@ -60,10 +61,12 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Contact, pulls, surface and point loads, a scheme not marked ``distributed``, a Newton
-        direction other than ``direct``, frames other than ``vtu``, ``output.volume``.
+        Bodies of several elements, contact, pulls, surface and point loads, a scheme not
+        marked ``distributed``, a Newton direction other than ``direct``, frames other than
+        ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"
+    refuse_mixed_elements(scene, why)  # the rank's share is built for one element
     if scene.contact.enabled:
         raise scene.error("contact.enabled", f"{why} have no contact (the IPC Toolkit is "
                           "serial): run contact scenes in one process (docs/parallel.md)")

@@ -12,6 +12,10 @@ Every derivative comes from the generated kernels (``model.mat.gradient`` /
 one ``np.bincount`` over the maps precomputed in :class:`fem3d.physics.model.Model`.
 
 Positions ``q`` may be given as ``(n, 3)`` or flattened vertex-major ``(3n,)``.
+
+A model whose bodies mix elements (``model.blocks``) is assembled block by block, each block
+with its own element's kernels on the shared pattern and DOF vector; per-element results
+are the blocks' in element order.
 """
 
 from __future__ import annotations
@@ -62,11 +66,15 @@ def element_energies(model: Model, q: np.ndarray) -> np.ndarray:
     -------
     (m,) float64
     """
+    if model.blocks:
+        return np.concatenate([element_energies(b, q) for b in model.blocks])
     return model.mat.energy(element_positions(model, q), model.dphi_dX, model.vol, model.params)
 
 
 def potential_energy(model: Model, q: np.ndarray) -> float:
     """Total strain energy ``V(q)`` (non-finite when a tet is inverted for log/power laws)."""
+    if model.blocks:
+        return float(sum(potential_energy(b, q) for b in model.blocks))
     if model.mat.has_assemble("energy"):  # C: gather, evaluate and sum in one pass
         total = np.zeros(1)
         model.mat.energy_assemble(q, model.T, model.dphi_dX, model.vol, model.params,
@@ -82,6 +90,11 @@ def assemble_gradient(model: Model, q: np.ndarray) -> np.ndarray:
     -------
     (3n,) float64
     """
+    if model.blocks:
+        g = assemble_gradient(model.blocks[0], q)
+        for b in model.blocks[1:]:
+            g += assemble_gradient(b, q)
+        return g
     if model.mat.has_assemble("gradient"):  # C: gather, evaluate and scatter in one pass
         out = np.zeros(model.n_dofs)
         return model.mat.gradient_assemble(q, model.T, model.dphi_dX, model.vol, model.params,
@@ -121,6 +134,11 @@ def hessian_data(model: Model, q: np.ndarray, *, psd: bool = False) -> np.ndarra
     -------
     (nnz,) float64
     """
+    if model.blocks:
+        data = hessian_data(model.blocks[0], q, psd=psd)
+        for b in model.blocks[1:]:
+            data += hessian_data(b, q, psd=psd)
+        return data
     name = model.psd_hessian if psd else "hessian"
     if model.mat.has_assemble(name):  # C: no (m, 12, 12) intermediate, one pass
         out = np.zeros(model.nnz)
@@ -148,7 +166,17 @@ def add_element_hessians(model: Model, kernel: str, q: np.ndarray, vol: np.ndarr
         ``d = model.element.n_dofs``).
     out : (k,) float64
         Accumulated into.
+
+    Notes
+    -----
+    For a mixed model ``vol`` and ``scatter`` are flat, the blocks' concatenated
+    (:meth:`~fem3d.physics.model.Model.split`).
     """
+    if model.blocks:
+        for b, v, s in zip(model.blocks, model.split(vol, "vol"),
+                           model.split(scatter, "scatter"), strict=True):
+            add_element_hessians(b, kernel, q, v, s, out)
+        return
     if model.mat.has_assemble(kernel):
         getattr(model.mat, f"{kernel}_assemble")(
             q, model.T, model.dphi_dX, vol, model.params, scatter, out)
@@ -213,6 +241,8 @@ def deformed_volumes(model: Model, q: np.ndarray) -> np.ndarray:
         ``<= 0`` means the element is inverted or flat (somewhere, for P2); see
         :meth:`fem3d.mesh.element.Element.deformed_volumes`.
     """
+    if model.blocks:
+        return np.concatenate([deformed_volumes(b, q) for b in model.blocks])
     return model.element.deformed_volumes(model.geo, q, model.T, model.dphi_dX,
                                           model.element_slots)
 

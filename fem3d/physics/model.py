@@ -10,6 +10,9 @@ A :class:`Model` is built once per mesh (:func:`build_model`) and holds
   the elements, its parameters per group or per element, see :mod:`fem3d.physics.groups`), a
   density per mesh or per element, and the summary values ``E``, ``nu``, ``rho``;
 * the exact consistent mass matrix (generated ``mass_matrix`` kernel, assembled);
+* the element blocks of a scene whose bodies mix elements (P1 and P2): one :class:`Model`
+  per run of consecutive bodies on one element (:attr:`Model.blocks`,
+  :func:`mixed_model`), all on the whole mesh's nodes, sparsity pattern and DOF vector;
 * the sparsity pattern of the ``3n x 3n`` system and two precomputed scatter maps:
   ``scatter`` sends the ``(m, d, d)`` element blocks (``d = 3 x`` nodes per element) straight
   into CSR ``data`` positions and ``elem_dofs`` sends ``(m, d)`` element vectors into the
@@ -35,7 +38,7 @@ import scipy.sparse as sp
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.mesh import element as elements
-from fem3d.mesh.element import Element
+from fem3d.mesh.element import Element, MixedElements
 from fem3d.physics.groups import (
     GROUP_PARAMS,
     GroupData,
@@ -47,7 +50,7 @@ from fem3d.physics.groups import (
     with_E_nu,
 )
 from fem3d.physics.materials import parameters_from
-from fem3d.physics.pattern import assemble_mass, block_pattern
+from fem3d.physics.pattern import assemble_mass, block_pattern, merge_patterns
 
 __all__ = [
     "GROUP_PARAMS",
@@ -56,6 +59,8 @@ __all__ = [
     "MaterialGroup",
     "Model",
     "build_model",
+    "mixed_model",
+    "with_psd_projection",
     "material_parameters",
     "validate_material",
     "validate_dt",
@@ -199,6 +204,18 @@ class Model:
         Eigen-solver of the per-element PSD projection (:attr:`psd_hessian`).
     element : Element
         The finite element of every cell (:func:`fem3d.mesh.element.element`).
+    blocks : tuple of Model
+        Empty for a model of one element. A model whose bodies mix elements
+        (:func:`mixed_model`) holds one model per element block (its elements ``T`` in the
+        whole mesh's node numbering, its own rest shape, materials, kernels and mass, its
+        ``scatter`` into this model's :attr:`pattern`); its own ``T``, ``dphi_dX``,
+        ``element``, ``mat``, ``geo``, ``params`` and ``groups`` are
+        :class:`~fem3d.mesh.element.MixedElements`, which raise on any use. Its ``vol`` and
+        ``scatter`` are the blocks' flattened and concatenated in element order (what an
+        integrator scales and gathers; :meth:`split` cuts them back into the blocks').
+        Iterate :meth:`element_blocks` to handle both kinds of model.
+    spans : tuple of slice
+        Each block's range of elements in the scene's element order (empty: one element).
     """
 
     X: np.ndarray
@@ -220,6 +237,58 @@ class Model:
     density: np.ndarray | None = field(default=None, repr=False)
     psd_projection: str = "svd"
     element: Element = field(default=elements.ELEMENTS["p1"], repr=False)
+    blocks: tuple[Model, ...] = field(default=(), repr=False)
+    spans: tuple[slice, ...] = field(default=(), repr=False)
+
+    @property
+    def is_mixed(self) -> bool:
+        """Whether the bodies mix elements (the model holds :attr:`blocks`)."""
+        return bool(self.blocks)
+
+    def element_blocks(self) -> tuple[tuple[slice, Model], ...]:
+        """``((span, block), ...)``: each element block and its range of elements; a model of
+        one element is its own single block (``slice(0, m)``, itself)."""
+        if self.blocks:
+            return tuple(zip(self.spans, self.blocks, strict=True))
+        return ((slice(0, int(self.T.shape[0])), self),)
+
+    def split(self, flat: np.ndarray, like: str = "vol") -> list[np.ndarray]:
+        """Cut a mixed model's flat per-element array (:attr:`vol` or :attr:`scatter`, or one
+        made from them: ``vol * dt^2``, a reduced scatter map) into the blocks' arrays,
+        shaped like each block's ``like`` attribute (views)."""
+        refs = [getattr(b, like) for b in self.blocks]
+        total = sum(r.size for r in refs)
+        if flat.size != total:
+            raise ValueError(f"an array of {flat.size} values is not the blocks' {like} "
+                             f"({total} values)")
+        bounds = np.cumsum([0] + [r.size for r in refs])
+        return [flat[a:b].reshape(r.shape) for a, b, r in zip(bounds[:-1], bounds[1:], refs,
+                                                                 strict=True)]
+
+    def element_volumes(self) -> np.ndarray:
+        """``(m,) float64`` rest volume of each element (:meth:`Element.volumes`)."""
+        if self.blocks:
+            return np.concatenate([b.element_volumes() for b in self.blocks])
+        return self.element.volumes(self.vol)
+
+    def scaled_volumes(self, per_element: np.ndarray) -> np.ndarray:
+        """:attr:`vol` times a per-element ``(m,)`` factor (on every quadrature point of an
+        element whose ``vol`` is per point): a Rayleigh ``beta`` per element."""
+        per_element = np.asarray(per_element, dtype=np.float64)
+        if self.blocks:
+            return np.concatenate([b.scaled_volumes(per_element[s]).reshape(-1)
+                                   for s, b in self.element_blocks()])
+        return self.vol * per_element.reshape(per_element.shape + (1,) * (self.vol.ndim - 1))
+
+    @property
+    def kernel_backend(self) -> str:
+        """The back end of the material kernels (``"c"``, ``"numpy"``)."""
+        return self.blocks[0].mat.backend if self.blocks else self.mat.backend
+
+    @property
+    def element_names(self) -> str:
+        """The element of every block, ``"p1"`` or ``"p1+p2"``."""
+        return "+".join(dict.fromkeys(b.element.name for _, b in self.element_blocks()))
 
     @property
     def psd_hessian(self) -> str:
@@ -232,6 +301,8 @@ class Model:
     def allows_inversion(self) -> bool:
         """True when every group's material is defined for ``J <= 0`` (declared by its material
         file): the line search need not refuse inverted tets."""
+        if self.blocks:
+            return all(b.allows_inversion for b in self.blocks)
         return bool(self.groups) and all(g.allows_inversion for g in self.groups)
 
     @property
@@ -242,6 +313,8 @@ class Model:
     @property
     def n_tets(self) -> int:
         """Number of tets ``m``."""
+        if self.blocks:
+            return sum(b.n_tets for b in self.blocks)
         return int(self.T.shape[0])
 
     @property
@@ -353,6 +426,13 @@ class Model:
             self.nu if nu is None else nu,
             self.rho if rho is None else rho,
         )
+        if self.blocks:  # every block alike; densities scaled by one factor
+            stiff = material is not None or (E, nu) != (self.E, self.nu)
+            blocks = tuple(b.with_material(E if stiff else None, nu if stiff else None,
+                                           None if rho == self.rho else b.rho * (rho / self.rho),
+                                           material=material) for b in self.blocks)
+            return _mixed(blocks, self.spans, self.pattern, self.backend, self.psd_projection,
+                          E=E if stiff else None, nu=nu if stiff else None)
         groups, mat, params = self.groups, self.mat, self.params
         if material is not None:
             groups = resolve_groups([MaterialGroup(material, None, {"E": E, "nu": nu})],
@@ -371,6 +451,83 @@ class Model:
         name = "+".join(dict.fromkeys(g.material for g in groups))
         return replace(self, material=name, E=E, nu=nu, rho=rho, params=params, mat=mat,
                        mass=mass, groups=groups, density=density)
+
+
+def with_psd_projection(model: Model, psd_projection: str) -> Model:
+    """``model`` (and each of its element blocks) with another PSD projection."""
+    blocks = tuple(replace(b, psd_projection=psd_projection) for b in model.blocks)
+    return replace(model, psd_projection=psd_projection, blocks=blocks)
+
+
+def mixed_model(blocks: Sequence[Model], spans: Sequence[slice]) -> Model:
+    """The model of a mesh whose bodies mix elements, from one model per element block.
+
+    Parameters
+    ----------
+    blocks : sequence of Model
+        Each block's model (:func:`build_model` of the same ``X``, the block's elements in
+        the whole mesh's node numbering), at least two.
+    spans : sequence of slice
+        Each block's range of elements in the scene's element order (consecutive, from 0).
+
+    Returns
+    -------
+    Model
+        :attr:`Model.blocks` these blocks, each moved onto the union of their sparsity
+        patterns (its ``scatter`` remapped, its ``mass`` the block's own on the union); the
+        mass is the sum of the blocks' and the summary ``E``, ``nu``, ``rho`` their
+        volume-weighted means.
+    """
+    pattern, positions = merge_patterns([b.pattern for b in blocks])
+    moved = []
+    for b, pos in zip(blocks, positions, strict=True):
+        scatter = pos[b.scatter]
+        data = np.zeros(pattern.nnz)
+        data[pos] = b.mass.data
+        mass = sp.csr_matrix((data, pattern.indices, pattern.indptr), shape=pattern.shape)
+        mass.has_sorted_indices = True
+        _readonly(scatter, data)
+        moved.append(replace(b, pattern=pattern, scatter=scatter, mass=mass))
+    _readonly(pattern.indices, pattern.indptr)
+    return _mixed(tuple(moved), tuple(spans), pattern, blocks[0].backend,
+                  blocks[0].psd_projection)
+
+
+def _mixed(blocks: tuple[Model, ...], spans: tuple[slice, ...], pattern: sp.csr_matrix,
+           backend: str | None, psd_projection: str, *, E: float | None = None,
+           nu: float | None = None) -> Model:
+    """The mixed model of blocks already on ``pattern`` (``E, nu``: the summary when every
+    block was given them, else the blocks' volume-weighted means)."""
+    volumes = np.array([b.total_volume for b in blocks])
+
+    def mean(values: list[float]) -> float:  # one value stays bit for bit itself
+        if all(v == values[0] for v in values):
+            return float(values[0])
+        return float(np.dot(values, volumes) / volumes.sum())
+
+    mass_data = blocks[0].mass.data.copy()
+    for b in blocks[1:]:
+        mass_data += b.mass.data
+    mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
+    mass.has_sorted_indices = True
+    vol = np.concatenate([b.vol.reshape(-1) for b in blocks])
+    scatter = np.concatenate([b.scatter for b in blocks])
+    density = None
+    if any(b.density is not None for b in blocks):
+        density = np.concatenate([b.density if b.density is not None
+                                  else np.full(b.n_tets, b.rho) for b in blocks])
+        _readonly(density)
+    _readonly(mass.data, vol, scatter)
+    names = [b.element.name for b in blocks]
+    stand_in = {k: MixedElements(f"model.{k}", dict.fromkeys(names))
+                for k in ("T", "dphi_dX", "params", "mat", "geo", "groups", "element")}
+    return Model(
+        X=blocks[0].X, vol=vol, material="+".join(dict.fromkeys(b.material for b in blocks)),
+        E=mean([b.E for b in blocks]) if E is None else float(E),
+        nu=mean([b.nu for b in blocks]) if nu is None else float(nu),
+        rho=mean([b.rho for b in blocks]), mass=mass, pattern=pattern, scatter=scatter,
+        backend=backend, density=density, psd_projection=psd_projection, blocks=blocks,
+        spans=spans, **stand_in)
 
 
 def _own_copy(a, dtype) -> np.ndarray:

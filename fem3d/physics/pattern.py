@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["block_pattern", "assemble_mass"]
+__all__ = ["block_pattern", "assemble_mass", "merge_patterns"]
 
 
 def _vertex_pairs(T: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -140,6 +140,37 @@ def block_pattern(T: np.ndarray, n_vertices: int) -> tuple[sp.csr_matrix, np.nda
     pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(3 * n, 3 * n))
     pattern.has_sorted_indices = True
     return pattern, scatter.reshape(-1)
+
+
+def merge_patterns(patterns: list[sp.csr_matrix]) -> tuple[sp.csr_matrix, list[np.ndarray]]:
+    """The union of canonical CSR patterns of one shape (element blocks of different
+    elements on one mesh) and where each pattern's entries sit in it.
+
+    Returns
+    -------
+    pattern : (N, N) scipy.sparse.csr_matrix
+        Canonical, ``data`` zeros, int32 indices.
+    positions : list of (nnz_i,) int32
+        ``positions[i][j]``: the union's ``data`` position of entry ``j`` of ``patterns[i]``
+        (so ``positions[i][scatter_i]`` is block ``i``'s scatter map into the union).
+    """
+    n_rows, n_cols = patterns[0].shape
+
+    def keys(p: sp.csr_matrix) -> np.ndarray:
+        rows = np.repeat(np.arange(n_rows, dtype=np.int64), np.diff(p.indptr))
+        return rows * n_cols + p.indices
+
+    union = np.unique(np.concatenate([keys(p) for p in patterns]))
+    if union.size > np.iinfo(np.int32).max:
+        raise ValueError(f"the sparsity pattern has {union.size} entries, more than int32 "
+                         "indexes")
+    indptr = np.zeros(n_rows + 1, dtype=np.int32)
+    np.cumsum(np.bincount(union // n_cols, minlength=n_rows), out=indptr[1:])
+    indices = (union % n_cols).astype(np.int32)
+    pattern = sp.csr_matrix((np.zeros(union.size), indices, indptr), shape=(n_rows, n_cols))
+    pattern.has_sorted_indices = True
+    positions = [np.searchsorted(union, keys(p)).astype(np.int32) for p in patterns]
+    return pattern, positions
 
 
 #: Tets per chunk of the mass matrix's element blocks (10 MB of blocks a chunk).

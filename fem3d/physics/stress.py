@@ -17,7 +17,8 @@ import numpy as np
 from fem3d.mesh.element import ELEMENTS
 from fem3d.physics.model import Model
 
-__all__ = ["ElementStress", "element_fields", "element_stress", "vertex_fields"]
+__all__ = ["ElementStress", "element_fields", "element_stress", "node_weights",
+           "vertex_fields"]
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,12 @@ class ElementStress:
 
 def element_stress(model: Model, q: np.ndarray) -> ElementStress:
     """The stress and stretches of every element at positions ``q`` (``(n, 3)`` or ``(3n,)``):
-    per quadrature point of the element (one for P1), averaged with the points' weights."""
+    per quadrature point of the element (one for P1), averaged with the points' weights;
+    a model of several elements block by block, in element order."""
+    if model.blocks:
+        parts = [element_stress(b, q) for b in model.blocks]
+        return ElementStress(*(np.concatenate([getattr(p, f) for p in parts])
+                               for f in ("cauchy", "von_mises", "stretches")))
     m = model.T.shape[0]
     x = np.asarray(q, dtype=np.float64).reshape(-1, 3)[model.T]
     geo = model.element.geometry(model.backend)
@@ -77,15 +83,27 @@ def element_fields(e: ElementStress) -> dict[str, np.ndarray]:
             "principal_stretches": e.stretches}
 
 
+def node_weights(model: Model) -> tuple[int | np.ndarray, np.ndarray, np.ndarray]:
+    """What a volume-weighted vertex average of per-element values needs: ``k`` (nodes per
+    element: an int, or ``(m,)`` for a model of several elements; ``np.repeat(values, k)``
+    gives each element node its element's value), each element node's weight (its element's
+    rest volume) and its node."""
+    if model.blocks:
+        blocks = model.blocks
+        k = np.repeat([b.T.shape[1] for b in blocks], [b.n_tets for b in blocks])
+        return (k, np.repeat(model.element_volumes(), k),
+                np.concatenate([b.T.reshape(-1) for b in blocks]))
+    k = model.T.shape[1]
+    return k, np.repeat(model.element.volumes(model.vol), k), model.T.reshape(-1)
+
+
 def vertex_fields(model: Model, q: np.ndarray,
                   e: ElementStress | None = None) -> dict[str, np.ndarray]:
     """Volume-weighted vertex averages of :func:`element_stress` for point data: ``von_mises``
     ``(n,)``, ``cauchy_stress`` ``(n, 9)`` (row-major), ``principal_stretches`` ``(n, 3)``
     (``e``: the elements' stress at ``q`` if already computed)."""
     e = element_stress(model, q) if e is None else e
-    k = model.T.shape[1]
-    w = np.repeat(model.element.volumes(model.vol), k)
-    idx = model.T.reshape(-1)
+    k, w, idx = node_weights(model)
     total = np.bincount(idx, weights=w, minlength=model.n_vertices)
     total[total == 0] = 1.0
 

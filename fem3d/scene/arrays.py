@@ -26,7 +26,7 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.io.files import check_input_file
-from fem3d.mesh.element import ELEMENTS, Element
+from fem3d.mesh.element import ELEMENTS, Element, MixedElements
 from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
 from fem3d.mesh.quadratic import has_p2_cells, lift_to_p2, read_p2_mesh
 from fem3d.mesh.skin import check_skin_placement
@@ -35,7 +35,7 @@ from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.physics.springs import Pull
 from fem3d.scene.spec import SURFACE_SUFFIXES, BodySpec, Scene, Selector
 
-__all__ = ["SceneArrays", "BodyMesh", "ScriptedPull", "build_arrays", "body_mesh",
+__all__ = ["SceneArrays", "ElementBlock", "BodyMesh", "ScriptedPull", "build_arrays", "body_mesh",
            "rest_positions", "select_vertices", "transform_points", "rotation_matrix",
            "default_spring_k", "top_vertex", "hand_vertex", "is_surface_file"]
 
@@ -346,6 +346,11 @@ class SceneArrays:
         :attr:`fixed`.
     element : Element
         The finite element of every body (``bodies[].element``).
+    blocks : tuple of ElementBlock
+        The elements by block: each run of consecutive bodies on one element (one block, all
+        of :attr:`T`, when every body has the same element). When the bodies mix elements,
+        :attr:`T` and :attr:`element` are :class:`~fem3d.mesh.element.MixedElements`, which
+        raise on any use.
     """
 
     X: np.ndarray
@@ -365,20 +370,71 @@ class SceneArrays:
     mesh_paths: list[str] = field(default_factory=list)
     fixed_dofs: np.ndarray | None = None
     element: Element = ELEMENTS["p1"]
+    blocks: tuple[ElementBlock, ...] = ()
+
+    @property
+    def is_mixed(self) -> bool:
+        """Whether the bodies mix elements."""
+        return len(self.blocks) > 1
+
+    def surface_triangles(self) -> np.ndarray:
+        """``(f, 3) int64`` the linear triangles of the boundary of every block (the display
+        surface, the collision mesh: :meth:`Element.surface_triangles`)."""
+        tris = [b.element.surface_triangles(b.T) for b in self.blocks]
+        return tris[0] if len(tris) == 1 else np.concatenate(tris)
+
+    def body_elements(self, i: int) -> np.ndarray:
+        """``(m_i, k) int64`` body ``i``'s elements, in the scene's node numbering."""
+        b = next(b for b in self.blocks if i in b.bodies)
+        s = self.body_tets[i]
+        return b.T[s.start - b.tets.start:s.stop - b.tets.start]
+
+    def body_element(self, i: int) -> Element:
+        """The element of body ``i``."""
+        return next(b.element for b in self.blocks if i in b.bodies)
+
+
+@dataclass(frozen=True, eq=False)
+class ElementBlock:
+    """The elements of a run of consecutive bodies on one finite element.
+
+    Attributes
+    ----------
+    element : Element
+    T : (m_b, k) int64
+        The block's elements, in the scene's node numbering.
+    tets : slice
+        Their range in the scene's element order (the bodies' :attr:`SceneArrays.body_tets`).
+    bodies : range
+        The bodies of the block.
+    """
+
+    element: Element
+    T: np.ndarray
+    tets: slice
+    bodies: range
 
 
 def _surface_of(T: np.ndarray, n: int, element: Element) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(n), element.surface_triangles(T)
 
 
-def _scene_element(scene: Scene) -> Element:
-    """The element of every body; bodies with different elements are refused."""
-    first = scene.bodies[0].element
+def _element_blocks(scene: Scene, Ts: list[np.ndarray],
+                    body_t: list[slice]) -> tuple[ElementBlock, ...]:
+    """Consecutive bodies on one element, each run one block (its ``T`` concatenated)."""
+    runs: list[list[int]] = []
     for i, body in enumerate(scene.bodies):
-        if body.element != first:
-            raise scene.error(f"bodies[{i}].element", f"{body.element!r}, but bodies[0] has "
-                              f"{first!r}: every body of a scene has the same element")
-    return ELEMENTS[first]
+        if runs and scene.bodies[runs[-1][0]].element == body.element:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    blocks = []
+    for run in runs:
+        T = Ts[run[0]] if len(run) == 1 else np.concatenate([Ts[i] for i in run])
+        blocks.append(ElementBlock(ELEMENTS[scene.bodies[run[0]].element], T,
+                                   slice(body_t[run[0]].start, body_t[run[-1]].stop),
+                                   range(run[0], run[-1] + 1)))
+    return tuple(blocks)
 
 
 def build_arrays(scene: Scene) -> SceneArrays:
@@ -390,7 +446,6 @@ def build_arrays(scene: Scene) -> SceneArrays:
         ``FILE: key.path: ...`` for a missing or bad mesh, a selector that selects nothing,
         a vertex id out of range.
     """
-    element = _scene_element(scene)
     Xs, Ts, v0s, fixed, skins = [], [], [], [], []
     body_v, body_t = [], []
     nv = nt = 0
@@ -420,7 +475,12 @@ def build_arrays(scene: Scene) -> SceneArrays:
         nv += X.shape[0]
         nt += T.shape[0]
     X = Xs[0] if len(Xs) == 1 else np.concatenate(Xs)
-    T = Ts[0] if len(Ts) == 1 else np.concatenate(Ts)
+    blocks = _element_blocks(scene, Ts, body_t)
+    if len(blocks) == 1:
+        T, element = blocks[0].T, blocks[0].element
+    else:
+        names = dict.fromkeys(b.element.name for b in blocks)
+        T, element = MixedElements("arrays.T", names), MixedElements("arrays.element", names)
     v0 = np.concatenate(v0s)
     fixed_dofs = (np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, np.int64))
     fixed_ids = np.unique(fixed_dofs // 3)
@@ -435,7 +495,8 @@ def build_arrays(scene: Scene) -> SceneArrays:
         kv = kf = 0
         for i, s in enumerate(skins):
             if s is None:
-                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0], element)
+                idx, F = _surface_of(Ts[i] - body_v[i].start, Xs[i].shape[0],
+                                     ELEMENTS[scene.bodies[i].element])
                 s = (Xs[i][idx], F)
             Vs.append(s[0])
             Fs.append(s[1] + kv)
@@ -481,4 +542,5 @@ def build_arrays(scene: Scene) -> SceneArrays:
         pick_radius=float(pick_radius), spring_k=None if spring_k is None else float(spring_k),
         height=height,
         mesh_paths=[m.path for m in meshes], fixed_dofs=fixed_dofs, element=element,
+        blocks=blocks,
     )

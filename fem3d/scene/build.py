@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
 import meshio
@@ -34,7 +34,13 @@ from fem3d.errors import InputError, ParameterError
 from fem3d.mesh.formats import read_surface_mesh
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
-from fem3d.physics.model import MaterialGroup, Model, build_model
+from fem3d.physics.model import (
+    MaterialGroup,
+    Model,
+    build_model,
+    mixed_model,
+    with_psd_projection,
+)
 from fem3d.physics.motion import Keyframes
 from fem3d.physics.terms.contact import ContactTerm
 from fem3d.physics.terms.damping import RayleighDamping, check_coefficient
@@ -57,9 +63,9 @@ from fem3d.scene.arrays import (
 )
 from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 
-__all__ = ["Built", "PinMotion", "build", "build_loads", "surface_loads_from_scene",
-           "model_from_scene", "damping_from_scene", "pin_motions", "pin_groups",
-           "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
+__all__ = ["Built", "PinMotion", "build", "refuse_mixed_elements", "build_loads",
+           "surface_loads_from_scene", "model_from_scene", "damping_from_scene", "pin_motions",
+           "pin_groups", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
@@ -170,6 +176,8 @@ def build(scene: Scene, *, backend: str | None = None,
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
     tets = None
+    if restrict is not None:
+        refuse_mixed_elements(scene, "mpiexec runs")
     if restrict is not None:  # the share's tets first: they decide the model
         constraints = _constraints(scene, a)
         tets = restrict.tets(a.X, a.T, constraints)
@@ -185,7 +193,7 @@ def build(scene: Scene, *, backend: str | None = None,
             model, failure = None, str(exc)
         restrict.agree(failure)
         model = restrict.summary(model)
-    model = replace(model, psd_projection=scene.simulation.psd_projection)
+    model = with_psd_projection(model, scene.simulation.psd_projection)
     sim = scene.simulation
     gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
     alpha, beta = damping_from_scene(scene, a)
@@ -206,6 +214,25 @@ def build(scene: Scene, *, backend: str | None = None,
                  contact=contact,
                  pick_radius=a.pick_radius, spring_k=spring_k,
                  pin_groups=pin_groups(scene, a))
+
+
+def refuse_mixed_elements(scene: Scene, what: str) -> None:
+    """Refuse ``what`` (``"fem3d fit"``) for a scene whose bodies mix elements: one line naming
+    the first body whose element differs from the first body's (nothing when they do not).
+
+    Raises
+    ------
+    InputError
+        ``FILE: bodies[i].element: 'p2' beside bodies[0]'s 'p1': ... need every body on one
+        element ...``.
+    """
+    first = scene.bodies[0].element
+    i = next((i for i, b in enumerate(scene.bodies) if b.element != first), None)
+    if i is None:
+        return
+    raise scene.error(f"bodies[{i}].element", f"{scene.bodies[i].element!r} beside bodies[0]'s "
+                      f"{first!r}: {what} need every body on one element (mixed elements run "
+                      "with fem3d run, resume, view and sweep)")
 
 
 def _constraints(scene: Scene, a: SceneArrays) -> Constraints:
@@ -274,7 +301,7 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
         holds no whole boundary face, a selector that selects nothing.
     """
     out: list = []
-    faces = None
+    faces: dict[int, np.ndarray] = {}  # each element block's boundary faces, once
     for i, body in enumerate(scene.bodies):
         off = a.body_vertices[i].start
         for j, load in enumerate(body.loads):
@@ -287,8 +314,10 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
                 out.append(DeadLoad(model, point_forces(a.X.shape[0], ids, load.force),
                                     amplitude, key))
                 continue
-            faces = a.element.boundary_faces(a.T) if faces is None else faces
-            mine = faces_within(faces, ids)
+            b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
+            if b not in faces:
+                faces[b] = a.blocks[b].element.boundary_faces(a.blocks[b].T)
+            mine = faces_within(faces[b], ids)
             if mine.size == 0:
                 raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
                                   "is loaded when all its nodes are selected)")
@@ -333,7 +362,8 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
         raise scene.error(key, f"cannot read cell data of {path} ({type(exc).__name__}: "
                           f"{exc}); cell fields need a mesh format with cell data (.vtu, .msh)"
                           ) from None
-    blocks = [j for j, c in enumerate(mesh.cells) if c.type in ("tetra", a.element.cell_type)]
+    blocks = [j for j, c in enumerate(mesh.cells)
+              if c.type in ("tetra", a.body_element(i).cell_type)]
     if name not in mesh.cell_data or not blocks:
         have = ", ".join(sorted(mesh.cell_data)) or "none"
         raise scene.error(key, f"{path} has no tet cell data {name!r} (it has: {have})")
@@ -366,7 +396,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
     except InputError as exc:
         key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
         raise scene.error(key, str(exc)) from None
-    groups, density = [], np.empty(a.T.shape[0])
+    groups, density = [], np.empty(a.body_tets[-1].stop)
     for i, body in enumerate(bodies):
         m = body.material
         mine = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
@@ -379,7 +409,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
         region = np.full(mine.size, -1)
         if m.regions:
             Xb = a.X[a.body_vertices[i]]
-            Tb = a.T[a.body_tets[i]] - a.body_vertices[i].start
+            Tb = a.body_elements(i) - a.body_vertices[i].start
             for j, r in enumerate(m.regions):
                 ids = select_vertices(scene, Xb, r.select,
                                       f"bodies[{i}].material.regions[{j}].select")
@@ -403,12 +433,38 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
                     values["nu"] = r.nu
             groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
                            MaterialGroup(m.model, mine[mask], values)))
+    if a.is_mixed:
+        return _mixed_from_groups(scene, a, groups, density, backend)
     rho = float(density[0]) if (density == density[0]).all() else density
     if tets is not None:
         groups, rho = _share_groups(groups, tets, a.T.shape[0]), _share_values(rho, tets)
+    return _model_of_groups(scene, a.X, T, groups, rho, backend, path, a.element)
+
+
+def _mixed_from_groups(scene: Scene, a: SceneArrays, groups: list, density: np.ndarray,
+                       backend: str | None) -> Model:
+    """The model of bodies on several elements: one :func:`build_model` per element block
+    (its bodies' material groups and densities), joined by :func:`mixed_model`."""
+    blocks = []
+    for blk in a.blocks:
+        s = blk.tets
+        mine = [(key, MaterialGroup(g.material, g.elements - s.start, g.params))
+                for key, g in groups if s.start <= g.elements[0] < s.stop]
+        rho = density[s]
+        rho = float(rho[0]) if (rho == rho[0]).all() else rho
+        path = a.mesh_paths[blk.bodies[0]] if len(blk.bodies) == 1 else None
+        blocks.append(_model_of_groups(scene, a.X, blk.T, mine, rho, backend, path,
+                                       blk.element))
+    return mixed_model(blocks, [blk.tets for blk in a.blocks])
+
+
+def _model_of_groups(scene: Scene, X: np.ndarray, T: np.ndarray, groups: list, rho,
+                     backend: str | None, path: str | None, element) -> Model:
+    """:func:`build_model` of ``(key, MaterialGroup)`` pairs; a bad group is refused naming
+    its key."""
     try:
-        return build_model(a.X, T, groups=[g for _, g in groups], density=rho,
-                           backend=backend, path=path, element=a.element)
+        return build_model(X, T, groups=[g for _, g in groups], density=rho,
+                           backend=backend, path=path, element=element)
     except ParameterError as exc:
         # name the group the message is about when it says which (else the first body's)
         hit = re.search(r"material group (\d+)", str(exc))
@@ -445,7 +501,7 @@ def damping_from_scene(scene: Scene, a: SceneArrays) -> tuple:
     if len(set(alphas)) == 1 and len(set(betas)) == 1:
         return float(alphas[0]), float(betas[0])
     alpha = np.zeros(a.X.shape[0])
-    beta = np.zeros(a.T.shape[0])
+    beta = np.zeros(a.body_tets[-1].stop)
     for i in range(len(scene.bodies)):
         alpha[a.body_vertices[i]] = alphas[i]
         beta[a.body_tets[i]] = betas[i]
@@ -576,12 +632,14 @@ def contact_from_scene(scene: Scene, a: SceneArrays) -> ContactTerm:
     names = [f"bodies[{b}] ({body.label})" for b, body in enumerate(scene.bodies)]
     pts = np.concatenate([a.X] + [m.vertices for m in meshes])
     L = float(np.linalg.norm(np.ptp(pts, axis=0)))
-    cm = ContactModel(a.X, a.T, body_ids=body_ids, body_names=names, planes=planes,
-                      meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa,
+    cm = ContactModel(a.X, None if a.is_mixed else a.T, body_ids=body_ids, body_names=names,
+                      planes=planes, meshes=meshes, dhat=spec.dhat * L, kappa=spec.kappa,
                       mu=spec.static_mu, mu_k=spec.kinetic_mu,
                       eps_v=spec.eps_v * L, self_contact=spec.self_contact,
                       hessian_projection=spec.hessian_projection,
-                      friction_hessian=spec.friction_hessian, element=a.element)
+                      friction_hessian=spec.friction_hessian,
+                      element=a.blocks[0].element,
+                      triangles=a.surface_triangles() if a.is_mixed else None)
     return ContactTerm(cm, tolerance=spec.tolerance,
                        friction_iterations=spec.friction_iterations,
                        friction_tolerance=spec.friction_tolerance,

@@ -263,7 +263,7 @@ class BodySpec(_Spec):
     pins: list[PinSpec] = Field(default_factory=list)
     loads: list[LoadSpec] = Field(default_factory=list)
     #: The finite element (docs/elements.md): ``"p1"`` linear tets, ``"p2"`` quadratic tets
-    #: (a 4-node mesh or a surface is lifted: a node on every edge).
+    #: (a 4-node mesh or a surface is lifted: a node on every edge); bodies may mix them.
     element: ElementName = "p1"
 
     @property

@@ -11,7 +11,7 @@ import pytest
 import scipy.sparse as sp
 
 from fem3d.errors import InputError
-from fem3d.mesh.element import ELEMENTS, TET_EDGES, element
+from fem3d.mesh.element import ELEMENTS, TET_EDGES, MixedElementError, element
 from fem3d.mesh.quadratic import lift_to_p2, read_p2_mesh, write_element_mesh
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.mesh.tetmesh import boundary_faces, box_tet_mesh
@@ -193,9 +193,14 @@ def test_scene_element_key(tmp_path):
     assert a.element is P2 and np.array_equal(a.T, T2) and np.array_equal(a.X, X2)
     with pytest.raises(InputError, match=r"bodies\[0\]\.element.*p1.*p2"):
         load_scene(_scene(tmp_path, "box.mesh", "p3"))
-    with pytest.raises(InputError, match=r"bodies\[1\]\.element: 'p1', but bodies\[0\] has "
-                                         r"'p2'"):
-        build_arrays(load_scene(_scene(tmp_path, "box.mesh", "p2", "p1")))
+    # bodies may mix elements: one element block per run of bodies (the P2 body's nodes
+    # first), the scene's T and element standing in for "no single one"
+    a = build_arrays(load_scene(_scene(tmp_path, "box.mesh", "p2", "p1")))
+    assert [b.element for b in a.blocks] == [P2, P1] and a.is_mixed
+    assert np.array_equal(a.blocks[0].T, T2) and np.array_equal(a.blocks[1].T, T + len(X2))
+    assert [(b.tets.start, b.tets.stop) for b in a.blocks] == [(0, len(T)), (len(T), 2 * len(T))]
+    with pytest.raises(MixedElementError, match=r"arrays\.T: the bodies mix elements"):
+        print(a.T.shape)
     write_element_mesh(tmp_path / "box10.vtu", X2, T2, P2)
     with pytest.raises(InputError, match=r'bodies\[0\]\.element: box10.vtu has 10-node '
                                          r'\(quadratic\) tets: set element = "p2"'):

@@ -33,7 +33,7 @@ from fem3d.io.files import atomic_write
 from fem3d.mesh.element import element
 from fem3d.scene import apply_overrides, load_scene
 from fem3d.scene.arrays import build_arrays, select_vertices
-from fem3d.scene.build import _cell_field
+from fem3d.scene.build import _cell_field, refuse_mixed_elements
 from fem3d.scene.keys import parse_key
 from fem3d.scene.spec import Scene
 
@@ -356,6 +356,7 @@ def fit(spec: FitFile, *, where: str = "fit file",
     if scene.pulls:
         raise InputError("scene: the base scene has scripted pulls, which fem3d.diff does not "
                          "differentiate yet (set pulls = [] in the fit file's [set])", path=where)
+    refuse_mixed_elements(scene, "fem3d fit (the adjoint)")
     try:
         steps, times, positions = read_target(spec.target)
     except InputError as exc:

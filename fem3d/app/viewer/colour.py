@@ -20,7 +20,7 @@ import numpy as np
 
 from fem3d.physics.assembly import element_energies
 from fem3d.physics.model import Model
-from fem3d.physics.stress import element_stress
+from fem3d.physics.stress import element_stress, node_weights
 
 __all__ = ["FIELDS", "NONE", "RAMP", "SurfaceColouring", "colours", "coloured_glb",
            "display_values", "element_field", "legend", "nodal_average"]
@@ -34,7 +34,7 @@ def _von_mises(model: Model, q: np.ndarray) -> np.ndarray:
 
 
 def _energy_density(model: Model, q: np.ndarray) -> np.ndarray:
-    return element_energies(model, q) / model.element.volumes(model.vol)
+    return element_energies(model, q) / model.element_volumes()
 
 
 #: The colour fields by the name the panel shows: ``(unit label, per-element values (m,))``.
@@ -60,9 +60,7 @@ def element_field(model: Model, q: np.ndarray, name: str) -> np.ndarray:
 def nodal_average(model: Model, values: np.ndarray) -> np.ndarray:
     """``(n,)`` the per-element ``values (m,)`` averaged at each node, weighted by the
     elements' volumes (a node of no element gets 0)."""
-    k = model.T.shape[1]
-    w = np.repeat(model.element.volumes(model.vol), k)
-    idx = model.T.reshape(-1)
+    k, w, idx = node_weights(model)
     total = np.bincount(idx, weights=w, minlength=model.n_vertices)
     out = np.bincount(idx, weights=w * np.repeat(values, k), minlength=model.n_vertices)
     return np.divide(out, total, out=np.zeros_like(out), where=total > 0)

@@ -34,11 +34,12 @@ class VolumeVtuWriter(VtuWriter):
     ----------
     out_dir : str or PathLike
         Output folder (``volume/``, ``volume.pvd``).
-    cells : (m, k) int
-        The elements' nodes in VTK's order (``k = 4`` tetra, ``k = 10`` tetra10).
-    vtk_type : int
+    cells : (m, k) int, or a list of them
+        The elements' nodes in VTK's order (``k = 4`` tetra, ``k = 10`` tetra10); bodies of
+        several elements: one array per element block, written in that order.
+    vtk_type : int, or a list of them
         VTK's cell type of the elements (10 ``VTK_TETRA``, 24 ``VTK_QUADRATIC_TETRA``: the
-        element's ``vtk_type``).
+        element's ``vtk_type``), one per block when ``cells`` is a list.
     index_every_frame, digits
         See :class:`~fem3d.io.frames.vtu.VtuWriter`.
     """
@@ -46,8 +47,15 @@ class VolumeVtuWriter(VtuWriter):
     folder = "volume"
     stem = "volume"
 
-    def __init__(self, out_dir: PathLike, cells: np.ndarray, vtk_type: int, *,
+    def __init__(self, out_dir: PathLike, cells, vtk_type, *,
                  index_every_frame: bool = True, digits: int = 5) -> None:
+        self._blocks = None
+        if isinstance(cells, (list, tuple)):  # one block per element
+            self._blocks = [(check_cells(c), int(t)) for c, t in zip(cells, vtk_type,
+                                                                     strict=True)]
+            # every node as a one-node cell: what the base class checks positions against
+            cells = np.concatenate([c.reshape(-1) for c, _ in self._blocks])[:, None]
+            vtk_type = self._blocks[0][1]
         self.vtk_type = int(vtk_type)
         super().__init__(out_dir, cells, index_every_frame=index_every_frame, digits=digits)
         self.pvd_path = self.out_dir / VOLUME_INDEX
@@ -58,6 +66,8 @@ class VolumeVtuWriter(VtuWriter):
 
     def encoder(self, faces: np.ndarray) -> FileEncoder:
         """:class:`~fem3d.io.frames.vtu.RawVtu` of the element cells."""
+        if self._blocks is not None:
+            return RawVtu.of_blocks(self._blocks)
         return RawVtu(faces, self.vtk_type)
 
     def restore(self, frames: Mapping[int, tuple[float, str]], step: int) -> None:

@@ -66,13 +66,27 @@ class RawVtu:
 
     def __init__(self, faces: np.ndarray, vtk_type: int = _VTK_TRIANGLE) -> None:
         F = check_faces(faces) if vtk_type == _VTK_TRIANGLE else check_cells(faces)
-        k = int(F.shape[1])
-        idx = np.int32 if F.size == 0 or F.max() < 2**31 - 1 else np.int64
-        self.n_cells = int(F.shape[0])
+        self._encode_cells([(F, int(vtk_type))])
+
+    @classmethod
+    def of_blocks(cls, blocks) -> RawVtu:
+        """The encoder of cells of several types (bodies of different elements): ``blocks``
+        a sequence of ``(cells (m_b, k_b) int, vtk_type)``, written in that order."""
+        new = object.__new__(cls)
+        new._encode_cells([(check_cells(c), int(t)) for c, t in blocks])
+        return new
+
+    def _encode_cells(self, blocks: list[tuple[np.ndarray, int]]) -> None:
+        top = max((int(F.max()) for F, _ in blocks if F.size), default=0)
+        idx = np.int32 if top < 2**31 - 1 else np.int64
+        self.n_cells = sum(int(F.shape[0]) for F, _ in blocks)
+        nodes = np.repeat([F.shape[1] for F, _ in blocks], [F.shape[0] for F, _ in blocks])
         self.cells = [  # (name, little-endian array)
-            ("connectivity", _le(F.astype(idx).reshape(-1))),
-            ("offsets", _le(np.arange(k, k * self.n_cells + 1, k, dtype=idx))),
-            ("types", np.full(self.n_cells, vtk_type, dtype=np.uint8)),
+            ("connectivity", _le(np.concatenate([F.astype(idx).reshape(-1)
+                                                 for F, _ in blocks]))),
+            ("offsets", _le(np.cumsum(nodes, dtype=idx))),
+            ("types", np.concatenate([np.full(F.shape[0], t, dtype=np.uint8)
+                                      for F, t in blocks])),
         ]
         self._cell_bytes = b"".join(
             np.uint64(a.nbytes).tobytes() + a.tobytes() for _, a in self.cells)

@@ -74,6 +74,8 @@ class CollisionGeometry:
         Let a body touch itself.
     element : Element, optional
         The finite element of ``T`` (default P1), asked for the surface triangles.
+    triangles : (f, 3) int64, optional
+        The surface triangles when given (bodies of several elements); ``T`` is not asked.
 
     Attributes
     ----------
@@ -97,7 +99,8 @@ class CollisionGeometry:
     def __init__(self, X: np.ndarray, T: np.ndarray, *, body_ids: np.ndarray | None = None,
                  body_names: Sequence[str] | None = None,
                  meshes: Sequence[MeshObstacle] = (), self_contact: bool = False,
-                 element: Element = ELEMENTS["p1"]) -> None:
+                 element: Element = ELEMENTS["p1"],
+                 triangles: np.ndarray | None = None) -> None:
         X = np.ascontiguousarray(X, dtype=np.float64)
         n = X.shape[0]
         self.n_vertices = n
@@ -112,7 +115,8 @@ class CollisionGeometry:
         self.body_names = (list(body_names) if body_names is not None else
                            [f"body {i}" for i in range(int(body_ids.max()) + 1 if n else 0)])
         # dynamic part: the boundary surface, renumbered
-        F = element.surface_triangles(np.ascontiguousarray(T, dtype=np.int64))
+        F = (element.surface_triangles(np.ascontiguousarray(T, dtype=np.int64))
+             if triangles is None else np.asarray(triangles, dtype=np.int64))
         self.surface = surface = np.unique(F)
         renum = np.full(n, -1, dtype=np.int64)
         renum[surface] = np.arange(surface.size)

@@ -97,6 +97,10 @@ class ContactModel:
     element : Element, optional
         The finite element of ``T`` (default P1): it gives the collision surface
         (:meth:`fem3d.mesh.element.Element.surface_triangles`).
+    triangles : (f, 3) int64, optional
+        The collision surface's triangles when given (bodies of several elements:
+        :meth:`fem3d.scene.arrays.SceneArrays.surface_triangles`); ``T`` and ``element`` are
+        then not asked.
     Attributes
     ----------
     geometry : CollisionGeometry
@@ -118,7 +122,8 @@ class ContactModel:
                  mu_k: float | None = None, eps_v: float = 1e-3, self_contact: bool = False,
                  broad_phase: str = "hash_grid", narrow_phase: str = "additive",
                  hessian_projection: str = "clamp", friction_hessian: str = "exact",
-                 element: Element = ELEMENTS["p1"]) -> None:
+                 element: Element = ELEMENTS["p1"],
+                 triangles: np.ndarray | None = None) -> None:
         dhat = _positive("dhat", dhat)
         mu, mu_k = _coefficients(mu, mu_k)
         eps_v = _positive("eps_v", eps_v)
@@ -131,7 +136,7 @@ class ContactModel:
         self.stats = ContactStats()
         g = self.geometry = CollisionGeometry(X, T, body_ids=body_ids, body_names=body_names,
                                               meshes=meshes, self_contact=self_contact,
-                                              element=element)
+                                              element=element, triangles=triangles)
         self.collisions = CollisionSets(g, dhat, broad_phase, narrow_phase, self.stats)
         psd = choice(HESSIAN_PROJECTIONS, hessian_projection, "contact.hessian_projection")
         self.hessian_projection = hessian_projection

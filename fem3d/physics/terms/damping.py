@@ -87,8 +87,8 @@ class RayleighDamping(Term):
             if beta > 0:
                 self._beta_vol = model.vol * float(beta)
         elif np.any(beta > 0):
-            beta = np.asarray(beta, dtype=np.float64)  # per element; vol may be per point
-            self._beta_vol = model.vol * beta.reshape(beta.shape + (1,) * (model.vol.ndim - 1))
+            # per element; vol may be per point
+            self._beta_vol = model.scaled_volumes(np.asarray(beta, dtype=np.float64))
         self._step: StepMap | None = None
         self._data: np.ndarray | None = None
         self._D: sp.csr_matrix | None = None
