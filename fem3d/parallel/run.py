@@ -38,11 +38,10 @@ from fem3d.io import extras
 from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.parallel.comm import launched_ranks, sum_scalar, world
+from fem3d.parallel.comm import launched_ranks, world
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
-from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
@@ -51,7 +50,7 @@ from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
 __all__ = ["check_distributable", "RankShare", "distributed_simulation",
-           "local_energies", "run_distributed", "DistributedLoop", "PieceWriter"]
+           "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
 def check_distributable(scene: Any, ranks: int) -> None:
@@ -198,7 +197,7 @@ class DistributedLoop:
     def record(self) -> None:
         """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
         sim = self.sim
-        e = local_energies(sim, self.comm)
+        e = sim.energies()  # summed over the ranks (System.summed), the pull's whole
         if self.rank == 0:
             self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
                             pull=e["pull"])
@@ -326,23 +325,13 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
 def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
                            ) -> tuple[Simulation, str]:
     """This rank's :class:`Simulation` of ``scene`` (:class:`RankShare`: its ``model`` the
-    rank's local model, its system the rank's :class:`DistributedSystem`, its energies
-    :func:`local_energies`) and the whole mesh's :func:`~fem3d.io.checkpoint.mesh_digest`."""
+    rank's local model, its system the rank's :class:`DistributedSystem`, its energies summed
+    over the ranks by :meth:`DistributedSystem.summed`) and the whole mesh's
+    :func:`~fem3d.io.checkpoint.mesh_digest`."""
     share = RankShare(comm, scene.simulation.petsc_options)
     sim = Simulation(scene, backend=backend, restrict_model=share,
                      make_system=share.make_system)
     return sim, share.digest
-
-
-def local_energies(sim: Simulation, comm: Any) -> dict[str, float]:
-    """:meth:`Simulation.energies` of a distributed ``sim`` (:func:`distributed_simulation`):
-    each rank's kinetic and strain energies summed over the ranks (the same bits on every
-    rank), gravity's reduced by its loads; no pulls."""
-    kinetic = sum_scalar(comm, kinetic_energy(sim.model, sim.v))
-    strain = sum_scalar(comm, potential_energy(sim.model, sim.q))
-    gravity = sim.gravity_energy()
-    return {"kinetic": kinetic, "potential": strain + gravity, "pull": 0.0,
-            "total": kinetic + strain + gravity, "strain": strain, "gravity": gravity}
 
 
 def _restore(sim: Simulation, ckpt: RunCheckpoint, digest: str, out: Path) -> None:

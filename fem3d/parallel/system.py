@@ -88,9 +88,11 @@ class ReducedLoads(Loads):
                          loads.rayleigh_beta)
         object.__setattr__(self, "comm", comm)
         object.__setattr__(self, "local", loads)
+        # made once: a scheme tells the loads' terms from others by identity (linear)
+        object.__setattr__(self, "_terms", [ReducedTerm(t, comm) for t in loads.terms()])
 
     def terms(self) -> list[Term]:
-        return [ReducedTerm(t, self.comm) for t in self.local.terms()]
+        return list(self._terms)
 
     def gravity_energy(self, q: np.ndarray) -> float:
         return sum_scalar(self.comm, self.local.gravity_energy(q))
@@ -127,6 +129,13 @@ class DistributedSystem(System):
         super()._physics_cache()
         comm = self.layout.comm
         self._model_terms = tuple(ReducedTerm(t, comm) for t in self._model_terms)
+
+    def summed(self, value: float | np.ndarray) -> float | np.ndarray:
+        """``value`` of this rank's tets summed over the ranks, the same bits on every rank
+        (:func:`~fem3d.parallel.comm.sum_scalar`, :func:`~fem3d.parallel.comm.sum_vector`)."""
+        if np.ndim(value) == 0:
+            return sum_scalar(self.layout.comm, float(value))
+        return sum_vector(self.layout.comm, value)
 
     def solve_mass(self, rhs: np.ndarray) -> np.ndarray:
         """``M^-1 rhs`` with the mass matrix summed over the ranks (each rank's

@@ -197,6 +197,14 @@ class System:
         """The model's inertia and elasticity terms."""
         return self._model_terms
 
+    def summed(self, value: float | np.ndarray) -> float | np.ndarray:
+        """``value`` (a number or an array) summed over the processes that share this system:
+        itself in one process; over the ranks in a distributed run
+        (:class:`~fem3d.parallel.system.DistributedSystem`, whose model is a rank's share of
+        the tets), the same bits on every rank. What a scheme or the simulation computes
+        from the model itself (energies, forces, a right-hand side) goes through it."""
+        return value
+
     # -- helpers ------------------------------------------------------------------------------
     def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Positions in ``model.pattern.data`` of entries ``(rows, cols)`` (must exist)."""

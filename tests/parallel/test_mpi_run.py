@@ -31,11 +31,12 @@ def _one_process(scene_path, steps=20) -> Simulation:
 
 @pytest.mark.parametrize("integrator, options", [("implicit", ""), ("bdf2", ""),
                                                  ("implicit", "-ksp_type cg -pc_type gamg"),
-                                                 ("newmark", "")])
+                                                 ("newmark", ""), ("linear", "")])
 def test_two_ranks_equal_one_process(tmp_path, integrator, options):
     """20 steps of the two-material box (Neo-Hookean, damped StVK) on 2 ranks (MUMPS, and
     CG + GAMG) equal the one-process run (the default direct solver) to 1e-8 of the
-    motion."""
+    motion; the linearly-implicit scheme's one solve per step too (its forces and
+    right-hand side summed over the ranks)."""
     scene = write_scene(tmp_path, integrator=integrator)
     if options:
         scene.write_text(scene.read_text().replace(
@@ -106,16 +107,31 @@ def test_two_ranks_write_pieces(tmp_path):
      '[0, 1, 0] }', "contact.enabled"),
     ('[[pulls]]\nbody = 0\nselect = { box = [[0.9, -1, -1], [2, 1, 1]] }\nstart = 0.0\n'
      'duration = 0.1\ntarget = [0.0, 0.1, 0.0]', "pulls"),
-    ('', "simulation.integrator"),
 ])
 def test_refused_in_one_line(tmp_path, extra, key):
-    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "linear")
+    scene = write_scene(tmp_path, steps=1)
     scene.write_text(scene.read_text() + "\n" + extra + "\n")
     proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and key in lines[0] and "mpiexec -n 2" in lines[0], proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_scheme_not_marked_distributed_is_refused_in_one_line(tmp_path, monkeypatch):
+    """A scheme without ``distributed`` (a plug-in's; every built-in scheme runs on ranks)
+    is refused naming the key and the schemes that run."""
+    from fem3d.errors import InputError
+    from fem3d.parallel.run import check_distributable
+    from fem3d.solve.schemes.registry import get_scheme
+
+    monkeypatch.setattr(type(get_scheme("newmark")), "distributed", False)
+    scene = load_scene(str(write_scene(tmp_path, integrator="newmark", steps=1)))
+    with pytest.raises(InputError) as err:
+        check_distributable(scene, 2)
+    message = str(err.value)
+    assert "simulation.integrator" in message and "'newmark'" in message
+    assert "linear, implicit, bdf2, static" in message and "\n" not in message
 
 
 def test_surface_and_point_loads_refused_in_one_line(tmp_path):

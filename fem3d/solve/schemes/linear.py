@@ -113,8 +113,13 @@ def linearly_implicit_euler(
         if damping is not None:
             Avc += dt * (model.csr(damping) @ vc)
         rhs = rhs - Avc
+    # a distributed system's model is a rank's tets: the right-hand side is summed over the
+    # ranks (the matrix is summed by the distributed solver), and so is a verdict on it, so
+    # that no rank raises while another goes on to the (collective) factorization
+    rhs = system.summed(rhs)
     stats = StepStats(newton_iterations=1)
-    if not (np.isfinite(A.data).all() and np.isfinite(rhs).all()):
+    if system.summed(0.0 if np.isfinite(A.data).all() else 1.0) or \
+            not np.isfinite(rhs).all():
         raise SimulationError(
             "linearly-implicit Euler exploded: non-finite forces or stiffness", step=state.step
         )
@@ -130,13 +135,15 @@ def linearly_implicit_euler(
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
         total += pull.energy(system.spring, new.q)
-    if system.loads.gravity_force is not None:
+    total = system.summed(total)
+    if system.loads.gravity_force is not None:  # (the loads sum their energy themselves)
         total += system.loads.gravity_energy(new.q)
     if not math.isfinite(total):
-        n_inv = count_inverted(model, new.q)
+        n_inv = int(system.summed(count_inverted(model, new.q)))
+        n_tets = int(system.summed(model.n_tets))
         raise SimulationError(
             f"linearly-implicit Euler exploded: the energy is not finite ({n_inv} of "
-            f"{model.n_tets} tets inverted); try --integrator implicit or a smaller dt",
+            f"{n_tets} tets inverted); try --integrator implicit or a smaller dt",
             step=state.step,
         )
     if energy_bound is not None and total > energy_bound:
@@ -157,6 +164,8 @@ class LinearlyImplicit(Scheme):
     minimises = False
     contact = False
     substeps = False
+    #: the model's forces, right-hand side and energies through :meth:`System.summed`
+    distributed = True
 
     def step(self, system, terms, state, dt, settings, *, fixed_positions=None,
              energy_bound=None):
