@@ -38,7 +38,7 @@ from fem3d.io import extras
 from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.parallel.comm import launched_ranks, world
+from fem3d.parallel.comm import launched_ranks, owned_vertices, world
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
@@ -66,14 +66,6 @@ def check_distributable(scene: Any, ranks: int) -> None:
     if scene.contact.enabled:
         raise scene.error("contact.enabled", f"{why} have no contact (the IPC Toolkit is "
                           "serial): run contact scenes in one process (docs/parallel.md)")
-    if scene.pulls:
-        raise scene.error("pulls", f"{why} have no scripted pulls yet (their springs are not "
-                          "element-wise): run without mpiexec, or --no-pull")
-    for i, body in enumerate(scene.bodies):
-        if body.loads:
-            raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
-                              "yet (their faces and points have no owner rank): run in one "
-                              "process")
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)
@@ -136,6 +128,11 @@ class RankShare:
         failures = [f for f in self.comm.allgather(failure) if f]
         if failures:
             raise InputError(failures[0])
+
+    def owned(self, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(k,) bool``: which of ``vertices`` this rank owns (:func:`~fem3d.parallel.comm.
+        owned_vertices`; ``T`` this rank's tets): the point forces' owner."""
+        return owned_vertices(self.comm, vertices, T)
 
     def summary(self, model: Model) -> Model:
         """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same
@@ -329,7 +326,7 @@ def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
     over the ranks by :meth:`DistributedSystem.summed`) and the whole mesh's
     :func:`~fem3d.io.checkpoint.mesh_digest`."""
     share = RankShare(comm, scene.simulation.petsc_options)
-    sim = Simulation(scene, backend=backend, restrict_model=share,
+    sim = Simulation(scene, backend=backend, scripted=True, restrict_model=share,
                      make_system=share.make_system)
     return sim, share.digest
 

@@ -28,6 +28,7 @@ from fem3d.physics.terms.base import Term
 from fem3d.physics.terms.elasticity import Elasticity
 from fem3d.physics.terms.inertia import Inertia
 from fem3d.physics.terms.loads import Loads
+from fem3d.physics.terms.pull import PullSprings
 from fem3d.solve.linear import (
     LINEAR_SOLVERS,
     DirectSolver,
@@ -204,6 +205,11 @@ class System:
         the tets), the same bits on every rank. What a scheme or the simulation computes
         from the model itself (energies, forces, a right-hand side) goes through it."""
         return value
+
+    def pull_term(self, pull: Pull | None) -> PullSprings:
+        """The objective's term of the pull springs ``pull`` (a distributed system: the
+        springs of the vertices its rank owns, summed over the ranks)."""
+        return PullSprings(self.model, pull, spring=self.spring)
 
     # -- helpers ------------------------------------------------------------------------------
     def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

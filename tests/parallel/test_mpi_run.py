@@ -105,8 +105,6 @@ def test_two_ranks_write_pieces(tmp_path):
 @pytest.mark.parametrize("extra, key", [
     ('[contact]\nenabled = true\n[[obstacles]]\nplane = { point = [0, -1, 0], normal = '
      '[0, 1, 0] }', "contact.enabled"),
-    ('[[pulls]]\nbody = 0\nselect = { box = [[0.9, -1, -1], [2, 1, 1]] }\nstart = 0.0\n'
-     'duration = 0.1\ntarget = [0.0, 0.1, 0.0]', "pulls"),
 ])
 def test_refused_in_one_line(tmp_path, extra, key):
     scene = write_scene(tmp_path, steps=1)
@@ -132,19 +130,6 @@ def test_a_scheme_not_marked_distributed_is_refused_in_one_line(tmp_path, monkey
     message = str(err.value)
     assert "simulation.integrator" in message and "'newmark'" in message
     assert "linear, implicit, bdf2, static" in message and "\n" not in message
-
-
-def test_surface_and_point_loads_refused_in_one_line(tmp_path):
-    """A body's loads (not element-wise: no owner rank yet) are refused, not dropped."""
-    scene = write_scene(tmp_path, steps=1)
-    scene.write_text(scene.read_text() + '\n[[bodies.loads]]\nselect = { vertices = [12] }\n'
-                     'force = [0.0, -5.0, 0.0]\n')
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "bodies[1].loads" in lines[0] and "mpiexec -n 2" in lines[0], \
-        proc.stderr
-    assert not (tmp_path / "out").exists()
 
 
 def test_missing_extra_is_one_line(tmp_path, monkeypatch):
