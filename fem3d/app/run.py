@@ -25,17 +25,13 @@ The argument parsing of ``fem3d run`` / ``fem3d resume`` is in :mod:`fem3d.app.c
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 import time
 import traceback
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +52,7 @@ from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import frame_format, make_frame_writer
 from fem3d.io.frames.volume import VolumeVtuWriter
+from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.physics.stress import element_fields, element_stress, vertex_fields
@@ -67,9 +64,6 @@ __all__ = ["run_scene", "resume_run", "resume_inputs", "RunSummary", "RunLoop", 
 
 #: Frames kept in memory for the GIF preview (evenly spaced).
 PREVIEW_FRAMES = 60
-
-#: Exit status of an interrupted run (128 + SIGINT).
-EXIT_INTERRUPTED = 130
 
 #: Stage marks (``fem3d run --profile``, :mod:`fem3d.app.profile`).
 _stages = logging.getLogger("fem3d.stages")
@@ -129,37 +123,6 @@ class RunSummary:
     def exit_status(self) -> int:
         """0 ok, 1 failed, 130 interrupted."""
         return {"ok": 0, "failed": 1}.get(self.status, EXIT_INTERRUPTED)
-
-
-class _Interrupts:
-    """SIGINT / SIGTERM while stepping: remember the first, abandon the step on a second."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.in_step = False
-
-    def __call__(self, signum: int, frame: Any) -> None:
-        first = self.signum is None
-        self.signum = signum
-        if not first and self.in_step:
-            raise KeyboardInterrupt
-
-    @property
-    def name(self) -> str:
-        return signal.Signals(self.signum).name if self.signum is not None else ""
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[_Interrupts]:
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signals are delivered to the main thread only
-            return
-        old = {s: signal.signal(s, self) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield self
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
-
 
 
 class RunLoop:
@@ -322,7 +285,7 @@ class RunLoop:
         t_start = time.perf_counter()
         bar = tqdm(total=self.steps, initial=start, unit="step",
                    disable=self.quiet or None, file=sys.stderr, dynamic_ncols=True)
-        intr = _Interrupts()
+        intr = Interrupts()
         try:
             with intr.installed():
                 self._step_all(bar, intr)
@@ -354,7 +317,7 @@ class RunLoop:
         self._write_outputs(status, wall)
         return self._summary(status, message, wall)
 
-    def _step_all(self, bar, intr: _Interrupts) -> None:
+    def _step_all(self, bar, intr: Interrupts) -> None:
         """Step until ``scene.n_steps`` or a signal; a second signal abandons the step."""
         sim = self.sim
         X0 = sim.model.X
@@ -385,13 +348,11 @@ class RunLoop:
             elif sim.step_index % 50 == 0:
                 self.log.write()
 
-    def _interrupted(self, intr: _Interrupts, t_start: float) -> RunSummary:
+    def _interrupted(self, intr: Interrupts, t_start: float) -> RunSummary:
         """Save a checkpoint and say how to continue (no slow outputs)."""
         sim, out = self.sim, self.out
         path = self.save_checkpoint()
-        message = (f"interrupted by {intr.name} at step {sim.step_index} "
-                   f"(t = {sim.t:.4g}); checkpoint {path}; continue with: "
-                   f"fem3d resume {out}")
+        message = interrupted_message(intr.name, sim.step_index, sim.t, path, out)
         print(f"fem3d {self.command}: {message}", file=sys.stderr)
         return self._summary("interrupted", message, time.perf_counter() - t_start)
 

@@ -26,6 +26,8 @@ the key (what runs: docs/parallel.md).
 from __future__ import annotations
 
 import resource
+import signal
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -37,6 +39,7 @@ from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import extras
 from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
 from fem3d.io.energy import EnergyLog
+from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.parallel.comm import launched_ranks, owned_vertices, world
 from fem3d.parallel.partition import dof_layout, partition_tets
@@ -49,7 +52,13 @@ from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "RankShare", "distributed_simulation",
+#: The signals a distributed run stops at a step's end for, a checkpoint saved: what Open
+#: MPI's ``mpiexec`` sends its ranks when it gets SIGINT or SIGTERM (SIGTERM, SIGKILL
+#: ``odls_base_sigkill_timeout`` s later) and the SIGUSR1 / SIGUSR2 it forwards
+#: (docs/parallel.md).
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
+
+__all__ = ["SIGNALS", "check_distributable", "RankShare", "distributed_simulation",
            "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
@@ -190,6 +199,10 @@ class DistributedLoop:
             self.writer.restore(ckpt.frames, ckpt.step)
             comm.Barrier()  # later frames' files are gone before any rank writes
         self.iterations = 0
+        #: caught while stepping (abandon=False: every rank finishes its step)
+        self.interrupts = Interrupts(SIGNALS, abandon=False)
+        #: the signal the ranks agreed on at a step's end (None: none)
+        self.signum: int | None = None
 
     def record(self) -> None:
         """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
@@ -203,14 +216,18 @@ class DistributedLoop:
 
     def _step(self) -> Any:
         """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's
-        closing checks see the local model: a rank may fail alone)."""
+        closing checks see the local model: a rank may fail alone); :attr:`signum` the
+        signal any rank was sent by the step's end, the same on every rank (one
+        ``allgather`` for both: the ranks stop at the same step boundary)."""
         try:
             info, failure = self.sim.step(), ""
         except SimulationError as exc:
             info, failure = None, str(exc)
-        failures = [f for f in self.comm.allgather(failure) if f]
+        rows = self.comm.allgather((failure, self.interrupts.signum))
+        failures = [f for f, _ in rows if f]
         if failures:
             raise SimulationError(failures[0])
+        self.signum = next((s for _, s in rows if s is not None), None)
         return info
 
     def save_checkpoint(self) -> None:
@@ -226,20 +243,26 @@ class DistributedLoop:
             mesh_digest=self.digest))
 
     def run(self) -> float:
-        """Step to ``scene.n_steps``; the wall time of the steps."""
+        """Step to ``scene.n_steps``, or to the end of the step in which a rank was sent
+        one of :data:`SIGNALS` (:attr:`signum`; a checkpoint of that step is saved); the
+        wall time of the steps."""
         sim = self.sim
         if self.ckpt is None:
             self.record()
         t1 = time.perf_counter()
-        while sim.step_index < self.scene.n_steps:
-            info = self._step()
-            self.iterations += info.newton_iterations
-            self.record()
-            if self.every and sim.step_index % self.every == 0:
-                self.save_checkpoint()
+        saved = -1
+        with self.interrupts.installed():
+            while sim.step_index < self.scene.n_steps and self.signum is None:
+                info = self._step()
+                self.iterations += info.newton_iterations
+                self.record()
+                if self.every and sim.step_index % self.every == 0:
+                    self.save_checkpoint()
+                    saved = sim.step_index
         wall = time.perf_counter() - t1
-        if self.every and sim.step_index % self.every:
-            self.save_checkpoint()  # and at the end
+        if saved != sim.step_index and (self.signum is not None or
+                                        (self.every and sim.step_index % self.every)):
+            self.save_checkpoint()  # at the end, or at an interruption
         return wall
 
 
@@ -267,7 +290,9 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     Returns
     -------
     int
-        The exit status (0; a failed step raises on every rank).
+        The exit status: 0, or :data:`~fem3d.io.interrupts.EXIT_INTERRUPTED` when a rank
+        was sent one of :data:`SIGNALS` (the checkpoint of the last step saved, one line
+        from rank 0 saying how to continue); a failed step raises on every rank.
 
     Raises
     ------
@@ -309,14 +334,18 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     if comm.Get_rank() == 0:
         loop.log.write()
         np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
-        if not quiet:
+        if loop.signum is not None:  # the checkpoint of the last step is saved
+            print(f"{command}: " + interrupted_message(
+                Interrupts.name_of(loop.signum), sim.step_index, sim.t,
+                Path(out) / CHECKPOINT_NAME, Path(out)), file=sys.stderr)
+        elif not quiet:
             steps = sim.step_index - (0 if ckpt is None else ckpt.step)
             print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
                   f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "
                   f"peak RSS per rank {', '.join(f'{m:.0f}' for m, _, _ in rss)} MiB "
                   f"(after set-up {', '.join(f'{m:.0f}' for _, m, _ in rss)}), CPU of the "
                   f"steps per rank {', '.join(f'{c:.2f}' for _, _, c in rss)} s -> {out}")
-    return 0
+    return 0 if loop.signum is None else EXIT_INTERRUPTED
 
 
 def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
