@@ -46,6 +46,7 @@ from fem3d.io.checkpoint import (
     RunCheckpoint,
     load_run_checkpoint,
     mesh_digest,
+    restore_run_checkpoint,
     save_run_checkpoint,
 )
 from fem3d.io.energy import EnergyLog
@@ -515,13 +516,8 @@ def resume_run(args: argparse.Namespace) -> int:
     """
     out, ckpt, scene, settings = resume_inputs(args)
     sim = Simulation(scene, backend=settings["kernels"], scripted=True)
-    if mesh_digest(sim.model.X, sim.model.T) != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
+    restore_run_checkpoint(sim, ckpt, mesh_digest(sim.model.X, sim.model.T),
+                           sim.assembled.mesh_paths[0], out)
     ck = out / CHECKPOINT_NAME
     inputs = {**_scene_inputs(scene), "checkpoint": ck}
     with rundir.claim(out, inputs=inputs, allow=(ck,)):

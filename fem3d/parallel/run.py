@@ -37,7 +37,13 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import extras
-from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
+from fem3d.io.checkpoint import (
+    CHECKPOINT_NAME,
+    RunCheckpoint,
+    mesh_digest,
+    restore_run_checkpoint,
+    save_run_checkpoint,
+)
 from fem3d.io.energy import EnergyLog
 from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.kernels.dispatch import resolve_backend
@@ -322,7 +328,7 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     t0 = time.perf_counter()
     sim, digest = distributed_simulation(scene, comm, settings["kernels"])
     if ckpt is not None:
-        _restore(sim, ckpt, digest, Path(out))
+        restore_run_checkpoint(sim, ckpt, digest, sim.assembled.mesh_paths[0], out)
     setup = time.perf_counter() - t0
     loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
     setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -358,20 +364,3 @@ def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
     sim = Simulation(scene, backend=backend, scripted=True, restrict_model=share,
                      make_system=share.make_system)
     return sim, share.digest
-
-
-def _restore(sim: Simulation, ckpt: RunCheckpoint, digest: str, out: Path) -> None:
-    """Set the checkpoint's state (the whole model's, on every rank).
-
-    Raises
-    ------
-    InputError
-        A mesh other than the checkpoint's, or a state that does not fit it.
-    """
-    if digest != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
