@@ -18,9 +18,12 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
   run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
-Contact, scripted pulls, surface and point loads, the linearly-implicit scheme,
-Newton's ``reuse`` and ``amg`` directions and OBJ/USD frames are refused in one line naming
-the key (what runs: docs/parallel.md).
+Surface and point loads and scripted pulls are each added once: a loaded face by the rank
+of the tet it bounds, a point force or a pull spring by the rank that owns its vertex.
+SIGINT, SIGTERM, SIGUSR1 or SIGUSR2 on any rank stops every rank at the same step's end,
+with that step's checkpoint (:data:`SIGNALS`). Contact, Newton's ``reuse`` and ``amg``
+directions and OBJ/USD frames are refused in one line naming the key (what runs:
+docs/parallel.md).
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Contact, pulls, surface and point loads, a scheme not marked ``distributed``, a Newton
+        Contact, a scheme not marked ``distributed`` (every built-in one is), a Newton
         direction other than ``direct``, frames other than ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"

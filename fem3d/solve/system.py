@@ -258,7 +258,7 @@ class System:
 
     def newton_matrix(
         self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False,
-        damping: np.ndarray | None = None,
+        damping: np.ndarray | None = None, stiffness: np.ndarray | None = None,
     ) -> sp.csr_matrix:
         """``P (M + dt^2 (H(q) + H_pull(q)) + dt D) P^T`` on :attr:`pattern_free`, assembled
         directly.
@@ -276,6 +276,9 @@ class System:
         damping : (model.nnz,) float64, optional
             The damping matrix ``D`` on ``model.pattern`` (:meth:`damping_data`), added as
             ``dt D``.
+        stiffness : (model.nnz,) float64, optional
+            The Hessian of further position terms on ``model.pattern`` (a follower
+            pressure's), added as ``dt^2`` times it.
 
         Returns
         -------
@@ -290,6 +293,8 @@ class System:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
             builder.add_vertex_blocks(pull.vertices, pull.hessian_blocks(self.spring, q3),
                                       dt * dt)
+        if stiffness is not None:
+            builder.add_pattern_values(stiffness, dt * dt)
         if damping is not None:  # + dt D (backward Euler's dissipation dt/2 v^T D v)
             builder.add_pattern_values(damping, dt)
         return builder.matrix()

@@ -65,7 +65,7 @@ def _compare(tmp_path, scene, steps: int, what: str) -> float:
     return diff
 
 
-@pytest.mark.parametrize("integrator", ["implicit", "bdf2"])
+@pytest.mark.parametrize("integrator", ["implicit", "bdf2", "linear"])
 def test_loads_on_two_ranks_equal_one_process(tmp_path, integrator):
     """10 steps of the two-material box, each bar with a traction, a ramped follower
     pressure and a point force, on 2 ranks: the one-process run to 1e-8 of the motion (a

@@ -130,8 +130,18 @@ class _TimedLoad(Term):
         self.scale = 1.0 if amplitude is None else amplitude(0.0)
 
     def begin_step(self, step: StepMap) -> None:
+        self.at_time(step.t + step.dt)
+
+    def at_time(self, t: float) -> None:
+        """Scale the load to its amplitude at time ``t`` (the end of the step a scheme
+        solves for; :meth:`begin_step` for the minimising schemes)."""
         if self.amplitude is not None:
-            self.scale = self.amplitude(step.t + step.dt)
+            self.scale = self.amplitude(t)
+
+    def hessian_data(self, q: np.ndarray, scale: float | None = None) -> np.ndarray | None:
+        """``(nnz,)`` the Hessian at ``q`` as CSR data on ``model.pattern``; None: zero (a
+        dead load)."""
+        return None
 
 
 class DeadLoad(_TimedLoad):

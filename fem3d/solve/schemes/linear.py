@@ -8,8 +8,11 @@ spring stiffness (``k dt^2`` far above a vertex mass) that explicit term alone m
 scheme explode on the first step of a scripted pull, on either mesh.
 
 As a scheme (:class:`LinearlyImplicit`) it takes the objective's terms like the others and
-linearises the model's own: the pull springs it finds among them, gravity and damping from
-the system's loads; a term it cannot linearise (contact) is refused.
+linearises the model's own: the pull springs it finds among them, gravity, damping and the
+bodies' surface and point loads from the system's loads (a load at its size at the step's
+end, as the implicit schemes take it; a follower pressure's stiffness in ``K``); a term it
+cannot linearise (contact) is refused. On MPI ranks the model is a rank's tets: the
+right-hand side and the energies go through :meth:`System.summed`.
 """
 
 from __future__ import annotations
@@ -59,7 +62,8 @@ def linearly_implicit_euler(
     Solves ``(M - dt^2 K(q_t) + dt D) v+ = M v_t + dt (f(q_t) + M g)`` on the free DOFs
     (``K = -H``, ``D`` the Rayleigh damping :meth:`Loads.damping_data` at ``q_t``, ``g``
     gravity) and sets ``q+ = q_t + dt v+``. The pull springs' force is part of ``f`` and their
-    stiffness part of ``K``. Moving pins: the fixed DOFs' velocity ``v_c = (p - q_t) / dt``
+    stiffness part of ``K``; so are the surface and point loads' (:attr:`Loads.surface`, at
+    their amplitude at ``t + dt``). Moving pins: the fixed DOFs' velocity ``v_c = (p - q_t) / dt``
     is known, so the free rows solve ``A_ff v_f = rhs_f - A_fc v_c``.
 
     Parameters
@@ -72,7 +76,8 @@ def linearly_implicit_euler(
     pull : Pull, optional
         Active pull springs.
     energy_bound : float, optional
-        Runaway threshold: if the new total energy (kinetic + strain + pull) exceeds it, raise.
+        Runaway threshold: if the new total energy (kinetic + strain + pull, and the
+        potentials of gravity and the loads) exceeds it, raise.
         :class:`fem3d.simulation.Simulation` passes 1000 x the energy put in so far.
     linearize_pull : bool, optional
         Include the pull springs' stiffness in the matrix (default True). False gives the
@@ -100,8 +105,17 @@ def linearly_implicit_euler(
         f -= pull.gradient(system.spring, state.q)
     if system.loads.gravity_force is not None:
         f += system.loads.gravity_force
+    loads = system.loads.surface  # tractions, point forces, pressures
+    stiffness = None  # their Hessian on model.pattern (a follower pressure's)
+    for load in loads:
+        load.at_time(state.t + dt)  # the size the implicit schemes give them: the step's end
+        f -= load.gradient(qf)
+        h = load.hessian_data(qf)
+        if h is not None:
+            stiffness = h if stiffness is None else stiffness + h
     damping = system.loads.damping_data(qf)
-    A = system.newton_matrix(qf, dt, pull if linearize_pull else None, damping=damping)
+    A = system.newton_matrix(qf, dt, pull if linearize_pull else None, damping=damping,
+                             stiffness=stiffness)
     rhs = model.mass @ vf + dt * f
     if pins.v_fixed is not None:  # move A_fc v_c to the right-hand side
         vc = pins.v_fixed
@@ -109,6 +123,8 @@ def linearly_implicit_euler(
         hdata = np.zeros(model.nnz)
         add_element_hessians(model, "hessian", qf, system._volumes_times(dt * dt),
                              model.scatter, hdata)
+        if stiffness is not None:
+            hdata += (dt * dt) * stiffness
         Avc += model.csr(hdata) @ vc
         if damping is not None:
             Avc += dt * (model.csr(damping) @ vc)
@@ -135,6 +151,8 @@ def linearly_implicit_euler(
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
         total += pull.energy(system.spring, new.q)
+    for load in loads:  # their potential, as gravity's: the work they did is not a runaway
+        total += load.energy(new.q.reshape(-1))
     total = system.summed(total)
     if system.loads.gravity_force is not None:  # (the loads sum their energy themselves)
         total += system.loads.gravity_energy(new.q)
