@@ -382,3 +382,38 @@ def test_an_element_one_rank_refuses_is_one_line_on_every_rank(tmp_path, bad_tet
     assert proc.returncode == 2, proc.stderr[-3000:]
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "Jacobian" in lines[0] and "bar_p2.vtu" in lines[0], proc.stderr
+
+
+#: rank 1 fails alone when it writes its piece of frame 3 (a sitecustomize on PYTHONPATH)
+_FAIL_ON_RANK_1 = """
+import os
+if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK")) == "1":
+    import fem3d.parallel.pieces as pieces
+    write = pieces.PieceWriter.write
+    def failing(self, step, t, q):
+        if step == 3:
+            raise {error}
+        write(self, step, t, q)
+    pieces.PieceWriter.write = failing
+"""
+
+
+@pytest.mark.parametrize("error, status, says", [
+    ("PermissionError(13, 'Permission denied', 'frame_00003_1.vtu')", 2,
+     "fem3d run: error: [Errno 13] Permission denied: 'frame_00003_1.vtu'"),
+    ("RuntimeError('a bug on rank 1')", 1, "RuntimeError: a bug on rank 1"),
+])
+def test_an_error_on_one_rank_stops_every_rank(tmp_path, monkeypatch, error, status, says):
+    """An OSError or an unexpected exception that one rank meets alone (here rank 1, writing
+    its piece of frame 3) stops every rank (MPI_Abort) with the error said, instead of
+    leaving rank 0 waiting in the next step's collective calls."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_FAIL_ON_RANK_1.format(error=error))
+    monkeypatch.setenv("PYTHONPATH", str(hook))
+    scene = write_scene(tmp_path, steps=20)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path,
+                   timeout=90)
+    assert proc.returncode == status, proc.stderr[-3000:]
+    assert says in proc.stderr
+    assert not (tmp_path / "out" / "frames" / "frame_00005.pvtu").exists()
