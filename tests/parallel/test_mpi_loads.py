@@ -8,11 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
 from fem3d.physics.terms.surface import faces_among
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+from tests.parallel.test_mpi_checkpoint import GAMG
 from tests.parallel.test_mpi_run import _p2_bar
 
 #: a traction on the tip, a pressure on the whole (closed) surface ramped in over 0.1 s,
@@ -108,3 +110,23 @@ def test_faces_among_picks_a_share_of_the_faces():
     assert faces_among(six, np.array([[1, 2, 0, 11, 12, 10]])).tolist() == \
         [[0, 1, 2, 10, 11, 12]]
     assert faces_among(six, np.zeros((0, 6), np.int64)).shape == (0, 6)
+
+
+def test_pulls_and_loads_resume_on_two_ranks_bit_exact(tmp_path):
+    """A 2-rank run with the loads and the pulls, checkpointed at step 5 (a pull attached)
+    and resumed on 2 ranks to 10: bit for bit the straight 10-step run (CG + GAMG)."""
+    scene = write_scene(tmp_path, integrator="bdf2", steps=10)
+    first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)
+    scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + PULLS)
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    for out, steps in ((straight, "10"), (resumed, "5")):
+        proc = run_mpi(2, "run", str(scene), "--steps", steps, "--checkpoint-every", "5",
+                       "--out", str(out), *GAMG, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    half = load_run_checkpoint(resumed / CHECKPOINT_NAME)
+    assert half.step == 5 and half.snapshot["pull_vertices"].size  # a pull attached
+    proc = run_mpi(2, "resume", str(resumed), "--steps", "10", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    a, b = np.load(straight / "state.npz"), np.load(resumed / "state.npz")
+    assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["v"], b["v"])
+    assert (straight / "energy.csv").read_bytes() == (resumed / "energy.csv").read_bytes()

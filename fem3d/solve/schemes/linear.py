@@ -148,10 +148,26 @@ def linearly_implicit_euler(
     v_free = system.solve(c.restrict(rhs))
     new = place_pins(c, new_state(c, state, v_free, dt), pins)
     check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
+    _check_runaway(system, new, pull, energy_bound, state.step)
+    return new, stats
+
+
+def _check_runaway(system: System, new: State, pull: Pull | None,
+                   energy_bound: float | None, step: int) -> None:
+    """The runaway guard of a step without a line search: the total energy of ``new``
+    (kinetic, strain, the pull springs', and the potentials of gravity and the surface and
+    point loads: the work they did is not a runaway) finite and within ``energy_bound``.
+
+    Raises
+    ------
+    SimulationError
+        ``linearly-implicit Euler exploded: ...``.
+    """
+    model = system.model
     total = kinetic_energy(model, new.v) + potential_energy(model, new.q)
     if pull is not None:
         total += pull.energy(system.spring, new.q)
-    for load in loads:  # their potential, as gravity's: the work they did is not a runaway
+    for load in system.loads.surface:
         total += load.energy(new.q.reshape(-1))
     total = system.summed(total)
     if system.loads.gravity_force is not None:  # (the loads sum their energy themselves)
@@ -161,16 +177,11 @@ def linearly_implicit_euler(
         n_tets = int(system.summed(model.n_tets))
         raise SimulationError(
             f"linearly-implicit Euler exploded: the energy is not finite ({n_inv} of "
-            f"{n_tets} tets inverted); try --integrator implicit or a smaller dt",
-            step=state.step,
-        )
+            f"{n_tets} tets inverted); try --integrator implicit or a smaller dt", step=step)
     if energy_bound is not None and total > energy_bound:
         raise SimulationError(
             f"linearly-implicit Euler exploded: total energy {total:.3g} exceeds the runaway "
-            f"bound {energy_bound:.3g}; try --integrator implicit or a smaller dt",
-            step=state.step,
-        )
-    return new, stats
+            f"bound {energy_bound:.3g}; try --integrator implicit or a smaller dt", step=step)
 
 
 class LinearlyImplicit(Scheme):
