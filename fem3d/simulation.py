@@ -556,7 +556,8 @@ class Simulation:
     # ------------------------------------------------------------------ energies
     def energies(self) -> dict[str, float]:
         """``{"kinetic", "potential", "pull", "total", "strain", "gravity"}`` of the current
-        state (``potential = strain + gravity``, gravity's ``-M g . (q - X)``)."""
+        state (``potential = strain + gravity``, gravity's ``-M g . (q - X)``); the whole
+        model's on MPI ranks too (:meth:`System.summed`)."""
         kin = self.system.summed(kinetic_energy(self.model, self.v))
         strain = self.system.summed(potential_energy(self.model, self.q))
         gravity = self.gravity_energy()

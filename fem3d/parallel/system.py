@@ -120,8 +120,10 @@ class ReducedPullSprings(PullSprings):
 
 
 class ReducedLoads(Loads):
-    """A rank's gravity and damping (:class:`Loads` of its local model) as
-    :class:`ReducedTerm` s, gravity's potential summed over the ranks."""
+    """A rank's gravity, damping and share of the surface and point loads (:class:`Loads`
+    of its local model) as :class:`ReducedTerm` s, gravity's potential summed over the
+    ranks; :attr:`surface` and :attr:`gravity_force` stay the rank's parts (the
+    linearly-implicit scheme sums what it makes of them)."""
 
     def __init__(self, loads: Loads, comm: Any) -> None:
         super().__init__(loads.gravity, loads.damping, loads.rayleigh_alpha,
