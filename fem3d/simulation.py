@@ -408,7 +408,7 @@ class Simulation:
         v0 = self.assembled.v0.copy()
         v0.reshape(-1)[self.constraints.fixed_dofs] = 0.0  # pinned DOFs start at rest
         self._set_state(State(q=rest.q, v=v0, t=0.0, step=0))
-        self._injected = kinetic_energy(self.model, self.v)
+        self._injected = self.system.summed(kinetic_energy(self.model, self.v))
         self._before = None
         if self.contact is not None:
             self.contact.reset()
@@ -556,9 +556,10 @@ class Simulation:
     # ------------------------------------------------------------------ energies
     def energies(self) -> dict[str, float]:
         """``{"kinetic", "potential", "pull", "total", "strain", "gravity"}`` of the current
-        state (``potential = strain + gravity``, gravity's ``-M g . (q - X)``)."""
-        kin = kinetic_energy(self.model, self.v)
-        strain = potential_energy(self.model, self.q)
+        state (``potential = strain + gravity``, gravity's ``-M g . (q - X)``); the whole
+        model's on MPI ranks too (:meth:`System.summed`)."""
+        kin = self.system.summed(kinetic_energy(self.model, self.v))
+        strain = self.system.summed(potential_energy(self.model, self.q))
         gravity = self.gravity_energy()
         pot = strain + gravity
         pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
@@ -609,7 +610,7 @@ class Simulation:
         return e["total"] + e["pull"]
 
     def _energy_bound(self) -> float:
-        floor = 1e-9 * self.model.E * self.model.total_volume
+        floor = 1e-9 * self.model.E * self.system.summed(self.model.total_volume)
         return RUNAWAY_FACTOR * max(self._injected, floor)
 
     # ------------------------------------------------------------------ stepping
@@ -664,8 +665,9 @@ class Simulation:
             energy_bound=None if driven or self._scheme.minimises else self._energy_bound(),
         )
         seconds = time.perf_counter() - t0
-        kin = kinetic_energy(self.model, new.v)
-        pot = potential_energy(self.model, new.q) + self.system.loads.gravity_energy(new.q)
+        kin = self.system.summed(kinetic_energy(self.model, new.v))
+        pot = self.system.summed(potential_energy(self.model, new.q)) + \
+            self.system.loads.gravity_energy(new.q)
         if not (math.isfinite(kin) and math.isfinite(pot)):
             raise SimulationError(
                 f"{self.integrator} integrator exploded: non-finite energy", step=new.step - 1

@@ -67,7 +67,7 @@ from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import rundir
 from fem3d.io.files import atomic_write
 from fem3d.io.frames import FRAME_FORMATS, frame_format_names
-from fem3d.parallel.comm import launched_rank, launched_ranks, leave_together
+from fem3d.parallel.comm import abort, launched_rank, launched_ranks, leave_together, mpi_started
 from fem3d.parallel.run import run_distributed
 from fem3d.scene import apply_overrides, load_scene, material_names, scene_schema
 from fem3d.solve.linear.registry import linear_solver_names
@@ -338,7 +338,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``fem3d`` script; returns the exit status.
 
     ``InputError`` or ``OSError`` (e.g. an unwritable output folder) -> one line on stderr,
-    status 2; ``SimulationError`` -> message, status 1.
+    status 2; ``SimulationError`` -> message, status 1. Under ``mpiexec``, once MPI has
+    started, an ``OSError`` or an unexpected exception (which one rank may meet alone)
+    stops every rank (``MPI_Abort``: status 2, or 1 with the traceback).
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -376,11 +378,20 @@ def _status_of(args: argparse.Namespace, ranks: int, say: Callable[..., None]) -
     except OSError as exc:  # e.g. an output folder that cannot be written
         if args.debug:
             traceback.print_exc()
-        say(f"fem3d {args.command}: error: {exc}", file=sys.stderr)
+        line = f"fem3d {args.command}: error: {exc}"
+        if ranks > 1 and mpi_started():  # maybe this rank's alone: it says so, all stop
+            print(line, file=sys.stderr)
+            abort(2)
+        say(line, file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fem3d {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception:
+        if ranks > 1 and mpi_started():  # a bug on one rank: the others would wait for it
+            traceback.print_exc()
+            abort(1)
+        raise
 
 
 if __name__ == "__main__":  # pragma: no cover

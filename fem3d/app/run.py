@@ -25,17 +25,13 @@ The argument parsing of ``fem3d run`` / ``fem3d resume`` is in :mod:`fem3d.app.c
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 import time
 import traceback
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,12 +46,14 @@ from fem3d.io.checkpoint import (
     RunCheckpoint,
     load_run_checkpoint,
     mesh_digest,
+    restore_run_checkpoint,
     save_run_checkpoint,
 )
 from fem3d.io.energy import EnergyLog
 from fem3d.io.framequeue import BackgroundWriter
 from fem3d.io.frames import frame_format, make_frame_writer
 from fem3d.io.frames.volume import VolumeVtuWriter
+from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.physics.stress import element_fields, element_stress, vertex_fields
@@ -67,9 +65,6 @@ __all__ = ["run_scene", "resume_run", "resume_inputs", "RunSummary", "RunLoop", 
 
 #: Frames kept in memory for the GIF preview (evenly spaced).
 PREVIEW_FRAMES = 60
-
-#: Exit status of an interrupted run (128 + SIGINT).
-EXIT_INTERRUPTED = 130
 
 #: Stage marks (``fem3d run --profile``, :mod:`fem3d.app.profile`).
 _stages = logging.getLogger("fem3d.stages")
@@ -129,37 +124,6 @@ class RunSummary:
     def exit_status(self) -> int:
         """0 ok, 1 failed, 130 interrupted."""
         return {"ok": 0, "failed": 1}.get(self.status, EXIT_INTERRUPTED)
-
-
-class _Interrupts:
-    """SIGINT / SIGTERM while stepping: remember the first, abandon the step on a second."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.in_step = False
-
-    def __call__(self, signum: int, frame: Any) -> None:
-        first = self.signum is None
-        self.signum = signum
-        if not first and self.in_step:
-            raise KeyboardInterrupt
-
-    @property
-    def name(self) -> str:
-        return signal.Signals(self.signum).name if self.signum is not None else ""
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[_Interrupts]:
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signals are delivered to the main thread only
-            return
-        old = {s: signal.signal(s, self) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield self
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
-
 
 
 class RunLoop:
@@ -324,7 +288,7 @@ class RunLoop:
         t_start = time.perf_counter()
         bar = tqdm(total=self.steps, initial=start, unit="step",
                    disable=self.quiet or None, file=sys.stderr, dynamic_ncols=True)
-        intr = _Interrupts()
+        intr = Interrupts()
         try:
             with intr.installed():
                 self._step_all(bar, intr)
@@ -356,7 +320,7 @@ class RunLoop:
         self._write_outputs(status, wall)
         return self._summary(status, message, wall)
 
-    def _step_all(self, bar, intr: _Interrupts) -> None:
+    def _step_all(self, bar, intr: Interrupts) -> None:
         """Step until ``scene.n_steps`` or a signal; a second signal abandons the step."""
         sim = self.sim
         X0 = sim.model.X
@@ -387,13 +351,11 @@ class RunLoop:
             elif sim.step_index % 50 == 0:
                 self.log.write()
 
-    def _interrupted(self, intr: _Interrupts, t_start: float) -> RunSummary:
+    def _interrupted(self, intr: Interrupts, t_start: float) -> RunSummary:
         """Save a checkpoint and say how to continue (no slow outputs)."""
         sim, out = self.sim, self.out
         path = self.save_checkpoint()
-        message = (f"interrupted by {intr.name} at step {sim.step_index} "
-                   f"(t = {sim.t:.4g}); checkpoint {path}; continue with: "
-                   f"fem3d resume {out}")
+        message = interrupted_message(intr.name, sim.step_index, sim.t, path, out)
         print(f"fem3d {self.command}: {message}", file=sys.stderr)
         return self._summary("interrupted", message, time.perf_counter() - t_start)
 
@@ -561,13 +523,8 @@ def resume_run(args: argparse.Namespace) -> int:
     """
     out, ckpt, scene, settings = resume_inputs(args)
     sim = Simulation(scene, backend=settings["kernels"], scripted=True)
-    if mesh_digest(sim.model.X, model_cells(sim.model)) != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None
+    restore_run_checkpoint(sim, ckpt, mesh_digest(sim.model.X, model_cells(sim.model)),
+                           sim.assembled.mesh_paths[0], out)
     ck = out / CHECKPOINT_NAME
     inputs = {**_scene_inputs(scene), "checkpoint": ck}
     with rundir.claim(out, inputs=inputs, allow=(ck,)):

@@ -40,10 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from fem3d.errors import InputError
+from fem3d.errors import InputError, ParameterError
 from fem3d.io.files import PathLike, atomic_write, check_input_file
 
 __all__ = ["CHECKPOINT_NAME", "RunCheckpoint", "save_run_checkpoint", "load_run_checkpoint",
+           "restore_run_checkpoint",
            "mesh_digest", "save_checkpoint", "load_checkpoint"]
 
 # --------------------------------------------------------------------------------------
@@ -276,6 +277,37 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
         raise InputError(f"checkpoint energy history has shape {energy.shape}, expected "
                          f"({ckpt.step + 1}, 4) or ({ckpt.step + 1}, 7)", path=path)
     return ckpt
+
+
+def restore_run_checkpoint(sim: Any, ckpt: RunCheckpoint, digest: str, mesh_path: PathLike,
+                           out: PathLike) -> None:
+    """Set ``sim`` (a :class:`~fem3d.simulation.Simulation`) to the state of ``ckpt``, the
+    checkpoint in the run folder ``out`` (``fem3d resume``, in one process or on ranks).
+
+    Parameters
+    ----------
+    sim : Simulation
+    ckpt : RunCheckpoint
+    digest : str
+        :func:`mesh_digest` of the whole mesh the scene gives now.
+    mesh_path : path
+        The mesh file the error names.
+    out : path
+        The run folder.
+
+    Raises
+    ------
+    InputError
+        A mesh other than the checkpoint's, or a state that does not fit it.
+    """
+    if digest != ckpt.mesh_digest:
+        raise InputError("the mesh differs from the one the checkpoint was made with",
+                         path=mesh_path)
+    try:
+        sim.restore(ckpt.snapshot)
+    except (ParameterError, KeyError) as exc:
+        raise InputError(f"bad checkpoint state: {exc}",
+                         path=Path(out) / CHECKPOINT_NAME) from None
 
 
 def _energy_rows(energy: np.ndarray) -> np.ndarray:

@@ -4,12 +4,13 @@ every rank agrees on bit for bit (so every rank's Newton takes the same decision
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any
 
 import numpy as np
 
 __all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "leave_together", "world",
-           "sum_scalar", "sum_vector"]
+           "sum_scalar", "sum_vector", "owned_vertices", "mpi_started", "abort"]
 
 #: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
 #: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
@@ -94,3 +95,37 @@ def sum_vector(comm: Any, a: np.ndarray) -> np.ndarray:
     comm.Reduce(a, out, op=MPI.SUM, root=0)
     comm.Bcast(out, root=0)
     return out
+
+
+def owned_vertices(comm: Any, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``(k,) bool``: which of ``vertices`` this rank owns, the lowest rank whose tets ``T``
+    hold the vertex (the owner :func:`~fem3d.parallel.partition.dof_layout` gives it): the
+    rank that adds a term on a few vertices (a point force, a pull spring) once.
+
+    A collective call: every rank passes the same ``vertices`` and its own tets ``T``
+    ``(m, n_nodes)``.
+    """
+    from mpi4py import MPI  # optional (fem3d[mpi])
+
+    size, rank = comm.Get_size(), comm.Get_rank()
+    vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+    mine = np.where(np.isin(vertices, T), rank, size).astype(np.int64)
+    owner = np.empty_like(mine)
+    comm.Allreduce(mine, owner, op=MPI.MIN)
+    return owner == rank
+
+
+def mpi_started() -> bool:
+    """Whether this process has started MPI (and not finished it): from then on a rank that
+    stops alone leaves the others waiting in their next collective call."""
+    mpi = sys.modules.get("mpi4py.MPI")
+    return mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized()
+
+
+def abort(code: int) -> None:
+    """Stop every rank with exit status ``code`` (``MPI_Abort``; Open MPI's ``mpiexec``
+    exits with it) when :func:`mpi_started`; nothing otherwise. For an error one rank may
+    meet alone (a file it cannot write, a bug)."""
+    if mpi_started():
+        sys.stderr.flush()
+        sys.modules["mpi4py.MPI"].COMM_WORLD.Abort(code)

@@ -18,14 +18,19 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
   run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
-Contact, scripted pulls, surface and point loads, the linearly-implicit scheme,
-Newton's ``reuse`` and ``amg`` directions and OBJ/USD frames are refused in one line naming
-the key (what runs: docs/parallel.md).
+Surface and point loads and scripted pulls are each added once: a loaded face by the rank
+of the tet it bounds, a point force or a pull spring by the rank that owns its vertex.
+SIGINT, SIGTERM, SIGUSR1 or SIGUSR2 on any rank stops every rank at the same step's end,
+with that step's checkpoint (:data:`SIGNALS`). Contact, Newton's ``reuse`` and ``amg``
+directions and OBJ/USD frames are refused in one line naming the key (what runs:
+docs/parallel.md).
 """
 
 from __future__ import annotations
 
 import resource
+import signal
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -35,14 +40,20 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError, SimulationError
 from fem3d.io import extras
-from fem3d.io.checkpoint import CHECKPOINT_NAME, RunCheckpoint, mesh_digest, save_run_checkpoint
+from fem3d.io.checkpoint import (
+    CHECKPOINT_NAME,
+    RunCheckpoint,
+    mesh_digest,
+    restore_run_checkpoint,
+    save_run_checkpoint,
+)
 from fem3d.io.energy import EnergyLog
+from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.parallel.comm import launched_ranks, sum_scalar, world
+from fem3d.parallel.comm import launched_ranks, owned_vertices, world
 from fem3d.parallel.partition import dof_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
-from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.terms.loads import Loads
@@ -51,8 +62,14 @@ from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
 
-__all__ = ["check_distributable", "RankShare", "distributed_simulation",
-           "local_energies", "run_distributed", "DistributedLoop", "PieceWriter"]
+#: The signals a distributed run stops at a step's end for, a checkpoint saved: what Open
+#: MPI's ``mpiexec`` sends its ranks when it gets SIGINT or SIGTERM (SIGTERM, SIGKILL
+#: ``odls_base_sigkill_timeout`` s later) and the SIGUSR1 / SIGUSR2 it forwards
+#: (docs/parallel.md).
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
+
+__all__ = ["SIGNALS", "check_distributable", "RankShare", "distributed_simulation",
+           "run_distributed", "DistributedLoop", "PieceWriter"]
 
 
 def check_distributable(scene: Any, ranks: int) -> None:
@@ -61,8 +78,8 @@ def check_distributable(scene: Any, ranks: int) -> None:
     Raises
     ------
     InputError
-        Bodies of several elements, contact, pulls, surface and point loads, a scheme not
-        marked ``distributed``, a Newton direction other than ``direct``, frames other than
+        Bodies of several elements, contact, a scheme not marked ``distributed`` (every
+        built-in one is), a Newton direction other than ``direct``, frames other than
         ``vtu``, ``output.volume``.
     """
     why = f"mpiexec -n {ranks} runs"
@@ -70,14 +87,6 @@ def check_distributable(scene: Any, ranks: int) -> None:
     if scene.contact.enabled:
         raise scene.error("contact.enabled", f"{why} have no contact (the IPC Toolkit is "
                           "serial): run contact scenes in one process (docs/parallel.md)")
-    if scene.pulls:
-        raise scene.error("pulls", f"{why} have no scripted pulls yet (their springs are not "
-                          "element-wise): run without mpiexec, or --no-pull")
-    for i, body in enumerate(scene.bodies):
-        if body.loads:
-            raise scene.error(f"bodies[{i}].loads", f"{why} have no surface or point loads "
-                              "yet (their faces and points have no owner rank): run in one "
-                              "process")
     sim = scene.simulation
     if not get_scheme(sim.integrator).distributed:
         names = ", ".join(n for n, s in SCHEMES.items() if s.distributed)
@@ -141,6 +150,11 @@ class RankShare:
         if failures:
             raise InputError(failures[0])
 
+    def owned(self, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(k,) bool``: which of ``vertices`` this rank owns (:func:`~fem3d.parallel.comm.
+        owned_vertices`; ``T`` this rank's tets): the point forces' owner."""
+        return owned_vertices(self.comm, vertices, T)
+
     def summary(self, model: Model) -> Model:
         """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same
         on every rank: Newton's tolerance is made from them): the ranks' own when they all
@@ -197,11 +211,15 @@ class DistributedLoop:
             self.writer.restore(ckpt.frames, ckpt.step)
             comm.Barrier()  # later frames' files are gone before any rank writes
         self.iterations = 0
+        #: caught while stepping (abandon=False: every rank finishes its step)
+        self.interrupts = Interrupts(SIGNALS, abandon=False)
+        #: the signal the ranks agreed on at a step's end (None: none)
+        self.signum: int | None = None
 
     def record(self) -> None:
         """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
         sim = self.sim
-        e = local_energies(sim, self.comm)
+        e = sim.energies()  # summed over the ranks (System.summed), the pull's whole
         if self.rank == 0:
             self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
                             pull=e["pull"])
@@ -210,14 +228,18 @@ class DistributedLoop:
 
     def _step(self) -> Any:
         """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's
-        closing checks see the local model: a rank may fail alone)."""
+        closing checks see the local model: a rank may fail alone); :attr:`signum` the
+        signal any rank was sent by the step's end, the same on every rank (one
+        ``allgather`` for both: the ranks stop at the same step boundary)."""
         try:
             info, failure = self.sim.step(), ""
         except SimulationError as exc:
             info, failure = None, str(exc)
-        failures = [f for f in self.comm.allgather(failure) if f]
+        rows = self.comm.allgather((failure, self.interrupts.signum))
+        failures = [f for f, _ in rows if f]
         if failures:
             raise SimulationError(failures[0])
+        self.signum = next((s for _, s in rows if s is not None), None)
         return info
 
     def save_checkpoint(self) -> None:
@@ -233,20 +255,26 @@ class DistributedLoop:
             mesh_digest=self.digest))
 
     def run(self) -> float:
-        """Step to ``scene.n_steps``; the wall time of the steps."""
+        """Step to ``scene.n_steps``, or to the end of the step in which a rank was sent
+        one of :data:`SIGNALS` (:attr:`signum`; a checkpoint of that step is saved); the
+        wall time of the steps."""
         sim = self.sim
         if self.ckpt is None:
             self.record()
         t1 = time.perf_counter()
-        while sim.step_index < self.scene.n_steps:
-            info = self._step()
-            self.iterations += info.newton_iterations
-            self.record()
-            if self.every and sim.step_index % self.every == 0:
-                self.save_checkpoint()
+        saved = -1
+        with self.interrupts.installed():
+            while sim.step_index < self.scene.n_steps and self.signum is None:
+                info = self._step()
+                self.iterations += info.newton_iterations
+                self.record()
+                if self.every and sim.step_index % self.every == 0:
+                    self.save_checkpoint()
+                    saved = sim.step_index
         wall = time.perf_counter() - t1
-        if self.every and sim.step_index % self.every:
-            self.save_checkpoint()  # and at the end
+        if saved != sim.step_index and (self.signum is not None or
+                                        (self.every and sim.step_index % self.every)):
+            self.save_checkpoint()  # at the end, or at an interruption
         return wall
 
 
@@ -274,7 +302,9 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     Returns
     -------
     int
-        The exit status (0; a failed step raises on every rank).
+        The exit status: 0, or :data:`~fem3d.io.interrupts.EXIT_INTERRUPTED` when a rank
+        was sent one of :data:`SIGNALS` (the checkpoint of the last step saved, one line
+        from rank 0 saying how to continue); a failed step raises on every rank.
 
     Raises
     ------
@@ -304,7 +334,7 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     t0 = time.perf_counter()
     sim, digest = distributed_simulation(scene, comm, settings["kernels"])
     if ckpt is not None:
-        _restore(sim, ckpt, digest, Path(out))
+        restore_run_checkpoint(sim, ckpt, digest, sim.assembled.mesh_paths[0], out)
     setup = time.perf_counter() - t0
     loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
     setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -316,50 +346,27 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     if comm.Get_rank() == 0:
         loop.log.write()
         np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
-        if not quiet:
+        if loop.signum is not None:  # the checkpoint of the last step is saved
+            print(f"{command}: " + interrupted_message(
+                Interrupts.name_of(loop.signum), sim.step_index, sim.t,
+                Path(out) / CHECKPOINT_NAME, Path(out)), file=sys.stderr)
+        elif not quiet:
             steps = sim.step_index - (0 if ckpt is None else ckpt.step)
             print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
                   f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "
                   f"peak RSS per rank {', '.join(f'{m:.0f}' for m, _, _ in rss)} MiB "
                   f"(after set-up {', '.join(f'{m:.0f}' for _, m, _ in rss)}), CPU of the "
                   f"steps per rank {', '.join(f'{c:.2f}' for _, _, c in rss)} s -> {out}")
-    return 0
+    return 0 if loop.signum is None else EXIT_INTERRUPTED
 
 
 def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
                            ) -> tuple[Simulation, str]:
     """This rank's :class:`Simulation` of ``scene`` (:class:`RankShare`: its ``model`` the
-    rank's local model, its system the rank's :class:`DistributedSystem`, its energies
-    :func:`local_energies`) and the whole mesh's :func:`~fem3d.io.checkpoint.mesh_digest`."""
+    rank's local model, its system the rank's :class:`DistributedSystem`, its energies summed
+    over the ranks by :meth:`DistributedSystem.summed`) and the whole mesh's
+    :func:`~fem3d.io.checkpoint.mesh_digest`."""
     share = RankShare(comm, scene.simulation.petsc_options)
-    sim = Simulation(scene, backend=backend, restrict_model=share,
+    sim = Simulation(scene, backend=backend, scripted=True, restrict_model=share,
                      make_system=share.make_system)
     return sim, share.digest
-
-
-def local_energies(sim: Simulation, comm: Any) -> dict[str, float]:
-    """:meth:`Simulation.energies` of a distributed ``sim`` (:func:`distributed_simulation`):
-    each rank's kinetic and strain energies summed over the ranks (the same bits on every
-    rank), gravity's reduced by its loads; no pulls."""
-    kinetic = sum_scalar(comm, kinetic_energy(sim.model, sim.v))
-    strain = sum_scalar(comm, potential_energy(sim.model, sim.q))
-    gravity = sim.gravity_energy()
-    return {"kinetic": kinetic, "potential": strain + gravity, "pull": 0.0,
-            "total": kinetic + strain + gravity, "strain": strain, "gravity": gravity}
-
-
-def _restore(sim: Simulation, ckpt: RunCheckpoint, digest: str, out: Path) -> None:
-    """Set the checkpoint's state (the whole model's, on every rank).
-
-    Raises
-    ------
-    InputError
-        A mesh other than the checkpoint's, or a state that does not fit it.
-    """
-    if digest != ckpt.mesh_digest:
-        raise InputError("the mesh differs from the one the checkpoint was made with",
-                         path=sim.assembled.mesh_paths[0])
-    try:
-        sim.restore(ckpt.snapshot)
-    except (ParameterError, KeyError) as exc:
-        raise InputError(f"bad checkpoint state: {exc}", path=out / CHECKPOINT_NAME) from None

@@ -50,6 +50,7 @@ from fem3d.physics.terms.surface import (
     Amplitude,
     DeadLoad,
     FollowerPressure,
+    faces_among,
     faces_within,
     point_forces,
     traction_forces,
@@ -83,6 +84,11 @@ class Share(Protocol):
     def agree(self, failure: str) -> None:
         """Raise :class:`InputError` on every share when any share's ``failure`` (its
         message; ``""``: none) is not empty."""
+
+    def owned(self, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(k,) bool``: which of ``vertices`` this share assembles the loads of (each
+        vertex in exactly one share); ``T`` the share's tets. Every share calls it with
+        the same ``vertices``."""
 
 
 class PinMotion(NamedTuple):
@@ -201,7 +207,7 @@ def build(scene: Scene, *, backend: str | None = None,
         beta = beta if np.ndim(beta) == 0 else beta[tets]
     try:
         loads = build_loads(model, gravity, alpha, beta,
-                            surface=surface_loads_from_scene(scene, a, model))
+                            surface=surface_loads_from_scene(scene, a, model, restrict))
     except ParameterError as exc:
         raise scene.error("simulation", str(exc)) from None
     motions = pin_motions(scene, a, constraints.fixed_vertices)
@@ -290,9 +296,15 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
                  damping if damping.active else None, alpha, beta, tuple(surface))
 
 
-def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list:
+def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
+                             share: Share | None = None) -> list:
     """The bodies' ``loads`` as terms, in scene order: a traction or a point force as a
     :class:`DeadLoad`, a pressure as a :class:`FollowerPressure` (docs/loads.md).
+
+    With ``share`` (one MPI rank's; ``model`` its tets'), each load is the share's part,
+    so that summed over the shares every face and point is counted once: a face belongs
+    to the share of the tet it bounds, a point force's vertex to the share that
+    :meth:`Share.owned` says (the checks still see the whole load).
 
     Raises
     ------
@@ -302,6 +314,9 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
     """
     out: list = []
     faces: dict[int, np.ndarray] = {}  # each element block's boundary faces, once
+    # the share's boundary faces: the loaded faces of its own tets are among them (a share
+    # is of one element: mixed elements are refused on ranks)
+    own_faces = None if share is None else a.element.boundary_faces(model.T)
     for i, body in enumerate(scene.bodies):
         off = a.body_vertices[i].start
         for j, load in enumerate(body.loads):
@@ -311,8 +326,10 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
             amplitude = None if load.keyframes is None else Amplitude(
                 [k.t for k in load.keyframes], [k.scale for k in load.keyframes])
             if load.kind == "force":
-                out.append(DeadLoad(model, point_forces(a.X.shape[0], ids, load.force),
-                                    amplitude, key))
+                force = point_forces(a.X.shape[0], ids, load.force)
+                if share is not None:  # F / k on each selected vertex the share owns
+                    force.reshape(-1, 3)[ids[~share.owned(ids, model.T)]] = 0.0
+                out.append(DeadLoad(model, force, amplitude, key))
                 continue
             b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
             if b not in faces:
@@ -321,13 +338,16 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list
             if mine.size == 0:
                 raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
                                   "is loaded when all its nodes are selected)")
+            ours = mine if own_faces is None else faces_among(mine, own_faces)
             if load.kind == "traction":
-                out.append(DeadLoad(model, traction_forces(a.X, mine, load.traction,
+                out.append(DeadLoad(model, traction_forces(a.X, ours, load.traction,
                                                            model.backend),
                                     amplitude, key))
                 continue
-            out.append(FollowerPressure(model, mine, load.pressure, amplitude, key))
-            _check_open_edge(scene, a, out[-1], key)
+            term = FollowerPressure(model, mine, load.pressure, amplitude, key)
+            _check_open_edge(scene, a, term, key)  # the whole patch's edge
+            out.append(term if ours is mine else
+                       FollowerPressure(model, ours, load.pressure, amplitude, key))
     return out
 
 

@@ -28,6 +28,7 @@ from fem3d.physics.terms.base import Term
 from fem3d.physics.terms.elasticity import Elasticity
 from fem3d.physics.terms.inertia import Inertia
 from fem3d.physics.terms.loads import Loads
+from fem3d.physics.terms.pull import PullSprings
 from fem3d.solve.linear import (
     LINEAR_SOLVERS,
     DirectSolver,
@@ -197,6 +198,19 @@ class System:
         """The model's inertia and elasticity terms."""
         return self._model_terms
 
+    def summed(self, value: float | np.ndarray) -> float | np.ndarray:
+        """``value`` (a number or an array) summed over the processes that share this system:
+        itself in one process; over the ranks in a distributed run
+        (:class:`~fem3d.parallel.system.DistributedSystem`, whose model is a rank's share of
+        the tets), the same bits on every rank. What a scheme or the simulation computes
+        from the model itself (energies, forces, a right-hand side) goes through it."""
+        return value
+
+    def pull_term(self, pull: Pull | None) -> PullSprings:
+        """The objective's term of the pull springs ``pull`` (a distributed system: the
+        springs of the vertices its rank owns, summed over the ranks)."""
+        return PullSprings(self.model, pull, spring=self.spring)
+
     # -- helpers ------------------------------------------------------------------------------
     def data_positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Positions in ``model.pattern.data`` of entries ``(rows, cols)`` (must exist)."""
@@ -244,7 +258,7 @@ class System:
 
     def newton_matrix(
         self, q: np.ndarray, dt: float, pull: Pull | None = None, *, psd: bool = False,
-        damping: np.ndarray | None = None,
+        damping: np.ndarray | None = None, stiffness: np.ndarray | None = None,
     ) -> sp.csr_matrix:
         """``P (M + dt^2 (H(q) + H_pull(q)) + dt D) P^T`` on :attr:`pattern_free`, assembled
         directly.
@@ -262,6 +276,9 @@ class System:
         damping : (model.nnz,) float64, optional
             The damping matrix ``D`` on ``model.pattern`` (:meth:`damping_data`), added as
             ``dt D``.
+        stiffness : (model.nnz,) float64, optional
+            The Hessian of further position terms on ``model.pattern`` (a follower
+            pressure's), added as ``dt^2`` times it.
 
         Returns
         -------
@@ -276,6 +293,8 @@ class System:
             q3 = np.asarray(q, dtype=np.float64).reshape(-1, 3)
             builder.add_vertex_blocks(pull.vertices, pull.hessian_blocks(self.spring, q3),
                                       dt * dt)
+        if stiffness is not None:
+            builder.add_pattern_values(stiffness, dt * dt)
         if damping is not None:  # + dt D (backward Euler's dissipation dt/2 v^T D v)
             builder.add_pattern_values(damping, dt)
         return builder.matrix()

@@ -93,3 +93,12 @@ def run_mpi(ranks: int, *args: str, cwd: Path, timeout: float = 120.0
     cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, "-m", "fem3d", *args]
     return subprocess.run(cmd, cwd=cwd, env=mpi_env(), capture_output=True, text=True,
                           timeout=timeout)
+
+
+def start_mpi(ranks: int, *args: str, cwd: Path, env: dict[str, str] | None = None
+              ) -> subprocess.Popen:
+    """``mpiexec -n ranks python -m fem3d args...`` started, not waited for (``env`` added
+    to :func:`mpi_env`)."""
+    cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, "-m", "fem3d", *args]
+    return subprocess.Popen(cmd, cwd=cwd, env={**mpi_env(), **(env or {})},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -4,6 +4,10 @@ one-process ``checkpoint.npz``; ``fem3d resume`` continues it on 2 ranks bit for
 
 from __future__ import annotations
 
+import re
+import signal
+import time
+
 import numpy as np
 import pytest
 
@@ -11,7 +15,13 @@ from fem3d.app.cli import main
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
-from tests.parallel.helpers import MESH, relative_difference, run_mpi, write_scene
+from tests.parallel.helpers import (
+    MESH,
+    relative_difference,
+    run_mpi,
+    start_mpi,
+    write_scene,
+)
 
 #: CG + GAMG: the default KSP of a distributed system above 1e4 free DOFs, and bit for bit
 #: the same from run to run on 2 ranks (MUMPS on 2 ranks is not: its dynamic scheduling
@@ -111,3 +121,65 @@ def test_resume_on_two_ranks_refuses_a_changed_mesh(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "mesh differs" in lines[0], proc.stderr
 
+
+
+def _interrupt(tmp_path, signum: int, env: dict[str, str] | None = None
+               ) -> tuple[int, list[str], int]:
+    """A 400-step 2-rank run of the bdf2 box (CG + GAMG) sent ``signum`` (to mpiexec) once
+    its fourth frame is written; its exit status, stderr's lines and the step its message
+    names."""
+    scene = str(write_scene(tmp_path, integrator="bdf2", steps=400))
+    out = tmp_path / "out"
+    proc = start_mpi(2, "run", scene, "--out", str(out), *GAMG, cwd=tmp_path, env=env)
+    try:
+        deadline = time.monotonic() + 300  # a stall guard only (a loaded machine)
+        while not (out / "frames" / "frame_00004.pvtu").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = err.strip().splitlines()
+    found = re.search(r"interrupted by SIG\w+ at step (\d+) ", lines[-1] if lines else "")
+    assert found, err
+    return proc.returncode, lines, int(found.group(1))
+
+
+def test_sigusr1_on_two_ranks_checkpoints_and_resumes_bit_exact(tmp_path):
+    """SIGUSR1 to ``mpiexec`` (Open MPI forwards it to every rank): the ranks finish the
+    step, agree on it, save its checkpoint and exit 130 with the one-process line;
+    ``mpiexec -n 2 fem3d resume`` continues it bit for bit the uninterrupted run."""
+    status, lines, step = _interrupt(tmp_path, signal.SIGUSR1)
+    out = tmp_path / "out"
+    assert status == 130 and len(lines) == 1, lines
+    assert lines[0] == (f"fem3d run: interrupted by SIGUSR1 at step {step} (t = "
+                        f"{0.01 * step:.4g}); checkpoint {out / CHECKPOINT_NAME}; continue "
+                        f"with: fem3d resume {out}")
+    ckpt = load_run_checkpoint(out / CHECKPOINT_NAME)
+    assert 4 <= ckpt.step == step < 400 and len(ckpt.energy) == step + 1
+    end = str(step + 3)
+    _ok(run_mpi(2, "resume", str(out), "--steps", end, cwd=tmp_path))
+    straight = tmp_path / "straight"
+    _ok(run_mpi(2, "run", str(tmp_path / "box.toml"), "--steps", end, "--out",
+                str(straight), *GAMG, cwd=tmp_path))
+    a, b = np.load(straight / "state.npz"), np.load(out / "state.npz")
+    assert int(b["step"]) == step + 3
+    assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["v"], b["v"])
+    assert (straight / "energy.csv").read_bytes() == (out / "energy.csv").read_bytes()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_to_mpiexec_checkpoints_within_its_grace(tmp_path, signum):
+    """SIGTERM or SIGINT to Open MPI's ``mpiexec``: it sends the ranks SIGTERM and, after
+    ``odls_base_sigkill_timeout`` s (set to 20 here: 1 by default), SIGKILL; the ranks
+    save the checkpoint of the step they finish before that and print the one-process
+    line (mpiexec's own exit status is its abort's, not 130)."""
+    status, lines, step = _interrupt(tmp_path, signum,
+                                     {"OMPI_MCA_odls_base_sigkill_timeout": "20"})
+    assert status != 0 and lines[-1].startswith("fem3d run: interrupted by SIGTERM"), lines
+    ckpt = load_run_checkpoint(tmp_path / "out" / CHECKPOINT_NAME)
+    assert 4 <= ckpt.step == step < 400
+    assert np.load(tmp_path / "out" / "state.npz")["step"] == step

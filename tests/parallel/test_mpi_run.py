@@ -40,11 +40,12 @@ def _one_process(scene_path, steps=20) -> Simulation:
 
 @pytest.mark.parametrize("integrator, options", [("implicit", ""), ("bdf2", ""),
                                                  ("implicit", "-ksp_type cg -pc_type gamg"),
-                                                 ("newmark", "")])
+                                                 ("newmark", ""), ("linear", "")])
 def test_two_ranks_equal_one_process(tmp_path, integrator, options):
     """20 steps of the two-material box (Neo-Hookean, damped StVK) on 2 ranks (MUMPS, and
     CG + GAMG) equal the one-process run (the default direct solver) to 1e-8 of the
-    motion."""
+    motion; the linearly-implicit scheme's one solve per step too (its forces and
+    right-hand side summed over the ranks)."""
     scene = write_scene(tmp_path, integrator=integrator)
     if options:
         scene.write_text(scene.read_text().replace(
@@ -113,12 +114,9 @@ def test_two_ranks_write_pieces(tmp_path):
 @pytest.mark.parametrize("extra, key", [
     ('[contact]\nenabled = true\n[[obstacles]]\nplane = { point = [0, -1, 0], normal = '
      '[0, 1, 0] }', "contact.enabled"),
-    ('[[pulls]]\nbody = 0\nselect = { box = [[0.9, -1, -1], [2, 1, 1]] }\nstart = 0.0\n'
-     'duration = 0.1\ntarget = [0.0, 0.1, 0.0]', "pulls"),
-    ('', "simulation.integrator"),
 ])
 def test_refused_in_one_line(tmp_path, extra, key):
-    scene = write_scene(tmp_path, steps=1, integrator="implicit" if extra else "linear")
+    scene = write_scene(tmp_path, steps=1)
     scene.write_text(scene.read_text() + "\n" + extra + "\n")
     proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert proc.returncode == 2
@@ -127,17 +125,20 @@ def test_refused_in_one_line(tmp_path, extra, key):
     assert not (tmp_path / "out").exists()
 
 
-def test_surface_and_point_loads_refused_in_one_line(tmp_path):
-    """A body's loads (not element-wise: no owner rank yet) are refused, not dropped."""
-    scene = write_scene(tmp_path, steps=1)
-    scene.write_text(scene.read_text() + '\n[[bodies.loads]]\nselect = { vertices = [12] }\n'
-                     'force = [0.0, -5.0, 0.0]\n')
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "bodies[1].loads" in lines[0] and "mpiexec -n 2" in lines[0], \
-        proc.stderr
-    assert not (tmp_path / "out").exists()
+def test_a_scheme_not_marked_distributed_is_refused_in_one_line(tmp_path, monkeypatch):
+    """A scheme without ``distributed`` (a plug-in's; every built-in scheme runs on ranks)
+    is refused naming the key and the schemes that run."""
+    from fem3d.errors import InputError
+    from fem3d.parallel.run import check_distributable
+    from fem3d.solve.schemes.registry import get_scheme
+
+    monkeypatch.setattr(type(get_scheme("newmark")), "distributed", False)
+    scene = load_scene(str(write_scene(tmp_path, integrator="newmark", steps=1)))
+    with pytest.raises(InputError) as err:
+        check_distributable(scene, 2)
+    message = str(err.value)
+    assert "simulation.integrator" in message and "'newmark'" in message
+    assert "linear, implicit, bdf2, static" in message and "\n" not in message
 
 
 def test_missing_extra_is_one_line(tmp_path, monkeypatch):
@@ -408,3 +409,38 @@ def test_an_element_one_rank_refuses_is_one_line_on_every_rank(tmp_path, bad_tet
     assert proc.returncode == 2, proc.stderr[-3000:]
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "Jacobian" in lines[0] and "bar_p2.vtu" in lines[0], proc.stderr
+
+
+#: rank 1 fails alone when it writes its piece of frame 3 (a sitecustomize on PYTHONPATH)
+_FAIL_ON_RANK_1 = """
+import os
+if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK")) == "1":
+    import fem3d.parallel.pieces as pieces
+    write = pieces.PieceWriter.write
+    def failing(self, step, t, q):
+        if step == 3:
+            raise {error}
+        write(self, step, t, q)
+    pieces.PieceWriter.write = failing
+"""
+
+
+@pytest.mark.parametrize("error, status, says", [
+    ("PermissionError(13, 'Permission denied', 'frame_00003_1.vtu')", 2,
+     "fem3d run: error: [Errno 13] Permission denied: 'frame_00003_1.vtu'"),
+    ("RuntimeError('a bug on rank 1')", 1, "RuntimeError: a bug on rank 1"),
+])
+def test_an_error_on_one_rank_stops_every_rank(tmp_path, monkeypatch, error, status, says):
+    """An OSError or an unexpected exception that one rank meets alone (here rank 1, writing
+    its piece of frame 3) stops every rank (MPI_Abort) with the error said, instead of
+    leaving rank 0 waiting in the next step's collective calls."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_FAIL_ON_RANK_1.format(error=error))
+    monkeypatch.setenv("PYTHONPATH", str(hook))
+    scene = write_scene(tmp_path, steps=20)
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path,
+                   timeout=90)
+    assert proc.returncode == status, proc.stderr[-3000:]
+    assert says in proc.stderr
+    assert not (tmp_path / "out" / "frames" / "frame_00005.pvtu").exists()

@@ -35,8 +35,8 @@ from fem3d.kernels.dispatch import kernel_module
 from fem3d.physics.model import Model
 from fem3d.physics.terms.base import HessianSink, StepMap, Term
 
-__all__ = ["Amplitude", "DeadLoad", "FollowerPressure", "faces_within", "traction_forces",
-           "point_forces"]
+__all__ = ["Amplitude", "DeadLoad", "FollowerPressure", "faces_within", "faces_among",
+           "traction_forces", "point_forces"]
 
 
 class Amplitude:
@@ -66,6 +66,17 @@ def faces_within(faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     mask = np.zeros(int(max(faces.max(initial=-1), vertices.max(initial=-1))) + 1, bool)
     mask[vertices] = True
     return faces[mask[faces].all(axis=1)]
+
+
+def faces_among(faces: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The rows of ``faces`` ``(f, k)`` that are faces of ``others`` ``(g, k)`` (the same
+    corners, the first 3 nodes, in any order): e.g. the loaded faces of one rank's tets
+    among its tets' boundary faces."""
+    def corners(F: np.ndarray) -> np.ndarray:
+        c = np.ascontiguousarray(np.sort(np.asarray(F, dtype=np.int64)[:, :3], axis=1))
+        return c.view([("a", np.int64), ("b", np.int64), ("c", np.int64)]).reshape(-1)
+
+    return faces[np.isin(corners(faces), corners(others))]
 
 
 def traction_forces(X: np.ndarray, faces: np.ndarray, traction,
@@ -119,8 +130,18 @@ class _TimedLoad(Term):
         self.scale = 1.0 if amplitude is None else amplitude(0.0)
 
     def begin_step(self, step: StepMap) -> None:
+        self.at_time(step.t + step.dt)
+
+    def at_time(self, t: float) -> None:
+        """Scale the load to its amplitude at time ``t`` (the end of the step a scheme
+        solves for; :meth:`begin_step` for the minimising schemes)."""
         if self.amplitude is not None:
-            self.scale = self.amplitude(step.t + step.dt)
+            self.scale = self.amplitude(t)
+
+    def hessian_data(self, q: np.ndarray, scale: float | None = None) -> np.ndarray | None:
+        """``(nnz,)`` the Hessian at ``q`` as CSR data on ``model.pattern``; None: zero (a
+        dead load)."""
+        return None
 
 
 class DeadLoad(_TimedLoad):
@@ -194,7 +215,8 @@ class FollowerPressure(_TimedLoad):
         self._energy, self._gradient, self._hessian = (
             getattr(kernels, prefix + k) for k in ("energy", "gradient", "hessian"))
         self._kernels = kernels
-        self._dofs = (3 * self.faces[:, :, None] + np.arange(3)).reshape(len(self.faces), -1)
+        self._dofs = (3 * self.faces[:, :, None] + np.arange(3)).reshape(
+            len(self.faces), 3 * self.faces.shape[1])  # no faces: one rank's share may have none
         self._V0 = self.volume(model.X.reshape(-1))
         self._slots: np.ndarray | None = None
         x = model.X[self.faces]
@@ -277,6 +299,9 @@ class FollowerPressure(_TimedLoad):
             index.data = np.arange(1, P.nnz + 1, dtype=np.float64)
             rows = np.repeat(self._dofs, self._dofs.shape[1], axis=1).reshape(-1)
             cols = np.tile(self._dofs, (1, self._dofs.shape[1])).reshape(-1)
+            if rows.size == 0:  # no faces (a rank's share may have none)
+                self._slots = np.zeros(0, dtype=np.int64)
+                return self._slots
             slots = np.asarray(index[rows, cols]).reshape(-1).astype(np.int64) - 1
             if np.any(slots < 0):
                 raise ParameterError(f"{self.name}: a loaded face is not a face of a tet")

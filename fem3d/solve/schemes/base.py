@@ -23,7 +23,6 @@ from fem3d.errors import ParameterError
 from fem3d.physics.model import validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.base import StepMap
-from fem3d.physics.terms.pull import PullSprings
 from fem3d.solve.minimise import minimise_step
 from fem3d.solve.settings import NewtonSettings
 from fem3d.solve.state import State, StepStats, check_finite
@@ -36,8 +35,7 @@ __all__ = ["Scheme", "Step", "model_terms"]
 def model_terms(system: System, pull: Pull | None = None) -> list:
     """The terms of the system's model, in objective order: inertia, elasticity, the pull
     springs, gravity and Rayleigh damping (those present)."""
-    return [*system.model_terms(), PullSprings(system.model, pull, spring=system.spring),
-            *system.loads.terms()]
+    return [*system.model_terms(), system.pull_term(pull), *system.loads.terms()]
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,132 @@
+"""Surface and point loads and scripted pulls under ``mpiexec -n 2``: each loaded face is
+added by the rank of the tet it bounds, each point force and pull spring by the rank that
+owns its vertex, so that 2 ranks equal the one-process run (P1 and P2 faces; backward Euler
+and the linearly-implicit scheme)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
+from fem3d.io.energy import read_energy_csv
+from fem3d.physics.terms.surface import faces_among
+from fem3d.scene import load_scene
+from fem3d.simulation import Simulation
+from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+from tests.parallel.test_mpi_checkpoint import GAMG
+from tests.parallel.test_mpi_run import _p2_bar
+
+#: a traction on the tip, a pressure on the whole (closed) surface ramped in over 0.1 s,
+#: a point force on a few vertices: the loads of one body
+LOADS = """
+[[bodies.loads]]
+select = { box = [[0.999, -1, -1], [2, 1, 1]] }
+traction = [0.0, 2000.0, 500.0]
+
+[[bodies.loads]]
+select = { box = [[-1, -1, -1], [2, 1, 2]] }
+pressure = 300.0
+keyframes = [{ t = 0.0, scale = 0.0 }, { t = 0.1, scale = 1.0 }]
+
+[[bodies.loads]]
+select = { box = [[0.99, -1, -1], [2, 1, 1]] }
+force = [0.0, 30.0, 0.0]
+"""
+
+PULLS = """
+[[pulls]]
+body = 0
+select = { box = [[0.9, -1, -1], [2, 1, 1]] }
+start = 0.0
+duration = 0.05
+offset = [0.0, 0.1, 0.0]
+
+[[pulls]]
+body = 1
+select = { box = [[0.95, -1, -1], [2, 1, 1]] }
+start = 0.02
+duration = 0.05
+target = [1.0, 0.2, 0.6]
+"""
+
+
+def _compare(tmp_path, scene, steps: int, what: str) -> float:
+    """Run ``scene`` on 2 ranks and in one process (the scripted pulls applied, as
+    ``fem3d run`` does); the relative difference of the positions."""
+    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = np.load(tmp_path / "out" / "state.npz")
+    sim = Simulation(load_scene(str(scene)), scripted=True)
+    for _ in range(steps):
+        sim.step()
+    diff = relative_difference(state["q"], sim.q, sim.model.X)
+    print(f"{what}: 2 ranks vs one process: relative difference {diff:.2e}")
+    assert int(state["step"]) == steps and diff <= 1e-8
+    assert relative_difference(state["v"], sim.v, 0.0 * sim.v) <= 1e-6
+    return diff
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "bdf2", "linear"])
+def test_loads_on_two_ranks_equal_one_process(tmp_path, integrator):
+    """10 steps of the two-material box, each bar with a traction, a ramped follower
+    pressure and a point force, on 2 ranks: the one-process run to 1e-8 of the motion (a
+    load counted on both ranks would be off by its whole size)."""
+    scene = write_scene(tmp_path, integrator=integrator, steps=10)
+    first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)  # the second bar
+    scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + LOADS)
+    _compare(tmp_path, scene, 10, f"loads, {integrator}")
+
+
+def test_p2_loads_on_two_ranks_equal_one_process(tmp_path):
+    """The P2 bar's 6-node faces: a traction, a ramped pressure and a point force, 5 steps
+    on 2 ranks equal the one-process run to 1e-8 of the motion."""
+    scene = _p2_bar(tmp_path, steps=5)
+    scene.write_text(scene.read_text() + LOADS)
+    _compare(tmp_path, scene, 5, "P2 loads")
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "linear"])
+def test_pulls_on_two_ranks_equal_one_process(tmp_path, integrator):
+    """Two scripted pulls (an offset on one bar, a target on the other, overlapping in
+    time) over 10 steps on 2 ranks: the one-process run to 1e-8 of the motion, and
+    energy.csv's pull column the whole pull's energy."""
+    scene = write_scene(tmp_path, integrator=integrator, steps=10)
+    scene.write_text(scene.read_text() + PULLS)
+    _compare(tmp_path, scene, 10, f"pulls, {integrator}")
+    energy = read_energy_csv(tmp_path / "out" / "energy.csv")
+    sim = Simulation(load_scene(str(scene)), scripted=True)
+    sim.step()
+    assert energy["pull"][1] == pytest.approx(sim.energies()["pull"], rel=1e-8)
+    assert energy["pull"][1] > 0 and energy["pull"][-1] == 0.0  # released by step 10
+
+
+def test_faces_among_picks_a_share_of_the_faces():
+    """A loaded face belongs to the share whose tets' boundary holds it, whatever the
+    order of its corners (P1 and 6-node faces)."""
+    faces = np.array([[0, 1, 2], [2, 3, 4], [5, 6, 7]])
+    assert faces_among(faces, np.array([[4, 2, 3], [0, 1, 9]])).tolist() == [[2, 3, 4]]
+    six = np.array([[0, 1, 2, 10, 11, 12], [2, 3, 4, 13, 14, 15]])
+    assert faces_among(six, np.array([[1, 2, 0, 11, 12, 10]])).tolist() == \
+        [[0, 1, 2, 10, 11, 12]]
+    assert faces_among(six, np.zeros((0, 6), np.int64)).shape == (0, 6)
+
+
+def test_pulls_and_loads_resume_on_two_ranks_bit_exact(tmp_path):
+    """A 2-rank run with the loads and the pulls, checkpointed at step 5 (a pull attached)
+    and resumed on 2 ranks to 10: bit for bit the straight 10-step run (CG + GAMG)."""
+    scene = write_scene(tmp_path, integrator="bdf2", steps=10)
+    first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)
+    scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + PULLS)
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    for out, steps in ((straight, "10"), (resumed, "5")):
+        proc = run_mpi(2, "run", str(scene), "--steps", steps, "--checkpoint-every", "5",
+                       "--out", str(out), *GAMG, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    half = load_run_checkpoint(resumed / CHECKPOINT_NAME)
+    assert half.step == 5 and half.snapshot["pull_vertices"].size  # a pull attached
+    proc = run_mpi(2, "resume", str(resumed), "--steps", "10", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    a, b = np.load(straight / "state.npz"), np.load(resumed / "state.npz")
+    assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["v"], b["v"])
+    assert (straight / "energy.csv").read_bytes() == (resumed / "energy.csv").read_bytes()
