@@ -65,11 +65,6 @@ SIGNATURES = {
 }
 
 
-# neo_hookean's steps at one F, what the element's quadrature loops (p2_quadrature.py)
-# call at each point: psi, P and dP/dF are neo_hookean.py's (the P1 kernels' own bodies),
-# dP/dparams is below.
-
-
 def _dP_dparams_body(m, _in_F, params):
     """dP/dp at one F: (9, n_params), the row-major flattening of F by the parameters.
 
@@ -155,6 +150,9 @@ def _dP_dparams_body(m, _in_F, params):
     return _out_dP_dparams
 
 
+# neo_hookean's steps at one F, what the element's quadrature loops (p2_quadrature.py)
+# call at each point: psi, P and dP/dF are neo_hookean.py's (the P1 kernels' own bodies),
+# dP/dparams is above.
 _STEPS = _MaterialSteps(psi=_psi_body, P=_dpsi_dF_body, dP_dF=_d2psi_dF2_body,
                         dP_dparams=_dP_dparams_body, n_params=2)
 

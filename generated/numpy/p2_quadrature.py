@@ -22,7 +22,8 @@ N_POINTS = 4
 
 
 def _F_point(_in_x_e, _in_dN, out):
-    """F = x_e^T dN/dX at one point. Adds (=) to ``out``, (9, m); operation count: 171."""
+    """F = x_e^T dN/dX at one point. Writes ``out`` (9, m);
+    operation count: 171."""
     x_0_0 = _in_x_e[0]
     x_0_1 = _in_x_e[1]
     x_0_2 = _in_x_e[2]
@@ -94,17 +95,17 @@ def _F_point(_in_x_e, _in_dN, out):
     out[8] = dN_0_2*x_0_2 + dN_1_2*x_1_2 + dN_2_2*x_2_2 + dN_3_2*x_3_2 + dN_4_2*x_4_2 + dN_5_2*x_5_2 + dN_6_2*x_6_2 + dN_7_2*x_7_2 + dN_8_2*x_8_2 + dN_9_2*x_9_2
 
 
-
 def _energy_point(_in_psi, _in_w_detJ, out):
-    """One point's energy term w psi. Adds (+=) to ``out``, (1, m); operation count: 1."""
+    """One point's energy term w psi. Adds to ``out`` (1, m);
+    operation count: 1."""
     psi = _in_psi[0]
     wdetJ = _in_w_detJ[0]
     out[0] += psi*wdetJ
 
 
-
 def _gradient_point(_in_P, _in_dN, _in_w_detJ, out):
-    """One point's gradient terms (30) of P. Adds (+=) to ``out``, (30, m); operation count: 180."""
+    """One point's gradient terms (30) of P. Adds to ``out`` (30, m);
+    operation count: 180."""
     P_0_0 = _in_P[0]
     P_0_1 = _in_P[1]
     P_0_2 = _in_P[2]
@@ -177,9 +178,9 @@ def _gradient_point(_in_P, _in_dN, _in_w_detJ, out):
     out[29] += wdetJ*(P_2_0*dN_9_0 + P_2_1*dN_9_1 + P_2_2*dN_9_2)
 
 
-
 def _hessian_point(_in_A, _in_dN, _in_w_detJ, out):
-    """One point's Hessian terms (30x30) of dP/dF. Adds (+=) to ``out``, (900, m), upper triangle; operation count: 3891."""
+    """One point's Hessian terms (30x30) of dP/dF. Adds to ``out`` (900, m), its upper triangle;
+    operation count: 3891."""
     A_0_0 = _in_A[0]
     A_0_1 = _in_A[1]
     A_0_2 = _in_A[2]
@@ -1018,7 +1019,6 @@ def _hessian_point(_in_A, _in_dN, _in_w_detJ, out):
     out[868] += T_3_28*dN_9_0 + T_4_28*dN_9_1 + T_5_28*dN_9_2
     out[869] += T_3_29*dN_9_0 + T_4_29*dN_9_1 + T_5_29*dN_9_2
     out[899] += T_6_29*dN_9_0 + T_7_29*dN_9_1 + T_8_29*dN_9_2
-
 
 
 def _point_geometry(inputs, q):
