@@ -4,6 +4,7 @@
     python -m codegen --check         # fail with a diff when either is stale
     python -m codegen show neo_hookean.hessian [--backend c]
     python -m codegen show p2_stvk.gradient     # a quadratic tet's quadrature kernel
+    python -m codegen show p2_quadrature.hessian   # one point's terms, shared by the materials
     python -m codegen show stable_neo_hookean   # a material's formulas
     python -m codegen docs            # write docs/materials.md only
 
@@ -139,14 +140,14 @@ def show(kernel: str, backend: str) -> int:
         spec = next((k for k in module.kernels if k.name == kernel_name), None)
         if module.name != module_name or spec is None:
             continue
-        if module.role == "quadrature":  # one point's pieces: C only, no Python entry
-            backend = "c"
         # the module's files (a material's C kernels at one F are a file of their own)
         files = module_files(module)
         text = "".join(files.get(f"{backend}/{module.name}{part}{BACKENDS[backend].suffix}", "")
                        for part in ("_pointwise", ""))
         if backend == "numpy":
-            start = text.index(f"\ndef {kernel_name}(")
+            # an element's quadrature pieces are its functions of one point, _<kind>_point
+            name = f"_{kernel_name}_point" if module.role == "quadrature" else kernel_name
+            start = text.index(f"\ndef {name}(")
             end = text.find("\ndef ", start + 1)
         elif module.role == "quadrature":
             start = text.index(f"\n// {spec.doc}\n")

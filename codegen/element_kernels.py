@@ -11,13 +11,14 @@ Three kinds of module per element ``e`` (``p2``):
   ``sum_q w_q psi(F_q)``, where the body of the sum is one point's: ``F_q`` from the node
   positions and that point's ``dN/dX``, then the material's own CSE'd ``psi``, ``P`` or
   ``dP/dF`` steps (:func:`codegen.derive.derivative_steps`, the P1 kernels' very steps), then
-  the chain rule to the nodes. The NumPy back end writes this sum out per material; the C
-  back end calls the element's shared loops (``e_quadrature``, below) with the material's
-  steps at one ``F`` (:class:`codegen.spec.MaterialSteps`: P1's pointwise kernels, compiled
-  from the same file, and ``dP/dp``).
-* ``e_quadrature`` (C only, :func:`quadrature_module`): what every material's quadrature
-  kernels share: ``F`` at a point and the terms a point adds to the energy, gradient and
-  Hessian, around which ``templates/c/quadrature.c.jinja`` writes one loop per kernel kind.
+  the chain rule to the nodes. Both back ends call the element's shared loops
+  (``e_quadrature``, below) with the material's steps at one ``F``
+  (:class:`codegen.spec.MaterialSteps`: P1's pointwise kernels, from the P1 module's own
+  source, and ``dP/dp``); the material's module holds only ``dP/dp`` and the entry points.
+* ``e_quadrature`` (:func:`quadrature_module`): what every material's quadrature kernels
+  share: ``F`` at a point and the terms a point adds to the energy, gradient and Hessian,
+  around which ``templates/c/quadrature.c.jinja`` and ``templates/numpy/quadrature.py.jinja``
+  write one loop per kernel kind (``e_quadrature.c``, ``e_quadrature.py``).
 
 Calling convention (``n`` nodes, ``nq`` quadrature points; P2: ``n = 10``, ``nq = 4``):
 
@@ -117,8 +118,8 @@ C_MAX_ARGS = 16
 
 def _material_steps(module: str, name: str, d: derive.MaterialDerivation,
                     params) -> MaterialSteps:
-    """What the C quadrature kernels of material ``name`` call at one ``F``: its pointwise
-    kernels, and ``dP/dp`` (9 x n_params, row-major), a step of its own."""
+    """What the quadrature kernels (C and NumPy) of material ``name`` call at one ``F``: its
+    pointwise kernels, and ``dP/dp`` (9 x n_params, row-major), a step of its own."""
     F_args = [derive._matrix_arg("F", d.F, "deformation gradient"), *derive._input_args(d)]
     k_params = len(d.params)
     if k_params > C_MAX_ARGS or 1 + len(d.inputs) > C_MAX_ARGS:
@@ -198,7 +199,7 @@ def _gradient_terms(P: sp.Matrix, D: sp.Matrix, w: sp.Symbol) -> list[sp.Expr]:
 
 def quadrature_module(element: LagrangeTet) -> ModuleSpec:
     """The material-independent pieces of ``element``'s quadrature kernels at one point
-    (module ``<element>_quadrature``, C only): ``F`` from the node positions and the point's
+    (module ``<element>_quadrature``): ``F`` from the node positions and the point's
     ``dN/dX``, and the terms the point adds to the energy (of ``psi``), the gradient (of
     ``P``; the parameter derivative's too, of each ``dP/dp_k``) and the Hessian (of
     ``dP/dF``, all 81 entries read, the projected ones as the projection returns them)."""

@@ -147,10 +147,14 @@ def _arg_view(arg: Argument, used: set[sp.Symbol]) -> dict:
 
 
 def kernel_view(kernel: KernelSpec, printer) -> dict:
-    """Everything a template needs about one kernel, with expressions already printed."""
+    """Everything a template needs about one kernel, with expressions already printed.
+
+    A higher-order element's quadrature kernel (:attr:`~codegen.spec.KernelSpec.quadrature`)
+    is rendered as a call of the element's shared loops on every back end: its steps and
+    expressions are not printed (no template reads them)."""
     used: set[sp.Symbol] = set()
     steps = []
-    for step in kernel.intermediates:
+    for step in () if kernel.quadrature else kernel.intermediates:
         if isinstance(step, Projection):
             used |= set(step.inputs) | set(step.frame)
             steps.append({"kind": "project", "n": step.n, "inputs": [str(s) for s in step.inputs],
@@ -160,7 +164,7 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
             used |= step[1].free_symbols
             steps.append({"kind": "assign", "name": str(step[0]),
                           "code": printer.doprint(step[1])})
-    for out in kernel.outputs:
+    for out in () if kernel.quadrature else kernel.outputs:
         for _, e, _ in out.entries():
             used |= e.free_symbols
     return {
@@ -180,7 +184,8 @@ def kernel_view(kernel: KernelSpec, printer) -> dict:
                 "shape": out.shape,
                 "size": out.size,
                 "symmetric": out.symmetric,
-                "entries": [(k, printer.doprint(e), list(m)) for k, e, m in out.entries()],
+                "entries": [] if kernel.quadrature else
+                [(k, printer.doprint(e), list(m)) for k, e, m in out.entries()],
             }
             for out in kernel.outputs
         ],
@@ -236,7 +241,7 @@ def render_module(module: ModuleSpec, backend: str, part: str = "all") -> str:
     material's kernels at one ``F`` (:attr:`~codegen.spec.ModuleSpec.pointwise`, its
     ``<name>_pointwise.c``), ``"rest"`` the module's file that includes them."""
     if module.role == "quadrature":
-        return render_quadrature(module)
+        return render_quadrature(module, backend)
     spec = BACKENDS[backend]
     printer = _printer(backend)
     kernels = list(module.kernels)
@@ -255,21 +260,25 @@ def render_module(module: ModuleSpec, backend: str, part: str = "all") -> str:
         material=material_view(module, printer),
         kernels=[kernel_view(k, printer) for k in kernels],
         point_kernels=[kernel_view(k, printer) for k in steps.point_kernels] if steps else [],
+        quadrature_module=f"{module.unit}_quadrature",
         template_name=f"templates/{spec.template}",
         sympy_version=sp.__version__,
     )
 
 
-def render_quadrature(module: ModuleSpec) -> str:
-    """``<element>_quadrature.c``: an element's quadrature loops, shared by every material."""
+def render_quadrature(module: ModuleSpec, backend: str) -> str:
+    """``<element>_quadrature.c`` or ``.py``: an element's quadrature loops, shared by every
+    material, from ``templates/<backend>/quadrature<suffix>.jinja``."""
     constants = {name: int(value) for name, value in module.constants}
-    printer = _printer("c")
-    return _environment().get_template("c/quadrature.c.jinja").render(
+    spec = BACKENDS[backend]
+    template = f"{backend}/quadrature{spec.suffix}.jinja"
+    printer = _printer(backend)
+    return _environment().get_template(template).render(
         module=module,
         nodes=constants["N_NODES"],
         points=constants["N_POINTS"],
         kernels={k.name: kernel_view(k, printer) for k in module.kernels},
-        template_name="templates/c/quadrature.c.jinja",
+        template_name=f"templates/{template}",
         sympy_version=sp.__version__,
     )
 
@@ -315,7 +324,8 @@ def render_unit(unit: str, modules: list[ModuleSpec]) -> str:
 def module_files(module: ModuleSpec) -> dict[str, str]:
     """Relative path under ``generated/`` -> file text, for one module on every back end."""
     if module.role == "quadrature":
-        return {f"c/{module.name}.c": render_quadrature(module)}
+        return {f"{name}/{module.name}{backend.suffix}": render_quadrature(module, name)
+                for name, backend in BACKENDS.items()}
     files = {}
     for name, backend in BACKENDS.items():
         if name == "c" and module.pointwise:

@@ -110,10 +110,10 @@ class KernelSpec:
     ends raise ``ValueError`` naming the first element and entry that is not."""
     quadrature: str = ""
     """A quadrature kernel of a material on a higher-order element: the kind of the element's
-    shared quadrature loop the C back end calls (``energy``, ``gradient``,
+    shared quadrature loop both back ends call (``energy``, ``gradient``,
     ``dgradient_dparams``, ``hessian``; :attr:`ModuleSpec.role` ``"quadrature"``) with the
     material's steps at one ``F`` (:class:`MaterialSteps`), instead of writing the whole sum
-    out per material; the NumPy back end writes ``intermediates`` out as before."""
+    out per material; ``intermediates`` and ``outputs`` still give its operation count."""
 
     @property
     def projection_method(self) -> str | None:
@@ -157,8 +157,9 @@ class KernelSpec:
 @dataclass(frozen=True)
 class MaterialSteps:
     """The steps at one ``F`` a higher-order element's quadrature kernels of one material call
-    at each point (C): ``psi``, ``P`` and ``dP/dF`` are the pointwise kernels of the material's
-    own module (``<name>_pointwise.c``), ``point_kernels`` the ones of its own (``dP/dp``)."""
+    at each point: ``psi``, ``P`` and ``dP/dF`` are the pointwise kernels of the material's
+    own module (``<name>_pointwise.c``; in NumPy ``<name>.py``'s ``_<kernel>_body``),
+    ``point_kernels`` the ones of its own (``dP/dp``)."""
 
     name: str
     n_inputs: int
@@ -189,13 +190,16 @@ class ModuleSpec:
     pointwise: tuple[str, ...] = ()
     """A P1 material's leading kernels at one ``F`` (``psi``, ``dpsi_dF``, ``d2psi_dF2``):
     the C back end writes them to ``<name>_pointwise.c``, which ``<name>.c`` includes and the
-    higher-order elements' units include for their element functions."""
+    higher-order elements' units include for their element functions; the NumPy back end
+    writes each body as ``_<kernel>_body``, which the public kernel and the higher-order
+    elements' material modules call."""
     material_steps: MaterialSteps | None = None
     """A higher-order element's material module: the steps its quadrature kernels call."""
     role: str = "kernels"
     """``"kernels"``: a module of kernels for every back end; ``"quadrature"``: a higher-order
-    element's shared quadrature pieces (one point's ``F`` and terms), C only, rendered by
-    ``templates/c/quadrature.c.jinja`` into ``<element>_quadrature.c``."""
+    element's shared quadrature pieces (one point's ``F`` and terms) and the loops around them,
+    rendered by ``templates/<backend>/quadrature.<c|py>.jinja`` into
+    ``<element>_quadrature.c`` and ``.py`` (no kernels of its own in the runtime's tables)."""
 
 
 def make_kernel(

@@ -2,7 +2,23 @@
 # Source: codegen.render; SymPy 1.14.0. Regenerate with `make codegen`.
 """Argument handling shared by every generated NumPy kernel module."""
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import numpy
+
+
+class _MaterialSteps(NamedTuple):
+    """A material's kernels at one F, what a higher-order element's quadrature loops
+    (``<element>_quadrature.py``) call at each point: each takes ``(m, F, *inputs, params)``,
+    ``F`` and the material's per-element inputs as ``(size, m)`` rows and the parameters as
+    :func:`_params` returns them, and returns its output as ``(size, m)`` rows."""
+
+    psi: Callable  # psi (1)
+    P: Callable  # P = dpsi/dF (9)
+    dP_dF: Callable  # dP/dF (81, both triangles)
+    dP_dparams: Callable  # dP/dp (9 x n_params, row-major)
+    n_params: int
 
 
 def _elements(*arrays):

@@ -119,26 +119,13 @@ SIGNATURES = {
 
 
 
-def psi(F, a, params):
+def _psi_body(m, _in_F, _in_a, params):
     """Strain energy density psi(F).
 
-    Parameters
-    ----------
-    F : (m, 3, 3) float64
-        deformation gradients.
-    a : (m, 3) float64
-        per-element material input a.
-    params : (n_params,) or (m, n_params) float64
-        (mu, lam, k1, k2), shared or per element.
-
-    Returns
-    -------
-    psi : (m) float64
-
-    Operation count per element: 77.
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``psi`` as ``(1, m)`` rows.
     """
-    m, (_in_F, _in_a, ) = _elements((F, "F", (3, 3)), (a, "a", (3,)), )
-    mu, lam, k1, k2, = _params(params, ('mu', 'lam', 'k1', 'k2'), m)
+    mu, lam, k1, k2, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -165,11 +152,11 @@ def psi(F, a, params):
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
-    return _finish(_out_psi, m, ())
+    return _out_psi
 
 
-def dpsi_dF(F, a, params):
-    """First Piola-Kirchhoff stress P = dpsi/dF.
+def psi(F, a, params):
+    """Strain energy density psi(F).
 
     Parameters
     ----------
@@ -182,12 +169,22 @@ def dpsi_dF(F, a, params):
 
     Returns
     -------
-    P : (m, 3, 3) float64
+    psi : (m) float64
 
-    Operation count per element: 128.
+    Operation count per element: 77.
     """
     m, (_in_F, _in_a, ) = _elements((F, "F", (3, 3)), (a, "a", (3,)), )
-    mu, lam, k1, k2, = _params(params, ('mu', 'lam', 'k1', 'k2'), m)
+    _out = _psi_body(m, _in_F, _in_a, _params(params, ('mu', 'lam', 'k1', 'k2'), m))
+    return _finish(_out, m, ())
+
+
+def _dpsi_dF_body(m, _in_F, _in_a, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``P`` as ``(9, m)`` rows.
+    """
+    mu, lam, k1, k2, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -253,11 +250,11 @@ def dpsi_dF(F, a, params):
     _out_P[6] = P_2_0
     _out_P[7] = P_2_1
     _out_P[8] = P_2_2
-    return _finish(_out_P, m, (3, 3))
+    return _out_P
 
 
-def d2psi_dF2(F, a, params):
-    """dP/dF, 9x9 in the row-major flattening of F.
+def dpsi_dF(F, a, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
 
     Parameters
     ----------
@@ -270,12 +267,22 @@ def d2psi_dF2(F, a, params):
 
     Returns
     -------
-    dP_dF : (m, 9, 9) float64
+    P : (m, 3, 3) float64
 
-    Operation count per element: 319.
+    Operation count per element: 128.
     """
     m, (_in_F, _in_a, ) = _elements((F, "F", (3, 3)), (a, "a", (3,)), )
-    mu, lam, k1, k2, = _params(params, ('mu', 'lam', 'k1', 'k2'), m)
+    _out = _dpsi_dF_body(m, _in_F, _in_a, _params(params, ('mu', 'lam', 'k1', 'k2'), m))
+    return _finish(_out, m, (3, 3))
+
+
+def _d2psi_dF2_body(m, _in_F, _in_a, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``dP_dF`` as ``(81, m)`` rows.
+    """
+    mu, lam, k1, k2, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -488,7 +495,30 @@ def d2psi_dF2(F, a, params):
     _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
     _out_dP_dF[80] = A_8_8
-    return _finish(_out_dP_dF, m, (9, 9))
+    return _out_dP_dF
+
+
+def d2psi_dF2(F, a, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    a : (m, 3) float64
+        per-element material input a.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam, k1, k2), shared or per element.
+
+    Returns
+    -------
+    dP_dF : (m, 9, 9) float64
+
+    Operation count per element: 319.
+    """
+    m, (_in_F, _in_a, ) = _elements((F, "F", (3, 3)), (a, "a", (3,)), )
+    _out = _d2psi_dF2_body(m, _in_F, _in_a, _params(params, ('mu', 'lam', 'k1', 'k2'), m))
+    return _finish(_out, m, (9, 9))
 
 
 def energy(x_e, dphi_dX, vol, a, params):

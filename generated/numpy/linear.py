@@ -115,6 +115,31 @@ SIGNATURES = {
 
 
 
+def _psi_body(m, _in_F, params):
+    """Strain energy density psi(F).
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``psi`` as ``(1, m)`` rows.
+    """
+    mu, lam, = params
+    # inputs
+    F_0_0 = _in_F[0]
+    F_0_1 = _in_F[1]
+    F_0_2 = _in_F[2]
+    F_1_0 = _in_F[3]
+    F_1_1 = _in_F[4]
+    F_1_2 = _in_F[5]
+    F_2_0 = _in_F[6]
+    F_2_1 = _in_F[7]
+    F_2_2 = _in_F[8]
+    # intermediates (1)
+    psi = (1/2)*lam*((F_0_0 + F_1_1 + F_2_2 - 3)**2) + (1/2)*mu*(2*((F_0_0 - 1)**2) + ((F_0_1 + F_1_0)**2) + ((F_0_2 + F_2_0)**2) + 2*((F_1_1 - 1)**2) + ((F_1_2 + F_2_1)**2) + 2*((F_2_2 - 1)**2))
+    # outputs
+    _out_psi = numpy.empty((1, m))
+    _out_psi[0] = psi
+    return _out_psi
+
+
 def psi(F, params):
     """Strain energy density psi(F).
 
@@ -132,43 +157,17 @@ def psi(F, params):
     Operation count per element: 29.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
-    # inputs
-    F_0_0 = _in_F[0]
-    F_0_1 = _in_F[1]
-    F_0_2 = _in_F[2]
-    F_1_0 = _in_F[3]
-    F_1_1 = _in_F[4]
-    F_1_2 = _in_F[5]
-    F_2_0 = _in_F[6]
-    F_2_1 = _in_F[7]
-    F_2_2 = _in_F[8]
-    # intermediates (1)
-    psi = (1/2)*lam*((F_0_0 + F_1_1 + F_2_2 - 3)**2) + (1/2)*mu*(2*((F_0_0 - 1)**2) + ((F_0_1 + F_1_0)**2) + ((F_0_2 + F_2_0)**2) + 2*((F_1_1 - 1)**2) + ((F_1_2 + F_2_1)**2) + 2*((F_2_2 - 1)**2))
-    # outputs
-    _out_psi = numpy.empty((1, m))
-    _out_psi[0] = psi
-    return _finish(_out_psi, m, ())
+    _out = _psi_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, ())
 
 
-def dpsi_dF(F, params):
+def _dpsi_dF_body(m, _in_F, params):
     """First Piola-Kirchhoff stress P = dpsi/dF.
 
-    Parameters
-    ----------
-    F : (m, 3, 3) float64
-        deformation gradients.
-    params : (n_params,) or (m, n_params) float64
-        (mu, lam), shared or per element.
-
-    Returns
-    -------
-    P : (m, 3, 3) float64
-
-    Operation count per element: 20.
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``P`` as ``(9, m)`` rows.
     """
-    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
+    mu, lam, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -205,11 +204,11 @@ def dpsi_dF(F, params):
     _out_P[6] = P_2_0
     _out_P[7] = P_2_1
     _out_P[8] = P_2_2
-    return _finish(_out_P, m, (3, 3))
+    return _out_P
 
 
-def d2psi_dF2(F, params):
-    """dP/dF, 9x9 in the row-major flattening of F.
+def dpsi_dF(F, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
 
     Parameters
     ----------
@@ -220,12 +219,22 @@ def d2psi_dF2(F, params):
 
     Returns
     -------
-    dP_dF : (m, 9, 9) float64
+    P : (m, 3, 3) float64
 
-    Operation count per element: 2.
+    Operation count per element: 20.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
+    _out = _dpsi_dF_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, (3, 3))
+
+
+def _d2psi_dF2_body(m, _in_F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``dP_dF`` as ``(81, m)`` rows.
+    """
+    mu, lam, = params
     # inputs
     # intermediates (46)
     h0 = lam + 2*mu
@@ -357,7 +366,28 @@ def d2psi_dF2(F, params):
     _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
     _out_dP_dF[80] = A_8_8
-    return _finish(_out_dP_dF, m, (9, 9))
+    return _out_dP_dF
+
+
+def d2psi_dF2(F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dP_dF : (m, 9, 9) float64
+
+    Operation count per element: 2.
+    """
+    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
+    _out = _d2psi_dF2_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, (9, 9))
 
 
 def energy(x_e, dphi_dX, vol, params):

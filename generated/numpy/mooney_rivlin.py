@@ -117,24 +117,13 @@ SIGNATURES = {
 
 
 
-def psi(F, params):
+def _psi_body(m, _in_F, params):
     """Strain energy density psi(F).
 
-    Parameters
-    ----------
-    F : (m, 3, 3) float64
-        deformation gradients.
-    params : (n_params,) or (m, n_params) float64
-        (C10, C01, kappa), shared or per element.
-
-    Returns
-    -------
-    psi : (m) float64
-
-    Operation count per element: 80.
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``psi`` as ``(1, m)`` rows.
     """
-    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
+    C10, C01, kappa, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -160,11 +149,11 @@ def psi(F, params):
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
-    return _finish(_out_psi, m, ())
+    return _out_psi
 
 
-def dpsi_dF(F, params):
-    """First Piola-Kirchhoff stress P = dpsi/dF.
+def psi(F, params):
+    """Strain energy density psi(F).
 
     Parameters
     ----------
@@ -175,12 +164,22 @@ def dpsi_dF(F, params):
 
     Returns
     -------
-    P : (m, 3, 3) float64
+    psi : (m) float64
 
-    Operation count per element: 208.
+    Operation count per element: 80.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
+    _out = _psi_body(m, _in_F, _params(params, ('C10', 'C01', 'kappa'), m))
+    return _finish(_out, m, ())
+
+
+def _dpsi_dF_body(m, _in_F, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``P`` as ``(9, m)`` rows.
+    """
+    C10, C01, kappa, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -253,11 +252,11 @@ def dpsi_dF(F, params):
     _out_P[6] = P_2_0
     _out_P[7] = P_2_1
     _out_P[8] = P_2_2
-    return _finish(_out_P, m, (3, 3))
+    return _out_P
 
 
-def d2psi_dF2(F, params):
-    """dP/dF, 9x9 in the row-major flattening of F.
+def dpsi_dF(F, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
 
     Parameters
     ----------
@@ -268,12 +267,22 @@ def d2psi_dF2(F, params):
 
     Returns
     -------
-    dP_dF : (m, 9, 9) float64
+    P : (m, 3, 3) float64
 
-    Operation count per element: 778.
+    Operation count per element: 208.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    C10, C01, kappa, = _params(params, ('C10', 'C01', 'kappa'), m)
+    _out = _dpsi_dF_body(m, _in_F, _params(params, ('C10', 'C01', 'kappa'), m))
+    return _finish(_out, m, (3, 3))
+
+
+def _d2psi_dF2_body(m, _in_F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``dP_dF`` as ``(81, m)`` rows.
+    """
+    C10, C01, kappa, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -542,7 +551,28 @@ def d2psi_dF2(F, params):
     _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
     _out_dP_dF[80] = A_8_8
-    return _finish(_out_dP_dF, m, (9, 9))
+    return _out_dP_dF
+
+
+def d2psi_dF2(F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    params : (n_params,) or (m, n_params) float64
+        (C10, C01, kappa), shared or per element.
+
+    Returns
+    -------
+    dP_dF : (m, 9, 9) float64
+
+    Operation count per element: 778.
+    """
+    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
+    _out = _d2psi_dF2_body(m, _in_F, _params(params, ('C10', 'C01', 'kappa'), m))
+    return _finish(_out, m, (9, 9))
 
 
 def energy(x_e, dphi_dX, vol, params):

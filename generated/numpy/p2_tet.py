@@ -65,7 +65,7 @@ SIGNATURES = {
 
 
 
-def rest_shape(X_e, ):
+def rest_shape(X_e):
     """dN/dX, det J and weight * det J at the 4 quadrature points of rest tets (refuses det J <= 0).
 
     Parameters
@@ -486,7 +486,7 @@ def rest_shape(X_e, ):
     return _finish(_out_dN_dX, m, (4, 10, 3)), _finish(_out_detJ, m, (4,)), _finish(_out_w_detJ, m, (4,))
 
 
-def shape_functions(xi, ):
+def shape_functions(xi):
     """Shape functions N and their gradients dN/dxi at reference points.
 
     Parameters
@@ -1636,7 +1636,7 @@ def mass_coefficients(vol, params):
     return _finish(_out_mass, m, (10, 10))
 
 
-def deformation_gradient(x_e, dN_dX, ):
+def deformation_gradient(x_e, dN_dX):
     """Deformation gradient F = sum_a x_a dN_a/dX^T at each point.
 
     Parameters
@@ -1846,7 +1846,7 @@ def deformation_gradient(x_e, dN_dX, ):
     return _finish(_out_F, m, (4, 3, 3))
 
 
-def deformation_jacobian(x_e, dN_dX, ):
+def deformation_jacobian(x_e, dN_dX):
     """det F at each quadrature point (<= 0: inverted there).
 
     Parameters

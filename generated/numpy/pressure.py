@@ -1023,7 +1023,7 @@ def p2_hessian(x_f, params):
     return _finish(_out_hessian, m, (18, 18))
 
 
-def p2_follower_load(x_f, ):
+def p2_follower_load(x_f):
     """Consistent load of unit pressure, -int N_i (x_xi x x_eta), 18.
 
     Parameters
@@ -1208,7 +1208,7 @@ def p2_follower_load(x_f, ):
     return _finish(_out_load, m, (18,))
 
 
-def p2_traction_weights(x_f, ):
+def p2_traction_weights(x_f):
     """Consistent traction weights int N_i dA of a 6-node triangle, 6.
 
     Parameters

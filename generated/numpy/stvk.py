@@ -115,24 +115,13 @@ SIGNATURES = {
 
 
 
-def psi(F, params):
+def _psi_body(m, _in_F, params):
     """Strain energy density psi(F).
 
-    Parameters
-    ----------
-    F : (m, 3, 3) float64
-        deformation gradients.
-    params : (n_params,) or (m, n_params) float64
-        (mu, lam), shared or per element.
-
-    Returns
-    -------
-    psi : (m) float64
-
-    Operation count per element: 56.
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``psi`` as ``(1, m)`` rows.
     """
-    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
+    mu, lam, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -151,11 +140,11 @@ def psi(F, params):
     # outputs
     _out_psi = numpy.empty((1, m))
     _out_psi[0] = psi
-    return _finish(_out_psi, m, ())
+    return _out_psi
 
 
-def dpsi_dF(F, params):
-    """First Piola-Kirchhoff stress P = dpsi/dF.
+def psi(F, params):
+    """Strain energy density psi(F).
 
     Parameters
     ----------
@@ -166,12 +155,22 @@ def dpsi_dF(F, params):
 
     Returns
     -------
-    P : (m, 3, 3) float64
+    psi : (m) float64
 
-    Operation count per element: 110.
+    Operation count per element: 56.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
+    _out = _psi_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, ())
+
+
+def _dpsi_dF_body(m, _in_F, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``P`` as ``(9, m)`` rows.
+    """
+    mu, lam, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -213,11 +212,11 @@ def dpsi_dF(F, params):
     _out_P[6] = P_2_0
     _out_P[7] = P_2_1
     _out_P[8] = P_2_2
-    return _finish(_out_P, m, (3, 3))
+    return _out_P
 
 
-def d2psi_dF2(F, params):
-    """dP/dF, 9x9 in the row-major flattening of F.
+def dpsi_dF(F, params):
+    """First Piola-Kirchhoff stress P = dpsi/dF.
 
     Parameters
     ----------
@@ -228,12 +227,22 @@ def d2psi_dF2(F, params):
 
     Returns
     -------
-    dP_dF : (m, 9, 9) float64
+    P : (m, 3, 3) float64
 
-    Operation count per element: 289.
+    Operation count per element: 110.
     """
     m, (_in_F, ) = _elements((F, "F", (3, 3)), )
-    mu, lam, = _params(params, ('mu', 'lam'), m)
+    _out = _dpsi_dF_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, (3, 3))
+
+
+def _d2psi_dF2_body(m, _in_F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    On validated inputs: each as ``(size, m)`` rows, the parameters as ``_params`` returns
+    them; returns ``dP_dF`` as ``(81, m)`` rows.
+    """
+    mu, lam, = params
     # inputs
     F_0_0 = _in_F[0]
     F_0_1 = _in_F[1]
@@ -421,7 +430,28 @@ def d2psi_dF2(F, params):
     _out_dP_dF[71] = A_7_8
     _out_dP_dF[79] = _out_dP_dF[71]
     _out_dP_dF[80] = A_8_8
-    return _finish(_out_dP_dF, m, (9, 9))
+    return _out_dP_dF
+
+
+def d2psi_dF2(F, params):
+    """dP/dF, 9x9 in the row-major flattening of F.
+
+    Parameters
+    ----------
+    F : (m, 3, 3) float64
+        deformation gradients.
+    params : (n_params,) or (m, n_params) float64
+        (mu, lam), shared or per element.
+
+    Returns
+    -------
+    dP_dF : (m, 9, 9) float64
+
+    Operation count per element: 289.
+    """
+    m, (_in_F, ) = _elements((F, "F", (3, 3)), )
+    _out = _d2psi_dF2_body(m, _in_F, _params(params, ('mu', 'lam'), m))
+    return _finish(_out, m, (9, 9))
 
 
 def energy(x_e, dphi_dX, vol, params):

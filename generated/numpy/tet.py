@@ -48,7 +48,7 @@ SIGNATURES = {
 
 
 
-def rest_shape(X_e, ):
+def rest_shape(X_e):
     """Shape-function gradients dphi/dX and signed volume of rest tets.
 
     Parameters
@@ -135,7 +135,7 @@ def rest_shape(X_e, ):
     return _finish(_out_dphi_dX, m, (4, 3)), _finish(_out_volume, m, ())
 
 
-def phi(X_e, p, ):
+def phi(X_e, p):
     """Shape functions (barycentric coordinates) of each tet at a point p.
 
     Parameters
@@ -388,7 +388,7 @@ def mass_matrix(vol, params):
     return _finish(_out_mass, m, (12, 12))
 
 
-def deformation_gradient(x_e, dphi_dX, ):
+def deformation_gradient(x_e, dphi_dX):
     """Deformation gradient F = sum_v x_v dphi_v/dX^T.
 
     Parameters
@@ -445,7 +445,7 @@ def deformation_gradient(x_e, dphi_dX, ):
     return _finish(_out_F, m, (3, 3))
 
 
-def deformed_volume(x_e, ):
+def deformed_volume(x_e):
     """Signed volume of deformed tets (<= 0: inverted or flat).
 
     Parameters

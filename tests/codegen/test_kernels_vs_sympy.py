@@ -732,6 +732,23 @@ def test_p2_c_files_share_the_quadrature_loops() -> None:
     check_p2_c_files(ROOT / "generated" / "c")
 
 
+def test_p2_numpy_files_share_the_quadrature_loops() -> None:
+    """As the C files: each material's P2 NumPy module holds only its dP/dp at one F and the
+    kernels' entry points, which call p2_quadrature.py's loops with the P1 module's own psi,
+    P and dP/dF bodies; the loops and the chain rule to the nodes are written once."""
+    numpy_dir = ROOT / "generated" / "numpy"
+    shared = (numpy_dir / "p2_quadrature.py").read_text()
+    for kind in ("energy", "gradient", "dgradient_dparams", "hessian"):
+        assert shared.count(f"\ndef {kind}(m, inputs, params, material, project):") == 1
+    assert shared.count("T_0_0 = ") == 1
+    for material in MATERIALS:
+        text = (numpy_dir / f"p2_{material}.py").read_text()
+        assert "for q in range(" not in text and "T_0_0" not in text
+        assert f"from .{material} import _d2psi_dF2_body, _dpsi_dF_body, _psi_body" in text
+        assert "\ndef _d2psi_dF2_body(m, _in_F, " in (numpy_dir / f"{material}.py").read_text()
+        assert len(text.splitlines()) < 500
+
+
 def check_p2_c_files(c_dir: Path) -> None:
     """The assertions of :func:`test_p2_c_files_share_the_quadrature_loops` on ``c_dir``."""
     shared = (c_dir / "p2_quadrature.c").read_text()

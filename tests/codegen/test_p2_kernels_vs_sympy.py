@@ -315,6 +315,20 @@ def test_p2_kernels_match_sympy_at_each_point(material: str, kernel: str, backen
     assert relative_error(result, expected) < 1e-10
 
 
+@pytest.mark.parametrize("material", ["stvk", "fibre_reinforced"])
+def test_p2_numpy_energy_is_p1_psi_summed_over_the_points(material: str) -> None:
+    """The NumPy P2 kernels call the P1 module's own kernels at each point's F: the energy is
+    P1's psi at p2_tet's F times w det J, summed point by point, to the bit."""
+    x, dN, w, extra, params = material_case(material)
+    F = kernel_module("p2_tet", "numpy").deformation_gradient(x, dN)
+    psi = kernel_module(material, "numpy").psi
+    expected = np.zeros(len(x))
+    for q in range(F.shape[1]):
+        expected += psi(F[:, q], *extra, params) * w[:, q]
+    energy = kernel_module(f"p2_{material}", "numpy").energy(x, dN, w, *extra, params)
+    np.testing.assert_array_equal(energy, expected)
+
+
 def stvk_along(x: np.ndarray, dN: np.ndarray, w: np.ndarray, params, u: np.ndarray,
                v: np.ndarray) -> tuple[float, float, float]:
     """SymPy's direct derivatives of one whole P2 element's StVK energy in its 30 node
