@@ -21,11 +21,15 @@ The KSP, by default:
 Any PETSc option overrides them: the scene's ``simulation.petsc_options``, then
 ``FEM3D_PETSC_OPTIONS`` (both a string such as ``"-ksp_type gmres -pc_type hypre"``), and
 PETSc's own ``PETSC_OPTIONS`` (read at PETSc's start; ``-log_view`` prints PETSc's timings
-when the process ends).
+when the process ends). The algorithms of the matrix products GAMG forms
+(:data:`PRODUCT_OPTIONS`: ``-matptap_via allatonce`` lowers a distributed set-up's memory,
+docs/parallel.md) are read from PETSc's global database, not the KSP's prefix: given in the
+scene, they are put there while the preconditioner sets up.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import shlex
@@ -37,8 +41,8 @@ import numpy as np
 
 from fem3d.solve.linear.base import DirectSolver, NotPositiveDefinite, SolveReport, SolverOptions
 
-__all__ = ["DofLayout", "ENV_OPTIONS", "GAMG_MIN_FREE_DOFS", "KSP_RTOL", "PetscSolver",
-           "petsc_module", "parse_options"]
+__all__ = ["DofLayout", "ENV_OPTIONS", "GAMG_MIN_FREE_DOFS", "KSP_RTOL", "PRODUCT_OPTIONS",
+           "PetscSolver", "petsc_module", "parse_options"]
 
 #: The environment variable of PETSc options (``"-ksp_type cg -pc_type gamg -log_view"``).
 ENV_OPTIONS = "FEM3D_PETSC_OPTIONS"
@@ -46,6 +50,10 @@ ENV_OPTIONS = "FEM3D_PETSC_OPTIONS"
 #: present), like ``"auto"``'s switch to AMG-CG (:data:`~fem3d.solve.linear.amg_cg.
 #: AMG_AUTO_MIN_FREE_DOFS`).
 GAMG_MIN_FREE_DOFS = 10000
+#: Prefixes of the options PETSc reads from its global database (no object's prefix) while
+#: a preconditioner sets up: the algorithms of the matrix products GAMG forms
+#: (``-matptap_via``, ``-matmatmult_via``, ...).
+PRODUCT_OPTIONS = ("matptap_", "matmatmult_", "mattransposematmult_", "mat_product_")
 #: The default relative residual of the Krylov solves (a direct solve's in effect: Newton's
 #: gradient tolerance is ``1e-10`` relative).
 KSP_RTOL = 1e-10
@@ -253,6 +261,28 @@ class PetscSolver(DirectSolver):
             del opts[key]  # the prefix is this solver's: nothing left behind
         return ksp
 
+    @contextlib.contextmanager
+    def _product_options(self):
+        """:attr:`ksp_options`' :data:`PRODUCT_OPTIONS` in PETSc's global database while the
+        preconditioner sets up (GAMG's products read them there, not under the KSP's
+        prefix); what the database held before, after."""
+        given = {k: v for k, v in self.ksp_options.items() if k.startswith(PRODUCT_OPTIONS)}
+        if not given:
+            yield
+            return
+        opts = petsc_module().Options()
+        before = {k: opts.getString(k) if opts.hasName(k) else None for k in given}
+        for key, value in given.items():
+            opts[key] = value
+        try:
+            yield
+        finally:
+            for key, value in before.items():
+                if value is None:
+                    del opts[key]
+                else:
+                    opts[key] = value
+
     def _defaults(self) -> dict[str, str]:
         PETSc = petsc_module()
         mumps = PETSc.Sys.hasExternalPackage("mumps")
@@ -291,7 +321,8 @@ class PetscSolver(DirectSolver):
         else:
             self._ksp.setOperators(self._mat)
         try:
-            self._ksp.setUp()
+            with self._product_options():
+                self._ksp.setUp()
         except PETSc.Error as err:
             raise NotPositiveDefinite(f"PETSc could not set up the solver ({err})",
                                       backend=self.name) from None
