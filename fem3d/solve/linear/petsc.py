@@ -202,18 +202,27 @@ class PetscSolver(DirectSolver):
         rows, cols = self._rows, self._indices
         if layout is not None:
             rows, cols = layout.order[rows], layout.order[cols]
-        # the entries in PETSc's row order, each row's columns sorted (MatSetValues by rows)
-        by_row = np.lexsort((cols, rows))
-        first = np.r_[True, rows[by_row][1:] != rows[by_row][:-1]]
-        self._by_row = by_row
-        self._row_of = rows[by_row][first].astype(PETSc.IntType)
-        self._row_ptr = np.r_[np.flatnonzero(first), by_row.size].astype(PETSc.IntType)
-        self._cols = cols[by_row].astype(PETSc.IntType)
         A = PETSc.Mat().create(comm=self._comm())
         A.setSizes(((n_owned, n), (n_owned, n)), bsize=bs)
         A.setType(PETSc.Mat.Type.AIJ)
         A.setPreallocationNNZ(self._row_counts(rows, cols, counts, rank))
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        # the entries in PETSc's row order, each row's columns sorted (MatSetValues by rows)
+        by_row = np.lexsort((cols, rows))
+        self._cols = cols[by_row].astype(PETSc.IntType)
+        del cols
+        rows = rows[by_row]
+        first = np.r_[True, rows[1:] != rows[:-1]]
+        self._row_of = rows[first].astype(PETSc.IntType)
+        self._row_ptr = np.r_[np.flatnonzero(first), by_row.size].astype(PETSc.IntType)
+        del rows, first
+        if self.partial:
+            # memory per rank: the permutation in 4 bytes an entry where it fits, and the
+            # entries' rows (8 bytes each) let go; a rank's matrices all have its pattern
+            if by_row.size <= np.iinfo(np.int32).max:
+                by_row = by_row.astype(np.int32)
+            self._rows = None
+        self._by_row = by_row
         self._bs = bs
         self._mat = A
         self._ksp = None
