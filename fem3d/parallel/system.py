@@ -161,6 +161,11 @@ class DistributedSystem(System):
         The scene's ``simulation.petsc_options``.
     """
 
+    #: Distributed runs refuse Newton's ``reuse`` direction and the ``amg`` backend, the
+    #: only readers of :attr:`factorized_data`: no copy of the rank's Newton matrix (8 bytes
+    #: per stored entry) stays alive through the next iteration's GAMG set-up.
+    records_factorized = False
+
     def __init__(self, model: Model, constraints: Constraints, layout: DofLayout, *,
                  loads: Loads, petsc_options: str = "") -> None:
         self.layout = layout

@@ -92,6 +92,11 @@ class System:
     ``3n x 3n`` matrix is built and reduced per Newton iteration.
     """
 
+    #: Whether :meth:`factorize` records the matrix it factorized in
+    #: :attr:`factorized_data` (a copy of its values): what Newton's ``reuse`` direction and
+    #: a checkpoint of a run that keeps its factorization need.
+    records_factorized: bool = True
+
     def __init__(
         self,
         model: Model,
@@ -347,7 +352,8 @@ class System:
         except NotPositiveDefinite as exc:
             raise SimulationError(f"could not factorize the system matrix: {exc}") from exc
         # the matrix actually factorized: a checkpoint rebuilds exactly this factor
-        self.factorized_data = A_free.data + mu * mass.data if mu else np.array(A_free.data)
+        if self.records_factorized:
+            self.factorized_data = A_free.data + mu * mass.data if mu else np.array(A_free.data)
         return mu
 
     # -- objective terms' Hessian entries -----------------------------------------------------

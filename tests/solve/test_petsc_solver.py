@@ -82,6 +82,29 @@ def test_environment_options_win(monkeypatch):
 
 
 @needs_petsc
+def test_product_options_reach_gamg_set_up():
+    """``-matptap_via`` in the scene's options reaches GAMG's products (PETSc reads it from
+    its global database, not the KSP's prefix): a bad value fails the set-up, a good one
+    solves, and the global database is left as it was."""
+    from fem3d.solve.linear.petsc import petsc_module
+
+    A, points, b = _newton_matrix()
+    gamg = "-ksp_type cg -pc_type gamg -ksp_rtol 1e-12"
+    bad = PetscSolver(SolverOptions(points=points, petsc_options=f"{gamg} -matptap_via nope"))
+    bad.analyse(A)
+    with pytest.raises(NotPositiveDefinite, match="could not set up the solver"):
+        bad.factorize(A)
+    solver = PetscSolver(SolverOptions(points=points,
+                                       petsc_options=f"{gamg} -matptap_via scalable"))
+    solver.analyse(A)
+    solver.factorize(A)
+    x = solver.solve(b)
+    expected = spla.spsolve(A.tocsc(), b)
+    assert np.linalg.norm(x - expected) <= 1e-9 * np.linalg.norm(expected)
+    assert not petsc_module().Options().hasName("matptap_via")
+
+
+@needs_petsc
 def test_indefinite_matrix_is_refused_and_shifted():
     """MUMPS' LDL^T counts negative pivots: an indefinite matrix raises, and the shift ladder
     lands on the first positive-definite rung, as with CHOLMOD."""

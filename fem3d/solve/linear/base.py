@@ -266,7 +266,8 @@ class DirectSolver:
             ones = sp.csr_matrix((np.ones(len(P.indices)), P.indices, P.indptr), shape=P.shape)
             if (ones != ones.T).nnz:
                 raise ValueError("pattern must be structurally symmetric")
-        self._rows = rows
+        # each entry's row (a solver may let it go after its analysis: then remade if needed)
+        self._rows: np.ndarray | None = rows
         self._keys: np.ndarray | None = None
         self._diag_pos = diag_pos
         self._factored = False
@@ -301,7 +302,9 @@ class DirectSolver:
         a_rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(A.indptr))
         keys = a_rows * self.n + A.indices
         if self._keys is None:
-            self._keys = self._rows.astype(np.int64) * self.n + self._indices
+            rows = self._rows if self._rows is not None else \
+                np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self._indptr))
+            self._keys = rows.astype(np.int64) * self.n + self._indices
         pos = np.searchsorted(self._keys, keys)
         pos = np.minimum(pos, len(self._keys) - 1)
         inside = self._keys[pos] == keys

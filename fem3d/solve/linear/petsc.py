@@ -21,11 +21,15 @@ The KSP, by default:
 Any PETSc option overrides them: the scene's ``simulation.petsc_options``, then
 ``FEM3D_PETSC_OPTIONS`` (both a string such as ``"-ksp_type gmres -pc_type hypre"``), and
 PETSc's own ``PETSC_OPTIONS`` (read at PETSc's start; ``-log_view`` prints PETSc's timings
-when the process ends).
+when the process ends). The algorithms of the matrix products GAMG forms
+(:data:`PRODUCT_OPTIONS`: ``-matptap_via allatonce`` lowers a distributed set-up's memory,
+docs/parallel.md) are read from PETSc's global database, not the KSP's prefix: given in the
+scene, they are put there while the preconditioner sets up.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import shlex
@@ -37,8 +41,8 @@ import numpy as np
 
 from fem3d.solve.linear.base import DirectSolver, NotPositiveDefinite, SolveReport, SolverOptions
 
-__all__ = ["DofLayout", "ENV_OPTIONS", "GAMG_MIN_FREE_DOFS", "KSP_RTOL", "PetscSolver",
-           "petsc_module", "parse_options"]
+__all__ = ["DofLayout", "ENV_OPTIONS", "GAMG_MIN_FREE_DOFS", "KSP_RTOL", "PRODUCT_OPTIONS",
+           "PetscSolver", "petsc_module", "parse_options"]
 
 #: The environment variable of PETSc options (``"-ksp_type cg -pc_type gamg -log_view"``).
 ENV_OPTIONS = "FEM3D_PETSC_OPTIONS"
@@ -46,6 +50,10 @@ ENV_OPTIONS = "FEM3D_PETSC_OPTIONS"
 #: present), like ``"auto"``'s switch to AMG-CG (:data:`~fem3d.solve.linear.amg_cg.
 #: AMG_AUTO_MIN_FREE_DOFS`).
 GAMG_MIN_FREE_DOFS = 10000
+#: Prefixes of the options PETSc reads from its global database (no object's prefix) while
+#: a preconditioner sets up: the algorithms of the matrix products GAMG forms
+#: (``-matptap_via``, ``-matmatmult_via``, ...).
+PRODUCT_OPTIONS = ("matptap_", "matmatmult_", "mattransposematmult_", "mat_product_")
 #: The default relative residual of the Krylov solves (a direct solve's in effect: Newton's
 #: gradient tolerance is ``1e-10`` relative).
 KSP_RTOL = 1e-10
@@ -194,18 +202,27 @@ class PetscSolver(DirectSolver):
         rows, cols = self._rows, self._indices
         if layout is not None:
             rows, cols = layout.order[rows], layout.order[cols]
-        # the entries in PETSc's row order, each row's columns sorted (MatSetValues by rows)
-        by_row = np.lexsort((cols, rows))
-        first = np.r_[True, rows[by_row][1:] != rows[by_row][:-1]]
-        self._by_row = by_row
-        self._row_of = rows[by_row][first].astype(PETSc.IntType)
-        self._row_ptr = np.r_[np.flatnonzero(first), by_row.size].astype(PETSc.IntType)
-        self._cols = cols[by_row].astype(PETSc.IntType)
         A = PETSc.Mat().create(comm=self._comm())
         A.setSizes(((n_owned, n), (n_owned, n)), bsize=bs)
         A.setType(PETSc.Mat.Type.AIJ)
         A.setPreallocationNNZ(self._row_counts(rows, cols, counts, rank))
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        # the entries in PETSc's row order, each row's columns sorted (MatSetValues by rows)
+        by_row = np.lexsort((cols, rows))
+        self._cols = cols[by_row].astype(PETSc.IntType)
+        del cols
+        rows = rows[by_row]
+        first = np.r_[True, rows[1:] != rows[:-1]]
+        self._row_of = rows[first].astype(PETSc.IntType)
+        self._row_ptr = np.r_[np.flatnonzero(first), by_row.size].astype(PETSc.IntType)
+        del rows, first
+        if self.partial:
+            # memory per rank: the permutation in 4 bytes an entry where it fits, and the
+            # entries' rows (8 bytes each) let go; a rank's matrices all have its pattern
+            if by_row.size <= np.iinfo(np.int32).max:
+                by_row = by_row.astype(np.int32)
+            self._rows = None
+        self._by_row = by_row
         self._bs = bs
         self._mat = A
         self._ksp = None
@@ -253,6 +270,28 @@ class PetscSolver(DirectSolver):
             del opts[key]  # the prefix is this solver's: nothing left behind
         return ksp
 
+    @contextlib.contextmanager
+    def _product_options(self):
+        """:attr:`ksp_options`' :data:`PRODUCT_OPTIONS` in PETSc's global database while the
+        preconditioner sets up (GAMG's products read them there, not under the KSP's
+        prefix); what the database held before, after."""
+        given = {k: v for k, v in self.ksp_options.items() if k.startswith(PRODUCT_OPTIONS)}
+        if not given:
+            yield
+            return
+        opts = petsc_module().Options()
+        before = {k: opts.getString(k) if opts.hasName(k) else None for k in given}
+        for key, value in given.items():
+            opts[key] = value
+        try:
+            yield
+        finally:
+            for key, value in before.items():
+                if value is None:
+                    del opts[key]
+                else:
+                    opts[key] = value
+
     def _defaults(self) -> dict[str, str]:
         PETSc = petsc_module()
         mumps = PETSc.Sys.hasExternalPackage("mumps")
@@ -291,7 +330,8 @@ class PetscSolver(DirectSolver):
         else:
             self._ksp.setOperators(self._mat)
         try:
-            self._ksp.setUp()
+            with self._product_options():
+                self._ksp.setUp()
         except PETSc.Error as err:
             raise NotPositiveDefinite(f"PETSc could not set up the solver ({err})",
                                       backend=self.name) from None
