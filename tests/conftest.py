@@ -7,8 +7,12 @@ failed build fails the run instead of silently skipping about 140 tests.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 # One BLAS thread in this process and in every fem3d process a test starts (they inherit the
 # environment): a trajectory's bits depend on OpenBLAS's thread count (cantilever_amg parts
@@ -49,3 +53,46 @@ def pytest_sessionstart(session):
     reason = missing_required_c()
     if reason is not None:
         raise pytest.UsageError(reason)
+
+
+# -- many workers (make test: pytest-xdist, whole files per worker) ---------------------------
+# A test marked ``alone`` runs while no other worker's test runs: its mpiexec ranks wait for
+# each other by polling, and a test beside them on the same cores makes a 3 s two-rank run
+# take 40-60 s (measured with two workers on 2 cores). The other tests share the cores.
+# A readers-writer lock over two files, fair to the writer: every test passes the turnstile
+# first, and an ``alone`` test holds it while it waits for the running tests to end.
+
+
+@contextmanager
+def _flock(path: Path, mode: int) -> Iterator[None]:
+    with open(path, "a") as f:
+        fcntl.flock(f, mode)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+@pytest.fixture(autouse=True)
+def _share_the_cores(request: pytest.FixtureRequest,
+                     tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        yield
+        return
+    folder = tmp_path_factory.getbasetemp().parent  # the one every worker's folder is in
+    turnstile, cores = folder / "fem3d-turnstile.lock", folder / "fem3d-cores.lock"
+    if request.node.get_closest_marker("alone"):
+        with _flock(turnstile, fcntl.LOCK_EX), _flock(cores, fcntl.LOCK_EX):
+            yield
+        return
+    with _flock(turnstile, fcntl.LOCK_EX):
+        pass
+    with _flock(cores, fcntl.LOCK_SH):
+        yield
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Files with ``slow`` tests first (the longest first is the shortest schedule when
+    workers take whole files); the rest in their usual order."""
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)

@@ -17,6 +17,9 @@ from tests.parallel.helpers import relative_difference, run_mpi, write_scene
 from tests.parallel.test_mpi_checkpoint import GAMG
 from tests.parallel.test_mpi_run import _p2_bar
 
+# mpiexec's ranks poll while they wait: with another test on the cores they crawl
+pytestmark = pytest.mark.alone
+
 #: a traction on the tip, a pressure on the whole (closed) surface ramped in over 0.1 s,
 #: a point force on a few vertices: the loads of one body
 LOADS = """

@@ -30,6 +30,9 @@ from tests.parallel.helpers import (
     write_scene,
 )
 
+# mpiexec's ranks poll while they wait: with another test on the cores they crawl
+pytestmark = pytest.mark.alone
+
 
 def _one_process(scene_path, steps=20) -> Simulation:
     sim = Simulation(load_scene(str(scene_path)))
@@ -414,6 +417,7 @@ def test_an_element_one_rank_refuses_is_one_line_on_every_rank(tmp_path, bad_tet
 #: rank 1 fails alone when it writes its piece of frame 3 (a sitecustomize on PYTHONPATH)
 _FAIL_ON_RANK_1 = """
 import os
+
 if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK")) == "1":
     import fem3d.parallel.pieces as pieces
     write = pieces.PieceWriter.write
