@@ -92,7 +92,9 @@ def _share_the_cores(request: pytest.FixtureRequest,
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Files with ``slow`` tests first (the longest first is the shortest schedule when
-    workers take whole files); the rest in their usual order."""
-    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    """Files with ``slow`` or ``browser`` tests first (the longest first is the shortest
+    schedule when workers take whole files; a browser test waits on the page while the
+    other worker computes); the rest in their usual order."""
+    slow = {item.path for item in items
+            if item.get_closest_marker("slow") or item.get_closest_marker("browser")}
     items.sort(key=lambda item: item.path not in slow)
