@@ -55,10 +55,12 @@ browser:  ## Debian chromium for the browser test (skipped with a reason if this
 	-@bash scripts/install_chromium.sh
 
 # One pytest worker per core (pytest-xdist), each taking whole files: a file's module-level
-# fixtures and state stay in one process. A worker that dies is not replaced: the run fails at
-# once naming the test (pytest-xdist 3.8 can wait forever for a replaced worker under
-# --dist loadfile, pytest-xdist#784). PYTEST_WORKERS= runs the suite in one process.
-PYTEST_WORKERS ?= -n auto --dist loadfile --max-worker-restart=0
+# fixtures and state stay in one process. Files are handed out in the order tests/conftest.py
+# gives them (slow and browser files first), not xdist's own (most tests first). A worker that
+# dies is not replaced: the run fails at once naming the test (pytest-xdist 3.8 can wait
+# forever for a replaced worker under --dist loadfile, pytest-xdist#784).
+# PYTEST_WORKERS= runs the suite in one process.
+PYTEST_WORKERS ?= -n auto --dist loadfile --no-loadscope-reorder --max-worker-restart=0
 
 # The announcement comes first, before anything is installed (hence the sub-make).
 test:  ## the test suite (what CI runs)
