@@ -58,7 +58,10 @@ def pytest_sessionstart(session):
 # -- many workers (make test: pytest-xdist, whole files per worker) ---------------------------
 # A test marked ``alone`` runs while no other worker's test runs: its mpiexec ranks wait for
 # each other by polling, and a test beside them on the same cores makes a 3 s two-rank run
-# take 40-60 s (measured with two workers on 2 cores). The other tests share the cores.
+# take 40-60 s (measured with two workers on 2 cores). The ``browser`` tests run alone too:
+# the viewer steps at the wall clock's rate and the page must follow a drag within its wait
+# (beside another worker's test it once did not, and once the worker died in that test).
+# The other tests share the cores.
 # A readers-writer lock over two files, fair to the writer: every test passes the turnstile
 # first, and an ``alone`` test holds it while it waits for the running tests to end.
 
@@ -81,7 +84,7 @@ def _share_the_cores(request: pytest.FixtureRequest,
         return
     folder = tmp_path_factory.getbasetemp().parent  # the one every worker's folder is in
     turnstile, cores = folder / "fem3d-turnstile.lock", folder / "fem3d-cores.lock"
-    if request.node.get_closest_marker("alone"):
+    if request.node.get_closest_marker("alone") or request.node.get_closest_marker("browser"):
         with _flock(turnstile, fcntl.LOCK_EX), _flock(cores, fcntl.LOCK_EX):
             yield
         return
