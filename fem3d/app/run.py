@@ -175,11 +175,9 @@ class RunLoop:
         self.writer = BackgroundWriter(make_frame_writer(
             out, self.faces, scene.output.format, bodies=_display_bodies(scene, sim),
             dt=sim.dt, obstacles=self.obstacles))
-        blocks = [b for _, b in sim.model.element_blocks()]
-        self.volume = (BackgroundWriter(VolumeVtuWriter(
-            out, *((sim.model.T, sim.model.element.vtk_type) if len(blocks) == 1 else
-                   ([b.T for b in blocks], [b.element.vtk_type for b in blocks]))))
-            if scene.output.volume else None)
+        self.volume = (BackgroundWriter(VolumeVtuWriter(out, model_cells(sim.model),
+                                                        model_cell_types(sim.model)))
+                       if scene.output.volume else None)
         n_frames = self.steps // self.frame_every + 1
         self.preview_stride = max(1, math.ceil(n_frames / PREVIEW_FRAMES))
         self.preview: list[np.ndarray] = []
@@ -395,8 +393,15 @@ class RunLoop:
 
 
 def model_cells(model):
-    """The model's elements for :func:`mesh_digest`: ``T``, or each element block's."""
+    """The model's elements (:func:`mesh_digest`, volume frames): ``T``, or each element
+    block's."""
     return [b.T for b in model.blocks] if model.is_mixed else model.T
+
+
+def model_cell_types(model):
+    """VTK's cell type of :func:`model_cells`: the element's, or each element block's."""
+    return [b.element.vtk_type for b in model.blocks] if model.is_mixed else \
+        model.element.vtk_type
 
 
 def _display_bodies(scene, sim) -> list[tuple[str, slice, slice]]:
