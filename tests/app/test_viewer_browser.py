@@ -177,6 +177,21 @@ def _central_pixel(mask: np.ndarray) -> tuple[float, float]:
     return x0 - 6 + float(xs.mean()), y0 - 6 + float(ys.mean())
 
 
+def _settled_screenshot(page: Any, timeout: float) -> np.ndarray:
+    """A screenshot showing the mesh, once the one before it showed the same picture."""
+    last: list[np.ndarray] = []
+
+    def settled() -> Any:
+        im = _image(page.screenshot(timeout=60_000))
+        if _mesh_mask(im).mean() <= 0.01:
+            return "no mesh drawn yet"
+        same = bool(last) and _mesh_change(im, last[-1]) < 1.0
+        last[:] = [im]
+        return im if same else "the picture still changes"
+
+    return wait_for(settled, timeout, "the drawn mesh to settle", interval=0.3)
+
+
 _T_RE = re.compile(r"t[ \u00a0]=[ \u00a0](-?[0-9.]+)[ \u00a0]s")
 
 #: The y axes the page's uPlot charts draw (viser registers each chart in a testpoint).
@@ -278,15 +293,10 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
             wait_for(lambda: viewer.snapshot()["steps"] > 5, 30, "the simulation to run")
             wait_for(lambda: viewer.snapshot()["pushes"] >= 1, 10, "a mesh update to be pushed")
 
-            # Wait until the mesh is drawn, then find a grab point on it.
-            shot0 = wait_for(
-                lambda: (lambda im: im if _mesh_mask(im).mean() > 0.01 else None)(
-                    _image(page.screenshot(timeout=60_000))
-                ),
-                30,
-                "the mesh to appear in a screenshot",
-                interval=0.3,
-            )
+            # Wait until the mesh is drawn and two screenshots in a row agree (a first frame
+            # can differ from the settled one all over: once it made the drag's shift read
+            # -2.5 px against the usual +15), then find a grab point on it.
+            shot0 = _settled_screenshot(page, 30)
             log("mesh visible")
             # The page's clock started when it connected and keeps to wall time (a shown
             # time may be late, never early: the bound below is loose, the one above is not).
@@ -341,6 +351,8 @@ def test_browser_drag_hotkeys_screenshots(viewer: Any, tmp_path: Path) -> None:
                 return f"mesh change {change:.2f}, centroid shift {shift:+.2f} px (dx {dx:+})"
 
             shot1 = wait_for(mesh_followed, 30, "the drawn mesh to follow the drag", 0.3)
+            log(f"followed: mesh change {_mesh_change(shot1, shot0):.2f}, centroid shift "
+                f"{(_mesh_centroid(shot1) - c0)[0]:+.2f} px")
             page.mouse.up()
             wait_for(lambda: viewer.snapshot()["pull"] is None, 10, "the pull to be released")
 
