@@ -470,7 +470,7 @@ def corrupt(data: bytes, ops: list[tuple[str, float, int]]) -> bytes:
 OUTCOMES: dict[str, int] = {}
 
 
-@settings(max_examples=2000, deadline=None,
+@settings(max_examples=1000, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(name=st.sampled_from(["coarser_bunny.mesh", "arma_6.node", "arma_6.ele",
                              "armadillo2.obj", "coarser_bunny.obj", "arma.msh", "arma.vtu"]),

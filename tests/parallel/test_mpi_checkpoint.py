@@ -177,12 +177,12 @@ def test_sigusr1_on_two_ranks_checkpoints_and_resumes_bit_exact(tmp_path):
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_sigterm_to_mpiexec_checkpoints_within_its_grace(tmp_path, signum):
     """SIGTERM or SIGINT to Open MPI's ``mpiexec``: it sends the ranks SIGTERM and, after
-    ``odls_base_sigkill_timeout`` s (5 here, 25 times a step of the box; 1 by default),
+    ``odls_base_sigkill_timeout`` s (2 here, 10 times a step of the box; 1 by default),
     SIGKILL; the ranks save the checkpoint of the step they finish before that and print
     the one-process line (mpiexec's own exit status is its abort's, not 130). mpiexec waits
-    the timeout out twice: the test takes about 10 s."""
+    the timeout out twice: the test takes about 5 s (alone on the cores: ``alone``)."""
     status, lines, step = _interrupt(tmp_path, signum,
-                                     {"OMPI_MCA_odls_base_sigkill_timeout": "5"})
+                                     {"OMPI_MCA_odls_base_sigkill_timeout": "2"})
     assert status != 0 and lines[-1].startswith("fem3d run: interrupted by SIGTERM"), lines
     ckpt = load_run_checkpoint(tmp_path / "out" / CHECKPOINT_NAME)
     assert 4 <= ckpt.step == step < 400
