@@ -84,21 +84,31 @@ def _flock(path: Path, mode: int) -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
-@pytest.fixture(autouse=True)
-def _share_the_cores(request: pytest.FixtureRequest,
-                     tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+@contextmanager
+def cores(tmp_path_factory: pytest.TempPathFactory, alone: bool) -> Iterator[None]:
+    """The cores, shared with the other workers' tests or (``alone``) to this test alone;
+    a no-op without workers. A module fixture that launches ``mpiexec`` takes them alone
+    itself: it is set up before its first test's own (autouse) turn."""
     if "PYTEST_XDIST_WORKER" not in os.environ:
         yield
         return
     folder = tmp_path_factory.getbasetemp().parent  # the one every worker's folder is in
-    turnstile, cores = folder / "fem3d-turnstile.lock", folder / "fem3d-cores.lock"
-    if request.node.get_closest_marker("alone") or request.node.get_closest_marker("browser"):
-        with _flock(turnstile, fcntl.LOCK_EX), _flock(cores, fcntl.LOCK_EX):
+    turnstile, pool = folder / "fem3d-turnstile.lock", folder / "fem3d-cores.lock"
+    if alone:
+        with _flock(turnstile, fcntl.LOCK_EX), _flock(pool, fcntl.LOCK_EX):
             yield
         return
     with _flock(turnstile, fcntl.LOCK_EX):
         pass
-    with _flock(cores, fcntl.LOCK_SH):
+    with _flock(pool, fcntl.LOCK_SH):
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _share_the_cores(request: pytest.FixtureRequest,
+                     tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    marked = request.node.get_closest_marker("alone") or request.node.get_closest_marker("browser")
+    with cores(tmp_path_factory, alone=bool(marked)):
         yield
 
 

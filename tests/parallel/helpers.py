@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -12,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+#: several command lines in one launch of ranks (:func:`run_mpi_batch`)
+BATCH_SCRIPT = Path(__file__).with_name("batch_runs.py")
 MESH = Path(__file__).resolve().parents[2] / "data" / "scenes" / "meshes" / "bar_16x4x4.mesh"
 
 
@@ -102,3 +105,22 @@ def start_mpi(ranks: int, *args: str, cwd: Path, env: dict[str, str] | None = No
     cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, "-m", "fem3d", *args]
     return subprocess.Popen(cmd, cwd=cwd, env={**mpi_env(), **(env or {})},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def run_mpi_batch(ranks: int, runs: dict[str, list[str]], cwd: Path, timeout: float = 300.0
+                  ) -> dict[str, subprocess.CompletedProcess]:
+    """Each of ``runs``' ``fem3d`` command lines, one after another on the same ``ranks``
+    ranks: one launch for runs whose outputs the tests then read (tests/parallel/batch_runs.py
+    says why). Per run, its exit status and (rank 0's) stderr, as :func:`run_mpi` gives
+    them; a launch that fails as a whole gives every run its status and stderr."""
+    plan = cwd / "batch.json"
+    plan.write_text(json.dumps(runs))
+    cmd = [*mpiexec_or_skip(), str(ranks), sys.executable, str(BATCH_SCRIPT), str(plan)]
+    proc = subprocess.run(cmd, cwd=cwd, env=mpi_env(), capture_output=True, text=True,
+                          timeout=timeout)
+    results = plan.with_suffix(".results.json")
+    if proc.returncode != 0 or not results.exists():
+        return {name: subprocess.CompletedProcess(cmd, proc.returncode or 1, proc.stdout,
+                                                  proc.stderr) for name in runs}
+    return {name: subprocess.CompletedProcess(runs[name], int(r["status"]), "", r["stderr"])
+            for name, r in json.loads(results.read_text()).items()}

@@ -5,6 +5,8 @@ and the linearly-implicit scheme)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,8 @@ from fem3d.io.energy import read_energy_csv
 from fem3d.physics.terms.surface import faces_among
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
-from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+from tests.conftest import cores
+from tests.parallel.helpers import relative_difference, run_mpi, run_mpi_batch, write_scene
 from tests.parallel.test_mpi_checkpoint import GAMG
 from tests.parallel.test_mpi_run import _p2_bar
 
@@ -54,12 +57,55 @@ target = [1.0, 0.2, 0.6]
 """
 
 
-def _compare(tmp_path, scene, steps: int, what: str) -> float:
-    """Run ``scene`` on 2 ranks and in one process (the scripted pulls applied, as
-    ``fem3d run`` does); the relative difference of the positions."""
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+def _loaded_box(folder, integrator):
+    scene = write_scene(folder, integrator=integrator, steps=10)
+    first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)  # the second bar
+    scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + LOADS)
+    return scene
+
+
+def _loaded_p2_bar(folder):
+    scene = _p2_bar(folder, steps=5)
+    scene.write_text(scene.read_text() + LOADS)
+    return scene
+
+
+def _pulled_box(folder, integrator):
+    scene = write_scene(folder, integrator=integrator, steps=10)
+    scene.write_text(scene.read_text() + PULLS)
+    return scene
+
+
+#: the 2-rank runs compared with one process: name -> how its scene is made in a folder
+SCENES = {**{f"loads {i}": lambda f, i=i: _loaded_box(f, i)
+             for i in ("implicit", "bdf2", "linear")},
+          "p2 loads": _loaded_p2_bar,
+          **{f"pulls {i}": lambda f, i=i: _pulled_box(f, i) for i in ("implicit", "linear")}}
+
+
+@pytest.fixture(scope="module")
+def two_rank_runs(tmp_path_factory):
+    """The runs of :data:`SCENES` on 2 ranks, made in one launch of the ranks
+    (:func:`run_mpi_batch`): name -> (the run's scene, beside its ``out``; the run's exit
+    status and stderr)."""
+    root = tmp_path_factory.mktemp("loads_on_two_ranks")
+    runs = {}
+    for k, (name, make) in enumerate(SCENES.items()):
+        folder = root / f"case{k}"
+        folder.mkdir()
+        runs[name] = ["run", str(make(folder)), "--out", str(folder / "out")]
+    with cores(tmp_path_factory, alone=True):
+        procs = run_mpi_batch(2, runs, cwd=root)
+    return {name: (Path(runs[name][1]), procs[name]) for name in runs}
+
+
+def _compare(run, steps: int, what: str) -> float:
+    """A 2-rank run of :func:`two_rank_runs` against its scene run in one process (the
+    scripted pulls applied, as ``fem3d run`` does); the relative difference of the
+    positions."""
+    scene, proc = run
     assert proc.returncode == 0, proc.stderr[-3000:]
-    state = np.load(tmp_path / "out" / "state.npz")
+    state = np.load(scene.parent / "out" / "state.npz")
     sim = Simulation(load_scene(str(scene)), scripted=True)
     for _ in range(steps):
         sim.step()
@@ -71,33 +117,28 @@ def _compare(tmp_path, scene, steps: int, what: str) -> float:
 
 
 @pytest.mark.parametrize("integrator", ["implicit", "bdf2", "linear"])
-def test_loads_on_two_ranks_equal_one_process(tmp_path, integrator):
+def test_loads_on_two_ranks_equal_one_process(two_rank_runs, integrator):
     """10 steps of the two-material box, each bar with a traction, a ramped follower
     pressure and a point force, on 2 ranks: the one-process run to 1e-8 of the motion (a
     load counted on both ranks would be off by its whole size)."""
-    scene = write_scene(tmp_path, integrator=integrator, steps=10)
-    first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)  # the second bar
-    scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + LOADS)
-    _compare(tmp_path, scene, 10, f"loads, {integrator}")
+    _compare(two_rank_runs[f"loads {integrator}"], 10, f"loads, {integrator}")
 
 
-def test_p2_loads_on_two_ranks_equal_one_process(tmp_path):
+def test_p2_loads_on_two_ranks_equal_one_process(two_rank_runs):
     """The P2 bar's 6-node faces: a traction, a ramped pressure and a point force, 5 steps
     on 2 ranks equal the one-process run to 1e-8 of the motion."""
-    scene = _p2_bar(tmp_path, steps=5)
-    scene.write_text(scene.read_text() + LOADS)
-    _compare(tmp_path, scene, 5, "P2 loads")
+    _compare(two_rank_runs["p2 loads"], 5, "P2 loads")
 
 
 @pytest.mark.parametrize("integrator", ["implicit", "linear"])
-def test_pulls_on_two_ranks_equal_one_process(tmp_path, integrator):
+def test_pulls_on_two_ranks_equal_one_process(two_rank_runs, integrator):
     """Two scripted pulls (an offset on one bar, a target on the other, overlapping in
     time) over 10 steps on 2 ranks: the one-process run to 1e-8 of the motion, and
     energy.csv's pull column the whole pull's energy."""
-    scene = write_scene(tmp_path, integrator=integrator, steps=10)
-    scene.write_text(scene.read_text() + PULLS)
-    _compare(tmp_path, scene, 10, f"pulls, {integrator}")
-    energy = read_energy_csv(tmp_path / "out" / "energy.csv")
+    run = two_rank_runs[f"pulls {integrator}"]
+    _compare(run, 10, f"pulls, {integrator}")
+    scene = run[0]
+    energy = read_energy_csv(scene.parent / "out" / "energy.csv")
     sim = Simulation(load_scene(str(scene)), scripted=True)
     sim.step()
     assert energy["pull"][1] == pytest.approx(sim.energies()["pull"], rel=1e-8)

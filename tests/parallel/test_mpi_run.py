@@ -8,6 +8,7 @@ import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -21,12 +22,14 @@ from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import model_terms
 from fem3d.solve.system import System
+from tests.conftest import cores
 from tests.parallel.helpers import (
     MESH,
     mpi_env,
     mpiexec_or_skip,
     relative_difference,
     run_mpi,
+    run_mpi_batch,
     write_scene,
 )
 
@@ -41,21 +44,55 @@ def _one_process(scene_path, steps=20) -> Simulation:
     return sim
 
 
-@pytest.mark.parametrize("integrator, options", [("implicit", ""), ("bdf2", ""),
-                                                 ("implicit", "-ksp_type cg -pc_type gamg"),
-                                                 ("newmark", ""), ("linear", "")])
-def test_two_ranks_equal_one_process(tmp_path, integrator, options):
+#: the box's integrator and PETSc options on 2 ranks (none: the default, MUMPS)
+BOX_CASES = [("implicit", ""), ("bdf2", ""), ("implicit", "-ksp_type cg -pc_type gamg"),
+             ("newmark", ""), ("linear", "")]
+
+
+def _box(folder, integrator, options=""):
+    scene = write_scene(folder, integrator=integrator)
+    if options:
+        scene.write_text(scene.read_text().replace(
+            'linear_solver = "auto"', f'linear_solver = "petsc"\npetsc_options = "{options}"'))
+    return scene
+
+
+def _static_box(folder):
+    scene = write_scene(folder, integrator="static", steps=3)
+    scene.write_text(scene.read_text().replace("velocity = [0.0, 0.0, 0.3]", ""))
+    return scene
+
+
+@pytest.fixture(scope="module")
+def two_rank_runs(tmp_path_factory):
+    """The 2-rank runs the tests below compare, made in one launch of the ranks
+    (:func:`run_mpi_batch`): name -> (the run's scene, beside its ``out``; the run's exit
+    status and stderr)."""
+    root = tmp_path_factory.mktemp("two_ranks")
+    scenes = {f"{integrator} {options}": lambda f, i=integrator, o=options: _box(f, i, o)
+              for integrator, options in BOX_CASES}
+    scenes |= {"static": _static_box, "pieces": lambda f: write_scene(f, steps=3),
+               "p2": lambda f: _p2_bar(f, steps=5)}
+    runs = {}
+    for k, (name, make) in enumerate(scenes.items()):
+        folder = root / f"case{k}"
+        folder.mkdir()
+        runs[name] = ["run", str(make(folder)), "--out", str(folder / "out")]
+    with cores(tmp_path_factory, alone=True):
+        procs = run_mpi_batch(2, runs, cwd=root)
+    return {name: (Path(runs[name][1]), procs[name]) for name in runs}
+
+
+@pytest.mark.parametrize("integrator, options", BOX_CASES)
+def test_two_ranks_equal_one_process(tmp_path, two_rank_runs, integrator, options):
     """20 steps of the two-material box (Neo-Hookean, damped StVK) on 2 ranks (MUMPS, and
     CG + GAMG) equal the one-process run (the default direct solver) to 1e-8 of the
     motion; the linearly-implicit scheme's one solve per step too (its forces and
     right-hand side summed over the ranks)."""
-    scene = write_scene(tmp_path, integrator=integrator)
-    if options:
-        scene.write_text(scene.read_text().replace(
-            'linear_solver = "auto"', f'linear_solver = "petsc"\npetsc_options = "{options}"'))
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    scene, proc = two_rank_runs[f"{integrator} {options}"]
+    folder = scene.parent
     assert proc.returncode == 0, proc.stderr[-3000:]
-    state = np.load(tmp_path / "out" / "state.npz")
+    state = np.load(folder / "out" / "state.npz")
     assert int(state["step"]) == 20
     sim = _one_process(write_scene(tmp_path / "one", integrator=integrator))
     diff = relative_difference(state["q"], sim.q, sim.model.X)
@@ -63,21 +100,20 @@ def test_two_ranks_equal_one_process(tmp_path, integrator, options):
           f"{diff:.2e}")
     assert diff <= 1e-8
     assert relative_difference(state["v"], sim.v, 0.0 * sim.v) <= 1e-6
-    energy = read_energy_csv(tmp_path / "out" / "energy.csv")
+    energy = read_energy_csv(folder / "out" / "energy.csv")
     assert len(energy["t"]) == 21
     assert abs(energy["kinetic"][-1] - sim.energies()["kinetic"]) <= \
         1e-6 * sim.energies()["kinetic"]
 
 
-def test_static_on_two_ranks_equals_one_process(tmp_path):
+def test_static_on_two_ranks_equals_one_process(two_rank_runs):
     """3 static steps (equilibria under gravity, load increments where Newton needs them) of
     the two-material box at rest on 2 ranks equal the one-process run to 1e-8 of the
     displacement."""
-    scene = write_scene(tmp_path, integrator="static", steps=3)
-    scene.write_text(scene.read_text().replace("velocity = [0.0, 0.0, 0.3]", ""))
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    scene, proc = two_rank_runs["static"]
+    folder = scene.parent
     assert proc.returncode == 0, proc.stderr[-3000:]
-    state = np.load(tmp_path / "out" / "state.npz")
+    state = np.load(folder / "out" / "state.npz")
     sim = _one_process(scene, steps=3)
     diff = relative_difference(state["q"], sim.q, sim.model.X)
     print(f"static: 2 ranks vs one process: relative difference {diff:.2e}")
@@ -85,22 +121,22 @@ def test_static_on_two_ranks_equals_one_process(tmp_path):
     assert not state["v"].any()
 
 
-def test_two_ranks_write_pieces(tmp_path):
+def test_two_ranks_write_pieces(two_rank_runs):
     """Each frame: one .vtu piece per rank (the surface of its tets), a .pvtu naming both,
     frames.pvd listing the frames; the pieces' points are the run's positions."""
     import meshio
 
-    scene = write_scene(tmp_path, steps=3)
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    scene, proc = two_rank_runs["pieces"]
+    folder = scene.parent
     assert proc.returncode == 0, proc.stderr[-3000:]
-    frames = tmp_path / "out" / "frames"
-    pvd = ET.parse(tmp_path / "out" / "frames.pvd").getroot()
+    frames = folder / "out" / "frames"
+    pvd = ET.parse(folder / "out" / "frames.pvd").getroot()
     files = [d.get("file") for d in pvd.iter("DataSet")]
     assert files == [f"frames/frame_{i:05d}.pvtu" for i in range(4)]
     pvtu = ET.parse(frames / "frame_00003.pvtu").getroot()
     sources = [p.get("Source") for p in pvtu.iter("Piece")]
     assert sources == ["frame_00003_0.vtu", "frame_00003_1.vtu"]
-    state = np.load(tmp_path / "out" / "state.npz")
+    state = np.load(folder / "out" / "state.npz")
     seen = []
     for rank, src in enumerate(sources):
         piece = meshio.read(frames / src)
@@ -380,21 +416,21 @@ pins = [{{ select = {{ box = [[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]] }} }}]
     return scene
 
 
-def test_p2_on_two_ranks_equals_one_process(tmp_path):
+def test_p2_on_two_ranks_equals_one_process(two_rank_runs):
     """5 implicit steps of a P2 bar (edge nodes owned, numbered and written like corners) on
     2 ranks equal the one-process run to 1e-8 of the motion; the pieces hold the P2
     display surface (4 triangles per quadratic face)."""
     import meshio
 
-    scene = _p2_bar(tmp_path, steps=5)
-    proc = run_mpi(2, "run", str(scene), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    scene, proc = two_rank_runs["p2"]
+    folder = scene.parent
     assert proc.returncode == 0, proc.stderr[-3000:]
-    state = np.load(tmp_path / "out" / "state.npz")
+    state = np.load(folder / "out" / "state.npz")
     sim = _one_process(scene, steps=5)
     diff = relative_difference(state["q"], sim.q, sim.model.X)
     print(f"P2 bar: 2 ranks vs one process: relative difference {diff:.2e}")
     assert int(state["step"]) == 5 and diff <= 1e-8
-    pieces = sorted((tmp_path / "out" / "frames").glob("frame_00005_*.vtu"))
+    pieces = sorted((folder / "out" / "frames").glob("frame_00005_*.vtu"))
     triangles = sum(len(meshio.read(p).cells_dict["triangle"]) for p in pieces)
     faces = sim.model.element.boundary_faces(sim.model.T)
     assert len(pieces) == 2 and triangles >= 4 * len(faces)  # plus the faces between ranks
