@@ -343,6 +343,15 @@ class PetscSolver(DirectSolver):
             raise NotPositiveDefinite(f"matrix not positive definite ({negative} negative "
                                       "pivots of LDL^T)", backend=self.name)
 
+    def _release(self) -> None:
+        """A KSP made anew for each matrix (GAMG's: :data:`_FACTORIZATIONS`) is destroyed
+        now rather than at the next :meth:`factorize`: its hierarchy (coarse matrices,
+        prolongators, the Galerkin products' kept data) is not alive through the next Newton
+        matrix's assembly. A kept one (MUMPS') stays: its analysis serves the next matrix."""
+        if self._ksp is not None and not self._keeps_ksp:
+            self._ksp.destroy()
+            self._ksp = None
+
     def _solve(self, b: np.ndarray) -> np.ndarray:
         if b.ndim == 2:
             return np.stack([self._solve(b[:, j]) for j in range(b.shape[1])], axis=1)
