@@ -240,6 +240,9 @@ class DirectDirection(NewtonDirection):
             # the shifted step passes the rule on a step's length: Newton's own step decides,
             # where the matrix has become positive definite (the ladder's hint lags behind)
             d = self._newton_step(g, A_free, d)
+        # no later solve reads this factorization (the next iteration factorizes anew): the
+        # solver may free it before the next assembly (PETSc's GAMG hierarchy)
+        self.system.release_factorization()
         return d
 
     def _newton_step(self, g: np.ndarray, A_free: sp.csr_matrix,

@@ -631,6 +631,14 @@ class System:
         """Solve with the last factorization."""
         return np.asarray(self.solver.solve(b)).reshape(-1)
 
+    def release_factorization(self) -> None:
+        """The caller is done solving with the last :meth:`factorize` (Newton's direction
+        is computed): the solver may let go of it (:meth:`DirectSolver.release`: PETSc's
+        GAMG hierarchy is freed before the next matrix is assembled). A :meth:`solve`
+        before the next :meth:`factorize` raises."""
+        if self._solver is not None:
+            self._solver.release()
+
     @property
     def amg(self) -> IterativeSolver:
         """The iterative solver (``"amg"``: AMG-preconditioned CG; near-nullspace: rigid-body

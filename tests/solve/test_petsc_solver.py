@@ -188,3 +188,83 @@ def test_stray_word_in_petsc_options_is_one_line(tmp_path):
     assert proc.returncode == 2
     assert "'boomeramg' follows no option" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+@needs_petsc
+@pytest.mark.parametrize("options", ["-ksp_type cg -pc_type gamg -ksp_rtol 1e-12", ""])
+def test_release_lets_go_of_gamg_and_a_solve_after_it_raises(options):
+    """``release`` destroys a GAMG KSP at once (made anew for each matrix anyway) and keeps
+    MUMPS' (its analysis serves the next matrix); a solve after it raises one clear line,
+    and the next factorization solves to the same bits as before."""
+    A, points, b = _newton_matrix()
+    solver = PetscSolver(SolverOptions(points=points, petsc_options=options))
+    solver.analyse(A)
+    solver.factorize(A)
+    first = solver.solve(b)
+    ksp = solver._ksp
+    solver.release()
+    gamg = "gamg" in options
+    assert (solver._ksp is None) == gamg
+    if not gamg:
+        assert solver._ksp is ksp
+    with pytest.raises(RuntimeError, match="petsc: no factorization to solve with"):
+        solver.solve(b)
+    solver.factorize(A)
+    assert np.array_equal(solver.solve(b), first)
+
+
+def test_release_of_a_direct_solver_then_refactorize():
+    """Any direct solver: a solve after ``release`` raises, a factorization after it
+    solves as before (SciPy's SuperLU: no optional library)."""
+    A, _, b = _newton_matrix()
+    solver = LINEAR_SOLVERS["superlu"]()
+    solver.analyse(A)
+    solver.factorize(A)
+    first = solver.solve(b)
+    solver.release()
+    with pytest.raises(RuntimeError, match="superlu: no factorization to solve with"):
+        solver.solve(b)
+    solver.factorize(A)  # SuperLU's second factorization takes another path: not the bits
+    assert np.linalg.norm(solver.solve(b) - first) <= 1e-12 * np.linalg.norm(first)
+
+
+@needs_petsc
+def test_newton_releases_the_gamg_hierarchy_after_each_direction(tmp_path, monkeypatch):
+    """Newton's ``direct`` direction releases the factorization once its direction is
+    solved: with GAMG no KSP is alive while the next Newton matrix is assembled, one is
+    still made per Newton matrix, and the run is the one it was without the release (the
+    same bits)."""
+    from fem3d.solve.directions import NewtonDirection
+
+    extra = 'petsc_options = "-ksp_type cg -pc_type gamg"'
+    scene = load_scene(str(write_scene(tmp_path, linear_solver="petsc", extra=extra)))
+    alive_at_assembly: list[bool] = []
+    made: list[int] = []
+    new_ksp, matrix = PetscSolver._new_ksp, NewtonDirection.matrix
+
+    def counting_new_ksp(self):
+        made.append(1)
+        return new_ksp(self)
+
+    def watched_matrix(self, x, psd):
+        solver = self.system._solver
+        alive_at_assembly.append(solver is not None and solver._ksp is not None)
+        return matrix(self, x, psd)
+
+    monkeypatch.setattr(PetscSolver, "_new_ksp", counting_new_ksp)
+    monkeypatch.setattr(NewtonDirection, "matrix", watched_matrix)
+    runs = {}
+    for release in (True, False):
+        if not release:
+            monkeypatch.setattr(PetscSolver, "_release", lambda self: None)
+        sim = Simulation(scene)
+        made.clear()
+        alive_at_assembly.clear()
+        for _ in range(3):
+            sim.step()
+        runs[release] = (sim.q.copy(), list(alive_at_assembly), len(made))
+    q, alive, n_made = runs[True]
+    assert len(alive) > 3 and not any(alive)
+    assert all(runs[False][1][1:])  # kept until the next factorization: alive at assembly
+    assert n_made == runs[False][2] == len(alive)
+    assert np.array_equal(q, runs[False][0])

@@ -462,6 +462,18 @@ class DirectSolver:
                     backend=self.name)
         return hi
 
+    def release(self) -> None:
+        """The caller is done solving with the last factorization: the back end may let go
+        of what only solves read (PETSc's GAMG hierarchy, :meth:`_release`) before the next
+        :meth:`factorize`. A :meth:`solve` before that raises. What the next factorization
+        starts from (CHOLMOD's factor object, MUMPS' analysis) is kept.
+        """
+        self._factored = False
+        self._release()
+
+    def _release(self) -> None:
+        """What a back end frees on :meth:`release` (default: nothing)."""
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` with the last factorization.
 
@@ -474,7 +486,8 @@ class DirectSolver:
         x : same shape as ``b``
         """
         if not self._factored:
-            raise RuntimeError("factorize() must succeed before solve()")
+            raise RuntimeError(f"{self.name}: no factorization to solve with (factorize() "
+                               "must succeed before solve(), and again after release())")
         b = np.asarray(b, dtype=np.float64)
         if b.shape[0] != self.n:
             raise ValueError(f"right-hand side has {b.shape[0]} rows, matrix has {self.n}")

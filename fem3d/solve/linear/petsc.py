@@ -24,7 +24,9 @@ PETSc's own ``PETSC_OPTIONS`` (read at PETSc's start; ``-log_view`` prints PETSc
 when the process ends). The algorithms of the matrix products GAMG forms
 (:data:`PRODUCT_OPTIONS`: ``-matptap_via allatonce`` lowers a distributed set-up's memory,
 docs/parallel.md) are read from PETSc's global database, not the KSP's prefix: given in the
-scene, they are put there while the preconditioner sets up.
+scene (or by default: ``-mat_product_clear 1`` with GAMG), they are put there while the
+preconditioner sets up. :meth:`PetscSolver.release` (Newton's direction calls it once its
+direction is solved) destroys a GAMG KSP before the next matrix is assembled.
 """
 
 from __future__ import annotations
@@ -275,7 +277,8 @@ class PetscSolver(DirectSolver):
         """:attr:`ksp_options`' :data:`PRODUCT_OPTIONS` in PETSc's global database while the
         preconditioner sets up (GAMG's products read them there, not under the KSP's
         prefix); what the database held before, after."""
-        given = {k: v for k, v in self.ksp_options.items() if k.startswith(PRODUCT_OPTIONS)}
+        given = {k: v for k, v in {**self._defaults(), **self.ksp_options}.items()
+                 if k.startswith(PRODUCT_OPTIONS)}
         if not given:
             yield
             return
@@ -298,8 +301,12 @@ class PetscSolver(DirectSolver):
         if mumps and self.n < GAMG_MIN_FREE_DOFS:
             return {"ksp_type": "preonly", "pc_type": "cholesky",
                     "pc_factor_mat_solver_type": "mumps"}
+        # mat_product_clear: each product GAMG forms frees its intermediate data (A P, the
+        # rows of P other ranks own, P's transposed pieces) once its values are computed:
+        # kept only for a numeric product repeated on new values, which never comes (a new
+        # KSP per matrix); the same bits, less memory through the set-up and the solve
         return {"ksp_type": "cg", "pc_type": "gamg", "ksp_rtol": f"{KSP_RTOL:g}",
-                "ksp_max_it": "1000"}
+                "ksp_max_it": "1000", "mat_product_clear": "1"}
 
     def _rigid_body_modes(self) -> Any:
         """GAMG's near-null space: the six rigid-body modes of the owned vertices."""
@@ -342,6 +349,15 @@ class PetscSolver(DirectSolver):
         if negative:
             raise NotPositiveDefinite(f"matrix not positive definite ({negative} negative "
                                       "pivots of LDL^T)", backend=self.name)
+
+    def _release(self) -> None:
+        """A KSP made anew for each matrix (GAMG's: :data:`_FACTORIZATIONS`) is destroyed
+        now rather than at the next :meth:`factorize`: its hierarchy (coarse matrices,
+        prolongators, the Galerkin products' kept data) is not alive through the next Newton
+        matrix's assembly. A kept one (MUMPS') stays: its analysis serves the next matrix."""
+        if self._ksp is not None and not self._keeps_ksp:
+            self._ksp.destroy()
+            self._ksp = None
 
     def _solve(self, b: np.ndarray) -> np.ndarray:
         if b.ndim == 2:

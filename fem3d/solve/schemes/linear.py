@@ -146,6 +146,7 @@ def linearly_implicit_euler(
             f"linearly-implicit Euler exploded: {exc.reason}", step=state.step
         ) from exc
     v_free = system.solve(c.restrict(rhs))
+    system.release_factorization()  # the next step factorizes anew
     new = place_pins(c, new_state(c, state, v_free, dt), pins)
     check_finite(new.q, new.v, state.step, "linearly-implicit Euler")
     _check_runaway(system, new, pull, energy_bound, state.step)
