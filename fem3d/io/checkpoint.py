@@ -189,6 +189,11 @@ class RunCheckpoint:
         Frames written so far.
     mesh_digest : str
         :func:`mesh_digest` of the rest mesh.
+    partition : (m,) int32 or None
+        The rank of each tet of a run on ranks (``mpiexec``; None in one process): a
+        resume on as many ranks takes it rather than partitioning anew, so that every sum
+        runs in the same order as in the uninterrupted run (PT-Scotch's partition differs
+        from run to run, docs/parallel.md).
     """
 
     settings: dict[str, Any]
@@ -197,6 +202,7 @@ class RunCheckpoint:
     frames: dict[int, tuple[float, str]] = field(default_factory=dict)
     frame_count: int = 0
     mesh_digest: str = ""
+    partition: np.ndarray | None = None
 
     @property
     def step(self) -> int:
@@ -212,6 +218,8 @@ def save_run_checkpoint(path: PathLike, ckpt: RunCheckpoint) -> Path:
     arrays.update({f"state_{k}": np.asarray(a) for k, a in snap.items()
                    if k.startswith(_HISTORY)})
     scalars = {k: snap[k] for k in _SNAPSHOT_SCALARS}
+    if ckpt.partition is not None:
+        arrays["partition"] = np.asarray(ckpt.partition, dtype=np.int32)
     return save_checkpoint(
         path,
         kind=_KIND,
@@ -259,6 +267,7 @@ def load_run_checkpoint(path: PathLike) -> RunCheckpoint:
             settings=settings, snapshot=snap, energy=energy,
             frames={s: (t, p) for s, t, p in zip(steps, times, paths, strict=True)},
             frame_count=int(d["frame_count"]), mesh_digest=str(d["mesh_digest"]),
+            partition=np.array(d["partition"]) if "partition" in d else None,
         )
     except KeyError as exc:
         raise InputError(f"incomplete run checkpoint: it has no saved {exc.args[0]!r}",

@@ -12,10 +12,10 @@ steps a :class:`~fem3d.simulation.Simulation` whose system is its
 * ``energy.csv`` (rank 0), the columns of a one-process run;
 * ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
   the one-process run checkpoint (:mod:`fem3d.io.checkpoint`) of the whole state, which
-  every rank holds; ``fem3d resume DIR`` continues it on any number of ranks, one included
-  (bit for bit on the rank count that wrote it: the partition, the PETSc numbering and so
-  every sum are the same), and ``mpiexec -n N fem3d resume`` continues a one-process
-  run's;
+  every rank holds, and each tet's rank; ``fem3d resume DIR`` continues it on any number of
+  ranks, one included (bit for bit on the rank count that wrote it: that partition is taken
+  again, not made anew, so the PETSc numbering and every sum are the same), and
+  ``mpiexec -n N fem3d resume`` continues a one-process run's;
 * ``state.npz`` (rank 0): the last step's ``q``, ``v``, ``t``, ``step`` (whole model).
 
 Surface and point loads and scripted pulls are each added once: a loaded face by the rank
@@ -121,23 +121,38 @@ class RankShare:
     comm : mpi4py.MPI.Comm
     petsc_options : str, optional
         The scene's ``simulation.petsc_options``.
+    partition : (m,) int array, optional
+        Each tet's rank, a resume's (the checkpoint's, written on as many ranks): taken
+        when it fits the mesh and the ranks, else the tets are partitioned anew.
 
     Attributes
     ----------
     layout : DofLayout
     digest : str
         :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
+    partition : (m,) int32
+        Each tet's rank, after :meth:`tets` (what the checkpoints write).
     """
 
-    def __init__(self, comm: Any, petsc_options: str = "") -> None:
+    def __init__(self, comm: Any, petsc_options: str = "",
+                 partition: np.ndarray | None = None) -> None:
         self.comm, self.petsc_options = comm, petsc_options
         self.layout: DofLayout | None = None
         self.digest = ""
+        self.partition = partition
 
     def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
         """This rank's tets ``(k,) int64`` of the whole mesh ``X, T`` (partitioned from the
-        mesh alone: no model is built for it)."""
-        tet_rank = partition_tets(T, self.comm)
+        mesh alone: no model is built for it), by :attr:`partition` where it is one of this
+        mesh on this many ranks (a resume's), else partitioned anew."""
+        given = self.partition
+        size = self.comm.Get_size()
+        if (given is not None and given.shape == (T.shape[0],)
+                and np.array_equal(np.unique(given), np.arange(size))):
+            tet_rank = given.astype(np.int64)
+        else:
+            tet_rank = partition_tets(T, self.comm)
+        self.partition = tet_rank.astype(np.int32)
         self.layout = dof_layout(T, tet_rank, constraints.free_dofs, self.comm)
         self.digest = mesh_digest(X, T)
         return np.flatnonzero(tet_rank == self.comm.Get_rank())
@@ -194,10 +209,10 @@ class DistributedLoop:
     """
 
     def __init__(self, scene: Any, sim: Simulation, out: Path, settings: dict[str, Any],
-                 comm: Any, digest: str, ckpt: RunCheckpoint | None = None) -> None:
+                 comm: Any, share: RankShare, ckpt: RunCheckpoint | None = None) -> None:
         self.scene, self.sim, self.out, self.settings = scene, sim, Path(out), settings
         self.comm, self.rank, self.ckpt = comm, comm.Get_rank(), ckpt
-        self.digest = digest
+        self.digest, self.partition = share.digest, share.partition
         self.every = int(settings["checkpoint_every"])
         if self.rank == 0:
             (self.out / "frames").mkdir(parents=True, exist_ok=True)
@@ -252,7 +267,7 @@ class DistributedLoop:
         save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
             settings=self.settings, snapshot=sim.snapshot(), energy=self.log.as_array(),
             frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
-            mesh_digest=self.digest))
+            mesh_digest=self.digest, partition=self.partition))
 
     def run(self) -> float:
         """Step to ``scene.n_steps``, or to the end of the step in which a rank was sent
@@ -332,11 +347,14 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     settings.update(scene=scene.to_dict(), solver=PetscSolver.name, ranks=comm.Get_size(),
                     kernels=kernels)
     t0 = time.perf_counter()
-    sim, digest = distributed_simulation(scene, comm, settings["kernels"])
+    # a resume on as many ranks keeps the run's partition: the same sums in the same order
+    same_ranks = ckpt is not None and ckpt.settings.get("ranks") == comm.Get_size()
+    sim, share = distributed_simulation(scene, comm, settings["kernels"],
+                                        ckpt.partition if same_ranks else None)
     if ckpt is not None:
-        restore_run_checkpoint(sim, ckpt, digest, sim.assembled.mesh_paths[0], out)
+        restore_run_checkpoint(sim, ckpt, share.digest, sim.assembled.mesh_paths[0], out)
     setup = time.perf_counter() - t0
-    loop = DistributedLoop(scene, sim, Path(out), settings, comm, digest, ckpt)
+    loop = DistributedLoop(scene, sim, Path(out), settings, comm, share, ckpt)
     setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     cpu = time.process_time()
     wall = loop.run()
@@ -360,13 +378,15 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     return 0 if loop.signum is None else EXIT_INTERRUPTED
 
 
-def distributed_simulation(scene: Any, comm: Any, backend: str | None = None
-                           ) -> tuple[Simulation, str]:
+def distributed_simulation(scene: Any, comm: Any, backend: str | None = None,
+                           partition: np.ndarray | None = None
+                           ) -> tuple[Simulation, RankShare]:
     """This rank's :class:`Simulation` of ``scene`` (:class:`RankShare`: its ``model`` the
     rank's local model, its system the rank's :class:`DistributedSystem`, its energies summed
-    over the ranks by :meth:`DistributedSystem.summed`) and the whole mesh's
-    :func:`~fem3d.io.checkpoint.mesh_digest`."""
-    share = RankShare(comm, scene.simulation.petsc_options)
+    over the ranks by :meth:`DistributedSystem.summed`) and its share (the whole mesh's
+    :func:`~fem3d.io.checkpoint.mesh_digest`, the partition: ``partition``, a resume's, when
+    it fits the mesh and the ranks, else made anew)."""
+    share = RankShare(comm, scene.simulation.petsc_options, partition)
     sim = Simulation(scene, backend=backend, scripted=True, restrict_model=share,
                      make_system=share.make_system)
-    return sim, share.digest
+    return sim, share

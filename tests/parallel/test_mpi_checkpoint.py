@@ -58,6 +58,7 @@ def test_resume_on_two_ranks_is_bit_exact(tmp_path):
                 str(resumed), *GAMG, cwd=tmp_path))
     half = load_run_checkpoint(resumed / CHECKPOINT_NAME)
     assert half.step == 10 and half.settings["ranks"] == 2
+    assert half.partition.shape == (3072,) and set(half.partition.tolist()) == {0, 1}
     assert sorted(half.frames) == list(range(11))
     _ok(run_mpi(2, "resume", str(resumed), "--steps", "20", cwd=tmp_path))
     a = load_run_checkpoint(straight / CHECKPOINT_NAME)

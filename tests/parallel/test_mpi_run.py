@@ -245,6 +245,29 @@ def test_dof_layout_numbers_rank_by_rank():
     assert lay.owned.tolist() == [9, 10, 11] and lay.order[9:].tolist() == [9, 10, 11]
 
 
+def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
+    """``RankShare.tets`` given a partition (a resume's, written on as many ranks) takes it
+    rather than partitioning anew (PT-Scotch's partition differs from run to run: a new one
+    would sum in another order, docs/parallel.md); one of another mesh or rank count is
+    partitioned anew. The share keeps the partition it used (the checkpoints write it)."""
+    from fem3d.parallel import run as parallel_run
+
+    T = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]])
+    X, constraints = np.zeros((6, 3)), SimpleNamespace(free_dofs=np.arange(18))
+    comm = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 1)
+    made = []
+    monkeypatch.setattr(parallel_run, "partition_tets",
+                        lambda T, comm: made.append(len(T)) or np.array([0, 0, 1]))
+    share = parallel_run.RankShare(comm, partition=np.array([1, 0, 1], dtype=np.int32))
+    assert share.tets(X, T, constraints).tolist() == [0, 2] and not made
+    assert share.partition.tolist() == [1, 0, 1]
+    for other in ([0, 1], [0, 0, 0], [0, 1, 2]):  # another mesh; one rank; three ranks
+        share = parallel_run.RankShare(comm, partition=np.array(other))
+        assert share.tets(X, T, constraints).tolist() == [2]
+        assert share.partition.tolist() == [0, 0, 1] and share.partition.dtype == np.int32
+    assert made == [3, 3, 3]
+
+
 class _Unsolved(System):
     """A System that never solves (a local model's rows of other ranks' vertices are empty:
     no solver of its own could factorize them)."""
