@@ -29,12 +29,16 @@ fallback() {  # $1: why PETSc is missing
 check() {
     "$PYTHON" - <<'PY'
 import mpi4py
+import pymetis  # noqa: F401 (the deterministic partition of mpiexec runs)
 from petsc4py import PETSc
 print(f"PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))} available (petsc4py "
       f"{__import__('petsc4py').__version__}, mpi4py {mpi4py.__version__})")
 PY
 }
 
+# METIS (pymetis, a wheel: seconds): the partition of mpiexec runs, the same in every run
+"$PYTHON" -c "import pymetis" 2>/dev/null || "$PYTHON" -m pip install -q "pymetis>=2023.1" \
+    || fallback "pip install pymetis failed"
 if check 2>/dev/null; then exit 0; fi
 
 petsc_dir() {  # the newest Debian PETSc (real scalars), or empty
@@ -78,6 +82,6 @@ echo "install_petsc.sh: building petsc4py $MAJOR.$MINOR.* against $PETSC_DIR (a 
 PETSC_DIR="$PETSC_DIR" "$BUILD/venv/bin/python" -m pip wheel -q --no-build-isolation --no-deps \
     -w "$BUILD/wheels" "petsc4py>=$MAJOR.$MINOR,<$MAJOR.$((MINOR + 1))" \
     || fallback "building petsc4py $MAJOR.$MINOR.* against $PETSC_DIR failed"
-"$PYTHON" -m pip install -q "mpi4py>=3.1" "$BUILD"/wheels/petsc4py-*.whl \
-    || fallback "pip install mpi4py petsc4py failed"
+"$PYTHON" -m pip install -q "mpi4py>=3.1" "pymetis>=2023.1" "$BUILD"/wheels/petsc4py-*.whl \
+    || fallback "pip install mpi4py pymetis petsc4py failed"
 check || fallback "petsc4py does not import"

@@ -1,5 +1,12 @@
-"""The mesh split between the ranks: tets by PETSc's graph partitioner on their face
-adjacency, vertices to the lowest rank among their tets, free DOFs numbered rank by rank."""
+"""The mesh split between the ranks: tets by a graph partitioner on their face adjacency
+(METIS on rank 0 where pymetis is installed, else PETSc's), vertices to the lowest rank among
+their tets, free DOFs numbered rank by rank.
+
+METIS first because it is deterministic (its seed is fixed): the same mesh on as many ranks
+is cut the same way in every run, so the same run twice sums in the same order and gives the
+same bits. PT-Scotch, the partitioner Debian's PETSc has, cut a 1e5-tet box differently in
+every run, also with its generator seeded (docs/parallel.md).
+"""
 
 from __future__ import annotations
 
@@ -57,8 +64,10 @@ def _partitioner(PETSc: Any) -> str:
 
 
 def partition_tets(T: np.ndarray, comm: Any) -> np.ndarray:
-    """The rank of each tet: PETSc's graph partitioner (:data:`PARTITIONERS`) on the face
-    adjacency of the tets, each rank handing it a consecutive block of the tets' rows.
+    """The rank of each tet: METIS (pymetis) on rank 0 on the face adjacency of the tets,
+    broadcast; without pymetis, PETSc's graph partitioner (:data:`PARTITIONERS`), each rank
+    handing it a consecutive block of the tets' rows (not the same from run to run with
+    PT-Scotch: the module's docstring).
 
     Parameters
     ----------
@@ -75,6 +84,24 @@ def partition_tets(T: np.ndarray, comm: Any) -> np.ndarray:
     m = T.shape[0]
     if size == 1:
         return np.zeros(m, dtype=np.int64)
+    try:
+        import pymetis  # optional (fem3d[mpi]): the deterministic partition
+    except ImportError:
+        return _petsc_partition(T, comm)
+    out = np.empty(m, dtype=np.int64)
+    if rank == 0:  # one rank cuts (METIS is serial), every rank gets the same cut
+        indptr, indices = dual_graph(T)
+        cut = pymetis.part_graph(size, adjacency=pymetis.CSRAdjacency(indptr, indices))
+        out[:] = np.asarray(cut.vertex_part, dtype=np.int64)
+    comm.Bcast(out, root=0)
+    return out
+
+
+def _petsc_partition(T: np.ndarray, comm: Any) -> np.ndarray:
+    """:func:`partition_tets` by PETSc's graph partitioner (:data:`PARTITIONERS`), each rank
+    handing it a consecutive block of the tets' rows."""
+    size, rank = comm.Get_size(), comm.Get_rank()
+    m = T.shape[0]
     PETSc = petsc_module()
     bounds = np.linspace(0, m, size + 1).astype(np.int64)
     lo, hi = int(bounds[rank]), int(bounds[rank + 1])
