@@ -4,6 +4,7 @@
     python -m bench.newton_step --mesh box --tets 2e4 --steps 6         # swinging box
     python -m bench.newton_step --mesh box --tets 1e6 --steps 1 --modes direct   # the 1e6 step
     python -m bench.newton_step --mesh box --tets 1e5 --steps 1 --swing 4 --modes direct,reuse,amg
+    python -m bench.newton_step --mesh box --tets 1e5 --steps 1 --modes direct,amg,petsc --repeats 1
 
 ``--mesh arma``: the armadillo scene (``arma_6``, 627 tets) and its 1:8 refinements
 (``bench.meshes.refine_tets``: 5,016 and 40,128 tets, same shape, feet fixed as in the scene).
@@ -28,8 +29,10 @@ factorizations, AMG setups, CG iterations, energies and gradients) and how many 
 iterations solved with the previous iterate's matrix (``reuse``); first, the pieces of one
 Newton iteration (assembly into the reduced pattern, factorization, solve; with ``amg``: one
 hierarchy setup and one V-cycle). Modes: ``direct`` and ``reuse`` on the default direct back
-end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), each forced whatever ``"auto"``
-would pick. ``--warm-start extrapolate`` starts each step's Newton iteration at the
+end (CHOLMOD), ``amg`` on AMG-preconditioned CG (pyamg), ``petsc`` Newton's direct direction
+on PETSc's KSP in one process (CG + GAMG, the rigid-body near-null space: what
+``linear_solver = "petsc"`` and the ranks of ``mpiexec`` solve with), each forced whatever
+``"auto"`` would pick. ``--warm-start extrapolate`` starts each step's Newton iteration at the
 lower-energy of ``v_t`` and ``2 v_t - v_t-1`` (:data:`fem3d.solve.settings.
 WARM_STARTS`; the interactive drag of docs/benchmarks.md, on one core:
 ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``)::
@@ -127,7 +130,15 @@ def _best_seconds(call, repeats: int) -> float:
 
 
 def _backend(mode: str) -> str:
-    return "amg" if mode == "amg" else resolve_linear_solver(direct=True)
+    if mode in ("amg", "petsc"):
+        return mode
+    return resolve_linear_solver(direct=True)
+
+
+def _direction(mode: str) -> str:
+    """Newton's direction of a mode (``petsc``: the direct direction on PETSc's solver,
+    CG + GAMG above ``GAMG_MIN_FREE_DOFS`` free DOFs)."""
+    return "direct" if mode == "petsc" else mode
 
 
 def iteration_pieces(work: Workload, modes: list[str]) -> dict:
@@ -136,7 +147,7 @@ def iteration_pieces(work: Workload, modes: list[str]) -> dict:
     ones (hierarchy setup, one V-cycle) when ``amg`` runs."""
     q = work.start.q + work.dt * work.start.v
     out: dict = {}
-    direct = [m for m in modes if m != "amg"]
+    direct = [m for m in modes if m not in ("amg", "petsc")]
     system = integ.System(work.model, work.constraints, _backend(direct[0] if direct else "amg"))
     A = system.newton_matrix(q, work.dt)
     b = np.ones(A.shape[0])
@@ -175,7 +186,8 @@ def run_mode(work: Workload, mode: str, cg_maxiter: int = 16, cg_rtol: float = 1
     for pull in work.pulls:
         t, c = time.perf_counter(), time.process_time()
         state, stats = integ.implicit_euler(system, state, work.dt, pull, max_iterations=None,
-                                            linear_solver=mode, cg_maxiter=cg_maxiter,
+                                            linear_solver=_direction(mode),
+                                            cg_maxiter=cg_maxiter,
                                             cg_rtol=cg_rtol, warm_start=warm_start)
         seconds += time.perf_counter() - t
         cpu += time.process_time() - c
@@ -208,7 +220,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=80)
     parser.add_argument("--swing", type=float, default=40.0, help="box velocity scale a")
     parser.add_argument("--modes", default="direct,reuse,amg",
-                        help="comma-separated: direct, reuse, amg")
+                        help="comma-separated: direct, reuse, amg, petsc (PETSc's KSP in "
+                             "one process: CG + GAMG on these sizes)")
     parser.add_argument("--cg-maxiter", type=int, default=16, help="reuse: CG budget per solve")
     parser.add_argument("--cg-rtol", type=float, default=1e-6, help="reuse: CG relative residual")
     parser.add_argument("--warm-start", default="previous", choices=WARM_STARTS,

@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -124,3 +125,22 @@ def run_mpi_batch(ranks: int, runs: dict[str, list[str]], cwd: Path, timeout: fl
                                                   proc.stderr) for name in runs}
     return {name: subprocess.CompletedProcess(runs[name], int(r["status"]), "", r["stderr"])
             for name, r in json.loads(results.read_text()).items()}
+
+
+def two_rank_runs(tmp_path_factory: pytest.TempPathFactory, name: str,
+                  scenes: dict[str, Callable[[Path], Path]]
+                  ) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """``fem3d run`` of each of ``scenes`` (a name -> a function writing the scene into a
+    folder) on 2 ranks, in one launch (:func:`run_mpi_batch`) that has the cores alone:
+    name -> (the run's scene, beside its ``out``; the run's exit status and stderr)."""
+    from tests.conftest import cores
+
+    root = tmp_path_factory.mktemp(name)
+    runs = {}
+    for k, (case, make) in enumerate(scenes.items()):
+        folder = root / f"case{k}"
+        folder.mkdir()
+        runs[case] = ["run", str(make(folder)), "--out", str(folder / "out")]
+    with cores(tmp_path_factory, alone=True):
+        procs = run_mpi_batch(2, runs, cwd=root)
+    return {case: (Path(runs[case][1]), procs[case]) for case in runs}

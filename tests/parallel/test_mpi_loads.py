@@ -5,8 +5,6 @@ and the linearly-implicit scheme)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -15,8 +13,8 @@ from fem3d.io.energy import read_energy_csv
 from fem3d.physics.terms.surface import faces_among
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
-from tests.conftest import cores
-from tests.parallel.helpers import relative_difference, run_mpi, run_mpi_batch, write_scene
+from tests.parallel.helpers import relative_difference, run_mpi, write_scene
+from tests.parallel.helpers import two_rank_runs as launch_two_rank_runs
 from tests.parallel.test_mpi_checkpoint import GAMG
 from tests.parallel.test_mpi_run import _p2_bar
 
@@ -85,18 +83,8 @@ SCENES = {**{f"loads {i}": lambda f, i=i: _loaded_box(f, i)
 
 @pytest.fixture(scope="module")
 def two_rank_runs(tmp_path_factory):
-    """The runs of :data:`SCENES` on 2 ranks, made in one launch of the ranks
-    (:func:`run_mpi_batch`): name -> (the run's scene, beside its ``out``; the run's exit
-    status and stderr)."""
-    root = tmp_path_factory.mktemp("loads_on_two_ranks")
-    runs = {}
-    for k, (name, make) in enumerate(SCENES.items()):
-        folder = root / f"case{k}"
-        folder.mkdir()
-        runs[name] = ["run", str(make(folder)), "--out", str(folder / "out")]
-    with cores(tmp_path_factory, alone=True):
-        procs = run_mpi_batch(2, runs, cwd=root)
-    return {name: (Path(runs[name][1]), procs[name]) for name in runs}
+    """The runs of :data:`SCENES` on 2 ranks, in one launch (``helpers.two_rank_runs``)."""
+    return launch_two_rank_runs(tmp_path_factory, "loads_on_two_ranks", SCENES)
 
 
 def _compare(run, steps: int, what: str) -> float:

@@ -8,7 +8,6 @@ import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,16 +21,15 @@ from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import model_terms
 from fem3d.solve.system import System
-from tests.conftest import cores
 from tests.parallel.helpers import (
     MESH,
     mpi_env,
     mpiexec_or_skip,
     relative_difference,
     run_mpi,
-    run_mpi_batch,
     write_scene,
 )
+from tests.parallel.helpers import two_rank_runs as launch_two_rank_runs
 
 # mpiexec's ranks poll while they wait: with another test on the cores they crawl
 pytestmark = pytest.mark.alone
@@ -65,22 +63,12 @@ def _static_box(folder):
 
 @pytest.fixture(scope="module")
 def two_rank_runs(tmp_path_factory):
-    """The 2-rank runs the tests below compare, made in one launch of the ranks
-    (:func:`run_mpi_batch`): name -> (the run's scene, beside its ``out``; the run's exit
-    status and stderr)."""
-    root = tmp_path_factory.mktemp("two_ranks")
+    """The 2-rank runs the tests below compare, in one launch (``helpers.two_rank_runs``)."""
     scenes = {f"{integrator} {options}": lambda f, i=integrator, o=options: _box(f, i, o)
               for integrator, options in BOX_CASES}
     scenes |= {"static": _static_box, "pieces": lambda f: write_scene(f, steps=3),
                "p2": lambda f: _p2_bar(f, steps=5)}
-    runs = {}
-    for k, (name, make) in enumerate(scenes.items()):
-        folder = root / f"case{k}"
-        folder.mkdir()
-        runs[name] = ["run", str(make(folder)), "--out", str(folder / "out")]
-    with cores(tmp_path_factory, alone=True):
-        procs = run_mpi_batch(2, runs, cwd=root)
-    return {name: (Path(runs[name][1]), procs[name]) for name in runs}
+    return launch_two_rank_runs(tmp_path_factory, "two_ranks", scenes)
 
 
 @pytest.mark.parametrize("integrator, options", BOX_CASES)

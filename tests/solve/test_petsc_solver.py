@@ -122,6 +122,30 @@ def test_indefinite_matrix_is_refused_and_shifted():
 
 
 @needs_petsc
+def test_a_krylov_solve_that_breaks_down_is_nan_and_one_out_of_iterations_its_iterate():
+    """CG that breaks down on an indefinite matrix (``b^T A b = 0``) gives NaN, for Newton
+    to fall back on the gradient; CG that runs out of iterations
+    (``DIVERGED_MAX_IT``) gives its last iterate, not converged (until now the first raised
+    an AttributeError: petsc4py has no ``DIVERGED_ITS``)."""
+    n = 40
+    indefinite = sp.diags([np.r_[np.ones(n // 2), -np.ones(n // 2)]], [0], format="csr")
+    solver = PetscSolver(SolverOptions(petsc_options="-ksp_type cg -pc_type none"))
+    solver.analyse(indefinite)
+    solver.factorize(indefinite)
+    assert np.isnan(solver.solve(np.ones(n))).all()
+    assert not solver.report.converged
+    spd = sp.diags([2.0 * np.ones(n), -np.ones(n - 1), -np.ones(n - 1)], [0, -1, 1],
+                   format="csr")
+    solver = PetscSolver(SolverOptions(petsc_options="-ksp_type cg -pc_type none "
+                                                     "-ksp_max_it 3"))
+    solver.analyse(spd)
+    solver.factorize(spd)
+    x = solver.solve(np.ones(n))
+    assert np.isfinite(x).all() and np.abs(x).max() > 0 and not solver.report.converged
+    assert solver.report.iterations == 3
+
+
+@needs_petsc
 @pytest.mark.parametrize("integrator", ["implicit", "bdf2"])
 @pytest.mark.parametrize("options", ["", "-ksp_type cg -pc_type gamg"])
 def test_simulation_equals_the_default_solver(tmp_path, integrator, options):

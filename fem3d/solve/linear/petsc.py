@@ -380,7 +380,7 @@ class PetscSolver(DirectSolver):
             whole = np.empty(self.n)
             layout.comm.Allgatherv(part, [whole, layout.counts])
             part = whole[layout.order]
-        if reason < 0 and reason != PETSc.KSP.ConvergedReason.DIVERGED_ITS:
+        if reason < 0 and reason != PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT:
             part[:] = np.nan  # indefinite or broken down: Newton falls back to -g
         return part
 
