@@ -192,8 +192,9 @@ class RunCheckpoint:
     partition : (m,) int32 or None
         The rank of each tet of a run on ranks (``mpiexec``; None in one process): a
         resume on as many ranks takes it rather than partitioning anew, so that every sum
-        runs in the same order as in the uninterrupted run (PT-Scotch's partition differs
-        from run to run, docs/parallel.md).
+        runs in the same order as in the uninterrupted run whichever partitioner cut it
+        (PT-Scotch, the fallback without pymetis, cuts differently each run:
+        docs/parallel.md).
     """
 
     settings: dict[str, Any]
