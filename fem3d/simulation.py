@@ -31,7 +31,7 @@ from fem3d.errors import ParameterError, SimulationError
 from fem3d.io.obstacles import ObstacleMesh, plane_square
 from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.physics.assembly import kinetic_energy, potential_energy
-from fem3d.physics.constraints import Constraints, free_rigid_modes, pick_nearest_vertices
+from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
@@ -98,30 +98,6 @@ def _check_supported(scene: Scene) -> None:
                 raise scene.error(f"bodies[{i}].velocity", f"the {name} integrator has no "
                                   "velocities (an equilibrium per step): remove the initial "
                                   "velocity or choose a dynamic integrator")
-
-
-def _check_static_support(sim) -> None:
-    """Refuse a scheme without inertia (``static``) where a body has neither pins nor contact
-    to hold it, or pins that leave a rigid motion free (its equilibrium is not unique: that
-    motion costs nothing)."""
-    if sim.scheme.dynamic or sim.contact is not None:
-        return
-    fixed = np.zeros(sim.model.n_vertices, dtype=bool)
-    fixed[sim.constraints.fixed_vertices] = True
-    fd = sim.constraints.fixed_dofs
-    for i, vs in enumerate(sim.assembled.body_vertices):
-        label = f"body {i} ({sim.scene.bodies[i].label})"
-        if not fixed[vs].any():
-            raise sim.scene.error(
-                "simulation.integrator", f"{sim.integrator} needs every body held by pins or "
-                f"contact: {label} has neither, so it has no unique equilibrium")
-        mine = fd[(fd >= 3 * vs.start) & (fd < 3 * vs.stop)] - 3 * vs.start
-        free = free_rigid_modes(sim.model.X[vs], mine)
-        if free:
-            raise sim.scene.error(
-                f"bodies[{i}].pins", f"{sim.integrator}: {label} is under-supported: its pins "
-                f"leave the rigid motion{'s' if len(free) > 1 else ''} {', '.join(free)} free "
-                "(it costs nothing: no unique equilibrium; hold more dofs)")
 
 
 #: Why the linearly-implicit scheme refuses contact scenes (one line, CLI and viewer).
@@ -223,7 +199,6 @@ class Simulation:
         self._dt = validate_dt(sim.dt)
         self._scheme: Scheme | None = None
         self.integrator = sim.integrator
-        _check_static_support(self)
         self.scripted = scripted
         self.newton = NewtonSettings.from_spec(sim.newton)
         self.max_substeps = scene.contact.max_substeps
@@ -487,7 +462,9 @@ class Simulation:
             raise ParameterError("state has non-finite positions or velocities")
         verts = np.asarray(snap["pull_vertices"], dtype=np.int64).reshape(-1)
         pull = None
-        if verts.size:
+        # an MPI rank's share of an attached pull may hold none of its springs
+        attached = bool(np.asarray(snap.get("pull_attached", verts.size > 0)))
+        if verts.size or (attached and self.system.is_share):
             pull = Pull.make(verts, np.asarray(snap["pull_targets"], dtype=np.float64),
                              _stiffness(snap["pull_k"]), self.model.n_vertices)
         saved = {k[len("history_"):]: a for k, a in snap.items() if k.startswith("history_")}
@@ -531,14 +508,22 @@ class Simulation:
             vertex_ids, target, self.spring_k if k is None else k, self.model.n_vertices
         ))
 
+    def _pull_energy(self, q: np.ndarray) -> float:
+        """The pull springs' energy at ``q`` (0 without a pull; an MPI rank's springs
+        summed over the ranks)."""
+        if self._pull is None:
+            return 0.0
+        return float(self.system.summed(self._pull.energy(self.system.spring, q)))
+
     def _attach(self, pull: Pull | None) -> None:
-        before = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
-        self._pull = pull if pull is not None and pull.vertices.size else None
+        before = self._pull_energy(self.q)
+        # a rank's share of a pull may hold none of its springs: attached all the same
+        keep = pull is not None and (pull.vertices.size or self.system.is_share)
+        self._pull = pull if keep else None
         if self._pull is not None:
             # work done on the system by attaching / moving the springs: with the energy at
             # reset, an upper bound on the energy a stable scheme can hold
-            after = self._pull.energy(self.system.spring, self.q)
-            self._injected += max(0.0, after - before)
+            self._injected += max(0.0, self._pull_energy(self.q) - before)
 
     def clear_pull(self) -> None:
         """Remove the pull springs."""
@@ -562,7 +547,7 @@ class Simulation:
         strain = self.system.summed(potential_energy(self.model, self.q))
         gravity = self.gravity_energy()
         pot = strain + gravity
-        pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, self.q)
+        pull = self._pull_energy(self.q)
         return {"kinetic": kin, "potential": pot, "pull": pull, "total": kin + pot,
                 "strain": strain, "gravity": gravity}
 
@@ -625,7 +610,8 @@ class Simulation:
         if len(active) == 1:
             self._attach(pulls[active[0]].pull)
         elif active:  # every spring of every active pull (a vertex may carry several)
-            self._attach(Pull.combine([pulls[j].pull for j in active], self.model.n_vertices))
+            both = Pull.combine([pulls[j].pull for j in active], self.model.n_vertices)
+            self._attach(pulls[active[0]].pull if both is None else both)
         else:
             self.clear_pull()
         self._script_active = active
@@ -672,7 +658,7 @@ class Simulation:
             raise SimulationError(
                 f"{self.integrator} integrator exploded: non-finite energy", step=new.step - 1
             )
-        pull = 0.0 if self._pull is None else self._pull.energy(self.system.spring, new.q)
+        pull = self._pull_energy(new.q)
         self._set_state(new)
         if driven:  # work done by the moving pins: part of the runaway bound's budget
             self._injected += max(0.0, kin + pot + pull - before)

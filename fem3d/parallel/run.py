@@ -50,14 +50,17 @@ from fem3d.io.checkpoint import (
 from fem3d.io.energy import EnergyLog
 from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
 from fem3d.kernels.dispatch import resolve_backend
-from fem3d.parallel.comm import launched_ranks, owned_vertices, world
-from fem3d.parallel.partition import dof_layout, partition_tets
+from fem3d.parallel.comm import launched_ranks, world
+from fem3d.parallel.ghosts import Ghosts
+from fem3d.parallel.partition import local_layout, partition_tets
 from fem3d.parallel.pieces import PieceWriter
 from fem3d.parallel.system import DistributedSystem
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
+from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
 from fem3d.scene.build import refuse_mixed_elements
+from fem3d.scene.local import LocalNumbering
 from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
@@ -108,13 +111,13 @@ class RankShare:
     (:class:`~fem3d.simulation.Simulation`'s ``restrict_model`` and ``make_system``).
 
     It is :func:`~fem3d.scene.build.build`'s ``restrict``: :meth:`tets` partitions the whole
-    mesh's tets (:func:`partition_tets`, from ``T`` alone), numbers the free DOFs
-    (:func:`dof_layout`), records the whole mesh's digest and returns this rank's tets, of
-    which ``build`` makes the rank's model directly (over the whole vertex numbering; no
-    rank builds the whole model, whose pattern, scatter maps and mass matrix would hold
-    memory per rank that does not fall with the rank count); :meth:`summary` gives it the
-    whole model's ``E, nu, rho``. :meth:`make_system` makes the :class:`DistributedSystem`
-    of the share.
+    mesh's tets (:func:`partition_tets`, from ``T`` alone), records the whole mesh's digest
+    and returns this rank's tets, of which ``build`` makes the rank's model over their
+    vertices alone (no rank builds the whole model); :meth:`hold` finds which of those
+    vertices other ranks hold too (:class:`~fem3d.parallel.ghosts.Ghosts`) and numbers the
+    free DOFs for PETSc (:func:`local_layout`); :meth:`summary` gives the model the whole
+    model's ``E, nu, rho``. :meth:`make_system` makes the :class:`DistributedSystem` of the
+    share.
 
     Parameters
     ----------
@@ -127,19 +130,29 @@ class RankShare:
 
     Attributes
     ----------
+    numbering : LocalNumbering
+        The rank's tets and vertices (scene numbers), after :meth:`hold`.
+    vertex_ghosts : Ghosts
+        Its vertices, after :meth:`hold`.
     layout : DofLayout
+        Its free DOFs, after :meth:`hold`.
     digest : str
         :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
     partition : (m,) int32
         Each tet's rank, after :meth:`tets` (what the checkpoints write).
+    n_vertices : int
+        The scene's vertex count.
     """
 
     def __init__(self, comm: Any, petsc_options: str = "",
                  partition: np.ndarray | None = None) -> None:
         self.comm, self.petsc_options = comm, petsc_options
+        self.numbering: LocalNumbering | None = None
+        self.vertex_ghosts: Ghosts | None = None
         self.layout: DofLayout | None = None
         self.digest = ""
         self.partition = partition
+        self.n_vertices = 0
 
     def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
         """This rank's tets ``(k,) int64`` of the whole mesh ``X, T`` (partitioned from the
@@ -153,9 +166,19 @@ class RankShare:
         else:
             tet_rank = partition_tets(T, self.comm)
         self.partition = tet_rank.astype(np.int32)
-        self.layout = dof_layout(T, tet_rank, constraints.free_dofs, self.comm)
         self.digest = mesh_digest(X, T)
+        self.n_vertices = X.shape[0]
         return np.flatnonzero(tet_rank == self.comm.Get_rank())
+
+    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
+        """Collective: this rank holds ``numbering``'s vertices, ``constraints`` (theirs)
+        free DOFs; which vertices it owns, ``(k,) bool`` (the lowest rank holding each)."""
+        self.numbering = numbering
+        self.vertex_ghosts = Ghosts.build(self.comm, numbering.vertices)
+        free = constraints.free_dofs
+        ids = 3 * numbering.vertices[free // 3] + free % 3  # increasing, as free is
+        self.layout, _ = local_layout(self.comm, ids)
+        return self.vertex_ghosts.owned
 
     def agree(self, failure: str) -> None:
         """Every rank raises the first rank's :class:`InputError` when any rank's ``failure``
@@ -165,10 +188,13 @@ class RankShare:
         if failures:
             raise InputError(failures[0])
 
-    def owned(self, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """``(k,) bool``: which of ``vertices`` this rank owns (:func:`~fem3d.parallel.comm.
-        owned_vertices`; ``T`` this rank's tets): the point forces' owner."""
-        return owned_vertices(self.comm, vertices, T)
+    def owned(self, vertices: np.ndarray) -> np.ndarray:
+        """``(k,) bool``: which of the scene's ``vertices`` this rank owns (the point
+        forces' owner)."""
+        v = self.numbering.local(vertices)
+        out = v >= 0
+        out[out] = self.vertex_ghosts.owned[v[out]]
+        return out
 
     def summary(self, model: Model) -> Model:
         """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same
@@ -184,8 +210,87 @@ class RankShare:
     def make_system(self, model: Model, constraints: Constraints, loads: Loads
                     ) -> DistributedSystem:
         """The :class:`DistributedSystem` of the share's ``model`` and ``loads``."""
-        return DistributedSystem(model, constraints, self.layout, loads=loads,
-                                 petsc_options=self.petsc_options)
+        return DistributedSystem(model, constraints, self.layout, self.vertex_ghosts,
+                                 loads=loads, petsc_options=self.petsc_options)
+
+    # -- the whole state: gathered on rank 0, and a whole state's share -------------------
+    def gather(self, a: np.ndarray) -> np.ndarray | None:
+        """Rank 0: the whole-mesh array ``(n, ...)`` of every rank's rows ``a`` (one per
+        local vertex; each vertex from its owner); other ranks: None. Collective."""
+        mine = self.vertex_ghosts.owned
+        rows = self.comm.gather((self.numbering.vertices[mine], np.ascontiguousarray(a[mine])),
+                                root=0)
+        if rows is None:
+            return None
+        out = np.zeros((self.n_vertices, *a.shape[1:]), dtype=a.dtype)
+        for ids, values in rows:
+            out[ids] = values
+        return out
+
+    def take(self, whole: np.ndarray, key: str = "state") -> np.ndarray:
+        """This rank's rows of a whole-mesh array ``(n, ...)``.
+
+        Raises
+        ------
+        ParameterError
+            ``whole`` is not one row per vertex of the mesh (``key`` names it).
+        """
+        whole = np.asarray(whole)
+        if whole.ndim == 0 or whole.shape[0] != self.n_vertices:
+            raise ParameterError(f"{key} has shape {whole.shape}, the mesh "
+                                 f"{self.n_vertices} vertices")
+        return whole[self.numbering.vertices]
+
+    def whole_snapshot(self, snap: dict[str, Any]) -> dict[str, Any] | None:
+        """Collective. Rank 0: the one-process :meth:`Simulation.snapshot
+        <fem3d.simulation.Simulation.snapshot>` of the whole mesh made of every rank's
+        ``snap`` (its vertices' rows from their owners; the pull's springs of every rank,
+        with ``pull_attached``); other ranks: None."""
+        whole = {k: v for k, v in snap.items() if not _per_vertex(k)}
+        for key in sorted(k for k in snap if _per_vertex(k)):
+            whole[key] = self.gather(np.asarray(snap[key]))
+        verts = self.numbering.vertices[np.asarray(snap["pull_vertices"], dtype=np.int64)]
+        rows = self.comm.gather((verts, np.asarray(snap["pull_targets"]).reshape(-1, 3),
+                                 np.asarray(snap["pull_k"], dtype=np.float64)), root=0)
+        attached = any(self.comm.allgather(bool(np.asarray(snap["pull_k"]).size
+                                                and np.any(snap["pull_k"]))))
+        if rows is None:
+            return None
+        ks = [k for _, _, k in rows]
+        whole.update(pull_vertices=np.concatenate([v for v, _, _ in rows]),
+                     pull_targets=np.concatenate([t for _, t, _ in rows]),
+                     pull_k=ks[0] if all(k.ndim == 0 for k in ks) else np.concatenate(
+                         [np.broadcast_to(k, v.shape) for v, _, k in rows]),
+                     pull_attached=np.asarray(attached), pattern_keys=np.zeros(0, np.int64))
+        return whole
+
+    def local_snapshot(self, snap: dict[str, Any]) -> dict[str, Any]:
+        """This rank's share of a whole (one-process) snapshot: its vertices' rows and the
+        springs of the vertices it owns.
+
+        Raises
+        ------
+        ParameterError
+            An array that is not one row per vertex of the mesh.
+        """
+        out = {k: (self.take(v, k) if _per_vertex(k) else v) for k, v in snap.items()}
+        verts = np.asarray(snap["pull_vertices"], dtype=np.int64).reshape(-1)
+        if verts.size and (verts.min() < 0 or verts.max() >= self.n_vertices):
+            raise ParameterError(f"pulled vertex out of range [0, {self.n_vertices})")
+        k = np.asarray(snap["pull_k"], dtype=np.float64)
+        targets = np.asarray(snap["pull_targets"], dtype=np.float64).reshape(-1, 3)
+        mine = self.numbering.pull(Pull(verts, targets, k if k.ndim else float(k)),
+                                   self.vertex_ghosts.owned)
+        attached = snap.get("pull_attached", np.asarray(verts.size > 0))
+        out.update(pull_vertices=mine.vertices, pull_targets=mine.targets,
+                   pull_k=np.asarray(mine.k), pull_attached=np.asarray(bool(attached)))
+        return out
+
+
+def _per_vertex(key: str) -> bool:
+    """Whether a snapshot's ``key`` holds one row per vertex (positions, velocities, a
+    scheme's history)."""
+    return key in ("q", "v") or key.startswith("history_")
 
 
 class DistributedLoop:
@@ -212,7 +317,7 @@ class DistributedLoop:
                  comm: Any, share: RankShare, ckpt: RunCheckpoint | None = None) -> None:
         self.scene, self.sim, self.out, self.settings = scene, sim, Path(out), settings
         self.comm, self.rank, self.ckpt = comm, comm.Get_rank(), ckpt
-        self.digest, self.partition = share.digest, share.partition
+        self.share, self.digest, self.partition = share, share.digest, share.partition
         self.every = int(settings["checkpoint_every"])
         if self.rank == 0:
             (self.out / "frames").mkdir(parents=True, exist_ok=True)
@@ -258,14 +363,15 @@ class DistributedLoop:
         return info
 
     def save_checkpoint(self) -> None:
-        """Rank 0: ``energy.csv`` and ``checkpoint.npz`` of the whole state (every rank holds
-        it), the one-process format."""
+        """Collective. Rank 0: ``energy.csv`` and ``checkpoint.npz`` of the whole state
+        (gathered from the ranks: :meth:`RankShare.whole_snapshot`), the one-process
+        format."""
+        snapshot = self.share.whole_snapshot(self.sim.snapshot())
         if self.rank:
             return
         self.log.write()
-        sim = self.sim
         save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
-            settings=self.settings, snapshot=sim.snapshot(), energy=self.log.as_array(),
+            settings=self.settings, snapshot=snapshot, energy=self.log.as_array(),
             frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
             mesh_digest=self.digest, partition=self.partition))
 
@@ -352,7 +458,14 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     sim, share = distributed_simulation(scene, comm, settings["kernels"],
                                         ckpt.partition if same_ranks else None)
     if ckpt is not None:
-        restore_run_checkpoint(sim, ckpt, share.digest, sim.assembled.mesh_paths[0], out)
+        local = ckpt
+        if ckpt.mesh_digest == share.digest:  # (else restore names the other mesh)
+            try:  # this rank's share of the whole state (every rank reads the same file)
+                local = replace(ckpt, snapshot=share.local_snapshot(ckpt.snapshot))
+            except (ParameterError, KeyError) as exc:
+                raise InputError(f"bad checkpoint state: {exc}",
+                                 path=Path(out) / CHECKPOINT_NAME) from None
+        restore_run_checkpoint(sim, local, share.digest, sim.assembled.mesh_paths[0], out)
     setup = time.perf_counter() - t0
     loop = DistributedLoop(scene, sim, Path(out), settings, comm, share, ckpt)
     setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -361,9 +474,10 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
     cpu = time.process_time() - cpu
     rss = comm.gather((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, setup_rss,
                        cpu), root=0)
+    q, v = share.gather(sim.q), share.gather(sim.v)
     if comm.Get_rank() == 0:
         loop.log.write()
-        np.savez(Path(out) / "state.npz", q=sim.q, v=sim.v, t=sim.t, step=sim.step_index)
+        np.savez(Path(out) / "state.npz", q=q, v=v, t=sim.t, step=sim.step_index)
         if loop.signum is not None:  # the checkpoint of the last step is saved
             print(f"{command}: " + interrupted_message(
                 Interrupts.name_of(loop.signum), sim.step_index, sim.t,

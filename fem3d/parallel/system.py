@@ -1,22 +1,28 @@
 """The distributed system: a :class:`~fem3d.solve.system.System` on a rank's local model
 whose terms sum over the ranks and whose linear solver is one distributed PETSc matrix.
 
-Every rank holds the whole reduced vector (velocities, gradient, Newton direction): the
-integrators, :class:`~fem3d.solve.objective.Objective` and :func:`~fem3d.solve.newton.
-newtons_method` run unchanged and, because every sum they see is the same bits on every
-rank (:mod:`fem3d.parallel.comm`), take the same decisions on every rank. What is
-distributed is the work over the elements (energies, gradients, element Hessians: each rank
-its own tets) and the linear algebra (the Newton matrix's rows and the Krylov solve or
+A rank holds the vertices of its own tets (:class:`~fem3d.scene.local.LocalNumbering`): the
+ones it owns and ghosts, vertices other ranks hold too. Its vectors (positions, velocities,
+gradients, Newton directions) are that long. The integrators,
+:class:`~fem3d.solve.objective.Objective` and :func:`~fem3d.solve.newton.newtons_method` run
+unchanged on them: a term's gradient is summed over the ranks that hold each entry
+(:class:`~fem3d.parallel.ghosts.Ghosts`, the same bits on every holder), and the dot
+products, norms and checks Newton decides by are reduced over the entries each rank owns
+(:class:`OwnedReductions`), so every rank takes the same decisions. What is distributed is
+the work over the elements (energies, gradients, element Hessians: each rank its own tets),
+the vectors, and the linear algebra (the Newton matrix's rows and the Krylov solve or
 factorization: PETSc).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-from fem3d.parallel.comm import owned_vertices, sum_scalar, sum_vector
+from fem3d.parallel.comm import sum_scalar
+from fem3d.parallel.ghosts import Ghosts
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
@@ -25,28 +31,76 @@ from fem3d.physics.terms.loads import Loads
 from fem3d.physics.terms.pull import PullSprings
 from fem3d.solve.linear.base import DirectSolver
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
+from fem3d.solve.reductions import Reductions
 from fem3d.solve.system import System
 
-__all__ = ["DistributedSystem", "ReducedLoads", "ReducedPullSprings", "ReducedTerm"]
+__all__ = ["DistributedSystem", "OwnedReductions", "ReducedLoads", "ReducedPullSprings",
+           "ReducedTerm"]
+
+
+class OwnedReductions(Reductions):
+    """Newton's reductions of a rank's free-DOF vectors: over the entries it owns
+    (``owned``), summed over the ranks in rank order; flags agreed by every rank.
+
+    Parameters
+    ----------
+    comm : mpi4py.MPI.Comm
+    owned : (n_free,) bool
+        Which of the rank's free DOFs it owns.
+    """
+
+    def __init__(self, comm: Any, owned: np.ndarray) -> None:
+        self.comm = comm
+        self.owned = np.asarray(owned, dtype=bool)
+
+    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
+        o = self.owned
+        return sum_scalar(self.comm, float(a[o] @ b[o]))
+
+    def all(self, flag: bool) -> bool:
+        return all(self.comm.allgather(bool(flag)))
+
+    def any(self, flag: bool) -> bool:
+        return any(self.comm.allgather(bool(flag)))
+
+    def _scaled_norm(self, g: np.ndarray) -> float:
+        mine = g[self.owned]
+        s = max(self.comm.allgather(float(np.abs(mine).max()) if mine.size else 0.0))
+        if not s > 0:
+            return 0.0
+        scaled = mine / s
+        return s * math.sqrt(sum_scalar(self.comm, float(scaled @ scaled)))
+
+    def extent(self, X: np.ndarray) -> np.ndarray:
+        from mpi4py import MPI  # optional (fem3d[mpi]): a distributed run has it
+
+        lo = np.ascontiguousarray(X.min(axis=0) if X.size else np.full(3, np.inf))
+        hi = np.ascontiguousarray(X.max(axis=0) if X.size else np.full(3, -np.inf))
+        self.comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
+        self.comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
+        return hi - lo
 
 
 class ReducedTerm(Term):
-    """A term of a rank's local model, its energy and gradient summed over the ranks.
+    """A term of a rank's local model, its energy summed over the ranks and its gradient
+    over the ranks holding each entry (:meth:`DistributedSystem.summed`).
 
     Its Hessian is the rank's part (its tets): the distributed PETSc matrix sums the ranks'
-    parts. Only element-wise terms (inertia, elasticity, gravity, Rayleigh damping) are
-    additive over the tets like this.
+    parts. Only element-wise terms (inertia, elasticity, gravity, Rayleigh damping, the
+    surface and point loads, the pull springs of the vertices a rank owns) are additive over
+    the ranks like this.
 
     Parameters
     ----------
     term : Term
         The local model's term.
-    comm : mpi4py.MPI.Comm
+    system : DistributedSystem
+        Its :meth:`~DistributedSystem.summed`.
     """
 
-    def __init__(self, term: Term, comm: Any) -> None:
+    def __init__(self, term: Term, system: DistributedSystem) -> None:
         self.term = term
-        self.comm = comm
+        self.system = system
         self.name = term.name
         self.variable = term.variable
         self.inertial = term.inertial
@@ -61,13 +115,13 @@ class ReducedTerm(Term):
 
     @property
     def energy_scale(self) -> float:  # type: ignore[override]
-        return sum_scalar(self.comm, self.term.energy_scale)
+        return self.system.summed(float(self.term.energy_scale))
 
     def energy(self, u: np.ndarray) -> float:
-        return sum_scalar(self.comm, float(self.term.energy(u)))
+        return self.system.summed(float(self.term.energy(u)))
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
-        return sum_vector(self.comm, self.term.gradient(u))
+        return self.system.summed(self.term.gradient(u))
 
     def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
         self.term.add_hessian(u, sink)
@@ -76,47 +130,22 @@ class ReducedTerm(Term):
         self.term.begin_step(step)
 
     def with_model(self, model: Model) -> ReducedTerm:
-        return ReducedTerm(self.term.with_model(model), self.comm)
+        return ReducedTerm(self.term.with_model(model), self.system)
 
-    # contact: not element-wise, refused by fem3d.parallel.run; the pull springs:
-    # ReducedPullSprings
+    # contact: not element-wise, refused by fem3d.parallel.run
 
 
-class ReducedPullSprings(PullSprings):
-    """The pull springs of the vertices this rank owns (:func:`~fem3d.parallel.comm.
-    owned_vertices`), their energy and gradient summed over the ranks; the Hessian blocks
-    are this rank's (the distributed matrix sums them). :attr:`pull` is this rank's share
-    (no springs on a rank that owns no pulled vertex: the term stays active on every
-    rank, so every rank makes the same sums).
+class ReducedPullSprings(ReducedTerm, PullSprings):
+    """The pull springs of a rank's share of a pull (the springs of the vertices it owns,
+    :meth:`fem3d.scene.local.LocalNumbering.pull`, possibly none), summed over the ranks;
+    active whenever a pull is attached, on every rank alike."""
 
-    Parameters
-    ----------
-    model : Model
-        The rank's local model.
-    pull : Pull
-        Every rank's springs (the simulation's whole pull).
-    owned : (k,) bool
-        Which of ``pull``'s springs this rank adds.
-    comm : mpi4py.MPI.Comm
-    spring : optional
-        The generated spring kernels.
-    """
-
-    def __init__(self, model: Model, pull: Pull, owned: np.ndarray, comm: Any, *,
-                 spring=None) -> None:
-        k = pull.k if np.ndim(pull.k) == 0 else pull.k[owned]
-        super().__init__(model, Pull(pull.vertices[owned], pull.targets[owned], k),
-                         spring=spring)
-        self.whole, self.owned, self.comm = pull, owned, comm
-
-    def energy(self, q: np.ndarray) -> float:
-        return sum_scalar(self.comm, super().energy(q))
-
-    def gradient(self, q: np.ndarray) -> np.ndarray:
-        return sum_vector(self.comm, super().gradient(q))
+    def __init__(self, springs: PullSprings, system: DistributedSystem) -> None:
+        ReducedTerm.__init__(self, springs, system)
+        self.model, self.spring, self.pull = springs.model, springs.spring, springs.pull
 
     def with_model(self, model: Model) -> ReducedPullSprings:
-        return ReducedPullSprings(model, self.whole, self.owned, self.comm, spring=self.spring)
+        return ReducedPullSprings(self.term.with_model(model), self.system)
 
 
 class ReducedLoads(Loads):
@@ -125,38 +154,41 @@ class ReducedLoads(Loads):
     ranks; :attr:`surface` and :attr:`gravity_force` stay the rank's parts (the
     linearly-implicit scheme sums what it makes of them)."""
 
-    def __init__(self, loads: Loads, comm: Any) -> None:
+    def __init__(self, loads: Loads, system: DistributedSystem) -> None:
         super().__init__(loads.gravity, loads.damping, loads.rayleigh_alpha,
                          loads.rayleigh_beta, loads.surface)
-        object.__setattr__(self, "comm", comm)
+        object.__setattr__(self, "system", system)
         object.__setattr__(self, "local", loads)
         # made once: a scheme tells the loads' terms from others by identity (linear)
-        object.__setattr__(self, "_terms", [ReducedTerm(t, comm) for t in loads.terms()])
+        object.__setattr__(self, "_terms", [ReducedTerm(t, system) for t in loads.terms()])
 
     def terms(self) -> list[Term]:
         return list(self._terms)
 
     def gravity_energy(self, q: np.ndarray) -> float:
-        return sum_scalar(self.comm, self.local.gravity_energy(q))
+        return self.system.summed(self.local.gravity_energy(q))
 
     def with_model(self, model: Model) -> ReducedLoads:
-        return ReducedLoads(self.local.with_model(model), self.comm)
+        return ReducedLoads(self.local.with_model(model), self.system)
 
 
 class DistributedSystem(System):
-    """:class:`System` of one rank: its local model (:func:`~fem3d.parallel.local.
-    local_model`), the whole constraint set, terms summed over the ranks, and the
-    ``"petsc"`` solver over the ranks' :class:`DofLayout`.
+    """:class:`System` of one rank: its local model over its own vertices, their
+    constraints, terms summed over the ranks, and the ``"petsc"`` solver over the ranks'
+    :class:`DofLayout`.
 
     Parameters
     ----------
     model : Model
-        The rank's local model.
+        The rank's local model (its tets over its vertices).
     constraints : Constraints
-        The whole model's (every rank the same).
+        The constraints of its vertices.
     layout : DofLayout
+        Its free DOFs in PETSc's numbering, with their :class:`Ghosts`.
+    vertex_ghosts : Ghosts
+        Its vertices, shared with other ranks or not.
     loads : Loads
-        The local model's gravity and damping (:func:`~fem3d.parallel.local.local_loads`).
+        The local model's gravity, damping and share of the surface and point loads.
     petsc_options : str, optional
         The scene's ``simulation.petsc_options``.
     """
@@ -166,41 +198,47 @@ class DistributedSystem(System):
     #: per stored entry) stays alive through the next iteration's GAMG set-up.
     records_factorized = False
 
-    def __init__(self, model: Model, constraints: Constraints, layout: DofLayout, *,
-                 loads: Loads, petsc_options: str = "") -> None:
+    is_share = True
+
+    def __init__(self, model: Model, constraints: Constraints, layout: DofLayout,
+                 vertex_ghosts: Ghosts, *, loads: Loads, petsc_options: str = "") -> None:
         self.layout = layout
-        self._pull_owned: tuple[Pull, np.ndarray] | None = None  # the last pull's owners
+        self.vertex_ghosts = vertex_ghosts
+        owned = np.zeros(constraints.n_free, dtype=bool)
+        owned[layout.owned] = True
+        self.reductions = OwnedReductions(layout.comm, owned)
         super().__init__(model, constraints, PetscSolver.name,
-                         loads=ReducedLoads(loads, layout.comm), petsc_options=petsc_options)
+                         loads=ReducedLoads(loads, self), petsc_options=petsc_options)
 
     def _physics_cache(self) -> None:
         super()._physics_cache()
-        comm = self.layout.comm
-        self._model_terms = tuple(ReducedTerm(t, comm) for t in self._model_terms)
+        self._model_terms = tuple(ReducedTerm(t, self) for t in self._model_terms)
 
     def pull_term(self, pull: Pull | None) -> PullSprings:
-        """:class:`ReducedPullSprings` of ``pull`` (the same on every rank: a collective
-        call the first time a pull is seen)."""
-        if pull is None:
-            return PullSprings(self.model, None, spring=self.spring)
-        if self._pull_owned is None or self._pull_owned[0] is not pull:
-            owned = owned_vertices(self.layout.comm, pull.vertices, self.model.T)
-            self._pull_owned = (pull, owned)
-        return ReducedPullSprings(self.model, pull, self._pull_owned[1], self.layout.comm,
-                                  spring=self.spring)
+        """The springs of ``pull`` (this rank's share of it), summed over the ranks."""
+        springs = PullSprings(self.model, pull, spring=self.spring)
+        return springs if pull is None else ReducedPullSprings(springs, self)
 
     def summed(self, value: float | np.ndarray) -> float | np.ndarray:
         """``value`` of this rank's tets summed over the ranks, the same bits on every rank
-        (:func:`~fem3d.parallel.comm.sum_scalar`, :func:`~fem3d.parallel.comm.sum_vector`)."""
+        (:func:`~fem3d.parallel.comm.sum_scalar`); a vector (over the rank's DOFs, or its
+        free DOFs) entry by entry over the ranks that hold the entry (:meth:`Ghosts.
+        assemble`)."""
         if np.ndim(value) == 0:
             return sum_scalar(self.layout.comm, float(value))
-        return sum_vector(self.layout.comm, value)
+        value = np.asarray(value, dtype=np.float64)
+        if value.size == self.model.n_dofs:
+            return self.vertex_ghosts.assemble(value.reshape(-1, 3)).reshape(value.shape)
+        if value.size == self.constraints.n_free:
+            return self.layout.ghosts.assemble(value)
+        raise ValueError(f"a vector of {value.size} entries is not over this rank's "
+                         f"{self.model.n_dofs} DOFs or {self.constraints.n_free} free DOFs")
 
     def solve_mass(self, rhs: np.ndarray) -> np.ndarray:
         """``M^-1 rhs`` with the mass matrix summed over the ranks (each rank's
         :attr:`mass_free` is its tets' part): a :class:`PetscSolver` over the
-        :class:`DofLayout` (MUMPS or CG + GAMG, as for the Newton systems); the whole
-        ``(n_free,)`` result on every rank."""
+        :class:`DofLayout` (MUMPS or CG + GAMG, as for the Newton systems); ``rhs`` and the
+        result over this rank's free DOFs."""
         solver = PetscSolver(self.direct_solver_options(), layout=self.layout)
         solver.analyse(self.mass_free, symmetric=True)
         solver.factorize(self.mass_free)

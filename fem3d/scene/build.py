@@ -32,7 +32,7 @@ import numpy as np
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.mesh.formats import read_surface_mesh
-from fem3d.physics.constraints import Constraints
+from fem3d.physics.constraints import Constraints, free_rigid_modes
 from fem3d.physics.contact import ContactModel, MeshObstacle, PlaneObstacle
 from fem3d.physics.model import (
     MaterialGroup,
@@ -62,7 +62,9 @@ from fem3d.scene.arrays import (
     select_vertices,
     transform_points,
 )
+from fem3d.scene.local import LocalNumbering
 from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
+from fem3d.solve.schemes.registry import get_scheme
 
 __all__ = ["Built", "PinMotion", "build", "refuse_mixed_elements", "build_loads",
            "surface_loads_from_scene", "model_from_scene", "damping_from_scene", "pin_motions",
@@ -73,10 +75,16 @@ _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 
 class Share(Protocol):
     """A share of the tets (one MPI rank's, :class:`fem3d.parallel.run.RankShare`) that
-    :func:`build` makes the model of, instead of the whole."""
+    :func:`build` makes the model of, instead of the whole, over the vertices of its tets
+    alone (:class:`~fem3d.scene.local.LocalNumbering`)."""
 
     def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
         """The share's tets ``(k,) int64``, sorted, chosen from the whole mesh ``X, T``."""
+
+    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
+        """Collective: the share holds the vertices of ``numbering`` and the local
+        ``constraints``' free DOFs; ``(k,) bool``, which of its vertices it owns (each
+        vertex owned by exactly one share)."""
 
     def summary(self, model: Model) -> Model:
         """``model`` (the share's) with the whole model's summary ``E, nu, rho``."""
@@ -85,10 +93,9 @@ class Share(Protocol):
         """Raise :class:`InputError` on every share when any share's ``failure`` (its
         message; ``""``: none) is not empty."""
 
-    def owned(self, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """``(k,) bool``: which of ``vertices`` this share assembles the loads of (each
-        vertex in exactly one share); ``T`` the share's tets. Every share calls it with
-        the same ``vertices``."""
+    def owned(self, vertices: np.ndarray) -> np.ndarray:
+        """``(k,) bool``: which of the scene's ``vertices`` this share owns (after
+        :meth:`hold`): the share that assembles a point load on them."""
 
 
 class PinMotion(NamedTuple):
@@ -181,45 +188,73 @@ def build(scene: Scene, *, backend: str | None = None,
     """
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
-    tets = None
     if restrict is not None:
-        refuse_mixed_elements(scene, "mpiexec runs")
-    if restrict is not None:  # the share's tets first: they decide the model
-        constraints = _constraints(scene, a)
-        tets = restrict.tets(a.X, a.T, constraints)
-    if restrict is None:
-        model = model_from_scene(scene, a, backend)
-        constraints = _constraints(scene, a)
-    else:
-        # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
-        # rank learns of it before the next collective call, which would otherwise wait
-        try:
-            model, failure = model_from_scene(scene, a, backend, tets=tets), ""
-        except InputError as exc:
-            model, failure = None, str(exc)
-        restrict.agree(failure)
-        model = restrict.summary(model)
-    model = with_psd_projection(model, scene.simulation.psd_projection)
-    sim = scene.simulation
-    gravity = sim.gravity if any(g != 0 for g in sim.gravity) else None
+        return _build_share(scene, a, backend, restrict)
+    model = with_psd_projection(model_from_scene(scene, a, backend),
+                                scene.simulation.psd_projection)
+    constraints = _constraints(scene, a)
+    check_static_support(scene, a, constraints)
     alpha, beta = damping_from_scene(scene, a)
-    if tets is not None:
-        beta = beta if np.ndim(beta) == 0 else beta[tets]
+    loads = _loads(scene, model, alpha, beta, surface_loads_from_scene(scene, a, model))
+    return _built(scene, a, model, constraints, alpha, beta, loads,
+                  pin_motions(scene, a, constraints.fixed_vertices), pin_groups(scene, a))
+
+
+def _build_share(scene: Scene, a: SceneArrays, backend: str | None, share: Share) -> Built:
+    """:func:`build` of one MPI rank's share: selections on the whole scene ``a``, then
+    every array in the share's numbering (:class:`LocalNumbering`)."""
+    refuse_mixed_elements(scene, "mpiexec runs")
+    whole = _constraints(scene, a)
+    check_static_support(scene, a, whole)
+    numbering = LocalNumbering.of_tets(a.T, share.tets(a.X, a.T, whole))
+    tets = numbering.tets
+    # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
+    # rank learns of it before the next collective call, which would otherwise wait
     try:
-        loads = build_loads(model, gravity, alpha, beta,
-                            surface=surface_loads_from_scene(scene, a, model, restrict))
+        model, failure = model_from_scene(scene, a, backend, share=numbering), ""
+    except InputError as exc:
+        model, failure = None, str(exc)
+    share.agree(failure)
+    model = with_psd_projection(share.summary(model), scene.simulation.psd_projection)
+    constraints = numbering.constraints(model.X, whole)
+    owned = share.hold(numbering, constraints)
+    alpha, beta = damping_from_scene(scene, a)
+    alpha = alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices]
+    beta = beta if np.ndim(beta) == 0 else beta[tets]
+    loads = _loads(scene, model, alpha, beta,
+                   surface_loads_from_scene(scene, a, model, share, numbering))
+    slots = numbering.fixed_slots(whole.fixed_vertices, constraints.fixed_vertices)
+    motions = []
+    for m in pin_motions(scene, a, whole.fixed_vertices):
+        held = slots[m.slots] >= 0
+        if held.any():
+            motions.append(PinMotion(slots[m.slots][held], m.rest[held], m.keyframes))
+    groups = tuple((key, numbering.dof_ids(dofs)) for key, dofs in pin_groups(scene, a))
+    return _built(scene, numbering.arrays(a, owned), model, constraints, alpha, beta, loads,
+                  motions, groups)
+
+
+def _loads(scene: Scene, model: Model, alpha, beta, surface: list) -> Loads:
+    gravity = scene.simulation.gravity
+    try:
+        return build_loads(model, gravity if any(g != 0 for g in gravity) else None, alpha,
+                           beta, surface=surface)
     except ParameterError as exc:
         raise scene.error("simulation", str(exc)) from None
-    motions = pin_motions(scene, a, constraints.fixed_vertices)
+
+
+def _built(scene: Scene, a: SceneArrays, model: Model, constraints: Constraints, alpha, beta,
+           loads: Loads, motions: list, groups: tuple) -> Built:
+    gravity = scene.simulation.gravity
     contact = contact_from_scene(scene, a) if scene.contact.enabled else None
     spring_k = (a.spring_k if a.spring_k is not None
                 else default_spring_k(float(model.E), a.height))
     _stages.debug("pins, motions, damping, contact")
-    return Built(arrays=a, model=model, constraints=constraints, gravity=gravity,
+    return Built(arrays=a, model=model, constraints=constraints,
+                 gravity=gravity if any(g != 0 for g in gravity) else None,
                  rayleigh_alpha=alpha, rayleigh_beta=beta, loads=loads, motions=motions,
-                 contact=contact,
-                 pick_radius=a.pick_radius, spring_k=spring_k,
-                 pin_groups=pin_groups(scene, a))
+                 contact=contact, pick_radius=a.pick_radius, spring_k=spring_k,
+                 pin_groups=groups)
 
 
 def refuse_mixed_elements(scene: Scene, what: str) -> None:
@@ -249,6 +284,38 @@ def _constraints(scene: Scene, a: SceneArrays) -> Constraints:
             "[{ select = { lowest_y = { tol = 0.0 } } }])")
     return (Constraints.from_fixed_vertices(a.X, a.fixed) if a.fixed_dofs is None
             else Constraints.from_fixed_dofs(a.X, a.fixed_dofs))
+
+
+def check_static_support(scene: Scene, a: SceneArrays, constraints: Constraints) -> None:
+    """Refuse a scheme without inertia (``static``) where a body has neither pins nor contact
+    to hold it, or pins that leave a rigid motion free (its equilibrium is not unique: that
+    motion costs nothing).
+
+    Raises
+    ------
+    InputError
+        ``FILE: simulation.integrator: ...`` or ``FILE: bodies[i].pins: ...``.
+    """
+    scheme = get_scheme(scene.simulation.integrator)
+    if scheme.dynamic or scene.contact.enabled:
+        return
+    name = scheme.name
+    fixed = np.zeros(a.X.shape[0], dtype=bool)
+    fixed[constraints.fixed_vertices] = True
+    fd = constraints.fixed_dofs
+    for i, vs in enumerate(a.body_vertices):
+        label = f"body {i} ({scene.bodies[i].label})"
+        if not fixed[vs].any():
+            raise scene.error(
+                "simulation.integrator", f"{name} needs every body held by pins or "
+                f"contact: {label} has neither, so it has no unique equilibrium")
+        mine = fd[(fd >= 3 * vs.start) & (fd < 3 * vs.stop)] - 3 * vs.start
+        free = free_rigid_modes(a.X[vs], mine)
+        if free:
+            raise scene.error(
+                f"bodies[{i}].pins", f"{name}: {label} is under-supported: its pins "
+                f"leave the rigid motion{'s' if len(free) > 1 else ''} {', '.join(free)} free "
+                "(it costs nothing: no unique equilibrium; hold more dofs)")
 
 
 def pin_groups(scene: Scene, a: SceneArrays) -> tuple:
@@ -297,14 +364,15 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
 
 
 def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
-                             share: Share | None = None) -> list:
+                             share: Share | None = None,
+                             numbering: LocalNumbering | None = None) -> list:
     """The bodies' ``loads`` as terms, in scene order: a traction or a point force as a
     :class:`DeadLoad`, a pressure as a :class:`FollowerPressure` (docs/loads.md).
 
-    With ``share`` (one MPI rank's; ``model`` its tets'), each load is the share's part,
-    so that summed over the shares every face and point is counted once: a face belongs
-    to the share of the tet it bounds, a point force's vertex to the share that
-    :meth:`Share.owned` says (the checks still see the whole load).
+    With ``share`` (one MPI rank's; ``model`` its tets' over its vertices ``numbering``),
+    each load is the share's part, so that summed over the shares every face and point is
+    counted once: a face belongs to the share of the tet it bounds, a point force's vertex
+    to the share that :meth:`Share.owned` says (the checks still see the whole load).
 
     Raises
     ------
@@ -314,9 +382,11 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
     """
     out: list = []
     faces: dict[int, np.ndarray] = {}  # each element block's boundary faces, once
-    # the share's boundary faces: the loaded faces of its own tets are among them (a share
-    # is of one element: mixed elements are refused on ranks)
-    own_faces = None if share is None else a.element.boundary_faces(model.T)
+    # the share's boundary faces (scene numbers): the loaded faces of its own tets are among
+    # them (a share is of one element: mixed elements are refused on ranks)
+    own_faces = None if numbering is None else \
+        numbering.vertices[a.element.boundary_faces(model.T)]
+    local = (lambda ids: ids) if numbering is None else numbering.local
     for i, body in enumerate(scene.bodies):
         off = a.body_vertices[i].start
         for j, load in enumerate(body.loads):
@@ -328,7 +398,8 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
             if load.kind == "force":
                 force = point_forces(a.X.shape[0], ids, load.force)
                 if share is not None:  # F / k on each selected vertex the share owns
-                    force.reshape(-1, 3)[ids[~share.owned(ids, model.T)]] = 0.0
+                    force.reshape(-1, 3)[ids[~share.owned(ids)]] = 0.0
+                    force = numbering.dofs(force)
                 out.append(DeadLoad(model, force, amplitude, key))
                 continue
             b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
@@ -338,27 +409,27 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
             if mine.size == 0:
                 raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
                                   "is loaded when all its nodes are selected)")
-            ours = mine if own_faces is None else faces_among(mine, own_faces)
+            ours = local(mine if own_faces is None else faces_among(mine, own_faces))
             if load.kind == "traction":
-                out.append(DeadLoad(model, traction_forces(a.X, ours, load.traction,
+                out.append(DeadLoad(model, traction_forces(model.X, ours, load.traction,
                                                            model.backend),
                                     amplitude, key))
                 continue
-            term = FollowerPressure(model, mine, load.pressure, amplitude, key)
-            _check_open_edge(scene, a, term, key)  # the whole patch's edge
-            out.append(term if ours is mine else
-                       FollowerPressure(model, ours, load.pressure, amplitude, key))
+            _check_open_edge(scene, a, mine, load.pressure, model.backend, key)
+            out.append(FollowerPressure(model, ours, load.pressure, amplitude, key))
     return out
 
 
-def _check_open_edge(scene: Scene, a: SceneArrays, term: FollowerPressure, key: str) -> None:
-    """Refuse a pressure on an open patch whose edge forces (the potential's, which a true
-    follower pressure does not have) would act on free DOFs."""
-    edge = term.edge_forces()
+def _check_open_edge(scene: Scene, a: SceneArrays, faces: np.ndarray, pressure: float,
+                     backend: str | None, key: str) -> None:
+    """Refuse a pressure on an open patch ``faces`` (the whole patch, scene numbers) whose
+    edge forces (the potential's, which a true follower pressure does not have) would act
+    on free DOFs."""
+    edge = FollowerPressure.rest_edge_forces(a.X, faces, pressure, backend)
     held = np.zeros(edge.size, dtype=bool)
     held[a.fixed_dofs if a.fixed_dofs is not None else
          (3 * a.fixed[:, None] + np.arange(3)).reshape(-1)] = True
-    scale = abs(term.pressure) * float(np.linalg.norm(np.ptp(a.X, axis=0))) ** 2
+    scale = abs(pressure) * float(np.linalg.norm(np.ptp(a.X, axis=0))) ** 2
     n = int(np.count_nonzero(np.abs(edge[~held]) > 1e-9 * scale))
     if n:
         raise scene.error(f"{key}.select", "a follower pressure needs a closed loaded surface, "
@@ -396,22 +467,23 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
 
 
 def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *,
-                     tets: np.ndarray | None = None) -> Model:
+                     share: LocalNumbering | None = None) -> Model:
     """The model of every body's material (one material form when there is one plain body,
     else ``build_model(groups=)``: one group per body and per region).
 
-    ``tets`` (sorted ``(k,) int64``, optional): the model of these tets alone (one MPI
-    rank's, every vertex and its numbering kept), built from them: the groups, per-tet
-    parameters and densities are restricted before :func:`build_model`, which sees only
-    ``a.T[tets]``; its summary ``E, nu, rho`` are then the share's.
+    ``share`` (optional): the model of its tets alone over its vertices (one MPI rank's),
+    built from them: the groups, per-tet parameters and densities are restricted before
+    :func:`build_model`, which sees only the share's tets and vertices; its summary
+    ``E, nu, rho`` are then the share's.
     """
     bodies = scene.bodies
     path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
-    T = a.T if tets is None else a.T[tets]
+    tets = None if share is None else share.tets
+    X, T = (a.X, a.T) if share is None else (a.X[share.vertices], share.local(a.T[tets]))
     try:
         if len(bodies) == 1 and _simple_material(bodies[0].material):
             m = bodies[0].material
-            return build_model(a.X, T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
+            return build_model(X, T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
                                backend=backend, path=path, element=a.element)
     except InputError as exc:
         key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
@@ -458,7 +530,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
     rho = float(density[0]) if (density == density[0]).all() else density
     if tets is not None:
         groups, rho = _share_groups(groups, tets, a.T.shape[0]), _share_values(rho, tets)
-    return _model_of_groups(scene, a.X, T, groups, rho, backend, path, a.element)
+    return _model_of_groups(scene, X, T, groups, rho, backend, path, a.element)
 
 
 def _mixed_from_groups(scene: Scene, a: SceneArrays, groups: list, density: np.ndarray,

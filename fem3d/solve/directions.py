@@ -232,7 +232,7 @@ class DirectDirection(NewtonDirection):
     def __call__(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         psd = self.options.psd
         A_free = self.matrix(x, psd)
-        if not np.isfinite(A_free.data).all():
+        if not self.system.reductions.all_finite(A_free.data):
             return np.full_like(g, np.nan)  # newtons_method falls back to -g
         d = self.factorized(x, g, A_free, psd, ladder=True)[0]
         if self.last_shift > 0.0 and self.objective.has_stopping_rule and \

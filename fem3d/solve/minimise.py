@@ -95,7 +95,7 @@ def minimise_step(
     if max_iterations is not None and objective.requires_convergence:
         max_iterations = max(max_iterations, converged_max_iterations)
     stats = StepStats()
-    L = float(np.linalg.norm(np.ptp(model.X, axis=0)))
+    L = float(np.linalg.norm(system.reductions.extent(model.X)))
     atol = settings.atol_factor * step.h * model.E * L * L
     progress = NewtonProgress(atol, settings.rtol)  # the gradient norms the directions see
     name = direction_name(system, settings)
@@ -123,7 +123,7 @@ def minimise_step(
                 else None,
                 roundoff_rtol=AMG_ROUNDOFF_RTOL if name == "amg" else 0.0,
                 f0=f_start, energy_scale=objective.energy_scale if name != "amg" else 0.0,
-                line_search=settings.line_search,
+                line_search=settings.line_search, reductions=system.reductions,
             )
         except SimulationError as exc:
             if exc.step is not None:
@@ -158,13 +158,15 @@ def _solve_relagging(objective: Objective, solve, x0: np.ndarray,
 
 def _no_step(objective: Objective, state: State, scheme: str):
     """Newton's ``on_no_step``: raise naming how many tets the full step inverts."""
-    model = objective.system.model
+    system = objective.system
+    model = system.model
 
     def no_step(x: np.ndarray, d: np.ndarray) -> None:
-        n_inv = count_inverted(model, objective.positions(x + d))
+        n_inv = int(system.summed(count_inverted(model, objective.positions(x + d))))
         raise SimulationError(
             f"{scheme} found no acceptable Newton step: the full step inverts {n_inv} "
-            f"of {model.n_tets} tets and every shorter trial also inverts tets or is not "
+            f"of {int(system.summed(model.n_tets))} tets and every shorter trial also inverts "
+            "tets or is not "
             "finite (try a smaller dt or softer pull)", step=state.step)
 
     return no_step

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fem3d.errors import SimulationError
+from fem3d.solve.reductions import WHOLE, Reductions
 from fem3d.solve.settings import LINE_SEARCHES
 
 __all__ = ["NewtonResult", "newtons_method", "gradient_norm", "LineSearch", "NewtonHooks",
@@ -53,20 +53,10 @@ class NewtonResult:
     line_search_halvings: int
 
 
-def gradient_norm(g: np.ndarray) -> float:
-    """``||g||`` without overflow for finite ``g``; raises on a non-finite gradient."""
-    if not np.isfinite(g).all():
-        raise SimulationError(
-            "Newton's method: the gradient is not finite (forces overflow: parameters or "
-            "state out of range)"
-        )
-    s = float(np.abs(g).max()) if g.size else 0.0
-    n = s * float(np.linalg.norm(g / s)) if s > 0 else 0.0
-    if not math.isfinite(n):
-        raise SimulationError("Newton's method: the gradient norm overflows")
-    return n
-
-
+def gradient_norm(g: np.ndarray, reductions: Reductions = WHOLE) -> float:
+    """``||g||`` without overflow for finite ``g``; raises on a non-finite gradient
+    (:meth:`Reductions.norm`: an MPI rank's vector, over the ranks)."""
+    return reductions.norm(g)
 
 
 @dataclass(frozen=True)
@@ -177,22 +167,24 @@ class _Newton:
     g: np.ndarray
     gn: float
     tol: float
+    reductions: Reductions = WHOLE
     norms: list[float] = field(default_factory=list)
     halvings: int = 0
     it: int = 0
 
     @classmethod
-    def start(cls, x0, energy, gradient, f0: float | None, rtol: float, atol: float) -> _Newton:
+    def start(cls, x0, energy, gradient, f0: float | None, rtol: float, atol: float,
+              reductions: Reductions) -> _Newton:
         x = np.array(x0, dtype=np.float64)
         fx = energy(x) if f0 is None else float(f0)
         g = gradient(x)
-        gn = gradient_norm(g)
-        return cls(energy, gradient, x, fx, g, gn, max(atol, rtol * gn), [gn])
+        gn = reductions.norm(g)
+        return cls(energy, gradient, x, fx, g, gn, max(atol, rtol * gn), reductions, [gn])
 
     def accept(self, x: np.ndarray, fx: float, g: np.ndarray, gn: float | None = None) -> None:
         """Move to ``x``: one iteration more."""
         self.x, self.fx, self.g = x, fx, g
-        self.gn = gradient_norm(g) if gn is None else gn
+        self.gn = self.reductions.norm(g) if gn is None else gn
         self.norms.append(self.gn)
         self.it += 1
 
@@ -223,6 +215,7 @@ def newtons_method(
     roundoff_rtol: float = 0.0,
     f0: float | None = None,
     line_search: str = "backtrack",
+    reductions: Reductions = WHOLE,
 ) -> NewtonResult:
     """Minimise ``energy`` by Newton's method with a backtracking (Armijo) line search.
 
@@ -247,6 +240,9 @@ def newtons_method(
         The objective's hooks (:class:`NewtonHooks`).
     f0 : float, optional
         ``energy(x0)`` when the caller has it already (saves one evaluation).
+    reductions : Reductions, optional
+        How the vectors' dot products, norms and checks are reduced (an MPI rank's vectors:
+        over the ranks, so every rank decides alike); default one process's.
 
     Returns
     -------
@@ -257,7 +253,7 @@ def newtons_method(
     search = LineSearch(alpha, p, c, max_halvings, decrement_rtol, energy_scale,
                         roundoff_rtol, line_search)
     hooks = NewtonHooks(on_no_step, max_step, converged_step, accept_first_step, after_step)
-    run = _Newton.start(x0, energy, gradient, f0, rtol, atol)
+    run = _Newton.start(x0, energy, gradient, f0, rtol, atol, reductions)
     while max_iterations is None or run.it < max_iterations:
         stop = _iterate(run, newton_direction, search, hooks)
         if stop is not None:
@@ -271,10 +267,10 @@ def _iterate(run: _Newton, newton_direction, search: LineSearch,
     converged where it stops."""
     if run.gn <= run.tol:
         return True
-    x, g, gn = run.x, run.g, run.gn
+    x, g, gn, r = run.x, run.g, run.gn, run.reductions
     d = newton_direction(x, g)
-    slope = float(g @ d)
-    newton_step = slope < 0 and np.isfinite(d).all()
+    slope = r.dot(g, d)
+    newton_step = slope < 0 and r.all_finite(d)
     if not newton_step:  # not a descent direction: fall back
         d, slope = -g, -gn * gn
     # the rule stops Newton at x; a first direction that passes is taken, then stops it
@@ -289,7 +285,7 @@ def _iterate(run: _Newton, newton_direction, search: LineSearch,
     if search.at_roundoff(slope, run.fx):
         # The predicted decrease is below the objective's round-off, so Armijo tests are
         # noise: take the full step while it is admissible and shrinks the gradient.
-        taken = _roundoff_step(x, d, a0, gn, run.energy, run.gradient)
+        taken = _roundoff_step(x, d, a0, gn, run.energy, run.gradient, r)
         if taken is None:
             return True
         run.accept(*taken)
@@ -297,7 +293,8 @@ def _iterate(run: _Newton, newton_direction, search: LineSearch,
     found = _backtrack(x, run.fx, gn, d, slope, a0, run.energy, run.gradient, p=search.p,
                        c=search.c, max_halvings=search.max_halvings,
                        roundoff_rtol=search.roundoff_rtol,
-                       end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * run.tol, refine=search.refine)
+                       end_game=gn <= ROUNDOFF_GRADIENT_FACTOR * run.tol, refine=search.refine,
+                       reductions=r)
     run.halvings += found.halvings
     if found.outcome != "accepted":  # round-off (converged, any_finite) or failed
         if not found.any_finite and hooks.on_no_step is not None:
@@ -312,13 +309,13 @@ def _iterate(run: _Newton, newton_direction, search: LineSearch,
 
 def _roundoff_step(x: np.ndarray, d: np.ndarray, a0: float, gn: float,
                    energy: Callable[[np.ndarray], float],
-                   gradient: Callable[[np.ndarray], np.ndarray]):
+                   gradient: Callable[[np.ndarray], np.ndarray], reductions: Reductions):
     """The full (clamped) step ``x + a0 d`` with its energy, gradient and ``||g||`` when it
     is admissible and shrinks the gradient below ``gn``; else None (converged at round-off)."""
     xt = x + d if a0 == 1.0 else x + a0 * d
     ft = energy(xt)
     gt = gradient(xt) if math.isfinite(ft) else None
-    gtn = math.inf if gt is None or not np.isfinite(gt).all() else gradient_norm(gt)
+    gtn = math.inf if gt is None or not reductions.all_finite(gt) else reductions.norm(gt)
     return (xt, ft, gt, gtn) if gtn < gn else None
 
 
@@ -344,7 +341,7 @@ def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float,
                energy: Callable[[np.ndarray], float],
                gradient: Callable[[np.ndarray], np.ndarray], *, p: float, c: float,
                max_halvings: int, roundoff_rtol: float, end_game: bool,
-               refine: int = 0) -> _Search:
+               refine: int = 0, reductions: Reductions = WHOLE) -> _Search:
     """Armijo backtracking from the step ``a0`` along ``d`` (see :func:`newtons_method`'s
     ``alpha, p, c``, ``max_halvings`` and ``roundoff_rtol``; ``end_game``: ``||g||`` within
     :data:`ROUNDOFF_GRADIENT_FACTOR` of the tolerance; ``refine``: the parabolic
@@ -355,7 +352,7 @@ def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float,
     rejected = math.inf  # the energy at the last rejected trial, a / p
     for _ in range(max_halvings):
         xt = x + a * d
-        if not (xt != x).any():
+        if not reductions.any(bool((xt != x).any())):
             break  # the step vanished in x's round-off: accepting it would loop forever
         ft = energy(xt)
         if math.isfinite(ft):
@@ -371,7 +368,7 @@ def _backtrack(x: np.ndarray, fx: float, gn: float, d: np.ndarray, slope: float,
                 if end_game or ft <= fx + roundoff_rtol * abs(fx):
                     # the energy cannot tell the trial from x: judge by the gradient
                     gt = gradient(xt)
-                    if np.isfinite(gt).all() and gradient_norm(gt) < gn:
+                    if reductions.all_finite(gt) and reductions.norm(gt) < gn:
                         return _Search("accepted", halvings, True, xt, ft, gt)
                 if end_game:
                     # a full step that does not shrink the gradient there is the

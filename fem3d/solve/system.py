@@ -39,6 +39,7 @@ from fem3d.solve.linear import (
     resolve_linear_solver,
 )
 from fem3d.solve.newton_matrix import NewtonMatrixBuilder
+from fem3d.solve.reductions import WHOLE, Reductions
 
 __all__ = ["System", "LEAN_ASSEMBLY_MIN_TETS", "SHIFT_LADDER_START", "SHIFT_LADDER_GROWTH"]
 
@@ -96,6 +97,14 @@ class System:
     #: :attr:`factorized_data` (a copy of its values): what Newton's ``reuse`` direction and
     #: a checkpoint of a run that keeps its factorization need.
     records_factorized: bool = True
+
+    #: How Newton reduces this system's vectors (:mod:`fem3d.solve.reductions`): one
+    #: process's whole vectors here.
+    reductions: Reductions = WHOLE
+
+    #: Whether this is one MPI rank's share of a system: a pull may hold none of its springs
+    #: here and still be attached (every rank keeps the same terms).
+    is_share: bool = False
 
     def __init__(
         self,

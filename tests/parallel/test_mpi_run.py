@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 from fem3d.io.energy import read_energy_csv
-from fem3d.parallel.local import local_loads, local_model
-from fem3d.parallel.partition import dof_layout, dual_graph, partition_tets
+from fem3d.parallel.partition import dual_graph, partition_tets
 from fem3d.physics.terms.base import StepMap
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
@@ -254,23 +253,6 @@ def test_metis_cuts_the_same_way_every_time():
     assert between < 0.05 * indices.size / 2  # of the faces two tets share
 
 
-def test_dof_layout_numbers_rank_by_rank():
-    T = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
-    tet_rank = np.array([1, 0])
-    free = np.arange(3, 15)  # vertex 0 pinned
-    layouts = [dof_layout(T, tet_rank, free, SimpleNamespace(Get_size=lambda: 2,
-                                                             Get_rank=lambda r=r: r))
-               for r in (0, 1)]
-    assert layouts[0].counts.tolist() == [12, 0]  # vertices 1-4 touch the rank-0 tet
-    assert layouts[0].order.tolist() == list(range(12))
-    assert layouts[1].owned.size == 0 and layouts[1].start == 12
-    tet_rank = np.array([0, 1])
-    lay = dof_layout(T, tet_rank, free, SimpleNamespace(Get_size=lambda: 2,
-                                                        Get_rank=lambda: 1))
-    assert lay.counts.tolist() == [9, 3]  # vertex 4 only in the rank-1 tet
-    assert lay.owned.tolist() == [9, 10, 11] and lay.order[9:].tolist() == [9, 10, 11]
-
-
 def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
     """``RankShare.tets`` given a partition (a resume's, written on as many ranks) takes it
     rather than partitioning anew (PT-Scotch's partition differs from run to run: a new one
@@ -302,44 +284,97 @@ class _Unsolved(System):
         return None
 
 
+class _Share:
+    """One process's stand-in for rank ``rank`` of a split of the tets ``parts`` (the
+    :class:`~fem3d.scene.build.Share` protocol without MPI): a vertex is owned by the lowest
+    part holding it."""
+
+    def __init__(self, parts, rank, summary=None):
+        self.parts, self.rank, self._summary = parts, rank, summary
+
+    def tets(self, X, T, constraints):
+        self.T = T
+        return self.parts[self.rank]
+
+    def hold(self, numbering, constraints):
+        self.numbering = numbering
+        lower = [np.unique(self.T[p]) for p in self.parts[:self.rank]]
+        self.mine = ~np.isin(numbering.vertices, np.concatenate([[-1], *lower]))
+        return self.mine
+
+    def owned(self, vertices):
+        v = self.numbering.local(vertices)
+        out = v >= 0
+        out[out] = self.mine[v[out]]
+        return out
+
+    def agree(self, failure):
+        assert failure == ""
+
+    def summary(self, model):
+        return model if self._summary is None else self._summary(model)
+
+
+def _halves(n_tets, seed=1):
+    rng = np.random.default_rng(seed)
+    first = np.sort(rng.permutation(n_tets)[:n_tets // 2])
+    return [first, np.setdiff1d(np.arange(n_tets), first)]
+
+
 def test_local_models_sum_to_the_whole(tmp_path):
-    """The local models of a split of the tets (two materials, damping, gravity): their
-    energies, gradients and Newton matrices sum to the whole model's."""
-    sim = Simulation(load_scene(str(write_scene(tmp_path))))
-    model, system = sim.model, sim.system
+    """The shares ``build(restrict=)`` makes of a split of the tets (two materials, damping,
+    gravity, each over its own vertices): their energies, gradients and Newton matrices,
+    carried to the scene's numbering, sum to the whole model's."""
+    from fem3d.scene.build import build
+
+    scene = load_scene(str(write_scene(tmp_path)))
+    sim = Simulation(scene)
+    model, system, c = sim.model, sim.system, sim.constraints
+    parts = _halves(model.n_tets)
     rng = np.random.default_rng(1)
-    halves = [np.sort(rng.permutation(model.n_tets)[:model.n_tets // 2])]
-    halves.append(np.setdiff1d(np.arange(model.n_tets), halves[0]))
-    parts = []
-    for tets in halves:
-        local = local_model(model, tets)
-        assert local.E == model.E and local.n_vertices == model.n_vertices
-        parts.append(_Unsolved(local, sim.constraints, "superlu",
-                               loads=local_loads(system.loads, local, tets)))
-    c = sim.constraints
     q = sim.q.reshape(-1) + 1e-3 * rng.standard_normal(model.n_dofs)
     v = 0.1 * rng.standard_normal(model.n_dofs)
-    step = StepMap(constraints=c, h=0.01, dt=0.01, t=0.0, step=0, q_t=q, v_t=v,
-                   q_base=q, v_hat_free=v[c.free_dofs])
-    x = v[c.free_dofs]
 
-    def evaluate(s):
+    def evaluate(s, dofs):
+        """Energies, gradients (scene-long) and the Newton matrix (whole free numbering) of
+        system ``s`` over the scene DOFs ``dofs``."""
+        sc = s.constraints
+        qs, vs = q[dofs], v[dofs]
+        step = StepMap(constraints=sc, h=0.01, dt=0.01, t=0.0, step=0, q_t=qs, v_t=vs,
+                       q_base=qs, v_hat_free=vs[sc.free_dofs])
         terms = [t for t in model_terms(s) if t.active]
         for t in terms:
             t.begin_step(step)
-        e = [t.energy(q if t.variable == "position" else x) for t in terms]
-        g = [t.gradient(q if t.variable == "position" else x) for t in terms]
-        return e, g, s.newton_matrix(q, 0.01, damping=s.loads.damping_data(q))
+        e, g = [], []
+        for t in terms:
+            position = t.variable == "position"
+            e.append(t.energy(qs if position else vs[sc.free_dofs]))
+            full = np.zeros(model.n_dofs)
+            local = t.gradient(qs if position else vs[sc.free_dofs])
+            full[dofs if position else dofs[sc.free_dofs]] = local
+            g.append(full)
+        H = s.newton_matrix(qs, 0.01, damping=s.loads.damping_data(qs)).tocoo()
+        free_of = np.full(model.n_dofs, -1)
+        free_of[c.free_dofs] = np.arange(c.n_free)
+        rows, cols = (free_of[dofs[sc.free_dofs][i]] for i in (H.row, H.col))
+        import scipy.sparse as sp
 
-    e, g, H = evaluate(system)
-    (e0, g0, H0), (e1, g1, H1) = (evaluate(s) for s in parts)
+        return e, g, sp.csr_matrix((H.data, (rows, cols)), shape=(c.n_free, c.n_free))
+
+    whole = evaluate(system, np.arange(model.n_dofs))
+    shares = []
+    for rank in (0, 1):
+        built = build(scene, restrict=_Share(parts, rank))
+        verts = np.unique(model.T[parts[rank]])
+        assert np.array_equal(built.model.X, model.X[verts])
+        s = _Unsolved(built.model, built.constraints, "superlu", loads=built.loads)
+        shares.append(evaluate(s, (3 * verts[:, None] + np.arange(3)).reshape(-1)))
+    (e, g, H), (e0, g0, H0), (e1, g1, H1) = whole, *shares
     assert len(e) == len(e0) == 4  # inertia, elasticity, gravity, damping
     for k in range(len(e)):
         assert e0[k] + e1[k] == pytest.approx(e[k], rel=1e-12, abs=1e-12)
         assert np.allclose(g0[k] + g1[k], g[k], rtol=1e-12, atol=1e-9)
     assert abs(H0 + H1 - H).max() <= 1e-9 * abs(H).max()
-    assert parts[0].loads.gravity_energy(q) + parts[1].loads.gravity_energy(q) == \
-        pytest.approx(system.loads.gravity_energy(q), rel=1e-12)
 
 
 def test_launched_ranks_from_the_launcher(monkeypatch):
@@ -357,65 +392,56 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
 
 def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monkeypatch):
     """``build(scene, restrict=)`` (a rank's share): the model is built from the share's
-    tets alone (``build_model`` never sees the whole mesh) and equals the whole model
-    restricted (rest shapes, per-tet parameters of two materials, mass); the loads are the
-    share's (a per-tet damping coefficient restricted); the summary values are the share's
-    ``summary``."""
+    tets over their vertices alone (``build_model`` never sees the whole mesh) and equals
+    the whole model restricted (rest shapes, per-tet parameters of two materials); pins,
+    initial velocities and the loads are the share's (a per-tet damping coefficient
+    restricted); the summary values are the share's ``summary``."""
     import fem3d.scene.build as scene_build
 
     scene = load_scene(str(write_scene(tmp_path)))  # two bodies: per-tet Rayleigh beta
     whole = scene_build.build(scene)
     tets = np.arange(0, whole.model.n_tets, 3)
+    verts = np.unique(whole.model.T[tets])
     seen = []
 
-    class Share:
-        def tets(self, X, T, constraints):
-            assert constraints.free_dofs.size == whole.constraints.free_dofs.size
-            assert np.array_equal(T, whole.model.T)
-            return tets
-
-        def agree(self, failure):
-            assert failure == ""
-
-        def summary(self, model):
-            return replace(model, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)
-
     def spy(X, T, **kwargs):
-        seen.append(T.shape[0])
+        seen.append((X.shape[0], T.shape[0]))
         return build_model(X, T, **kwargs)
 
     build_model = scene_build.build_model
     monkeypatch.setattr(scene_build, "build_model", spy)
-    share = scene_build.build(scene, restrict=Share())
-    assert seen == [tets.size]  # the whole model is never built
-    expected = local_model(whole.model, tets)
+    share = scene_build.build(scene, restrict=_Share([tets], 0, lambda m: replace(
+        m, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)))
+    assert seen == [(verts.size, tets.size)]  # the whole model is never built
     m = share.model
-    assert m.n_tets == tets.size and m.n_vertices == whole.model.n_vertices
-    assert np.array_equal(m.T, whole.model.T[tets]) and np.array_equal(m.vol, expected.vol)
-    assert np.array_equal(m.dphi_dX, expected.dphi_dX)
-    assert np.array_equal(m.params, expected.params) and m.material == expected.material
-    assert (m.mass != expected.mass).nnz == 0
-    loads = local_loads(whole.loads, expected, tets)
-    assert np.array_equal(share.loads.rayleigh_beta, loads.rayleigh_beta)
-    assert np.ndim(share.loads.rayleigh_beta) == 1 and share.loads.rayleigh_beta.size == tets.size
-    q = whole.model.X.reshape(-1) + 1e-3
-    assert share.loads.gravity_energy(q) == pytest.approx(loads.gravity_energy(q), rel=1e-14)
+    assert m.n_tets == tets.size and m.n_vertices == verts.size
+    assert np.array_equal(verts[m.T], whole.model.T[tets])
+    assert np.array_equal(m.vol, whole.model.vol[tets])
+    assert np.array_equal(m.dphi_dX, whole.model.dphi_dX[tets])
+    assert np.array_equal(m.params, whole.model.params[tets])
+    assert m.material == whole.model.material
+    assert np.array_equal(verts[share.constraints.fixed_vertices],
+                          np.intersect1d(whole.constraints.fixed_vertices, verts))
+    assert np.array_equal(share.arrays.v0, whole.arrays.v0[verts])
+    assert np.array_equal(share.loads.rayleigh_beta, whole.loads.rayleigh_beta[tets])
+    assert np.array_equal(share.loads.rayleigh_alpha, whole.loads.rayleigh_alpha[verts])
     assert (m.E, m.nu, m.rho) == (whole.model.E, whole.model.nu, whole.model.rho)
 
 
 def test_rank_share_summary_is_the_whole_models(tmp_path):
     """``RankShare.summary``: the ranks' models of a two-material box (built by
-    ``model_from_scene(tets=)``, halves of unequal materials) get the whole model's
+    ``model_from_scene(share=)``, halves of unequal materials) get the whole model's
     ``E, nu, rho`` (the volume-weighted means over the ranks), the same on every rank."""
     from fem3d.parallel.run import RankShare
     from fem3d.scene.arrays import build_arrays
     from fem3d.scene.build import model_from_scene
+    from fem3d.scene.local import LocalNumbering
 
     scene = load_scene(str(write_scene(tmp_path)))
     a = build_arrays(scene)
     whole = model_from_scene(scene, a)
     halves = np.array_split(np.arange(whole.n_tets), [whole.n_tets // 3])
-    models = [model_from_scene(scene, a, tets=t) for t in halves]
+    models = [model_from_scene(scene, a, share=LocalNumbering.of_tets(a.T, t)) for t in halves]
     assert models[0].E != models[1].E  # the halves' own summaries differ
 
     class Comm:  # rank r of two: allgather returns both ranks' rows

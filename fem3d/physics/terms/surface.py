@@ -28,6 +28,8 @@ A face belongs to a selection when all its nodes do (3 on a P1 face, 6 on a P2 f
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from fem3d.errors import ParameterError
@@ -185,6 +187,17 @@ class DeadLoad(_TimedLoad):
         return new
 
 
+class _RestGeometry(NamedTuple):
+    """What :class:`FollowerPressure`'s forces read of a model: rest positions, kernels."""
+
+    X: np.ndarray
+    backend: str | None
+
+    @property
+    def n_vertices(self) -> int:
+        return self.X.shape[0]
+
+
 class FollowerPressure(_TimedLoad):
     """Pressure ``s(t) p`` on ``faces`` of the current surface (see the module docstring).
 
@@ -268,6 +281,15 @@ class FollowerPressure(_TimedLoad):
         (:meth:`gradient` less the edge forces: a pin holding an open patch's edge reports
         the physical reaction, not the potential's edge forces)."""
         return -self.consistent_load(q)
+
+    @classmethod
+    def rest_edge_forces(cls, X: np.ndarray, faces: np.ndarray, pressure: float,
+                         backend: str | None = None) -> np.ndarray:
+        """:meth:`edge_forces` of ``pressure`` on ``faces`` of the rest positions ``X``
+        ``(n, 3)`` without a model (a scene's whole patch, checked on an MPI rank that
+        holds part of it)."""
+        return cls(_RestGeometry(np.asarray(X, dtype=np.float64), backend), faces,
+                   pressure).edge_forces()
 
     def edge_forces(self) -> np.ndarray:
         """``(3n,)`` at rest and scale 1: the potential's forces less the consistent follower

@@ -89,7 +89,7 @@ def initial_acceleration(system: System, terms: Sequence, state: State, dt: floa
             term.begin_step(probe)
             g += term.gradient(x)
     a = np.zeros(c.n_dofs)
-    if np.any(g):
+    if system.reductions.any(bool(np.any(g))):  # (an MPI rank: any rank's force)
         a[c.free_dofs] = system.solve_mass(-g)
     return a.reshape(-1, 3)
 
