@@ -159,11 +159,14 @@ class PetscSolver(DirectSolver):
     Parameters
     ----------
     options : SolverOptions, optional
-        ``points`` (the free vertices' rest positions: GAMG's rigid-body modes) and
-        ``petsc_options`` (the scene's).
+        ``points`` (the free vertices' rest positions: GAMG's rigid-body modes; with a
+        layout's ghosts, the rank's local free vertices') and ``petsc_options`` (the
+        scene's).
     layout : DofLayout, optional
         One rank's share of a distributed system (default: the whole system in this
-        process).
+        process); with its ``ghosts``, the pattern, right-hand sides and solutions are the
+        rank's local free vectors (a ghost's right-hand side is not read; its solution is
+        its owner's).
     """
 
     name: ClassVar[str] = "petsc"
@@ -221,13 +224,15 @@ class PetscSolver(DirectSolver):
         counts = np.array([n]) if layout is None else np.asarray(layout.counts)
         n_owned = int(counts[rank])
         bs = 3 if n % 3 == 0 and not (counts % 3).any() else 1
-        rows, cols = self._rows, self._indices
-        if layout is not None and layout.ghosts is not None:
-            nnz = self._local_row_counts(rows, layout.order[cols], counts, rank)
+        local_rows, cols = self._rows, self._indices
+        rows = local_rows
         if layout is not None:
-            rows, cols = layout.order[rows], layout.order[cols]
-        if layout is None or layout.ghosts is None:
+            rows, cols = layout.order[local_rows], layout.order[cols]
+        if layout is not None and layout.ghosts is not None:
+            nnz = self._local_row_counts(local_rows, rows, cols, counts, rank)
+        else:
             nnz = self._row_counts(rows, cols, counts, rank)
+        del local_rows  # let go with self._rows below (a distributed pattern)
         A = PETSc.Mat().create(comm=self._comm())
         A.setSizes(((n_owned, n), (n_owned, n)), bsize=bs)
         A.setType(PETSc.Mat.Type.AIJ)
@@ -277,19 +282,20 @@ class PetscSolver(DirectSolver):
         o = np.minimum(o[lo:hi], n - (hi - lo))
         return d.astype(PETSc.IntType), o.astype(PETSc.IntType)
 
-    def _local_row_counts(self, rows: np.ndarray, cols: np.ndarray, counts: np.ndarray,
-                          rank: int) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_row_counts` of a local pattern (``rows``: local free indices, ``cols``:
-        PETSc's columns): each rank counts its local rows' entries, the holders of a row
-        sum them (``layout.ghosts.assemble``), its owner keeps them. O(local) memory."""
+    def _local_row_counts(self, local_rows: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                          counts: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_row_counts` of a local pattern (each entry's row as a local free index
+        and as PETSc's, and PETSc's column): each rank counts its local rows' entries, the
+        holders of a row sum them (``layout.ghosts.assemble``), its owner keeps them; an
+        upper bound where ranks share entries. O(local) memory."""
         layout = self.layout
         ends = np.cumsum(counts)
         starts = ends - counts
-        owner = np.searchsorted(ends, layout.order[rows], side="right")
+        owner = np.searchsorted(ends, rows, side="right")
         diagonal = (cols >= starts[owner]) & (cols < ends[owner])
         k = layout.order.size
-        both = np.stack([np.bincount(rows[diagonal], minlength=k),
-                         np.bincount(rows[~diagonal], minlength=k)], axis=1)
+        both = np.stack([np.bincount(local_rows[diagonal], minlength=k),
+                         np.bincount(local_rows[~diagonal], minlength=k)], axis=1)
         # counts as float64 sums: exact below 2**53
         both = layout.ghosts.assemble(both.astype(np.float64))[layout.owned].astype(np.int64)
         PETSc = petsc_module()
