@@ -7,7 +7,10 @@ The road, each stage a module:
 * :mod:`~fem3d.parallel.partition`: the tets split by PETSc's graph partitioner (PT-Scotch or
   ParMETIS) on their face-adjacency graph, the vertices given to the lowest rank among their
   tets, and the free DOFs numbered rank by rank (:class:`~fem3d.solve.linear.petsc.
-  DofLayout`);
+  DofLayout`; :func:`~fem3d.parallel.partition.local_layout` over a rank's local free DOFs);
+* :mod:`~fem3d.parallel.ghosts`: :class:`~fem3d.parallel.ghosts.Ghosts`, the entries of a
+  rank-local vector other ranks hold too: their partial sums added in rank order
+  (``assemble``) and the ghosts given their owners' values (``complete``);
 * :mod:`~fem3d.parallel.local`: a rank's own model, the model of its tets alone (the same
   generated kernels, materials, mass and damping), over the whole vertex numbering, made
   from the whole model while the scene is built (:class:`~fem3d.parallel.run.RankShare`),

@@ -1,6 +1,7 @@
 """The mesh split between the ranks: tets by a graph partitioner on their face adjacency
 (METIS on rank 0 where pymetis is installed, else PETSc's), vertices to the lowest rank among
-their tets, free DOFs numbered rank by rank.
+their tets, free DOFs numbered rank by rank (:func:`dof_layout` over the whole free vector,
+:func:`local_layout` over a rank's local one).
 
 METIS first because it is deterministic (its seed is fixed): the same mesh on as many ranks
 is cut the same way in every run, so the same run twice sums in the same order and gives the
@@ -14,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from fem3d.parallel.ghosts import Ghosts
 from fem3d.solve.linear.petsc import DofLayout, petsc_module
 
-__all__ = ["PARTITIONERS", "dual_graph", "partition_tets", "dof_layout"]
+__all__ = ["PARTITIONERS", "dual_graph", "partition_tets", "dof_layout", "local_layout"]
 
 #: PETSc's graph partitioners in order of preference (the first one PETSc was built with).
 PARTITIONERS = ("parmetis", "ptscotch", "chaco", "party")
@@ -162,3 +164,40 @@ def dof_layout(T: np.ndarray, tet_rank: np.ndarray, free_dofs: np.ndarray, comm:
     for a in (order, owned, counts):
         a.setflags(write=False)
     return DofLayout(comm=comm, order=order, owned=owned, start=start, counts=counts)
+
+
+def local_layout(comm: Any, free_ids: np.ndarray) -> tuple[DofLayout, Ghosts]:
+    """Collective: PETSc's numbering of the ranks' local free DOFs, from local information
+    alone. Each free DOF is owned by the lowest rank holding it (:attr:`Ghosts.owner`); each
+    rank numbers its owned free DOFs consecutively in increasing global id, after the lower
+    ranks' (rank ``r``'s first row is the sum of the lower ranks' counts).
+
+    Parameters
+    ----------
+    comm : mpi4py.MPI.Comm
+    free_ids : (k,) int64
+        The sorted global DOF ids (``3 * v + c``) of this rank's local free DOFs (those of
+        its own tets' free vertices).
+
+    Returns
+    -------
+    layout : DofLayout
+        Over the local free vector (length ``k``): ``order`` (a ghost's row is its owner's),
+        ``owned``, ``start``, ``counts``, ``n`` and ``ghosts``.
+    ghosts : Ghosts
+        Of ``free_ids``.
+    """
+    ghosts = Ghosts.build(comm, free_ids)
+    size, rank = comm.Get_size(), comm.Get_rank()
+    owned = np.flatnonzero(ghosts.owned).astype(np.int64)  # increasing global id
+    counts = (np.array([owned.size], dtype=np.int64) if size == 1 else
+              np.asarray(comm.allgather(int(owned.size)), dtype=np.int64))
+    start = int(counts[:rank].sum())
+    rows = np.full(ghosts.ids.size, -1, dtype=np.int64)
+    rows[owned] = start + np.arange(owned.size, dtype=np.int64)
+    order = ghosts.complete(rows)
+    for a in (order, owned, counts):
+        a.setflags(write=False)
+    layout = DofLayout(comm=comm, order=order, owned=owned, start=start, counts=counts,
+                       n=int(counts.sum()), ghosts=ghosts)
+    return layout, ghosts

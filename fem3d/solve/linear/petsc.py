@@ -6,7 +6,9 @@ the pattern's coordinates (``MatSetPreallocationCOO``: each rank gives the entri
 elements, rows of other ranks included; PETSc sums them where they belong), ``factorize``
 sets the values (``MatSetValuesCOO``) and sets up the KSP (a MUMPS factorization or the GAMG
 hierarchy), ``solve`` runs it. The right-hand side and the solution are the whole reduced
-vector on every rank (:class:`DofLayout`: what each rank owns of it).
+vector on every rank (:class:`DofLayout`: what each rank owns of it), or, with the layout's
+:class:`~fem3d.parallel.ghosts.Ghosts`, the rank's local free vector (its own tets' free
+DOFs: the pattern, the right-hand side and the solution are local, the matrix global).
 
 The KSP, by default:
 
@@ -37,11 +39,14 @@ import os
 import shlex
 import sys
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from fem3d.solve.linear.base import DirectSolver, NotPositiveDefinite, SolveReport, SolverOptions
+
+if TYPE_CHECKING:
+    from fem3d.parallel.ghosts import Ghosts
 
 __all__ = ["DofLayout", "ENV_OPTIONS", "GAMG_MIN_FREE_DOFS", "KSP_RTOL", "PRODUCT_OPTIONS",
            "PetscSolver", "petsc_module", "parse_options"]
@@ -110,20 +115,29 @@ def _is_number(word: str) -> bool:
 class DofLayout:
     """What one rank owns of the reduced (free-DOF) vector of a distributed run.
 
+    The vector a rank hands to :class:`PetscSolver` (and gets back) is the whole reduced
+    vector (``ghosts`` None: ``order`` over every free DOF) or the rank's local free vector
+    (``ghosts`` set: ``order`` over the free DOFs of its own tets, owned and ghosts;
+    :func:`fem3d.parallel.partition.local_layout`).
+
     Attributes
     ----------
     comm : mpi4py.MPI.Comm
         The ranks that share the system.
-    order : (n_free,) int64
-        PETSc's global row of each free DOF (fem3d's free numbering to PETSc's, where each
-        rank's rows are consecutive).
+    order : (n_free,) or (k,) int64
+        PETSc's global row of each free DOF of the vector (fem3d's free numbering to
+        PETSc's, where each rank's rows are consecutive); a ghost's is its owner's.
     owned : (n_owned,) int64
-        The free DOFs this rank owns, in PETSc's order (``order[owned]`` is ``start,
-        start + 1, ...``).
+        The entries of the vector this rank owns, in PETSc's order (``order[owned]`` is
+        ``start, start + 1, ...``).
     start : int
         PETSc's first row on this rank.
     counts : (n_ranks,) int64
         Rows per rank.
+    n : int
+        The global number of free DOFs (``counts.sum()``; the default, -1, sets it so).
+    ghosts : Ghosts or None
+        The local vector's entries other ranks hold too (None: whole vectors).
     """
 
     comm: Any
@@ -131,6 +145,12 @@ class DofLayout:
     owned: np.ndarray
     start: int
     counts: np.ndarray
+    n: int = -1
+    ghosts: Ghosts | None = None
+
+    def __post_init__(self) -> None:
+        if self.n < 0:
+            object.__setattr__(self, "n", int(np.asarray(self.counts).sum()))
 
 
 class PetscSolver(DirectSolver):
@@ -139,11 +159,14 @@ class PetscSolver(DirectSolver):
     Parameters
     ----------
     options : SolverOptions, optional
-        ``points`` (the free vertices' rest positions: GAMG's rigid-body modes) and
-        ``petsc_options`` (the scene's).
+        ``points`` (the free vertices' rest positions: GAMG's rigid-body modes; with a
+        layout's ghosts, the rank's local free vertices') and ``petsc_options`` (the
+        scene's).
     layout : DofLayout, optional
         One rank's share of a distributed system (default: the whole system in this
-        process).
+        process); with its ``ghosts``, the pattern, right-hand sides and solutions are the
+        rank's local free vectors (a ghost's right-hand side is not read; its solution is
+        its owner's).
     """
 
     name: ClassVar[str] = "petsc"
@@ -196,18 +219,24 @@ class PetscSolver(DirectSolver):
 
     def _analyse(self) -> None:
         PETSc = petsc_module()
-        n, layout = self.n, self.layout
+        n, layout = self._global_n, self.layout
         rank = 0 if layout is None else layout.comm.Get_rank()
         counts = np.array([n]) if layout is None else np.asarray(layout.counts)
         n_owned = int(counts[rank])
         bs = 3 if n % 3 == 0 and not (counts % 3).any() else 1
-        rows, cols = self._rows, self._indices
+        local_rows, cols = self._rows, self._indices
+        rows = local_rows
         if layout is not None:
-            rows, cols = layout.order[rows], layout.order[cols]
+            rows, cols = layout.order[local_rows], layout.order[cols]
+        if layout is not None and layout.ghosts is not None:
+            nnz = self._local_row_counts(local_rows, rows, cols, counts, rank)
+        else:
+            nnz = self._row_counts(rows, cols, counts, rank)
+        del local_rows  # let go with self._rows below (a distributed pattern)
         A = PETSc.Mat().create(comm=self._comm())
         A.setSizes(((n_owned, n), (n_owned, n)), bsize=bs)
         A.setType(PETSc.Mat.Type.AIJ)
-        A.setPreallocationNNZ(self._row_counts(rows, cols, counts, rank))
+        A.setPreallocationNNZ(nnz)
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         # the entries in PETSc's row order, each row's columns sorted (MatSetValues by rows)
         by_row = np.lexsort((cols, rows))
@@ -252,6 +281,35 @@ class PetscSolver(DirectSolver):
         d = np.minimum(d[lo:hi], hi - lo)
         o = np.minimum(o[lo:hi], n - (hi - lo))
         return d.astype(PETSc.IntType), o.astype(PETSc.IntType)
+
+    def _local_row_counts(self, local_rows: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                          counts: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_row_counts` of a local pattern (each entry's row as a local free index
+        and as PETSc's, and PETSc's column): each rank counts its local rows' entries, the
+        holders of a row sum them (``layout.ghosts.assemble``), its owner keeps them; an
+        upper bound where ranks share entries. O(local) memory."""
+        layout = self.layout
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        owner = np.searchsorted(ends, rows, side="right")
+        diagonal = (cols >= starts[owner]) & (cols < ends[owner])
+        k = layout.order.size
+        both = np.stack([np.bincount(local_rows[diagonal], minlength=k),
+                         np.bincount(local_rows[~diagonal], minlength=k)], axis=1)
+        # counts as float64 sums: exact below 2**53
+        both = layout.ghosts.assemble(both.astype(np.float64))[layout.owned].astype(np.int64)
+        PETSc = petsc_module()
+        n_owned = int(counts[rank])
+        d = np.minimum(both[:, 0], n_owned)
+        o = np.minimum(both[:, 1], layout.n - n_owned)
+        return d.astype(PETSc.IntType), o.astype(PETSc.IntType)
+
+    @property
+    def _global_n(self) -> int:
+        """The matrix's rows over all ranks (:attr:`n` is the local vector's length)."""
+        if self.layout is None or self.layout.ghosts is None:
+            return self.n
+        return self.layout.n
 
     def _new_ksp(self) -> Any:
         """The KSP of :attr:`ksp_options` over the defaults (see the module docstring)."""
@@ -298,7 +356,7 @@ class PetscSolver(DirectSolver):
     def _defaults(self) -> dict[str, str]:
         PETSc = petsc_module()
         mumps = PETSc.Sys.hasExternalPackage("mumps")
-        if mumps and self.n < GAMG_MIN_FREE_DOFS:
+        if mumps and self._global_n < GAMG_MIN_FREE_DOFS:
             return {"ksp_type": "preonly", "pc_type": "cholesky",
                     "pc_factor_mat_solver_type": "mumps"}
         # mat_product_clear: each product GAMG forms frees its intermediate data (A P, the
@@ -376,7 +434,11 @@ class PetscSolver(DirectSolver):
         part = x.getArray(readonly=True).copy()
         x.destroy()
         rhs.destroy()
-        if layout is not None and layout.comm.Get_size() > 1:
+        if layout is not None and layout.ghosts is not None:
+            local = np.zeros(self.n)
+            local[layout.owned] = part
+            part = layout.ghosts.complete(local)  # the ghosts: their owners' entries
+        elif layout is not None and layout.comm.Get_size() > 1:
             whole = np.empty(self.n)
             layout.comm.Allgatherv(part, [whole, layout.counts])
             part = whole[layout.order]
