@@ -124,7 +124,8 @@ class Ghosts:
         cut = np.flatnonzero(np.r_[True, other[1:] != other[:-1]]) if other.size else \
             np.zeros(0, dtype=np.int64)
         bounds = np.r_[cut, other.size]
-        neighbours = {int(other[a]): pos[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)}
+        neighbours = {int(other[a]): pos[a:b]
+                      for a, b in zip(bounds[:-1], bounds[1:], strict=True)}
         return cls(comm, ids, owner, neighbours)
 
     # -- the exchanges ----------------------------------------------------------------------
