@@ -108,26 +108,33 @@ class ReducedTerm(Term):
         self.requires_convergence = term.requires_convergence
         self.allows_lagged_matrix = term.allows_lagged_matrix
         self.newton_policy: NewtonPolicy = term.newton_policy
+        # active on every rank when on any (a rank's damping coefficients may all be zero
+        # where another's are not): every rank keeps the same terms, so makes the same sums
+        self._here = bool(term.active)
+        self._active = system.reductions.any(self._here)
 
     @property
     def active(self) -> bool:
-        return self.term.active
+        return self._active
 
     @property
     def energy_scale(self) -> float:  # type: ignore[override]
-        return self.system.summed(float(self.term.energy_scale))
+        return self.system.summed(float(self.term.energy_scale) if self._here else 0.0)
 
     def energy(self, u: np.ndarray) -> float:
-        return self.system.summed(float(self.term.energy(u)))
+        return self.system.summed(float(self.term.energy(u)) if self._here else 0.0)
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
-        return self.system.summed(self.term.gradient(u))
+        local = self.term.gradient(u) if self._here else np.zeros(np.size(u))
+        return self.system.summed(local)
 
     def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
-        self.term.add_hessian(u, sink)
+        if self._here:
+            self.term.add_hessian(u, sink)
 
     def begin_step(self, step: StepMap) -> None:
-        self.term.begin_step(step)
+        if self._here:
+            self.term.begin_step(step)
 
     def with_model(self, model: Model) -> ReducedTerm:
         return ReducedTerm(self.term.with_model(model), self.system)
@@ -143,6 +150,7 @@ class ReducedPullSprings(ReducedTerm, PullSprings):
     def __init__(self, springs: PullSprings, system: DistributedSystem) -> None:
         ReducedTerm.__init__(self, springs, system)
         self.model, self.spring, self.pull = springs.model, springs.spring, springs.pull
+        self._here = self._active = True  # attached on every rank (none of its springs here)
 
     def with_model(self, model: Model) -> ReducedPullSprings:
         return ReducedPullSprings(self.term.with_model(model), self.system)

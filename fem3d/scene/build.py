@@ -219,10 +219,11 @@ def _build_share(scene: Scene, a: SceneArrays, backend: str | None, share: Share
     constraints = numbering.constraints(model.X, whole)
     owned = share.hold(numbering, constraints)
     alpha, beta = damping_from_scene(scene, a)
+    damps = bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0))
     alpha = alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices]
     beta = beta if np.ndim(beta) == 0 else beta[tets]
     loads = _loads(scene, model, alpha, beta,
-                   surface_loads_from_scene(scene, a, model, share, numbering))
+                   surface_loads_from_scene(scene, a, model, share, numbering), damps)
     slots = numbering.fixed_slots(whole.fixed_vertices, constraints.fixed_vertices)
     motions = []
     for m in pin_motions(scene, a, whole.fixed_vertices):
@@ -234,11 +235,12 @@ def _build_share(scene: Scene, a: SceneArrays, backend: str | None, share: Share
                   motions, groups)
 
 
-def _loads(scene: Scene, model: Model, alpha, beta, surface: list) -> Loads:
+def _loads(scene: Scene, model: Model, alpha, beta, surface: list,
+           keep_damping: bool = False) -> Loads:
     gravity = scene.simulation.gravity
     try:
         return build_loads(model, gravity if any(g != 0 for g in gravity) else None, alpha,
-                           beta, surface=surface)
+                           beta, surface=surface, keep_damping=keep_damping)
     except ParameterError as exc:
         raise scene.error("simulation", str(exc)) from None
 
@@ -336,7 +338,7 @@ def pin_groups(scene: Scene, a: SceneArrays) -> tuple:
 
 
 def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.0, *,
-                surface=()) -> Loads:
+                surface=(), keep_damping: bool = False) -> Loads:
     """Gravity, Rayleigh damping and the surface and point loads of ``model`` as terms.
 
     Parameters
@@ -348,6 +350,9 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
         Damping ``alpha M + beta K`` (zero: no damping term).
     surface : sequence of DeadLoad or FollowerPressure, optional
         The bodies' loads (:func:`surface_loads_from_scene`).
+    keep_damping : bool, optional
+        Keep the damping term when its coefficients are zero here (an MPI rank's share of
+        a scene that damps elsewhere: every rank keeps the same terms).
 
     Raises
     ------
@@ -360,7 +365,8 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
     beta = check_coefficient(rayleigh_beta, "rayleigh_beta", model.n_tets, "tet")
     damping = RayleighDamping(model, alpha, beta)
     return Loads(None if g is None else Gravity(model, g),
-                 damping if damping.active else None, alpha, beta, tuple(surface))
+                 damping if damping.active or keep_damping else None, alpha, beta,
+                 tuple(surface))
 
 
 def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
