@@ -44,6 +44,7 @@ from fem3d.physics.model import validate_dt
 from fem3d.physics.terms.base import Term, as_term
 from fem3d.solve.minimise import minimise_step
 from fem3d.solve.objective import Objective
+from fem3d.solve.reductions import WHOLE, Reductions
 from fem3d.solve.settings import NewtonSettings
 from fem3d.solve.state import State, StepStats, check_finite
 from fem3d.solve.step_maps import affine_step_map, end_positions
@@ -64,11 +65,12 @@ class LoadRamp(Term):
     name = "load ramp"
     variable = "velocity"
 
-    def __init__(self, c: np.ndarray) -> None:
+    def __init__(self, c: np.ndarray, reductions: Reductions = WHOLE) -> None:
         self.c = c
+        self.reductions = reductions  # an MPI rank's x: c . x over the ranks
 
     def energy(self, x: np.ndarray) -> float:
-        return float(self.c @ x)
+        return self.reductions.dot(self.c, x)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         return self.c
@@ -158,7 +160,7 @@ class _Ramp:
             start = self.step_map(0.0)
             zero = np.zeros(self.system.constraints.n_free)
             self._g0 = Objective(self.system, self._terms, start).gradient(zero)
-        return [*self._terms, LoadRamp(-(1.0 - lam) * self._g0)]
+        return [*self._terms, LoadRamp(-(1.0 - lam) * self._g0, self.system.reductions)]
 
 
 def _load_path(solve, x0: np.ndarray) -> np.ndarray | None:
