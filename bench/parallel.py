@@ -1,7 +1,9 @@
-"""Strong scaling of ``mpiexec -n N fem3d run``: the same box on 1, 2, ... ranks.
+"""Strong and weak scaling of ``mpiexec -n N fem3d run``: the same box on 1, 2, ... ranks,
+or (``--weak``) a box of ``--tets`` tets per rank.
 
     python -m bench.parallel --tets 1e5 --steps 3 --ranks 1,2
     python -m bench.parallel --tets 1e5 --steps 3 --ranks 1,2 --petsc-options "-pc_type gamg"
+    python -m bench.parallel --weak --tets 5e5 --steps 2 --ranks 1,2
 
 A box (``bench.meshes.box_mesh``) clamped at its lowest z, swinging under gravity
 (backward Euler, Neo-Hookean, ``dt = 0.01``), written to a temporary folder; each rank count
@@ -12,7 +14,8 @@ each rank (and after set-up) and the CPU time of each rank's steps. 1 rank is th
 first rank count, so that the children's peak is its). Every row also gives the CPU time of
 all the processes it ran (set-up included) and the 1-minute load average before and after
 (the machine may be shared: wall-time speed-ups are only as good as the load lets them be).
-Prints one row per rank count, the speed-up and the peak memory per rank over the first.
+Prints one row per rank count, the speed-up (weak: the efficiency, the first's time per step
+over this one's) and the peak memory per rank over the first.
 """
 
 from __future__ import annotations
@@ -93,29 +96,45 @@ def _floats(text: str) -> list[float]:
     return [float(r) for r in text.split(",")]
 
 
+def write_box(folder: Path, tets: float, steps: int, petsc_options: str) -> tuple[Path, str]:
+    """The box scene of about ``tets`` tets in ``folder``; its path and a one-line summary."""
+    X, T = box_mesh(tets)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh = folder / "box.mesh"
+    write_tet_mesh(mesh, TetMesh(X, T))
+    scene = folder / "box.toml"
+    scene.write_text(scene_text(mesh, steps, petsc_options))
+    return scene, f"box: {T.shape[0]:,} tets, {X.shape[0]:,} vertices"
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--tets", type=float, default=1e5)
+    p.add_argument("--tets", type=float, default=1e5, help="tets (--weak: per rank)")
     p.add_argument("--steps", type=int, default=3)
     p.add_argument("--ranks", default="1,2")
     p.add_argument("--petsc-options", default="")
+    p.add_argument("--weak", action="store_true",
+                   help="weak scaling: a box of --tets tets per rank for each rank count")
     args = p.parse_args(argv)
-    X, T = box_mesh(args.tets)
     tmp = Path(tempfile.mkdtemp(prefix="fem3d_parallel_"))
+    counts = [int(r) for r in args.ranks.split(",")]
     try:
-        mesh = tmp / "box.mesh"
-        write_tet_mesh(mesh, TetMesh(X, T))
-        scene = tmp / "box.toml"
-        scene.write_text(scene_text(mesh, args.steps, args.petsc_options))
-        print(f"box: {T.shape[0]:,} tets, {X.shape[0]:,} vertices, {args.steps} backward-Euler "
-              f"steps, linear_solver = petsc {args.petsc_options or '(default)'}")
+        scenes = {}
+        for n in counts if args.weak else counts[:1]:
+            scenes[n], line = write_box(tmp / f"box{n}", args.tets * (n if args.weak else 1),
+                                        args.steps, args.petsc_options)
+            print(f"{line}{f' for {n} rank(s)' if args.weak else ''}, {args.steps} "
+                  f"backward-Euler steps, linear_solver = petsc "
+                  f"{args.petsc_options or '(default)'}")
         rows = []
-        for n in (int(r) for r in args.ranks.split(",")):
+        for n in counts:
             load = os.getloadavg()[0]
-            rows.append(run(n, scene, tmp / f"out{n}"))
+            rows.append(run(n, scenes[n if args.weak else counts[0]], tmp / f"out{n}"))
             r = rows[-1]
+            ratio = (rows[0]['wall'] / rows[0]['steps']) / (r['wall'] / r['steps'])
             print(f"  {n} rank(s): {r['wall'] / r['steps']:.2f} s/step "
-                  f"(x{rows[0]['wall'] / r['wall']:.2f}), set-up {r['setup']:.2f} s, "
+                  f"({'efficiency ' if args.weak else 'x'}{ratio:.2f}), set-up "
+                  f"{r['setup']:.2f} s, "
                   f"{r['newton']} Newton iterations, peak RSS per rank "
                   f"{', '.join(f'{m:.0f}' for m in r['rss'])} MiB (after set-up "
                   f"{', '.join(f'{m:.0f}' for m in r['setup_rss'])}; "

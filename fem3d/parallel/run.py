@@ -138,8 +138,9 @@ class RankShare:
         Its free DOFs, after :meth:`hold`.
     digest : str
         :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
-    partition : (m,) int32
-        Each tet's rank, after :meth:`tets` (what the checkpoints write).
+    partition : (m,) int32 or None
+        Each tet's rank, after :meth:`tets` (what the checkpoints write): rank 0's; None
+        on the other ranks.
     n_vertices : int
         The scene's vertex count.
     """
@@ -165,7 +166,8 @@ class RankShare:
             tet_rank = given.astype(np.int64)
         else:
             tet_rank = partition_tets(T, self.comm)
-        self.partition = tet_rank.astype(np.int32)
+        # what the checkpoints write, rank 0 alone (4 bytes a tet of the whole mesh)
+        self.partition = tet_rank.astype(np.int32) if self.comm.Get_rank() == 0 else None
         self.digest = mesh_digest(X, T)
         self.n_vertices = X.shape[0]
         return np.flatnonzero(tet_rank == self.comm.Get_rank())

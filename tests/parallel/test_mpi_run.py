@@ -262,17 +262,21 @@ def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
 
     T = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]])
     X, constraints = np.zeros((6, 3)), SimpleNamespace(free_dofs=np.arange(18))
-    comm = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 1)
+    comm = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 0)
     made = []
     monkeypatch.setattr(parallel_run, "partition_tets",
                         lambda T, comm: made.append(len(T)) or np.array([0, 0, 1]))
     share = parallel_run.RankShare(comm, partition=np.array([1, 0, 1], dtype=np.int32))
-    assert share.tets(X, T, constraints).tolist() == [0, 2] and not made
+    assert share.tets(X, T, constraints).tolist() == [1] and not made
     assert share.partition.tolist() == [1, 0, 1]
     for other in ([0, 1], [0, 0, 0], [0, 1, 2]):  # another mesh; one rank; three ranks
         share = parallel_run.RankShare(comm, partition=np.array(other))
-        assert share.tets(X, T, constraints).tolist() == [2]
+        assert share.tets(X, T, constraints).tolist() == [0, 1]
         assert share.partition.tolist() == [0, 0, 1] and share.partition.dtype == np.int32
+    rank1 = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 1)
+    share = parallel_run.RankShare(rank1, partition=np.array([1, 0, 1], dtype=np.int32))
+    assert share.tets(X, T, constraints).tolist() == [0, 2]
+    assert share.partition is None  # only rank 0 writes checkpoints: only it keeps the cut
     assert made == [3, 3, 3]
 
 
@@ -393,7 +397,8 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
 def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monkeypatch):
     """``build(scene, restrict=)`` (a rank's share): the model is built from the share's
     tets over their vertices alone (``build_model`` never sees the whole mesh) and equals
-    the whole model restricted (rest shapes, per-tet parameters of two materials); pins,
+    the whole model restricted (rest shapes, the groups of two materials: their energies
+    are checked by ``test_local_models_sum_to_the_whole``); pins,
     initial velocities and the loads are the share's (a per-tet damping coefficient
     restricted); the summary values are the share's ``summary``."""
     import fem3d.scene.build as scene_build
@@ -418,8 +423,7 @@ def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monk
     assert np.array_equal(verts[m.T], whole.model.T[tets])
     assert np.array_equal(m.vol, whole.model.vol[tets])
     assert np.array_equal(m.dphi_dX, whole.model.dphi_dX[tets])
-    assert np.array_equal(m.params, whole.model.params[tets])
-    assert m.material == whole.model.material
+    assert [g.material for g in m.groups] == [g.material for g in whole.model.groups]
     assert np.array_equal(verts[share.constraints.fixed_vertices],
                           np.intersect1d(whole.constraints.fixed_vertices, verts))
     assert np.array_equal(share.arrays.v0, whole.arrays.v0[verts])
