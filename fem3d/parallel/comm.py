@@ -7,10 +7,8 @@ import os
 import sys
 from typing import Any
 
-import numpy as np
-
 __all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "leave_together", "world",
-           "sum_scalar", "sum_vector", "owned_vertices", "mpi_started", "abort"]
+           "sum_scalar", "mpi_started", "abort"]
 
 #: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
 #: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
@@ -83,36 +81,6 @@ def sum_scalar(comm: Any, value: float) -> float:
     for v in values:
         total += v
     return total
-
-
-def sum_vector(comm: Any, a: np.ndarray) -> np.ndarray:
-    """The element-wise sum of ``a`` over the ranks, reduced on rank 0 and broadcast: the
-    same bits on every rank."""
-    from mpi4py import MPI  # optional (fem3d[mpi])
-
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    out = np.empty_like(a)
-    comm.Reduce(a, out, op=MPI.SUM, root=0)
-    comm.Bcast(out, root=0)
-    return out
-
-
-def owned_vertices(comm: Any, vertices: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``(k,) bool``: which of ``vertices`` this rank owns, the lowest rank whose tets ``T``
-    hold the vertex (the owner :func:`~fem3d.parallel.partition.dof_layout` gives it): the
-    rank that adds a term on a few vertices (a point force, a pull spring) once.
-
-    A collective call: every rank passes the same ``vertices`` and its own tets ``T``
-    ``(m, n_nodes)``.
-    """
-    from mpi4py import MPI  # optional (fem3d[mpi])
-
-    size, rank = comm.Get_size(), comm.Get_rank()
-    vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
-    mine = np.where(np.isin(vertices, T), rank, size).astype(np.int64)
-    owner = np.empty_like(mine)
-    comm.Allreduce(mine, owner, op=MPI.MIN)
-    return owner == rank
 
 
 def mpi_started() -> bool:
