@@ -25,8 +25,9 @@ The road, each stage a module:
   Newton's line search and stopping rule run unchanged, the same on every rank;
 * :mod:`~fem3d.parallel.run`: the run loop of ``fem3d run`` and ``fem3d resume`` under
   ``mpiexec``: ``energy.csv`` and the one-process ``checkpoint.npz`` (the whole state
-  gathered) from rank 0 (resumable on any rank count), frames by :mod:`~fem3d.parallel.pieces` (one ``.vtu`` piece per rank,
-  a ``.pvtu`` per frame and a ``.pvd``).
+  gathered) from rank 0 (resumable on any rank count), frames by
+  :mod:`~fem3d.parallel.pieces` (one ``.vtu`` piece per rank, a ``.pvtu`` per frame and a
+  ``.pvd``).
 
 docs/parallel.md says what runs, how, and what it measured.
 """
