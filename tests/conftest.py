@@ -84,24 +84,37 @@ def _flock(path: Path, mode: int) -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
+#: this worker's turns on the cores, innermost last (True: alone)
+_HELD: list[bool] = []
+
+
 @contextmanager
 def cores(tmp_path_factory: pytest.TempPathFactory, alone: bool) -> Iterator[None]:
     """The cores, shared with the other workers' tests or (``alone``) to this test alone;
     a no-op without workers. A module fixture that launches ``mpiexec`` takes them alone
-    itself: it is set up before its first test's own (autouse) turn."""
-    if "PYTEST_XDIST_WORKER" not in os.environ:
+    itself: it is set up before its first test's own (autouse) turn. Within a turn this
+    worker holds, a turn it already has is a no-op (the lock files would wait for their own
+    holder), and asking for the cores alone inside a shared turn is an error, not a hang."""
+    if "PYTEST_XDIST_WORKER" not in os.environ or (_HELD and (any(_HELD) or not alone)):
         yield
         return
+    if _HELD:
+        raise RuntimeError("cores(alone=True) inside a test that shares the cores would wait "
+                           "for itself: mark the test alone")
     folder = tmp_path_factory.getbasetemp().parent  # the one every worker's folder is in
     turnstile, pool = folder / "fem3d-turnstile.lock", folder / "fem3d-cores.lock"
-    if alone:
-        with _flock(turnstile, fcntl.LOCK_EX), _flock(pool, fcntl.LOCK_EX):
+    _HELD.append(alone)
+    try:
+        if alone:
+            with _flock(turnstile, fcntl.LOCK_EX), _flock(pool, fcntl.LOCK_EX):
+                yield
+            return
+        with _flock(turnstile, fcntl.LOCK_EX):
+            pass
+        with _flock(pool, fcntl.LOCK_SH):
             yield
-        return
-    with _flock(turnstile, fcntl.LOCK_EX):
-        pass
-    with _flock(pool, fcntl.LOCK_SH):
-        yield
+    finally:
+        _HELD.pop()
 
 
 @pytest.fixture(autouse=True)

@@ -1,7 +1,7 @@
 """The mesh split between the ranks: tets by a graph partitioner on their face adjacency
 (METIS on rank 0 where pymetis is installed, else PETSc's), vertices to the lowest rank among
-their tets, free DOFs numbered rank by rank (:func:`dof_layout` over the whole free vector,
-:func:`local_layout` over a rank's local one).
+their tets, free DOFs numbered rank by rank over each rank's local free vector
+(:func:`local_layout`).
 
 METIS first because it is deterministic (its seed is fixed): the same mesh on as many ranks
 is cut the same way in every run, so the same run twice sums in the same order and gives the
@@ -18,7 +18,7 @@ import numpy as np
 from fem3d.parallel.ghosts import Ghosts
 from fem3d.solve.linear.petsc import DofLayout, petsc_module
 
-__all__ = ["PARTITIONERS", "dual_graph", "partition_tets", "dof_layout", "local_layout"]
+__all__ = ["PARTITIONERS", "dual_graph", "partition_tets", "local_layout"]
 
 #: PETSc's graph partitioners in order of preference (the first one PETSc was built with).
 PARTITIONERS = ("parmetis", "ptscotch", "chaco", "party")
@@ -128,42 +128,6 @@ def _petsc_partition(T: np.ndarray, comm: Any) -> np.ndarray:
     counts = np.diff(bounds)
     comm.Allgatherv(mine, [out, counts])
     return out
-
-
-def dof_layout(T: np.ndarray, tet_rank: np.ndarray, free_dofs: np.ndarray, comm: Any
-               ) -> DofLayout:
-    """PETSc's numbering of the free DOFs: each vertex to the lowest rank among its tets,
-    each rank's free DOFs consecutive (vertex by vertex, in fem3d's order within a rank).
-
-    Parameters
-    ----------
-    T : (m, n_nodes) int64
-    tet_rank : (m,) int64
-        :func:`partition_tets`.
-    free_dofs : (n_free,) int64
-        The free DOFs, whole vertices (x, y, z of each).
-    comm : mpi4py.MPI.Comm
-
-    Returns
-    -------
-    DofLayout
-    """
-    size, rank = comm.Get_size(), comm.Get_rank()
-    n_vertices = int(T.max()) + 1 if T.size else 0
-    owner = np.full(max(n_vertices, int(free_dofs.max(initial=-1)) // 3 + 1), size,
-                    dtype=np.int64)
-    np.minimum.at(owner, T.reshape(-1), np.repeat(tet_rank, T.shape[1]))
-    owner[owner == size] = 0  # a vertex of no tet (none in a checked mesh)
-    dof_owner = owner[free_dofs // 3]
-    by_rank = np.argsort(dof_owner, kind="stable")  # free DOFs in PETSc's order
-    order = np.empty_like(by_rank)
-    order[by_rank] = np.arange(by_rank.size)
-    counts = np.bincount(dof_owner, minlength=size).astype(np.int64)
-    start = int(counts[:rank].sum())
-    owned = by_rank[start:start + int(counts[rank])]
-    for a in (order, owned, counts):
-        a.setflags(write=False)
-    return DofLayout(comm=comm, order=order, owned=owned, start=start, counts=counts)
 
 
 def local_layout(comm: Any, free_ids: np.ndarray) -> tuple[DofLayout, Ghosts]:

@@ -24,18 +24,15 @@ CHECKS = Path(__file__).with_name("ghost_checks.py")
 
 
 @pytest.mark.alone
-def test_ghosts_and_local_layout_on_three_ranks(tmp_path_factory):
+def test_ghosts_and_local_layout_on_three_ranks(tmp_path):
     """A 384-tet box cut by METIS on 3 ranks: assembled partial sums equal one process's
     ``np.add.at`` to 1e-14, summed in rank order with the same bits on every holder (an
     entry held alone unchanged); ghosts complete to their owner's values; the local layout
     numbers every free DOF once; PETSc's solve with local vectors (MUMPS, CG + GAMG) equals
     scipy's, ghosts included."""
-    from tests.conftest import cores
-
-    out = tmp_path_factory.mktemp("ghosts") / "ghosts.json"
+    out = tmp_path / "ghosts.json"
     cmd = [*mpiexec_or_skip(), "3", sys.executable, str(CHECKS), str(out)]
-    with cores(tmp_path_factory, alone=True):
-        proc = subprocess.run(cmd, env=mpi_env(), capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(cmd, env=mpi_env(), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(out.read_text())
     assert r["ranks"] == 3 and min(r["tets_per_rank"]) > 0

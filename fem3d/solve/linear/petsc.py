@@ -6,9 +6,9 @@ the pattern's coordinates (``MatSetPreallocationCOO``: each rank gives the entri
 elements, rows of other ranks included; PETSc sums them where they belong), ``factorize``
 sets the values (``MatSetValuesCOO``) and sets up the KSP (a MUMPS factorization or the GAMG
 hierarchy), ``solve`` runs it. The right-hand side and the solution are the whole reduced
-vector on every rank (:class:`DofLayout`: what each rank owns of it), or, with the layout's
-:class:`~fem3d.parallel.ghosts.Ghosts`, the rank's local free vector (its own tets' free
-DOFs: the pattern, the right-hand side and the solution are local, the matrix global).
+vector in one process, or on an MPI rank its local free vector (:class:`DofLayout` with its
+:class:`~fem3d.parallel.ghosts.Ghosts`: its own tets' free DOFs; the pattern, the
+right-hand side and the solution are local, the matrix global).
 
 The KSP, by default:
 
@@ -115,10 +115,10 @@ def _is_number(word: str) -> bool:
 class DofLayout:
     """What one rank owns of the reduced (free-DOF) vector of a distributed run.
 
-    The vector a rank hands to :class:`PetscSolver` (and gets back) is the whole reduced
-    vector (``ghosts`` None: ``order`` over every free DOF) or the rank's local free vector
-    (``ghosts`` set: ``order`` over the free DOFs of its own tets, owned and ghosts;
-    :func:`fem3d.parallel.partition.local_layout`).
+    The vector a rank hands to :class:`PetscSolver` (and gets back) is its local free vector
+    (``ghosts``: the free DOFs of its own tets, owned and ghosts;
+    :func:`fem3d.parallel.partition.local_layout`), or in one process, without ``ghosts``,
+    the whole reduced vector.
 
     Attributes
     ----------
@@ -176,6 +176,9 @@ class PetscSolver(DirectSolver):
     def __init__(self, options: SolverOptions | None = None, *,
                  layout: DofLayout | None = None) -> None:
         super().__init__(options)
+        if layout is not None and layout.ghosts is None and layout.comm.Get_size() > 1:
+            raise ValueError("a layout over several ranks needs its ghosts "
+                             "(fem3d.parallel.partition.local_layout)")
         self.layout = layout
         # a rank's pattern holds its own elements' entries: rows of other ranks' vertices
         # may be empty there (the summed matrix has its whole diagonal)
@@ -261,8 +264,7 @@ class PetscSolver(DirectSolver):
     def _row_counts(self, rows: np.ndarray, cols: np.ndarray, counts: np.ndarray,
                     rank: int) -> tuple[np.ndarray, np.ndarray]:
         """Entries per owned row in the diagonal and off-diagonal blocks (PETSc's
-        preallocation): exact in one process; summed over the ranks' patterns (an upper
-        bound where ranks share a row) when distributed."""
+        preallocation) of a whole pattern in one process: exact."""
         ends = np.cumsum(counts)
         starts = ends - counts
         owner = np.searchsorted(ends, rows, side="right")
@@ -270,12 +272,6 @@ class PetscSolver(DirectSolver):
         n = self.n
         d = np.bincount(rows[diagonal], minlength=n).astype(np.int64)
         o = np.bincount(rows[~diagonal], minlength=n).astype(np.int64)
-        if self.layout is not None and self.layout.comm.Get_size() > 1:
-            from mpi4py import MPI  # optional (fem3d[mpi]): a distributed solver has it
-
-            both = np.concatenate([d, o])
-            self.layout.comm.Allreduce(MPI.IN_PLACE, both, op=MPI.SUM)
-            d, o = both[:n], both[n:]
         PETSc = petsc_module()
         lo, hi = int(starts[rank]), int(ends[rank])
         d = np.minimum(d[lo:hi], hi - lo)
@@ -438,10 +434,6 @@ class PetscSolver(DirectSolver):
             local = np.zeros(self.n)
             local[layout.owned] = part
             part = layout.ghosts.complete(local)  # the ghosts: their owners' entries
-        elif layout is not None and layout.comm.Get_size() > 1:
-            whole = np.empty(self.n)
-            layout.comm.Allgatherv(part, [whole, layout.counts])
-            part = whole[layout.order]
         if reason < 0 and reason != PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT:
             part[:] = np.nan  # indefinite or broken down: Newton falls back to -g
         return part
