@@ -65,68 +65,58 @@ def _partitioner(PETSc: Any) -> str:
                       "(scripts/install_petsc.sh)")
 
 
-def partition_tets(T: np.ndarray, comm: Any) -> np.ndarray:
-    """The rank of each tet: METIS (pymetis) on rank 0 on the face adjacency of the tets,
-    broadcast; without pymetis, PETSc's graph partitioner (:data:`PARTITIONERS`), each rank
-    handing it a consecutive block of the tets' rows (not the same from run to run with
-    PT-Scotch: the module's docstring).
+def partition_tets(T: np.ndarray, n_parts: int) -> np.ndarray:
+    """The part (rank) of each tet, cut on the one process that holds the mesh (rank 0):
+    METIS (pymetis) on the tets' face adjacency; without pymetis, PETSc's graph partitioner
+    (:data:`PARTITIONERS`) in this process (not the same from run to run with PT-Scotch: the
+    module's docstring).
 
     Parameters
     ----------
     T : (m, n_nodes) int64
-        The whole mesh (every rank has it).
-    comm : mpi4py.MPI.Comm
+        The whole mesh.
+    n_parts : int
 
     Returns
     -------
     (m,) int64
-        Every tet's rank, the same on every rank.
     """
-    size, rank = comm.Get_size(), comm.Get_rank()
     m = T.shape[0]
-    if size == 1:
+    if n_parts == 1:
         return np.zeros(m, dtype=np.int64)
+    indptr, indices = dual_graph(T)
     try:
         import pymetis  # optional (fem3d[mpi]): the deterministic partition
     except ImportError:
-        return _petsc_partition(T, comm)
-    out = np.empty(m, dtype=np.int64)
-    if rank == 0:  # one rank cuts (METIS is serial), every rank gets the same cut
-        indptr, indices = dual_graph(T)
-        cut = pymetis.part_graph(size, adjacency=pymetis.CSRAdjacency(indptr, indices))
-        out[:] = np.asarray(cut.vertex_part, dtype=np.int64)
-    comm.Bcast(out, root=0)
-    return out
+        return _petsc_partition(indptr, indices, n_parts)
+    cut = pymetis.part_graph(n_parts, adjacency=pymetis.CSRAdjacency(indptr, indices))
+    return np.asarray(cut.vertex_part, dtype=np.int64)
 
 
-def _petsc_partition(T: np.ndarray, comm: Any) -> np.ndarray:
-    """:func:`partition_tets` by PETSc's graph partitioner (:data:`PARTITIONERS`), each rank
-    handing it a consecutive block of the tets' rows."""
-    size, rank = comm.Get_size(), comm.Get_rank()
-    m = T.shape[0]
+def _petsc_partition(indptr: np.ndarray, indices: np.ndarray, n_parts: int) -> np.ndarray:
+    """:func:`partition_tets` of the dual graph ``indptr, indices`` by PETSc's graph
+    partitioner (:data:`PARTITIONERS`) in this process."""
     PETSc = petsc_module()
-    bounds = np.linspace(0, m, size + 1).astype(np.int64)
-    lo, hi = int(bounds[rank]), int(bounds[rank + 1])
-    indptr, indices = dual_graph(T)
-    ia = (indptr[lo:hi + 1] - indptr[lo]).astype(PETSc.IntType)
-    ja = indices[indptr[lo]:indptr[hi]].astype(PETSc.IntType)
-    pcomm = PETSc.Comm(comm)
+    m = indptr.size - 1
     # the graph as an AIJ matrix of ones (the partitioner converts it to MPIAdj)
-    adj = PETSc.Mat().createAIJ(((hi - lo, m), (hi - lo, m)), csr=(ia, ja, np.ones(ja.size)),
-                                comm=pcomm)
+    adj = PETSc.Mat().createAIJ((m, m), csr=(indptr.astype(PETSc.IntType),
+                                             indices.astype(PETSc.IntType),
+                                             np.ones(indices.size)), comm=PETSc.COMM_SELF)
     adj.assemble()
-    part = PETSc.MatPartitioning().create(comm=pcomm)
+    part = PETSc.MatPartitioning().create(comm=PETSc.COMM_SELF)
+    prefix = f"fem3d_cut_{id(part)}_"
+    part.setOptionsPrefix(prefix)
+    opts = PETSc.Options(prefix)
+    opts["mat_partitioning_nparts"] = n_parts
     part.setAdjacency(adj)
     part.setType(_partitioner(PETSc))
     part.setFromOptions()
+    del opts["mat_partitioning_nparts"]  # the prefix is this call's: nothing left behind
     parts = PETSc.IS()
     part.apply(parts)
-    mine = parts.getIndices().astype(np.int64)
+    out = parts.getIndices().astype(np.int64)
     for obj in (parts, part, adj):
         obj.destroy()
-    out = np.empty(m, dtype=np.int64)
-    counts = np.diff(bounds)
-    comm.Allgatherv(mine, [out, counts])
     return out
 
 

@@ -32,6 +32,7 @@ import resource
 import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -59,8 +60,8 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
-from fem3d.scene.build import refuse_mixed_elements
-from fem3d.scene.local import LocalNumbering
+from fem3d.scene.build import SharePart, WholeScene, refuse_mixed_elements
+from fem3d.scene.local import LocalNumbering, split_tets
 from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme
@@ -110,14 +111,14 @@ class RankShare:
     """One rank's share of a scene, made while the scene is built
     (:class:`~fem3d.simulation.Simulation`'s ``restrict_model`` and ``make_system``).
 
-    It is :func:`~fem3d.scene.build.build`'s ``restrict``: :meth:`tets` partitions the whole
-    mesh's tets (:func:`partition_tets`, from ``T`` alone), records the whole mesh's digest
-    and returns this rank's tets, of which ``build`` makes the rank's model over their
-    vertices alone (no rank builds the whole model); :meth:`hold` finds which of those
-    vertices other ranks hold too (:class:`~fem3d.parallel.ghosts.Ghosts`) and numbers the
-    free DOFs for PETSc (:func:`local_layout`); :meth:`summary` gives the model the whole
-    model's ``E, nu, rho``. :meth:`make_system` makes the :class:`DistributedSystem` of the
-    share.
+    It is :func:`~fem3d.scene.build.build`'s ``restrict``: :meth:`part` has rank 0 read the
+    scene, partition the whole mesh's tets (:func:`partition_tets`) and send each rank its
+    part (its tets over their vertices, :class:`~fem3d.scene.build.SharePart`), of which
+    ``build`` makes the rank's model (no rank builds the whole model, and only rank 0 holds
+    the whole mesh); :meth:`hold` finds which of the rank's vertices other ranks hold too
+    (:class:`~fem3d.parallel.ghosts.Ghosts`) and numbers the free DOFs for PETSc
+    (:func:`local_layout`); :meth:`summary` gives the model the whole model's
+    ``E, nu, rho``. :meth:`make_system` makes the :class:`DistributedSystem` of the share.
 
     Parameters
     ----------
@@ -139,7 +140,7 @@ class RankShare:
     digest : str
         :func:`~fem3d.io.checkpoint.mesh_digest` of the whole mesh.
     partition : (m,) int32 or None
-        Each tet's rank, after :meth:`tets` (what the checkpoints write): rank 0's; None
+        Each tet's rank, after :meth:`part` (what the checkpoints write): rank 0's; None
         on the other ranks.
     n_vertices : int
         The scene's vertex count.
@@ -155,22 +156,47 @@ class RankShare:
         self.partition = partition
         self.n_vertices = 0
 
-    def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
-        """This rank's tets ``(k,) int64`` of the whole mesh ``X, T`` (partitioned from the
-        mesh alone: no model is built for it), by :attr:`partition` where it is one of this
-        mesh on this many ranks (a resume's), else partitioned anew."""
-        given = self.partition
-        size = self.comm.Get_size()
-        if (given is not None and given.shape == (T.shape[0],)
-                and np.array_equal(np.unique(given), np.arange(size))):
-            tet_rank = given.astype(np.int64)
+    def part(self, read: Callable[[], WholeScene],
+             cut: Callable[[WholeScene, np.ndarray, np.ndarray, int], SharePart]) -> SharePart:
+        """Collective: this rank's part of the scene. Rank 0 alone reads it (``read``),
+        partitions its tets (:func:`partition_tets`, or :attr:`partition` where it is one of
+        this mesh on this many ranks: a resume's), cuts each rank's part (``cut``) and sends
+        it; the other ranks never hold the whole mesh. An :class:`InputError` rank 0 meets
+        (a bad mesh, a selection) is raised on every rank."""
+        comm, size, rank = self.comm, self.comm.Get_size(), self.comm.Get_rank()
+        failure, mine = "", None
+        if rank == 0:
+            sent = 0
+            try:
+                whole = read()
+                X, T = whole.arrays.X, whole.arrays.T
+                given = self.partition
+                if (given is not None and given.shape == (T.shape[0],)
+                        and np.array_equal(np.unique(given), np.arange(size))):
+                    tet_rank = given.astype(np.int64)
+                else:
+                    tet_rank = partition_tets(T, size)
+                self.partition = tet_rank.astype(np.int32)  # what the checkpoints write
+                self.digest, self.n_vertices = mesh_digest(X, T), X.shape[0]
+                parts, owner = split_tets(T, tet_rank, size)
+                for r in range(1, size):  # one at a time: one part in memory beside the whole
+                    comm.send(("part", cut(whole, parts[r], owner, r), self.digest,
+                               self.n_vertices), dest=r)
+                    sent = r
+                mine = cut(whole, parts[0], owner, 0)
+            except InputError as exc:
+                failure = str(exc)
+                for r in range(sent + 1, size):
+                    comm.send(("failure", failure), dest=r)
         else:
-            tet_rank = partition_tets(T, self.comm)
-        # what the checkpoints write, rank 0 alone (4 bytes a tet of the whole mesh)
-        self.partition = tet_rank.astype(np.int32) if self.comm.Get_rank() == 0 else None
-        self.digest = mesh_digest(X, T)
-        self.n_vertices = X.shape[0]
-        return np.flatnonzero(tet_rank == self.comm.Get_rank())
+            self.partition = None  # only rank 0 writes checkpoints
+            message = comm.recv(source=0)
+            if message[0] == "failure":
+                failure = message[1]
+            else:
+                _, mine, self.digest, self.n_vertices = message
+        self.agree(failure)
+        return mine
 
     def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
         """Collective: this rank holds ``numbering``'s vertices, ``constraints`` (theirs)
@@ -189,14 +215,6 @@ class RankShare:
         failures = [f for f in self.comm.allgather(failure) if f]
         if failures:
             raise InputError(failures[0])
-
-    def owned(self, vertices: np.ndarray) -> np.ndarray:
-        """``(k,) bool``: which of the scene's ``vertices`` this rank owns (the point
-        forces' owner)."""
-        v = self.numbering.local(vertices)
-        out = v >= 0
-        out[out] = self.vertex_ghosts.owned[v[out]]
-        return out
 
     def summary(self, model: Model) -> Model:
         """``model`` (this rank's) with the whole model's summary ``E, nu, rho`` (the same

@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import meshio
 import numpy as np
@@ -67,7 +68,10 @@ from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 from fem3d.solve.schemes.registry import get_scheme
 
 __all__ = ["Built", "PinMotion", "build", "refuse_mixed_elements", "build_loads",
-           "surface_loads_from_scene", "model_from_scene", "damping_from_scene", "pin_motions",
+           "surface_loads_from_scene", "surface_load_specs", "loads_of", "LoadSpec",
+           "ModelInputs", "model_inputs", "model_of", "SharePart", "WholeScene", "read_whole",
+           "cut_share",
+           "model_from_scene", "damping_from_scene", "pin_motions",
            "pin_groups", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
@@ -76,10 +80,14 @@ _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
 class Share(Protocol):
     """A share of the tets (one MPI rank's, :class:`fem3d.parallel.run.RankShare`) that
     :func:`build` makes the model of, instead of the whole, over the vertices of its tets
-    alone (:class:`~fem3d.scene.local.LocalNumbering`)."""
+    alone (:class:`~fem3d.scene.local.LocalNumbering`), from its :class:`SharePart`."""
 
-    def tets(self, X: np.ndarray, T: np.ndarray, constraints: Constraints) -> np.ndarray:
-        """The share's tets ``(k,) int64``, sorted, chosen from the whole mesh ``X, T``."""
+    def part(self, read: Callable[[], WholeScene],
+             cut: Callable[[WholeScene, np.ndarray, np.ndarray, int], SharePart]) -> SharePart:
+        """Collective: this share's part of the scene. The share that reads calls ``read``,
+        partitions the tets, and cuts each share's part (``cut(whole, tets, owner, rank)``:
+        the share's sorted tets, each vertex's owning share) and hands it over; an
+        :class:`InputError` it meets is raised by every share."""
 
     def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
         """Collective: the share holds the vertices of ``numbering`` and the local
@@ -92,10 +100,6 @@ class Share(Protocol):
     def agree(self, failure: str) -> None:
         """Raise :class:`InputError` on every share when any share's ``failure`` (its
         message; ``""``: none) is not empty."""
-
-    def owned(self, vertices: np.ndarray) -> np.ndarray:
-        """``(k,) bool``: which of the scene's ``vertices`` this share owns (after
-        :meth:`hold`): the share that assembles a point load on them."""
 
 
 class PinMotion(NamedTuple):
@@ -186,10 +190,10 @@ def build(scene: Scene, *, backend: str | None = None,
         ``FILE: key.path: ...``: a bad mesh, a selector that selects nothing, no pinned
         vertex in a scene without contact, a bad material, motion or obstacle.
     """
+    if restrict is not None:
+        return _build_share(scene, backend, restrict)
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
-    if restrict is not None:
-        return _build_share(scene, a, backend, restrict)
     model = with_psd_projection(model_from_scene(scene, a, backend),
                                 scene.simulation.psd_projection)
     constraints = _constraints(scene, a)
@@ -200,39 +204,128 @@ def build(scene: Scene, *, backend: str | None = None,
                   pin_motions(scene, a, constraints.fixed_vertices), pin_groups(scene, a))
 
 
-def _build_share(scene: Scene, a: SceneArrays, backend: str | None, share: Share) -> Built:
-    """:func:`build` of one MPI rank's share: selections on the whole scene ``a``, then
-    every array in the share's numbering (:class:`LocalNumbering`)."""
-    refuse_mixed_elements(scene, "mpiexec runs")
+class WholeScene(NamedTuple):
+    """The whole scene in arrays and what is selected on it once (the share that reads it
+    cuts every share's :class:`SharePart` from it)."""
+
+    arrays: SceneArrays
+    constraints: Constraints
+    groups: tuple[list, np.ndarray] | None  # material groups and densities (None: one plain body)
+    alpha: float | np.ndarray
+    beta: float | np.ndarray
+    motions: list[PinMotion]
+    pin_groups: tuple
+
+
+@dataclass(frozen=True, eq=False)
+class SharePart:
+    """One MPI rank's part of a scene in its own numbering, cut by the rank that reads the
+    scene (:func:`cut_share`; plain data, sent to the rank): what :func:`build` makes the
+    rank's share of.
+
+    Attributes
+    ----------
+    numbering : LocalNumbering
+    arrays : SceneArrays
+        :meth:`LocalNumbering.arrays`.
+    fixed_dofs : (k,) int64
+        The held DOFs, local numbers.
+    inputs : ModelInputs
+    alpha, beta : float or ndarray
+        Rayleigh coefficients (per local vertex / per tet of the share).
+    damps : bool
+        Whether the scene damps anywhere (every share keeps the damping term then).
+    loads : list of LoadSpec
+    motions : list of PinMotion
+        Slots among the share's pinned vertices.
+    pin_groups : tuple
+        Each pin's key and its DOFs here (local numbers).
+    """
+
+    numbering: LocalNumbering
+    arrays: SceneArrays
+    fixed_dofs: np.ndarray
+    inputs: ModelInputs
+    alpha: float | np.ndarray
+    beta: float | np.ndarray
+    damps: bool
+    loads: list
+    motions: list
+    pin_groups: tuple
+
+
+def read_whole(scene: Scene) -> WholeScene:
+    """The whole scene in arrays, checked, with what :func:`cut_share` selects once.
+
+    Raises
+    ------
+    InputError
+        As :func:`build`.
+    """
+    a = build_arrays(scene)
     whole = _constraints(scene, a)
     check_static_support(scene, a, whole)
-    numbering = LocalNumbering.of_tets(a.T, share.tets(a.X, a.T, whole))
-    tets = numbering.tets
+    simple = len(scene.bodies) == 1 and _simple_material(scene.bodies[0].material)
+    alpha, beta = damping_from_scene(scene, a)
+    return WholeScene(a, whole, None if simple else _material_groups(scene, a), alpha, beta,
+                      pin_motions(scene, a, whole.fixed_vertices), pin_groups(scene, a))
+
+
+def cut_share(scene: Scene, whole: WholeScene, backend: str | None, tets: np.ndarray,
+              owner: np.ndarray, rank: int) -> SharePart:
+    """Share ``rank``'s part of ``whole``: its tets ``tets`` (sorted) over their vertices,
+    ``owner`` each scene vertex's owning share.
+
+    Raises
+    ------
+    InputError
+        A load that selects no whole boundary face, or a follower pressure on an open patch
+        (the checks see the whole load).
+    """
+    a = whole.arrays
+    numbering = LocalNumbering.of_tets(a.T, tets)
+    owned = owner[numbering.vertices] == rank
+    fixed = numbering.dof_ids(whole.constraints.fixed_dofs)
+    local_fixed = np.unique(fixed // 3)
+    slots = numbering.fixed_slots(whole.constraints.fixed_vertices, local_fixed)
+    motions = []
+    for m in whole.motions:
+        held = slots[m.slots] >= 0
+        if held.any():
+            motions.append(PinMotion(slots[m.slots][held], m.rest[held], m.keyframes))
+    alpha, beta = whole.alpha, whole.beta
+    return SharePart(
+        numbering=numbering, arrays=numbering.arrays(a, owned), fixed_dofs=fixed,
+        inputs=model_inputs(scene, a, numbering, whole.groups),
+        alpha=alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices],
+        beta=beta if np.ndim(beta) == 0 else beta[tets],
+        damps=bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0)),
+        loads=surface_load_specs(scene, a, backend, numbering, owner == rank),
+        motions=motions,
+        pin_groups=tuple((key, numbering.dof_ids(d)) for key, d in whole.pin_groups))
+
+
+def _build_share(scene: Scene, backend: str | None, share: Share) -> Built:
+    """:func:`build` of one MPI rank's share: its :class:`SharePart` (cut by the rank that
+    reads the scene), its model and loads built here."""
+    refuse_mixed_elements(scene, "mpiexec runs")
+    part = share.part(lambda: read_whole(scene),
+                      lambda whole, tets, owner, rank: cut_share(scene, whole, backend, tets,
+                                                                 owner, rank))
     # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
     # rank learns of it before the next collective call, which would otherwise wait
     try:
-        model, failure = model_from_scene(scene, a, backend, share=numbering), ""
+        model, failure = model_of(scene, part.inputs, backend), ""
     except InputError as exc:
         model, failure = None, str(exc)
     share.agree(failure)
     model = with_psd_projection(share.summary(model), scene.simulation.psd_projection)
-    constraints = numbering.constraints(model.X, whole)
-    owned = share.hold(numbering, constraints)
-    alpha, beta = damping_from_scene(scene, a)
-    damps = bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0))
-    alpha = alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices]
-    beta = beta if np.ndim(beta) == 0 else beta[tets]
-    loads = _loads(scene, model, alpha, beta,
-                   surface_loads_from_scene(scene, a, model, share, numbering), damps)
-    slots = numbering.fixed_slots(whole.fixed_vertices, constraints.fixed_vertices)
-    motions = []
-    for m in pin_motions(scene, a, whole.fixed_vertices):
-        held = slots[m.slots] >= 0
-        if held.any():
-            motions.append(PinMotion(slots[m.slots][held], m.rest[held], m.keyframes))
-    groups = tuple((key, numbering.dof_ids(dofs)) for key, dofs in pin_groups(scene, a))
-    return _built(scene, numbering.arrays(a, owned), model, constraints, alpha, beta, loads,
-                  motions, groups)
+    constraints = Constraints.from_fixed_dofs(model.X, part.fixed_dofs)
+    share.hold(part.numbering, constraints)
+    loads = _loads(scene, model, part.alpha, part.beta, loads_of(model, part.loads),
+                   part.damps)
+    return _built(scene, part.arrays, model, constraints, part.alpha, part.beta, loads,
+                  part.motions, part.pin_groups)
 
 
 def _loads(scene: Scene, model: Model, alpha, beta, surface: list,
@@ -369,16 +462,21 @@ def build_loads(model: Model, gravity=None, rayleigh_alpha=0.0, rayleigh_beta=0.
                  tuple(surface))
 
 
-def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
-                             share: Share | None = None,
-                             numbering: LocalNumbering | None = None) -> list:
+class LoadSpec(NamedTuple):
+    """A body's load in numbers (plain data: the rank that reads the scene sends a share's
+    to its rank): a dead load's nodal forces at scale 1 (``kind`` ``"dead"``, ``data``
+    ``(3n,)``) or a follower pressure's faces (``"pressure"``, ``data`` ``(f, 3 or 6)``)."""
+
+    kind: str
+    key: str
+    amplitude: Amplitude | None
+    data: np.ndarray
+    pressure: float = 0.0
+
+
+def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model) -> list:
     """The bodies' ``loads`` as terms, in scene order: a traction or a point force as a
     :class:`DeadLoad`, a pressure as a :class:`FollowerPressure` (docs/loads.md).
-
-    With ``share`` (one MPI rank's; ``model`` its tets' over its vertices ``numbering``),
-    each load is the share's part, so that summed over the shares every face and point is
-    counted once: a face belongs to the share of the tet it bounds, a point force's vertex
-    to the share that :meth:`Share.owned` says (the checks still see the whole load).
 
     Raises
     ------
@@ -386,13 +484,34 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
         ``FILE: bodies[i].loads[j].select: ...``: a traction or pressure whose selection
         holds no whole boundary face, a selector that selects nothing.
     """
-    out: list = []
+    return loads_of(model, surface_load_specs(scene, a, model.backend))
+
+
+def loads_of(model: Model, specs: list[LoadSpec]) -> list:
+    """The terms of :func:`surface_load_specs` on ``model``."""
+    return [DeadLoad(model, s.data, s.amplitude, s.key) if s.kind == "dead" else
+            FollowerPressure(model, s.data, s.pressure, s.amplitude, s.key) for s in specs]
+
+
+def surface_load_specs(scene: Scene, a: SceneArrays, backend: str | None = None,
+                       numbering: LocalNumbering | None = None,
+                       owns: np.ndarray | None = None) -> list[LoadSpec]:
+    """The bodies' loads in numbers (:func:`surface_loads_from_scene`).
+
+    With ``numbering`` (one MPI rank's share, over its vertices) each load is the share's
+    part, so that summed over the shares every face and point is counted once: a face
+    belongs to the share of the tet it bounds, a point force's vertex to the share that
+    owns it (``owns``: ``(n,) bool`` over the scene's vertices); the checks still see the
+    whole load.
+    """
+    out: list[LoadSpec] = []
     faces: dict[int, np.ndarray] = {}  # each element block's boundary faces, once
-    # the share's boundary faces (scene numbers): the loaded faces of its own tets are among
-    # them (a share is of one element: mixed elements are refused on ranks)
-    own_faces = None if numbering is None else \
-        numbering.vertices[a.element.boundary_faces(model.T)]
-    local = (lambda ids: ids) if numbering is None else numbering.local
+    X, own_faces, local = a.X, None, (lambda ids: ids)
+    if numbering is not None:
+        # the share's boundary faces (scene numbers): the loaded faces of its own tets are
+        # among them (a share is of one element: mixed elements are refused on ranks)
+        X, local = a.X[numbering.vertices], numbering.local
+        own_faces = a.element.boundary_faces(a.T[numbering.tets])
     for i, body in enumerate(scene.bodies):
         off = a.body_vertices[i].start
         for j, load in enumerate(body.loads):
@@ -403,10 +522,10 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
                 [k.t for k in load.keyframes], [k.scale for k in load.keyframes])
             if load.kind == "force":
                 force = point_forces(a.X.shape[0], ids, load.force)
-                if share is not None:  # F / k on each selected vertex the share owns
-                    force.reshape(-1, 3)[ids[~share.owned(ids)]] = 0.0
+                if numbering is not None:  # F / k on each selected vertex the share owns
+                    force.reshape(-1, 3)[ids[~owns[ids]]] = 0.0
                     force = numbering.dofs(force)
-                out.append(DeadLoad(model, force, amplitude, key))
+                out.append(LoadSpec("dead", key, amplitude, force))
                 continue
             b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
             if b not in faces:
@@ -417,12 +536,11 @@ def surface_loads_from_scene(scene: Scene, a: SceneArrays, model: Model,
                                   "is loaded when all its nodes are selected)")
             ours = local(mine if own_faces is None else faces_among(mine, own_faces))
             if load.kind == "traction":
-                out.append(DeadLoad(model, traction_forces(model.X, ours, load.traction,
-                                                           model.backend),
-                                    amplitude, key))
+                out.append(LoadSpec("dead", key, amplitude,
+                                    traction_forces(X, ours, load.traction, backend)))
                 continue
-            _check_open_edge(scene, a, mine, load.pressure, model.backend, key)
-            out.append(FollowerPressure(model, ours, load.pressure, amplitude, key))
+            _check_open_edge(scene, a, mine, load.pressure, backend, key)
+            out.append(LoadSpec("pressure", key, amplitude, ours, load.pressure))
     return out
 
 
@@ -472,6 +590,35 @@ def _cell_field(scene: Scene, a: SceneArrays, i: int, param: str, name: str) -> 
     return vals
 
 
+@dataclass(frozen=True, eq=False)
+class ModelInputs:
+    """What :func:`build_model` is given for a scene or one MPI rank's share of it (plain
+    data: the rank that reads the scene sends a share's to its rank).
+
+    Attributes
+    ----------
+    X, T : ndarray
+        Rest positions and elements (a share's over its own vertices).
+    element : Element
+    path : str or None
+        The mesh file the model's errors name.
+    material : MaterialSpec or None
+        One plain body's material; None: :attr:`groups`.
+    groups : list of (key, MaterialGroup)
+        One group per body and per region (elements numbered in :attr:`T`).
+    rho : float or ndarray
+        The density, or one per element.
+    """
+
+    X: np.ndarray
+    T: np.ndarray
+    element: Any
+    path: str | None
+    material: MaterialSpec | None
+    groups: list
+    rho: float | np.ndarray
+
+
 def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *,
                      share: LocalNumbering | None = None) -> Model:
     """The model of every body's material (one material form when there is one plain body,
@@ -482,20 +629,50 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
     :func:`build_model`, which sees only the share's tets and vertices; its summary
     ``E, nu, rho`` are then the share's.
     """
+    if a.is_mixed:
+        groups, density = _material_groups(scene, a)
+        return _mixed_from_groups(scene, a, groups, density, backend)
+    return model_of(scene, model_inputs(scene, a, share), backend)
+
+
+def model_inputs(scene: Scene, a: SceneArrays, share: LocalNumbering | None = None,
+                 groups: tuple[list, np.ndarray] | None = None) -> ModelInputs:
+    """:class:`ModelInputs` of the scene (its bodies on one element), or of ``share``'s
+    tets over its vertices (:func:`model_from_scene`); ``groups``: the scene's material
+    groups and densities when made already."""
     bodies = scene.bodies
     path = a.mesh_paths[0] if len(a.mesh_paths) == 1 else None
     tets = None if share is None else share.tets
     X, T = (a.X, a.T) if share is None else (a.X[share.vertices], share.local(a.T[tets]))
+    if len(bodies) == 1 and _simple_material(bodies[0].material):
+        m = bodies[0].material
+        return ModelInputs(X, T, a.element, path, m, [], m.density)
+    groups, density = _material_groups(scene, a) if groups is None else groups
+    rho = float(density[0]) if (density == density[0]).all() else density
+    if tets is not None:
+        groups, rho = _share_groups(groups, tets, a.T.shape[0]), _share_values(rho, tets)
+    return ModelInputs(X, T, a.element, path, None, groups, rho)
+
+
+def model_of(scene: Scene, inputs: ModelInputs, backend: str | None = None) -> Model:
+    """:func:`build_model` of ``inputs``; a bad material or mesh is refused naming its key."""
+    m = inputs.material
+    if m is None:
+        return _model_of_groups(scene, inputs.X, inputs.T, inputs.groups, inputs.rho, backend,
+                                inputs.path, inputs.element)
     try:
-        if len(bodies) == 1 and _simple_material(bodies[0].material):
-            m = bodies[0].material
-            return build_model(X, T, E=m.E, nu=m.nu, rho=m.density, material=m.model,
-                               backend=backend, path=path, element=a.element)
+        return build_model(inputs.X, inputs.T, E=m.E, nu=m.nu, rho=m.density,
+                           material=m.model, backend=backend, path=inputs.path,
+                           element=inputs.element)
     except InputError as exc:
         key = "bodies[0].material" if isinstance(exc, ParameterError) else "bodies[0].mesh"
         raise scene.error(key, str(exc)) from None
+
+
+def _material_groups(scene: Scene, a: SceneArrays) -> tuple[list, np.ndarray]:
+    """``(key, MaterialGroup)`` of every body and region, and the density of every tet."""
     groups, density = [], np.empty(a.body_tets[-1].stop)
-    for i, body in enumerate(bodies):
+    for i, body in enumerate(scene.bodies):
         m = body.material
         mine = np.arange(a.body_tets[i].start, a.body_tets[i].stop)
         density[mine] = m.density
@@ -531,12 +708,7 @@ def model_from_scene(scene: Scene, a: SceneArrays, backend: str | None = None, *
                     values["nu"] = r.nu
             groups.append((f"bodies[{i}].material" + (f".regions[{j}]" if j >= 0 else ""),
                            MaterialGroup(m.model, mine[mask], values)))
-    if a.is_mixed:
-        return _mixed_from_groups(scene, a, groups, density, backend)
-    rho = float(density[0]) if (density == density[0]).all() else density
-    if tets is not None:
-        groups, rho = _share_groups(groups, tets, a.T.shape[0]), _share_values(rho, tets)
-    return _model_of_groups(scene, X, T, groups, rho, backend, path, a.element)
+    return groups, density
 
 
 def _mixed_from_groups(scene: Scene, a: SceneArrays, groups: list, density: np.ndarray,

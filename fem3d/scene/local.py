@@ -18,7 +18,7 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.springs import Pull
 from fem3d.scene.arrays import ElementBlock, SceneArrays, ScriptedPull
 
-__all__ = ["LocalNumbering"]
+__all__ = ["LocalNumbering", "split_tets"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,3 +113,16 @@ class LocalNumbering:
         return replace(a, X=X, T=T, v0=a.v0[self.vertices], fixed=fixed, pulls=pulls,
                        body_vertices=bodies_v, body_tets=bodies_t, skin_V=None, skin_F=None,
                        skin_bodies=[], skin_identity=[], fixed_dofs=fixed_dofs, blocks=blocks)
+
+
+def split_tets(T: np.ndarray, tet_rank: np.ndarray, n_parts: int
+               ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each part's tets (sorted) of a partition ``tet_rank`` ``(m,)`` into ``n_parts``, and
+    each vertex's owner: the lowest part among its tets (``n_parts`` for a vertex of none).
+    """
+    order = np.argsort(tet_rank, kind="stable")  # within a part: increasing tet
+    bounds = np.r_[0, np.cumsum(np.bincount(tet_rank, minlength=n_parts))]
+    n = int(T.max(initial=-1)) + 1
+    owner = np.full(n, n_parts, dtype=np.int64)
+    np.minimum.at(owner, T.reshape(-1), np.repeat(tet_rank, T.shape[1]))
+    return [order[bounds[r]:bounds[r + 1]] for r in range(n_parts)], owner

@@ -17,6 +17,7 @@ from fem3d.io.energy import read_energy_csv
 from fem3d.parallel.partition import dual_graph, partition_tets
 from fem3d.physics.terms.base import StepMap
 from fem3d.scene import load_scene
+from fem3d.scene.local import split_tets
 from fem3d.simulation import Simulation
 from fem3d.solve.integrators import model_terms
 from fem3d.solve.system import System
@@ -242,8 +243,7 @@ def test_metis_cuts_the_same_way_every_time():
     from bench.meshes import box_mesh
 
     _, T = box_mesh(2e4)
-    comm = SimpleNamespace(Get_size=lambda: 3, Get_rank=lambda: 0, Bcast=lambda buf, root: None)
-    cuts = [partition_tets(T, comm) for _ in range(3)]
+    cuts = [partition_tets(T, 3) for _ in range(3)]
     assert all(np.array_equal(cuts[0], c) for c in cuts[1:])
     sizes = np.bincount(cuts[0])
     assert sizes.size == 3 and sizes.min() >= 0.95 * len(T) / 3
@@ -253,31 +253,79 @@ def test_metis_cuts_the_same_way_every_time():
     assert between < 0.05 * indices.size / 2  # of the faces two tets share
 
 
+class _Comm:
+    """Rank ``rank`` of ``size`` without MPI: what rank 0 sends is recorded; a receive
+    returns ``incoming``; ``allgather`` returns this rank's row alone."""
+
+    def __init__(self, size, rank, incoming=None):
+        self.size, self.rank, self.incoming, self.sent = size, rank, incoming, []
+
+    def Get_size(self):
+        return self.size
+
+    def Get_rank(self):
+        return self.rank
+
+    def send(self, message, dest):
+        self.sent.append((dest, message))
+
+    def recv(self, source):
+        return self.incoming
+
+    def allgather(self, row):
+        return [row]
+
+
 def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
-    """``RankShare.tets`` given a partition (a resume's, written on as many ranks) takes it
+    """``RankShare.part`` given a partition (a resume's, written on as many ranks) takes it
     rather than partitioning anew (PT-Scotch's partition differs from run to run: a new one
     would sum in another order, docs/parallel.md); one of another mesh or rank count is
-    partitioned anew. The share keeps the partition it used (the checkpoints write it)."""
+    partitioned anew. Rank 0 keeps the partition it used (the checkpoints write it) and
+    sends rank 1 its tets; rank 1 keeps none."""
     from fem3d.parallel import run as parallel_run
 
     T = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]])
-    X, constraints = np.zeros((6, 3)), SimpleNamespace(free_dofs=np.arange(18))
-    comm = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 0)
+    whole = SimpleNamespace(arrays=SimpleNamespace(X=np.zeros((6, 3)), T=T))
     made = []
     monkeypatch.setattr(parallel_run, "partition_tets",
-                        lambda T, comm: made.append(len(T)) or np.array([0, 0, 1]))
+                        lambda T, n: made.append(len(T)) or np.array([0, 0, 1]))
+
+    def cut(whole, tets, owner, rank):
+        return tets.tolist(), owner.tolist()
+
+    comm = _Comm(2, 0)
     share = parallel_run.RankShare(comm, partition=np.array([1, 0, 1], dtype=np.int32))
-    assert share.tets(X, T, constraints).tolist() == [1] and not made
-    assert share.partition.tolist() == [1, 0, 1]
+    assert share.part(lambda: whole, cut) == ([1], [1, 0, 0, 0, 0, 1]) and not made
+    assert comm.sent[0][0] == 1 and comm.sent[0][1][1] == ([0, 2], [1, 0, 0, 0, 0, 1])
+    assert share.partition.tolist() == [1, 0, 1] and share.n_vertices == 6
     for other in ([0, 1], [0, 0, 0], [0, 1, 2]):  # another mesh; one rank; three ranks
-        share = parallel_run.RankShare(comm, partition=np.array(other))
-        assert share.tets(X, T, constraints).tolist() == [0, 1]
+        share = parallel_run.RankShare(_Comm(2, 0), partition=np.array(other))
+        assert share.part(lambda: whole, cut)[0] == [0, 1]
         assert share.partition.tolist() == [0, 0, 1] and share.partition.dtype == np.int32
-    rank1 = SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 1)
-    share = parallel_run.RankShare(rank1, partition=np.array([1, 0, 1], dtype=np.int32))
-    assert share.tets(X, T, constraints).tolist() == [0, 2]
-    assert share.partition is None  # only rank 0 writes checkpoints: only it keeps the cut
     assert made == [3, 3, 3]
+    rank1 = _Comm(2, 1, incoming=("part", "rank 1's part", "digest", 6))
+    share = parallel_run.RankShare(rank1, partition=np.array([1, 0, 1], dtype=np.int32))
+    assert share.part(lambda: pytest.fail("rank 1 read the scene"), cut) == "rank 1's part"
+    assert share.partition is None and share.digest == "digest" and share.n_vertices == 6
+
+
+def test_a_failure_rank_0_meets_reading_is_every_ranks(tmp_path):
+    """An :class:`InputError` rank 0 meets reading or cutting the scene goes to the ranks
+    it has not sent a part to, and every rank raises it (``RankShare.agree``)."""
+    from fem3d.errors import InputError
+    from fem3d.parallel.run import RankShare
+
+    def read():
+        raise InputError("box.toml: bodies[0].mesh: no such file")
+
+    comm = _Comm(3, 0)
+    with pytest.raises(InputError, match="no such file"):
+        RankShare(comm).part(read, None)
+    assert [d for d, m in comm.sent] == [1, 2] and all(m[0] == "failure" for _, m in comm.sent)
+    failed = _Comm(3, 2, incoming=("failure", "box.toml: bodies[0].mesh: no such file"))
+    failed.allgather = lambda row: ["box.toml: bodies[0].mesh: no such file", "", row]
+    with pytest.raises(InputError, match="no such file"):
+        RankShare(failed).part(read, None)
 
 
 class _Unsolved(System):
@@ -290,27 +338,22 @@ class _Unsolved(System):
 
 class _Share:
     """One process's stand-in for rank ``rank`` of a split of the tets ``parts`` (the
-    :class:`~fem3d.scene.build.Share` protocol without MPI): a vertex is owned by the lowest
-    part holding it."""
+    :class:`~fem3d.scene.build.Share` protocol without MPI): the part is cut as rank 0
+    cuts it (a vertex owned by the lowest part holding it)."""
 
     def __init__(self, parts, rank, summary=None):
         self.parts, self.rank, self._summary = parts, rank, summary
 
-    def tets(self, X, T, constraints):
-        self.T = T
-        return self.parts[self.rank]
+    def part(self, read, cut):
+        whole = read()
+        tet_rank = np.zeros(whole.arrays.T.shape[0], dtype=np.int64)
+        for r, p in enumerate(self.parts):
+            tet_rank[p] = r
+        tets, owner = split_tets(whole.arrays.T, tet_rank, len(self.parts))
+        return cut(whole, tets[self.rank], owner, self.rank)
 
     def hold(self, numbering, constraints):
-        self.numbering = numbering
-        lower = [np.unique(self.T[p]) for p in self.parts[:self.rank]]
-        self.mine = ~np.isin(numbering.vertices, np.concatenate([[-1], *lower]))
-        return self.mine
-
-    def owned(self, vertices):
-        v = self.numbering.local(vertices)
-        out = v >= 0
-        out[out] = self.mine[v[out]]
-        return out
+        pass
 
     def agree(self, failure):
         assert failure == ""
@@ -415,7 +458,8 @@ def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monk
 
     build_model = scene_build.build_model
     monkeypatch.setattr(scene_build, "build_model", spy)
-    share = scene_build.build(scene, restrict=_Share([tets], 0, lambda m: replace(
+    rest = np.setdiff1d(np.arange(whole.model.n_tets), tets)
+    share = scene_build.build(scene, restrict=_Share([tets, rest], 0, lambda m: replace(
         m, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)))
     assert seen == [(verts.size, tets.size)]  # the whole model is never built
     m = share.model
