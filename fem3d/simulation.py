@@ -35,7 +35,8 @@ from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
-from fem3d.scene.build import Share, build
+from fem3d.scene.build import build
+from fem3d.scene.share import Share, build_share
 from fem3d.scene.spec import Scene
 from fem3d.solve.schemes.base import Scheme, model_terms
 from fem3d.solve.schemes.registry import get_scheme
@@ -126,9 +127,9 @@ class Simulation:
     make_system : callable ``(model, constraints, loads) -> System``, optional
         Makes the system instead of :class:`System` on the scene's linear solver (one MPI
         rank's share of a distributed run: :func:`fem3d.parallel.run.distributed_simulation`).
-    restrict_model : fem3d.scene.build.Share, optional
+    restrict_model : fem3d.scene.share.Share, optional
         The model of a share of the tets instead of the whole (one MPI rank's:
-        :func:`fem3d.scene.build.build`'s ``restrict``); :attr:`model` is then the share's.
+        :func:`fem3d.scene.share.build_share`); :attr:`model` is then the share's.
 
     Raises
     ------
@@ -167,7 +168,8 @@ class Simulation:
         self.scene = scene
         _check_supported(scene)
         # arrays, model, pins, motions, contact
-        built = build(scene, backend=backend, restrict=restrict_model)
+        built = build(scene, backend=backend) if restrict_model is None else \
+            build_share(scene, backend, restrict_model)
         a = built.arrays
         self.assembled = a
         self.model: Model = built.model

@@ -60,8 +60,9 @@ from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
 from fem3d.physics.terms.loads import Loads
-from fem3d.scene.build import SharePart, WholeScene, refuse_mixed_elements
+from fem3d.scene.build import refuse_mixed_elements
 from fem3d.scene.local import LocalNumbering, split_tets
+from fem3d.scene.share import SharePart, WholeScene
 from fem3d.simulation import Simulation
 from fem3d.solve.linear.petsc import DofLayout, PetscSolver
 from fem3d.solve.schemes.registry import SCHEMES, get_scheme

@@ -24,9 +24,8 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import meshio
 import numpy as np
@@ -69,37 +68,11 @@ from fem3d.solve.schemes.registry import get_scheme
 
 __all__ = ["Built", "PinMotion", "build", "refuse_mixed_elements", "build_loads",
            "surface_loads_from_scene", "surface_load_specs", "loads_of", "LoadSpec",
-           "ModelInputs", "model_inputs", "model_of", "SharePart", "WholeScene", "read_whole",
-           "cut_share",
+           "ModelInputs", "model_inputs", "model_of",
            "model_from_scene", "damping_from_scene", "pin_motions",
            "pin_groups", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
 
 _stages = logging.getLogger("fem3d.stages")  # stage marks (fem3d run --profile)
-
-
-class Share(Protocol):
-    """A share of the tets (one MPI rank's, :class:`fem3d.parallel.run.RankShare`) that
-    :func:`build` makes the model of, instead of the whole, over the vertices of its tets
-    alone (:class:`~fem3d.scene.local.LocalNumbering`), from its :class:`SharePart`."""
-
-    def part(self, read: Callable[[], WholeScene],
-             cut: Callable[[WholeScene, np.ndarray, np.ndarray, int], SharePart]) -> SharePart:
-        """Collective: this share's part of the scene. The share that reads calls ``read``,
-        partitions the tets, and cuts each share's part (``cut(whole, tets, owner, rank)``:
-        the share's sorted tets, each vertex's owning share) and hands it over; an
-        :class:`InputError` it meets is raised by every share."""
-
-    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
-        """Collective: the share holds the vertices of ``numbering`` and the local
-        ``constraints``' free DOFs; ``(k,) bool``, which of its vertices it owns (each
-        vertex owned by exactly one share)."""
-
-    def summary(self, model: Model) -> Model:
-        """``model`` (the share's) with the whole model's summary ``E, nu, rho``."""
-
-    def agree(self, failure: str) -> None:
-        """Raise :class:`InputError` on every share when any share's ``failure`` (its
-        message; ``""``: none) is not empty."""
 
 
 class PinMotion(NamedTuple):
@@ -165,8 +138,7 @@ class Built:
     pin_groups: tuple = ()
 
 
-def build(scene: Scene, *, backend: str | None = None,
-          restrict: Share | None = None) -> Built:
+def build(scene: Scene, *, backend: str | None = None) -> Built:
     """Everything a run of ``scene`` needs that the scene decides.
 
     Parameters
@@ -174,11 +146,6 @@ def build(scene: Scene, *, backend: str | None = None,
     scene : Scene
     backend : {None, "numpy", "c"}, optional
         Kernel back end of the model (None: C if built).
-    restrict : Share, optional
-        One MPI rank's share (:mod:`fem3d.parallel`): the model of its tets alone, built
-        from them by :func:`model_from_scene` (the whole model is never built), with the
-        whole model's summary values; the loads are the share's (a per-tet damping
-        coefficient restricted to its tets).
 
     Returns
     -------
@@ -190,8 +157,6 @@ def build(scene: Scene, *, backend: str | None = None,
         ``FILE: key.path: ...``: a bad mesh, a selector that selects nothing, no pinned
         vertex in a scene without contact, a bad material, motion or obstacle.
     """
-    if restrict is not None:
-        return _build_share(scene, backend, restrict)
     a = build_arrays(scene)
     _stages.debug("scene arrays (transforms, selections)")
     model = with_psd_projection(model_from_scene(scene, a, backend),
@@ -202,130 +167,6 @@ def build(scene: Scene, *, backend: str | None = None,
     loads = _loads(scene, model, alpha, beta, surface_loads_from_scene(scene, a, model))
     return _built(scene, a, model, constraints, alpha, beta, loads,
                   pin_motions(scene, a, constraints.fixed_vertices), pin_groups(scene, a))
-
-
-class WholeScene(NamedTuple):
-    """The whole scene in arrays and what is selected on it once (the share that reads it
-    cuts every share's :class:`SharePart` from it)."""
-
-    arrays: SceneArrays
-    constraints: Constraints
-    groups: tuple[list, np.ndarray] | None  # material groups and densities (None: one plain body)
-    alpha: float | np.ndarray
-    beta: float | np.ndarray
-    motions: list[PinMotion]
-    pin_groups: tuple
-
-
-@dataclass(frozen=True, eq=False)
-class SharePart:
-    """One MPI rank's part of a scene in its own numbering, cut by the rank that reads the
-    scene (:func:`cut_share`; plain data, sent to the rank): what :func:`build` makes the
-    rank's share of.
-
-    Attributes
-    ----------
-    numbering : LocalNumbering
-    arrays : SceneArrays
-        :meth:`LocalNumbering.arrays`.
-    fixed_dofs : (k,) int64
-        The held DOFs, local numbers.
-    inputs : ModelInputs
-    alpha, beta : float or ndarray
-        Rayleigh coefficients (per local vertex / per tet of the share).
-    damps : bool
-        Whether the scene damps anywhere (every share keeps the damping term then).
-    loads : list of LoadSpec
-    motions : list of PinMotion
-        Slots among the share's pinned vertices.
-    pin_groups : tuple
-        Each pin's key and its DOFs here (local numbers).
-    """
-
-    numbering: LocalNumbering
-    arrays: SceneArrays
-    fixed_dofs: np.ndarray
-    inputs: ModelInputs
-    alpha: float | np.ndarray
-    beta: float | np.ndarray
-    damps: bool
-    loads: list
-    motions: list
-    pin_groups: tuple
-
-
-def read_whole(scene: Scene) -> WholeScene:
-    """The whole scene in arrays, checked, with what :func:`cut_share` selects once.
-
-    Raises
-    ------
-    InputError
-        As :func:`build`.
-    """
-    a = build_arrays(scene)
-    whole = _constraints(scene, a)
-    check_static_support(scene, a, whole)
-    simple = len(scene.bodies) == 1 and _simple_material(scene.bodies[0].material)
-    alpha, beta = damping_from_scene(scene, a)
-    return WholeScene(a, whole, None if simple else _material_groups(scene, a), alpha, beta,
-                      pin_motions(scene, a, whole.fixed_vertices), pin_groups(scene, a))
-
-
-def cut_share(scene: Scene, whole: WholeScene, backend: str | None, tets: np.ndarray,
-              owner: np.ndarray, rank: int) -> SharePart:
-    """Share ``rank``'s part of ``whole``: its tets ``tets`` (sorted) over their vertices,
-    ``owner`` each scene vertex's owning share.
-
-    Raises
-    ------
-    InputError
-        A load that selects no whole boundary face, or a follower pressure on an open patch
-        (the checks see the whole load).
-    """
-    a = whole.arrays
-    numbering = LocalNumbering.of_tets(a.T, tets)
-    owned = owner[numbering.vertices] == rank
-    fixed = numbering.dof_ids(whole.constraints.fixed_dofs)
-    local_fixed = np.unique(fixed // 3)
-    slots = numbering.fixed_slots(whole.constraints.fixed_vertices, local_fixed)
-    motions = []
-    for m in whole.motions:
-        held = slots[m.slots] >= 0
-        if held.any():
-            motions.append(PinMotion(slots[m.slots][held], m.rest[held], m.keyframes))
-    alpha, beta = whole.alpha, whole.beta
-    return SharePart(
-        numbering=numbering, arrays=numbering.arrays(a, owned), fixed_dofs=fixed,
-        inputs=model_inputs(scene, a, numbering, whole.groups),
-        alpha=alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices],
-        beta=beta if np.ndim(beta) == 0 else beta[tets],
-        damps=bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0)),
-        loads=surface_load_specs(scene, a, backend, numbering, owner == rank),
-        motions=motions,
-        pin_groups=tuple((key, numbering.dof_ids(d)) for key, d in whole.pin_groups))
-
-
-def _build_share(scene: Scene, backend: str | None, share: Share) -> Built:
-    """:func:`build` of one MPI rank's share: its :class:`SharePart` (cut by the rank that
-    reads the scene), its model and loads built here."""
-    refuse_mixed_elements(scene, "mpiexec runs")
-    part = share.part(lambda: read_whole(scene),
-                      lambda whole, tets, owner, rank: cut_share(scene, whole, backend, tets,
-                                                                 owner, rank))
-    # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
-    # rank learns of it before the next collective call, which would otherwise wait
-    try:
-        model, failure = model_of(scene, part.inputs, backend), ""
-    except InputError as exc:
-        model, failure = None, str(exc)
-    share.agree(failure)
-    model = with_psd_projection(share.summary(model), scene.simulation.psd_projection)
-    constraints = Constraints.from_fixed_dofs(model.X, part.fixed_dofs)
-    share.hold(part.numbering, constraints)
-    loads = _loads(scene, model, part.alpha, part.beta, loads_of(model, part.loads),
-                   part.damps)
-    return _built(scene, part.arrays, model, constraints, part.alpha, part.beta, loads,
-                  part.motions, part.pin_groups)
 
 
 def _loads(scene: Scene, model: Model, alpha, beta, surface: list,

@@ -369,10 +369,10 @@ def _halves(n_tets, seed=1):
 
 
 def test_local_models_sum_to_the_whole(tmp_path):
-    """The shares ``build(restrict=)`` makes of a split of the tets (two materials, damping,
+    """The shares ``build_share`` makes of a split of the tets (two materials, damping,
     gravity, each over its own vertices): their energies, gradients and Newton matrices,
     carried to the scene's numbering, sum to the whole model's."""
-    from fem3d.scene.build import build
+    from fem3d.scene.share import build_share
 
     scene = load_scene(str(write_scene(tmp_path)))
     sim = Simulation(scene)
@@ -411,7 +411,7 @@ def test_local_models_sum_to_the_whole(tmp_path):
     whole = evaluate(system, np.arange(model.n_dofs))
     shares = []
     for rank in (0, 1):
-        built = build(scene, restrict=_Share(parts, rank))
+        built = build_share(scene, None, _Share(parts, rank))
         verts = np.unique(model.T[parts[rank]])
         assert np.array_equal(built.model.X, model.X[verts])
         s = _Unsolved(built.model, built.constraints, "superlu", loads=built.loads)
@@ -438,13 +438,14 @@ def test_launched_ranks_from_the_launcher(monkeypatch):
 
 
 def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monkeypatch):
-    """``build(scene, restrict=)`` (a rank's share): the model is built from the share's
+    """``build_share`` (a rank's share): the model is built from the share's
     tets over their vertices alone (``build_model`` never sees the whole mesh) and equals
     the whole model restricted (rest shapes, the groups of two materials: their energies
     are checked by ``test_local_models_sum_to_the_whole``); pins,
     initial velocities and the loads are the share's (a per-tet damping coefficient
     restricted); the summary values are the share's ``summary``."""
     import fem3d.scene.build as scene_build
+    from fem3d.scene.share import build_share
 
     scene = load_scene(str(write_scene(tmp_path)))  # two bodies: per-tet Rayleigh beta
     whole = scene_build.build(scene)
@@ -459,7 +460,7 @@ def test_build_restricted_to_a_share_never_builds_the_whole_model(tmp_path, monk
     build_model = scene_build.build_model
     monkeypatch.setattr(scene_build, "build_model", spy)
     rest = np.setdiff1d(np.arange(whole.model.n_tets), tets)
-    share = scene_build.build(scene, restrict=_Share([tets, rest], 0, lambda m: replace(
+    share = build_share(scene, None, _Share([tets, rest], 0, lambda m: replace(
         m, E=whole.model.E, nu=whole.model.nu, rho=whole.model.rho)))
     assert seen == [(verts.size, tets.size)]  # the whole model is never built
     m = share.model
