@@ -199,15 +199,16 @@ class RankShare:
         self.agree(failure)
         return mine
 
-    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
+    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> None:
         """Collective: this rank holds ``numbering``'s vertices, ``constraints`` (theirs)
-        free DOFs; which vertices it owns, ``(k,) bool`` (the lowest rank holding each)."""
+        free DOFs: which other ranks hold them too (:attr:`vertex_ghosts`; a vertex's
+        owner is the lowest rank holding it, as rank 0's cut said) and PETSc's numbering
+        (:attr:`layout`)."""
         self.numbering = numbering
         self.vertex_ghosts = Ghosts.build(self.comm, numbering.vertices)
         free = constraints.free_dofs
         ids = 3 * numbering.vertices[free // 3] + free % 3  # increasing, as free is
         self.layout, _ = local_layout(self.comm, ids)
-        return self.vertex_ghosts.owned
 
     def agree(self, failure: str) -> None:
         """Every rank raises the first rank's :class:`InputError` when any rank's ``failure``

@@ -67,7 +67,8 @@ from fem3d.scene.spec import MaterialSpec, MotionSpec, Scene
 from fem3d.solve.schemes.registry import get_scheme
 
 __all__ = ["Built", "PinMotion", "build", "refuse_mixed_elements", "build_loads",
-           "surface_loads_from_scene", "surface_load_specs", "loads_of", "LoadSpec",
+           "surface_loads_from_scene", "surface_load_specs", "select_loads", "SelectedLoad",
+           "loads_of", "LoadSpec",
            "ModelInputs", "model_inputs", "model_of",
            "model_from_scene", "damping_from_scene", "pin_motions",
            "pin_groups", "keyframes_from_spec", "obstacles_from_scene", "contact_from_scene"]
@@ -334,25 +335,31 @@ def loads_of(model: Model, specs: list[LoadSpec]) -> list:
             FollowerPressure(model, s.data, s.pressure, s.amplitude, s.key) for s in specs]
 
 
-def surface_load_specs(scene: Scene, a: SceneArrays, backend: str | None = None,
-                       numbering: LocalNumbering | None = None,
-                       owns: np.ndarray | None = None) -> list[LoadSpec]:
-    """The bodies' loads in numbers (:func:`surface_loads_from_scene`).
+class SelectedLoad(NamedTuple):
+    """A body's load as selected on the whole scene and checked (:func:`select_loads`): a
+    point force's vertices, or a traction's or pressure's whole patch of boundary faces."""
 
-    With ``numbering`` (one MPI rank's share, over its vertices) each load is the share's
-    part, so that summed over the shares every face and point is counted once: a face
-    belongs to the share of the tet it bounds, a point force's vertex to the share that
-    owns it (``owns``: ``(n,) bool`` over the scene's vertices); the checks still see the
-    whole load.
+    spec: Any  # the scene's LoadSpec of the body (kind, force, traction, pressure)
+    key: str
+    amplitude: Amplitude | None
+    ids: np.ndarray
+    faces: np.ndarray | None
+
+
+def select_loads(scene: Scene, a: SceneArrays, backend: str | None = None
+                 ) -> list[SelectedLoad]:
+    """Every body's loads selected on the whole scene, in scene order (done once: each MPI
+    rank's share of them is cut from these).
+
+    Raises
+    ------
+    InputError
+        ``FILE: bodies[i].loads[j].select: ...``: a traction or pressure whose selection
+        holds no whole boundary face, a follower pressure on an open patch, a selector that
+        selects nothing.
     """
-    out: list[LoadSpec] = []
+    out: list[SelectedLoad] = []
     faces: dict[int, np.ndarray] = {}  # each element block's boundary faces, once
-    X, own_faces, local = a.X, None, (lambda ids: ids)
-    if numbering is not None:
-        # the share's boundary faces (scene numbers): the loaded faces of its own tets are
-        # among them (a share is of one element: mixed elements are refused on ranks)
-        X, local = a.X[numbering.vertices], numbering.local
-        own_faces = a.element.boundary_faces(a.T[numbering.tets])
     for i, body in enumerate(scene.bodies):
         off = a.body_vertices[i].start
         for j, load in enumerate(body.loads):
@@ -361,26 +368,54 @@ def surface_load_specs(scene: Scene, a: SceneArrays, backend: str | None = None,
                                   f"{key}.select") + off
             amplitude = None if load.keyframes is None else Amplitude(
                 [k.t for k in load.keyframes], [k.scale for k in load.keyframes])
-            if load.kind == "force":
-                force = point_forces(a.X.shape[0], ids, load.force)
-                if numbering is not None:  # F / k on each selected vertex the share owns
-                    force.reshape(-1, 3)[ids[~owns[ids]]] = 0.0
-                    force = numbering.dofs(force)
-                out.append(LoadSpec("dead", key, amplitude, force))
-                continue
-            b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
-            if b not in faces:
-                faces[b] = a.blocks[b].element.boundary_faces(a.blocks[b].T)
-            mine = faces_within(faces[b], ids)
-            if mine.size == 0:
-                raise scene.error(f"{key}.select", "selects no whole boundary face (a face "
-                                  "is loaded when all its nodes are selected)")
-            ours = local(mine if own_faces is None else faces_among(mine, own_faces))
-            if load.kind == "traction":
-                out.append(LoadSpec("dead", key, amplitude,
-                                    traction_forces(X, ours, load.traction, backend)))
-                continue
-            _check_open_edge(scene, a, mine, load.pressure, backend, key)
+            mine = None
+            if load.kind != "force":
+                b = next(j for j, blk in enumerate(a.blocks) if i in blk.bodies)
+                if b not in faces:
+                    faces[b] = a.blocks[b].element.boundary_faces(a.blocks[b].T)
+                mine = faces_within(faces[b], ids)
+                if mine.size == 0:
+                    raise scene.error(f"{key}.select", "selects no whole boundary face (a "
+                                      "face is loaded when all its nodes are selected)")
+                if load.kind == "pressure":
+                    _check_open_edge(scene, a, mine, load.pressure, backend, key)
+            out.append(SelectedLoad(load, key, amplitude, ids, mine))
+    return out
+
+
+def surface_load_specs(scene: Scene, a: SceneArrays, backend: str | None = None,
+                       numbering: LocalNumbering | None = None,
+                       owns: np.ndarray | None = None,
+                       selected: list[SelectedLoad] | None = None) -> list[LoadSpec]:
+    """The bodies' loads in numbers (:func:`surface_loads_from_scene`), of ``selected``
+    (:func:`select_loads`, made here when not given).
+
+    With ``numbering`` (one MPI rank's share, over its vertices) each load is the share's
+    part, so that summed over the shares every face and point is counted once: a face
+    belongs to the share of the tet it bounds, a point force's vertex to the share that
+    owns it (``owns``: ``(n,) bool`` over the scene's vertices).
+    """
+    selected = select_loads(scene, a, backend) if selected is None else selected
+    X, own_faces, local = a.X, None, (lambda ids: ids)
+    if numbering is not None:
+        # the share's boundary faces (scene numbers): the loaded faces of its own tets are
+        # among them (a share is of one element: mixed elements are refused on ranks)
+        X, local = a.X[numbering.vertices], numbering.local
+        own_faces = a.element.boundary_faces(a.T[numbering.tets])
+    out: list[LoadSpec] = []
+    for load, key, amplitude, ids, mine in selected:
+        if load.kind == "force":
+            force = point_forces(a.X.shape[0], ids, load.force)
+            if numbering is not None:  # F / k on each selected vertex the share owns
+                force.reshape(-1, 3)[ids[~owns[ids]]] = 0.0
+                force = numbering.dofs(force)
+            out.append(LoadSpec("dead", key, amplitude, force))
+            continue
+        ours = local(mine if own_faces is None else faces_among(mine, own_faces))
+        if load.kind == "traction":
+            out.append(LoadSpec("dead", key, amplitude,
+                                traction_forces(X, ours, load.traction, backend)))
+        else:
             out.append(LoadSpec("pressure", key, amplitude, ours, load.pressure))
     return out
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from fem3d.physics.constraints import Constraints
 from fem3d.physics.springs import Pull
 from fem3d.scene.arrays import ElementBlock, SceneArrays, ScriptedPull
 
@@ -31,18 +30,15 @@ class LocalNumbering:
         The share's tets (sorted scene ids).
     vertices : (k,) int64
         Their vertices (sorted scene ids).
-    n_scene : int
-        The scene's vertex count.
     """
 
     tets: np.ndarray
     vertices: np.ndarray
-    n_scene: int
 
     @classmethod
     def of_tets(cls, T: np.ndarray, tets: np.ndarray) -> LocalNumbering:
         """The numbering of the vertices of ``T[tets]``."""
-        return cls(tets, np.unique(T[tets]), T.max(initial=-1) + 1 if T.size else 0)
+        return cls(tets, np.unique(T[tets]))
 
     def local(self, ids: np.ndarray) -> np.ndarray:
         """Local numbers of the scene vertex ids ``ids`` (any shape), -1 where not held."""
@@ -64,15 +60,6 @@ class LocalNumbering:
         v = self.local(dofs // 3)
         keep = v >= 0
         return 3 * v[keep] + dofs[keep] % 3
-
-    def faces(self, faces: np.ndarray) -> np.ndarray:
-        """``faces`` (rows of scene vertex ids, every vertex held) in local numbers."""
-        return self.local(faces)
-
-    def constraints(self, X: np.ndarray, whole: Constraints) -> Constraints:
-        """The held DOFs of ``whole`` (the scene's constraints) over the local rest
-        positions ``X``."""
-        return Constraints.from_fixed_dofs(X, self.dof_ids(whole.fixed_dofs))
 
     def fixed_slots(self, whole_fixed: np.ndarray, local_fixed: np.ndarray) -> np.ndarray:
         """``(len(whole_fixed),) int64``: each of the scene's pinned vertices' slot among the

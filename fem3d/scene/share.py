@@ -20,6 +20,7 @@ from fem3d.scene.build import (
     Built,
     ModelInputs,
     PinMotion,
+    SelectedLoad,
     _built,
     _constraints,
     _loads,
@@ -33,6 +34,7 @@ from fem3d.scene.build import (
     pin_groups,
     pin_motions,
     refuse_mixed_elements,
+    select_loads,
     surface_load_specs,
     with_psd_projection,
 )
@@ -54,10 +56,9 @@ class Share(Protocol):
         the share's sorted tets, each vertex's owning share) and hands it over; an
         :class:`InputError` it meets is raised by every share."""
 
-    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> np.ndarray:
+    def hold(self, numbering: LocalNumbering, constraints: Constraints) -> None:
         """Collective: the share holds the vertices of ``numbering`` and the local
-        ``constraints``' free DOFs; ``(k,) bool``, which of its vertices it owns (each
-        vertex owned by exactly one share)."""
+        ``constraints``' free DOFs (each vertex owned by exactly one share)."""
 
     def summary(self, model: Model) -> Model:
         """``model`` (the share's) with the whole model's summary ``E, nu, rho``."""
@@ -78,6 +79,7 @@ class WholeScene(NamedTuple):
     beta: float | np.ndarray
     motions: list[PinMotion]
     pin_groups: tuple
+    loads: list[SelectedLoad]
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +119,7 @@ class SharePart:
     pin_groups: tuple
 
 
-def read_whole(scene: Scene) -> WholeScene:
+def read_whole(scene: Scene, backend: str | None = None) -> WholeScene:
     """The whole scene in arrays, checked, with what :func:`cut_share` selects once.
 
     Raises
@@ -131,7 +133,8 @@ def read_whole(scene: Scene) -> WholeScene:
     simple = len(scene.bodies) == 1 and _simple_material(scene.bodies[0].material)
     alpha, beta = damping_from_scene(scene, a)
     return WholeScene(a, whole, None if simple else _material_groups(scene, a), alpha, beta,
-                      pin_motions(scene, a, whole.fixed_vertices), pin_groups(scene, a))
+                      pin_motions(scene, a, whole.fixed_vertices), pin_groups(scene, a),
+                      select_loads(scene, a, backend))
 
 
 def cut_share(scene: Scene, whole: WholeScene, backend: str | None, tets: np.ndarray,
@@ -163,7 +166,7 @@ def cut_share(scene: Scene, whole: WholeScene, backend: str | None, tets: np.nda
         alpha=alpha if np.ndim(alpha) == 0 else alpha[numbering.vertices],
         beta=beta if np.ndim(beta) == 0 else beta[tets],
         damps=bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0)),
-        loads=surface_load_specs(scene, a, backend, numbering, owner == rank),
+        loads=surface_load_specs(scene, a, backend, numbering, owner == rank, whole.loads),
         motions=motions,
         pin_groups=tuple((key, numbering.dof_ids(d)) for key, d in whole.pin_groups))
 
@@ -172,7 +175,7 @@ def build_share(scene: Scene, backend: str | None, share: Share) -> Built:
     """:func:`build` of one MPI rank's share: its :class:`SharePart` (cut by the rank that
     reads the scene), its model and loads built here."""
     refuse_mixed_elements(scene, "mpiexec runs")
-    part = share.part(lambda: read_whole(scene),
+    part = share.part(lambda: read_whole(scene, backend),
                       lambda whole, tets, owner, rank: cut_share(scene, whole, backend, tets,
                                                                  owner, rank))
     # a share's own checks (its elements' Jacobians) may fail on one rank alone: every
