@@ -14,7 +14,8 @@ Contents
 --------
 - :func:`atomic_write`, :func:`atomic_path` - the primitive every writer uses.
 - :func:`check_input_file` - refuse what cannot be read as a regular file.
-- :func:`read_text_file` - a text file's contents, or one line saying why not.
+- :func:`read_text_file` - a text file's contents, or one line saying why not
+  (:func:`read_file_bytes` then :func:`decode_text`, for a reader that parses bytes).
 - :func:`clean_temp_files` - remove the temporary files a killed writer left behind.
 - :func:`cache_dir` - fem3d's cache folder.
 """
@@ -39,6 +40,8 @@ __all__ = [
     "cache_dir",
     "check_input_file",
     "clean_temp_files",
+    "decode_text",
+    "read_file_bytes",
     "read_text_file",
 ]
 
@@ -179,6 +182,48 @@ def check_input_file(path: str | os.PathLike[str], what: str = "file") -> Path:
                      path=p)
 
 
+def read_file_bytes(path: PathLike, what: str = "text") -> bytes:
+    """The bytes of a text file, or one line saying why it cannot be read (the checks of
+    :func:`read_text_file` that need no decoding; :func:`decode_text` does the rest).
+
+    Raises
+    ------
+    InputError
+        Missing, a folder, unreadable, or empty (or only white space).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except IsADirectoryError:
+        raise InputError(f"is a directory, not a {what} file", path=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read file: {exc.strerror or exc}", path=path) from None
+    if not data or data.isspace():  # (not strip(): no copy of a large file)
+        raise InputError("empty file", path=path)
+    return data
+
+
+def decode_text(data: bytes, path: PathLike) -> str:
+    """``data`` (of :func:`read_file_bytes`) as text: UTF-8 (a byte-order mark dropped),
+    else Latin-1 (e.g. Latin-1 comments or names: numbers are ASCII in any case).
+
+    Raises
+    ------
+    InputError
+        It holds NUL bytes (the line of the first).
+    """
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")
+    if "\x00" in text:
+        raise InputError("not a text file (contains NUL bytes)", path=path,
+                         line=text.count("\n", 0, text.index("\x00")) + 1)
+    return text
+
+
 def read_text_file(path: PathLike, what: str = "text") -> str:
     """The text of a file, or one line saying why it cannot be read.
 
@@ -200,26 +245,7 @@ def read_text_file(path: PathLike, what: str = "text") -> str:
     InputError
         Missing, a folder, unreadable, empty (or only white space), or holding NUL bytes.
     """
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except IsADirectoryError:
-        raise InputError(f"is a directory, not a {what} file", path=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read file: {exc.strerror or exc}", path=path) from None
-    if not data.strip():
-        raise InputError("empty file", path=path)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        # e.g. Latin-1 comments or names: decode anyway, numbers are ASCII in any case
-        text = data.decode("latin-1")
-    if "\x00" in text:
-        raise InputError("not a text file (contains NUL bytes)", path=path,
-                         line=text.count("\n", 0, text.index("\x00")) + 1)
-    return text
+    return decode_text(read_file_bytes(path, what), path)
 
 
 def clean_temp_files(*folders: PathLike) -> list[Path]:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fem3d.errors import InputError
-from fem3d.io.files import read_text_file
+from fem3d.io.files import decode_text, read_file_bytes
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, validate_surface_mesh, validate_tet_mesh
 from fem3d.mesh.textscan import Tokens, is_number
 
@@ -66,57 +66,84 @@ class _NotPlain(Exception):
     malformed section, ...): that reader then reads the file and says what is wrong."""
 
 
+#: Bytes of the file scanned or parsed at a time (cut at a line's end): the file's bytes and the
+#: records are all a read holds, not a copy of the section.
+_PARSE_CHUNK = 1 << 22
 #: A word at the start of a line.
-_WORD = re.compile(r"\S*")
+_WORD = re.compile(rb"\S*")
 
 
-def _keyword_lines(text: str) -> list[tuple[int, int, str]]:
-    """``(start, end, word)`` of every line's first word that starts with a letter (an ASCII
-    text; a keyword after white space is left to the token reader: fromstring stops at it)."""
-    b = np.frombuffer(text.encode("ascii"), dtype=np.uint8)
-    starts = np.flatnonzero(b == 10) + 1
-    starts = np.concatenate(([0], starts[starts < b.size]))
-    lower = b[starts] | 0x20
+def _keyword_lines(data: bytes) -> list[tuple[int, int, str]]:
+    """``(start, end, word)`` of every line's first word that starts with a letter (a keyword
+    after white space is left to the token reader: the number parser stops at it); a block
+    of the file at a time, so the temporaries stay small."""
+    b = np.frombuffer(data, dtype=np.uint8)
     marks = []
-    for s in starts[(lower >= ord("a")) & (lower <= ord("z"))].tolist():
-        word = _WORD.match(text, s).group()
-        marks.append((s, s + len(word), word))
+    for a in range(0, b.size, _PARSE_CHUNK):
+        stop = min(b.size, a + _PARSE_CHUNK)
+        first = b[a:stop] | 0x20  # (lower case)
+        before = b[a - 1:stop - 1] if a else np.concatenate(([10], b[:stop - 1]))
+        for s in (np.flatnonzero((before == 10) & (first >= 97) & (first <= 122)) + a).tolist():
+            word = _WORD.match(data, s).group()
+            marks.append((s, s + len(word), word.decode()))
     return marks
+
+
+#: The first word from a position on.
+_TOKEN = re.compile(rb"\s*(\S+)")
 
 
 class _RecordLines:
     """The line of each record of one section, found only when a message needs one: the
-    token reader re-reads the file then (the fast reader keeps no per-token lines)."""
+    token reader reads the file again then (the fast reader keeps neither per-token lines nor
+    the file's bytes: a mesh's checks run without them)."""
 
-    def __init__(self, path: Path, text: str, section: str) -> None:
-        self.path, self.text, self.section = path, text, section
+    def __init__(self, path: Path, section: str) -> None:
+        self.path, self.section = path, section
         self._lines: np.ndarray | None = None
 
     def __getitem__(self, i):
         if self._lines is None:
-            tokens = Tokens(self.path, text=self.text, keywords=MEDIT_KEYWORDS)
+            tokens = Tokens(self.path, keywords=MEDIT_KEYWORDS)
             self._lines = _read_medit_tokens(self.path, tokens)[self.section][1]
         return self._lines[i]
 
 
-def _section_values(body: str, count: int, width: int, dtype: type) -> np.ndarray:
-    """``count`` records of ``width`` numbers parsed from ``body`` in C (``np.fromstring``;
-    float64 rounds like ``float()``), or :class:`_NotPlain` when it holds anything else."""
+def _section_values(data: bytes, start: int, stop: int, count: int, width: int,
+                    dtype: type) -> np.ndarray:
+    """``count`` records of ``width`` numbers parsed from ``data[start:stop]`` in C
+    (``np.fromstring``; float64 rounds like ``float()``), a chunk at a time, or
+    :class:`_NotPlain` when it holds anything else."""
+    if count * width > (stop - start + 1) // 2:
+        raise _NotPlain  # more numbers than the section has room for (a digit and a space)
+    values = np.empty(count * width, dtype=dtype)
+    filled = 0
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a token that is not a number stops fromstring
-        try:
-            values = np.fromstring(body, dtype=dtype, sep=" ")
-        except (ValueError, DeprecationWarning):
-            raise _NotPlain from None
-    if values.size != count * width:
+        while start < stop:
+            end = data.find(b"\n", min(start + _PARSE_CHUNK, stop), stop) + 1 or stop
+            chunk = data[start:end]
+            start = end
+            if chunk.isspace():
+                continue  # (fromstring makes a number, 0 or -1, of white space alone)
+            try:
+                part = np.fromstring(chunk, dtype=dtype, sep=" ")
+            except (ValueError, DeprecationWarning):
+                raise _NotPlain from None
+            if filled + part.size > values.size:
+                raise _NotPlain
+            values[filled:filled + part.size] = part
+            filled += part.size
+    if filled != values.size:
         raise _NotPlain
-    if dtype is not np.float64 and values.size and np.abs(values).max() >= 2**62:
+    if dtype is not np.float64 and values.size and \
+            (values.max() >= 2**62 or values.min() <= -2**62):
         raise _NotPlain  # (out of range either way; the token reader says so)
     return values.reshape(count, width)
 
 
-def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _RecordLines]]:
-    """:func:`read_medit` of a plain file (keywords at line starts, no comments, every
+def _read_medit_plain(path: Path, data: bytes) -> dict[str, tuple[np.ndarray, _RecordLines]]:
+    """:func:`read_medit` of a plain file (ASCII, keywords at line starts, no comments, every
     section exactly its declared count of numbers) without a Python object per number.
 
     Raises
@@ -124,21 +151,21 @@ def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _Rec
     _NotPlain
         Anything else: the token reader reads the file (and reports what is wrong).
     """
-    if "#" in text or not text.isascii():
+    if b"#" in data or b"\0" in data or not data.isascii():
         raise _NotPlain
-    marks = _keyword_lines(text)
-    if not marks or text[:marks[0][0]].strip():
+    marks = _keyword_lines(data)
+    if not marks or data[:marks[0][0]].strip():
         raise _NotPlain
-    stops = [s for s, _, _ in marks[1:]] + [len(text)]
+    stops = [s for s, _, _ in marks[1:]] + [len(data)]
     dim, out = 3, {}
     for (_, end, word), stop in zip(marks, stops, strict=True):
-        key, body = word.lower(), text[end:stop]
+        key = word.lower()
         if key == "end":
-            if body.strip() or stop != len(text):
+            if data[end:stop].strip() or stop != len(data):
                 raise _NotPlain
             return out
         if key in ("meshversionformatted", "dimension"):
-            words = body.split()
+            words = data[end:stop].split()
             if len(words) != 1 or not words[0].isdigit() or \
                     int(words[0]) not in ((0, 1, 2, 3, 4) if key[0] == "m" else (3,)):
                 raise _NotPlain
@@ -148,24 +175,25 @@ def _read_medit_plain(path: Path, text: str) -> dict[str, tuple[np.ndarray, _Rec
             raise _NotPlain
         if width < 0:
             width = dim + 1 if key == "vertices" else dim
-        head = body.split(None, 1)
-        if not head or not head[0].isdigit() or (len(head) == 1 and int(head[0])):
+        head = _TOKEN.match(data, end, stop)
+        if head is None or not head.group(1).isdigit():
             raise _NotPlain
-        count = int(head[0])
         dtype = np.float64 if key in ("vertices", "normals", "tangents") else np.int64
-        values = _section_values(head[1] if len(head) > 1 else "", count, width, dtype)
-        out[key] = (values, _RecordLines(path, text, key))
+        values = _section_values(data, head.end(), stop, int(head.group(1)), width, dtype)
+        out[key] = (values, _RecordLines(path, key))
     raise _NotPlain  # no End
 
 
 def read_medit(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Parse an ASCII MEDIT file into ``{section: (records, lines)}``: a plain file in C
     (:func:`_read_medit_plain`), anything else token by token with line numbers."""
-    text = read_text_file(path, "mesh")
+    data = read_file_bytes(path, "mesh")
     try:
-        return _read_medit_plain(path, text)
+        return _read_medit_plain(path, data)
     except _NotPlain:
-        return _read_medit_tokens(path, Tokens(path, text=text, keywords=MEDIT_KEYWORDS))
+        text = decode_text(data, path)
+    del data  # (the text replaces it)
+    return _read_medit_tokens(path, Tokens(path, text=text, keywords=MEDIT_KEYWORDS))
 
 
 def _read_medit_tokens(path: Path, tk: Tokens) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -227,7 +255,9 @@ def medit_tet_mesh(path: Path) -> TetMesh:
         raise InputError("mesh has no tetrahedra (no or empty Tetrahedra section)", path=path)
     Tr, tlines = sec["tetrahedra"]
     _stages.debug("read mesh")
-    return validate_tet_mesh(Xr[:, :3], Tr[:, :4] - 1, path=path, vertex_lines=vlines,
+    T = Tr[:, :4]
+    T -= 1  # (in place: the parser's records are this function's own)
+    return validate_tet_mesh(Xr[:, :3], T, path=path, vertex_lines=vlines,
                              tet_lines=tlines, index_base=1)
 
 

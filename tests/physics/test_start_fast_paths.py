@@ -77,12 +77,16 @@ def test_mass_matrix_is_the_bincount_of_every_block_bit_for_bit(shuffled_box, pe
     assert entries.tobytes() == ref_entries.tobytes()
 
 
-def test_plain_medit_reader_gives_the_token_readers_arrays(tmp_path, shuffled_box):
+@pytest.mark.parametrize("chunk", [None, 61])  # one block; many, cut at uneven line ends
+def test_plain_medit_reader_gives_the_token_readers_arrays(tmp_path, shuffled_box, chunk,
+                                                           monkeypatch):
     X, T = shuffled_box
     path = tmp_path / "box.mesh"
     write_tet_mesh(path, TetMesh(X, T))
+    if chunk is not None:
+        monkeypatch.setattr(medit, "_PARSE_CHUNK", chunk)
     text = path.read_text()
-    plain = medit._read_medit_plain(path, text)
+    plain = medit._read_medit_plain(path, path.read_bytes())
     tokens = medit._read_medit_tokens(path, textscan.Tokens(path, text=text,
                                                             keywords=medit.MEDIT_KEYWORDS))
     assert plain.keys() == tokens.keys()
@@ -99,6 +103,12 @@ def test_plain_medit_reader_gives_the_token_readers_arrays(tmp_path, shuffled_bo
     (lambda t: t.replace(" 1 1 0\n", " 1.5e0 1 0\n", 1), None),
     (lambda t: t.rsplit("End", 1)[0], "file ends without the 'End' keyword"),
     (lambda t: t.replace("\nEnd", " 7\nEnd"), "expected a keyword, found the number '7'"),
+    # white space alone where a record should be (NumPy's parser makes a number of it)
+    (lambda t: t.replace("\nEnd", "\nCorners\n1\n \nEnd"),
+     "Corners section declares 1 entries but keyword .End. comes after 0"),
+    # a count no memory holds: refused before anything is allocated for it
+    (lambda t: t.replace("Vertices\n8\n", "Vertices\n8000000000\n"),
+     "Vertices section declares 8000000000 entries but keyword 'Tetrahedra' comes after 8"),
 ])
 def test_medit_files_the_plain_reader_leaves_to_the_token_reader(tmp_path, edit, message):
     X, T = box_tet_mesh((1, 1, 1))
