@@ -138,6 +138,36 @@ def test_two_ranks_write_pieces(two_rank_runs):
     assert set(np.unique(surface)) <= set(np.concatenate(seen))  # the pieces cover it
 
 
+def test_two_ranks_pieces_read_in_vtk(two_rank_runs):
+    """VTK's own parallel reader (ParaView's) opens a frame's .pvtu: both pieces, together
+    the body's surface triangles once each, every point where the run left its vertex, each
+    rank's points tagged with it."""
+    vtk = pytest.importorskip("vtk")
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    scene, proc = two_rank_runs["pieces"]
+    out = scene.parent / "out"
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    reader = vtk.vtkXMLPUnstructuredGridReader()
+    reader.SetFileName(str(out / "frames" / "frame_00003.pvtu"))
+    reader.Update()
+    grid = reader.GetOutput()
+    assert reader.GetNumberOfPieces() == 2
+    n_cells = grid.GetNumberOfCells()
+    assert {grid.GetCellType(e) for e in range(n_cells)} == {vtk.VTK_TRIANGLE}
+    points = vtk_to_numpy(grid.GetPoints().GetData())
+    q = np.load(out / "state.npz")["q"]
+    d = np.linalg.norm(points[:, None, :] - q[None, :, :], axis=2)
+    assert d.min(axis=1).max() == 0.0  # each point is a vertex, where the run left it
+    vertex = d.argmin(axis=1)
+    cells = vtk_to_numpy(grid.GetCells().GetConnectivityArray()).reshape(n_cells, 3)
+    surface = Simulation(load_scene(str(scene))).surface_faces
+    assert n_cells == len(surface)
+    assert set(map(frozenset, vertex[cells].tolist())) == set(map(frozenset, surface.tolist()))
+    ranks = vtk_to_numpy(grid.GetPointData().GetArray("rank"))
+    assert set(ranks.tolist()) == {0, 1}
+
+
 def test_without_pymetis_petscs_partitioner_cuts(tmp_path):
     """Without pymetis (its import fails), PETSc's graph partitioner cuts the mesh: 5 steps
     of the box on 2 ranks still equal the one-process run to 1e-8 of the motion."""
