@@ -5,7 +5,9 @@ Three kinds of module per element ``e`` (``p2``):
 * ``e_tet``: the geometry, written out for every quadrature point of the element's rule
   (:mod:`codegen.elements`): the rest-shape precompute ``rest_shape`` (``dN/dX``, ``det J``
   and ``weight * det J`` per point; it refuses ``det J <= 0``), the shape functions at a
-  reference point, the exact consistent mass matrix, and ``F`` and ``det F`` per point.
+  reference point, the exact consistent mass matrix (straight edges: from the volume; any
+  element: from ``det J`` at the 20 nodes of degree 3 that interpolate it), and ``F`` and
+  ``det F`` per point.
 * ``e_<material>``: quadrature kernels (:attr:`codegen.spec.KernelSpec.points`): the energy,
   gradient, parameter derivative of the gradient, Hessian and PSD-projected Hessian of
   ``sum_q w_q psi(F_q)``, where the body of the sum is one point's: ``F_q`` from the node
@@ -34,6 +36,10 @@ Calling convention (``n`` nodes, ``nq`` quadrature points; P2: ``n = 10``, ``nq 
                                             straight-edged elements (node-major DOFs,
                                             ``3 * node + coordinate``)
 ``p2_tet.mass_coefficients(vol, (rho,))``   the same as the ``(m, n, n)`` scalar matrix
+``p2_tet.curved_mass_matrix(X_e, (rho,))``  ``X_e (m, n, 3)`` rest node positions ->
+                                            ``mass (m, 3n, 3n)``, exact for any element:
+                                            ``det J`` (cubic for P2) interpolated at the
+                                            20 nodes of degree 3
 ``p2_tet.deformation_gradient(x_e, dN_dX)`` ``-> F (m, nq, 3, 3)``
 ``p2_tet.deformation_jacobian(x_e, dN_dX)`` ``-> J (m, nq)``: ``det F`` per point
 ``p2_<mat>.energy(x_e, dN_dX, w_detJ,       ``x_e (m, n, 3)`` deformed node positions,
@@ -290,6 +296,15 @@ def _geometry_raw(element: LagrangeTet) -> dict[str, tuple[list, list, list, lis
     xi = symbol_vector("xi", 3)
     rho, vol = sp.Symbol("rho", real=True), sp.Symbol("vol", real=True)
     M = element.mass_coefficients
+    # the curved mass: det J at the interpolation points (exact rational dN/dxi there)
+    points, C = element.curved_mass_weights
+    curved_steps, curved_dets = [], []
+    for p, point in enumerate(points):
+        steps, _, det = _det_steps(f"K{p}", X.T * element.reference_gradients(sp.Matrix(point)))
+        curved_steps += steps
+        curved_dets.append(det)
+    M_curved = sp.Matrix(n, n, lambda i, j: rho * sum(
+        (Cp[i, j] * det for Cp, det in zip(C, curved_dets, strict=True)), sp.Integer(0)))
     return {
         "rest_shape": (
             [Argument("X_e", (n, 3), tuple(flatten(X)), doc="rest node positions of each tet")],
@@ -308,6 +323,11 @@ def _geometry_raw(element: LagrangeTet) -> dict[str, tuple[list, list, list, lis
             [Argument("vol", (), (vol,), doc="rest volumes")],
             [Argument("rho", (), (rho,), per_element=False)],
             [("mass", (n, n), flatten(rho * vol * M), True)], []),
+        "curved_mass_matrix": (
+            [Argument("X_e", (n, 3), tuple(flatten(X)), doc="rest node positions of each tet")],
+            [Argument("rho", (), (rho,), per_element=False)],
+            [("mass", (3 * n, 3 * n), flatten(sp.kronecker_product(M_curved, sp.eye(3))),
+              True)], curved_steps),
         "deformation_gradient": (
             [x_arg, dN_arg], [], [("F", (nq, 3, 3), [s for D in Dq for s in flatten(x.T * D)],
                                    False)], []),
@@ -326,6 +346,11 @@ def geometry_module(element: LagrangeTet) -> ModuleSpec:
                        f"({3 * element.n_nodes}x{3 * element.n_nodes}, straight edges).",
         "mass_coefficients": "Exact consistent scalar mass matrix rho * integral N_i N_j dV "
                              f"({element.n_nodes}x{element.n_nodes}, straight edges).",
+        "curved_mass_matrix": "Exact consistent mass matrix rho * integral N^T N det J dxi of "
+                              "any element, straight or curved: det J (a polynomial of "
+                              f"degree {3 * (element.degree - 1)}) interpolated exactly at "
+                              f"{len(element.curved_mass_weights[0])} points "
+                              f"({3 * element.n_nodes}x{3 * element.n_nodes}).",
         "deformation_gradient": "Deformation gradient F = sum_a x_a dN_a/dX^T at each point.",
         "deformation_jacobian": "det F at each quadrature point (<= 0: inverted there).",
     }

@@ -102,12 +102,13 @@ def integrate_reference(expr: sp.Expr) -> sp.Expr:
     """``integral expr dxi`` over the reference tet, exactly, for a polynomial ``expr`` in
     the reference coordinates: term by term, ``integral xi_0^i xi_1^j xi_2^k dxi =
     i! j! k! / (i + j + k + 3)!``."""
-    xi = reference_coordinates()
-    total = sp.Integer(0)
-    for (i, j, k), c in sp.Poly(sp.expand(expr), *xi).terms():
-        total += c * sp.factorial(i) * sp.factorial(j) * sp.factorial(k) / \
-            sp.factorial(i + j + k + 3)
-    return total
+    return _integrate_poly(sp.Poly(sp.expand(expr), *reference_coordinates()))
+
+
+def _integrate_poly(poly: sp.Poly) -> sp.Expr:
+    """:func:`integrate_reference` of a polynomial already in the reference coordinates."""
+    return sum((c * sp.factorial(i) * sp.factorial(j) * sp.factorial(k) /
+                sp.factorial(i + j + k + 3) for (i, j, k), c in poly.terms()), sp.Integer(0))
 
 
 @cache
@@ -208,6 +209,40 @@ class LagrangeTet:
             for j in range(i, n):
                 M[i, j] = M[j, i] = 6 * integrate_reference(sp.expand(N[i] * N[j]))
         return M
+
+    @cached_property
+    def curved_mass_weights(self) -> tuple[tuple[tuple[sp.Expr, ...], ...],
+                                           tuple[sp.Matrix, ...]]:
+        """The exact mass of a curved element from its ``det J`` at a few points.
+
+        ``J = dX/dxi`` has entries of degree ``k - 1`` in ``xi``, so ``det J`` is a polynomial
+        of degree ``d = 3 (k - 1)`` and equals its Lagrange interpolant ``sum_p det J(xi_p)
+        L_p(xi)`` on the ``xi_p`` nodes of degree ``d``. Then ``integral N_i N_j det J dxi =
+        sum_p det J(xi_p) C_p[i, j]`` with ``C_p = integral N_i N_j L_p dxi``, exact
+        rationals: no quadrature error for any position of the nodes.
+
+        Returns
+        -------
+        points : the ``xi_p`` (reference coordinates)
+        C : one ``n_nodes x n_nodes`` matrix per point
+        """
+        xi = reference_coordinates()
+        d = 3 * (self.degree - 1)
+        if d == 0:  # affine: det J is constant
+            quarter = sp.Rational(1, 4)
+            return ((quarter, quarter, quarter),), (self.mass_coefficients / 6,)
+        interpolation = LagrangeTet(f"p{d}", d, "centroid")
+        L = [sp.Poly(f, *xi) for f in interpolation.shape_functions()]
+        N = [sp.Poly(f, *xi) for f in self.shape_functions()]
+        n = self.n_nodes
+        C = []
+        for Lp in L:
+            Cp = sp.zeros(n, n)
+            for i in range(n):
+                for j in range(i, n):
+                    Cp[i, j] = Cp[j, i] = _integrate_poly(N[i] * N[j] * Lp)
+            C.append(Cp)
+        return tuple(interpolation.nodes()), tuple(C)
 
     def quadrature_rule(self) -> QuadratureRule:
         """The rule of this element's energy kernels."""

@@ -196,6 +196,36 @@ class Element:
         """Element volumes ``(m,)`` from :meth:`rest_shape`'s ``vol``."""
         return vol
 
+    def mass_matrices(self, geo, X: np.ndarray, T: np.ndarray, volumes: np.ndarray,
+                      rho: float, rho_e: np.ndarray | None, a: int, b: int) -> np.ndarray:
+        """The consistent mass matrices of elements ``a .. b - 1``: the generated
+        ``mass_matrix`` of their volumes (exact where the map from the reference tet is
+        affine). M is linear in rho: a per-element density scales the element's volume.
+
+        Parameters
+        ----------
+        geo : KernelModule
+            :meth:`geometry`.
+        X : (n, 3) float64
+            Rest node positions.
+        T : (m, n_nodes) int64
+        volumes : (m,) float64
+            :meth:`volumes`.
+        rho : float
+            Density (used when ``rho_e`` is None).
+        rho_e : (m,) float64 or None
+            Per-element density.
+        a, b : int
+            The elements' range.
+
+        Returns
+        -------
+        (b - a, 3 n_nodes, 3 n_nodes) float64
+        """
+        if rho_e is None:
+            return geo.mass_matrix(volumes[a:b], (rho,))
+        return geo.mass_matrix(volumes[a:b] * rho_e[a:b], (1.0,))
+
     def deformed_volumes(self, geo, q: np.ndarray, T: np.ndarray, dphi_dX: np.ndarray,
                          slots: np.ndarray) -> np.ndarray:
         """The inversion measure of every element at positions ``q`` (the line search's
@@ -278,6 +308,21 @@ class P2Tet(Element):
     def volumes(self, vol: np.ndarray) -> np.ndarray:
         """``sum_q w_q det J_q``: the element volumes ``(m,)``."""
         return vol.sum(axis=1)
+
+    def mass_matrices(self, geo, X: np.ndarray, T: np.ndarray, volumes: np.ndarray,
+                      rho: float, rho_e: np.ndarray | None, a: int, b: int) -> np.ndarray:
+        """:meth:`Element.mass_matrices`: straight-edged elements (each edge node at its
+        edge's midpoint, as :func:`fem3d.mesh.quadratic.lift_to_p2` puts it) from their
+        volume, any other from the generated ``curved_mass_matrix`` (``det J``, a cubic
+        there, interpolated exactly: no quadrature error)."""
+        blocks = super().mass_matrices(geo, X, T, volumes, rho, rho_e, a, b)
+        X_e = _gather(X, T[a:b])
+        midpoints = 0.5 * (X_e[:, TET_EDGES[:, 0]] + X_e[:, TET_EDGES[:, 1]])
+        curved = np.flatnonzero((X_e[:, 4:] != midpoints).any(axis=(1, 2)))
+        if curved.size:
+            params = (rho,) if rho_e is None else rho_e[a:b][curved, None]
+            blocks[curved] = geo.curved_mass_matrix(X_e[curved], params)
+        return blocks
 
     def deformed_volumes(self, geo, q: np.ndarray, T: np.ndarray, dphi_dX: np.ndarray,
                          slots: np.ndarray) -> np.ndarray:

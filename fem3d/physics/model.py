@@ -30,7 +30,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, partial
 from typing import Any
 
 import numpy as np
@@ -666,7 +666,8 @@ def build_model(
     _stages.debug("model: rest shape, materials")
     pattern, scatter = block_pattern(T, X.shape[0])
     _stages.debug("model: sparsity pattern")
-    mass_data = assemble_mass(geo, volumes, rho, rho_e, scatter, T, pattern.indptr)
+    mass_data = assemble_mass(partial(el.mass_matrices, geo, X, T, volumes, rho, rho_e),
+                              scatter, T, pattern.indptr)
     mass = sp.csr_matrix((mass_data, pattern.indices, pattern.indptr), shape=pattern.shape)
     mass.has_sorted_indices = True
     _readonly(X, T, dphi_dX, vol, mass.data, scatter, pattern.indices, pattern.indptr)

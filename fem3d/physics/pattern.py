@@ -10,6 +10,8 @@ mass matrix 2.3 GB before.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -177,9 +179,9 @@ def merge_patterns(patterns: list[sp.csr_matrix]) -> tuple[sp.csr_matrix, list[n
 _MASS_CHUNK = 1 << 13
 
 
-def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
-                  scatter: np.ndarray, T: np.ndarray, indptr: np.ndarray) -> np.ndarray:
-    """CSR ``data`` of the consistent mass matrix (generated ``mass_matrix`` kernel) on the
+def assemble_mass(element_mass: Callable[[int, int], np.ndarray], scatter: np.ndarray,
+                  T: np.ndarray, indptr: np.ndarray) -> np.ndarray:
+    """CSR ``data`` of the consistent mass matrix (the generated mass kernels) on the
     pattern of :func:`block_pattern` (``scatter``, ``indptr``): the sums of
     ``np.bincount(scatter, all_blocks)`` bit for bit, without its ``(m, d^2)`` float64
     blocks and ``(m d^2,)`` intp copy of ``scatter`` (2.3 GB at 1e6 P1 tets).
@@ -189,18 +191,13 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     one sum over its elements: a bincount of the ``k^2 m`` pairs ``(T[e, a], T[e, b])`` in element
     order, the order every entry got its terms in before (the other entries got zeros).
     Blocks of any other structure are added entry by entry in element order
-    (``np.add.at``). M is linear in rho: a per-tet density scales each tet's volume.
+    (``np.add.at``).
 
     Parameters
     ----------
-    geo : KernelModule
-        The geometry kernels (``mass_matrix``).
-    vol : (m, ...) float64
-        The mass kernel's volume input (P1: rest volumes ``(m,)``).
-    rho : float
-        Density (used when ``rho_e`` is None).
-    rho_e : (m,) float64 or None
-        Per-tet density.
+    element_mass : callable
+        ``(a, b)`` -> the mass matrices ``(b - a, d, d)`` of elements ``a .. b - 1``
+        (:meth:`fem3d.mesh.element.Element.mass_matrices`).
     scatter : (m * d^2,) int32
     T : (m, k) int64
     indptr : (3 n + 1,) int32
@@ -217,11 +214,11 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     chunk = max(1, _MASS_CHUNK * 16 // (k * k))
     for a in range(0, m, chunk):
         b = min(m, a + chunk)
-        B = _mass_blocks(geo, vol, rho, rho_e, a, b).reshape(b - a, k, 3, k, 3)
+        B = element_mass(a, b).reshape(b - a, k, 3, k, 3)
         if not ((np.moveaxis(B, 3, 2)[:, :, :, ~identity] == 0).all()
                 and (B[:, :, 1, :, 1] == B[:, :, 0, :, 0]).all()
                 and (B[:, :, 2, :, 2] == B[:, :, 0, :, 0]).all()):
-            return _assemble_entries(geo, vol, rho, rho_e, scatter, nnz)
+            return _assemble_entries(element_mass, m, scatter, nnz)
         pair_mass[a:b] = B[:, :, 0, :, 0]
     # entry (3 i, 3 j) of pair p in vertex row i sits at 6 bp_i + 3 p (block_pattern), and
     # indptr[3 i] = 9 bp_i; entry (3 i + c, 3 j + c) c (3 deg_i + 1) further
@@ -241,26 +238,15 @@ def assemble_mass(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
     return data
 
 
-def _assemble_entries(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None,
+def _assemble_entries(element_mass: Callable[[int, int], np.ndarray], m: int,
                       scatter: np.ndarray, nnz: int) -> np.ndarray:
     """:func:`assemble_mass` of blocks of any structure: their non-zero entries added in
-    element order, a chunk of tets at a time."""
+    element order, a chunk of elements at a time."""
     data = np.zeros(nnz)
-    m = vol.shape[0]
     d2 = scatter.size // m
     for a in range(0, m, _MASS_CHUNK):
         b = min(m, a + _MASS_CHUNK)
-        w = _mass_blocks(geo, vol, rho, rho_e, a, b).reshape(-1)
+        w = element_mass(a, b).reshape(-1)
         nonzero = w != 0.0
         np.add.at(data, scatter[d2 * a:d2 * b][nonzero], w[nonzero])
     return data
-
-
-def _mass_blocks(geo, vol: np.ndarray, rho: float, rho_e: np.ndarray | None, a: int,
-                 b: int) -> np.ndarray:
-    """The generated element mass matrices of elements ``a..b-1``: ``(b - a, d, d)``; M is
-    linear in rho, so a per-element density scales the element's volume input."""
-    if rho_e is None:
-        return geo.mass_matrix(vol[a:b], (rho,))
-    scale = rho_e[a:b].reshape((b - a,) + (1,) * (vol.ndim - 1))
-    return geo.mass_matrix(vol[a:b] * scale, (1.0,))

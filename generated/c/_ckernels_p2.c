@@ -878,6 +878,7 @@ PyMethodDef fem3d_p2_methods[] = {
     {"p2_tet_shape_functions", py_p2_tet_shape_functions, METH_VARARGS, "Shape functions N and their gradients dN/dxi at reference points."},
     {"p2_tet_mass_matrix", py_p2_tet_mass_matrix, METH_VARARGS, "Exact consistent mass matrix rho * integral N^T N dV (30x30, straight edges)."},
     {"p2_tet_mass_coefficients", py_p2_tet_mass_coefficients, METH_VARARGS, "Exact consistent scalar mass matrix rho * integral N_i N_j dV (10x10, straight edges)."},
+    {"p2_tet_curved_mass_matrix", py_p2_tet_curved_mass_matrix, METH_VARARGS, "Exact consistent mass matrix rho * integral N^T N det J dxi of any element, straight or curved: det J (a polynomial of degree 3) interpolated exactly at 20 points (30x30)."},
     {"p2_tet_deformation_gradient", py_p2_tet_deformation_gradient, METH_VARARGS, "Deformation gradient F = sum_a x_a dN_a/dX^T at each point."},
     {"p2_tet_deformation_gradient_assemble", py_p2_tet_deformation_gradient_assemble, METH_VARARGS,
      "p2_tet_deformation_gradient_assemble(q, T, inputs..., params, index, out[, order, blocks, colours[, n_threads]]): out[index] += kernel(q[T], ...)."},

@@ -186,6 +186,20 @@ def test_mass_coefficients_are_exact() -> None:
     assert M == M.T and min(M.eigenvals()) > 0
 
 
+def test_curved_mass_weights_integrate_every_cubic_det_j() -> None:
+    """``sum_p f(xi_p) C_p = integral N_i N_j f`` for a cubic ``f`` (what ``det J`` of a P2
+    element is), exactly; a constant gives the straight-edged coefficients."""
+    points, C = P2.curved_mass_weights
+    assert len(points) == 20 and sum(C, sp.zeros(10, 10)) * 6 == P2.mass_coefficients
+    xi = reference_coordinates()
+    f = 2 + xi[0] * xi[1] * xi[2] - 3 * xi[0] ** 3 + xi[1] ** 2 * xi[2] - xi[2]
+    at = [f.subs(dict(zip(xi, point, strict=True))) for point in points]
+    N = P2.shape_functions()
+    for i, j in ((0, 0), (0, 5), (4, 4), (6, 9), (2, 7)):
+        assert sum(a * Cp[i, j] for a, Cp in zip(at, C, strict=True)) == \
+            integrate_reference(N[i] * N[j] * f)
+
+
 # ---- geometry kernels ----------------------------------------------------------------------
 
 
@@ -292,6 +306,43 @@ def test_mass_matrix_sum_and_exactness_on_quadratics(backend: str) -> None:
                  for f in (u, v)]
         np.testing.assert_allclose(np.array(nodal[0]) @ Ms[e] @ np.array(nodal[1]), exact,
                                    rtol=1e-12)
+
+
+def conical_product_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stroud's conical product rule on the reference tet (``n^3`` points, Gauss-Jacobi in
+    each collapsed direction): exact for degree ``2 n - 1``, independent of the generator."""
+    from scipy.special import roots_jacobi
+
+    (a, wa), (b, wb), (c, wc) = (roots_jacobi(n, alpha, 0) for alpha in (2, 1, 0))
+    a, b, c = (a + 1) / 2, (b + 1) / 2, (c + 1) / 2
+    A, B, Cc = np.meshgrid(a, b, c, indexing="ij")
+    points = np.stack([A, B * (1 - A), Cc * (1 - A) * (1 - B)], axis=-1).reshape(-1, 3)
+    weights = np.einsum("i,j,k->ijk", wa / 8, wb / 4, wc / 2).reshape(-1)
+    return points, weights
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_curved_mass_matrix_is_exact(backend: str) -> None:
+    """``rho integral N_i N_j det J dxi`` of curved elements (degree 7 in ``xi``) against a
+    degree-7 conical product rule; the straight-edged kernel's matrix on straight ones."""
+    rng = np.random.default_rng(8)
+    geo = kernel_module("p2_tet", backend)
+    X, _ = p2_elements(rng, 24, curved=0.08)
+    points, weights = conical_product_rule(4)
+    assert weights.sum() == pytest.approx(1 / 6, rel=1e-15)
+    N, dN = geo.shape_functions(points)
+    detJ = np.linalg.det(np.einsum("mai,paj->mpij", X, dN))
+    expected = 1.7 * np.einsum("p,pi,pj,mp->mij", weights, N, N, detJ)
+    M = geo.curved_mass_matrix(X, (1.7,))
+    assert relative_error(M, np.einsum("mij,cd->micjd", expected, np.eye(3)).reshape(M.shape)) \
+        < 1e-13
+    rho = rng.uniform(0.5, 2.0, size=(24, 1))  # per element
+    np.testing.assert_allclose(geo.curved_mass_matrix(X, rho), M / 1.7 * rho[:, :, None],
+                               rtol=1e-14, atol=1e-18)
+    corners = corner_tets(rng, 8)
+    vol = np.linalg.det(corners[:, 1:] - corners[:, :1]) / 6
+    assert relative_error(geo.curved_mass_matrix(lift(corners), (1.7,)),
+                          geo.mass_matrix(vol, (1.7,))) < 1e-14
 
 
 # ---- material kernels ----------------------------------------------------------------------

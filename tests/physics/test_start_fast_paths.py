@@ -9,6 +9,7 @@ ordering of a generated box is relied on; and ``fem3d run --profile`` prints its
 from __future__ import annotations
 
 import warnings
+from functools import partial
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from fem3d.app.cli import main
 from fem3d.errors import InputError
 from fem3d.kernels.dispatch import geometry_kernels
 from fem3d.mesh import medit, textscan
+from fem3d.mesh.element import element
 from fem3d.mesh.formats import read_tet_mesh, write_tet_mesh
 from fem3d.mesh.tetmesh import TetMesh, boundary_faces, box_tet_mesh, validate_tet_mesh
 from fem3d.physics import pattern as pattern_module
@@ -68,9 +70,10 @@ def test_mass_matrix_is_the_bincount_of_every_block_bit_for_bit(shuffled_box, pe
     ref = np.bincount(model.scatter, weights=blocks.reshape(-1), minlength=model.nnz)
     assert model.mass.data.tobytes() == ref.tobytes()
     # the entry-by-entry path (blocks of any structure) gives the same sums
-    entries = pattern_module._assemble_entries(geo, model.vol, 1000.0, density if
-                                             per_tet_density else None, model.scatter,
-                                             model.nnz)
+    element_mass = partial(element("p1").mass_matrices, geo, model.X, model.T, model.vol,
+                           1000.0, density if per_tet_density else None)
+    entries = pattern_module._assemble_entries(element_mass, len(model.T), model.scatter,
+                                               model.nnz)
     ref_entries = ref if not per_tet_density else np.bincount(
         model.scatter, weights=geo.mass_matrix(model.vol * density, (1.0,)).reshape(-1),
         minlength=model.nnz)
