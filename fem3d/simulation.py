@@ -564,21 +564,26 @@ class Simulation:
         the acceleration of the last step's equation of motion (:meth:`_acceleration`; zero
         in ``static``); Rayleigh damping's force is left out. In a static equilibrium the
         reactions balance the applied loads (docs/loads.md).
+
+        A rank of a distributed run holds a share of each pin's DOFs (those of the vertices
+        it owns, :attr:`pin_groups`) and its tets' part of the forces: the forces are
+        summed at its vertices and the pins' totals over the ranks (collective).
         """
         q = self.q.reshape(-1)
         g = np.zeros(q.size)
         for term in self.objective_terms():
             if getattr(term, "variable", "position") == "position" and term.active:
                 g += getattr(term, "reaction_gradient", term.gradient)(q)
+        summed = self.system.summed  # (the terms' gradients are summed already)
         if self.system.loads.gravity is not None:
-            g -= self.system.loads.gravity.force
+            g -= summed(self.system.loads.gravity.force)
         a = self._acceleration()
         if a is not None:
-            g += self.model.mass @ a
+            g += summed(self.model.mass @ a)
         out = np.zeros((len(self.pin_groups), 3))
         for k, (_, dofs) in enumerate(self.pin_groups):
             np.add.at(out[k], dofs % 3, g[dofs])
-        return out
+        return self.system.total(out)
 
     def _acceleration(self) -> np.ndarray | None:
         """``(3n,)`` the acceleration the last step's equation of motion holds at its end

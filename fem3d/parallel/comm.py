@@ -7,8 +7,10 @@ import os
 import sys
 from typing import Any
 
+import numpy as np
+
 __all__ = ["RANK_VARIABLES", "launched_rank", "launched_ranks", "leave_together", "world",
-           "sum_scalar", "mpi_started", "abort"]
+           "sum_scalar", "sum_array", "mpi_started", "abort"]
 
 #: Environment variables the common MPI launchers set to the number of ranks (Open MPI,
 #: MPICH/Hydra, PMI and PMIx: srun's too; not ``SLURM_NTASKS``, which a batch script that runs
@@ -80,6 +82,16 @@ def sum_scalar(comm: Any, value: float) -> float:
     total = 0.0
     for v in values:
         total += v
+    return total
+
+
+def sum_array(comm: Any, value: np.ndarray) -> np.ndarray:
+    """:func:`sum_scalar` of a small array, entry by entry (every rank's whole array sent to
+    every rank: for a few numbers per rank, not for vectors over the mesh)."""
+    parts = comm.allgather(np.asarray(value, dtype=np.float64))
+    total = np.zeros_like(parts[0])
+    for part in parts:
+        total += part
     return total
 
 

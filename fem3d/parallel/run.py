@@ -1,15 +1,17 @@
 """``mpiexec -n N fem3d run scene.toml`` and ``mpiexec -n N fem3d resume DIR``: one
 simulation on N ranks.
 
-Every rank reads the scene and builds the whole model (the pins, motions and reported
-energies are the whole model's), partitions the tets (:mod:`fem3d.parallel.partition`) and
-steps a :class:`~fem3d.simulation.Simulation` whose system is its
-:class:`~fem3d.parallel.system.DistributedSystem`. Outputs in ``out``:
+Rank 0 reads the scene's meshes, partitions the tets (:mod:`fem3d.parallel.partition`)
+and sends every rank its part (:mod:`fem3d.scene.share`); each rank builds the model of its
+tets over its own vertices and steps a :class:`~fem3d.simulation.Simulation` whose system
+is its :class:`~fem3d.parallel.system.DistributedSystem` (energies, forces and reactions
+summed over the ranks). Outputs in ``out``:
 
 * ``frames/frame_NNNNN_R.vtu``: rank ``R``'s piece, the surface of its tets (a ``rank``
   field per point); ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and
   ``frames.pvd`` lists the frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
-* ``energy.csv`` (rank 0), the columns of a one-process run;
+* ``energy.csv`` and, with pins, ``reactions.csv`` (rank 0), the columns of a one-process
+  run;
 * ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
   the one-process run checkpoint (:mod:`fem3d.io.checkpoint`) of the whole state, which
   every rank holds, and each tet's rank; ``fem3d resume DIR`` continues it on any number of
@@ -50,6 +52,7 @@ from fem3d.io.checkpoint import (
 )
 from fem3d.io.energy import EnergyLog
 from fem3d.io.interrupts import EXIT_INTERRUPTED, Interrupts, interrupted_message
+from fem3d.io.reactions import ReactionLog
 from fem3d.kernels.dispatch import resolve_backend
 from fem3d.parallel.comm import launched_ranks, world
 from fem3d.parallel.ghosts import Ghosts
@@ -346,10 +349,14 @@ class DistributedLoop:
         comm.Barrier()
         self.writer = PieceWriter(self.out, sim.model.element.surface_triangles(sim.model.T),
                                   comm)
+        #: reactions.csv (rank 0 writes it; every rank sums its share of the pins)
+        self.reactions = ReactionLog(self.out / "reactions.csv", [k for k, _ in sim.pin_groups])
         if ckpt is None:
             self.log = EnergyLog(self.out / "energy.csv")
         else:
             self.log = EnergyLog.from_array(ckpt.energy, self.out / "energy.csv")
+            if self.rank == 0:
+                self.reactions.keep_until(ckpt.step)
             self.writer.restore(ckpt.frames, ckpt.step)
             comm.Barrier()  # later frames' files are gone before any rank writes
         self.iterations = 0
@@ -362,9 +369,12 @@ class DistributedLoop:
         """Log the state's energies (rank 0) and write its frame (every ``output.every``)."""
         sim = self.sim
         e = sim.energies()  # summed over the ranks (System.summed), the pull's whole
+        forces = sim.reactions() if self.reactions.pins else None  # (collective)
         if self.rank == 0:
             self.log.append(sim.t, e["kinetic"], e["potential"], gravity=e["gravity"],
                             pull=e["pull"])
+            if forces is not None:
+                self.reactions.append(sim.step_index, sim.t, forces)
         if sim.step_index % self.scene.output.every == 0:
             self.writer.write(sim.step_index, sim.t, sim.q)
 
@@ -391,11 +401,16 @@ class DistributedLoop:
         snapshot = self.share.whole_snapshot(self.sim.snapshot())
         if self.rank:
             return
-        self.log.write()
+        self.write_logs()
         save_run_checkpoint(self.out / CHECKPOINT_NAME, RunCheckpoint(
             settings=self.settings, snapshot=snapshot, energy=self.log.as_array(),
             frames=dict(self.writer.frames), frame_count=len(self.writer.frames),
             mesh_digest=self.digest, partition=self.partition))
+
+    def write_logs(self) -> None:
+        """Rank 0: write ``energy.csv`` and ``reactions.csv``."""
+        self.log.write()
+        self.reactions.write()
 
     def run(self) -> float:
         """Step to ``scene.n_steps``, or to the end of the step in which a rank was sent
@@ -498,7 +513,7 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
                        cpu), root=0)
     q, v = share.gather(sim.q), share.gather(sim.v)
     if comm.Get_rank() == 0:
-        loop.log.write()
+        loop.write_logs()
         np.savez(Path(out) / "state.npz", q=q, v=v, t=sim.t, step=sim.step_index)
         if loop.signum is not None:  # the checkpoint of the last step is saved
             print(f"{command}: " + interrupted_message(

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from fem3d.parallel.comm import sum_scalar
+from fem3d.parallel.comm import sum_array, sum_scalar
 from fem3d.parallel.ghosts import Ghosts
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
@@ -126,6 +126,12 @@ class ReducedTerm(Term):
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
         local = self.term.gradient(u) if self._here else np.zeros(np.size(u))
+        return self.system.summed(local)
+
+    def reaction_gradient(self, u: np.ndarray) -> np.ndarray:
+        """The term's ``reaction_gradient`` (its gradient where it has none), summed."""
+        gradient = getattr(self.term, "reaction_gradient", self.term.gradient)
+        local = gradient(u) if self._here else np.zeros(np.size(u))
         return self.system.summed(local)
 
     def add_hessian(self, u: np.ndarray, sink: HessianSink) -> None:
@@ -241,6 +247,11 @@ class DistributedSystem(System):
             return self.layout.ghosts.assemble(value)
         raise ValueError(f"a vector of {value.size} entries is not over this rank's "
                          f"{self.model.n_dofs} DOFs or {self.constraints.n_free} free DOFs")
+
+    def total(self, parts: np.ndarray) -> np.ndarray:
+        """``parts`` summed over the ranks entry by entry, in rank order (the same bits on
+        every rank)."""
+        return sum_array(self.layout.comm, parts)
 
     def solve_mass(self, rhs: np.ndarray) -> np.ndarray:
         """``M^-1 rhs`` with the mass matrix summed over the ranks (each rank's

@@ -104,7 +104,7 @@ class SharePart:
     motions : list of PinMotion
         Slots among the share's pinned vertices.
     pin_groups : tuple
-        Each pin's key and its DOFs here (local numbers).
+        Each pin's key and its DOFs on the vertices this rank owns (local numbers).
     """
 
     numbering: LocalNumbering
@@ -168,7 +168,14 @@ def cut_share(scene: Scene, whole: WholeScene, backend: str | None, tets: np.nda
         damps=bool(np.any(np.asarray(alpha) != 0) or np.any(np.asarray(beta) != 0)),
         loads=surface_load_specs(scene, a, backend, numbering, owner == rank, whole.loads),
         motions=motions,
-        pin_groups=tuple((key, numbering.dof_ids(d)) for key, d in whole.pin_groups))
+        pin_groups=tuple((key, _owned_dofs(numbering.dof_ids(d), owned))
+                         for key, d in whole.pin_groups))
+
+
+def _owned_dofs(dofs: np.ndarray, owned: np.ndarray) -> np.ndarray:
+    """The local DOFs ``dofs`` of vertices this rank owns (``owned``: per local vertex): a
+    pin's reaction counts each DOF once, on its owner."""
+    return dofs[owned[dofs // 3]]
 
 
 def build_share(scene: Scene, backend: str | None, share: Share) -> Built:

@@ -220,6 +220,11 @@ class System:
         from the model itself (energies, forces, a right-hand side) goes through it."""
         return value
 
+    def total(self, parts: np.ndarray) -> np.ndarray:
+        """A small array of per-process parts (a number per pin, say) summed over the
+        processes that share this system: itself in one process."""
+        return parts
+
     def pull_term(self, pull: Pull | None) -> PullSprings:
         """The objective's term of the pull springs ``pull`` (a distributed system: the
         springs of the vertices its rank owns, summed over the ranks)."""

@@ -1,7 +1,8 @@
 """Surface and point loads and scripted pulls under ``mpiexec -n 2``: each loaded face is
 added by the rank of the tet it bounds, each point force and pull spring by the rank that
 owns its vertex, so that 2 ranks equal the one-process run (P1 and P2 faces; backward Euler
-and the linearly-implicit scheme)."""
+and the linearly-implicit scheme); the pins' reactions.csv too, each held DOF counted on the
+rank that owns it."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
+from fem3d.io.reactions import read_reactions_csv
 from fem3d.physics.terms.surface import faces_among
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
@@ -74,10 +76,21 @@ def _pulled_box(folder, integrator):
     return scene
 
 
+def _side_pinned_bar(folder):
+    """One bar held along its whole y = 0 face, loaded: the cut between the ranks runs
+    through the pin (vertices both ranks hold), so each DOF must count once."""
+    scene = write_scene(folder, integrator="implicit", steps=10)
+    text = scene.read_text().split("\n[[bodies]]\n")
+    text[1] = text[1].replace("[[-1.0, -1.0, -1.0], [1e-6, 1.0, 1.0]]",
+                              "[[-1.0, -1.0, -1.0], [2.0, 1e-6, 1.0]]")
+    scene.write_text("\n[[bodies]]\n".join(text[:2]) + LOADS)
+    return scene
+
+
 #: the 2-rank runs compared with one process: name -> how its scene is made in a folder
 SCENES = {**{f"loads {i}": lambda f, i=i: _loaded_box(f, i)
              for i in ("implicit", "bdf2", "linear")},
-          "p2 loads": _loaded_p2_bar,
+          "p2 loads": _loaded_p2_bar, "side pins": _side_pinned_bar,
           **{f"pulls {i}": lambda f, i=i: _pulled_box(f, i) for i in ("implicit", "linear")}}
 
 
@@ -90,17 +103,26 @@ def two_rank_runs(tmp_path_factory):
 def _compare(run, steps: int, what: str) -> float:
     """A 2-rank run of :func:`two_rank_runs` against its scene run in one process (the
     scripted pulls applied, as ``fem3d run`` does); the relative difference of the
-    positions."""
+    positions. The reactions.csv of the 2 ranks (each pin's DOFs counted on their owners,
+    the forces summed over the ranks) are the one-process reactions of every step, to
+    1e-7 of the largest."""
     scene, proc = run
     assert proc.returncode == 0, proc.stderr[-3000:]
     state = np.load(scene.parent / "out" / "state.npz")
     sim = Simulation(load_scene(str(scene)), scripted=True)
+    reactions = [sim.reactions()]
     for _ in range(steps):
         sim.step()
+        reactions.append(sim.reactions())
     diff = relative_difference(state["q"], sim.q, sim.model.X)
     print(f"{what}: 2 ranks vs one process: relative difference {diff:.2e}")
     assert int(state["step"]) == steps and diff <= 1e-8
     assert relative_difference(state["v"], sim.v, 0.0 * sim.v) <= 1e-6
+    rows = read_reactions_csv(scene.parent / "out" / "reactions.csv")
+    expected = np.array(reactions).reshape(steps + 1, -1)
+    assert sim.pin_groups and rows.shape == (steps + 1, 2 + 3 * len(sim.pin_groups))
+    assert np.array_equal(rows[:, 0], np.arange(steps + 1))
+    assert np.abs(rows[:, 2:] - expected).max() <= 1e-7 * np.abs(expected).max()
     return diff
 
 
@@ -110,6 +132,19 @@ def test_loads_on_two_ranks_equal_one_process(two_rank_runs, integrator):
     pressure and a point force, on 2 ranks: the one-process run to 1e-8 of the motion (a
     load counted on both ranks would be off by its whole size)."""
     _compare(two_rank_runs[f"loads {integrator}"], 10, f"loads, {integrator}")
+
+
+def test_reactions_of_a_pin_both_ranks_hold(two_rank_runs):
+    """A pin along the whole bar, cut by the partition: the 2-rank reactions.csv is the
+    one-process one (a DOF counted by both of its holders would double its share)."""
+    import meshio
+
+    scene, _ = two_rank_runs["side pins"]
+    _compare(two_rank_runs["side pins"], 10, "a pin on both ranks")
+    frames = scene.parent / "out" / "frames"
+    for rank in (0, 1):  # each rank's piece has pinned points (at rest in frame 0)
+        points = meshio.read(frames / f"frame_00000_{rank}.vtu").points
+        assert (points[:, 1] == 0.0).sum() >= 4
 
 
 def test_p2_loads_on_two_ranks_equal_one_process(two_rank_runs):
@@ -146,7 +181,8 @@ def test_faces_among_picks_a_share_of_the_faces():
 
 def test_pulls_and_loads_resume_on_two_ranks_bit_exact(tmp_path):
     """A 2-rank run with the loads and the pulls, checkpointed at step 5 (a pull attached)
-    and resumed on 2 ranks to 10: bit for bit the straight 10-step run (CG + GAMG)."""
+    and resumed on 2 ranks to 10: bit for bit the straight 10-step run (CG + GAMG), its
+    energy.csv and reactions.csv included (the resume keeps the rows up to step 5)."""
     scene = write_scene(tmp_path, integrator="bdf2", steps=10)
     first, second = scene.read_text().rsplit("\n[[bodies]]\n", 1)
     scene.write_text(first + LOADS + "\n[[bodies]]\n" + second + PULLS)
@@ -161,4 +197,5 @@ def test_pulls_and_loads_resume_on_two_ranks_bit_exact(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     a, b = np.load(straight / "state.npz"), np.load(resumed / "state.npz")
     assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["v"], b["v"])
-    assert (straight / "energy.csv").read_bytes() == (resumed / "energy.csv").read_bytes()
+    for name in ("energy.csv", "reactions.csv"):
+        assert (straight / name).read_bytes() == (resumed / name).read_bytes(), name
