@@ -58,19 +58,27 @@ class PieceWriter:
                     f.unlink()
         self._write_pvd()
 
-    def write(self, step: int, t: float, q: np.ndarray) -> None:
-        """This rank's piece of frame ``step``; rank 0: the ``.pvtu`` and ``frames.pvd``."""
-        self._vtu.write(self.frame_dir / self.name(step, self.rank), q[self.vertices],
-                        {"rank": self._rank_field})
+    def write(self, step: int, t: float, q: np.ndarray,
+              fields: Mapping[str, np.ndarray] | None = None) -> None:
+        """This rank's piece of frame ``step``; rank 0: the ``.pvtu`` and ``frames.pvd``.
+
+        ``fields``: float64 point data over the rank's vertices (``(n,)`` or ``(n, c)``; the
+        stress fields of :func:`fem3d.physics.stress.vertex_fields`), the same names on
+        every rank; each piece carries them at its points, after its ``rank``."""
+        data = {"rank": self._rank_field,
+                **{name: np.asarray(a, dtype=np.float64)[self.vertices]
+                   for name, a in (fields or {}).items()}}
+        self._vtu.write(self.frame_dir / self.name(step, self.rank), q[self.vertices], data)
         if self.rank:
             return
         pieces = "\n".join(f"    <Piece Source={quoteattr(self.name(step, r))}/>"
                            for r in range(self.size))
+        arrays = "".join(_p_data_array(name, a) for name, a in data.items())
         atomic_write(self.frame_dir / self.name(step), (
             '<?xml version="1.0"?>\n<VTKFile type="PUnstructuredGrid" version="1.0" '
             'byte_order="LittleEndian" header_type="UInt64">\n'
             '  <PUnstructuredGrid GhostLevel="0">\n'
-            '    <PPointData><PDataArray type="Int32" Name="rank"/></PPointData>\n'
+            f"    <PPointData>{arrays}</PPointData>\n"
             '    <PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>\n'
             f"{pieces}\n  </PUnstructuredGrid>\n</VTKFile>\n"))
         self.frames[step] = (t, f"frames/{self.name(step)}")
@@ -83,3 +91,11 @@ class PieceWriter:
             '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" '
             f'byte_order="LittleEndian">\n  <Collection>\n{rows}\n  </Collection>\n'
             "</VTKFile>\n"))
+
+
+def _p_data_array(name: str, a: np.ndarray) -> str:
+    """The ``.pvtu``'s declaration of a pieces' point array (its type and components)."""
+    kind = "Int32" if a.dtype == np.int32 else "Float64"
+    components = int(np.prod(a.shape[1:], dtype=int))
+    comps = f' NumberOfComponents="{components}"' if components > 1 else ""
+    return f'<PDataArray type="{kind}" Name={quoteattr(name)}{comps}/>'

@@ -8,8 +8,9 @@ is its :class:`~fem3d.parallel.system.DistributedSystem` (energies, forces and r
 summed over the ranks). Outputs in ``out``:
 
 * ``frames/frame_NNNNN_R.vtu``: rank ``R``'s piece, the surface of its tets (a ``rank``
-  field per point); ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and
-  ``frames.pvd`` lists the frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
+  field per point, and the stress fields of a one-process frame);
+  ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and ``frames.pvd`` lists the
+  frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
 * ``energy.csv`` and, with pins, ``reactions.csv`` (rank 0), the columns of a one-process
   run;
 * ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
@@ -62,6 +63,7 @@ from fem3d.parallel.system import DistributedSystem
 from fem3d.physics.constraints import Constraints
 from fem3d.physics.model import Model
 from fem3d.physics.springs import Pull
+from fem3d.physics.stress import vertex_fields
 from fem3d.physics.terms.loads import Loads
 from fem3d.scene.build import refuse_mixed_elements
 from fem3d.scene.local import LocalNumbering, split_tets
@@ -376,7 +378,10 @@ class DistributedLoop:
             if forces is not None:
                 self.reactions.append(sim.step_index, sim.t, forces)
         if sim.step_index % self.scene.output.every == 0:
-            self.writer.write(sim.step_index, sim.t, sim.q)
+            # the one-process frames' stress fields, averaged over every rank's elements
+            fields = vertex_fields(sim.model, sim.q,
+                                   assemble=sim.system.vertex_ghosts.assemble)
+            self.writer.write(sim.step_index, sim.t, sim.q, fields)
 
     def _step(self) -> Any:
         """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's

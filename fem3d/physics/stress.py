@@ -10,6 +10,7 @@ the principal stretches ``sqrt(eig(F^T F))`` (ascending).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,22 +98,36 @@ def node_weights(model: Model) -> tuple[int | np.ndarray, np.ndarray, np.ndarray
     return k, np.repeat(model.element.volumes(model.vol), k), model.T.reshape(-1)
 
 
-def vertex_fields(model: Model, q: np.ndarray,
-                  e: ElementStress | None = None) -> dict[str, np.ndarray]:
+def vertex_fields(model: Model, q: np.ndarray, e: ElementStress | None = None,
+                  assemble: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
     """Volume-weighted vertex averages of :func:`element_stress` for point data: ``von_mises``
     ``(n,)``, ``cauchy_stress`` ``(n, 9)`` (row-major), ``principal_stretches`` ``(n, 3)``
-    (``e``: the elements' stress at ``q`` if already computed)."""
+    (``e``: the elements' stress at ``q`` if already computed).
+
+    ``assemble``: for an MPI rank's share of the elements, the sum over the ranks of the
+    weighted sums and weights at each of its vertices (``(n, c) -> (n, c)``,
+    :meth:`fem3d.parallel.ghosts.Ghosts.assemble`), so that a vertex on the cut gets the
+    average over all its elements, the one-process value.
+    """
     e = element_stress(model, q) if e is None else e
     k, w, idx = node_weights(model)
-    total = np.bincount(idx, weights=w, minlength=model.n_vertices)
+    n = model.n_vertices
+    values = {"von_mises": e.von_mises, "cauchy_stress": e.cauchy,
+              "principal_stretches": e.stretches}
+    sums = [np.bincount(idx, weights=w, minlength=n)]
+    for v in values.values():
+        v = v.reshape(v.shape[0], -1)
+        sums += [np.bincount(idx, weights=w * np.repeat(v[:, c], k), minlength=n)
+                 for c in range(v.shape[1])]
+    if assemble is not None:
+        sums = list(assemble(np.stack(sums, axis=1)).T)
+    total = sums[0]
     total[total == 0] = 1.0
-
-    def average(values: np.ndarray) -> np.ndarray:
-        v = values.reshape(values.shape[0], -1)
-        out = np.stack([np.bincount(idx, weights=w * np.repeat(v[:, c], k),
-                                    minlength=model.n_vertices) for c in range(v.shape[1])],
-                       axis=1) / total[:, None]
-        return out[:, 0] if values.ndim == 1 else out
-
-    return {"von_mises": average(e.von_mises), "cauchy_stress": average(e.cauchy),
-            "principal_stretches": average(e.stretches)}
+    out, column = {}, 1
+    for name, v in values.items():
+        width = int(np.prod(v.shape[1:], dtype=int))
+        average = np.stack(sums[column:column + width], axis=1) / total[:, None]
+        out[name] = average[:, 0] if v.ndim == 1 else average
+        column += width
+    return out

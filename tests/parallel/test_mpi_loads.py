@@ -12,6 +12,7 @@ import pytest
 from fem3d.io.checkpoint import CHECKPOINT_NAME, load_run_checkpoint
 from fem3d.io.energy import read_energy_csv
 from fem3d.io.reactions import read_reactions_csv
+from fem3d.physics.stress import vertex_fields
 from fem3d.physics.terms.surface import faces_among
 from fem3d.scene import load_scene
 from fem3d.simulation import Simulation
@@ -100,12 +101,12 @@ def two_rank_runs(tmp_path_factory):
     return launch_two_rank_runs(tmp_path_factory, "loads_on_two_ranks", SCENES)
 
 
-def _compare(run, steps: int, what: str) -> float:
+def _compare(run, steps: int, what: str) -> Simulation:
     """A 2-rank run of :func:`two_rank_runs` against its scene run in one process (the
-    scripted pulls applied, as ``fem3d run`` does); the relative difference of the
-    positions. The reactions.csv of the 2 ranks (each pin's DOFs counted on their owners,
-    the forces summed over the ranks) are the one-process reactions of every step, to
-    1e-7 of the largest."""
+    scripted pulls applied, as ``fem3d run`` does): the positions to 1e-8 of the motion,
+    and the reactions.csv of the 2 ranks (each pin's DOFs counted on their owners, the
+    forces summed over the ranks) the one-process reactions of every step, to 1e-7 of the
+    largest. Returns the one-process simulation."""
     scene, proc = run
     assert proc.returncode == 0, proc.stderr[-3000:]
     state = np.load(scene.parent / "out" / "state.npz")
@@ -123,7 +124,7 @@ def _compare(run, steps: int, what: str) -> float:
     assert sim.pin_groups and rows.shape == (steps + 1, 2 + 3 * len(sim.pin_groups))
     assert np.array_equal(rows[:, 0], np.arange(steps + 1))
     assert np.abs(rows[:, 2:] - expected).max() <= 1e-7 * np.abs(expected).max()
-    return diff
+    return sim
 
 
 @pytest.mark.parametrize("integrator", ["implicit", "bdf2", "linear"])
@@ -136,15 +137,31 @@ def test_loads_on_two_ranks_equal_one_process(two_rank_runs, integrator):
 
 def test_reactions_of_a_pin_both_ranks_hold(two_rank_runs):
     """A pin along the whole bar, cut by the partition: the 2-rank reactions.csv is the
-    one-process one (a DOF counted by both of its holders would double its share)."""
+    one-process one (a DOF counted by both of its holders would double its share), and so
+    are the pieces' stress fields at the vertices both ranks hold."""
     import meshio
 
     scene, _ = two_rank_runs["side pins"]
-    _compare(two_rank_runs["side pins"], 10, "a pin on both ranks")
+    sim = _compare(two_rank_runs["side pins"], 10, "a pin on both ranks")
     frames = scene.parent / "out" / "frames"
     for rank in (0, 1):  # each rank's piece has pinned points (at rest in frame 0)
         points = meshio.read(frames / f"frame_00000_{rank}.vtu").points
         assert (points[:, 1] == 0.0).sum() >= 4
+    # the last frame's stress fields are the one-process ones, on the cut too (a vertex
+    # both pieces have: its average over both ranks' elements)
+    expected = vertex_fields(sim.model, sim.q)
+    seen = []
+    for rank in (0, 1):
+        piece = meshio.read(frames / f"frame_00010_{rank}.vtu")
+        d = np.linalg.norm(piece.points[:, None, :] - sim.q[None, :, :], axis=2)
+        vertex = d.argmin(axis=1)
+        assert d.min(axis=1).max() <= 1e-8
+        for name, values in expected.items():
+            got = piece.point_data[name].reshape(len(vertex), -1)
+            want = values.reshape(len(sim.q), -1)[vertex]
+            assert np.abs(got - want).max() <= 1e-6 * np.abs(want).max(), name
+        seen.append(vertex)
+    assert np.intersect1d(*seen).size > 0
 
 
 def test_p2_loads_on_two_ranks_equal_one_process(two_rank_runs):

@@ -15,6 +15,7 @@ import pytest
 
 from fem3d.io.energy import read_energy_csv
 from fem3d.parallel.partition import dual_graph, partition_tets
+from fem3d.physics.stress import vertex_fields
 from fem3d.physics.terms.base import StepMap
 from fem3d.scene import load_scene
 from fem3d.scene.local import split_tets
@@ -141,7 +142,7 @@ def test_two_ranks_write_pieces(two_rank_runs):
 def test_two_ranks_pieces_read_in_vtk(two_rank_runs):
     """VTK's own parallel reader (ParaView's) opens a frame's .pvtu: both pieces, together
     the body's surface triangles once each, every point where the run left its vertex, each
-    rank's points tagged with it."""
+    rank's points tagged with it, and the one-process frame's stress fields."""
     vtk = pytest.importorskip("vtk")
     from vtk.util.numpy_support import vtk_to_numpy
 
@@ -166,6 +167,13 @@ def test_two_ranks_pieces_read_in_vtk(two_rank_runs):
     assert set(map(frozenset, vertex[cells].tolist())) == set(map(frozenset, surface.tolist()))
     ranks = vtk_to_numpy(grid.GetPointData().GetArray("rank"))
     assert set(ranks.tolist()) == {0, 1}
+    # the stress fields of the one-process frame, to 1e-6 of the largest
+    sim = _one_process(scene, steps=3)
+    expected = vertex_fields(sim.model, sim.q)
+    for name, values in expected.items():
+        got = vtk_to_numpy(grid.GetPointData().GetArray(name)).reshape(len(points), -1)
+        want = values.reshape(len(q), -1)[vertex]
+        assert np.abs(got - want).max() <= 1e-6 * np.abs(want).max(), name
 
 
 def test_without_pymetis_petscs_partitioner_cuts(tmp_path):
