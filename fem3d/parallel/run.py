@@ -12,7 +12,7 @@ summed over the ranks). Outputs in ``out``:
   ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and ``frames.pvd`` lists the
   frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
 * ``energy.csv`` and, with pins, ``reactions.csv`` (rank 0), the columns of a one-process
-  run;
+  run; ``energy.png`` (rank 0) at the end;
 * ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
   the one-process run checkpoint (:mod:`fem3d.io.checkpoint`) of the whole state, which
   every rank holds, and each tet's rank; ``fem3d resume DIR`` continues it on any number of
@@ -524,7 +524,13 @@ def run_distributed(scene: Any, out: Path, *, quiet: bool = True, backend: str |
             print(f"{command}: " + interrupted_message(
                 Interrupts.name_of(loop.signum), sim.step_index, sim.t,
                 Path(out) / CHECKPOINT_NAME, Path(out)), file=sys.stderr)
-        elif not quiet:
+            return EXIT_INTERRUPTED
+        # matplotlib is imported when a run ends (as in one process), on rank 0 alone
+        from fem3d.io.preview import plot_energy
+
+        plot_energy(loop.log, Path(out) / "energy.png",
+                    title=f"{scene.name} ({scene.simulation.integrator})")
+        if not quiet:
             steps = sim.step_index - (0 if ckpt is None else ckpt.step)
             print(f"{scene.name}: {steps} steps on {comm.Get_size()} ranks in "
                   f"{wall:.2f} s ({setup:.2f} s set-up), {loop.iterations} Newton iterations, "

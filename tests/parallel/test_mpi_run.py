@@ -112,7 +112,8 @@ def test_static_on_two_ranks_equals_one_process(two_rank_runs):
 
 def test_two_ranks_write_pieces(two_rank_runs):
     """Each frame: one .vtu piece per rank (the surface of its tets), a .pvtu naming both,
-    frames.pvd listing the frames; the pieces' points are the run's positions."""
+    frames.pvd listing the frames; the pieces' points are the run's positions; the run's
+    energy.png."""
     import meshio
 
     scene, proc = two_rank_runs["pieces"]
@@ -137,6 +138,8 @@ def test_two_ranks_write_pieces(two_rank_runs):
         seen.append(d.argmin(axis=1))
     surface = Simulation(load_scene(str(scene))).surface_faces
     assert set(np.unique(surface)) <= set(np.concatenate(seen))  # the pieces cover it
+    # and energy.png, as a one-process run ends
+    assert (folder / "out" / "energy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_two_ranks_pieces_read_in_vtk(two_rank_runs):
@@ -619,10 +622,10 @@ import os
 if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK")) == "1":
     import fem3d.parallel.pieces as pieces
     write = pieces.PieceWriter.write
-    def failing(self, step, t, q):
+    def failing(self, step, t, q, fields=None):
         if step == 3:
             raise {error}
-        write(self, step, t, q)
+        write(self, step, t, q, fields)
     pieces.PieceWriter.write = failing
 """
 
