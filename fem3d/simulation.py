@@ -25,11 +25,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from fem3d.errors import ParameterError, SimulationError
 from fem3d.io.obstacles import ObstacleMesh, plane_square
-from fem3d.mesh.skin import build_skinning_matrix
 from fem3d.physics.assembly import kinetic_energy, potential_energy
 from fem3d.physics.constraints import Constraints, pick_nearest_vertices
 from fem3d.physics.model import Model, validate_dt
@@ -335,19 +333,8 @@ class Simulation:
     @property
     def skinning_matrix(self):
         """``(k, n)`` sparse skinning matrix (built on first use), or None without a skin."""
-        a = self.assembled
-        if self._W is None and a.skin_V is not None:
-            blocks = []
-            for i, (vs, _) in enumerate(a.skin_bodies):
-                bv = a.body_vertices[i]
-                n_i = bv.stop - bv.start
-                if a.skin_identity[i]:
-                    W_i = sp.identity(n_i, format="csr")
-                else:
-                    W_i = build_skinning_matrix(a.X[bv], a.body_elements(i) - bv.start,
-                                                a.skin_V[vs], element=a.body_element(i))
-                blocks.append(W_i)
-            self._W = blocks[0] if len(blocks) == 1 else sp.block_diag(blocks, format="csr")
+        if self._W is None:
+            self._W = self.assembled.skinning_matrix()
         return self._W
 
     @property

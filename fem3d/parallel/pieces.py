@@ -28,14 +28,18 @@ class PieceWriter:
         The surface of this rank's tets (the whole mesh's vertex numbers): the element's
         ``surface_triangles``.
     comm : mpi4py.MPI.Comm
+    display_faces : (f, 3) int64, optional
+        Rank 0 of a scene with a display mesh: its triangles (:meth:`write_display`).
     """
 
-    def __init__(self, out: Path, triangles: np.ndarray, comm: Any) -> None:
+    def __init__(self, out: Path, triangles: np.ndarray, comm: Any,
+                 display_faces: np.ndarray | None = None) -> None:
         self.rank, self.size = comm.Get_rank(), comm.Get_size()
         self.out = Path(out)
         self.frame_dir = self.out / "frames"
         self.vertices, local = np.unique(triangles, return_inverse=True)
         self._vtu = RawVtu(local.reshape(-1, 3))
+        self._display = None if display_faces is None else RawVtu(display_faces)
         self._rank_field = np.full(self.vertices.size, self.rank, dtype=np.int32)
         #: step -> (time, path relative to ``out``) of every frame listed in ``frames.pvd``
         self.frames: dict[int, tuple[float, str]] = {}
@@ -82,6 +86,15 @@ class PieceWriter:
             '    <PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>\n'
             f"{pieces}\n  </PUnstructuredGrid>\n</VTKFile>\n"))
         self.frames[step] = (t, f"frames/{self.name(step)}")
+        self._write_pvd()
+
+    def write_display(self, step: int, t: float, V: np.ndarray,
+                      fields: Mapping[str, np.ndarray]) -> None:
+        """Rank 0: frame ``step`` of the whole display mesh at ``V`` with point ``fields``,
+        as one process writes it (``frames/frame_NNNNN.vtu``), and ``frames.pvd``."""
+        name = f"frame_{step:05d}.vtu"
+        self._display.write(self.frame_dir / name, V, fields)
+        self.frames[step] = (t, f"frames/{name}")
         self._write_pvd()
 
     def _write_pvd(self) -> None:

@@ -10,7 +10,9 @@ summed over the ranks). Outputs in ``out``:
 * ``frames/frame_NNNNN_R.vtu``: rank ``R``'s piece, the surface of its tets (a ``rank``
   field per point, and the stress fields of a one-process frame);
   ``frames/frame_NNNNN.pvtu`` gathers the pieces of a frame and ``frames.pvd`` lists the
-  frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`);
+  frames by time (ParaView opens it; :mod:`~fem3d.parallel.pieces`); a scene with a
+  display mesh (a skin) has the one-process frames instead, ``frames/frame_NNNNN.vtu`` of
+  the skinned display mesh (rank 0 gathers the positions and skins them);
 * ``energy.csv`` and, with pins, ``reactions.csv`` (rank 0), the columns of a one-process
   run; ``energy.png`` (rank 0) at the end;
 * ``checkpoint.npz`` (rank 0, with ``--checkpoint-every N``: every N steps and at the end):
@@ -150,6 +152,11 @@ class RankShare:
         on the other ranks.
     n_vertices : int
         The scene's vertex count.
+    skinned : bool
+        Whether the scene shows a display mesh (a skin), after :meth:`part`.
+    display : tuple of (sparse matrix, ndarray) or None
+        Rank 0, a skinned scene: the skinning matrix ``W`` (display vertices from the whole
+        mesh's) and the display triangles; None elsewhere.
     """
 
     def __init__(self, comm: Any, petsc_options: str = "",
@@ -161,6 +168,8 @@ class RankShare:
         self.digest = ""
         self.partition = partition
         self.n_vertices = 0
+        self.skinned = False
+        self.display: tuple[Any, np.ndarray] | None = None
 
     def part(self, read: Callable[[], WholeScene],
              cut: Callable[[WholeScene, np.ndarray, np.ndarray, int], SharePart]) -> SharePart:
@@ -184,6 +193,8 @@ class RankShare:
                     tet_rank = partition_tets(T, size)
                 self.partition = tet_rank.astype(np.int32)  # what the checkpoints write
                 self.digest, self.n_vertices = mesh_digest(X, T), X.shape[0]
+                W = whole.arrays.skinning_matrix()
+                self.display = None if W is None else (W, whole.arrays.skin_F)
                 parts, owner = split_tets(T, tet_rank, size)
                 for r in range(1, size):  # one at a time: one part in memory beside the whole
                     comm.send(("part", cut(whole, parts[r], owner, r), self.digest,
@@ -202,6 +213,7 @@ class RankShare:
             else:
                 _, mine, self.digest, self.n_vertices = message
         self.agree(failure)
+        self.skinned = bool(comm.bcast(self.display is not None, root=0))
         return mine
 
     def hold(self, numbering: LocalNumbering, constraints: Constraints) -> None:
@@ -350,7 +362,7 @@ class DistributedLoop:
             (self.out / "frames").mkdir(parents=True, exist_ok=True)
         comm.Barrier()
         self.writer = PieceWriter(self.out, sim.model.element.surface_triangles(sim.model.T),
-                                  comm)
+                                  comm, None if share.display is None else share.display[1])
         #: reactions.csv (rank 0 writes it; every rank sums its share of the pins)
         self.reactions = ReactionLog(self.out / "reactions.csv", [k for k, _ in sim.pin_groups])
         if ckpt is None:
@@ -381,7 +393,22 @@ class DistributedLoop:
             # the one-process frames' stress fields, averaged over every rank's elements
             fields = vertex_fields(sim.model, sim.q,
                                    assemble=sim.system.vertex_ghosts.assemble)
-            self.writer.write(sim.step_index, sim.t, sim.q, fields)
+            if self.share.skinned:
+                self._write_display(fields)
+            else:
+                self.writer.write(sim.step_index, sim.t, sim.q, fields)
+
+    def _write_display(self, fields: dict[str, np.ndarray]) -> None:
+        """Collective. A skinned scene's frame, the one-process one: the positions and
+        fields gathered on rank 0, which skins them (``W``) into the display mesh's
+        ``.vtu`` (its rows come from any rank, so no rank alone could write a piece)."""
+        sim, share = self.sim, self.share
+        q = share.gather(sim.q)
+        whole = {name: share.gather(values) for name, values in fields.items()}
+        if self.rank == 0:
+            W = share.display[0]
+            self.writer.write_display(sim.step_index, sim.t, np.asarray(W @ q),
+                                      {name: np.asarray(W @ v) for name, v in whole.items()})
 
     def _step(self) -> Any:
         """``sim.step()`` on every rank, its failure on any rank a failure on all (a step's

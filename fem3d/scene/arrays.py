@@ -23,13 +23,14 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from fem3d.errors import InputError, ParameterError
 from fem3d.io.files import check_input_file
 from fem3d.mesh.element import ELEMENTS, Element, MixedElements
 from fem3d.mesh.formats import read_surface_mesh, read_tet_mesh
 from fem3d.mesh.quadratic import has_p2_cells, lift_to_p2, read_p2_mesh
-from fem3d.mesh.skin import check_skin_placement
+from fem3d.mesh.skin import build_skinning_matrix, check_skin_placement
 from fem3d.mesh.tetrahedralize import tetrahedralize_file
 from fem3d.physics.constraints import pick_nearest_vertices
 from fem3d.physics.springs import Pull
@@ -392,6 +393,23 @@ class SceneArrays:
     def body_element(self, i: int) -> Element:
         """The element of body ``i``."""
         return next(b.element for b in self.blocks if i in b.bodies)
+
+    def skinning_matrix(self) -> sp.csr_matrix | None:
+        """``(k, n)`` the display vertices from the simulation's (``W @ q``): each body's
+        skin bound to its elements (:func:`fem3d.mesh.skin.build_skinning_matrix`), the
+        identity for a body shown as itself; None without a skin."""
+        if self.skin_V is None:
+            return None
+        blocks = []
+        for i, (vs, _) in enumerate(self.skin_bodies):
+            bv = self.body_vertices[i]
+            if self.skin_identity[i]:
+                blocks.append(sp.identity(bv.stop - bv.start, format="csr"))
+            else:
+                blocks.append(build_skinning_matrix(self.X[bv], self.body_elements(i) - bv.start,
+                                                    self.skin_V[vs],
+                                                    element=self.body_element(i)))
+        return blocks[0] if len(blocks) == 1 else sp.block_diag(blocks, format="csr")
 
 
 @dataclass(frozen=True, eq=False)
