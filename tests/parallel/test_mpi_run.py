@@ -321,7 +321,8 @@ def test_metis_cuts_the_same_way_every_time():
 
 class _Comm:
     """Rank ``rank`` of ``size`` without MPI: what rank 0 sends is recorded; a receive
-    returns ``incoming``; ``allgather`` returns this rank's row alone."""
+    returns ``incoming``; ``allgather`` returns this rank's row alone, ``bcast`` its
+    value."""
 
     def __init__(self, size, rank, incoming=None):
         self.size, self.rank, self.incoming, self.sent = size, rank, incoming, []
@@ -341,6 +342,9 @@ class _Comm:
     def allgather(self, row):
         return [row]
 
+    def bcast(self, value, root):
+        return value
+
 
 def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
     """``RankShare.part`` given a partition (a resume's, written on as many ranks) takes it
@@ -351,7 +355,8 @@ def test_a_resume_on_as_many_ranks_keeps_the_checkpoints_partition(monkeypatch):
     from fem3d.parallel import run as parallel_run
 
     T = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]])
-    whole = SimpleNamespace(arrays=SimpleNamespace(X=np.zeros((6, 3)), T=T))
+    whole = SimpleNamespace(arrays=SimpleNamespace(X=np.zeros((6, 3)), T=T,
+                                                   skinning_matrix=lambda: None))
     made = []
     monkeypatch.setattr(parallel_run, "partition_tets",
                         lambda T, n: made.append(len(T)) or np.array([0, 0, 1]))
