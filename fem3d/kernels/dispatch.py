@@ -20,6 +20,7 @@ from functools import cache
 import numpy as np
 
 from fem3d._generated import MATERIALS, MODULES
+from fem3d.errors import InputError
 from fem3d.kernels.backend import c_extension, resolve_backend
 from fem3d.kernels.schedule import schedule_for
 from fem3d.kernels.threads import adaptive
@@ -66,7 +67,12 @@ class KernelModule:
 def _c_wrapper(module: str, kernel: str, signature: dict) -> Callable[..., object]:
     """Wrap one C kernel: validate and lay out inputs, allocate outputs, call, reshape."""
     ext = c_extension()
-    function = getattr(ext, f"{module}_{kernel}")
+    function = getattr(ext, f"{module}_{kernel}", None)
+    if function is None:  # an extension built before generated/ last changed
+        raise InputError(
+            f"the built C kernels (fem3d._ckernels) have no {module}.{kernel}: they are "
+            "older than generated/; rebuild them (pip install -e . or make install), or run "
+            "with FEM3D_KERNELS=numpy")
     inputs = signature["inputs"]
     outputs = signature["outputs"]
     n_params = len(signature["params"])

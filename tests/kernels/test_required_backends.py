@@ -54,6 +54,20 @@ def test_pytest_run_fails_when_required_c_is_missing(tmp_path):
     assert "FEM3D_REQUIRE_C=1" in proc.stdout + proc.stderr
 
 
+def test_an_extension_older_than_generated_is_one_line(monkeypatch):
+    """A C extension built before generated/ gained a kernel (an editable checkout updated
+    without a rebuild): one line naming the kernel and the rebuild, not an AttributeError."""
+    from types import SimpleNamespace
+
+    from fem3d.errors import InputError
+    from fem3d.kernels import dispatch
+
+    monkeypatch.setattr(dispatch, "c_extension", lambda: SimpleNamespace())
+    with pytest.raises(InputError, match=r"have no tet\.rest_shape: they are older than "
+                                         r"generated/; rebuild them \(pip install -e \."):
+        dispatch.KernelModule("tet", "c")
+
+
 def test_public_entry_points_import_from_the_package():
     from fem3d import Scene, Simulation, load_scene, run_scene
     from fem3d.app.run import run_scene as run_scene_impl
