@@ -216,10 +216,10 @@ class LagrangeTet:
         """The exact mass of a curved element from its ``det J`` at a few points.
 
         ``J = dX/dxi`` has entries of degree ``k - 1`` in ``xi``, so ``det J`` is a polynomial
-        of degree ``d = 3 (k - 1)`` and equals its Lagrange interpolant ``sum_p det J(xi_p)
-        L_p(xi)`` on the ``xi_p`` nodes of degree ``d``. Then ``integral N_i N_j det J dxi =
-        sum_p det J(xi_p) C_p[i, j]`` with ``C_p = integral N_i N_j L_p dxi``, exact
-        rationals: no quadrature error for any position of the nodes.
+        of degree ``3 (k - 1)`` and equals its Lagrange interpolant ``sum_p det J(xi_p)
+        L_p(xi)`` on the ``xi_p`` nodes of that degree (at least 1). Then ``integral N_i N_j
+        det J dxi = sum_p det J(xi_p) C_p[i, j]`` with ``C_p = integral N_i N_j L_p dxi``,
+        exact rationals: no quadrature error for any position of the nodes.
 
         Returns
         -------
@@ -227,10 +227,7 @@ class LagrangeTet:
         C : one ``n_nodes x n_nodes`` matrix per point
         """
         xi = reference_coordinates()
-        d = 3 * (self.degree - 1)
-        if d == 0:  # affine: det J is constant
-            quarter = sp.Rational(1, 4)
-            return ((quarter, quarter, quarter),), (self.mass_coefficients / 6,)
+        d = max(1, 3 * (self.degree - 1))  # (P1: det J is constant, linear interpolates it)
         interpolation = LagrangeTet(f"p{d}", d, "centroid")
         L = [sp.Poly(f, *xi) for f in interpolation.shape_functions()]
         N = [sp.Poly(f, *xi) for f in self.shape_functions()]

@@ -78,18 +78,18 @@ def leave_together(timeout: float = 30.0) -> None:
 def sum_scalar(comm: Any, value: float) -> float:
     """``sum`` of one float over the ranks, added in rank order: the same bits on every rank
     (an ``MPI_Allreduce`` may associate differently per rank)."""
-    values = comm.allgather(float(value))
-    total = 0.0
-    for v in values:
-        total += v
-    return total
+    return _in_rank_order(comm.allgather(float(value)), 0.0)
 
 
 def sum_array(comm: Any, value: np.ndarray) -> np.ndarray:
     """:func:`sum_scalar` of a small array, entry by entry (every rank's whole array sent to
     every rank: for a few numbers per rank, not for vectors over the mesh)."""
     parts = comm.allgather(np.asarray(value, dtype=np.float64))
-    total = np.zeros_like(parts[0])
+    return _in_rank_order(parts, np.zeros_like(parts[0]))
+
+
+def _in_rank_order(parts: list, total: Any) -> Any:
+    """``total + parts[0] + parts[1] + ...``, left to right."""
     for part in parts:
         total += part
     return total

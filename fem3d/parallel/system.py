@@ -125,12 +125,14 @@ class ReducedTerm(Term):
         return self.system.summed(float(self.term.energy(u)) if self._here else 0.0)
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
-        local = self.term.gradient(u) if self._here else np.zeros(np.size(u))
-        return self.system.summed(local)
+        return self._summed(self.term.gradient, u)
 
     def reaction_gradient(self, u: np.ndarray) -> np.ndarray:
         """The term's ``reaction_gradient`` (its gradient where it has none), summed."""
-        gradient = getattr(self.term, "reaction_gradient", self.term.gradient)
+        return self._summed(getattr(self.term, "reaction_gradient", self.term.gradient), u)
+
+    def _summed(self, gradient, u: np.ndarray) -> np.ndarray:
+        """``gradient(u)`` of the rank's term (zeros where it is not here), summed."""
         local = gradient(u) if self._here else np.zeros(np.size(u))
         return self.system.summed(local)
 

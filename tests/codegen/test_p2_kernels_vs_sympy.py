@@ -191,6 +191,9 @@ def test_curved_mass_weights_integrate_every_cubic_det_j() -> None:
     element is), exactly; a constant gives the straight-edged coefficients."""
     points, C = P2.curved_mass_weights
     assert len(points) == 20 and sum(C, sp.zeros(10, 10)) * 6 == P2.mass_coefficients
+    P1 = ELEMENTS["p1"]  # det J constant: the corners, summing to the straight coefficients
+    points1, C1 = P1.curved_mass_weights
+    assert len(points1) == 4 and sum(C1, sp.zeros(4, 4)) * 6 == P1.mass_coefficients
     xi = reference_coordinates()
     f = 2 + xi[0] * xi[1] * xi[2] - 3 * xi[0] ** 3 + xi[1] ** 2 * xi[2] - xi[2]
     at = [f.subs(dict(zip(xi, point, strict=True))) for point in points]
